@@ -1,0 +1,218 @@
+"""The numpy <-> bpy bridge: meshes, attributes, shape keys, collections and empties.
+
+All geometry is float32/int32 through ``foreach_get``/``foreach_set``; no per-vertex
+Python loops. Blender units are millimetres (one Blender unit = 1 mm; the scene's unit
+scale is set to 0.001 m so the viewport shows mm).
+"""
+
+from __future__ import annotations
+
+import colorsys
+
+import bpy
+import numpy as np
+
+INSTANCES_COLLECTION = "SSM Instances"
+
+
+def ensure_mm_units(scene: bpy.types.Scene) -> None:
+    """Show lengths in mm: one Blender unit is one millimetre."""
+    us = scene.unit_settings
+    if us.system != "METRIC" or abs(us.scale_length - 0.001) > 1e-12:
+        us.system = "METRIC"
+        us.scale_length = 0.001
+        us.length_unit = "MILLIMETERS"
+
+
+def ensure_collection(scene: bpy.types.Scene, name: str) -> bpy.types.Collection:
+    """Return the collection ``name`` linked to the scene, creating it if needed."""
+    coll = bpy.data.collections.get(name)
+    if coll is None:
+        coll = bpy.data.collections.new(name)
+    if scene.collection.children.get(coll.name) is None and coll.name not in {
+        c.name for c in scene.collection.children_recursive
+    }:
+        scene.collection.children.link(coll)
+    return coll
+
+
+def mesh_from_arrays(name: str, vertices: np.ndarray, faces: np.ndarray, mesh=None) -> bpy.types.Mesh:
+    """Create (or refill) a triangle mesh from (V, 3) vertices and (F, 3) faces."""
+    vertices = np.ascontiguousarray(vertices, dtype=np.float32).reshape(-1, 3)
+    faces = np.ascontiguousarray(faces, dtype=np.int32).reshape(-1, 3)
+    if mesh is None:
+        mesh = bpy.data.meshes.new(name)
+    else:
+        mesh.clear_geometry()
+    mesh.vertices.add(len(vertices))
+    mesh.vertices.foreach_set("co", vertices.ravel())
+    mesh.loops.add(faces.size)
+    mesh.loops.foreach_set("vertex_index", faces.ravel())
+    mesh.polygons.add(len(faces))
+    mesh.polygons.foreach_set("loop_start", np.arange(0, faces.size, 3, dtype=np.int32))
+    mesh.update(calc_edges=True)
+    mesh.validate(verbose=False)
+    return mesh
+
+
+def mesh_vertices(mesh: bpy.types.Mesh) -> np.ndarray:
+    """(V, 3) float64 vertex coordinates of ``mesh`` in its object frame."""
+    co = np.empty(len(mesh.vertices) * 3, dtype=np.float32)
+    mesh.vertices.foreach_get("co", co)
+    return co.reshape(-1, 3).astype(np.float64)
+
+
+def mesh_triangles(mesh: bpy.types.Mesh) -> np.ndarray:
+    """(F, 3) int triangles of ``mesh`` (polygons triangulated via loop triangles)."""
+    mesh.calc_loop_triangles()
+    tris = np.empty(len(mesh.loop_triangles) * 3, dtype=np.int32)
+    mesh.loop_triangles.foreach_get("vertices", tris)
+    return tris.reshape(-1, 3).astype(np.int64)
+
+
+def object_world_vertices(obj: bpy.types.Object) -> np.ndarray:
+    """(V, 3) vertices of a mesh object in Blender world coordinates (mm)."""
+    m = np.array(obj.matrix_world, dtype=float)
+    v = mesh_vertices(obj.data)
+    return v @ m[:3, :3].T + m[:3, 3]
+
+
+def set_matrix_world(obj: bpy.types.Object, matrix: np.ndarray) -> None:
+    """Set ``obj.matrix_world`` from a (4, 4) numpy array."""
+    from mathutils import Matrix
+
+    obj.matrix_world = Matrix(np.asarray(matrix, dtype=float).tolist())
+
+
+def matrix_to_numpy(matrix) -> np.ndarray:
+    """A mathutils Matrix as a (4, 4) float64 array."""
+    return np.array([list(row) for row in matrix], dtype=float)
+
+
+def triangle_index_colors(n_faces: int) -> np.ndarray:
+    """(F, 4) float32 RGBA: a distinct colour per triangle index (golden-ratio hues).
+
+    Triangle i has the same colour on the template, every coated instance and the
+    model, which shows correspondence the way the paper's figs. 6-7 do.
+    """
+    i = np.arange(n_faces)
+    hue = (i * 0.6180339887498949) % 1.0
+    sat = 0.55 + 0.35 * ((i * 7) % 5) / 4.0
+    val = 0.65 + 0.35 * ((i * 3) % 4) / 3.0
+    rgb = np.array([colorsys.hsv_to_rgb(h, s, v) for h, s, v in zip(hue, sat, val)], dtype=np.float32)
+    rgba = np.ones((n_faces, 4), dtype=np.float32)
+    if n_faces:
+        rgba[:, :3] = rgb.reshape(-1, 3)
+    return rgba
+
+
+def set_face_colors(mesh: bpy.types.Mesh, rgba: np.ndarray, name: str = "triangle_index") -> None:
+    """Store per-face RGBA colours as a FACE colour attribute and make it active."""
+    attr = mesh.color_attributes.get(name)
+    if attr is None:
+        attr = mesh.color_attributes.new(name=name, type="FLOAT_COLOR", domain="FACE")
+    attr.data.foreach_set("color", np.ascontiguousarray(rgba, dtype=np.float32).ravel())
+    mesh.color_attributes.active_color = attr
+    mesh.color_attributes.render_color_index = mesh.color_attributes.active_color_index
+
+
+def set_point_attribute(mesh: bpy.types.Mesh, name: str, values: np.ndarray) -> None:
+    """Store a per-vertex float attribute (e.g. curvature, variance)."""
+    attr = mesh.attributes.get(name)
+    if attr is None:
+        attr = mesh.attributes.new(name=name, type="FLOAT", domain="POINT")
+    attr.data.foreach_set("value", np.ascontiguousarray(values, dtype=np.float32).ravel())
+
+
+def get_point_attribute(mesh: bpy.types.Mesh, name: str) -> np.ndarray | None:
+    """Read a per-vertex float attribute, or None if absent."""
+    attr = mesh.attributes.get(name)
+    if attr is None:
+        return None
+    out = np.empty(len(attr.data), dtype=np.float32)
+    attr.data.foreach_get("value", out)
+    return out
+
+
+def color_material(name: str = "SSM Triangle Colours", attribute: str = "triangle_index"):
+    """A material that shows a colour attribute (per-triangle colours) in renders."""
+    mat = bpy.data.materials.get(name)
+    if mat is not None:
+        return mat
+    mat = bpy.data.materials.new(name)
+    mat.use_nodes = True
+    nodes = mat.node_tree.nodes
+    bsdf = next((n for n in nodes if n.type == "BSDF_PRINCIPLED"), None)
+    attr = nodes.new("ShaderNodeAttribute")
+    attr.attribute_name = attribute
+    if bsdf is not None:
+        mat.node_tree.links.new(attr.outputs["Color"], bsdf.inputs["Base Color"])
+    return mat
+
+
+def new_mesh_object(
+    context,
+    name: str,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    collection_name: str | None = None,
+    matrix_world: np.ndarray | None = None,
+    replace: bool = True,
+) -> bpy.types.Object:
+    """Create (or replace the data of) the mesh object ``name`` in a collection."""
+    obj = bpy.data.objects.get(name) if replace else None
+    if obj is not None and obj.type == "MESH":
+        mesh_from_arrays(name, vertices, faces, mesh=obj.data)
+        if obj.data.shape_keys is not None:
+            obj.shape_key_clear()
+    else:
+        mesh = mesh_from_arrays(name, vertices, faces)
+        obj = bpy.data.objects.new(name, mesh)
+        coll = ensure_collection(context.scene, collection_name) if collection_name else context.scene.collection
+        coll.objects.link(obj)
+    if matrix_world is not None:
+        set_matrix_world(obj, matrix_world)
+    return obj
+
+
+def set_shape_keys(obj: bpy.types.Object, keys: dict[str, np.ndarray], slider_min=-3.0, slider_max=3.0) -> None:
+    """Replace ``obj``'s shape keys by a Basis plus one key per (name, (V, 3) positions)."""
+    if obj.data.shape_keys is not None:
+        obj.shape_key_clear()
+    obj.shape_key_add(name="Basis", from_mix=False)
+    for name, positions in keys.items():
+        kb = obj.shape_key_add(name=name, from_mix=False)
+        kb.data.foreach_set("co", np.ascontiguousarray(positions, dtype=np.float32).ravel())
+        kb.slider_min = slider_min
+        kb.slider_max = slider_max
+        kb.value = 0.0
+    obj.data.update()
+
+
+def evaluated_vertices(context, obj: bpy.types.Object) -> np.ndarray:
+    """(V, 3) vertices of the depsgraph-evaluated mesh (shape keys, modifiers applied)."""
+    depsgraph = context.evaluated_depsgraph_get()
+    depsgraph.update()
+    ev = obj.evaluated_get(depsgraph)
+    mesh = ev.to_mesh()
+    try:
+        return mesh_vertices(mesh)
+    finally:
+        ev.to_mesh_clear()
+
+
+def add_empty(context, name: str, location, parent=None, size: float = 1.5, collection=None) -> bpy.types.Object:
+    """A sphere empty at a Blender-world location (mm), optionally parented keeping its place."""
+    from mathutils import Matrix, Vector
+
+    emp = bpy.data.objects.new(name, None)
+    emp.empty_display_type = "SPHERE"
+    emp.empty_display_size = size
+    coll = collection or (parent.users_collection[0] if parent is not None else context.scene.collection)
+    coll.objects.link(emp)
+    world = Matrix.Translation(Vector([float(x) for x in location]))
+    if parent is not None:
+        emp.parent = parent
+        emp.matrix_parent_inverse = parent.matrix_world.inverted()
+    emp.matrix_world = world
+    return emp

@@ -1,0 +1,3 @@
+"""Blender operators for the coating stage (filled in by its issue)."""
+
+classes = ()

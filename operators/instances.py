@@ -1,0 +1,3 @@
+"""Blender operators for the instances stage (filled in by its issue)."""
+
+classes = ()

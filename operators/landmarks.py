@@ -1,0 +1,3 @@
+"""Blender operators for the landmarks stage (filled in by its issue)."""
+
+classes = ()
