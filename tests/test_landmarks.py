@@ -25,6 +25,7 @@ from ssm_addon.landmarks import (
     write_landmarks,
 )
 
+
 def _example_set() -> LandmarkSet:
     rng = np.random.default_rng(3)
     names = ("spinous-process-tip", "pedicle, left", 'odd "quoted" name', "body-anterior-superior", "x")
