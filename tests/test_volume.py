@@ -1,0 +1,521 @@
+"""Import stage (paper section 2): readers, object frame, resampling, mesh voxelization."""
+
+from __future__ import annotations
+
+import gzip
+import json
+import re
+import struct
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from conftest import ROOT, VERSE_FILE, VERSE_LABELS
+
+from ssm_addon import volume as V
+from ssm_addon.errors import InputError
+
+# ----------------------------------------------------------------------------- fixtures
+
+
+def rotation(rx_deg: float, ry_deg: float, rz_deg: float) -> np.ndarray:
+    """Rotation Rz @ Ry @ Rx (degrees)."""
+    x, y, z = np.radians([rx_deg, ry_deg, rz_deg])
+    Rx = np.array([[1, 0, 0], [0, np.cos(x), -np.sin(x)], [0, np.sin(x), np.cos(x)]])
+    Ry = np.array([[np.cos(y), 0, np.sin(y)], [0, 1, 0], [-np.sin(y), 0, np.cos(y)]])
+    Rz = np.array([[np.cos(z), -np.sin(z), 0], [np.sin(z), np.cos(z), 0], [0, 0, 1]])
+    return Rz @ Ry @ Rx
+
+
+SEMI_AXES = np.array([13.0, 9.0, 6.0])  # along R, A, S before rotation, mm
+OBJ_ROT = rotation(12.0, -9.0, 17.0)  # object axes in world (columns)
+GRID_ROT = rotation(-8.0, 5.0, 25.0)  # oblique voxel grid directions
+SPACING = np.array([0.8, 1.1, 1.5])
+CENTRE = np.array([-31.3, 12.7, 101.9])
+
+
+def ellipsoid_affine(shape=(46, 42, 30)) -> np.ndarray:
+    """Oblique, anisotropic affine whose grid centre sits near CENTRE."""
+    A = np.eye(4)
+    A[:3, :3] = GRID_ROT * SPACING
+    A[:3, 3] = CENTRE - A[:3, :3] @ ((np.array(shape) - 1) / 2) + np.array([0.37, -0.21, 0.13])
+    return A
+
+
+def ellipsoid_mask(affine, shape=(46, 42, 30), rot=OBJ_ROT, semi=SEMI_AXES, centre=CENTRE, egg=False):
+    """Voxel centres inside the ellipsoid (egg: the +x half is 1.3x longer)."""
+    ijk = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), axis=-1).reshape(-1, 3)
+    world = ijk @ affine[:3, :3].T + affine[:3, 3]
+    local = (world - centre) @ rot
+    semi = np.broadcast_to(semi, local.shape).copy()
+    if egg:
+        semi[local[:, 0] > 0, 0] *= 1.3
+    return ((local / semi) ** 2).sum(axis=1).reshape(shape) <= 1.0
+
+
+@pytest.fixture(scope="module")
+def ellipsoid():
+    A = ellipsoid_affine()
+    return V.Volume(mask=ellipsoid_mask(A), affine=A, source="ellipsoid")
+
+
+def icosphere(radius: float = 20.0, subdivisions: int = 3):
+    """Outward-oriented icosphere: (V, 3) vertices, (F, 3) faces."""
+    t = (1 + 5**0.5) / 2
+    v = np.array(
+        [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
+         [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]], float
+    )  # fmt: skip
+    f = np.array(
+        [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2],
+         [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5],
+         [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]]
+    )  # fmt: skip
+    v /= np.linalg.norm(v, axis=1)[:, None]
+    for _ in range(subdivisions):
+        e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+        ue, inv = np.unique(e, axis=0, return_inverse=True)
+        mid = v[ue].mean(axis=1)
+        mid /= np.linalg.norm(mid, axis=1)[:, None]
+        m = inv.reshape(3, -1).T + len(v)
+        v = np.vstack([v, mid])
+        a, b, c = f.T
+        ab, bc, ca = m.T
+        f = np.concatenate(
+            [np.stack([a, ab, ca], 1), np.stack([b, bc, ab], 1), np.stack([c, ca, bc], 1), np.stack([ab, bc, ca], 1)]
+        )
+    return v * radius, f
+
+
+def write_stl_binary(path, v, f):
+    tri = v[f].astype("<f4")
+    with open(path, "wb") as fh:
+        fh.write(b"binary stl".ljust(80, b" ") + struct.pack("<I", len(f)))
+        rec = np.zeros(len(f), dtype=[("n", "<f4", 3), ("v", "<f4", (3, 3)), ("a", "<u2")])
+        rec["v"] = tri
+        fh.write(rec.tobytes())
+
+
+def write_stl_ascii(path, v, f):
+    lines = ["solid ico"]
+    for t in f:
+        lines += ["facet normal 0 0 0", " outer loop"]
+        lines += [f"  vertex {x:.9g} {y:.9g} {z:.9g}" for x, y, z in v[t]]
+        lines += [" endloop", "endfacet"]
+    lines.append("endsolid ico")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def write_ply(path, v, f, binary):
+    head = [
+        "ply",
+        f"format {'binary_little_endian' if binary else 'ascii'} 1.0",
+        f"element vertex {len(v)}",
+        "property float x",
+        "property float y",
+        "property float z",
+        f"element face {len(f)}",
+        "property list uchar int vertex_indices",
+        "end_header",
+    ]
+    if binary:
+        vert = v.astype("<f4").tobytes()
+        rec = np.zeros(len(f), dtype=[("n", "u1"), ("i", "<i4", 3)])
+        rec["n"], rec["i"] = 3, f
+        path.write_bytes(("\n".join(head) + "\n").encode() + vert + rec.tobytes())
+    else:
+        body = [f"{x:.9g} {y:.9g} {z:.9g}" for x, y, z in v] + [f"3 {a} {b} {c}" for a, b, c in f]
+        path.write_text("\n".join(head + body) + "\n")
+
+
+def write_obj_quads_negative(path, v, f):
+    """OBJ whose faces use negative (relative) indices and some quads (pairs of triangles)."""
+    lines = [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in v]
+    n = len(v)
+    lines += ["f " + " ".join(f"{i - n}/1/1" for i in t) for t in f]
+    path.write_text("\n".join(lines) + "\n")
+
+
+# ----------------------------------------------------------------------------- packaging
+
+
+def test_core_imports_without_bpy():
+    code = "import sys; sys.modules['bpy'] = None; import ssm_addon, ssm_addon.volume; print('ok')"
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "ok"
+
+
+# ----------------------------------------------------------------------------- readers
+
+
+@pytest.mark.parametrize("ext", [".nii.gz", ".nii", ".nrrd", ".nhdr", ".mha", ".mhd", ".npz"])
+def test_every_reader_round_trips_oblique_anisotropic_affine(tmp_path, ellipsoid, ext):
+    labels = ellipsoid.mask.astype(np.uint8) * 7
+    labels[0, 0, 0] = 3  # a second label at the corner: orientation of the array matters
+    path = V.write_label_map(tmp_path / f"ell{ext}", labels, ellipsoid.affine)
+    lm = V.read_label_map(path)
+    assert lm.labels.shape == labels.shape
+    np.testing.assert_array_equal(lm.labels, labels)
+    np.testing.assert_allclose(lm.affine, ellipsoid.affine, atol=1e-5)
+    assert V.label_counts(lm) == {3: 1, 7: int(ellipsoid.mask.sum())}
+
+
+def test_npy_takes_spacing_from_caller_or_sidecar(tmp_path):
+    labels = np.zeros((5, 6, 7), np.int16)
+    labels[1:3, 2:4, 3:6] = 2
+    np.save(tmp_path / "a.npy", labels)
+    lm = V.read_label_map(tmp_path / "a.npy", spacing_mm=(0.5, 0.7, 2.0))
+    np.testing.assert_allclose(lm.affine, np.diag([0.5, 0.7, 2.0, 1.0]))
+    with pytest.raises(InputError, match=r"a\.npy: .*no voxel size"):
+        V.read_label_map(tmp_path / "a.npy")
+    (tmp_path / "a.json").write_text(json.dumps({"spacing_mm": [1.5, 1.5, 3.0]}))
+    lm = V.read_label_map(tmp_path / "a.npy")
+    np.testing.assert_allclose(lm.affine, np.diag([1.5, 1.5, 3.0, 1.0]))
+    assert V.label_counts(lm) == {2: 12}
+
+
+def test_npz_with_spacing_and_float_labels_are_rounded(tmp_path):
+    labels = np.zeros((4, 4, 4))
+    labels[1:3, 1:3, 1:3] = 19.0000001
+    np.savez(tmp_path / "f.npz", labels=labels, spacing=np.array([1.0, 2.0, 3.0]))
+    lm = V.read_label_map(tmp_path / "f.npz")
+    assert lm.labels.dtype.kind in "iu"
+    assert V.label_counts(lm) == {19: 8}
+    np.testing.assert_allclose(lm.affine, np.diag([1.0, 2.0, 3.0, 1.0]))
+
+
+def test_nrrd_in_ras_space_is_not_flipped(tmp_path):
+    import nrrd
+
+    labels = np.zeros((4, 5, 6), np.uint8)
+    labels[1, 2, 3] = 1
+    nrrd.write(
+        str(tmp_path / "r.nrrd"),
+        labels,
+        {"space": "right-anterior-superior", "space directions": np.diag([0.5, 0.6, 0.7]), "space origin": [1, 2, 3]},
+    )
+    lm = V.read_label_map(tmp_path / "r.nrrd")
+    expected = np.diag([0.5, 0.6, 0.7, 1.0])
+    expected[:3, 3] = [1, 2, 3]
+    np.testing.assert_allclose(lm.affine, expected)
+
+
+def test_metaimage_lps_header_written_by_hand_is_converted_to_ras(tmp_path):
+    """A MetaImage as ITK writes it: LPS world, TransformMatrix rows = axis directions."""
+    labels = np.zeros((3, 4, 5), np.int16)
+    labels[2, 1, 4] = 5
+    header = (
+        "ObjectType = Image\nNDims = 3\nBinaryData = True\nBinaryDataByteOrderMSB = True\n"
+        "CompressedData = False\nTransformMatrix = 0 1 0 -1 0 0 0 0 1\nOffset = 10 20 30\n"
+        "AnatomicalOrientation = RAI\nElementSpacing = 2 3 4\nDimSize = 3 4 5\n"
+        "ElementType = MET_SHORT\nElementDataFile = LOCAL\n"
+    )
+    (tmp_path / "h.mha").write_bytes(header.encode() + labels.astype(">i2").ravel(order="F").tobytes())
+    lm = V.read_label_map(tmp_path / "h.mha")
+    np.testing.assert_array_equal(lm.labels, labels)
+    # voxel (2, 1, 4): LPS = offset + 2*2*(0,1,0) + 1*3*(-1,0,0) + 4*4*(0,0,1) = (7, 24, 46)
+    world = lm.affine @ np.array([2, 1, 4, 1.0])
+    np.testing.assert_allclose(world[:3], [-7.0, -24.0, 46.0])
+
+
+# ----------------------------------------------------------------------------- object frame
+
+
+def test_ellipsoid_frame_recovers_centre_and_axes(ellipsoid):
+    frame = V.object_frame(ellipsoid)
+    assert frame.method == "patient"
+    assert np.linalg.norm(frame.origin_world - CENTRE) < 0.5 * SPACING.min()
+    cos = np.abs(np.sum(frame.axes_world * OBJ_ROT, axis=0))
+    assert np.all(cos > 0.999), cos
+    assert np.linalg.det(frame.axes_world) == pytest.approx(1.0)
+    np.testing.assert_allclose(frame.axes_world.T @ frame.axes_world, np.eye(3), atol=1e-12)
+    # second moments of a solid ellipsoid: a²/5
+    np.testing.assert_allclose(frame.second_moments_mm2, SEMI_AXES**2 / 5, rtol=0.03)
+
+
+def test_moments_frame_orders_by_eigenvalue_and_is_right_handed(ellipsoid):
+    frame = V.object_frame(ellipsoid, "moments")
+    assert frame.method == "moments"
+    assert np.all(np.diff(frame.second_moments_mm2) < 0)
+    assert np.linalg.det(frame.axes_world) == pytest.approx(1.0)
+    cos = np.abs(np.sum(frame.axes_world * OBJ_ROT, axis=0))  # semi-axes are already descending
+    assert np.all(cos > 0.999)
+
+
+def _perturbed(volume, rng, n=15):
+    from scipy import ndimage
+
+    mask = volume.mask.copy()
+    surface = np.argwhere(mask & ~ndimage.binary_erosion(mask))
+    outside = np.argwhere(ndimage.binary_dilation(mask) & ~mask)
+    for pts, value in ((surface, False), (outside, True)):
+        pick = pts[rng.choice(len(pts), n, replace=False)]
+        mask[tuple(pick.T)] = value
+    return V.Volume(mask=mask, affine=volume.affine, source="perturbed")
+
+
+@pytest.mark.parametrize("method,egg", [("patient", False), ("moments", True)])
+def test_frames_do_not_flip_under_small_perturbations(method, egg):
+    A = ellipsoid_affine()
+    base = V.Volume(mask=ellipsoid_mask(A, egg=egg), affine=A, source="egg" if egg else "ellipsoid")
+    ref = V.object_frame(base, method).axes_world
+    rng = np.random.default_rng(4)
+    variants = [_perturbed(base, rng) for _ in range(3)]
+    for angles in ((2, 0, 0), (0, -2, 0), (0, 0, 2)):
+        rot = rotation(*angles) @ OBJ_ROT
+        variants.append(V.Volume(mask=ellipsoid_mask(A, rot=rot, egg=egg), affine=A, source="rotated"))
+    for var in variants:
+        axes = V.object_frame(var, method).axes_world
+        dots = np.sum(axes * ref, axis=0)
+        assert np.all(dots > 0.99), (var.source, dots)
+
+
+def test_patient_frame_pairs_axes_with_r_a_s_even_when_eigenvalues_reorder():
+    """Eigenvalue order changes (a long S axis) but object x, y, z stay with R, A, S."""
+    A = np.diag([1.0, 1.0, 1.0, 1.0])
+    shape = (40, 40, 40)
+    A[:3, 3] = -19.5
+    for semi in ((15.0, 9.0, 6.0), (6.0, 9.0, 15.0), (9.0, 15.0, 6.0)):
+        rot = rotation(5, -4, 6)
+        vol = V.Volume(mask=ellipsoid_mask(A, shape, rot=rot, semi=np.array(semi), centre=np.zeros(3)), affine=A)
+        axes = V.object_frame(vol, "patient").axes_world
+        assert np.all(np.sum(axes * rot, axis=0) > 0.999), (semi, axes)
+
+
+# ----------------------------------------------------------------------------- resampling
+
+
+def test_resampling_preserves_volume_and_leaves_background_border(ellipsoid):
+    frame = V.object_frame(ellipsoid)
+    for spacing in (1.0, 0.7):
+        ov = V.resample(ellipsoid, frame, spacing)
+        assert ov.volume_mm3 == pytest.approx(ellipsoid.volume_mm3, rel=0.01)
+        assert ov.volume_mm3 == pytest.approx(4 / 3 * np.pi * np.prod(SEMI_AXES), rel=0.02)
+        m = ov.mask
+        for axis in range(3):
+            assert not m.take([0, 1, -2, -1], axis=axis).any()
+        # the object is centred on its frame origin, axes along the grid
+        ijk = np.argwhere(m)
+        centre_object = ov.voxel_to_object(ijk).mean(axis=0)
+        assert np.linalg.norm(centre_object) < 0.5 * spacing
+        extent = ov.voxel_to_object(ijk).max(axis=0)
+        np.testing.assert_allclose(extent, SEMI_AXES, atol=1.5 * spacing)
+
+
+def test_mask_touching_the_volume_border_still_resamples():
+    A = np.diag([1.0, 1.0, 2.0, 1.0])
+    ijk = np.stack(np.meshgrid(np.arange(20), np.arange(20), np.arange(8), indexing="ij"), axis=-1)
+    world = ijk @ A[:3, :3].T
+    mask = np.linalg.norm(world - [3.3, 9.6, 7.3], axis=-1) <= 9.0  # cut by three faces of the volume
+    assert mask[0].any() and mask[:, :, 0].any() and mask[:, :, -1].any()
+    vol = V.Volume(mask=mask, affine=A, source="border")
+    ov = V.resample(vol, V.object_frame(vol), 1.0)
+    assert ov.volume_mm3 == pytest.approx(vol.volume_mm3, rel=0.01)
+    assert not ov.mask[[0, -1]].any() and not ov.mask[:, [0, -1]].any() and not ov.mask[:, :, [0, -1]].any()
+    verts, faces = V.display_surface(vol)
+    assert V.mesh_edge_defects(faces) == (0, 0, 0)
+    assert V.mesh_signed_volume(verts, faces) == pytest.approx(vol.volume_mm3, rel=0.05)
+
+
+def test_display_surface_is_outward_in_world_and_object_mm(ellipsoid):
+    verts, faces = V.display_surface(ellipsoid)
+    assert V.mesh_signed_volume(verts, faces) == pytest.approx(ellipsoid.volume_mm3, rel=0.03)
+    np.testing.assert_allclose(verts.mean(axis=0), CENTRE, atol=0.5)
+    ov = V.resample(ellipsoid, V.object_frame(ellipsoid), 1.0)
+    vo, fo = V.display_surface(ov)
+    assert V.mesh_signed_volume(vo, fo) > 0
+    assert np.linalg.norm(vo.mean(axis=0)) < 0.5
+    vw, _ = V.display_surface(ov, to_world=True)
+    np.testing.assert_allclose(vw, ov.frame.to_world(vo))
+
+
+def test_summary_reports_voxels_volume_and_bbox(ellipsoid):
+    s = V.summary(ellipsoid)
+    assert s["voxels"] == int(ellipsoid.mask.sum())
+    assert s["volume_mm3"] == pytest.approx(ellipsoid.volume_mm3)
+    np.testing.assert_allclose(s["spacing_mm"], SPACING)
+    assert np.all(np.array(s["bbox_min"]) < CENTRE) and np.all(np.array(s["bbox_max"]) > CENTRE)
+
+
+# ----------------------------------------------------------------------------- meshes
+
+
+@pytest.mark.parametrize("fmt", ["stl-binary", "stl-ascii", "ply-ascii", "ply-binary", "obj"])
+def test_voxelized_icosphere_has_the_analytic_mesh_volume(tmp_path, fmt):
+    v, f = icosphere(20.0, 3)
+    v = v + np.array([3.3, -7.1, 12.4])
+    analytic = V.mesh_signed_volume(v, f)
+    path = tmp_path / ("ico." + fmt.split("-")[0])
+    {
+        "stl-binary": write_stl_binary,
+        "stl-ascii": write_stl_ascii,
+        "ply-ascii": lambda p, v, f: write_ply(p, v, f, False),
+        "ply-binary": lambda p, v, f: write_ply(p, v, f, True),
+        "obj": write_obj_quads_negative,
+    }[fmt](path, v, f)
+    rv, rf = V.read_mesh(path)
+    assert len(rv) == len(v) and len(rf) == len(f)
+    assert V.mesh_signed_volume(rv, rf) == pytest.approx(analytic, rel=1e-5)
+    vol = V.load_mesh_volume(path, 1.0)
+    assert not vol.patient_oriented
+    assert vol.volume_mm3 == pytest.approx(analytic, rel=0.02)
+    ov = V.load_object(path, spacing_mm=1.0)
+    assert ov.frame.method == "moments"
+    assert ov.volume_mm3 == pytest.approx(analytic, rel=0.02)
+
+
+def test_obj_polygons_are_triangulated(tmp_path):
+    cube = "\n".join(
+        ["v 0 0 0", "v 1 0 0", "v 1 1 0", "v 0 1 0", "v 0 0 1", "v 1 0 1", "v 1 1 1", "v 0 1 1"]
+        + ["f 1 4 3 2", "f 5 6 7 8", "f 1 2 6 5", "f 2 3 7 6", "f 3 4 8 7", "f 4 1 5 8"]
+    )
+    (tmp_path / "c.obj").write_text(cube + "\n")
+    v, f = V.read_mesh(tmp_path / "c.obj")
+    assert f.shape == (12, 3)
+    assert V.mesh_edge_defects(f) == (0, 0, 0)
+    assert V.mesh_signed_volume(v * 10, f) == pytest.approx(1000.0)
+
+
+def test_voxelizing_a_cube_whose_edges_and_vertices_hit_voxel_centres_is_exact():
+    """Vertices on voxel centres, faces through centre rows: ties must be counted once."""
+    v = np.array([[x, y, z] for x in (0, 10) for y in (0, 10) for z in (0, 10)], float)
+    f = np.array(
+        [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+         [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
+    )  # fmt: skip
+    assert V.mesh_signed_volume(v, f) == pytest.approx(1000.0)
+    for spacing in (1.0, 0.5, 2.0, 2.5):
+        vol = V.voxelize_mesh(v, f, spacing)
+        assert vol.volume_mm3 == pytest.approx(1000.0), spacing
+    # a diagonal split through centres of the z faces (the triangles' shared edge) too
+    vol = V.voxelize_mesh(v + 0.0, f[:, ::-1], 1.0)  # inward faces: parity does not care
+    assert vol.volume_mm3 == pytest.approx(1000.0)
+
+
+# ----------------------------------------------------------------------------- VerSe
+
+
+@pytest.fixture(scope="module")
+def verse_frames(verse_dir):
+    lm = V.read_label_map(VERSE_FILE)
+    out = {}
+    for name, label in VERSE_LABELS.items():
+        vol = V.select_label(lm, label)
+        frame = V.object_frame(vol)
+        out[name] = (vol, frame, V.resample(vol, frame, 1.0))
+    return lm, out
+
+
+def test_verse_label_counts_list_all_nine_vertebrae(verse_frames):
+    lm, _ = verse_frames
+    counts = V.label_counts(lm)
+    assert sorted(counts) == sorted(VERSE_LABELS.values())
+    values, ref = np.unique(lm.labels[lm.labels != 0], return_counts=True)
+    assert counts == dict(zip(values.tolist(), ref.tolist()))
+    np.testing.assert_allclose(sorted(np.linalg.norm(lm.affine[:3, :3], axis=0)), [1, 1, 2], atol=1e-3)
+
+
+def test_each_verse_vertebra_keeps_its_volume_when_resampled(verse_frames):
+    _, items = verse_frames
+    for name, (vol, _, ov) in items.items():
+        expected = np.count_nonzero(vol.mask) * abs(np.linalg.det(vol.affine[:3, :3]))
+        assert ov.volume_mm3 == pytest.approx(expected, rel=0.01), name
+
+
+@pytest.mark.parametrize("names", [("L1", "L2", "L3", "L4", "L5"), ("T9", "T10", "T11", "T12", "L1")])
+def test_verse_neighbouring_vertebrae_get_corresponding_axes(verse_frames, names):
+    """Adjacent vertebrae: each axis agrees (dot > 0.8, same sign); all pairs: same sign.
+
+    L1 vs L5 differ by the lumbar lordosis (their A and S axes are ~42 degrees apart),
+    so the > 0.8 bound is checked between neighbours.
+    """
+    _, items = verse_frames
+    axes = {n: items[n][1].axes_world for n in names}
+    for a, b in zip(names, names[1:]):
+        dots = np.sum(axes[a] * axes[b], axis=0)
+        assert np.all(dots > 0.8), (a, b, dots)
+    for a in names:
+        for b in names:
+            assert np.all(np.sum(axes[a] * axes[b], axis=0) > 0.5), (a, b)
+
+
+# ----------------------------------------------------------------------------- bad input
+
+
+def test_missing_file_is_named(tmp_path):
+    with pytest.raises(InputError, match=r"nothere\.nii\.gz: file not found"):
+        V.read_label_map(tmp_path / "nothere.nii.gz")
+
+
+def test_unknown_extension_lists_supported(tmp_path):
+    p = tmp_path / "scan.dcm"
+    p.write_bytes(b"x")
+    with pytest.raises(InputError, match=r"scan\.dcm: unknown file extension '\.dcm'; supported: .*\.nii\.gz.*\.nrrd"):
+        V.read_label_map(p)
+    with pytest.raises(InputError, match=r"scan\.dcm: unknown file extension.*\.stl"):
+        V.read_mesh(p)
+
+
+@pytest.mark.parametrize("ext", [".nii.gz", ".nrrd", ".mha"])
+def test_truncated_file_is_reported(tmp_path, ext):
+    labels = np.zeros((30, 30, 30), np.int16)
+    labels[5:20, 5:20, 5:20] = 1
+    labels[8:12] = np.arange(30 * 30).reshape(1, 30, 30) % 7  # poorly compressible
+    p = V.write_label_map(tmp_path / f"t{ext}", labels, np.eye(4))
+    data = p.read_bytes()
+    p.write_bytes(data[: len(data) // 2])
+    with pytest.raises(InputError, match=re.escape(p.name) + r": .*(corrupt|truncated)"):
+        V.read_label_map(p)
+
+
+def test_garbage_nifti_is_reported(tmp_path):
+    p = tmp_path / "g.nii.gz"
+    p.write_bytes(gzip.compress(b"not a nifti header" * 3))
+    with pytest.raises(InputError, match=r"g\.nii\.gz: cannot read NIfTI file"):
+        V.read_label_map(p)
+
+
+def test_absent_label_lists_the_labels_present(tmp_path):
+    labels = np.zeros((6, 6, 6), np.uint8)
+    labels[1:3, 1:3, 1:3] = 4
+    labels[3:5, 3:5, 3:4] = 9
+    p = V.write_label_map(tmp_path / "l.nii.gz", labels, np.eye(4))
+    with pytest.raises(
+        InputError, match=r"l\.nii\.gz: label 5 is not present; labels present: 4 \(8 voxels\), 9 \(4 voxels\)"
+    ):
+        V.load_volume(p, 5)
+
+
+def test_empty_label_map_is_reported(tmp_path):
+    p = V.write_label_map(tmp_path / "e.nrrd", np.zeros((5, 5, 5), np.uint8), np.eye(4))
+    with pytest.raises(InputError, match=r"e\.nrrd: empty mask"):
+        V.load_volume(p)
+    with pytest.raises(InputError, match=r"empty mask"):
+        V.object_frame(V.Volume(mask=np.zeros((3, 3, 3), bool), affine=np.eye(4), source="e"))
+
+
+def test_4d_image_is_rejected_but_singleton_4th_axis_is_squeezed(tmp_path):
+    import nibabel as nib
+
+    data = np.zeros((5, 5, 5, 3), np.uint8)
+    data[2, 2, 2] = 1
+    nib.save(nib.Nifti1Image(data, np.eye(4)), str(tmp_path / "four.nii.gz"))
+    with pytest.raises(InputError, match=r"four\.nii\.gz: 4-D image of shape \(5, 5, 5, 3\)"):
+        V.read_label_map(tmp_path / "four.nii.gz")
+    nib.save(nib.Nifti1Image(data[..., :1], np.eye(4)), str(tmp_path / "one.nii.gz"))
+    assert V.read_label_map(tmp_path / "one.nii.gz").labels.shape == (5, 5, 5)
+
+
+def test_open_mesh_is_rejected_with_edge_counts(tmp_path):
+    v, f = icosphere(10.0, 1)
+    write_stl_binary(tmp_path / "open.stl", v, f[1:])
+    with pytest.raises(InputError, match=r"open\.stl: the mesh is not closed and watertight \(3 boundary edges"):
+        V.load_mesh_volume(tmp_path / "open.stl", 1.0)
+    f2 = f.copy()
+    f2[0] = f2[0, ::-1]  # one flipped face
+    with pytest.raises(InputError, match=r"flipped: .*3 inconsistently oriented edges"):
+        V.voxelize_mesh(v, f2, 1.0, source="flipped")
+    with pytest.raises(InputError, match=r"nonmanifold: .*non-manifold"):
+        V.voxelize_mesh(v, np.vstack([f, f[:1], f[:1, ::-1]]), 1.0, source="nonmanifold")
