@@ -1,0 +1,531 @@
+"""Model quality: compactness, generalization, specificity, fit figures, report and plots.
+
+Standard definitions (Davies et al., IEEE TMI 2002; Styner et al. 2003):
+
+* compactness C(k): cumulative share of the total variance in the first k modes (the
+  eigenvalue version of eq. 8), with the standard error sqrt(2/n) Σ λ_i / trace(S);
+* generalization G(k): a model built without instance i reconstructs i with k modes;
+  the error is the mean point-to-point distance in mm, averaged over the held-out shapes
+  (mean ± standard deviation). Leave-one-out up to ``max_loo`` instances, k-fold beyond,
+  both computed from one Gram matrix (no refit of a 3N x 3N problem);
+* specificity S(k): random shapes with b_j ~ N(0, λ_j) on the first k modes (seeded), each
+  compared with its nearest training shape (nearest in the sum of squared distances); the
+  error is the mean point-to-point distance in mm (mean ± standard deviation).
+
+Plots use matplotlib's object API with the Agg canvas (no pyplot state, safe inside
+Blender); without matplotlib they are skipped with a clear message.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError, SSMError, check_cancelled
+from .model import (
+    ALIGNMENTS,
+    ShapeModel,
+    _jsonable,
+    _procrustes_fit,
+    generalized_procrustes,
+    save_npz,
+    save_statismo,
+)
+from .progress import report, sub_progress
+
+
+# ---------------------------------------------------------------------------------------
+# Compactness
+# ---------------------------------------------------------------------------------------
+def compactness(model: ShapeModel) -> dict:
+    """Cumulative variance fraction C(k) = Σ_{i<=k} λ_i / trace(S), k = 1..K (eq. 8).
+
+    Returns
+    -------
+    dict with ``k``, ``variance_mm2`` (λ_k), ``fraction`` (λ_k / trace S), ``cumulative``
+    (C(k)), ``cumulative_std`` (Davies' standard error sqrt(2/n) C(k)) and
+    ``modes_for`` {"0.9": k, "0.95": k, "0.99": k} (smallest k reaching the share).
+    """
+    total = model.total_variance
+    lam = np.asarray(model.variances, dtype=float)
+    frac = lam / total if total > 0 else np.zeros_like(lam)
+    cum = np.cumsum(frac)
+    n = max(model.n_instances, int(model.params.get("n_instances", 0) or 0), 1)
+    modes_for = {}
+    for share in (0.9, 0.95, 0.99):
+        hit = np.flatnonzero(cum >= share - 1e-12)
+        modes_for[str(share)] = int(hit[0] + 1) if hit.size else None
+    return {
+        "k": list(range(1, len(lam) + 1)),
+        "variance_mm2": lam.tolist(),
+        "fraction": frac.tolist(),
+        "cumulative": cum.tolist(),
+        "cumulative_std": (np.sqrt(2.0 / n) * cum).tolist(),
+        "modes_for": modes_for,
+    }
+
+
+# ---------------------------------------------------------------------------------------
+# Generalization
+# ---------------------------------------------------------------------------------------
+def _point_errors(residual: np.ndarray) -> np.ndarray:
+    """(h, 3N) residual vectors -> (h,) mean point-to-point distance."""
+    h = residual.shape[0]
+    return np.sqrt((residual.reshape(h, -1, 3) ** 2).sum(axis=2)).mean(axis=1)
+
+
+def _top_modes(train: np.ndarray, gram_centred: np.ndarray, kmax: int) -> np.ndarray:
+    """First ``kmax`` orthonormal modes (rows, (kmax, 3N)) of centred data via its Gram matrix (eq. 6)."""
+    w, v = np.linalg.eigh(gram_centred)
+    order = np.argsort(w)[::-1]
+    w, v = w[order], v[:, order]
+    tol = max(w[0], 0.0) * len(w) * 64 * np.finfo(float).eps
+    k = int(min(kmax, np.count_nonzero(w > tol)))
+    return (v[:, :k] / np.sqrt(w[:k])).T @ train
+
+
+def generalization(
+    instance_points,
+    faces=None,
+    ks=None,
+    alignment: str = "none",
+    folds: int | None = None,
+    max_loo: int = 100,
+    seed: int = 0,
+    progress=None,
+    cancelled=None,
+) -> dict:
+    """Generalization ability G(k): error of reconstructing unseen shapes with k modes.
+
+    Parameters
+    ----------
+    instance_points : (n, N, 3) array_like
+        Training shapes (object frame, mm) in correspondence.
+    faces : ignored (kept for a uniform signature; the error is point-to-point).
+    ks : sequence of int, optional
+        Numbers of modes (default 1..min(30, n_train - 1)).
+    alignment : {"none", "rigid", "similarity"}
+        As in :func:`ssm_addon.model.build_model`; with Procrustes each fold aligns its
+        training set (GPA) and the held-out shapes to that mean; errors are reported in
+        the input's mm (rotation removed, scale undone).
+    folds : int, optional
+        Number of folds. Default: leave-one-out (n folds) when n <= ``max_loo``, else
+        10-fold cross-validation with a seeded random partition.
+
+    Returns
+    -------
+    dict with ``k``, ``mean_mm``, ``std_mm`` (over held-out shapes), ``per_instance_mm``
+    (n x len(k)), ``method``, ``folds``, ``seconds``.
+    """
+    t0 = time.perf_counter()
+    x = np.asarray(instance_points, dtype=float)
+    if x.ndim != 3 or x.shape[2] != 3:
+        raise InputError(f"generalization: instance_points has shape {x.shape}; expected (n, N, 3)")
+    n = x.shape[0]
+    if n < 3:
+        raise InputError(f"generalization: need at least 3 instances, got {n}")
+    if alignment not in ALIGNMENTS:
+        raise InputError(f"generalization: unknown alignment {alignment!r}")
+    if folds is None:
+        folds = n if n <= max_loo else 10
+    folds = int(folds)
+    if not 2 <= folds <= n:
+        raise InputError(f"generalization: folds must be in 2..{n}, got {folds}")
+    rng = np.random.default_rng(seed)
+    perm = np.arange(n) if folds == n else rng.permutation(n)
+    fold_of = np.empty(n, dtype=int)
+    fold_of[perm] = np.arange(n) % folds
+    n_train_min = n - int(np.bincount(fold_of).max())
+    kcap = n_train_min - 1
+    if ks is None:
+        ks = list(range(1, min(30, kcap) + 1))
+    ks = sorted({int(k) for k in ks if 1 <= int(k) <= kcap})
+    if not ks:
+        raise InputError(f"generalization: no valid k (1..{kcap}) for {n} instances in {folds} folds")
+    kmax = ks[-1]
+    method = "leave-one-out" if folds == n else f"{folds}-fold cross-validation (n = {n} > {max_loo})"
+
+    flat = x.reshape(n, -1)
+    raw_gram = None
+    if alignment == "none":
+        flat = flat - flat.mean(axis=0)  # shifts cancel in centred products; better rounding
+        report(progress, 0.0, "Gram matrix")
+        raw_gram = flat @ flat.T
+    errors = np.zeros((n, len(ks)))
+    for f in range(folds):
+        check_cancelled(cancelled)
+        report(progress, 0.05 + 0.95 * f / folds, f"generalization: fold {f + 1}/{folds}")
+        test = np.flatnonzero(fold_of == f)
+        train = np.flatnonzero(fold_of != f)
+        scale = np.ones(len(test))
+        if raw_gram is not None:
+            mu = flat[train].mean(axis=0)
+            xc = flat[train] - mu
+            kt = raw_gram[np.ix_(train, train)]
+            rm = kt.mean(axis=0)
+            g = kt - rm[None] - rm[:, None] + rm.mean()
+            y = flat[test] - mu
+        else:
+            aligned, _ = generalized_procrustes(x[train], scale=alignment == "similarity")
+            mean_shape = aligned.mean(axis=0)
+            s, rot, t = _procrustes_fit(x[test], mean_shape, scale=alignment == "similarity")
+            ya = s[:, None, None] * np.einsum("inj,ikj->ink", x[test], rot) + t[:, None]
+            xt = aligned.reshape(len(train), -1)
+            mu = xt.mean(axis=0)
+            xc = xt - mu
+            g = xc @ xc.T
+            y = ya.reshape(len(test), -1) - mu
+            scale = s
+        modes = _top_modes(xc, g, kmax)
+        b = y @ modes.T
+        residual = y.copy()
+        prev = 0
+        for j, k in enumerate(ks):
+            kk = min(k, modes.shape[0])
+            if kk > prev:
+                residual -= b[:, prev:kk] @ modes[prev:kk]
+                prev = kk
+            errors[test, j] = _point_errors(residual) / scale
+    report(progress, 1.0, "generalization done")
+    return {
+        "k": ks,
+        "mean_mm": errors.mean(axis=0).tolist(),
+        "std_mm": errors.std(axis=0).tolist(),
+        "per_instance_mm": errors.tolist(),
+        "method": method,
+        "folds": folds,
+        "alignment": alignment,
+        "error": "mean point-to-point distance (mm) of the held-out shape to its reconstruction",
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+# ---------------------------------------------------------------------------------------
+# Specificity
+# ---------------------------------------------------------------------------------------
+def specificity(
+    model: ShapeModel,
+    instance_points=None,
+    ks=None,
+    n_samples: int = 500,
+    seed: int = 0,
+    chunk: int = 128,
+    progress=None,
+    cancelled=None,
+) -> dict:
+    """Specificity S(k): distance of random model shapes to the nearest training shape.
+
+    Samples z ~ N(0, I) are drawn once (seeded) and shared by every k (common random
+    numbers): b_j = z_j √λ_j for j <= k, shape = p̄ + Q_k b (eq. 7). The nearest training
+    shape minimises the sum of squared distances, found from the scores without forming
+    the n x 3N differences: |s - x_i|² = |b|² - 2 b·Q_kᵀ(x_i - p̄) + |x_i - p̄|².
+
+    Parameters
+    ----------
+    model : ShapeModel
+    instance_points : (n, N, 3) array_like, optional
+        Training shapes in the model frame (default: ``model.instance_points``).
+    ks : sequence of int, optional
+        Numbers of modes (default 1..min(30, K)).
+    n_samples : int
+        Random shapes per k.
+
+    Returns
+    -------
+    dict with ``k``, ``mean_mm``, ``std_mm`` (over samples), ``rms_mean_mm``,
+    ``n_samples``, ``seed``, ``seconds``.
+    """
+    t0 = time.perf_counter()
+    x = model.instance_points if instance_points is None else np.asarray(instance_points, dtype=float)
+    if x.ndim != 3 or x.shape[1:] != model.mean.shape or x.shape[0] < 1:
+        raise InputError(f"specificity: training shapes have shape {x.shape}; expected (n, {model.n_points}, 3)")
+    if model.n_modes == 0:
+        raise InputError("specificity: the model has no modes")
+    if ks is None:
+        ks = list(range(1, min(30, model.n_modes) + 1))
+    ks = sorted({int(k) for k in ks if 1 <= int(k) <= model.n_modes})
+    if not ks:
+        raise InputError(f"specificity: no valid k (1..{model.n_modes})")
+    n = x.shape[0]
+    centred = (x - model.mean).reshape(n, -1)
+    kmax = ks[-1]
+    q = model.modes[:kmax].reshape(kmax, -1)
+    scores = centred @ q.T  # (n, kmax)
+    norms = (centred**2).sum(axis=1)
+    rng = np.random.default_rng(seed)
+    z = rng.standard_normal((int(n_samples), kmax))
+    sd = model.standard_deviations[:kmax]
+    means, stds, rms = [], [], []
+    for j, k in enumerate(ks):
+        check_cancelled(cancelled)
+        report(progress, j / len(ks), f"specificity: k = {k}")
+        b = z[:, :k] * sd[:k]
+        d2 = (b**2).sum(axis=1)[:, None] - 2.0 * b @ scores[:, :k].T + norms[None]
+        nearest = np.argmin(d2, axis=1)
+        err = np.empty(len(b))
+        for start in range(0, len(b), chunk):
+            sl = slice(start, start + chunk)
+            diff = b[sl] @ q[:k] - centred[nearest[sl]]
+            err[sl] = _point_errors(diff)
+        means.append(float(err.mean()))
+        stds.append(float(err.std()))
+        rms.append(float(np.sqrt(np.maximum(d2[np.arange(len(b)), nearest], 0.0) / model.n_points).mean()))
+    report(progress, 1.0, "specificity done")
+    return {
+        "k": ks,
+        "mean_mm": means,
+        "std_mm": stds,
+        "rms_mean_mm": rms,
+        "n_samples": int(n_samples),
+        "seed": seed,
+        "error": "mean point-to-point distance (mm) of a random model shape to the nearest training shape",
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+def evaluate(
+    model: ShapeModel,
+    ks=None,
+    n_samples: int = 500,
+    seed: int = 0,
+    max_loo: int = 100,
+    progress=None,
+    cancelled=None,
+) -> dict:
+    """Compactness, generalization and specificity of a model on its own training shapes.
+
+    Generalization refits from ``model.instance_points`` (the model frame); for an
+    aligned model each fold re-runs the same Procrustes alignment on its training part.
+    """
+    out = {"compactness": compactness(model)}
+    out["generalization"] = generalization(
+        model.instance_points,
+        model.faces,
+        ks=ks,
+        alignment=model.alignment,
+        max_loo=max_loo,
+        seed=seed,
+        progress=sub_progress(progress, 0.0, 0.7),
+        cancelled=cancelled,
+    )
+    out["specificity"] = specificity(
+        model, ks=ks, n_samples=n_samples, seed=seed, progress=sub_progress(progress, 0.7, 1.0), cancelled=cancelled
+    )
+    return out
+
+
+# ---------------------------------------------------------------------------------------
+# Fit figures and the report
+# ---------------------------------------------------------------------------------------
+def _as_dict(fit) -> dict:
+    if fit is None:
+        return {}
+    if dataclasses.is_dataclass(fit) and not isinstance(fit, type):
+        return dataclasses.asdict(fit)
+    if isinstance(fit, str):
+        try:
+            fit = json.loads(fit)
+        except json.JSONDecodeError:
+            return {}
+    return dict(fit) if isinstance(fit, dict) else {}
+
+
+def aggregate_fit(per_instance: dict) -> dict:
+    """Summary (mean, std, min, max, n) of every numeric scalar fit figure over instances.
+
+    Parameters
+    ----------
+    per_instance : dict name -> fit figures (dict, JSON string or dataclass, e.g. the
+        coating's ``FitFigures``).
+    """
+    values: dict[str, list[float]] = {}
+    for fit in (per_instance or {}).values():
+        for key, val in _as_dict(fit).items():
+            if isinstance(val, (bool, np.bool_)):
+                val = float(val)
+            if isinstance(val, (int, float, np.integer, np.floating)) and math.isfinite(float(val)):
+                values.setdefault(key, []).append(float(val))
+    out = {}
+    for key, vals in values.items():
+        a = np.asarray(vals)
+        out[key] = {"mean": a.mean(), "std": a.std(), "min": a.min(), "max": a.max(), "n": len(a)}
+    return _jsonable(out)
+
+
+def model_summary(model: ShapeModel) -> dict:
+    """Numbers that describe a model (sizes, spectrum, eq. 8 both ways)."""
+    k = model.n_modes
+    coord = model.variability_concentration("coordinate") if model.n_points else np.zeros(0)
+    return _jsonable(
+        {
+            "n_instances": model.n_instances,
+            "n_points": model.n_points,
+            "n_faces": int(len(model.faces)),
+            "n_modes": k,
+            "instance_names": [str(s) for s in model.instance_names],
+            "variances_mm2": model.variances,
+            "standard_deviations_mm": model.standard_deviations,
+            "total_variance_mm2": model.total_variance,
+            "concentration_eigen": model.variability_concentration("eigen"),
+            "concentration_coordinate_first_k": coord[: max(k, 1)],
+            "point_variance_mm2": {
+                "mean": float(model.point_variance.mean()) if model.n_points else 0.0,
+                "max": float(model.point_variance.max()) if model.n_points else 0.0,
+            },
+            "params": model.params,
+        }
+    )
+
+
+def write_report(path, model: ShapeModel, metrics: dict | None = None, per_instance: dict | None = None, extra=None):
+    """Write ``report.json``: model summary, metrics, per-instance fit figures and their summary.
+
+    Returns the path written.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    per = {str(k): _as_dict(v) for k, v in (per_instance or {}).items()}
+    doc = {
+        "model": model_summary(model),
+        "metrics": metrics or {},
+        "instances": per,
+        "fit_summary": aggregate_fit(per),
+    }
+    if extra:
+        doc.update(extra)
+    path.write_text(json.dumps(_jsonable(doc), indent=1))
+    return path
+
+
+# ---------------------------------------------------------------------------------------
+# Plots (paper fig. 9)
+# ---------------------------------------------------------------------------------------
+def _figure(width=5.0, height=3.6, ncols=1):
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ImportError as err:  # pragma: no cover - depends on the environment
+        raise SSMError("plots need matplotlib, which is not installed (pip install matplotlib); plots skipped") from err
+    fig = Figure(figsize=(width * ncols, height), dpi=120)
+    FigureCanvasAgg(fig)
+    axes = [fig.add_subplot(1, ncols, i + 1) for i in range(ncols)]
+    return fig, axes
+
+
+def _draw_spectrum(ax, model):
+    k = np.arange(1, model.n_modes + 1)
+    lam = np.maximum(model.variances, np.finfo(float).tiny)
+    ax.bar(k, lam, color="#4477aa")
+    ax.set_yscale("log")
+    ax.set_xlabel("mode k")
+    ax.set_ylabel("eigenvalue λ_k (mm²)")
+    ax.set_title("Eigenvalue spectrum")
+
+
+def _draw_cumulative(ax, model):
+    k = np.arange(1, model.n_modes + 1)
+    ax.plot(k, 100 * model.variability_concentration("eigen"), "o-", ms=3, color="#aa3377", label="eigenvalues")
+    coord = model.variability_concentration("coordinate")[: model.n_modes]
+    ax.plot(k[: len(coord)], 100 * coord, "s--", ms=2, color="#999933", label="coordinate variances")
+    ax.set_xscale("log")
+    ax.set_ylim(0, 101)
+    ax.set_xlabel("number of modes k")
+    ax.set_ylabel("variability captured (%)")
+    ax.set_title("Concentration of variability (eq. 8)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(loc="lower right", fontsize="small")
+
+
+def _save(fig, path):
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path)
+    return path
+
+
+def plot_spectrum(model: ShapeModel, path_png):
+    """Eigenvalues λ_k on a log scale (paper fig. 9, left). Returns the PNG path."""
+    fig, (ax,) = _figure()
+    _draw_spectrum(ax, model)
+    return _save(fig, path_png)
+
+
+def plot_cumulative_variance(model: ShapeModel, path_png):
+    """Concentration of variability (eq. 8) over k (paper fig. 9, right). Returns the PNG path."""
+    fig, (ax,) = _figure()
+    _draw_cumulative(ax, model)
+    return _save(fig, path_png)
+
+
+def plot_model_figure(model: ShapeModel, path_png):
+    """Both panels of paper fig. 9 side by side. Returns the PNG path."""
+    fig, (a, b) = _figure(ncols=2)
+    _draw_spectrum(a, model)
+    _draw_cumulative(b, model)
+    return _save(fig, path_png)
+
+
+def plot_metrics(metrics: dict, path_png):
+    """Generalization and specificity (mean ± std, mm) over k. Returns the PNG path."""
+    fig, (ax,) = _figure()
+    for key, colour in (("generalization", "#228833"), ("specificity", "#ee6677")):
+        m = metrics.get(key)
+        if m:
+            ax.errorbar(m["k"], m["mean_mm"], yerr=m["std_mm"], fmt="o-", ms=3, capsize=2, color=colour, label=key)
+    ax.set_xlabel("number of modes k")
+    ax.set_ylabel("mean point distance (mm)")
+    ax.legend()
+    ax.grid(True, alpha=0.3)
+    return _save(fig, path_png)
+
+
+def write_plots(model: ShapeModel, out_dir, metrics: dict | None = None) -> dict:
+    """Write spectrum, cumulative variance, fig. 9 and metrics plots into ``out_dir``.
+
+    Returns {"files": [...]} or {"files": [], "skipped": message} without matplotlib.
+    """
+    out_dir = Path(out_dir)
+    try:
+        files = [
+            plot_spectrum(model, out_dir / "spectrum.png"),
+            plot_cumulative_variance(model, out_dir / "cumulative_variance.png"),
+            plot_model_figure(model, out_dir / "variability.png"),
+        ]
+        if metrics and (metrics.get("generalization") or metrics.get("specificity")):
+            files.append(plot_metrics(metrics, out_dir / "metrics.png"))
+    except SSMError as err:
+        return {"files": [], "skipped": str(err)}
+    return {"files": [str(f) for f in files]}
+
+
+def write_outputs(
+    model: ShapeModel,
+    out_dir,
+    metrics: dict | None = None,
+    per_instance: dict | None = None,
+    extra: dict | None = None,
+    plots: bool = True,
+    statismo_name: str = "model.h5",
+) -> dict:
+    """Write ``model.npz``, the statismo file, ``report.json`` and the plots into ``out_dir``.
+
+    Returns a dict of the written paths (and ``plots_skipped`` if matplotlib is missing).
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = {"npz": str(save_npz(model, out_dir / "model.npz"))}
+    written["statismo"] = str(save_statismo(model, out_dir / statismo_name))
+    plot_info = write_plots(model, out_dir, metrics) if plots else {"files": []}
+    written["plots"] = plot_info["files"]
+    if "skipped" in plot_info:
+        written["plots_skipped"] = plot_info["skipped"]
+    ext = dict(extra or {})
+    ext["files"] = {k: v for k, v in written.items()}
+    written["report"] = str(write_report(out_dir / "report.json", model, metrics, per_instance, ext))
+    return written
