@@ -1,3 +1,785 @@
-"""Blender operators for the landmarks stage (filled in by its issue)."""
+"""Landmarks in Blender: the schema, placing by ray cast, snapping, files and the proposal.
 
-classes = ()
+A landmark is a sphere empty named ``"<instance> <landmark>"``, parented to its instance
+(keeping its world position), with ``obj.ssm.role == "LANDMARK"``, ``obj.ssm.instance``
+pointing at the instance and the custom property ``"ssm_landmark"`` holding the
+landmark's name. The schema (the ordered landmark names shared by all instances, paper
+4.1) is ``Scene.ssm_landmarks.names``.
+
+Coordinates: Blender world is mm; landmark files are in the instance's file world mm.
+The two agree for an instance at its import position; ``blender_to_file_world`` /
+``file_to_blender_world`` (operators/instances.py) convert for moved instances.
+"""
+
+from __future__ import annotations
+
+import bpy
+import numpy as np
+from bpy.props import (
+    BoolProperty,
+    CollectionProperty,
+    EnumProperty,
+    FloatProperty,
+    FloatVectorProperty,
+    IntProperty,
+    PointerProperty,
+    StringProperty,
+)
+from bpy_extras.io_utils import ExportHelper, ImportHelper
+from mathutils import Vector
+
+from ..ssm_addon import landmarks as core
+from ..ssm_addon import volume as vol
+from ..ssm_addon.errors import InputError, SSMError
+from . import bridge
+
+LANDMARK_PROP = "ssm_landmark"
+"""Custom property of a landmark empty: its landmark name."""
+ORDER_PROP = "ssm_landmark_index"
+"""Custom property of a landmark empty: its position in the schema/file it came from."""
+PICK_RADIUS_PX = 12.0
+FILE_GLOB = "*.fcsv;*.mrk.json;*.csv;*.json"
+
+
+# ------------------------------------------------------------------------------ frames
+
+
+def _converters():
+    """``(blender_to_file_world, file_to_blender_world)`` from instances.py, else local ones."""
+    try:
+        from .instances import blender_to_file_world, file_to_blender_world
+    except ImportError:
+        return _blender_to_file_world, _file_to_blender_world
+    return blender_to_file_world, file_to_blender_world
+
+
+def _import_to_current(obj) -> np.ndarray:
+    """(4, 4) file world mm -> Blender world: matrix_world @ inverse(import_matrix)."""
+    imp = np.array(obj.ssm.import_matrix, dtype=float).reshape(4, 4)
+    return bridge.matrix_to_numpy(obj.matrix_world) @ np.linalg.inv(imp)
+
+
+def _blender_to_file_world(obj, points) -> np.ndarray:
+    m = np.linalg.inv(_import_to_current(obj))
+    return np.asarray(points, float).reshape(-1, 3) @ m[:3, :3].T + m[:3, 3]
+
+
+def _file_to_blender_world(obj, points) -> np.ndarray:
+    m = _import_to_current(obj)
+    return np.asarray(points, float).reshape(-1, 3) @ m[:3, :3].T + m[:3, 3]
+
+
+def instance_frame(obj) -> vol.ObjectFrame:
+    """The object frame (paper 2) stored on an instance (file world mm)."""
+    axes = np.array(obj.ssm.frame_axes, dtype=float).reshape(3, 3)
+    if abs(abs(np.linalg.det(axes)) - 1.0) > 1e-3:
+        raise InputError(f"instance {obj.name!r} has no object frame (import it with SSM, or set obj.ssm.frame_axes)")
+    return vol.ObjectFrame(np.array(obj.ssm.frame_origin, dtype=float), axes)
+
+
+# --------------------------------------------------------------------------- the scene
+
+
+def is_instance(obj) -> bool:
+    return obj is not None and obj.type == "MESH" and obj.ssm.role == "INSTANCE"
+
+
+def active_instance(context):
+    """The active instance, or the instance of the active landmark; None otherwise."""
+    obj = context.active_object
+    if obj is not None and obj.ssm.role == "LANDMARK" and is_instance(obj.ssm.instance):
+        return obj.ssm.instance
+    return obj if is_instance(obj) else None
+
+
+def instances(context) -> list:
+    """Instance objects of the scene, by name."""
+    return sorted((o for o in context.scene.objects if is_instance(o)), key=lambda o: o.name)
+
+
+def schema_names(context) -> tuple[str, ...]:
+    """The landmark schema: ordered names."""
+    return tuple(item.name for item in context.scene.ssm_landmarks.names)
+
+
+def landmark_empties(instance) -> dict:
+    """``{landmark name: empty}`` of an instance."""
+    out = {}
+    for obj in bpy.data.objects:
+        if obj.ssm.role == "LANDMARK" and obj.ssm.instance == instance and LANDMARK_PROP in obj:
+            out[str(obj[LANDMARK_PROP])] = obj
+    return out
+
+
+def _ordered_names(context, empties: dict) -> list[str]:
+    schema = schema_names(context)
+    extra = sorted((n for n in empties if n not in schema), key=lambda n: (empties[n].get(ORDER_PROP, 1 << 30), n))
+    return [n for n in schema if n in empties] + extra
+
+
+def missing_names(context, instance) -> list[str]:
+    """Schema names the instance has no landmark for, in schema order."""
+    have = landmark_empties(instance)
+    return [n for n in schema_names(context) if n not in have]
+
+
+def instance_landmarks(context, instance) -> core.LandmarkSet:
+    """An instance's landmarks in file world mm (schema order, then extra names)."""
+    empties = landmark_empties(instance)
+    names = _ordered_names(context, empties)
+    pts = np.array([list(empties[n].matrix_world.translation) for n in names], dtype=float).reshape(-1, 3)
+    to_file, _ = _converters()
+    return core.LandmarkSet(tuple(names), to_file(instance, pts) if len(pts) else pts, instance.name)
+
+
+def landmark_sets_by_instance(context) -> dict[str, core.LandmarkSet]:
+    """``{instance name: LandmarkSet}`` in file world mm for every instance with landmarks.
+
+    Names are in schema order (then names not in the schema); instances without any
+    landmark are left out. Used by the coating and project stages.
+    """
+    out = {}
+    for inst in instances(context):
+        lm = instance_landmarks(context, inst)
+        if len(lm):
+            out[inst.name] = lm
+    return out
+
+
+def _marker_size(context, instance) -> float:
+    size = context.scene.ssm_landmarks.marker_size_mm
+    return size if size > 0 else max(0.5, 0.015 * max(instance.dimensions))
+
+
+def set_landmark(context, instance, name: str, location_world, order: int | None = None):
+    """Create or move the landmark ``name`` of ``instance`` to a Blender-world point (mm)."""
+    emp = landmark_empties(instance).get(name)
+    loc = Vector([float(x) for x in location_world])
+    if emp is None:
+        emp = bridge.add_empty(context, f"{instance.name} {name}", loc, parent=instance, size=_marker_size(context, instance))
+        emp.ssm.role = "LANDMARK"
+        emp.ssm.instance = instance
+        emp[LANDMARK_PROP] = name
+        schema = schema_names(context)
+        emp[ORDER_PROP] = schema.index(name) if name in schema else (order if order is not None else len(schema))
+        emp.show_name = False
+    else:
+        emp.matrix_world.translation = loc
+    return emp
+
+
+def ray_hit(instance, origin_world, direction_world, depsgraph=None):
+    """First hit of a Blender-world ray on the instance's mesh: (3,) world point or None.
+
+    The ray is cast in the instance's object space (``Object.ray_cast``).
+    """
+    inv = instance.matrix_world.inverted()
+    origin = inv @ Vector([float(x) for x in origin_world])
+    direction = inv.to_3x3() @ Vector([float(x) for x in direction_world])
+    if direction.length == 0.0:
+        return None
+    kwargs = {"depsgraph": depsgraph} if depsgraph is not None else {}
+    hit, loc, _normal, _index = instance.ray_cast(origin, direction.normalized(), **kwargs)
+    return (instance.matrix_world @ loc) if hit else None
+
+
+def place_landmark(context, instance, origin_world, direction_world, name: str = ""):
+    """Ray-cast and place ``name`` (default: the next missing schema name). Returns (empty, name)."""
+    if not name:
+        missing = missing_names(context, instance)
+        if not missing:
+            raise InputError(f"{instance.name}: every landmark of the schema is placed (pick one to re-place it)")
+        name = missing[0]
+    hit = ray_hit(instance, origin_world, direction_world, context.evaluated_depsgraph_get())
+    if hit is None:
+        return None, name
+    return set_landmark(context, instance, name, hit), name
+
+
+# ----------------------------------------------------------------------------- schema
+
+
+def _schema_renamed(self, context):
+    """Update of a schema entry's name: rename the landmark empties that carry the old name."""
+    old, new = self.previous, self.landmark.strip()
+    if new == old:
+        return
+    settings = context.scene.ssm_landmarks
+    if not new or any(item.name == new for item in settings.names if item != self):
+        self.landmark = old  # refuse empty or duplicate names (re-enters with new == old)
+        return
+    if old:
+        for obj in bpy.data.objects:
+            if obj.ssm.role == "LANDMARK" and obj.get(LANDMARK_PROP) == old:
+                obj[LANDMARK_PROP] = new
+                if obj.ssm.instance is not None:
+                    obj.name = f"{obj.ssm.instance.name} {new}"
+    self.previous = new
+    self.name = new
+
+
+class SSMLandmarkName(bpy.types.PropertyGroup):
+    """One landmark name of the schema (``name`` mirrors ``landmark``)."""
+
+    landmark: StringProperty(name="Landmark", description="Landmark name (renaming renames the placed landmarks)", update=_schema_renamed)
+    previous: StringProperty(options={"HIDDEN"})
+
+
+def _instance_poll(self, obj):
+    return is_instance(obj)
+
+
+class SSMLandmarkSettings(bpy.types.PropertyGroup):
+    """``Scene.ssm_landmarks``: the landmark schema and the landmark tools' settings."""
+
+    names: CollectionProperty(type=SSMLandmarkName)
+    active_index: IntProperty(name="Active landmark", default=0)
+    proposal_source: PointerProperty(
+        name="From", type=bpy.types.Object, poll=_instance_poll, description="Landmarked instance to propose landmarks from"
+    )
+    marker_size_mm: FloatProperty(name="Marker size", description="Landmark sphere radius in mm (0: 1.5 % of the instance size)", default=0.0, min=0.0)
+
+
+def _add_name(settings, name: str, index: int | None = None) -> int:
+    item = settings.names.add()
+    item.previous = name
+    item.landmark = name
+    item.name = name
+    last = len(settings.names) - 1
+    if index is not None and 0 <= index < last:
+        settings.names.move(last, index)
+        return index
+    return last
+
+
+def _set_schema(settings, names) -> None:
+    settings.names.clear()
+    for n in names:
+        _add_name(settings, n)
+    settings.active_index = 0
+
+
+class SSM_UL_landmark_schema(bpy.types.UIList):
+    """The schema list: double-click a name to rename it."""
+
+    def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index):
+        inst = active_instance(context)
+        placed = inst is not None and item.name in landmark_empties(inst)
+        row = layout.row(align=True)
+        row.label(text=f"{index + 1}", icon="CHECKMARK" if placed else "DOT")
+        row.prop(item, "landmark", text="", emboss=False)
+
+
+class SSM_OT_landmark_schema_add(bpy.types.Operator):
+    """Add a landmark name to the schema after the active one"""
+
+    bl_idname = "ssm.landmark_schema_add"
+    bl_label = "Add Landmark Name"
+    bl_options = {"REGISTER", "UNDO"}
+
+    name: StringProperty(name="Name", description="New landmark name (empty: landmark-N)")
+
+    def execute(self, context):
+        settings = context.scene.ssm_landmarks
+        existing = set(schema_names(context))
+        name = self.name.strip()
+        if not name:
+            k = len(existing) + 1
+            while f"landmark-{k}" in existing:
+                k += 1
+            name = f"landmark-{k}"
+        if name in existing:
+            self.report({"ERROR"}, f"landmark schema: {name!r} is already in the schema")
+            return {"CANCELLED"}
+        at = settings.active_index + 1 if len(settings.names) else 0
+        settings.active_index = _add_name(settings, name, at)
+        return {"FINISHED"}
+
+
+class SSM_OT_landmark_schema_remove(bpy.types.Operator):
+    """Remove the active landmark name from the schema (placed landmarks stay, as extra names)"""
+
+    bl_idname = "ssm.landmark_schema_remove"
+    bl_label = "Remove Landmark Name"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        return len(context.scene.ssm_landmarks.names) > 0
+
+    def execute(self, context):
+        settings = context.scene.ssm_landmarks
+        i = settings.active_index
+        if not 0 <= i < len(settings.names):
+            self.report({"ERROR"}, "landmark schema: no active name to remove")
+            return {"CANCELLED"}
+        settings.names.remove(i)
+        settings.active_index = min(i, len(settings.names) - 1) if len(settings.names) else 0
+        return {"FINISHED"}
+
+
+class SSM_OT_landmark_schema_move(bpy.types.Operator):
+    """Move the active landmark name up or down in the schema"""
+
+    bl_idname = "ssm.landmark_schema_move"
+    bl_label = "Move Landmark Name"
+    bl_options = {"REGISTER", "UNDO"}
+
+    direction: EnumProperty(items=[("UP", "Up", ""), ("DOWN", "Down", "")], default="UP")
+
+    def execute(self, context):
+        settings = context.scene.ssm_landmarks
+        i = settings.active_index
+        j = i - 1 if self.direction == "UP" else i + 1
+        if not (0 <= i < len(settings.names) and 0 <= j < len(settings.names)):
+            return {"CANCELLED"}
+        settings.names.move(i, j)
+        settings.active_index = j
+        return {"FINISHED"}
+
+
+class SSM_OT_landmark_schema_rename(bpy.types.Operator):
+    """Rename a landmark of the schema and every placed landmark of that name"""
+
+    bl_idname = "ssm.landmark_schema_rename"
+    bl_label = "Rename Landmark"
+    bl_options = {"REGISTER", "UNDO"}
+
+    index: IntProperty(name="Index", default=-1, description="Schema position (-1: the active one)")
+    new_name: StringProperty(name="New name")
+
+    def execute(self, context):
+        settings = context.scene.ssm_landmarks
+        i = settings.active_index if self.index < 0 else self.index
+        new = self.new_name.strip()
+        if not 0 <= i < len(settings.names):
+            self.report({"ERROR"}, f"landmark schema: no entry {i}")
+            return {"CANCELLED"}
+        if not new or (new in schema_names(context) and settings.names[i].name != new):
+            self.report({"ERROR"}, f"landmark schema: cannot rename to {new!r} (empty or already in the schema)")
+            return {"CANCELLED"}
+        settings.names[i].landmark = new
+        return {"FINISHED"}
+
+
+class SSM_OT_landmark_schema_preset(bpy.types.Operator):
+    """Replace the landmark schema by a preset"""
+
+    bl_idname = "ssm.landmark_schema_preset"
+    bl_label = "Landmark Preset"
+    bl_options = {"REGISTER", "UNDO"}
+
+    preset: EnumProperty(
+        name="Preset",
+        items=[(k, k, f"{len(v)} landmarks: {', '.join(v[:4])}, …") for k, v in core.LANDMARK_PRESETS.items()],
+    )
+
+    def execute(self, context):
+        _set_schema(context.scene.ssm_landmarks, core.LANDMARK_PRESETS[self.preset])
+        return {"FINISHED"}
+
+
+class SSM_OT_landmark_schema_from_instance(bpy.types.Operator):
+    """Replace the landmark schema by the names of the active instance's landmarks"""
+
+    bl_idname = "ssm.landmark_schema_from_instance"
+    bl_label = "Schema from Instance"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        return active_instance(context) is not None
+
+    def execute(self, context):
+        inst = active_instance(context)
+        empties = landmark_empties(inst)
+        if not empties:
+            self.report({"ERROR"}, f"{inst.name}: no landmarks to take the schema from")
+            return {"CANCELLED"}
+        names = sorted(empties, key=lambda n: (empties[n].get(ORDER_PROP, 1 << 30), n))
+        _set_schema(context.scene.ssm_landmarks, names)
+        return {"FINISHED"}
+
+
+# -------------------------------------------------------------------------- placement
+
+
+class SSM_OT_place_landmarks(bpy.types.Operator):
+    """Click on the active instance to place the next missing landmark; click a landmark to re-place it. Esc or right-click ends"""
+
+    bl_idname = "ssm.place_landmarks"
+    bl_label = "Place Landmarks"
+    bl_options = {"REGISTER", "UNDO"}
+
+    landmark: StringProperty(name="Landmark", description="Landmark to place (empty: the next missing one)")
+    ray_origin: FloatVectorProperty(name="Ray origin", size=3, description="Blender-world ray origin (mm), for scripts")
+    ray_direction: FloatVectorProperty(name="Ray direction", size=3, description="Blender-world ray direction, for scripts")
+
+    @classmethod
+    def poll(cls, context):
+        return active_instance(context) is not None
+
+    # -- one placement (scripts, redo panel, and every click of the modal) --------
+    def _place(self, context, instance, origin, direction, name):
+        try:
+            emp, name = place_landmark(context, instance, origin, direction, name)
+        except SSMError as err:
+            self.report({"ERROR"}, str(err))
+            return None
+        if emp is None:
+            self.report({"WARNING"}, f"{instance.name}: the ray misses the surface; {name!r} not placed")
+        return emp
+
+    def execute(self, context):
+        inst = active_instance(context)
+        if Vector(self.ray_direction).length == 0.0:
+            self.report({"ERROR"}, "place landmarks: give ray_origin and ray_direction (or invoke it in the 3D viewport)")
+            return {"CANCELLED"}
+        emp = self._place(context, inst, self.ray_origin, self.ray_direction, self.landmark.strip())
+        if emp is None:
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"placed {emp[LANDMARK_PROP]!r} on {inst.name}")
+        return {"FINISHED"}
+
+    # -- interactive -----------------------------------------------------------------
+    def invoke(self, context, event):
+        if Vector(self.ray_direction).length > 0.0:
+            return self.execute(context)
+        area = context.area
+        if area is None or area.type != "VIEW_3D":
+            self.report({"ERROR"}, "place landmarks: run it from a 3D viewport")
+            return {"CANCELLED"}
+        self._region = next((r for r in area.regions if r.type == "WINDOW"), None)
+        self._rv3d = area.spaces.active.region_3d
+        self._instance = active_instance(context)
+        self._reselect = ""
+        if not schema_names(context):
+            self.report({"ERROR"}, "place landmarks: the landmark schema is empty (add names or pick a preset)")
+            return {"CANCELLED"}
+        self._update_header(context)
+        context.window_manager.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def _next_name(self, context) -> str:
+        if self._reselect:
+            return self._reselect
+        missing = missing_names(context, self._instance)
+        return missing[0] if missing else ""
+
+    def _update_header(self, context):
+        inst = self._instance
+        n_missing = len(missing_names(context, inst))
+        nxt = self._next_name(context)
+        if self._reselect:
+            text = f"{inst.name}: click on the surface to re-place “{nxt}”"
+        elif nxt:
+            text = f"{inst.name}: click to place “{nxt}” ({n_missing} missing)"
+        else:
+            text = f"{inst.name}: all landmarks placed. Click a landmark to re-place it"
+        text += " · Esc/right-click: done"
+        context.area.header_text_set(text)
+        context.workspace.status_text_set(text)
+
+    def _end(self, context):
+        context.area.header_text_set(None)
+        context.workspace.status_text_set(None)
+
+    def _mouse(self, event):
+        r = self._region
+        x, y = event.mouse_x - r.x, event.mouse_y - r.y
+        return (x, y) if 0 <= x < r.width and 0 <= y < r.height else None
+
+    def _landmark_under(self, coord):
+        from bpy_extras.view3d_utils import location_3d_to_region_2d
+
+        best, best_d = "", PICK_RADIUS_PX
+        for name, emp in landmark_empties(self._instance).items():
+            p = location_3d_to_region_2d(self._region, self._rv3d, emp.matrix_world.translation)
+            if p is not None:
+                d = (p - Vector(coord)).length
+                if d < best_d:
+                    best, best_d = name, d
+        return best
+
+    def modal(self, context, event):
+        from bpy_extras.view3d_utils import region_2d_to_origin_3d, region_2d_to_vector_3d
+
+        if event.type in {"ESC", "RIGHTMOUSE"} and event.value == "PRESS":
+            self._end(context)
+            return {"FINISHED"}
+        if event.type != "LEFTMOUSE" or event.value != "PRESS":
+            return {"PASS_THROUGH"}  # navigation, sidebar, ...
+        coord = self._mouse(event)
+        if coord is None:
+            return {"PASS_THROUGH"}
+        picked = self._landmark_under(coord)
+        if picked and picked != self._reselect:
+            emp = landmark_empties(self._instance)[picked]
+            for obj in context.selected_objects:
+                obj.select_set(False)
+            emp.select_set(True)
+            self._reselect = picked
+            self._update_header(context)
+            return {"RUNNING_MODAL"}
+        name = self._next_name(context)
+        if not name:
+            return {"RUNNING_MODAL"}
+        origin = region_2d_to_origin_3d(self._region, self._rv3d, coord)
+        direction = region_2d_to_vector_3d(self._region, self._rv3d, coord)
+        emp = self._place(context, self._instance, origin, direction, name)
+        if emp is not None:
+            self._reselect = ""
+            bpy.ops.ed.undo_push(message=f"Place landmark {name}")
+        self._update_header(context)
+        return {"RUNNING_MODAL"}
+
+
+class SSM_OT_snap_landmarks(bpy.types.Operator):
+    """Move the active instance's landmarks (selected ones, or all) to the nearest surface point"""
+
+    bl_idname = "ssm.snap_landmarks"
+    bl_label = "Snap Landmarks to Surface"
+    bl_options = {"REGISTER", "UNDO"}
+
+    selected_only: BoolProperty(name="Selected only", default=False)
+
+    @classmethod
+    def poll(cls, context):
+        return active_instance(context) is not None
+
+    def execute(self, context):
+        inst = active_instance(context)
+        empties = [e for e in landmark_empties(inst).values() if e.select_get() or not self.selected_only]
+        if not empties:
+            self.report({"WARNING"}, f"{inst.name}: no {'selected ' if self.selected_only else ''}landmarks to snap")
+            return {"CANCELLED"}
+        depsgraph = context.evaluated_depsgraph_get()
+        inv = inst.matrix_world.inverted()
+        for emp in empties:
+            found, loc, _n, _i = inst.closest_point_on_mesh(inv @ emp.matrix_world.translation, depsgraph=depsgraph)
+            if found:
+                emp.matrix_world.translation = inst.matrix_world @ loc
+        self.report({"INFO"}, f"{inst.name}: snapped {len(empties)} landmark(s)")
+        return {"FINISHED"}
+
+
+# ------------------------------------------------------------------------------ files
+
+
+class SSM_OT_import_landmarks(bpy.types.Operator, ImportHelper):
+    """Import landmarks for the active instance (.fcsv, .mrk.json, .csv, .json; world mm)"""
+
+    bl_idname = "ssm.import_landmarks"
+    bl_label = "Import Landmarks"
+    bl_options = {"REGISTER", "UNDO"}
+
+    filter_glob: StringProperty(default=FILE_GLOB, options={"HIDDEN"})
+    add_to_schema: BoolProperty(name="Add unknown names to the schema", default=False)
+
+    @classmethod
+    def poll(cls, context):
+        return active_instance(context) is not None
+
+    def execute(self, context):
+        inst = active_instance(context)
+        settings = context.scene.ssm_landmarks
+        try:
+            lm = core.read_landmarks(self.filepath)
+            if not len(settings.names):
+                _set_schema(settings, lm.names)
+            lm = core.order_by_schema(lm, schema_names(context), allow_missing=True, allow_extra=self.add_to_schema)
+        except SSMError as err:
+            self.report({"ERROR"}, str(err))
+            return {"CANCELLED"}
+        for n in lm.names:
+            if n not in schema_names(context):
+                _add_name(settings, n)
+        _, to_blender = _converters()
+        pts = to_blender(inst, lm.points_world)
+        for i, (name, p) in enumerate(zip(lm.names, pts)):
+            set_landmark(context, inst, name, p, order=i)
+        missing = missing_names(context, inst)
+        msg = f"{inst.name}: imported {len(lm)} landmark(s)" + (f"; missing {', '.join(missing)}" if missing else "")
+        self.report({"INFO"}, msg)
+        return {"FINISHED"}
+
+
+class SSM_OT_export_landmarks(bpy.types.Operator, ExportHelper):
+    """Export the active instance's landmarks (format by extension: .fcsv, .mrk.json, .csv, .json; world mm)"""
+
+    bl_idname = "ssm.export_landmarks"
+    bl_label = "Export Landmarks"
+    bl_options = {"REGISTER"}
+
+    filename_ext = ".fcsv"
+    check_extension = None
+    filter_glob: StringProperty(default=FILE_GLOB, options={"HIDDEN"})
+    coordinate_system: EnumProperty(
+        name="Slicer coordinates",
+        items=[("LPS", "LPS", "3D Slicer's default"), ("RAS", "RAS", "World RAS as in NIfTI")],
+        default="LPS",
+        description="Coordinate system written into .fcsv / .mrk.json (CSV and JSON are always world RAS)",
+    )
+
+    @classmethod
+    def poll(cls, context):
+        return active_instance(context) is not None
+
+    def execute(self, context):
+        inst = active_instance(context)
+        try:
+            lm = instance_landmarks(context, inst)
+            if not len(lm):
+                raise InputError(f"{inst.name}: no landmarks to export")
+            fmt = core.landmark_format(self.filepath)
+            system = self.coordinate_system if fmt in ("fcsv", "mrk.json") else None
+            core.write_landmarks(self.filepath, lm, coordinate_system=system)
+        except SSMError as err:
+            self.report({"ERROR"}, str(err))
+            return {"CANCELLED"}
+        self.report({"INFO"}, f"{inst.name}: wrote {len(lm)} landmark(s) to {self.filepath}")
+        return {"FINISHED"}
+
+
+# --------------------------------------------------------------------------- proposal
+
+
+class SSM_OT_propose_landmarks(bpy.types.Operator):
+    """Propose the active instance's missing landmarks from a landmarked instance (object frames aligned, nearest surface point)"""
+
+    bl_idname = "ssm.propose_landmarks"
+    bl_label = "Propose Landmarks"
+    bl_options = {"REGISTER", "UNDO"}
+
+    source: StringProperty(name="From", description="Landmarked instance (empty: the panel's choice)")
+    method: EnumProperty(
+        name="Method",
+        items=[
+            ("frame", "Object frames", "Align by object frames, take the nearest surface point"),
+            ("coating", "Coating", "Landmark warp + relaxation (paper 4), once coating provides it"),
+        ],
+        default="frame",
+    )
+
+    @classmethod
+    def poll(cls, context):
+        return active_instance(context) is not None
+
+    def execute(self, context):
+        target = active_instance(context)
+        src = bpy.data.objects.get(self.source) if self.source else context.scene.ssm_landmarks.proposal_source
+        try:
+            if not is_instance(src) or src == target:
+                raise InputError("propose landmarks: choose another, landmarked instance to propose from")
+            lm = instance_landmarks(context, src)
+            missing = set(missing_names(context, target)) if schema_names(context) else set(lm.names)
+            have = set(landmark_empties(target))
+            names = [n for n in lm.names if n in missing and n not in have]
+            if not names:
+                raise InputError(f"propose landmarks: {src.name} has none of {target.name}'s missing landmarks")
+            to_file, to_blender = _converters()
+            target_surface = to_file(target, bridge.object_world_vertices(target))
+            proposal = core.transfer_landmarks(
+                lm.subset(names), instance_frame(src), instance_frame(target), target_surface, method=self.method, source=target.name
+            )
+        except SSMError as err:
+            self.report({"ERROR"}, str(err))
+            return {"CANCELLED"}
+        for name, p in zip(proposal.names, to_blender(target, proposal.points_world)):
+            set_landmark(context, target, name, p)
+        self.report({"INFO"}, f"{target.name}: proposed {len(proposal)} landmark(s) from {src.name}; check and correct them")
+        return {"FINISHED"}
+
+
+# ------------------------------------------------------------------------------ panel
+
+
+class SSM_PT_landmarks(bpy.types.Panel):
+    bl_label = "Landmarks"
+    bl_idname = "SSM_PT_landmarks"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "SSM"
+    bl_order = 10
+
+    def draw(self, context):
+        layout = self.layout
+        settings = context.scene.ssm_landmarks
+        n_schema = len(settings.names)
+
+        layout.label(text=f"Schema ({n_schema} names)")
+        row = layout.row()
+        row.template_list("SSM_UL_landmark_schema", "", settings, "names", settings, "active_index", rows=5)
+        col = row.column(align=True)
+        col.operator("ssm.landmark_schema_add", icon="ADD", text="")
+        col.operator("ssm.landmark_schema_remove", icon="REMOVE", text="")
+        col.separator()
+        col.operator("ssm.landmark_schema_move", icon="TRIA_UP", text="").direction = "UP"
+        col.operator("ssm.landmark_schema_move", icon="TRIA_DOWN", text="").direction = "DOWN"
+        row = layout.row(align=True)
+        row.operator_menu_enum("ssm.landmark_schema_preset", "preset", text="Preset", icon="PRESET")
+        row.operator("ssm.landmark_schema_from_instance", text="From Instance", icon="EMPTY_DATA")
+
+        inst = active_instance(context)
+        box = layout.box()
+        if inst is None:
+            box.label(text="Select an instance", icon="INFO")
+        else:
+            missing = missing_names(context, inst)
+            box.label(text=f"{inst.name}: {n_schema - len(missing)}/{n_schema} placed", icon="OBJECT_DATA")
+            if missing:
+                col = box.column(align=True)
+                col.scale_y = 0.8
+                for name in missing[:8]:
+                    col.label(text=f"  missing: {name}")
+                if len(missing) > 8:
+                    col.label(text=f"  … and {len(missing) - 8} more")
+            box.operator("ssm.place_landmarks", icon="RESTRICT_SELECT_OFF")
+            row = box.row(align=True)
+            row.operator("ssm.snap_landmarks", text="Snap All", icon="SNAP_ON").selected_only = False
+            row.operator("ssm.snap_landmarks", text="Snap Selected").selected_only = True
+            row = box.row(align=True)
+            row.operator("ssm.import_landmarks", text="Import", icon="IMPORT")
+            row.operator("ssm.export_landmarks", text="Export", icon="EXPORT")
+            row = box.row(align=True)
+            row.prop(settings, "proposal_source", text="From")
+            row.operator("ssm.propose_landmarks", text="Propose", icon="SHADERFX")
+        layout.prop(settings, "marker_size_mm")
+
+        all_instances = instances(context)
+        if all_instances:
+            col = layout.column(align=True)
+            col.label(text="Instances")
+            schema = set(schema_names(context))
+            for obj in all_instances:
+                have = set(landmark_empties(obj))
+                placed = len(have & schema)
+                icon = "CHECKMARK" if placed == n_schema and n_schema else "ERROR"
+                col.label(text=f"{obj.name}: {placed} placed, {n_schema - placed} missing", icon=icon)
+
+
+classes = (
+    SSMLandmarkName,
+    SSMLandmarkSettings,
+    SSM_UL_landmark_schema,
+    SSM_OT_landmark_schema_add,
+    SSM_OT_landmark_schema_remove,
+    SSM_OT_landmark_schema_move,
+    SSM_OT_landmark_schema_rename,
+    SSM_OT_landmark_schema_preset,
+    SSM_OT_landmark_schema_from_instance,
+    SSM_OT_place_landmarks,
+    SSM_OT_snap_landmarks,
+    SSM_OT_import_landmarks,
+    SSM_OT_export_landmarks,
+    SSM_OT_propose_landmarks,
+    SSM_PT_landmarks,
+)
+
+
+def register_properties():
+    bpy.types.Scene.ssm_landmarks = PointerProperty(type=SSMLandmarkSettings)
+
+
+def unregister_properties():
+    del bpy.types.Scene.ssm_landmarks

@@ -46,6 +46,7 @@ __all__ = [
     "LandmarkSet",
     "landmark_format",
     "match_landmarks",
+    "order_by_schema",
     "propose_landmarks",
     "read_landmarks",
     "surface_points_object",
@@ -532,6 +533,47 @@ def match_landmarks(sets, names=None, allow_extra: bool = False) -> list[Landmar
     if problems:
         raise InputError("landmarks do not match the schema:\n  " + "\n  ".join(problems))
     return [s.subset(names) for s in sets]
+
+
+def order_by_schema(landmarks: LandmarkSet, names, allow_missing: bool = True, allow_extra: bool = False) -> LandmarkSet:
+    """One instance's landmarks in schema order (for importing a partial set).
+
+    Parameters
+    ----------
+    landmarks : LandmarkSet
+        The instance's landmarks.
+    names : sequence of str
+        The schema.
+    allow_missing : bool
+        If True, schema names the set lacks are left out of the result (to be placed
+        later); else they are errors.
+    allow_extra : bool
+        If True, names not in the schema are appended after the schema's names in the
+        set's order; else they are errors.
+
+    Returns
+    -------
+    LandmarkSet
+        The landmarks whose names are in the schema, in schema order (then the extras).
+
+    Raises
+    ------
+    InputError
+        Listing the names not in the schema (and the missing ones when not allowed).
+    """
+    names = tuple(str(n) for n in names)
+    have = set(landmarks.names)
+    schema = set(names)
+    missing = [n for n in names if n not in have]
+    unknown = [n for n in landmarks.names if n not in schema]
+    parts = []
+    if missing and not allow_missing:
+        parts.append("missing " + ", ".join(missing))
+    if unknown and not allow_extra:
+        parts.append("not in the schema " + ", ".join(unknown))
+    if parts:
+        raise InputError(f"{landmarks.source or 'landmark set'}: {'; '.join(parts)}")
+    return landmarks.subset([n for n in names if n in have] + unknown)
 
 
 # --------------------------------------------------------------------------------------

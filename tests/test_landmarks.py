@@ -18,6 +18,7 @@ from ssm_addon.landmarks import (
     LandmarkSet,
     landmark_format,
     match_landmarks,
+    order_by_schema,
     propose_landmarks,
     read_landmarks,
     surface_points_object,
@@ -330,3 +331,15 @@ def test_verse_proposal_of_l2_from_l1_lies_on_l2_surface(verse_dir, verse_labels
     print(f"\nproposal L1 -> L2 (frame): mean distance to the given L2 landmarks {dist.mean():.2f} mm, max {dist.max():.2f} mm")
     # the object frames align L1 and L2 far better than their world positions do
     assert dist.mean() < 0.5 * np.linalg.norm(lm1.points_world - lm2.points_world, axis=1).mean()
+
+
+def test_order_by_schema_keeps_a_partial_set_and_lists_unknown_names():
+    lm = LandmarkSet(("c", "a", "tip"), np.arange(9.0).reshape(3, 3), "part.csv")
+    out = order_by_schema(lm.subset(("c", "a")), ("a", "b", "c"))
+    assert out.names == ("a", "c")
+    np.testing.assert_array_equal(out.points_world, [[3, 4, 5], [0, 1, 2]])
+    with pytest.raises(InputError, match=r"part\.csv: not in the schema tip$"):
+        order_by_schema(lm, ("a", "b", "c"))
+    with pytest.raises(InputError, match=r"part\.csv: missing b; not in the schema tip$"):
+        order_by_schema(lm, ("a", "b", "c"), allow_missing=False)
+    assert order_by_schema(lm, ("a", "b", "c"), allow_extra=True).names == ("a", "c", "tip")
