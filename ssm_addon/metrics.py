@@ -411,7 +411,8 @@ def _figure(width=5.0, height=3.6, ncols=1):
         from matplotlib.figure import Figure
     except ImportError as err:  # pragma: no cover - depends on the environment
         raise SSMError("plots need matplotlib, which is not installed (pip install matplotlib); plots skipped") from err
-    fig = Figure(figsize=(width * ncols, height), dpi=120)
+    fig = Figure(figsize=(width * ncols, height), dpi=100)
+    fig.subplots_adjust(left=0.16 / ncols, right=1 - 0.04 / ncols, bottom=0.14, top=0.9, wspace=0.3)
     FigureCanvasAgg(fig)
     axes = [fig.add_subplot(1, ncols, i + 1) for i in range(ncols)]
     return fig, axes
@@ -444,7 +445,6 @@ def _draw_cumulative(ax, model):
 def _save(fig, path):
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
     fig.savefig(path)
     return path
 

@@ -1,0 +1,152 @@
+"""Model quality metrics: compactness, generalization, specificity, the report and fig. 9 plots."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+from test_model import FACES, names, random_rotation, synthetic_population
+
+from ssm_addon.errors import InputError
+from ssm_addon.metrics import (
+    aggregate_fit,
+    compactness,
+    evaluate,
+    generalization,
+    specificity,
+    write_outputs,
+    write_plots,
+    write_report,
+)
+from ssm_addon.model import build_model, load_npz, load_statismo
+
+NOISE_MM = 0.02
+# mean length of 3D isotropic Gaussian noise: 2 sqrt(2/pi) sigma
+NOISE_POINT_ERROR_MM = NOISE_MM * 2 * np.sqrt(2 / np.pi)
+
+
+@pytest.fixture(scope="module")
+def population():
+    shapes, mean, fields, lam = synthetic_population(n=40, noise_mm=NOISE_MM)
+    return shapes, build_model(shapes, FACES, names(40))
+
+
+def test_compactness_reaches_99_percent_at_three_modes(population):
+    _, model = population
+    c = compactness(model)
+    assert c["cumulative"][2] >= 0.99
+    assert c["cumulative"][1] < 0.99
+    assert c["modes_for"]["0.99"] == 3
+    assert c["cumulative"][-1] == pytest.approx(1.0)
+    assert np.all(np.diff(c["cumulative"]) >= 0)
+    np.testing.assert_allclose(c["cumulative_std"], np.sqrt(2 / 40) * np.array(c["cumulative"]))
+
+
+def test_generalization_decreases_to_noise_level_at_three_modes(population):
+    shapes, _ = population
+    g = generalization(shapes, ks=range(1, 9))
+    assert g["method"] == "leave-one-out" and g["folds"] == 40
+    mean = np.array(g["mean_mm"])
+    assert mean[0] > mean[1] > mean[2]
+    assert np.all(np.diff(mean) <= 1e-12)
+    assert 0.8 * NOISE_POINT_ERROR_MM < mean[2] < 1.3 * NOISE_POINT_ERROR_MM
+    # beyond the three generating modes only noise is left to fit
+    assert mean[7] > 0.9 * mean[2]
+    assert np.array(g["per_instance_mm"]).shape == (40, 8)
+    np.testing.assert_allclose(g["std_mm"], np.array(g["per_instance_mm"]).std(axis=0))
+
+
+def test_gram_leave_one_out_equals_explicit_rebuilds(population):
+    shapes, _ = population
+    ks = [1, 2, 5]
+    g = generalization(shapes[:12], ks=ks)
+    for i in (0, 7):
+        rest = np.delete(shapes[:12], i, axis=0)
+        model = build_model(rest, FACES, names(11))
+        for j, k in enumerate(ks):
+            err = np.linalg.norm(model.reconstruct(shapes[i], k) - shapes[i], axis=1).mean()
+            assert g["per_instance_mm"][i][j] == pytest.approx(err, rel=1e-9)
+
+
+def test_generalization_switches_to_k_fold_beyond_max_loo(population):
+    shapes, _ = population
+    g = generalization(shapes, ks=[1, 3], max_loo=20, seed=4)
+    assert g["folds"] == 10 and "10-fold" in g["method"]
+    loo = generalization(shapes, ks=[1, 3])
+    np.testing.assert_allclose(g["mean_mm"], loo["mean_mm"], rtol=0.1)
+    with pytest.raises(InputError, match="folds"):
+        generalization(shapes, folds=1)
+
+
+def test_generalization_with_procrustes_ignores_rigid_motion(population):
+    shapes, _ = population
+    rng = np.random.default_rng(8)
+    moved = np.stack([s @ random_rotation(rng).T + rng.normal(scale=20, size=3) for s in shapes[:15]])
+    g_moved = generalization(moved, ks=[1, 3], alignment="rigid")
+    g_ref = generalization(shapes[:15], ks=[1, 3], alignment="rigid")
+    np.testing.assert_allclose(g_moved["mean_mm"], g_ref["mean_mm"], rtol=1e-5)
+    plain = generalization(moved, ks=[3])
+    assert plain["mean_mm"][0] > 10 * g_moved["mean_mm"][1]
+
+
+def test_specificity_increases_then_flattens_after_three_modes(population):
+    _, model = population
+    s = specificity(model, ks=range(1, 9), n_samples=300, seed=1)
+    mean = np.array(s["mean_mm"])
+    assert mean[0] < mean[1] < mean[2]
+    assert abs(mean[7] - mean[2]) < 0.05 * mean[2]
+    assert np.all(np.array(s["std_mm"]) > 0)
+    again = specificity(model, ks=range(1, 9), n_samples=300, seed=1)
+    assert again["mean_mm"] == s["mean_mm"]
+
+
+def test_specificity_nearest_shape_is_the_true_nearest(population):
+    _, model = population
+    s = specificity(model, ks=[2], n_samples=20, seed=5)
+    rng = np.random.default_rng(5)
+    z = rng.standard_normal((20, 2))
+    errs = []
+    for zi in z:
+        shape = model.generate_sd(zi)
+        d = ((model.instance_points - shape) ** 2).sum(axis=(1, 2))
+        nearest = model.instance_points[np.argmin(d)]
+        errs.append(np.linalg.norm(shape - nearest, axis=1).mean())
+    assert s["mean_mm"][0] == pytest.approx(np.mean(errs), rel=1e-9)
+
+
+def test_aggregate_fit_summarises_numeric_figures():
+    per = {"a": {"rms_mm": 1.0, "folds": 2, "note": "x"}, "b": json.dumps({"rms_mm": 3.0, "folds": 0})}
+    agg = aggregate_fit(per)
+    assert agg["rms_mm"] == {"mean": 2.0, "std": 1.0, "min": 1.0, "max": 3.0, "n": 2}
+    assert "note" not in agg
+
+
+def test_report_and_plots(tmp_path, population):
+    _, model = population
+    metrics = evaluate(model, ks=[1, 2, 3, 4], n_samples=100)
+    path = write_report(tmp_path / "report.json", model, metrics, {"inst00": {"rms_mm": 0.4}}, {"note": "test"})
+    doc = json.loads(path.read_text())
+    assert doc["model"]["n_modes"] == model.n_modes
+    assert doc["metrics"]["generalization"]["k"] == [1, 2, 3, 4]
+    assert doc["fit_summary"]["rms_mm"]["mean"] == 0.4
+    assert doc["note"] == "test"
+    files = write_plots(model, tmp_path, metrics)["files"]
+    assert [os.path.basename(f) for f in files] == [
+        "spectrum.png",
+        "cumulative_variance.png",
+        "variability.png",
+        "metrics.png",
+    ]
+    for png in files:
+        assert open(png, "rb").read(8) == b"\x89PNG\r\n\x1a\n"
+
+
+def test_write_outputs_writes_every_file(tmp_path, population):
+    _, model = population
+    out = write_outputs(model, tmp_path / "out", metrics={"compactness": compactness(model)}, plots=False)
+    assert load_npz(out["npz"]).n_modes == model.n_modes
+    assert load_statismo(out["statismo"]).n_modes == model.n_modes
+    assert out["plots"] == []
+    assert json.loads(open(out["report"]).read())["files"]["npz"] == out["npz"]
