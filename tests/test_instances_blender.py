@@ -1,0 +1,222 @@
+"""Instances in Blender: File > Import > Segmentation (SSM), meshes as instances, .blend round trip."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import VERSE_FILE, VERSE_LABELS
+
+from ssm_addon import volume as V
+
+pytestmark = pytest.mark.blender
+
+
+def _label_map(tmp_path, name="synth.nii.gz"):
+    """Two labels on an oblique, anisotropic grid: an ellipsoid (20) and a ball (7)."""
+    c, s = np.cos(0.3), np.sin(0.3)
+    A = np.eye(4)
+    A[:3, :3] = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) * [0.9, 1.1, 1.6]
+    A[:3, 3] = [-20.0, 14.0, 50.0]
+    shape = (40, 36, 22)
+    ijk = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), axis=-1).reshape(-1, 3)
+    world = ijk @ A[:3, :3].T + A[:3, 3]
+    centre = A[:3, :3] @ (np.array(shape) / 2) + A[:3, 3]
+    ell = ((((world - centre) / [11.0, 7.0, 5.0]) ** 2).sum(axis=1) <= 1).reshape(shape)
+    ball = (np.linalg.norm(world - (centre + [0, 0, 12.0]), axis=1) <= 3.5).reshape(shape)
+    labels = np.zeros(shape, np.uint8)
+    labels[ell] = 20
+    labels[ball & ~ell] = 7
+    return V.write_label_map(tmp_path / name, labels, A)
+
+
+def _world_vertices(obj):
+    from ssm.operators import bridge
+
+    return bridge.object_world_vertices(obj)
+
+
+def _instances(bpy):
+    return sorted(o.name for o in bpy.data.objects if o.ssm.role == "INSTANCE")
+
+
+def test_import_creates_instance_at_its_world_position(bpy_clean, tmp_path):
+    bpy = bpy_clean
+    path = _label_map(tmp_path)
+    assert bpy.ops.ssm.import_segmentation(filepath=str(path), label=20, spacing_mm=1.0) == {"FINISHED"}
+    obj = bpy.data.objects["synth L20"]
+    assert obj.name in bpy.data.collections["SSM Instances"].objects
+    assert bpy.context.scene.unit_settings.scale_length == pytest.approx(0.001)
+    vol = V.load_volume(path, 20)
+    verts, _ = V.display_surface(vol)
+    world = _world_vertices(obj)
+    np.testing.assert_allclose(world.min(axis=0), verts.min(axis=0), atol=1e-3)
+    np.testing.assert_allclose(world.max(axis=0), verts.max(axis=0), atol=1e-3)
+    frame = V.object_frame(vol)
+    ssm = obj.ssm
+    assert (ssm.role, ssm.source_kind, ssm.label) == ("INSTANCE", "VOLUME", 20)
+    assert ssm.spacing_mm == pytest.approx(1.0)
+    assert ssm.frame_method == "PATIENT"
+    np.testing.assert_allclose(ssm.frame_origin, frame.origin_world, atol=1e-4)
+    np.testing.assert_allclose(np.array(ssm.frame_axes).reshape(3, 3), frame.axes_world, atol=1e-6)
+    np.testing.assert_allclose(np.array(ssm.import_matrix).reshape(4, 4), np.array(obj.matrix_world), atol=1e-4)
+    assert ssm.volume_mm3 == pytest.approx(vol.volume_mm3, rel=1e-6)
+    assert obj["ssm_voxels"] == int(vol.mask.sum())
+    assert bpy.path.abspath(ssm.source) == str(path)
+
+
+def test_split_labels_creates_one_instance_per_label(bpy_clean, tmp_path):
+    bpy = bpy_clean
+    path = _label_map(tmp_path)
+    bpy.ops.ssm.import_segmentation(filepath=str(path), split_labels=True, spacing_mm=1.5)
+    assert _instances(bpy) == ["synth L20", "synth L7"]
+    assert bpy.data.objects["synth L7"].ssm.spacing_mm == pytest.approx(1.5)
+    # importing the same file again replaces, it does not duplicate
+    bpy.ops.ssm.import_segmentation(filepath=str(path), split_labels=True, spacing_mm=1.5)
+    assert _instances(bpy) == ["synth L20", "synth L7"]
+
+
+def test_blend_round_trip_keeps_metadata_and_reloads_the_volume(bpy_clean, tmp_path):
+    bpy = bpy_clean
+    from ssm.operators import instances as ops
+
+    blend = tmp_path / "scene.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    path = _label_map(tmp_path)
+    bpy.ops.ssm.import_segmentation(filepath=str(path), label=20, spacing_mm=1.0)
+    obj = bpy.data.objects["synth L20"]
+    assert obj.ssm.source == "//synth.nii.gz"  # relative to the saved .blend
+    before = {k: getattr(obj.ssm, k) for k in ("label", "spacing_mm", "frame_method", "volume_mm3", "source")}
+    before_vec = {k: np.array(getattr(obj.ssm, k)) for k in ("frame_origin", "frame_axes", "import_matrix")}
+    ov_before = ops.instance_object_volume(obj)
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    bpy.ops.wm.read_homefile(use_empty=True)
+    assert "synth L20" not in bpy.data.objects
+    bpy.ops.wm.open_mainfile(filepath=str(blend))
+    obj = bpy.data.objects["synth L20"]
+    assert obj.ssm.role == "INSTANCE"
+    for k, v in before.items():
+        assert getattr(obj.ssm, k) == v, k
+    for k, v in before_vec.items():
+        np.testing.assert_array_equal(np.array(getattr(obj.ssm, k)), v, err_msg=k)
+    ops.clear_instance_cache()
+    ov = ops.instance_object_volume(obj)
+    np.testing.assert_array_equal(ov.mask, ov_before.mask)
+    np.testing.assert_allclose(ov.origin_object, ov_before.origin_object)
+    np.testing.assert_allclose(ov.frame.axes_world, ov_before.frame.axes_world, atol=1e-6)
+    assert ops.instance_object_volume(obj) is ov  # cached
+    ref = V.load_object(path, 20, 1.0)
+    np.testing.assert_array_equal(ov.mask, ref.mask)
+
+
+def test_moving_an_instance_keeps_file_world_coordinates(bpy_clean, tmp_path):
+    bpy = bpy_clean
+    from ssm.operators import instances as ops
+
+    path = _label_map(tmp_path)
+    bpy.ops.ssm.import_segmentation(filepath=str(path), label=7)
+    obj = bpy.data.objects["synth L7"]
+    p_file = np.array([[1.0, 2.0, 3.0], [-4.0, 5.0, 60.0]])
+    np.testing.assert_allclose(ops.blender_to_file_world(obj, p_file), p_file, atol=1e-4)
+    world_before = _world_vertices(obj)
+    obj.location = (obj.location[0] + 30.0, obj.location[1], obj.location[2] - 12.0)
+    obj.rotation_euler = (0.2, 0.0, 0.5)
+    bpy.context.view_layer.update()
+    moved = _world_vertices(obj)
+    assert np.abs(moved - world_before).max() > 10
+    np.testing.assert_allclose(ops.blender_to_file_world(obj, moved), world_before, atol=1e-3)
+    np.testing.assert_allclose(ops.file_to_blender_world(obj, world_before), moved, atol=1e-3)
+
+
+def test_add_mesh_instances_voxelizes_a_uv_sphere(bpy_clean):
+    bpy = bpy_clean
+    from ssm.operators import bridge
+    from ssm.operators import instances as ops
+
+    bpy.ops.mesh.primitive_uv_sphere_add(radius=12.0, segments=32, ring_count=16, location=(5.0, -3.0, 40.0))
+    sphere = bpy.context.active_object
+    sphere.scale = (1.0, 1.5, 0.8)
+    bpy.context.view_layer.update()
+    verts = bridge.object_world_vertices(sphere)
+    faces = bridge.mesh_triangles(sphere.data)
+    analytic = V.mesh_signed_volume(verts, faces)
+    assert bpy.ops.ssm.add_mesh_instances(spacing_mm=1.0) == {"FINISHED"}
+    ssm = sphere.ssm
+    assert (ssm.role, ssm.source_kind, ssm.frame_method) == ("INSTANCE", "BLENDER_MESH", "MOMENTS")
+    assert sphere.name in bpy.data.collections["SSM Instances"].objects
+    assert ssm.volume_mm3 == pytest.approx(analytic, rel=0.02)
+    np.testing.assert_allclose(ssm.frame_origin, [5.0, -3.0, 40.0], atol=0.05)
+    axes = np.array(ssm.frame_axes).reshape(3, 3)
+    assert abs(axes[1, 0]) > 0.999 and abs(axes[0, 1]) > 0.999  # longest axis along y, then x
+    ov = ops.instance_object_volume(sphere)
+    assert ov.volume_mm3 == pytest.approx(analytic, rel=0.02)
+    ops.clear_instance_cache()
+    sphere.location = (100.0, 0.0, 0.0)  # moving it does not change its file world volume
+    bpy.context.view_layer.update()
+    ov2 = ops.instance_object_volume(sphere)
+    np.testing.assert_array_equal(ov2.mask, ov.mask)
+
+
+def test_open_mesh_is_refused_naming_the_object_and_scene_is_unchanged(bpy_clean):
+    bpy = bpy_clean
+    bpy.ops.mesh.primitive_grid_add(size=20.0)
+    grid = bpy.context.active_object
+    grid.name = "Open Grid"
+    n_objects = len(bpy.data.objects)
+    with pytest.raises(RuntimeError, match=r"Open Grid: the mesh is not closed and watertight \(\d+ boundary edges"):
+        bpy.ops.ssm.add_mesh_instances(spacing_mm=1.0)
+    assert grid.ssm.role == "NONE"
+    assert len(bpy.data.objects) == n_objects
+    assert "SSM Instances" not in bpy.data.collections
+
+
+def test_failed_import_leaves_the_scene_unchanged(bpy_clean, tmp_path):
+    bpy = bpy_clean
+    path = _label_map(tmp_path)
+    with pytest.raises(
+        RuntimeError, match=r"synth\.nii\.gz: label 5 is not present; labels present: 7 \(\d+ voxels\), 20"
+    ):
+        bpy.ops.ssm.import_segmentation(filepath=str(path), label=5)
+    with pytest.raises(RuntimeError, match=r"missing\.nrrd: file not found"):
+        bpy.ops.ssm.import_segmentation(filepath=str(tmp_path / "missing.nrrd"))
+    assert len(bpy.data.objects) == 0
+    assert len(bpy.data.meshes) == 0
+    assert "SSM Instances" not in bpy.data.collections
+
+
+def test_import_mesh_file_and_multiple_files(bpy_clean, tmp_path):
+    bpy = bpy_clean
+    from test_volume import icosphere, write_stl_binary
+
+    v, f = icosphere(15.0, 2)
+    write_stl_binary(tmp_path / "ball.stl", v, f)
+    _label_map(tmp_path, "other.nii.gz")
+    bpy.ops.ssm.import_segmentation(
+        directory=str(tmp_path), files=[{"name": "ball.stl"}, {"name": "other.nii.gz"}], label=7
+    )
+    assert _instances(bpy) == ["ball", "other L7"]
+    ball = bpy.data.objects["ball"]
+    assert (ball.ssm.source_kind, ball.ssm.frame_method, ball.ssm.label) == ("MESH_FILE", "MOMENTS", -1)
+    assert ball.ssm.volume_mm3 == pytest.approx(V.mesh_signed_volume(v, f), rel=0.02)
+
+
+def test_panel_and_menu_are_registered(bpy_clean):
+    bpy = bpy_clean
+    panel = bpy.types.SSM_PT_instances
+    assert (panel.bl_category, panel.bl_order, panel.bl_region_type) == ("SSM", 0, "UI")
+    from ssm.operators import instances as ops
+
+    assert ops.menu_func_import in bpy.types.TOPBAR_MT_file_import._dyn_ui_initialize()
+
+
+def test_import_verse_l1(bpy_clean, verse_dir):
+    bpy = bpy_clean
+    label = VERSE_LABELS["L1"]
+    bpy.ops.ssm.import_segmentation(filepath=str(VERSE_FILE), label=label, spacing_mm=1.0)
+    (name,) = _instances(bpy)
+    obj = bpy.data.objects[name]
+    vol = V.load_volume(VERSE_FILE, label)
+    assert obj.ssm.volume_mm3 == pytest.approx(vol.volume_mm3, rel=1e-6)
+    verts, _ = V.display_surface(vol)
+    world = _world_vertices(obj)
+    np.testing.assert_allclose(world.min(axis=0), verts.min(axis=0), atol=1e-3)
+    np.testing.assert_allclose(world.max(axis=0), verts.max(axis=0), atol=1e-3)
