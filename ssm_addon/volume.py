@@ -642,7 +642,8 @@ def label_counts(label_map: LabelMap) -> dict[int, int]:
     flat = np.ravel(labels, order="K")
     if flat.size == 0:
         return {}
-    lo, hi = int(flat.min()), int(flat.max())
+    lo = 0 if flat.dtype.kind in "ub" else int(flat.min())
+    hi = int(flat.max())
     if lo >= 0 and hi < (1 << 22):
         counts = np.zeros(hi + 1, dtype=np.int64)
         step = 1 << 23
