@@ -32,6 +32,7 @@ from ..ssm_addon import landmarks as core
 from ..ssm_addon import volume as vol
 from ..ssm_addon.errors import InputError, SSMError
 from . import bridge
+from .jobs import BackgroundJob
 
 LANDMARK_PROP = "ssm_landmark"
 """Custom property of a landmark empty: its landmark name."""
@@ -644,8 +645,8 @@ class SSM_OT_export_landmarks(bpy.types.Operator, ExportHelper):
 # --------------------------------------------------------------------------- proposal
 
 
-class SSM_OT_propose_landmarks(bpy.types.Operator):
-    """Propose the active instance's missing landmarks from a landmarked instance (object frames aligned, nearest surface point)"""
+class SSM_OT_propose_landmarks(BackgroundJob, bpy.types.Operator):
+    """Propose the active instance's missing landmarks from a landmarked instance (object frames aligned; then nearest surface point, or coating)"""
 
     bl_idname = "ssm.propose_landmarks"
     bl_label = "Propose Landmarks"
@@ -655,39 +656,53 @@ class SSM_OT_propose_landmarks(bpy.types.Operator):
     method: EnumProperty(
         name="Method",
         items=[
-            ("frame", "Object frames", "Align by object frames, take the nearest surface point"),
-            ("coating", "Coating", "Landmark warp + relaxation (paper 4), once coating provides it"),
+            ("frame", "Object frames", "Align by object frames, take the nearest surface point (instant)"),
+            ("coating", "Coating", "Coat the source's surface onto the target (paper 4) and read the landmarks off it (tens of seconds)"),
         ],
         default="frame",
     )
+    spacing_mm: FloatProperty(name="Spacing", description="Voxel size for coating (target volume), mm", default=1.0, min=0.1)
 
     @classmethod
     def poll(cls, context):
         return active_instance(context) is not None
 
-    def execute(self, context):
+    def prepare(self, context):
         target = active_instance(context)
         src = bpy.data.objects.get(self.source) if self.source else context.scene.ssm_landmarks.proposal_source
-        try:
-            if not is_instance(src) or src == target:
-                raise InputError("propose landmarks: choose another, landmarked instance to propose from")
-            lm = instance_landmarks(context, src)
-            missing = set(missing_names(context, target)) if schema_names(context) else set(lm.names)
-            have = set(landmark_empties(target))
-            names = [n for n in lm.names if n in missing and n not in have]
-            if not names:
-                raise InputError(f"propose landmarks: {src.name} has none of {target.name}'s missing landmarks")
-            to_file, to_blender = _converters()
-            target_surface = to_file(target, bridge.object_world_vertices(target))
-            proposal = core.transfer_landmarks(
-                lm.subset(names), instance_frame(src), instance_frame(target), target_surface, method=self.method, source=target.name
-            )
-        except SSMError as err:
-            self.report({"ERROR"}, str(err))
+        if not is_instance(src) or src == target:
+            raise InputError("propose landmarks: choose another, landmarked instance to propose from")
+        lm = instance_landmarks(context, src)
+        schema = schema_names(context)
+        have = set(landmark_empties(target))
+        names = [n for n in lm.names if n not in have and (n in schema or not schema)]
+        if not names:
+            raise InputError(f"propose landmarks: {src.name} has none of {target.name}'s missing landmarks")
+        to_file, _ = _converters()
+        meshes = [
+            (to_file(obj, bridge.object_world_vertices(obj)), bridge.mesh_triangles(obj.data)) for obj in (src, target)
+        ]
+        frames = instance_frame(src), instance_frame(target)
+        self._target_name, self._source_name = target.name, src.name
+        method, spacing, subset = self.method, self.spacing_mm, lm.subset(names)
+
+        def work(progress, cancelled):
+            return core.propose_from_meshes(
+                subset, frames[0], meshes[0], frames[1], meshes[1], method=method, spacing_mm=spacing,
+                source=target.name, progress=progress, cancelled=cancelled,
+            )  # fmt: skip
+
+        return work
+
+    def finish(self, context, proposal):
+        target = bpy.data.objects.get(self._target_name)
+        if target is None:
+            self.report({"ERROR"}, f"propose landmarks: instance {self._target_name!r} is gone")
             return {"CANCELLED"}
+        _, to_blender = _converters()
         for name, p in zip(proposal.names, to_blender(target, proposal.points_world)):
             set_landmark(context, target, name, p)
-        self.report({"INFO"}, f"{target.name}: proposed {len(proposal)} landmark(s) from {src.name}; check and correct them")
+        self.report({"INFO"}, f"{target.name}: proposed {len(proposal)} landmark(s) from {self._source_name}; check and correct them")
         return {"FINISHED"}
 
 

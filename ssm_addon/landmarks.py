@@ -35,6 +35,7 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -47,6 +48,7 @@ __all__ = [
     "landmark_format",
     "match_landmarks",
     "order_by_schema",
+    "propose_from_meshes",
     "propose_landmarks",
     "read_landmarks",
     "surface_points_object",
@@ -623,11 +625,16 @@ def propose_landmarks(source_points_object, target, method: str = "frame", **opt
         vertices, or the target's ObjectVolume (its 0.5 iso-surface is used).
     method : str
         ``"frame"`` (this function: nearest surface point after frame alignment) or
-        ``"coating"``: the hook for a better proposal by the landmark warp + relaxation
-        of paper section 4, provided by ``ssm_addon.coating.propose_landmarks_by_coating
-        (source_points_object, target, **options)`` with the same return type.
+        ``"coating"``: a better proposal by coating (paper section 4): a triangulated
+        surface of the source, ``source_template`` (anything with ``points_object``
+        (N, 3) and ``faces`` (F, 3) in the source's object frame, e.g. a Template or the
+        source's mesh), is projected onto the target and relaxed, and each landmark is
+        read off the coated mesh at its barycentric place
+        (``ssm_addon.coating.propose_landmarks_by_coating``); ``target`` must then be
+        the target's ObjectVolume.
     **options
-        Passed on to the chosen method.
+        Passed on to the chosen method (``"coating"``: ``source_template`` (required),
+        ``params``, ``progress``, ``cancelled``).
 
     Returns
     -------
@@ -646,7 +653,12 @@ def propose_landmarks(source_points_object, target, method: str = "frame", **opt
         func = getattr(coating, "propose_landmarks_by_coating", None)
         if func is None:
             raise InputError("landmark proposal: method 'coating' is not available (ssm_addon.coating has no propose_landmarks_by_coating)")
-        return np.asarray(func(src, target, **options), dtype=float)
+        template = options.pop("source_template", None)
+        if template is None:
+            raise InputError("landmark proposal: method 'coating' needs source_template (the source's surface: points_object, faces)")
+        if not (hasattr(target, "mask") and hasattr(target, "voxel_to_object")):
+            raise InputError("landmark proposal: method 'coating' needs the target's ObjectVolume")
+        return np.asarray(func(template, src, target, **options), dtype=float).reshape(-1, 3)
     if method != "frame":
         raise InputError(f"landmark proposal: unknown method {method!r} (choose from {', '.join(PROPOSAL_METHODS)})")
     if options:
@@ -695,4 +707,72 @@ def transfer_landmarks(
     else:
         target = target_frame.to_object(np.asarray(target_surface_world, float).reshape(-1, 3))
     proposed = propose_landmarks(src_obj, target, method=method, **options)
+    return LandmarkSet(landmarks.names, target_frame.to_world(proposed), source)
+
+
+def propose_from_meshes(
+    landmarks: LandmarkSet,
+    source_frame,
+    source_mesh_world,
+    target_frame,
+    target_mesh_world,
+    method: str = "frame",
+    spacing_mm: float = 1.0,
+    template_spacing_mm: float = 2.0,
+    source: str = "",
+    progress=None,
+    cancelled=None,
+) -> LandmarkSet:
+    """Propose landmarks for a target instance given both instances' surface meshes.
+
+    What the Blender proposal runs (off the UI thread): ``"frame"`` maps each landmark
+    to the nearest target mesh vertex after object-frame alignment; ``"coating"``
+    voxelizes the target mesh (``spacing_mm``) and resamples it along its object frame
+    (paper 2), takes the source's surface at ``template_spacing_mm`` as the template and
+    coats it onto the target (paper 4), reading the landmarks off the coated mesh.
+
+    Parameters
+    ----------
+    landmarks : LandmarkSet
+        Source landmarks, world mm.
+    source_frame, target_frame : ObjectFrame
+        The instances' object frames.
+    source_mesh_world, target_mesh_world : tuple of ((V, 3) world mm vertices, (F, 3) faces)
+        Closed surface meshes of the instances.
+    method : {"frame", "coating"}
+    spacing_mm, template_spacing_mm : float
+        Voxel sizes (mm) of the target volume and of the source surface for coating.
+    source : str
+        ``source`` of the result.
+    progress, cancelled : callables, optional
+
+    Returns
+    -------
+    LandmarkSet
+        Same names, on the target's surface, world mm.
+    """
+    from . import volume as vol
+    from .errors import check_cancelled
+
+    tv, tf = (np.asarray(a) for a in target_mesh_world)
+    if method != "coating":
+        return transfer_landmarks(landmarks, source_frame, target_frame, tv, method=method, source=source)
+    report = progress or (lambda f, m: None)
+    sv, sf = (np.asarray(a) for a in source_mesh_world)
+    report(0.0, "voxelizing the target")
+    target_ov = vol.resample(vol.voxelize_mesh(tv, tf, spacing_mm, source=source, cancelled=cancelled), target_frame, spacing_mm, cancelled=cancelled)
+    check_cancelled(cancelled)
+    report(0.1, "surface of the source")
+    source_ov = vol.resample(vol.voxelize_mesh(sv, sf, template_spacing_mm, cancelled=cancelled), source_frame, template_spacing_mm, cancelled=cancelled)
+    pts, faces = vol.display_surface(source_ov)
+    surface = SimpleNamespace(points_object=pts, faces=faces)  # the template: source surface, object mm
+    check_cancelled(cancelled)
+
+    def sub(fraction, message):
+        report(0.2 + 0.8 * fraction, message)
+
+    proposed = propose_landmarks(
+        source_frame.to_object(landmarks.points_world), target_ov, method="coating", source_template=surface, progress=sub, cancelled=cancelled
+    )
+    report(1.0, "done")
     return LandmarkSet(landmarks.names, target_frame.to_world(proposed), source)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -19,6 +20,7 @@ from ssm_addon.landmarks import (
     landmark_format,
     match_landmarks,
     order_by_schema,
+    propose_from_meshes,
     propose_landmarks,
     read_landmarks,
     surface_points_object,
@@ -223,6 +225,32 @@ def test_presets():
 # ---------------------------------------------------------------------------- proposal
 
 
+def _ico_sphere(radius=10.0, subdivisions=4):
+    """Vertices and faces of an ico-sphere (numpy), radius in mm."""
+    t = (1 + 5**0.5) / 2
+    v = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t], [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]], float)
+    f = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2], [10, 7, 6], [7, 1, 8],
+                  [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]])
+    for _ in range(subdivisions):
+        verts = list(v)
+        cache = {}
+
+        def mid(a, b, verts=verts, cache=cache):
+            key = (min(a, b), max(a, b))
+            if key not in cache:
+                verts.append((verts[a] + verts[b]) / 2)
+                cache[key] = len(verts) - 1
+            return cache[key]
+
+        nf = []
+        for a, b, c in f:
+            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
+            nf += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
+        v, f = np.array(verts), np.array(nf)
+    v = v / np.linalg.norm(v, axis=1, keepdims=True) * radius
+    return v, f
+
+
 def _rotation(seed):
     q, _ = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
     return q * np.sign(np.linalg.det(q))
@@ -260,6 +288,26 @@ def test_proposal_onto_object_volume_lands_on_its_surface():
     assert cKDTree(pts).query(out)[0].max() == 0.0
 
 
+def test_coating_proposal_hook_lands_on_an_ellipsoid_target():
+    # source: a sphere of radius 10 (the template's surface); target: a voxel ellipsoid
+    # with semi-axes 8, 11, 9 mm; landmarks at the sphere's poles go to the ellipsoid's
+    v, f = _ico_sphere(10.0, 2)
+    template = SimpleNamespace(points_object=v, faces=f)
+    ijk = np.indices((31, 31, 31)).reshape(3, -1).T
+    semi = np.array([8.0, 11.0, 9.0])
+    mask = (np.sum(((ijk - 15) / semi) ** 2, axis=1) <= 1).reshape(31, 31, 31)
+    ov = vol.ObjectVolume(mask, 1.0, np.full(3, -15.0), vol.ObjectFrame(np.zeros(3), np.eye(3)), "ellipsoid")
+    src = np.array([[10.0, 0, 0], [0, 10.0, 0], [0, 0, -10.0]])
+    out = propose_landmarks(src, ov, method="coating", source_template=template)
+    assert out.shape == (3, 3)
+    np.testing.assert_allclose(np.abs(out[[0, 1, 2], [0, 1, 2]]), semi + 0.5, atol=1.0)
+    assert np.abs(out[[0, 0, 1, 1, 2, 2], [1, 2, 0, 2, 0, 1]]).max() < 1.0
+    with pytest.raises(InputError, match="needs source_template"):
+        propose_landmarks(src, ov, method="coating")
+    with pytest.raises(InputError, match="needs the target's ObjectVolume"):
+        propose_landmarks(src, np.zeros((4, 3)), method="coating", source_template=template)
+
+
 def test_proposal_method_hook():
     with pytest.raises(InputError, match="unknown method 'magic'"):
         propose_landmarks(np.zeros((1, 3)), np.zeros((1, 3)), method="magic")
@@ -284,18 +332,8 @@ def _surface_voxel_centres_world(mask, affine):
 
 
 def _frame(mask, affine):
-    """The object frame of paper 2 (volume.object_frame where available, else moments here)."""
-    if hasattr(vol, "object_frame"):
-        return vol.object_frame(vol.Volume(mask, affine, "verse", None, True))
-    pts = np.argwhere(mask) @ affine[:3, :3].T + affine[:3, 3]
-    c = pts.mean(axis=0)
-    w, v = np.linalg.eigh(np.cov((pts - c).T))
-    # pair each principal axis with the nearest patient axis (R, A, S) and sign it along it
-    order = np.argmax(np.abs(v), axis=0)
-    axes = np.zeros((3, 3))
-    for k in range(3):
-        axes[:, order[k]] = v[:, k] * np.sign(v[order[k], k])
-    return vol.ObjectFrame(c, axes, w, "patient")
+    """The object frame of paper section 2 (volume.object_frame, patient axes)."""
+    return vol.object_frame(vol.Volume(mask, affine, "verse", None, True))
 
 
 def test_verse_lps_landmarks_land_on_the_l1_surface(verse_dir, verse_labels):
@@ -343,3 +381,22 @@ def test_order_by_schema_keeps_a_partial_set_and_lists_unknown_names():
     with pytest.raises(InputError, match=r"part\.csv: missing b; not in the schema tip$"):
         order_by_schema(lm, ("a", "b", "c"), allow_missing=False)
     assert order_by_schema(lm, ("a", "b", "c"), allow_extra=True).names == ("a", "c", "tip")
+
+
+@pytest.mark.parametrize("method", ["frame", "coating"])
+def test_proposal_from_meshes_puts_landmarks_on_the_target_mesh(method):
+    # a sphere (radius 10) at one place and an ellipsoid (semi-axes 8, 11, 9 mm) rotated
+    # and translated elsewhere: pole landmarks of the sphere go to the ellipsoid's poles
+    v, f = _ico_sphere(10.0, 3)
+    semi = np.array([8.0, 11.0, 9.0])
+    src_frame = vol.ObjectFrame(np.array([5.0, -3.0, 2.0]), _rotation(1))
+    tgt_frame = vol.ObjectFrame(np.array([100.0, 40.0, -700.0]), _rotation(2))
+    lm = LandmarkSet(("x", "y", "-z"), src_frame.to_world([[10.0, 0, 0], [0, 10.0, 0], [0, 0, -10.0]]), "sphere")
+    target_world = tgt_frame.to_world(v / 10.0 * semi)
+    out = propose_from_meshes(lm, src_frame, (src_frame.to_world(v), f), tgt_frame, (target_world, f), method=method, source="ellipsoid")
+    assert out.names == lm.names and out.source == "ellipsoid"
+    got = tgt_frame.to_object(out.points_world)
+    np.testing.assert_allclose(np.abs(got[[0, 1, 2], [0, 1, 2]]), semi, atol=0.8)
+    assert np.abs(got[[0, 0, 1, 1, 2, 2], [1, 2, 0, 2, 0, 1]]).max() < 1.0
+    if method == "frame":
+        assert cKDTree(target_world).query(out.points_world)[0].max() == 0.0

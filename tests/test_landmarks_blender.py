@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from conftest import VERSE_FILE, VERSE_LABELS
+from test_landmarks import _frame, _ico_sphere
 
 from ssm_addon import volume as vol
 from ssm_addon.landmarks import LANDMARK_PRESETS, LandmarkSet, read_landmarks, write_landmarks
@@ -42,32 +43,6 @@ def _make_instance(bpy, name, vertices_local, faces, matrix_world, frame=None):
         obj.ssm.frame_axes = [float(v) for v in frame.axes_world.ravel()]
     bpy.context.view_layer.objects.active = obj
     return obj
-
-
-def _ico_sphere(radius=10.0, subdivisions=4):
-    """Vertices and faces of an ico-sphere (numpy), radius in mm."""
-    t = (1 + 5**0.5) / 2
-    v = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t], [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]], float)
-    f = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2], [10, 7, 6], [7, 1, 8],
-                  [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]])
-    for _ in range(subdivisions):
-        verts = list(v)
-        cache = {}
-
-        def mid(a, b, verts=verts, cache=cache):
-            key = (min(a, b), max(a, b))
-            if key not in cache:
-                verts.append((verts[a] + verts[b]) / 2)
-                cache[key] = len(verts) - 1
-            return cache[key]
-
-        nf = []
-        for a, b, c in f:
-            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
-            nf += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
-        v, f = np.array(verts), np.array(nf)
-    v = v / np.linalg.norm(v, axis=1, keepdims=True) * radius
-    return v, f
 
 
 def _distance_to_mesh(obj, point_world):
@@ -211,7 +186,6 @@ def verse_meshes(verse_dir):
     """L1 and L2 as the import stage would make them: marching cubes, object frame, world mm."""
     import nibabel as nib
     from skimage.measure import marching_cubes
-    from test_landmarks import _frame
 
     img = nib.load(str(VERSE_FILE))
     labels, affine = np.asarray(img.dataobj), img.affine
@@ -340,8 +314,75 @@ def test_save_and_reopen_keeps_schema_and_landmarks(sphere, tmp_path):
     assert lm.missing_names(bpy.context, inst) == list(LANDMARK_PRESETS["lumbar-vertebra"][2:])
 
 
-def test_panel_draws(sphere):
+class _Layout:
+    """A stand-in for UILayout that checks what the draw code asks for."""
+
+    def __init__(self, log):
+        self.log = log
+
+    def __getattr__(self, name):  # row, column, box, split, separator, ...
+        return lambda *a, **k: _Layout(self.log)
+
+    def label(self, text="", **kw):
+        self.log.append(("label", text))
+
+    def prop(self, data, prop, **kw):
+        assert prop in data.bl_rna.properties, prop
+        self.log.append(("prop", prop))
+
+    def operator(self, idname, **kw):
+        import bpy
+
+        group, name = idname.split(".")
+        assert hasattr(getattr(bpy.ops, group), name), idname
+        self.log.append(("operator", idname))
+        return type("Props", (), {})()
+
+    def operator_menu_enum(self, idname, prop, **kw):
+        self.operator(idname)
+
+    def template_list(self, list_type, list_id, data, prop, active_data, active_prop, **kw):
+        import bpy
+
+        assert hasattr(bpy.types, list_type) and prop in data.bl_rna.properties and active_prop in active_data.bl_rna.properties
+        self.log.append(("list", prop))
+
+
+def test_panel_and_list_draw_the_status(sphere):
     bpy, inst = sphere
-    assert bpy.types.SSM_PT_landmarks.bl_category == "SSM"
-    assert bpy.types.SSM_PT_landmarks.bl_order == 10
-    assert bpy.ops.ssm.place_landmarks.poll()
+    bpy.ops.ssm.landmark_schema_preset(preset="extremal-14")
+    bpy.ops.ssm.place_landmarks(ray_origin=(50, -20, 400), ray_direction=(0, 0, -1))
+    panel = bpy.types.SSM_PT_landmarks
+    assert panel.bl_category == "SSM" and panel.bl_order == 10 and panel.bl_space_type == "VIEW_3D"
+    log = []
+    panel.draw(type("P", (), {"layout": _Layout(log)})(), bpy.context)
+    labels = [x[1] for x in log if x[0] == "label"]
+    ops = {x[1] for x in log if x[0] == "operator"}
+    assert {"ssm.place_landmarks", "ssm.snap_landmarks", "ssm.import_landmarks", "ssm.export_landmarks", "ssm.propose_landmarks",
+            "ssm.landmark_schema_add", "ssm.landmark_schema_remove", "ssm.landmark_schema_move", "ssm.landmark_schema_preset"} <= ops
+    assert "Ball: 1/14 placed" in labels
+    assert "  missing: left" in labels and "  … and 5 more" in labels
+    assert "Ball: 1 placed, 13 missing" in labels
+    lst = bpy.types.SSM_UL_landmark_schema
+    s = bpy.context.scene.ssm_landmarks
+    lst.draw_item(None, bpy.context, _Layout(log), s, s.names[0], 0, s, "active_index", 0)
+    assert ("prop", "landmark") in log
+
+
+def test_propose_by_coating_in_blender(bpy_clean):
+    bpy = bpy_clean
+    lm = _ops()
+    v, f = _ico_sphere(10.0, 3)
+    semi = np.array([8.0, 11.0, 9.0])
+    m_src = _matrix(_rotation(1), [5.0, -3.0, 2.0])
+    m_tgt = _matrix(_rotation(2), [100.0, 40.0, -70.0])
+    src = _make_instance(bpy, "Sphere", v, f, m_src, vol.ObjectFrame(m_src[:3, 3], m_src[:3, :3]))
+    tgt = _make_instance(bpy, "Ellipsoid", v / 10.0 * semi, f, m_tgt, vol.ObjectFrame(m_tgt[:3, 3], m_tgt[:3, :3]))
+    lm._set_schema(bpy.context.scene.ssm_landmarks, ("x", "y"))
+    for name, p in zip(("x", "y"), (m_src[:3, :3] @ [10.0, 0, 0] + m_src[:3, 3], m_src[:3, :3] @ [0, 10.0, 0] + m_src[:3, 3])):
+        lm.set_landmark(bpy.context, src, name, p)
+    bpy.context.view_layer.objects.active = tgt
+    assert bpy.ops.ssm.propose_landmarks(source="Sphere", method="coating") == {"FINISHED"}
+    got = {n: m_tgt[:3, :3].T @ (_world(e) - m_tgt[:3, 3]) for n, e in lm.landmark_empties(tgt).items()}
+    np.testing.assert_allclose(np.abs(got["x"]), [8.0, 0, 0], atol=0.8)
+    np.testing.assert_allclose(np.abs(got["y"]), [0, 11.0, 0], atol=0.8)
