@@ -220,3 +220,16 @@ def test_import_verse_l1(bpy_clean, verse_dir):
     world = _world_vertices(obj)
     np.testing.assert_allclose(world.min(axis=0), verts.min(axis=0), atol=1e-3)
     np.testing.assert_allclose(world.max(axis=0), verts.max(axis=0), atol=1e-3)
+
+
+def test_import_a_directory_takes_every_supported_file(bpy_clean, tmp_path):
+    bpy = bpy_clean
+    folder = tmp_path / "cases"
+    folder.mkdir()
+    _label_map(folder, "a.nii.gz")
+    _label_map(folder, "b.nrrd")
+    (folder / "notes.txt").write_text("not an image")
+    bpy.ops.ssm.import_segmentation(directory=str(folder), label=20)
+    assert _instances(bpy) == ["a L20", "b L20"]
+    a, b = bpy.data.objects["a L20"], bpy.data.objects["b L20"]
+    np.testing.assert_allclose(np.array(a.matrix_world), np.array(b.matrix_world), atol=1e-4)
