@@ -519,3 +519,14 @@ def test_open_mesh_is_rejected_with_edge_counts(tmp_path):
         V.voxelize_mesh(v, f2, 1.0, source="flipped")
     with pytest.raises(InputError, match=r"nonmanifold: .*non-manifold"):
         V.voxelize_mesh(v, np.vstack([f, f[:1], f[:1, ::-1]]), 1.0, source="nonmanifold")
+
+
+def test_voxelizing_a_vertebra_surface_gives_back_its_volume(verse_frames):
+    """A marching-cubes surface of L1 (genus > 0, oblique world) voxelizes to its own volume."""
+    _, items = verse_frames
+    vol = items["L1"][0]
+    verts, faces = V.display_surface(vol)
+    assert V.mesh_edge_defects(faces) == (0, 0, 0)
+    enclosed = V.mesh_signed_volume(verts, faces)
+    assert enclosed == pytest.approx(vol.volume_mm3, rel=0.02)
+    assert V.voxelize_mesh(verts, faces, 1.0, source="L1").volume_mm3 == pytest.approx(enclosed, rel=0.01)
