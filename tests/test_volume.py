@@ -530,3 +530,16 @@ def test_voxelizing_a_vertebra_surface_gives_back_its_volume(verse_frames):
     enclosed = V.mesh_signed_volume(verts, faces)
     assert enclosed == pytest.approx(vol.volume_mm3, rel=0.02)
     assert V.voxelize_mesh(verts, faces, 1.0, source="L1").volume_mm3 == pytest.approx(enclosed, rel=0.01)
+
+
+def test_moment_signs_flip_between_verse_neighbours_where_patient_pairing_does_not(verse_frames):
+    """Why "patient" is the default for images (design notes): on VerSe the third-moment
+    signs flip between neighbours (e.g. L1/L2) and L5 swaps its two largest axes."""
+    lm, items = verse_frames
+    names = list(VERSE_LABELS)
+    moments = {n: V.object_frame(items[n][0], "moments").axes_world for n in names}
+    flips = [(a, b) for a, b in zip(names, names[1:]) if np.any(np.sum(moments[a] * moments[b], axis=0) < 0)]
+    assert ("L1", "L2") in flips
+    assert np.sum(moments["L4"] * moments["L5"], axis=0)[0] < 0.5  # L5's first two axes swapped
+    patient = {n: items[n][1].axes_world for n in names}
+    assert all(np.all(np.sum(patient[a] * patient[b], axis=0) > 0.8) for a, b in zip(names, names[1:]))
