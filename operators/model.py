@@ -1,3 +1,550 @@
-"""Blender operators for the model stage (filled in by its issue)."""
+"""Blender layer of the model stage (paper section 5): build, show, animate, sample, save.
 
-classes = ()
+The model object ("SSM Model") is a mesh of the mean shape with the template's faces and
+triangle-index colours, one shape key per mode ("Mode 1", ...) whose key is the mean
+plus one standard deviation along the mode (key = p̄ + √λ_k q_k, slider -3..3, so a
+slider value v is b_k = v √λ_k and the evaluated mesh is p̄ + Σ v_k √λ_k q_k, eq. 7),
+and a POINT attribute ``variance`` (per-point variance, mm², for a heat map).
+
+Storage: the full :class:`~ssm_addon.model.ShapeModel` (float64 mean, modes, variances,
+instance points in the model and world frames, names and parameters) is kept in the
+object's ID property group ``obj["ssm_model"]`` as binary float64/int32 arrays (numpy
+buffers, no lists), so it survives save/reopen exactly and "Save Model" writes the same
+files as the command line. The shape keys are the editable view of it (float32).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import bpy
+import numpy as np
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+
+from ..ssm_addon import metrics as core_metrics
+from ..ssm_addon.errors import InputError
+from ..ssm_addon.model import ShapeModel, _validated, build_model
+from . import bridge
+from .jobs import BackgroundJob
+
+MODEL_KEY = "ssm_model"
+MODEL_COLLECTION = "SSM Model"
+ALIGNMENT_ITEMS = [
+    ("none", "Object frame", "No further normalisation (paper 5): size stays part of the variability"),
+    ("rigid", "Rigid Procrustes", "Generalized Procrustes alignment: rotation and translation"),
+    ("similarity", "Similarity Procrustes", "Generalized Procrustes alignment with scale"),
+]
+
+
+# ---------------------------------------------------------------------------------------
+# the model kept with its object
+# ---------------------------------------------------------------------------------------
+def store_model(obj: bpy.types.Object, model: ShapeModel) -> None:
+    """Keep ``model`` in ``obj["ssm_model"]`` (binary arrays; survives save/reopen)."""
+    n, npts, k = model.n_instances, model.n_points, model.n_modes
+    obj[MODEL_KEY] = {
+        "shape_json": json.dumps({"n": n, "N": npts, "K": k, "F": int(len(model.faces))}),
+        "mean": np.ascontiguousarray(model.mean, dtype=np.float64).ravel(),
+        "faces": np.ascontiguousarray(model.faces, dtype=np.int32).ravel(),
+        "modes": np.ascontiguousarray(model.modes, dtype=np.float64).ravel(),
+        "variances": np.ascontiguousarray(model.variances, dtype=np.float64),
+        "fractions": np.asarray(model.variances / max(model.total_variance, 1e-300), dtype=np.float64),
+        "instance_points": np.ascontiguousarray(model.instance_points, dtype=np.float64).ravel(),
+        "instance_points_world": np.ascontiguousarray(model.instance_points_world, dtype=np.float64).ravel(),
+        "names_json": json.dumps([str(s) for s in model.instance_names]),
+        "params_json": json.dumps(model.params),
+    }
+
+
+def has_model(obj) -> bool:
+    return obj is not None and obj.get(MODEL_KEY) is not None
+
+
+def model_from_object(obj: bpy.types.Object) -> ShapeModel:
+    """The ShapeModel stored on a model object (raises InputError naming the object)."""
+    if not has_model(obj):
+        raise InputError(f"object '{getattr(obj, 'name', obj)}': no SSM model stored (build the model first)")
+    g = obj[MODEL_KEY]
+    try:
+        shp = json.loads(g["shape_json"])
+        n, npts, k, nf = shp["n"], shp["N"], shp["K"], shp["F"]
+
+        def arr(key, shape, dtype=np.float64):
+            return np.array(np.asarray(g[key]), dtype=dtype).reshape(shape)
+
+        arrays = {
+            "mean": arr("mean", (npts, 3)),
+            "faces": arr("faces", (nf, 3), np.int64),
+            "modes": arr("modes", (k, npts, 3)),
+            "variances": arr("variances", (k,)),
+            "instance_points": arr("instance_points", (n, npts, 3)),
+            "instance_points_world": arr("instance_points_world", (n, npts, 3)),
+            "instance_names": np.asarray(json.loads(g["names_json"]), dtype=str).reshape(n),
+            "params": json.loads(g["params_json"]),
+        }
+    except (KeyError, ValueError, TypeError) as err:
+        raise InputError(f"object '{obj.name}': the stored SSM model is damaged ({err})") from err
+    return _validated(arrays, f"object '{obj.name}'")
+
+
+def mode_keys(obj) -> list:
+    """The mode shape keys ("Mode 1", ...) of a model object, in order."""
+    keys = obj.data.shape_keys if obj is not None and obj.type == "MESH" else None
+    if keys is None:
+        return []
+    return [kb for kb in keys.key_blocks if kb.name.startswith("Mode ")]
+
+
+def find_model_object(context) -> bpy.types.Object | None:
+    """The active object if it is a model, else the first model object in the scene."""
+    obj = context.active_object
+    if obj is not None and obj.ssm.role == "MODEL" and has_model(obj):
+        return obj
+    for ob in context.scene.objects:
+        if ob.ssm.role == "MODEL" and has_model(ob):
+            return ob
+    return None
+
+
+def _require_model(context) -> bpy.types.Object:
+    obj = find_model_object(context)
+    if obj is None:
+        raise InputError("no SSM model in the scene: run 'Build Model' first")
+    return obj
+
+
+def create_model_object(context, model: ShapeModel, name: str = "SSM Model", n_keys: int | None = None):
+    """Create (or replace) the model mesh object from a ShapeModel.
+
+    Mean shape with the template faces and triangle-index colours, one shape key per mode
+    (key = p̄ + √λ_k q_k, slider -3..3 = b_k / √λ_k), POINT attribute ``variance`` (mm²),
+    ``obj.ssm.role = "MODEL"`` and the model arrays in ``obj["ssm_model"]``.
+
+    Parameters
+    ----------
+    n_keys : int, optional
+        Number of mode shape keys (default: every mode of the model).
+
+    Returns
+    -------
+    bpy.types.Object
+    """
+    scene = context.scene
+    bridge.ensure_mm_units(scene)
+    obj = bridge.new_mesh_object(context, name, model.mean, model.faces, collection_name=MODEL_COLLECTION)
+    mesh = obj.data
+    bridge.set_face_colors(mesh, bridge.triangle_index_colors(len(model.faces)))
+    mat = bridge.color_material()
+    if mat.name not in mesh.materials:
+        mesh.materials.clear()
+        mesh.materials.append(mat)
+    k = model.n_modes if n_keys is None else min(int(n_keys), model.n_modes)
+    sd = model.standard_deviations
+    keys = {f"Mode {i + 1}": model.mean + sd[i] * model.modes[i] for i in range(k)}
+    bridge.set_shape_keys(obj, keys, slider_min=-3.0, slider_max=3.0)
+    bridge.set_point_attribute(mesh, "variance", model.point_variance)
+    obj.ssm.role = "MODEL"
+    obj.ssm.source = str(model.params.get("source", ""))
+    store_model(obj, model)
+    for ob in context.view_layer.objects:
+        ob.select_set(False)
+    if obj.name in context.view_layer.objects:
+        obj.select_set(True)
+        context.view_layer.objects.active = obj
+    return obj
+
+
+# ---------------------------------------------------------------------------------------
+# reading the coated instances
+# ---------------------------------------------------------------------------------------
+def _frame_of(obj) -> tuple[np.ndarray, np.ndarray] | None:
+    """(origin (3,), axes (3,3) columns) of the object frame, from the object or its instance."""
+    for source in (obj, obj.ssm.instance):
+        if source is None:
+            continue
+        axes = np.array(source.ssm.frame_axes, dtype=float).reshape(3, 3)
+        if abs(np.linalg.det(axes)) > 0.5:
+            return np.array(source.ssm.frame_origin, dtype=float), axes
+    return None
+
+
+def coated_instances(context) -> list:
+    """Coated objects (role COATED) of the scene, sorted by instance name."""
+    objs = [ob for ob in context.scene.objects if ob.type == "MESH" and ob.ssm.role == "COATED"]
+    return sorted(objs, key=_instance_name)
+
+
+def _instance_name(obj) -> str:
+    return obj.ssm.instance.name if obj.ssm.instance is not None else obj.name
+
+
+def gather_coated(context):
+    """Points (object frame), world points, faces, names and fit figures of the coated instances."""
+    objs = coated_instances(context)
+    if len(objs) < 2:
+        raise InputError(f"Build Model: need at least 2 coated instances (role 'Coated instance'), found {len(objs)}")
+    faces = bridge.mesh_triangles(objs[0].data)
+    npts = len(objs[0].data.vertices)
+    pts, world, names, fits = [], [], [], {}
+    for ob in objs:
+        if len(ob.data.vertices) != npts:
+            raise InputError(
+                f"Build Model: '{ob.name}' has {len(ob.data.vertices)} points, '{objs[0].name}' has {npts}; "
+                "all coated instances must share the template's topology"
+            )
+        tris = bridge.mesh_triangles(ob.data)
+        if tris.shape != faces.shape or not np.array_equal(tris, faces):
+            raise InputError(f"Build Model: '{ob.name}' has different triangles than '{objs[0].name}'")
+        p = bridge.mesh_vertices(ob.data)
+        frame = _frame_of(ob)
+        pts.append(p)
+        world.append(p if frame is None else p @ frame[1].T + frame[0])
+        name = _instance_name(ob)
+        names.append(name)
+        if ob.ssm.fit_json:
+            try:
+                fits[name] = json.loads(ob.ssm.fit_json)
+            except json.JSONDecodeError:
+                fits[name] = {"fit_json": ob.ssm.fit_json}
+    if len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise InputError(f"Build Model: instance names are not unique: {dup}")
+    return np.stack(pts), np.stack(world), faces, names, fits
+
+
+# ---------------------------------------------------------------------------------------
+# settings
+# ---------------------------------------------------------------------------------------
+class SSMModelSettings(bpy.types.PropertyGroup):
+    """``Scene.ssm_model``: model building, display and animation settings."""
+
+    n_modes: IntProperty(name="Modes", description="Modes to keep (0: every non-zero mode, at most n-1)", default=0, min=0)
+    alignment: EnumProperty(name="Alignment", items=ALIGNMENT_ITEMS, default="none")
+    show_modes: IntProperty(name="Shown modes", description="Modes listed in the panel", default=8, min=1, max=200)
+    anim_modes: IntProperty(name="Animated modes", description="Sweep the first modes in turn", default=3, min=1)
+    anim_frames: IntProperty(name="Frames per mode", default=48, min=6)
+    anim_amplitude: FloatProperty(name="Amplitude", description="Sweep amplitude in standard deviations", default=2.0, min=0.1, max=3.0)
+    sample_seed: IntProperty(name="Seed", description="Seed of the random shape", default=0, min=0)
+    sample_sd_limit: FloatProperty(name="Limit", description="Clip each mode weight to ±limit standard deviations", default=3.0, min=0.1)
+    metrics_samples: IntProperty(name="Specificity samples", default=300, min=10)
+    last_directory: StringProperty(name="Last directory", subtype="DIR_PATH")
+
+
+# ---------------------------------------------------------------------------------------
+# operators
+# ---------------------------------------------------------------------------------------
+class SSM_OT_build_model(BackgroundJob, bpy.types.Operator):
+    """Build the statistical shape model (mean, eigenmodes, eq. 4-6) from the coated instances"""
+
+    bl_idname = "ssm.build_model"
+    bl_label = "Build Model"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def prepare(self, context):
+        settings = context.scene.ssm_model
+        pts, world, faces, names, fits = gather_coated(context)
+        alignment = settings.alignment
+        n_modes = settings.n_modes or None
+
+        def work(progress, cancelled):
+            return build_model(
+                pts,
+                faces,
+                names,
+                instance_points_world=world,
+                alignment=alignment,
+                n_modes=n_modes,
+                params={"fit": fits, "source": "Blender coated instances"},
+                progress=progress,
+                cancelled=cancelled,
+            )
+
+        return work
+
+    def finish(self, context, model):
+        obj = create_model_object(context, model)
+        conc = model.variability_concentration()
+        k3 = min(3, model.n_modes)
+        share = conc[k3 - 1] * 100 if k3 else 0.0
+        self.report({"INFO"}, f"{obj.name}: {model.n_modes} modes from {model.n_instances} instances; first {k3}: {share:.1f} %")
+        return {"FINISHED"}
+
+
+def _channelbag(keys):
+    from bpy_extras import anim_utils
+
+    ad = keys.animation_data
+    if ad is None or ad.action is None:
+        return None
+    return anim_utils.action_get_channelbag_for_slot(ad.action, ad.action_slot)
+
+
+def mode_fcurves(obj) -> dict:
+    """{key name: F-curve} of the animated mode values of a model object."""
+    keys = obj.data.shape_keys
+    bag = _channelbag(keys) if keys is not None else None
+    out = {}
+    if bag is None:
+        return out
+    for fc in bag.fcurves:
+        if fc.data_path.startswith('key_blocks["') and fc.data_path.endswith('"].value'):
+            out[fc.data_path[len('key_blocks["') : -len('"].value')]] = fc
+    return out
+
+
+def sweep_keyframes(n_modes: int, frames_per_mode: int, amplitude: float, start: int = 1) -> dict:
+    """Keyframes (frame, value in σ) sweeping each mode 0, -a, +a, -a, 0 in turn (paper fig. 10).
+
+    Every mode also gets 0 keys at the first and last frame, so all F-curves share one
+    period and loop together. Returns {mode index: [(frame, value), ...]} and the end frame
+    under the key ``"end"``.
+    """
+    f = int(frames_per_mode)
+    end = start + n_modes * f
+    out: dict = {"end": end}
+    for i in range(n_modes):
+        s = start + i * f
+        pts = [(s, 0.0), (s + round(f / 6), -amplitude), (s + round(f / 2), amplitude), (s + round(5 * f / 6), -amplitude), (s + f, 0.0)]
+        if s > start:
+            pts.insert(0, (start, 0.0))
+        if s + f < end:
+            pts.append((end, 0.0))
+        out[i] = pts
+    return out
+
+
+class SSM_OT_animate_modes(bpy.types.Operator):
+    """Keyframe the mode sliders: each mode sweeps -2σ…+2σ…-2σ in turn (paper fig. 10), loopable"""
+
+    bl_idname = "ssm.animate_modes"
+    bl_label = "Animate Modes"
+    bl_options = {"REGISTER", "UNDO"}
+
+    n_modes: IntProperty(name="Modes", description="Animate the first modes", default=3, min=1)
+    frames_per_mode: IntProperty(name="Frames per mode", default=48, min=6)
+    amplitude: FloatProperty(name="Amplitude (σ)", default=2.0, min=0.1, max=3.0)
+    cyclic: BoolProperty(name="Loop", description="Cycles modifier on every F-curve", default=True)
+
+    def execute(self, context):
+        try:
+            obj = _require_model(context)
+        except InputError as err:
+            self.report({"ERROR"}, str(err))
+            return {"CANCELLED"}
+        kbs = mode_keys(obj)
+        m = min(self.n_modes, len(kbs))
+        if m == 0:
+            self.report({"ERROR"}, f"{obj.name}: no mode shape keys")
+            return {"CANCELLED"}
+        keys = obj.data.shape_keys
+        keys.animation_data_clear()
+        for kb in kbs:
+            kb.value = 0.0
+        plan = sweep_keyframes(m, self.frames_per_mode, self.amplitude, start=1)
+        for i in range(m):
+            kb = kbs[i]
+            for frame, value in plan[i]:
+                kb.value = value
+                kb.keyframe_insert("value", frame=frame)
+            kb.value = 0.0
+        fcurves = mode_fcurves(obj)
+        for i in range(m):
+            fc = fcurves.get(kbs[i].name)
+            if fc is None:
+                continue
+            for mod in list(fc.modifiers):
+                fc.modifiers.remove(mod)
+            if self.cyclic:
+                fc.modifiers.new("CYCLES")
+        scene = context.scene
+        scene.frame_start = 1
+        scene.frame_end = plan["end"] - 1 if self.cyclic else plan["end"]
+        scene.frame_set(1)
+        self.report({"INFO"}, f"{obj.name}: {m} modes animated over frames 1-{plan['end']}")
+        return {"FINISHED"}
+
+
+class SSM_OT_random_shape(bpy.types.Operator):
+    """New object sampled from the model: b_k ~ N(0, λ_k) (eq. 7), seeded"""
+
+    bl_idname = "ssm.random_shape"
+    bl_label = "Random Shape"
+    bl_options = {"REGISTER", "UNDO"}
+
+    seed: IntProperty(name="Seed", default=0, min=0)
+    n_modes: IntProperty(name="Modes", description="Modes used (0: all)", default=0, min=0)
+    sd_limit: FloatProperty(name="Limit (σ)", description="Clip each weight to ±limit standard deviations", default=3.0, min=0.1)
+
+    def execute(self, context):
+        try:
+            obj = _require_model(context)
+            model = model_from_object(obj)
+        except InputError as err:
+            self.report({"ERROR"}, str(err))
+            return {"CANCELLED"}
+        k = self.n_modes or model.n_modes
+        points = model.sample(1, k=k, seed=self.seed, sd_limit=self.sd_limit)[0]
+        z = model.project(points, k=min(k, model.n_modes)) / model.standard_deviations[: min(k, model.n_modes)]
+        name = f"SSM Sample {self.seed}"
+        matrix = np.array(obj.matrix_world, dtype=float)
+        width = float(np.ptp(model.mean[:, 0])) if model.n_points else 0.0
+        matrix[:3, 3] += matrix[:3, 0] * 1.3 * width
+        sample = bridge.new_mesh_object(context, name, points, model.faces, collection_name=MODEL_COLLECTION, matrix_world=matrix)
+        bridge.set_face_colors(sample.data, bridge.triangle_index_colors(len(model.faces)))
+        if not sample.data.materials:
+            sample.data.materials.append(bridge.color_material())
+        sample.ssm.role = "SAMPLE"
+        sample["ssm_z"] = np.asarray(z, dtype=np.float64)
+        sample["ssm_seed"] = int(self.seed)
+        self.report({"INFO"}, f"{name}: z = {np.round(z[:3], 2).tolist()} ...")
+        return {"FINISHED"}
+
+
+class SSM_OT_reset_modes(bpy.types.Operator):
+    """Set every mode value to 0 (the mean shape)"""
+
+    bl_idname = "ssm.reset_modes"
+    bl_label = "Reset Modes"
+    bl_options = {"REGISTER", "UNDO"}
+
+    clear_animation: BoolProperty(name="Clear animation", description="Also remove the mode keyframes", default=False)
+
+    def execute(self, context):
+        try:
+            obj = _require_model(context)
+        except InputError as err:
+            self.report({"ERROR"}, str(err))
+            return {"CANCELLED"}
+        if self.clear_animation and obj.data.shape_keys is not None:
+            obj.data.shape_keys.animation_data_clear()
+        for kb in mode_keys(obj):
+            kb.value = 0.0
+        obj.data.update()
+        return {"FINISHED"}
+
+
+class SSM_OT_save_model(BackgroundJob, bpy.types.Operator):
+    """Write model.npz, the statismo HDF5 file (model.h5), report.json and the plots into a folder"""
+
+    bl_idname = "ssm.save_model"
+    bl_label = "Save Model"
+    bl_options = {"REGISTER"}
+
+    directory: StringProperty(name="Directory", subtype="DIR_PATH")
+    metrics: BoolProperty(name="Quality metrics", description="Generalization and specificity (compactness always)", default=True)
+    plots: BoolProperty(name="Plots", description="Spectrum and cumulative variance images (needs matplotlib)", default=True)
+    n_samples: IntProperty(name="Specificity samples", default=300, min=10)
+
+    def invoke(self, context, event):
+        if not self.directory:
+            self.directory = bpy.path.abspath(context.scene.ssm_model.last_directory) or ""
+            context.window_manager.fileselect_add(self)
+            return {"RUNNING_MODAL"}
+        return BackgroundJob.invoke(self, context, event)
+
+    def prepare(self, context):
+        if not self.directory:
+            raise InputError("Save Model: choose a directory")
+        obj = _require_model(context)
+        model = model_from_object(obj)
+        out_dir = bpy.path.abspath(self.directory)
+        per_instance = dict(model.params.get("fit") or {})
+        with_metrics, plots, n_samples = self.metrics, self.plots, self.n_samples
+
+        def work(progress, cancelled):
+            if with_metrics:
+                mets = core_metrics.evaluate(model, n_samples=n_samples, progress=progress, cancelled=cancelled)
+            else:
+                mets = {"compactness": core_metrics.compactness(model)}
+            return core_metrics.write_outputs(model, out_dir, mets, per_instance, {"model_object": obj.name}, plots=plots)
+
+        return work
+
+    def finish(self, context, written):
+        context.scene.ssm_model.last_directory = os.path.dirname(written["npz"])
+        msg = f"saved {os.path.dirname(written['npz'])}: model.npz, model.h5, report.json"
+        if written.get("plots_skipped"):
+            self.report({"WARNING"}, f"{msg}; {written['plots_skipped']}")
+        else:
+            self.report({"INFO"}, f"{msg}, {len(written['plots'])} plots")
+        return {"FINISHED"}
+
+
+# ---------------------------------------------------------------------------------------
+# panel
+# ---------------------------------------------------------------------------------------
+class SSM_PT_model(bpy.types.Panel):
+    """Model: build, per-mode variance bars and sliders, animation, sampling, files."""
+
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "SSM"
+    bl_label = "Model"
+    bl_order = 40
+
+    def draw(self, context):
+        layout = self.layout
+        settings = context.scene.ssm_model
+        col = layout.column(align=True)
+        col.prop(settings, "alignment")
+        col.prop(settings, "n_modes")
+        n_coated = sum(1 for ob in context.scene.objects if ob.ssm.role == "COATED")
+        row = layout.row()
+        row.enabled = n_coated >= 2
+        row.operator("ssm.build_model", text=f"Build Model ({n_coated} coated)", icon="MOD_MESHDEFORM")
+        obj = find_model_object(context)
+        if obj is None:
+            layout.label(text="No model yet", icon="INFO")
+            return
+        g = obj[MODEL_KEY]
+        shp = json.loads(g["shape_json"])
+        layout.label(text=f"{obj.name}: {shp['n']} instances, {shp['N']} points, {shp['K']} modes")
+        fractions = np.asarray(g["fractions"])
+        cum = np.cumsum(fractions)
+        box = layout.box()
+        keys = mode_keys(obj)
+        for i, kb in enumerate(keys[: settings.show_modes]):
+            row = box.row(align=True)
+            split = row.split(factor=0.45, align=True)
+            pct = 100 * fractions[i] if i < len(fractions) else 0.0
+            tot = 100 * cum[i] if i < len(cum) else 0.0
+            split.progress(factor=float(fractions[i]) if i < len(fractions) else 0.0, type="BAR", text=f"{i + 1}: {pct:.1f} % (Σ {tot:.1f})")
+            split.prop(kb, "value", text="", slider=True)
+        if len(keys) > settings.show_modes:
+            box.label(text=f"… {len(keys) - settings.show_modes} more modes")
+        box.prop(settings, "show_modes")
+        row = layout.row(align=True)
+        op = row.operator("ssm.reset_modes", text="Reset", icon="LOOP_BACK")
+        op.clear_animation = False
+        col = layout.column(align=True)
+        col.prop(settings, "anim_modes")
+        col.prop(settings, "anim_frames")
+        col.prop(settings, "anim_amplitude")
+        op = col.operator("ssm.animate_modes", icon="ANIM")
+        op.n_modes, op.frames_per_mode, op.amplitude = settings.anim_modes, settings.anim_frames, settings.anim_amplitude
+        row = layout.row(align=True)
+        row.prop(settings, "sample_seed")
+        op = row.operator("ssm.random_shape", icon="MOD_NOISE")
+        op.seed, op.sd_limit = settings.sample_seed, settings.sample_sd_limit
+        op = layout.operator("ssm.save_model", icon="EXPORT")
+        op.n_samples = settings.metrics_samples
+
+
+classes = (
+    SSMModelSettings,
+    SSM_OT_build_model,
+    SSM_OT_animate_modes,
+    SSM_OT_random_shape,
+    SSM_OT_reset_modes,
+    SSM_OT_save_model,
+    SSM_PT_model,
+)
+
+
+def register_properties():
+    bpy.types.Scene.ssm_model = PointerProperty(type=SSMModelSettings)
+
+
+def unregister_properties():
+    del bpy.types.Scene.ssm_model

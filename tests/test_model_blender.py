@@ -1,0 +1,232 @@
+"""The model in Blender: shape keys = eigenmodes (eq. 7), animation, sampling, files, glTF."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial import ConvexHull
+from test_model import random_rotation, synthetic_population
+
+pytestmark = pytest.mark.blender
+
+N_INST = 10
+
+
+@pytest.fixture(scope="module")
+def population():
+    shapes, mean, fields, lam = synthetic_population(n=N_INST, n_points=120, noise_mm=0.2, seed=3)
+    faces = ConvexHull(mean).simplices
+    rng = np.random.default_rng(0)
+    frames = [(rng.normal(scale=50, size=3), random_rotation(rng)) for _ in range(N_INST)]
+    return shapes, faces, frames
+
+
+def add_coated(bpy, population, n=N_INST):
+    """Coated instances as the coating stage leaves them: object-frame points, an instance with a frame."""
+    from ssm.operators import bridge
+
+    shapes, faces, frames = population
+    ctx = bpy.context
+    for i in range(n):
+        inst = bridge.new_mesh_object(ctx, f"V{i:02d}", np.zeros((0, 3)), np.zeros((0, 3), int), "SSM Instances")
+        inst.ssm.role = "INSTANCE"
+        inst.ssm.frame_origin = frames[i][0]
+        inst.ssm.frame_axes = frames[i][1].ravel()
+        coated = bridge.new_mesh_object(ctx, f"V{i:02d} coated", shapes[i], faces, "SSM Coated")
+        coated.ssm.role = "COATED"
+        coated.ssm.instance = inst
+        coated.ssm.fit_json = json.dumps({"rms_mm": 0.1 * i})
+
+
+@pytest.fixture()
+def built(bpy_clean, population):
+    bpy = bpy_clean
+    add_coated(bpy, population)
+    assert bpy.ops.ssm.build_model() == {"FINISHED"}
+    from ssm.operators import model as opmodel
+
+    obj = bpy.data.objects["SSM Model"]
+    return bpy, obj, opmodel.model_from_object(obj)
+
+
+def test_build_model_from_coated_instances(built, population):
+    from ssm.ssm_addon.model import build_model
+
+    bpy, obj, model = built
+    shapes, faces, frames = population
+    ref = build_model(shapes, faces, [f"V{i:02d}" for i in range(N_INST)])
+    assert obj.ssm.role == "MODEL"
+    assert list(model.instance_names) == [f"V{i:02d}" for i in range(N_INST)]
+    np.testing.assert_allclose(model.variances, ref.variances, rtol=1e-6)
+    np.testing.assert_allclose(model.mean, ref.mean, atol=1e-5)
+    # world points through each instance's object frame (float32 mesh storage)
+    for i in (0, 6):
+        origin, axes = frames[i]
+        np.testing.assert_allclose(model.instance_points_world[i], shapes[i] @ axes.T + origin, atol=1e-4)
+    kbs = obj.data.shape_keys.key_blocks
+    assert [kb.name for kb in kbs] == ["Basis"] + [f"Mode {k + 1}" for k in range(model.n_modes)]
+    assert all(kb.slider_min == -3 and kb.slider_max == 3 for kb in kbs[1:])
+    from ssm.operators import bridge
+
+    np.testing.assert_allclose(bridge.get_point_attribute(obj.data, "variance"), model.point_variance, rtol=1e-5)
+    assert model.params["fit"]["V03"]["rms_mm"] == pytest.approx(0.3)
+    colours = obj.data.attributes.get("triangle_index")
+    assert colours is not None and colours.domain == "FACE" and len(colours.data) == len(faces)
+
+
+def test_evaluated_mesh_at_mode_values_obeys_eq7(built):
+    from ssm.operators import bridge
+
+    bpy, obj, model = built
+    v = np.array([1.5, -2.0, 0.7, 3.0])
+    for k, val in enumerate(v):
+        obj.data.shape_keys.key_blocks[f"Mode {k + 1}"].value = val
+    got = bridge.evaluated_vertices(bpy.context, obj)
+    expected = model.mean + np.tensordot(v * model.standard_deviations[:4], model.modes[:4], axes=1)
+    scale = np.abs(model.mean).max()
+    np.testing.assert_allclose(got, expected, atol=4 * scale * np.finfo(np.float32).eps * len(v))
+    # and the model says these are the mode weights b = v sqrt(lambda)
+    np.testing.assert_allclose(model.project(got)[:4], v * model.standard_deviations[:4], atol=1e-3)
+
+
+def test_gltf_export_has_one_morph_target_per_mode(built, tmp_path):
+    bpy, obj, model = built
+    path = tmp_path / "model.gltf"
+    bpy.ops.export_scene.gltf(filepath=str(path), export_format="GLTF_SEPARATE", export_morph=True, use_selection=True)
+    doc = json.loads(path.read_text())
+    assert len(doc["meshes"]) == 1
+    prim = doc["meshes"][0]["primitives"][0]
+    assert len(prim["targets"]) == model.n_modes
+    assert doc["meshes"][0]["extras"]["targetNames"] == [f"Mode {k + 1}" for k in range(model.n_modes)]
+
+
+def test_animate_modes_sweeps_each_mode_and_loops(built):
+    from ssm.operators import bridge
+
+    bpy, obj, model = built
+    assert bpy.ops.ssm.animate_modes(n_modes=2, frames_per_mode=48, amplitude=2.0, cyclic=True) == {"FINISHED"}
+    scene = bpy.context.scene
+    kbs = obj.data.shape_keys.key_blocks
+    assert (scene.frame_start, scene.frame_end) == (1, 96)
+    expect = {9: (-2, 0), 25: (2, 0), 41: (-2, 0), 49: (0, 0), 57: (0, -2), 73: (0, 2), 89: (0, -2)}
+    for frame, (m1, m2) in expect.items():
+        scene.frame_set(frame)
+        assert kbs["Mode 1"].value == pytest.approx(m1, abs=1e-6), frame
+        assert kbs["Mode 2"].value == pytest.approx(m2, abs=1e-6), frame
+        assert kbs["Mode 3"].value == 0.0
+    # loops: one period later the same pose
+    scene.frame_set(96 + 25)
+    assert kbs["Mode 1"].value == pytest.approx(2.0, abs=1e-6)
+    got = bridge.evaluated_vertices(bpy.context, obj)
+    np.testing.assert_allclose(got, model.generate_sd([2.0]), atol=1e-4)
+    assert bpy.ops.ssm.reset_modes(clear_animation=True) == {"FINISHED"}
+    assert obj.data.shape_keys.animation_data is None
+    assert all(kb.value == 0 for kb in kbs[1:])
+
+
+def test_random_shape_and_reset(built):
+    from ssm.operators import bridge
+
+    bpy, obj, model = built
+    obj.data.shape_keys.key_blocks["Mode 2"].value = 1.0
+    assert bpy.ops.ssm.reset_modes() == {"FINISHED"}
+    assert all(kb.value == 0 for kb in obj.data.shape_keys.key_blocks[1:])
+    assert bpy.ops.ssm.random_shape(seed=7, sd_limit=3.0) == {"FINISHED"}
+    sample = bpy.data.objects["SSM Sample 7"]
+    assert sample.ssm.role == "SAMPLE"
+    expected = model.sample(1, seed=7, sd_limit=3.0)[0]
+    np.testing.assert_allclose(bridge.mesh_vertices(sample.data), expected, atol=1e-4)
+    z = np.asarray(sample["ssm_z"])
+    assert z.shape == (model.n_modes,) and np.all(np.abs(z) <= 3.0 + 1e-6)
+
+
+def test_save_model_writes_files_and_blend_reopen_keeps_model(built, tmp_path):
+    from ssm.operators import model as opmodel
+    from ssm.ssm_addon.model import load_npz, load_statismo
+
+    bpy, obj, model = built
+    out = tmp_path / "out"
+    assert bpy.ops.ssm.save_model(directory=str(out), metrics=True, plots=False, n_samples=50) == {"FINISHED"}
+    back = load_npz(out / "model.npz")
+    np.testing.assert_array_equal(back.modes, model.modes)
+    np.testing.assert_array_equal(back.instance_points_world, model.instance_points_world)
+    assert load_statismo(out / "model.h5").n_modes == model.n_modes
+    report = json.loads((out / "report.json").read_text())
+    assert report["metrics"]["generalization"]["method"] == "leave-one-out"
+    assert report["fit_summary"]["rms_mm"]["n"] == N_INST
+    blend = tmp_path / "model.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    bpy.ops.wm.read_homefile(use_empty=True)
+    bpy.ops.wm.open_mainfile(filepath=str(blend))
+    obj2 = bpy.data.objects["SSM Model"]
+    again = opmodel.model_from_object(obj2)
+    for key in ("mean", "modes", "variances", "instance_points", "instance_points_world"):
+        np.testing.assert_array_equal(getattr(again, key), getattr(model, key))
+    assert again.params == model.params
+    assert bpy.ops.ssm.random_shape(seed=1) == {"FINISHED"}
+
+
+def test_create_model_object_from_a_shape_model(bpy_clean, population):
+    from ssm.operators import model as opmodel
+    from ssm.ssm_addon.model import build_model
+
+    bpy = bpy_clean
+    shapes, faces, _ = population
+    model = build_model(shapes, faces, [f"s{i}" for i in range(N_INST)], n_modes=4)
+    obj = opmodel.create_model_object(bpy.context, model, name="Direct")
+    assert obj.name == "Direct" and obj.ssm.role == "MODEL"
+    assert len(opmodel.mode_keys(obj)) == 4
+    # calling it again replaces, not duplicates
+    opmodel.create_model_object(bpy.context, model, name="Direct")
+    assert sum(1 for ob in bpy.data.objects if ob.name.startswith("Direct")) == 1
+
+
+def test_build_model_needs_two_coated_instances(bpy_clean, population):
+    bpy = bpy_clean
+    add_coated(bpy, population, n=1)
+    with pytest.raises(RuntimeError, match="at least 2 coated"):
+        bpy.ops.ssm.build_model()
+    with pytest.raises(RuntimeError, match="no SSM model"):
+        bpy.ops.ssm.random_shape()
+
+
+class _Layout:
+    """Records panel drawing calls (no UI headless)."""
+
+    def __init__(self, log):
+        self.log = log
+        self.enabled = True
+
+    def __getattr__(self, name):
+        def call(*args, **kwargs):
+            self.log.append((name, args, kwargs))
+            if name == "operator":
+                from types import SimpleNamespace
+
+                return SimpleNamespace()
+            return self
+
+        return call
+
+
+def test_model_panel_draws_variance_bars_and_sliders(built):
+    from types import SimpleNamespace
+
+    from ssm.operators import model as opmodel
+
+    bpy, obj, model = built
+    log = []
+    panel = SimpleNamespace(layout=_Layout(log))
+    opmodel.SSM_PT_model.draw(panel, bpy.context)
+    bars = [kw for name, _, kw in log if name == "progress"]
+    shown = min(bpy.context.scene.ssm_model.show_modes, model.n_modes)
+    assert len(bars) == shown
+    frac = model.variances / model.total_variance
+    np.testing.assert_allclose([b["factor"] for b in bars], frac[:shown], rtol=1e-6)
+    assert bars[0]["text"].startswith(f"1: {100 * frac[0]:.1f} %")
+    sliders = [args for name, args, _ in log if name == "prop" and args[1] == "value"]
+    assert [a[0].name for a in sliders] == [f"Mode {k + 1}" for k in range(shown)]
+    ops = [args[0] for name, args, _ in log if name == "operator"]
+    assert {"ssm.build_model", "ssm.animate_modes", "ssm.random_shape", "ssm.reset_modes", "ssm.save_model"} <= set(ops)
