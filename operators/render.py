@@ -1,0 +1,133 @@
+"""Pictures of a shape model: mean and ±2σ of the first modes in three views (paper fig. 10).
+
+:func:`render_modes_figure` lays out one copy of each shape per view in a grid inside a
+temporary scene (columns: axial, sagittal, coronal; rows: the mean, then one row per
+mode with the shapes b_k = -2√λ_k (blue) and +2√λ_k (red) of eq. (7) overlaid on the
+mean (grey), as in the paper's fig. 10), renders it once with an orthographic camera
+(Workbench, X-ray so the overlaid shapes show through, object outlines) and removes the
+temporary scene again. Works headless with the ``bpy`` module.
+"""
+
+from __future__ import annotations
+
+import bpy
+import numpy as np
+
+from . import bridge
+
+#: Object frame -> camera frame (camera looks down -Z, screen x right, screen y up).
+#: axial: seen from superior (object x right, y up); sagittal: seen from the object's +x
+#: side with z up; coronal: seen from the object's +y side with z up.
+VIEWS = {
+    "axial": np.eye(3),
+    "sagittal": np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]),
+    "coronal": np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]]),
+}
+COLOURS = {"mean": (0.78, 0.78, 0.76, 1.0), "minus": (0.15, 0.35, 0.95, 1.0), "plus": (0.95, 0.2, 0.15, 1.0)}
+
+
+def _shapes(model, n_modes: int, sigmas: float):
+    """Rows of (label, [(kind, (N, 3) points)]): the mean, then mean ∓/± sigmas·√λ_k q_k (eq. 7)."""
+    mean = np.asarray(model.mean, float)
+    rows = [("mean", [("mean", mean)])]
+    k_max = min(int(n_modes), len(model.variances))
+    for k in range(k_max):
+        step = sigmas * np.sqrt(float(model.variances[k])) * np.asarray(model.modes[k], float)
+        rows.append((f"mode {k + 1}", [("mean", mean), ("minus", mean - step), ("plus", mean + step)]))
+    return rows
+
+
+def render_modes_figure(
+    model,
+    path,
+    n_modes: int = 2,
+    sigmas: float = 2.0,
+    cell_px: int = 160,
+    views=("axial", "sagittal", "coronal"),
+) -> str:
+    """Render the mean and ±``sigmas``·√λ of the first modes in three views into one PNG.
+
+    Parameters
+    ----------
+    model : ShapeModel
+        ``mean`` (N, 3) and ``modes`` (K, N, 3) in the model frame (mm), ``faces``,
+        ``variances`` (K,) in mm².
+    path : str or Path
+        Output PNG.
+    n_modes : int
+        Rows of modes below the mean row (paper fig. 10: 2).
+    sigmas : float
+        Weight in standard deviations: b_k = ±sigmas √λ_k (paper: 2).
+    cell_px : int
+        Pixels per view cell; the image is ``len(views)·cell_px`` × ``rows·cell_px``.
+
+    Returns
+    -------
+    str
+        The PNG written.
+    """
+    rows = _shapes(model, n_modes, sigmas)
+    faces = np.asarray(model.faces)
+    centre = np.asarray(model.mean, float).mean(axis=0)
+    all_pts = np.concatenate([p for _, shapes in rows for _, p in shapes]) - centre
+    cell = 1.15 * 2.0 * float(np.linalg.norm(all_pts, axis=1).max())
+    n_rows, n_cols = len(rows), len(views)
+
+    scene = bpy.data.scenes.new("SSM Modes Figure")
+    made_objects, made_meshes = [], []
+    try:
+        for r, (_, shapes) in enumerate(rows):
+            for c, view in enumerate(views):
+                rot = VIEWS[view]
+                loc = np.array([(c - (n_cols - 1) / 2) * cell, ((n_rows - 1) / 2 - r) * cell, 0.0])
+                for kind, pts in shapes:
+                    name = f"SSM fig {r}-{view}-{kind}"
+                    mesh = bridge.mesh_from_arrays(name, (pts - centre) @ rot.T + loc, faces)
+                    obj = bpy.data.objects.new(name, mesh)
+                    obj.color = COLOURS[kind]
+                    scene.collection.objects.link(obj)
+                    made_objects.append(obj)
+                    made_meshes.append(mesh)
+        cam_data = bpy.data.cameras.new("SSM fig camera")
+        cam_data.type = "ORTHO"
+        cam_data.ortho_scale = cell * max(n_cols, n_rows)
+        cam_data.clip_end = 10.0 * cell + 1000.0
+        cam = bpy.data.objects.new("SSM fig camera", cam_data)
+        cam.location = (0.0, 0.0, 4.0 * cell)
+        scene.collection.objects.link(cam)
+        scene.camera = cam
+        made_objects.append(cam)
+
+        world = bpy.data.worlds.new("SSM fig world")
+        world.color = (1.0, 1.0, 1.0)
+        scene.world = world
+        rd = scene.render
+        rd.resolution_x, rd.resolution_y = n_cols * int(cell_px), n_rows * int(cell_px)
+        rd.resolution_percentage = 100
+        rd.image_settings.file_format = "PNG"
+        rd.image_settings.color_mode = "RGB"
+        rd.filepath = str(path)
+        scene.view_settings.view_transform = "Standard"
+        rd.engine = "BLENDER_WORKBENCH"
+        shading = scene.display.shading
+        shading.light = "STUDIO"
+        shading.color_type = "OBJECT"
+        shading.show_xray = n_rows > 1
+        shading.xray_alpha = 0.55
+        shading.show_object_outline = True
+        scene.display.render_aa = "FXAA"
+        bpy.ops.render.render(write_still=True, scene=scene.name)
+    finally:
+        for obj in made_objects:
+            data = obj.data
+            bpy.data.objects.remove(obj, do_unlink=True)
+            if data is not None and data.users == 0:
+                for coll in (bpy.data.meshes, bpy.data.cameras):
+                    if data.name in coll and coll[data.name] == data:
+                        coll.remove(data)
+                        break
+        world = scene.world
+        bpy.data.scenes.remove(scene)
+        if world is not None and world.users == 0:
+            bpy.data.worlds.remove(world)
+    return str(path)

@@ -1,0 +1,337 @@
+"""The project file, the headless build and the demo population.
+
+Every project-file error names the file, the line (where TOML has one), the key or
+instance and the problem; a failing or cancelled build leaves the output folder as it
+was; the demo population consists of closed genus-1 solids whose landmarks lie on the
+surface; ``jobs=2`` gives the same model as ``jobs=1``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import nibabel as nib
+import numpy as np
+import pytest
+
+from ssm_addon import demo
+from ssm_addon.__main__ import main
+from ssm_addon.errors import Cancelled, InputError
+from ssm_addon.landmarks import LandmarkSet, read_landmarks, write_landmarks
+from ssm_addon.project import build, read_project, write_project
+
+NAMES = ("a", "b", "c", "d", "e")
+
+
+def _landmarks(path: Path, names=NAMES, shift=0.0) -> Path:
+    pts = np.arange(len(names) * 3, dtype=float).reshape(-1, 3) ** 1.5 + shift
+    write_landmarks(path, LandmarkSet(tuple(names), pts, source=str(path)))
+    return path
+
+
+@pytest.fixture()
+def files(tmp_path):
+    """Two (dummy) volumes and matching landmark files in tmp/data."""
+    data = tmp_path / "data"
+    data.mkdir()
+    for name in ("one", "two"):
+        (data / f"{name}.nii.gz").write_bytes(b"placeholder: only existence is checked when reading the project")
+        _landmarks(data / f"{name}.csv")
+    return tmp_path
+
+
+VALID = """\
+[template]
+instance = "two"
+spacing = 1.5
+
+[coating]
+kernel = "biharmonic"
+
+[model]
+alignment = "rigid"
+
+[[instances]]
+name = "one"
+volume = "data/one.nii.gz"
+label = 20
+landmarks = "data/one.csv"
+
+[[instances]]
+name = "two"
+volume = "data/two.nii.gz"
+landmarks = "data/two.csv"
+"""
+
+
+def _write(folder: Path, text: str, name="project.toml") -> Path:
+    path = folder / name
+    path.write_text(text)
+    return path
+
+
+def _error(folder: Path, text: str) -> str:
+    with pytest.raises(InputError) as err:
+        read_project(_write(folder, text))
+    return str(err.value)
+
+
+def _line_of(text: str, needle: str) -> int:
+    return next(i for i, line in enumerate(text.splitlines(), 1) if needle in line)
+
+
+def test_valid_project_resolves_paths_against_its_folder(files):
+    proj = read_project(_write(files, VALID))
+    assert proj.names == ("one", "two")
+    assert proj.instances[0].volume == (files / "data" / "one.nii.gz").resolve()
+    assert proj.instances[0].label == 20 and proj.instances[1].label is None
+    assert proj.instances[1].landmarks == (files / "data" / "two.csv").resolve()
+    assert proj.template_instance == "two" and proj.spacing_mm == 1.5
+    assert proj.coating_params.kernel == "biharmonic"
+    assert proj.model_options["alignment"] == "rigid"
+    assert proj.landmark_names == NAMES
+
+
+def test_paths_resolve_against_project_folder_not_cwd(files, monkeypatch):
+    sub = files / "projects" / "deep"
+    sub.mkdir(parents=True)
+    text = VALID.replace('"data/', '"../../data/')
+    monkeypatch.chdir(files / "data")
+    proj = read_project(_write(sub, text))
+    assert proj.instances[1].volume == (files / "data" / "two.nii.gz").resolve()
+
+
+def test_unknown_key_names_line_and_suggests_closest(files):
+    text = VALID.replace('kernel = "biharmonic"', 'kernal = "biharmonic"')
+    msg = _error(files, text)
+    assert f"project.toml:{_line_of(text, 'kernal')}:" in msg
+    assert "unknown key 'kernal'" in msg and "did you mean 'kernel'" in msg
+
+
+def test_unknown_instance_key_suggests_closest(files):
+    text = VALID.replace('landmarks = "data/two.csv"', 'landmark = "data/two.csv"')
+    msg = _error(files, text)
+    assert f":{_line_of(text, 'landmark =')}:" in msg
+    assert "unknown key 'landmark'" in msg and "did you mean 'landmarks'" in msg
+
+
+def test_unknown_table_suggests_closest(files):
+    msg = _error(files, VALID.replace("[coating]", "[coatings]"))
+    assert "unknown table or key 'coatings'" in msg and "did you mean 'coating'" in msg
+
+
+def test_template_keys_follow_template_params(files):
+    from ssm_addon.project import params_schema
+    from ssm_addon.template import TemplateParams
+
+    schema = params_schema(TemplateParams)
+    key = next(iter(schema))
+    value = {"bool": "true", "int": "3", "float": "2.5", "str": '"x"', "tuple": "[1, 2]"}[schema[key]]
+    text = VALID.replace("spacing = 1.5", f"spacing = 1.5\n{key}_typo = {value}")
+    msg = _error(files, text)
+    assert f"unknown key '{key}_typo'" in msg and f"did you mean '{key}'" in msg
+
+
+def test_missing_file_names_key_instance_and_line(files):
+    text = VALID.replace("data/two.nii.gz", "data/missing.nii.gz")
+    msg = _error(files, text)
+    assert f":{_line_of(text, 'missing.nii.gz')}:" in msg
+    assert "instance 'two'" in msg and "volume file not found" in msg and "missing.nii.gz" in msg
+
+
+def test_missing_landmark_file(files):
+    msg = _error(files, VALID.replace("data/one.csv", "data/nope.fcsv"))
+    assert "instance 'one'" in msg and "landmarks file not found" in msg and "nope.fcsv" in msg
+
+
+def test_mismatched_landmark_names_list_what_differs(files):
+    _landmarks(files / "data" / "two.csv", names=("a", "b", "c", "d", "f"))
+    msg = _error(files, VALID)
+    assert "landmark names differ" in msg
+    assert "instance 'two' (two.csv)" in msg and "missing e" in msg and "not in the schema f" in msg
+
+
+def test_wrong_type_says_expected_and_got(files):
+    text = VALID.replace("label = 20", 'label = "20"')
+    msg = _error(files, text)
+    assert f":{_line_of(text, 'label =')}:" in msg
+    assert "label must be an integer, got string '20'" in msg
+
+
+def test_wrong_type_of_parameter(files):
+    text = VALID.replace("spacing = 1.5", 'spacing = "fine"')
+    msg = _error(files, text)
+    assert "[template] spacing must be a number, got string 'fine'" in msg
+
+
+def test_bad_parameter_value(files):
+    msg = _error(files, VALID.replace('kernel = "biharmonic"', 'kernel = "gaussian"'))
+    assert "[coating]" in msg and "unknown kernel 'gaussian'" in msg
+
+
+def test_toml_syntax_error_has_line_and_column(files):
+    text = VALID.replace('name = "one"', 'name = "one')
+    msg = _error(files, text)
+    assert "TOML syntax error" in msg and f"line {_line_of(text, 'name = ' + chr(34) + 'one')}" in msg
+    assert "column" in msg
+
+
+def test_duplicate_instance_names(files):
+    text = VALID.replace('name = "two"', 'name = "one"')
+    msg = _error(files, text)
+    assert "duplicate instance name 'one' (instances #1 and #2)" in msg
+    assert f":{_line_of(text, 'volume = ' + chr(34) + 'data/two')-1}:" in msg
+
+
+def test_no_instances(files):
+    msg = _error(files, VALID.split("[[instances]]")[0])
+    assert "no [[instances]]" in msg
+
+
+def test_single_instance_is_not_a_population(files):
+    msg = _error(files, VALID.rsplit("[[instances]]", 1)[0].replace('instance = "two"', 'instance = "one"'))
+    assert "needs at least two" in msg
+
+
+def test_volume_and_mesh_are_exclusive(files):
+    text = VALID.replace('volume = "data/two.nii.gz"', 'volume = "data/two.nii.gz"\nmesh = "data/two.nii.gz"')
+    assert "exactly one of 'volume' (label map) or 'mesh'" in _error(files, text)
+
+
+def test_unknown_template_instance(files):
+    msg = _error(files, VALID.replace('instance = "two"', 'instance = "tow"'))
+    assert "[template] instance 'tow' is not an instance name" in msg and "did you mean 'two'" in msg
+
+
+def test_write_project_round_trip(files, tmp_path):
+    proj = read_project(_write(files, VALID))
+    out = write_project(tmp_path / "elsewhere" / "copy.toml", proj)
+    text = out.read_text()
+    assert '"../data/one.nii.gz"' in text  # relative to the new file
+    again = read_project(out)
+    assert [i.volume for i in again.instances] == [i.volume for i in proj.instances]
+    assert [i.label for i in again.instances] == [i.label for i in proj.instances]
+    assert again.template_instance == proj.template_instance and again.spacing_mm == proj.spacing_mm
+    assert again.coating_options == proj.coating_options and again.model_options == proj.model_options
+
+
+def test_cli_prints_input_error_and_exits_2(files, capsys):
+    path = _write(files, VALID.replace("label = 20", "label = 2.5"))
+    assert main(["build", str(path), "--out", str(files / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "label must be an integer, got float 2.5" in err and "Traceback" not in err
+    assert not (files / "out").exists()
+
+
+# ---------------------------------------------------------------------------------------
+# demo population
+
+
+@pytest.fixture(scope="module")
+def demo_population(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("demo")
+    return demo.make_demo_population(folder, n=6, seed=3)
+
+
+@pytest.fixture(scope="module")
+def demo_surfaces(demo_population):
+    """Per instance: (Euler characteristic, components, marching-cubes vertices in world mm, image)."""
+    from scipy import ndimage
+    from skimage.measure import marching_cubes
+
+    out = {}
+    for inst in read_project(demo_population).instances:
+        img = nib.load(inst.volume)
+        mask = np.asarray(img.dataobj) == demo.VERTEBRA_LABEL
+        box = ndimage.find_objects(mask.astype(np.uint8))[0]
+        verts, faces, _, _ = marching_cubes(np.pad(mask[box], 1).astype(np.float32), 0.5)
+        e = np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1), axis=0)
+        ijk = verts - 1 + [s.start for s in box]
+        world = ijk @ img.affine[:3, :3].T + img.affine[:3, 3]
+        out[inst.name] = (len(verts) - len(e) + len(faces), ndimage.label(mask)[1], world, img)
+    return out
+
+
+def test_demo_shapes_are_closed_genus_one_solids(demo_population, demo_surfaces):
+    proj = read_project(demo_population)
+    assert len(proj.instances) == 6 and len(proj.landmark_names) == 13
+    for inst in proj.instances:
+        chi, components, _, img = demo_surfaces[inst.name]
+        assert np.allclose(img.header.get_zooms(), (0.8, 0.8, 1.5))
+        assert not np.allclose(img.affine[:3, :3] / np.array([0.8, 0.8, 1.5]), np.diag([-1, -1, 1]))  # oblique
+        assert components == 1 and chi == 0, inst.name  # one closed surface of genus (2 - chi) / 2 = 1
+        assert (np.asarray(img.dataobj) == demo.NEIGHBOUR_LABEL).any()
+
+
+def test_demo_landmarks_lie_on_the_surface(demo_population, demo_surfaces):
+    from scipy.spatial import cKDTree
+
+    proj = read_project(demo_population)
+    formats = {Path(i.landmarks).name.split(".", 1)[1] for i in proj.instances}
+    assert formats == {"fcsv", "mrk.json", "csv", "json"}
+    for inst in proj.instances:
+        world = demo_surfaces[inst.name][2]
+        d, _ = cKDTree(world).query(read_landmarks(inst.landmarks).points_world)
+        assert d.max() < 1.5 and np.median(d) < 0.6, (inst.name, d.round(2))
+
+
+def test_demo_landmarks_match_the_generator(demo_population):
+    truth = json.loads((demo_population.parent / "truth.json").read_text())
+    proj = read_project(demo_population)
+    for inst, t in zip(proj.instances, truth["instances"]):
+        shape = demo.ShapeParams(**t["shape"])
+        canon = demo.landmarks_canonical(shape)
+        pose = np.array(t["canonical_to_world"])
+        expected = np.array([canon[n] for n in proj.landmark_names]) @ pose[:3, :3].T + pose[:3, 3]
+        assert np.allclose(inst.landmark_set.points_world, expected, atol=1e-3)
+        sdf = demo.vertebra_sdf(np.array(list(canon.values())), shape)
+        assert np.abs(sdf).max() < 1e-9  # analytic surface points
+
+
+# ---------------------------------------------------------------------------------------
+# the build
+
+
+def test_failing_build_leaves_output_folder_untouched(demo_population, tmp_path):
+    text = demo_population.read_text().replace("label = 20", "label = 99", 1)
+    bad = demo_population.with_name("bad_label.toml")
+    bad.write_text(text)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.txt").write_text("earlier content")
+    with pytest.raises(InputError, match="label 99 is not present"):
+        build(read_project(bad), out, log=None)
+    assert sorted(p.name for p in out.iterdir()) == ["keep.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no temporary folder left
+
+
+def test_cancelled_build_writes_nothing(demo_population, tmp_path):
+    messages = []
+
+    def cancelled():
+        return any(m.startswith("coated") for m in messages)
+
+    out = tmp_path / "never"
+    with pytest.raises(Cancelled):
+        build(read_project(demo_population), out, progress=lambda f, m: messages.append(m), cancelled=cancelled,
+              log=None)
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+    assert any(m.startswith("template") for m in messages)
+
+
+def test_parallel_build_equals_serial(demo_population, tmp_path):
+    proj = read_project(demo_population)
+    lines: list[str] = []
+    r1 = build(proj, tmp_path / "serial", jobs=1, log=lines.append)
+    r2 = build(proj, tmp_path / "parallel", jobs=2, log=None)
+    m1 = np.load(tmp_path / "serial" / "model.npz", allow_pickle=False)
+    m2 = np.load(tmp_path / "parallel" / "model.npz", allow_pickle=False)
+    for key in ("mean", "faces", "modes", "variances", "instance_points", "instance_points_world"):
+        assert np.allclose(m1[key], m2[key], rtol=0, atol=1e-9), key
+    assert list(m1["instance_names"]) == list(proj.names)
+    assert r1.report["metrics"].keys() == r2.report["metrics"].keys()
+    for name in proj.names:
+        assert (tmp_path / "serial" / "coated" / f"{name}.ply").is_file()
+    assert (tmp_path / "serial" / "template.ply").is_file()
+    assert [line.split(":")[0] for line in lines][:5] == ["import", "template", "coating", "model", "metrics"]
