@@ -564,6 +564,10 @@ def write_label_map(path, labels: np.ndarray, affine: np.ndarray, compress: bool
     if ext in (".nii", ".nii.gz"):
         import nibabel as nib
 
+        if labels.dtype in (np.int64, np.uint64):
+            labels = labels.astype(np.int32)
+        elif labels.dtype == bool:
+            labels = labels.astype(np.uint8)
         img = nib.Nifti1Image(labels, affine)
         img.set_qform(affine, code=1)
         img.set_sform(affine, code=1)
@@ -674,6 +678,10 @@ def select_label(label_map: LabelMap, label: int | None = None) -> Volume:
         if not mask.any():
             raise InputError(f"{label_map.path}: empty mask: the label map has no non-zero voxels")
         return Volume(mask=mask, affine=label_map.affine, source=label_map.path, label=None, patient_oriented=True)
+    if int(label) == 0:
+        raise InputError(
+            f"{label_map.path}: label 0 is the background; pick a label from {_format_counts(label_counts(label_map))}"
+        )
     mask = labels == int(label)
     if not mask.any():
         counts = label_counts(label_map)

@@ -486,6 +486,8 @@ def test_absent_label_lists_the_labels_present(tmp_path):
         InputError, match=r"l\.nii\.gz: label 5 is not present; labels present: 4 \(8 voxels\), 9 \(4 voxels\)"
     ):
         V.load_volume(p, 5)
+    with pytest.raises(InputError, match=r"l\.nii\.gz: label 0 is the background; pick a label from 4 \(8 voxels\)"):
+        V.load_volume(p, 0)
 
 
 def test_empty_label_map_is_reported(tmp_path):
