@@ -184,6 +184,18 @@ def ray_hit(instance, origin_world, direction_world, depsgraph=None):
     return (instance.matrix_world @ loc) if hit else None
 
 
+def pick_on_screen(screen_points: dict, mouse, radius_px: float = PICK_RADIUS_PX) -> str:
+    """The landmark whose screen position (px; None if behind the view) is nearest the
+    mouse within ``radius_px``; "" if none (then a click places a landmark)."""
+    best, best_d = "", radius_px
+    for name, p in screen_points.items():
+        if p is not None:
+            d = float(np.hypot(p[0] - mouse[0], p[1] - mouse[1]))
+            if d < best_d:
+                best, best_d = name, d
+    return best
+
+
 def place_landmark(context, instance, origin_world, direction_world, name: str = ""):
     """Ray-cast and place ``name`` (default: the next missing schema name). Returns (empty, name)."""
     if not name:
@@ -493,14 +505,11 @@ class SSM_OT_place_landmarks(bpy.types.Operator):
     def _landmark_under(self, coord):
         from bpy_extras.view3d_utils import location_3d_to_region_2d
 
-        best, best_d = "", PICK_RADIUS_PX
-        for name, emp in landmark_empties(self._instance).items():
-            p = location_3d_to_region_2d(self._region, self._rv3d, emp.matrix_world.translation)
-            if p is not None:
-                d = (p - Vector(coord)).length
-                if d < best_d:
-                    best, best_d = name, d
-        return best
+        screen = {
+            name: location_3d_to_region_2d(self._region, self._rv3d, emp.matrix_world.translation)
+            for name, emp in landmark_empties(self._instance).items()
+        }
+        return pick_on_screen(screen, coord)
 
     def modal(self, context, event):
         from bpy_extras.view3d_utils import region_2d_to_origin_3d, region_2d_to_vector_3d

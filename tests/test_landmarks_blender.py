@@ -142,6 +142,10 @@ def test_place_landmark_from_ray_lands_on_surface_and_advances(sphere):
     assert len(lm.landmark_empties(inst)) == 3
     # a ray that misses places nothing
     assert bpy.ops.ssm.place_landmarks(landmark="b", ray_origin=centre + [0, 50, 100], ray_direction=(0, 0, -1)) == {"CANCELLED"}
+    # interactively it needs a 3D viewport (headless there is none); a given ray runs execute
+    with pytest.raises(RuntimeError, match="3D viewport"):
+        bpy.ops.ssm.place_landmarks("INVOKE_DEFAULT")
+    assert bpy.ops.ssm.place_landmarks("INVOKE_DEFAULT", landmark="b", ray_origin=centre + [100, 0, 0], ray_direction=(-1, 0, 0)) == {"FINISHED"}
     # undo is available: the operator registers undo steps
     assert "UNDO" in bpy.types.SSM_OT_place_landmarks.bl_options
 
@@ -291,6 +295,28 @@ def test_propose_l2_from_l1_puts_every_landmark_on_l2(bpy_clean, verse_dir, vers
         bpy.ops.ssm.propose_landmarks(source="L1")
 
 
+def test_landmarks_on_instances_made_by_the_import_operator(bpy_clean, verse_dir, tmp_path):
+    """End to end with ssm.import_segmentation: import L1.fcsv, propose L2, export L2."""
+    bpy = bpy_clean
+    lm = _ops()
+    made = {}
+    for name in ("L1", "L2"):
+        assert bpy.ops.ssm.import_segmentation(filepath=str(VERSE_FILE), label=VERSE_LABELS[name]) == {"FINISHED"}
+        made[name] = next(o for o in lm.instances(bpy.context) if o.ssm.label == VERSE_LABELS[name])
+    bpy.context.view_layer.objects.active = made["L1"]
+    assert bpy.ops.ssm.import_landmarks(filepath=str(verse_dir / "landmarks" / "L1.fcsv")) == {"FINISHED"}
+    assert max(_distance_to_mesh(made["L1"], _world(e)) for e in lm.landmark_empties(made["L1"]).values()) <= 2.0
+    bpy.context.view_layer.objects.active = made["L2"]
+    assert bpy.ops.ssm.propose_landmarks(source=made["L1"].name) == {"FINISHED"}
+    assert max(_distance_to_mesh(made["L2"], _world(e)) for e in lm.landmark_empties(made["L2"]).values()) < 0.01
+    assert bpy.ops.ssm.export_landmarks(filepath=str(tmp_path / "L2.mrk.json")) == {"FINISHED"}
+    proposed, truth = read_landmarks(tmp_path / "L2.mrk.json"), read_landmarks(verse_dir / "landmarks" / "L2.fcsv")
+    dist = np.linalg.norm(proposed.points_world - truth.subset(proposed.names).points_world, axis=1)
+    print(f"\nimport operator + proposal L1 -> L2: mean distance to the given L2 landmarks {dist.mean():.2f} mm")
+    assert set(lm.landmark_sets_by_instance(bpy.context)) == {made["L1"].name, made["L2"].name}
+    assert dist.mean() < 15.0
+
+
 def test_save_and_reopen_keeps_schema_and_landmarks(sphere, tmp_path):
     bpy, inst = sphere
     lm = _ops()
@@ -386,3 +412,11 @@ def test_propose_by_coating_in_blender(bpy_clean):
     got = {n: m_tgt[:3, :3].T @ (_world(e) - m_tgt[:3, 3]) for n, e in lm.landmark_empties(tgt).items()}
     np.testing.assert_allclose(np.abs(got["x"]), [8.0, 0, 0], atol=0.8)
     np.testing.assert_allclose(np.abs(got["y"]), [0, 11.0, 0], atol=0.8)
+
+
+def test_click_near_a_landmark_picks_it_for_replacement(bpy_module):
+    pick = _ops().pick_on_screen
+    screen = {"a": (100.0, 100.0), "b": (108.0, 100.0), "behind": None}
+    assert pick(screen, (105.0, 101.0)) == "b"
+    assert pick(screen, (101.0, 99.0)) == "a"
+    assert pick(screen, (100.0, 130.0)) == ""  # far from every landmark: place instead
