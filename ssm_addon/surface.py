@@ -538,6 +538,7 @@ def surface_curvature(
     normal_radius_vox: float | None = None,
     points: np.ndarray | None = None,
     block: int | None = None,
+    bias_correction: bool = True,
 ) -> Curvature:
     """Principal curvatures by the coordinate transformation method (paper 3.2).
 
@@ -565,6 +566,9 @@ def surface_curvature(
     block : int, optional
         Patches are summed over cubes of ``block`` voxels (see :func:`default_block`);
         1 uses exactly the voxels within the patch radius.
+    bias_correction : bool
+        Apply the first-order patch and offset corrections of the module docstring
+        (quadric form only).
 
     Returns
     -------
@@ -598,7 +602,7 @@ def surface_curvature(
     sums = _patch_sums(vox, _monomials(centred), patch_radius_vox, block)
     coef = _fit_quadrics(centred, normals, sums, form)
     k1, k2 = _principal(coef, form)
-    if form == "quadric":
+    if form == "quadric" and bias_correction:
         k1, k2 = _correct(k1, k2, patch_radius_vox, offset_radius)
     return Curvature(k1, k2, np.hypot(k1, k2))
 
