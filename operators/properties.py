@@ -37,7 +37,11 @@ class SSMObjectProperties(bpy.types.PropertyGroup):
 
     role: EnumProperty(name="Role", items=ROLES, default="NONE")
     source_kind: EnumProperty(name="Source kind", items=SOURCE_KINDS, default="VOLUME")
-    source: StringProperty(name="Source", description="Source file (relative to the .blend where possible, '//' prefix)", subtype="FILE_PATH")
+    source: StringProperty(
+        name="Source",
+        description="Source file (relative to the .blend where possible, '//' prefix)", subtype="FILE_PATH",
+        options={"PATH_SUPPORTS_BLEND_RELATIVE"},
+    )
     label: IntProperty(name="Label", description="Label picked from the label map (-1: all non-zero)", default=-1)
     spacing_mm: FloatProperty(name="Spacing", description="Isotropic resampling spacing in mm", default=1.0, min=0.05, unit="NONE")
     frame_method: EnumProperty(name="Frame", items=FRAME_METHODS, default="AUTO")
