@@ -32,6 +32,7 @@ from ..ssm_addon import landmarks as core
 from ..ssm_addon import volume as vol
 from ..ssm_addon.errors import InputError, SSMError
 from . import bridge
+from .instances import blender_to_file_world, file_to_blender_world
 from .jobs import BackgroundJob
 
 LANDMARK_PROP = "ssm_landmark"
@@ -43,31 +44,6 @@ FILE_GLOB = "*.fcsv;*.mrk.json;*.csv;*.json"
 
 
 # ------------------------------------------------------------------------------ frames
-
-
-def _converters():
-    """``(blender_to_file_world, file_to_blender_world)`` from instances.py, else local ones."""
-    try:
-        from .instances import blender_to_file_world, file_to_blender_world
-    except ImportError:
-        return _blender_to_file_world, _file_to_blender_world
-    return blender_to_file_world, file_to_blender_world
-
-
-def _import_to_current(obj) -> np.ndarray:
-    """(4, 4) file world mm -> Blender world: matrix_world @ inverse(import_matrix)."""
-    imp = np.array(obj.ssm.import_matrix, dtype=float).reshape(4, 4)
-    return bridge.matrix_to_numpy(obj.matrix_world) @ np.linalg.inv(imp)
-
-
-def _blender_to_file_world(obj, points) -> np.ndarray:
-    m = np.linalg.inv(_import_to_current(obj))
-    return np.asarray(points, float).reshape(-1, 3) @ m[:3, :3].T + m[:3, 3]
-
-
-def _file_to_blender_world(obj, points) -> np.ndarray:
-    m = _import_to_current(obj)
-    return np.asarray(points, float).reshape(-1, 3) @ m[:3, :3].T + m[:3, 3]
 
 
 def instance_frame(obj) -> vol.ObjectFrame:
@@ -129,7 +105,7 @@ def instance_landmarks(context, instance) -> core.LandmarkSet:
     empties = landmark_empties(instance)
     names = _ordered_names(context, empties)
     pts = np.array([list(empties[n].matrix_world.translation) for n in names], dtype=float).reshape(-1, 3)
-    to_file, _ = _converters()
+    to_file = blender_to_file_world
     return core.LandmarkSet(tuple(names), to_file(instance, pts) if len(pts) else pts, instance.name)
 
 
@@ -604,7 +580,7 @@ class SSM_OT_import_landmarks(bpy.types.Operator, ImportHelper):
         for n in lm.names:
             if n not in schema_names(context):
                 _add_name(settings, n)
-        _, to_blender = _converters()
+        to_blender = file_to_blender_world
         pts = to_blender(inst, lm.points_world)
         for i, (name, p) in enumerate(zip(lm.names, pts)):
             set_landmark(context, inst, name, p, order=i)
@@ -687,7 +663,7 @@ class SSM_OT_propose_landmarks(BackgroundJob, bpy.types.Operator):
         names = [n for n in lm.names if n not in have and (n in schema or not schema)]
         if not names:
             raise InputError(f"propose landmarks: {src.name} has none of {target.name}'s missing landmarks")
-        to_file, _ = _converters()
+        to_file = blender_to_file_world
         meshes = [
             (to_file(obj, bridge.object_world_vertices(obj)), bridge.mesh_triangles(obj.data)) for obj in (src, target)
         ]
@@ -708,7 +684,7 @@ class SSM_OT_propose_landmarks(BackgroundJob, bpy.types.Operator):
         if target is None:
             self.report({"ERROR"}, f"propose landmarks: instance {self._target_name!r} is gone")
             return {"CANCELLED"}
-        _, to_blender = _converters()
+        to_blender = file_to_blender_world
         for name, p in zip(proposal.names, to_blender(target, proposal.points_world)):
             set_landmark(context, target, name, p)
         self.report({"INFO"}, f"{target.name}: proposed {len(proposal)} landmark(s) from {self._source_name}; check and correct them")
