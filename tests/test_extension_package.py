@@ -15,6 +15,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import time
 import tomllib
 import zipfile
 from pathlib import Path
@@ -175,17 +176,22 @@ def test_build_without_wheels_excludes_dev_files_and_validates(tmp_path):
 
 INSTALL_SCRIPT = textwrap.dedent(
     r'''
-    import json, os, sys, traceback
+    import json, os, sys, time, traceback
     zip_path, iso_dir, nifti = sys.argv[1:4]
     sys.path.insert(0, iso_dir)  # bpy and numpy only, like Blender's own Python
-    out = {"errors": []}
+    out = {"errors": [], "seconds": {}}
+    t0 = time.perf_counter()
     try:
         import bpy
+        out["seconds"]["import_bpy"] = time.perf_counter() - t0
         import addon_utils
         prefs = bpy.context.preferences
-        repo = next(r for r in prefs.extensions.repos if r.module == "user_default")
+        repo = next((r for r in prefs.extensions.repos if r.module == "user_default"), None)
+        if repo is None:  # a user folder without the default local repository
+            repo = prefs.extensions.repos.new(name="User", module="user_default")
         out["install"] = sorted(bpy.ops.extensions.package_install_files(
             filepath=zip_path, repo=repo.module, enable_on_install=True))
+        out["seconds"]["install"] = time.perf_counter() - t0 - out["seconds"]["import_bpy"]
         out["addons"] = sorted(a.module for a in prefs.addons)
         out["addon_enabled"] = addon_utils.check("bl_ext.user_default.ssm")[1]
         site = os.path.join(os.environ["BLENDER_USER_EXTENSIONS"], ".local", "lib",
@@ -203,7 +209,9 @@ INSTALL_SCRIPT = textwrap.dedent(
         out["ssm_ops"] = ops
         if "import_segmentation" in ops:
             before = set(bpy.data.objects.keys())
+            t1 = time.perf_counter()
             out["import"] = sorted(bpy.ops.ssm.import_segmentation(filepath=nifti, label=1))
+            out["seconds"]["import_segmentation"] = time.perf_counter() - t1
             new = [bpy.data.objects[n] for n in sorted(set(bpy.data.objects.keys()) - before)]
             out["imported"] = [{
                 "name": o.name,
@@ -259,7 +267,9 @@ def _build_linux_zip(out_dir: Path) -> Path:
 @pytest.mark.blender
 @needs_bpy
 def test_linux_zip_installs_enables_and_imports(tmp_path):
+    t0 = time.perf_counter()
     zip_path = _build_linux_zip(tmp_path / "dist")
+    print(f"build: {time.perf_counter() - t0:.1f} s")
     print(f"zip: {zip_path.stat().st_size / 2**20:.1f} MB")
     bx.run_blender_ext("validate", str(zip_path))
 
@@ -299,7 +309,7 @@ def test_linux_zip_installs_enables_and_imports(tmp_path):
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("SSM_RESULT ")]
     assert lines, f"no result (exit {proc.returncode}):\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
     result = json.loads(lines[-1][len("SSM_RESULT "):])
-    print(json.dumps({k: v for k, v in result.items() if k != "imported"}, indent=1))
+    print(json.dumps({k: result.get(k) for k in ("seconds", "install", "addon_enabled", "ssm_ops", "import")}))
     assert not result["errors"], "\n".join(result["errors"])
 
     assert result["install"] == ["FINISHED"]

@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import fnmatch
 import importlib.util
+import json
 import os
 import re
 import shutil
@@ -185,7 +186,9 @@ def download_wheels(
     cache : Path
         Root of the wheel cache; already downloaded files are reused.
     offline : bool
-        Resolve from the cache only (``pip --no-index --find-links``).
+        Resolve from the cache only: reuse the recorded resolution
+        (``cache/<platform>/resolved.json``) when it was made for the same requirements,
+        else ``pip --no-index --find-links``.
 
     Returns
     -------
@@ -197,6 +200,18 @@ def download_wheels(
     dest = cache / platform
     dest.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
+    record_path = dest / "resolved.json"
+    key = {"requirements": requirements, "numpy": BLENDER_NUMPY, "python": PYTHON_VERSION,
+           "tags": list(PLATFORM_TAGS[platform])}
+    if offline:
+        try:
+            record = json.loads(record_path.read_text())
+        except (OSError, ValueError):
+            record = None
+        if record and record.get("key") == key and all((dest / w).is_file() for w in record["wheels"]):
+            result = PlatformWheels(platform, dest, list(record["wheels"]), time.perf_counter() - t0)
+            log(f"  {platform}: {len(result.wheels)} wheels from the cache's recorded resolution")
+            return result
     with tempfile.TemporaryDirectory(prefix="ssm-constraints-") as tmp:
         constraints = Path(tmp) / "constraints.txt"
         constraints.write_text(f"numpy=={BLENDER_NUMPY}\n")
@@ -226,6 +241,7 @@ def download_wheels(
     if not files or missing:
         raise BuildError(f"pip download for {platform}: could not find the resolved wheels in {dest} (missing {missing})")
     wheels = sorted(f for f in files if wheel_project(f) not in NEVER_BUNDLE)
+    record_path.write_text(json.dumps({"key": key, "wheels": wheels}, indent=1) + "\n")
     result = PlatformWheels(platform, dest, wheels, time.perf_counter() - t0)
     log(f"  {platform}: {len(wheels)} wheels, {_mb(sum((dest / w).stat().st_size for w in wheels)):.1f} MB "
         f"({result.seconds:.1f} s{', offline' if offline else ''})")
