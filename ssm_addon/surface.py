@@ -340,42 +340,43 @@ def _monomials(p: np.ndarray) -> np.ndarray:
     return np.stack([pw[a, :, 0] * pw[b, :, 1] * pw[c, :, 2] for a, b, c in _EXPS], axis=1)
 
 
-def _patch_sums(voxels: np.ndarray, values: np.ndarray, radius: float, block: int) -> np.ndarray:
-    """Sum ``values`` over the surface voxels in a ball around each voxel.
+class _Patches:
+    """Patch sums over balls of surface voxels, at the resolution of cubic blocks.
 
-    Voxels are grouped into cubes of ``block`` voxels; every voxel gets the sum over
-    the blocks whose centres lie within ``radius`` of its own block's centre. With
-    ``block=1`` that is exactly the voxels within ``radius`` (voxel units, Euclidean
-    between voxel centres); larger blocks trade the exact ball for speed (the patch is
-    then centred within (block - 1) * sqrt(3) / 2 voxels of the voxel).
+    Voxels are grouped into cubes of ``block`` voxels; the patch of a block is the set
+    of blocks whose centres lie within ``radius`` of its centre. With ``block=1`` that
+    is exactly the voxels within ``radius`` (voxel units, Euclidean between voxel
+    centres); larger blocks trade the exact ball for speed (a voxel's patch is then
+    centred within (block - 1) * sqrt(3) / 2 voxels of it).
     """
-    bl = voxels // block
-    lo = bl.min(0)
-    dims = bl.max(0) - lo + 1
-    lin = np.ravel_multi_index(tuple((bl - lo).T), tuple(dims))
-    ublocks, inverse = np.unique(lin, return_inverse=True)
-    nb = len(ublocks)
-    agg = scipy.sparse.csr_matrix(
-        (np.ones(len(voxels)), (inverse, np.arange(len(voxels)))), shape=(nb, len(voxels))
-    ) @ values
-    bcoord = np.stack(np.unravel_index(ublocks, tuple(dims)), axis=1)
-    rb = int(np.floor(radius / block))
-    pad = rb
-    vol = np.full(tuple(dims + 2 * pad), -1, np.int64)
-    vol[tuple((bcoord + pad).T)] = np.arange(nb)
-    offs = _ball_offsets(radius / block)
-    base = bcoord + pad
-    rows, cols = [], []
-    for o in offs:
-        nbr = vol[base[:, 0] + o[0], base[:, 1] + o[1], base[:, 2] + o[2]]
-        hit = np.flatnonzero(nbr >= 0)
-        rows.append(hit)
-        cols.append(nbr[hit])
-    rows = np.concatenate(rows)
-    cols = np.concatenate(cols)
-    adj = scipy.sparse.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(nb, nb))
-    out = adj @ agg
-    return out[inverse]
+
+    def __init__(self, voxels: np.ndarray, radius: float, block: int):
+        bl = voxels // block
+        lo = bl.min(0)
+        dims = bl.max(0) - lo + 1
+        lin = np.ravel_multi_index(tuple((bl - lo).T), tuple(dims))
+        ublocks, self.inverse = np.unique(lin, return_inverse=True)
+        nb = len(ublocks)
+        m = len(voxels)
+        self.members = scipy.sparse.csr_matrix((np.ones(m), (self.inverse, np.arange(m))), shape=(nb, m))
+        bcoord = np.stack(np.unravel_index(ublocks, tuple(dims)), axis=1)
+        pad = int(np.floor(radius / block))
+        vol = np.full(tuple(dims + 2 * pad), -1, np.int64)
+        base = bcoord + pad
+        vol[tuple(base.T)] = np.arange(nb)
+        rows, cols = [], []
+        for o in _ball_offsets(radius / block):
+            nbr = vol[base[:, 0] + o[0], base[:, 1] + o[1], base[:, 2] + o[2]]
+            hit = np.flatnonzero(nbr >= 0)
+            rows.append(hit)
+            cols.append(nbr[hit])
+        rows = np.concatenate(rows)
+        cols = np.concatenate(cols)
+        self.adjacency = scipy.sparse.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(nb, nb))
+
+    def block_sums(self, values: np.ndarray) -> np.ndarray:
+        """(blocks, ...) sums of per-voxel ``values`` over each block's patch."""
+        return self.adjacency @ (self.members @ values)
 
 
 def _local_moments(points, normals, sums):
@@ -473,26 +474,67 @@ def _solve_spd(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return x
 
 
+def _graph_principal(a, b, c, gx, gy):
+    """Principal curvatures of a graph z = f(x, y) with Hessian 2 [[a, b], [b, c]] and
+    gradient (gx, gy), z along the outward normal: eigenvalues of the shape operator
+    I^-1 II (only its trace and determinant are needed), negated so that convex is
+    positive. Returns (k1, k2) with k1 >= k2."""
+    w = np.sqrt(1.0 + gx * gx + gy * gy)
+    g11, g12, g22 = 1.0 + gx * gx, gx * gy, 1.0 + gy * gy
+    h11, h12, h22 = 2.0 * a / w, 2.0 * b / w, 2.0 * c / w
+    det_i = g11 * g22 - g12 * g12
+    tr = (g22 * h11 - 2.0 * g12 * h12 + g11 * h22) / det_i
+    det = (h11 * h22 - h12 * h12) / det_i
+    disc = np.sqrt(np.maximum(tr * tr / 4.0 - det, 0.0))
+    # z along the outward normal: a convex surface bends to -z, so negate
+    return -(tr / 2.0 - disc), -(tr / 2.0 + disc)
+
+
 def _principal(coef: np.ndarray, form: str) -> tuple[np.ndarray, np.ndarray]:
     a, b, c = coef[:, 0], coef[:, 1], coef[:, 2]
     if form == "quadric":
-        d, e = coef[:, 3], coef[:, 4]
-        w = np.sqrt(1.0 + d * d + e * e)
-        # shape operator I^-1 II of the graph at x = y = 0; only its trace and
-        # determinant are needed: det = det II / det I, trace from the adjugate of I
-        g11, g12, g22 = 1.0 + d * d, d * e, 1.0 + e * e
-        h11, h12, h22 = 2.0 * a / w, 2.0 * b / w, 2.0 * c / w
-        det_i = g11 * g22 - g12 * g12
-        tr = (g22 * h11 - 2.0 * g12 * h12 + g11 * h22) / det_i
-        det = (h11 * h22 - h12 * h12) / det_i
-    else:
-        tr = 2.0 * (a + c)
-        det = 4.0 * (a * c - b * b)
-    disc = np.sqrt(np.maximum(tr * tr / 4.0 - det, 0.0))
-    hi = tr / 2.0 + disc
-    lo = tr / 2.0 - disc
-    # z along the outward normal: a convex surface bends to -z, so negate
-    return -lo, -hi
+        return _graph_principal(a, b, c, coef[:, 3], coef[:, 4])
+    zero = np.zeros_like(a)
+    return _graph_principal(a, b, c, zero, zero)
+
+
+def _normal_class(normals: np.ndarray) -> np.ndarray:
+    """0..5: the dominant axis of the normal and its sign."""
+    axis = np.argmax(np.abs(normals), axis=1)
+    sign = normals[np.arange(len(normals)), axis] > 0
+    return 2 * axis + sign
+
+
+def _grouped_quadric(points, normals, block_sums, patches):
+    """Quadric fit once per group (block x normal class) and curvature per voxel.
+
+    Voxels of a block share their patch; voxels on opposite sides of a thin structure
+    share a block but not a normal class, so each group gets its own tangent frame
+    (mean point and mean normal of the group). The fitted graph's curvature is then
+    evaluated at each voxel's own (x, y) in the group frame.
+    """
+    m = len(points)
+    key = patches.inverse * 6 + _normal_class(normals)
+    ukey, ginv = np.unique(key, return_inverse=True)
+    ng = len(ukey)
+    members = scipy.sparse.csr_matrix((np.ones(m), (ginv, np.arange(m))), shape=(ng, m))
+    count = np.asarray(members.sum(1)).ravel()
+    rep_p = (members @ points) / count[:, None]
+    rep_n = members @ normals
+    norm = np.linalg.norm(rep_n, axis=1)
+    first = np.zeros(ng, np.int64)
+    first[ginv[::-1]] = np.arange(m)[::-1]
+    weak = norm < 1e-6
+    rep_n[weak] = normals[first[weak]]
+    norm[weak] = 1.0
+    rep_n /= norm[:, None]
+    coef = _fit_quadrics(rep_p, rep_n, block_sums[ukey // 6], "quadric")
+    t1, t2 = _tangent_frames(rep_n)
+    d = points - rep_p[ginv]
+    x = np.einsum("ij,ij->i", d, t1[ginv])
+    y = np.einsum("ij,ij->i", d, t2[ginv])
+    a, b, c, gd, ge = (coef[ginv, k] for k in range(5))
+    return _graph_principal(a, b, c, 2 * a * x + 2 * b * y + gd, 2 * b * x + 2 * c * y + ge)
 
 
 def _offset_radius(normal_radius_vox: float) -> float:
@@ -599,9 +641,16 @@ def surface_curvature(
             raise InputError(f"surface points: expected shape {vox.shape}, got {points.shape}")
         offset_radius = normal_radius_vox
     centred = points - points.mean(0)
-    sums = _patch_sums(vox, _monomials(centred), patch_radius_vox, block)
-    coef = _fit_quadrics(centred, normals, sums, form)
-    k1, k2 = _principal(coef, form)
+    patches = _Patches(vox, patch_radius_vox, block)
+    sums = patches.block_sums(_monomials(centred))
+    if form == "paper" or block == 1:
+        # one fit per voxel, with the origin at the voxel's own point
+        coef = _fit_quadrics(centred, normals, sums[patches.inverse], form)
+        k1, k2 = _principal(coef, form)
+    else:
+        # one fit per group of voxels (block x outward normal direction), evaluated at
+        # every voxel of the group (see the module docstring)
+        k1, k2 = _grouped_quadric(centred, normals, sums, patches)
     if form == "quadric" and bias_correction:
         k1, k2 = _correct(k1, k2, patch_radius_vox, offset_radius)
     return Curvature(k1, k2, np.hypot(k1, k2))
