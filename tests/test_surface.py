@@ -133,6 +133,24 @@ def test_normals_of_sphere_are_radial_within_3_degrees(radius):
     assert angle.max() < 10.0
 
 
+def test_ball_sums_by_runs_and_by_fft_equal_brute_force():
+    rng = np.random.default_rng(5)
+    mask = ndimage.binary_opening(rng.random((16, 14, 15)) < 0.6)  # touches the border
+    vox = surface.surface_voxels(mask)
+    radius = 3.5
+    offs = np.array([o for o in itertools.product(range(-3, 4), repeat=3) if np.dot(o, o) <= radius**2])
+    pos = vox[:, None, :] + offs[None]
+    inside = np.all((pos >= 0) & (pos < mask.shape), axis=2)
+    hit = np.zeros(inside.shape, bool)
+    hit[inside] = mask[tuple(pos[inside].T)]
+    count = hit.sum(1)
+    moment = (hit[:, :, None] * offs[None]).sum(1)
+    for fn in (surface._ball_sums, surface._ball_sums_fft):
+        c, mo = fn(mask, vox, radius)
+        np.testing.assert_allclose(c, count, atol=1e-3)
+        np.testing.assert_allclose(mo, moment, atol=1e-3)
+
+
 def test_normals_of_cube_faces_are_axis_aligned_and_outward():
     mask, _, (lo, hi) = cube(20)
     vox = surface.surface_voxels(mask)
