@@ -397,8 +397,10 @@ class DistanceMap:
         self.mask = mask
         self.source = source
         g = np.gradient(self.sdf_mm, self.spacing_mm)
-        self._fields = np.stack([self.sdf_mm, *g]).astype(np.float64)
+        self._fields_flat = np.ascontiguousarray(np.stack([self.sdf_mm, *g], axis=-1).reshape(-1, 4))
         self._shape = np.array(self.sdf_mm.shape)
+        self._strides = np.array([self._shape[1] * self._shape[2], self._shape[2], 1], dtype=np.int64)
+        self._corner_offsets = (np.indices((2, 2, 2)).reshape(3, -1).T @ self._strides)[None, :]
         self._locator_cache = locator
 
     @classmethod
@@ -441,15 +443,9 @@ class DistanceMap:
         clamped = np.clip(vox, 0.0, self._shape - 1.0)
         base = np.minimum(np.floor(clamped).astype(np.int64), self._shape - 2)
         t = clamped - base
-        f = self._fields
-        vals = np.zeros((4, len(p)))
-        for dx in (0, 1):
-            wx = t[:, 0] if dx else 1.0 - t[:, 0]
-            for dy in (0, 1):
-                wy = t[:, 1] if dy else 1.0 - t[:, 1]
-                for dz in (0, 1):
-                    wz = t[:, 2] if dz else 1.0 - t[:, 2]
-                    vals += (wx * wy * wz) * f[:, base[:, 0] + dx, base[:, 1] + dy, base[:, 2] + dz]
+        corners = np.take(self._fields_flat, (base @ self._strides)[:, None] + self._corner_offsets, axis=0)
+        w = np.einsum("mi,mj,mk->mijk", *(np.stack([1.0 - t[:, a], t[:, a]], axis=1) for a in range(3)))
+        vals = np.einsum("mc,mcf->fm", w.reshape(-1, 8), corners)
         d = vals[0]
         g = vals[1:].T.copy()
         off = (vox - clamped) * self.spacing_mm
@@ -528,6 +524,7 @@ class CoatingParams:
     fold_angle_deg: float = 90.0
     rest_lengths: str = "warped"
     tangential_springs: bool = False
+    k3: float = 0.0
 
     def validate(self) -> None:
         """Raise InputError for values that cannot work."""
@@ -672,6 +669,7 @@ def relax(
     v = np.zeros_like(p)
     i0, i1 = e[:, 0], e[:, 1]
     cos_fold = math.cos(math.radians(params.fold_angle_deg))
+    deg = np.maximum(np.bincount(e.ravel(), minlength=n), 1).astype(float)
     it = 0
     converged = params.max_iterations == 0
     for it in range(1, params.max_iterations + 1):
@@ -693,6 +691,11 @@ def relax(
         surface_on = np.ones(n, dtype=bool)
         if np.any(folded):
             surface_on[faces[folded].ravel()] = False
+        if params.k3 > 0:
+            nsum = np.empty_like(p)
+            for k in range(3):
+                nsum[:, k] = np.bincount(i0, p[i1, k], minlength=n) + np.bincount(i1, p[i0, k], minlength=n)
+            force += params.k3 * (nsum / deg[:, None] - p)
         if params.tangential_springs:
             force -= np.einsum("ij,ij->i", force, nrm)[:, None] * nrm * surface_on[:, None]
         force += (params.k2 * -d * surface_on)[:, None] * nrm
