@@ -78,7 +78,6 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft
 import scipy.sparse
-from scipy import ndimage
 
 from .errors import InputError
 
@@ -100,7 +99,6 @@ DEFAULT_NORMAL_RADIUS_VOX = 5.0
 #: Default patch radius of the curvature fit, in voxels (7 mm at 1 mm spacing).
 DEFAULT_PATCH_RADIUS_VOX = 7.0
 
-_FULL = np.ones((3, 3, 3), bool)
 _WORKERS = 2
 
 
@@ -132,9 +130,14 @@ def surface_voxels(mask: np.ndarray) -> np.ndarray:
         return np.zeros((0, 3), np.int64)
     lo = np.array([np.flatnonzero(mask.any(axis=tuple(a for a in range(3) if a != d)))[[0, -1]] for d in range(3)])
     sub = mask[lo[0, 0] : lo[0, 1] + 1, lo[1, 0] : lo[1, 1] + 1, lo[2, 0] : lo[2, 1] + 1]
-    padded = np.pad(sub, 1)
-    eroded = ndimage.binary_erosion(padded, _FULL)[1:-1, 1:-1, 1:-1]
-    vox = np.argwhere(sub & ~eroded).astype(np.int64)
+    # erosion by the full 3x3x3 cube is separable: three 3-voxel erosions, one per axis
+    eroded = np.pad(sub, 1)
+    for axis in range(3):
+        a = eroded.swapaxes(0, axis)
+        e = np.zeros_like(a)
+        e[1:-1] = a[:-2] & a[1:-1] & a[2:]
+        eroded = e.swapaxes(0, axis)
+    vox = np.argwhere(sub & ~eroded[1:-1, 1:-1, 1:-1]).astype(np.int64)
     vox += lo[:, 0]
     return vox
 
@@ -151,7 +154,8 @@ def surface_graph(voxels: np.ndarray) -> scipy.sparse.csr_matrix:
     Parameters
     ----------
     voxels : (M, 3) int ndarray
-        Surface voxel indices (any order, no duplicates).
+        Surface voxel indices (any order, no duplicates). Neighbours are found through
+        a dense index volume over the bounding box (4 bytes per voxel).
 
     Returns
     -------
@@ -169,18 +173,14 @@ def surface_graph(voxels: np.ndarray) -> scipy.sparse.csr_matrix:
     dims = vox.max(0) - lo + 2
     strides = np.array([dims[1] * dims[2], dims[2], 1], np.int64)
     lin = (vox - lo) @ strides
-    order = np.argsort(lin, kind="stable")
-    lin_sorted = lin[order]
+    index = np.full(int(np.prod(dims)), -1, np.int32 if m < 2**31 - 1 else np.int64)
+    index[lin] = np.arange(m)
     rows, cols, wts = [], [], []
     for off in _HALF_OFFSETS:
-        q = lin + off @ strides
-        pos = np.searchsorted(lin_sorted, q)
-        pos[pos >= m] = m - 1
-        hit = lin_sorted[pos] == q
-        i = np.flatnonzero(hit)
-        j = order[pos[hit]]
+        nbr = index[lin + off @ strides]
+        i = np.flatnonzero(nbr >= 0)
         rows.append(i)
-        cols.append(j)
+        cols.append(nbr[i])
         wts.append(np.full(len(i), float(np.abs(off).sum())))
     i = np.concatenate(rows)
     j = np.concatenate(cols)
