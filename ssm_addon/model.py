@@ -51,7 +51,7 @@ NPZ_KEYS = (
 # ---------------------------------------------------------------------------------------
 # The model
 # ---------------------------------------------------------------------------------------
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ShapeModel:
     """A point distribution model (paper section 5).
 
@@ -74,6 +74,8 @@ class ShapeModel:
     params : dict
         JSON-serialisable parameters, versions, timings and derived numbers
         (``total_variance_mm2``: trace of S, the denominator of eq. 8).
+
+    Equality is identity (the arrays make ``==`` ambiguous); compare arrays explicitly.
     """
 
     mean: np.ndarray
@@ -358,6 +360,27 @@ def generalized_procrustes(
 # ---------------------------------------------------------------------------------------
 # PCA
 # ---------------------------------------------------------------------------------------
+def _orthonormalise_rows(modes: np.ndarray, tol: float = 1e-12) -> tuple[np.ndarray, float]:
+    """Restore exact orthonormality of the Gram route's modes (rows) if rounding broke it.
+
+    For eigenvalues far below the largest, q_i = P q~_i / |P q~_i| loses orthogonality
+    (error ~ eps λ_1 / λ_i). If max |Q Qᵀ - I| > ``tol``, rows are re-orthonormalised in
+    order (Cholesky Gram-Schmidt: Q <- L⁻¹ Q with Q Qᵀ = L Lᵀ), which leaves the leading
+    modes essentially untouched and keeps every mode in the span of the data.
+    Returns the modes and the orthogonality error before the correction.
+    """
+    if modes.shape[0] == 0:
+        return modes, 0.0
+    from scipy.linalg import cholesky, solve_triangular
+
+    gram = modes @ modes.T
+    err = float(np.abs(gram - np.eye(len(gram))).max())
+    if err > tol:
+        low = cholesky(gram, lower=True)
+        modes = solve_triangular(low, modes, lower=True)
+    return modes, err
+
+
 def _modes_from_gram(centred: np.ndarray, gram: np.ndarray, n_norm: float, n_modes: int | None):
     """Eigenpairs of S = P Pᵀ / n_norm via the Gram matrix Pᵀ P (eq. 6).
 
@@ -368,7 +391,7 @@ def _modes_from_gram(centred: np.ndarray, gram: np.ndarray, n_norm: float, n_mod
 
     Returns
     -------
-    variances (K,), modes (K, 3N), coeffs (n, K) with modes = coeffsᵀ · centred.
+    variances (K,), modes (K, 3N), orthogonality error before re-orthonormalisation.
     """
     w, v = np.linalg.eigh(gram)
     order = np.argsort(w)[::-1]
@@ -381,17 +404,9 @@ def _modes_from_gram(centred: np.ndarray, gram: np.ndarray, n_norm: float, n_mod
         keep = keep[: int(n_modes)]
     w, v = w[keep], v[:, keep]
     # q_i = P q~_i / |P q~_i|, and |P q~_i|² = q~_iᵀ Pᵀ P q~_i = w_i
-    coeffs = v / np.sqrt(w)[None]
-    modes = coeffs.T @ centred
-    # one pass of re-orthonormalisation removes the Gram route's loss of orthogonality
-    # for small eigenvalues (modes stay in the span of the data)
-    if modes.shape[0]:
-        qm, rm = np.linalg.qr(modes.T)
-        sgn = np.sign(np.diag(rm))
-        sgn[sgn == 0] = 1.0
-        modes = (qm * sgn).T
-        coeffs = None
-    return w / n_norm, modes, coeffs
+    modes = (v / np.sqrt(w)[None]).T @ centred
+    modes, ortho_err = _orthonormalise_rows(modes)
+    return w / n_norm, modes, ortho_err
 
 
 def _fix_signs(modes: np.ndarray) -> np.ndarray:
@@ -484,7 +499,7 @@ def build_model(
     check_cancelled(cancelled)
     report(progress, 0.6, "eigen-decomposition")
     n_norm = float(n - ddof)
-    variances, modes, _ = _modes_from_gram(centred, gram, n_norm, n_modes)
+    variances, modes, ortho_err = _modes_from_gram(centred, gram, n_norm, n_modes)
     modes = _fix_signs(modes)
     total_var = float(np.trace(gram)) / n_norm
     t_end = time.perf_counter()
@@ -495,7 +510,9 @@ def build_model(
         "alignment_info": align_info,
         "ddof": ddof,
         "normalisation": f"S = 1/{'n' if ddof == 0 else '(n-1)'} sum (p_i - mean)(p_i - mean)^T (eq. 5)",
-        "eigensolver": "Gram matrix P^T P (n x n, eq. 6), q_i = P q~_i / |P q~_i|, re-orthonormalised",
+        "eigensolver": "Gram matrix P^T P (n x n, eq. 6), q_i = P q~_i / |P q~_i|",
+        "orthogonality_error_gram": ortho_err,
+        "reorthonormalised": ortho_err > 1e-12,
         "sign_convention": "largest-magnitude component of each mode positive",
         "n_instances": n,
         "n_points": npts,
