@@ -152,12 +152,16 @@ def _fake_wheel(path: Path, requires: list[str]) -> Path:
     return path
 
 
-def test_numpy_requirement_checked_against_blender_numpy(tmp_path):
-    ok = _fake_wheel(tmp_path / "good-1.0-py3-none-any.whl", ["numpy>=1.25", "numpy>=2; extra == 'fast'"])
+def test_numpy_requirement_checked_against_every_blender_numpy(tmp_path):
+    ok = _fake_wheel(tmp_path / "good-1.0-py3-none-any.whl", ["numpy<2.5,>=1.23.5", "numpy>=2; extra == 'fast'"])
     bx.check_numpy_compatible(ok)  # the extra is not installed, so numpy>=2 there does not count
-    bad = _fake_wheel(tmp_path / "bad-1.0-py3-none-any.whl", ["numpy>=2.0"])
-    with pytest.raises(bx.BuildError, match="bad-1.0.*numpy 1.26.4"):
-        bx.check_numpy_compatible(bad)
+    too_new = _fake_wheel(tmp_path / "new-1.0-py3-none-any.whl", ["numpy>=1.26.4"])
+    with pytest.raises(bx.BuildError, match="new-1.0.*numpy 1.24.3"):  # Blender 4.2 LTS
+        bx.check_numpy_compatible(too_new)
+    numpy2 = _fake_wheel(tmp_path / "two-1.0-py3-none-any.whl", ["numpy>=2.0"])
+    with pytest.raises(bx.BuildError, match="two-1.0"):
+        bx.check_numpy_compatible(numpy2)
+    assert bx.BLENDER_NUMPY == min(bx.BLENDER_NUMPYS, key=lambda v: tuple(map(int, v.split("."))))
 
 
 @needs_bpy

@@ -8,10 +8,11 @@ Steps
 -----
 1. For each platform, ``pip download --only-binary=:all: --python-version 3.11`` the
    runtime dependencies from ``pyproject.toml`` (except numpy) into
-   ``wheels_cache/<platform>/``. Blender 4.2-5.0 ships Python 3.11 and numpy 1.26, so the
-   resolution is constrained to ``numpy==1.26.4`` (every chosen scipy, scikit-image,
-   matplotlib, h5py... accepts it; checked again from each wheel's ``Requires-Dist``)
-   and the numpy wheel itself is never bundled.
+   ``wheels_cache/<platform>/``. Blender 4.2-5.0 ships Python 3.11 with its own numpy
+   (1.24.3 in 4.2 LTS, 1.26.4 in 4.5 LTS and 5.0), so the resolution is constrained to
+   the oldest, ``numpy==1.24.3``: pip then picks scipy, scikit-image, matplotlib,
+   h5py... releases that accept it (checked again from each wheel's ``Requires-Dist``
+   against every Blender numpy) and the numpy wheel itself is never bundled.
 2. Copy the extension (repo root minus tests, tools, docs, CI, venv and caches) to a
    staging folder with ``./wheels/`` and a manifest listing the wheels and platforms.
 3. ``blender_ext.py build --split-platforms`` into ``dist/``, then
@@ -44,13 +45,16 @@ import tomllib
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
+from urllib.parse import unquote, urlparse
 
 ROOT = Path(__file__).resolve().parents[1]
 MANIFEST = "blender_manifest.toml"
 
-#: Blender's Python and numpy (Blender 4.2-5.0): dependencies must accept this numpy.
+#: Blender's Python and the numpy versions it ships (4.2 LTS: 1.24.3; 4.5 LTS, 5.0: 1.26.4).
+#: Dependencies are resolved against the oldest and must accept all of them.
 PYTHON_VERSION = "3.11"
-BLENDER_NUMPY = "1.26.4"
+BLENDER_NUMPYS = ("1.24.3", "1.26.4")
+BLENDER_NUMPY = BLENDER_NUMPYS[0]
 
 #: Blender platform -> pip ``--platform`` tags. macOS tags are upper bounds (pip expands
 #: them down to 10.x); 12.0 is what current scipy publishes for arm64.
@@ -165,7 +169,16 @@ def _blender_platforms_from_wheel_platform(tag: str) -> list[str]:
 # Step 1: wheels
 
 
-_PIP_FILE_LINE = re.compile(r"^\s*(?:Saved|File was already downloaded)\s+(\S+\.whl)\s*$")
+def _url_filename(url: str) -> str:
+    return unquote(Path(urlparse(url).path).name)
+
+
+def _run_pip(cmd: list[str], what: str, offline: bool) -> None:
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        lines = [ln for ln in (proc.stdout + proc.stderr).splitlines() if "is ignored: it is neither" not in ln]
+        hint = " (offline: the cache lacks a wheel; run once without --offline)" if offline else ""
+        raise BuildError(f"{what} failed{hint}:\n" + "\n".join(lines[-15:]))
 
 
 def download_wheels(
@@ -212,34 +225,33 @@ def download_wheels(
             result = PlatformWheels(platform, dest, list(record["wheels"]), time.perf_counter() - t0)
             log(f"  {platform}: {len(result.wheels)} wheels from the cache's recorded resolution")
             return result
-    with tempfile.TemporaryDirectory(prefix="ssm-constraints-") as tmp:
+    pip = [sys.executable, "-m", "pip"]
+    target = [
+        "--only-binary=:all:", "--python-version", PYTHON_VERSION, "--implementation", "cp",
+        *(arg for tag in PLATFORM_TAGS[platform] for arg in ("--platform", tag)),
+        "--disable-pip-version-check", "--progress-bar", "off",
+    ]
+    index = ["--no-index", "--find-links", str(dest)] if offline else []
+    with tempfile.TemporaryDirectory(prefix="ssm-resolve-") as tmp:
         constraints = Path(tmp) / "constraints.txt"
         constraints.write_text(f"numpy=={BLENDER_NUMPY}\n")
-        cmd = [
-            sys.executable, "-m", "pip", "download",
-            "--only-binary=:all:", "--python-version", PYTHON_VERSION, "--implementation", "cp",
-            *(arg for tag in PLATFORM_TAGS[platform] for arg in ("--platform", tag)),
-            "--dest", str(dest), "--constraint", str(constraints),
-            "--progress-bar", "off", "--disable-pip-version-check",
-        ]
-        if offline:
-            cmd += ["--no-index", "--find-links", str(dest)]
-        cmd += requirements
-        proc = subprocess.run(cmd, capture_output=True, text=True)
-    if proc.returncode != 0:
-        tail = "\n".join((proc.stdout + proc.stderr).strip().splitlines()[-15:])
-        hint = " (offline: the cache lacks a wheel; run once without --offline)" if offline else ""
-        raise BuildError(f"pip download for {platform} failed{hint}:\n{tail}")
-    files = []
-    for line in proc.stdout.splitlines():
-        match = _PIP_FILE_LINE.match(line)
-        if match:
-            name = Path(match.group(1)).name
-            if name not in files:
-                files.append(name)
+        report = Path(tmp) / "report.json"
+        # Resolve once (pip's report names the exact files), then fetch what the cache lacks.
+        _run_pip(pip + ["install", "--dry-run", "--ignore-installed", "--quiet", "--report", str(report),
+                        "--target", str(Path(tmp) / "target"), "--constraint", str(constraints),
+                        *target, *index, *requirements], f"resolving the wheels for {platform}", offline)
+        items = json.loads(report.read_text())["install"]
+    urls = {_url_filename(item["download_info"]["url"]): item["download_info"]["url"] for item in items}
+    if any(not f.endswith(".whl") for f in urls):
+        raise BuildError(f"{platform}: pip resolved a non-wheel file: {sorted(urls)}")
+    fetch = [url for name, url in urls.items() if not (dest / name).is_file()]
+    if fetch:
+        _run_pip(pip + ["download", "--no-deps", "--dest", str(dest), *target, *fetch],
+                 f"downloading {len(fetch)} wheels for {platform}", offline)
+    files = sorted(urls)
     missing = [f for f in files if not (dest / f).is_file()]
-    if not files or missing:
-        raise BuildError(f"pip download for {platform}: could not find the resolved wheels in {dest} (missing {missing})")
+    if missing:
+        raise BuildError(f"{platform}: pip did not put {missing} into {dest}")
     wheels = sorted(f for f in files if wheel_project(f) not in NEVER_BUNDLE)
     record_path.write_text(json.dumps({"key": key, "wheels": wheels}, indent=1) + "\n")
     result = PlatformWheels(platform, dest, wheels, time.perf_counter() - t0)
@@ -248,8 +260,8 @@ def download_wheels(
     return result
 
 
-def check_numpy_compatible(wheel: Path, numpy_version: str = BLENDER_NUMPY) -> None:
-    """Raise BuildError if the wheel's ``Requires-Dist: numpy`` excludes ``numpy_version``."""
+def check_numpy_compatible(wheel: Path, numpy_versions: tuple[str, ...] = BLENDER_NUMPYS) -> None:
+    """Raise BuildError if the wheel's ``Requires-Dist: numpy`` excludes a Blender numpy."""
     try:
         from packaging.requirements import Requirement
         from packaging.version import Version
@@ -269,8 +281,9 @@ def check_numpy_compatible(wheel: Path, numpy_version: str = BLENDER_NUMPY) -> N
             continue
         if req.marker is not None and not req.marker.evaluate({"extra": "", "python_version": PYTHON_VERSION}):
             continue
-        if not req.specifier.contains(Version(numpy_version), prereleases=True):
-            raise BuildError(f"{wheel.name} requires {req} but Blender ships numpy {numpy_version}")
+        for version in numpy_versions:
+            if not req.specifier.contains(Version(version), prereleases=True):
+                raise BuildError(f"{wheel.name} requires {req} but Blender ships numpy {version}")
 
 
 def merge_wheels(resolved: list[PlatformWheels]) -> dict[str, Path]:
@@ -450,7 +463,7 @@ def build(
     wheels: dict[str, Path] = {}
     if with_wheels:
         requirements = runtime_requirements(root / "pyproject.toml")
-        log(f"resolving {', '.join(requirements)} for Python {PYTHON_VERSION}, numpy=={BLENDER_NUMPY} (not bundled)")
+        log(f"resolving {', '.join(requirements)} for Python {PYTHON_VERSION}, numpy=={BLENDER_NUMPY} (Blender's, not bundled)")
         resolved = [download_wheels(p, requirements, Path(cache), offline, log) for p in platforms]
         wheels = merge_wheels(resolved)
         for path in wheels.values():
