@@ -55,6 +55,7 @@ __all__ = [
     "locate_on_mesh",
     "folded_triangles",
     "CoatingParams",
+    "CoatingTemplate",
     "FitFigures",
     "CoatingResult",
     "CoatingCancelled",
@@ -550,6 +551,17 @@ class CoatingParams:
 
 
 @dataclass(frozen=True)
+class CoatingTemplate:
+    """The minimum a template needs for coating: (N, 3) points (mm, object frame) and (F, 3) faces.
+
+    :class:`~ssm_addon.template.Template` has these attributes too; any such object works.
+    """
+
+    points_object: np.ndarray
+    faces: np.ndarray
+
+
+@dataclass(frozen=True)
 class FitFigures:
     """How well a coated mesh fits its instance (all distances in mm, exact to the MC surface)."""
 
@@ -835,12 +847,8 @@ def coat(
 
 
 def _coat_job(args):
-    template_arrays, src, target, dst, params, name = args
-
-    class _T:
-        points_object, faces = template_arrays
-
-    return coat(_T, src, target, dst, params, name=name)
+    template, src, target, dst, params, name = args
+    return coat(template, src, target, dst, params, name=name)
 
 
 def _in_blender() -> bool:
@@ -892,7 +900,7 @@ def coat_all(
     import multiprocessing
 
     ctx = multiprocessing.get_context("spawn")
-    arrays = (pts, faces)
+    arrays = CoatingTemplate(pts, faces)
     with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
         pending = {}
         queue = list(range(n))

@@ -1,0 +1,107 @@
+"""Coating in Blender: ssm.coat_template on synthetic instances, overlay, colours, fit, Esc."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from test_coating import ellipsoid_landmarks, icosphere
+
+from ssm_addon import volume as V
+
+pytestmark = pytest.mark.blender
+
+AXES = {1: np.array([16.0, 11.0, 8.0]), 2: np.array([18.0, 10.0, 9.0]), 3: np.array([15.0, 12.0, 8.5])}
+CENTRES = {1: np.array([22.0, 20.0, 16.0]), 2: np.array([62.0, 20.0, 16.0]), 3: np.array([22.0, 52.0, 16.0])}
+
+
+def _label_map(tmp_path):
+    shape = (86, 72, 34)
+    ijk = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), axis=-1).reshape(-1, 3).astype(float)
+    labels = np.zeros(shape, np.uint8)
+    for k, axes in AXES.items():
+        labels[((((ijk - CENTRES[k]) / axes) ** 2).sum(1) <= 1).reshape(shape)] = k
+    return V.write_label_map(tmp_path / "ellipsoids.nii.gz", labels, np.eye(4))
+
+
+def _scene(bpy, tmp_path):
+    """Three ellipsoid instances with landmarks (true map: axis scaling) and a template on instance 1."""
+    from ssm.operators import bridge
+    from ssm.operators.instances import instance_object_volume
+    from ssm.operators.landmarks import set_landmark
+
+    from ssm_addon import coating as C
+
+    path = _label_map(tmp_path)
+    assert bpy.ops.ssm.import_segmentation(filepath=str(path), split_labels=True, spacing_mm=1.0) == {"FINISHED"}
+    inst = {k: next(o for o in bpy.data.objects if o.ssm.role == "INSTANCE" and o.ssm.label == k) for k in AXES}
+    base = ellipsoid_landmarks(AXES[1])
+    names = [f"lm{i}" for i in range(len(base))]
+    for k, obj in inst.items():
+        frame = V.ObjectFrame(np.array(obj.ssm.frame_origin), np.array(obj.ssm.frame_axes).reshape(3, 3))
+        world = frame.to_world(base * AXES[k] / AXES[1])
+        for name, p in zip(names, world):
+            set_landmark(bpy.context, obj, name, p)
+    ov = instance_object_volume(inst[1])
+    v, f = icosphere(3)
+    pts = C.DistanceMap.from_object_volume(ov).project(v * AXES[1], 3)
+    tpl = bridge.new_mesh_object(bpy.context, "SSM Template", pts, f, matrix_world=np.eye(4))
+    tpl.ssm.role = "TEMPLATE"
+    tpl.ssm.instance = inst[1]
+    return inst, tpl
+
+
+def test_coat_template_creates_overlaying_coloured_meshes(bpy_clean, tmp_path):
+    bpy = bpy_clean
+    from ssm.operators import bridge
+
+    inst, tpl = _scene(bpy, tmp_path)
+    assert bpy.ops.ssm.coat_template() == {"FINISHED"}
+    n_faces = len(tpl.data.polygons)
+    for k, obj in inst.items():
+        coated = bpy.data.objects[f"{obj.name} coated"]
+        assert coated.ssm.role == "COATED" and coated.ssm.instance == obj
+        assert len(coated.data.vertices) == len(tpl.data.vertices)
+        np.testing.assert_array_equal(bridge.mesh_triangles(coated.data), bridge.mesh_triangles(tpl.data))
+        colours = coated.data.attributes["triangle_index"]  # FACE domain: not in color_attributes
+        assert colours.domain == "FACE"
+        rgba = np.empty(n_faces * 4, np.float32)
+        colours.data.foreach_get("color", rgba)
+        np.testing.assert_allclose(rgba.reshape(-1, 4), bridge.triangle_index_colors(n_faces), atol=1e-6)
+        # the coated mesh overlays the instance: Blender-world vertices on the ellipsoid
+        world = bridge.object_world_vertices(coated)
+        r = np.sqrt((((world - CENTRES[k]) / AXES[k]) ** 2).sum(1))
+        assert np.abs(r - 1).max() * AXES[k].min() < 1.0
+        fit = json.loads(coated.ssm.fit_json)
+        assert fit["folded_after"] == 0 and fit["max_distance_mm"] < 1.0
+    # correspondence: instance 2's coated points follow the axis scaling of the template
+    coated2 = bridge.mesh_vertices(bpy.data.objects[f"{inst[2].name} coated"].data)
+    truth = bridge.mesh_vertices(tpl.data) * AXES[2] / AXES[1]
+    assert np.linalg.norm(coated2 - truth, axis=1).mean() < 0.5
+
+
+def test_cancel_keeps_finished_instances(bpy_clean, tmp_path):
+    bpy = bpy_clean
+    inst, _ = _scene(bpy, tmp_path)
+    assert bpy.ops.ssm.coat_template(cancel_after=1) == {"FINISHED"}
+    coated = sorted(o.name for o in bpy.data.objects if o.ssm.role == "COATED")
+    assert coated == [f"{inst[1].name} coated"]
+
+
+def test_selected_only_and_missing_template(bpy_clean, tmp_path):
+    bpy = bpy_clean
+    inst, tpl = _scene(bpy, tmp_path)
+    for o in bpy.data.objects:
+        o.select_set(False)
+    inst[3].select_set(True)
+    assert bpy.ops.ssm.coat_template(selected_only=True) == {"FINISHED"}
+    assert sorted(o.name for o in bpy.data.objects if o.ssm.role == "COATED") == [f"{inst[3].name} coated"]
+    tpl.ssm.role = "NONE"
+    assert not bpy.ops.ssm.coat_template.poll()
+
+
+def test_panel_registered(bpy_clean):
+    bpy = bpy_clean
+    assert hasattr(bpy.types, "SSM_PT_coating")
+    assert bpy.context.scene.ssm_coating.rest_lengths == "warped"
