@@ -271,9 +271,24 @@ def test_curvature_at_inner_equator_of_torus_is_plus_and_minus_one_over_r():
     assert abs(np.median(geo.k2[sel]) * r + 1.0) < 0.1
 
 
+@pytest.mark.parametrize("thickness", [3, 6, 10])
+def test_flat_faces_of_thin_plates_have_zero_curvature(thickness):
+    """The far side of a plate thinner than the patch diameter must not bend the fit."""
+    mask = np.zeros((50, 50, 30), bool)
+    mask[5:45, 5:45, 12 : 12 + thickness] = True
+    geo = surface.surface_geometry(mask)
+    face = (np.abs(geo.voxels[:, 0] - 25) < 8) & (np.abs(geo.voxels[:, 1] - 25) < 8)
+    assert np.all(np.abs(np.abs(geo.normals[face, 2]) - 1) < 1e-9)
+    assert np.abs(geo.c[face]).max() < 1e-6
+
+
 def _brute_force_fit(points, normals, vox, i, radius, form):
     """The coordinate transformation method for one voxel with np.linalg.lstsq."""
     near = np.linalg.norm(vox - vox[i], axis=1) <= radius
+    # the far side of a thin structure (opposite dominant normal direction) is left out
+    axis = np.argmax(np.abs(normals), axis=1)
+    sign = np.sign(normals[np.arange(len(normals)), axis])
+    near &= ~((axis == axis[i]) & (sign != sign[i]))
     d = points[near] - points[i]
     n = normals[i]
     t1 = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
@@ -295,7 +310,7 @@ def _brute_force_fit(points, normals, vox, i, radius, form):
 @pytest.mark.parametrize("form", ["paper", "quadric"])
 def test_vectorised_fit_equals_per_voxel_least_squares(form):
     g = np.indices((30, 26, 22), dtype=float)
-    mask = ((g[0] - 15.2) / 11) ** 2 + ((g[1] - 13.1) / 9) ** 2 + ((g[2] - 11.3) / 7) ** 2 <= 1
+    mask = ((g[0] - 15.2) / 11) ** 2 + ((g[1] - 13.1) / 9) ** 2 + ((g[2] - 11.3) / 4) ** 2 <= 1
     vox = surface.surface_voxels(mask)
     points, normals = surface.surface_points(mask, vox, 4)
     curv = surface.surface_curvature(mask, vox, normals, 5, form=form, points=points, block=1, bias_correction=False)
