@@ -15,8 +15,6 @@
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import os
 import re
 from pathlib import Path
@@ -34,7 +32,6 @@ from ..ssm_addon.meshutil import write_ply
 from . import bridge
 
 TEMPLATE_COLLECTION = "SSM Template"
-COATED_COLLECTION = "SSM Coated"
 
 
 # ------------------------------------------------------------------ scene construction
@@ -105,6 +102,7 @@ def write_model_blend(result, path) -> str:
     (one colour per triangle, curvature attribute), the coated instances and the model
     object (mean shape, one shape key per mode; ``operators/model.py``).
     """
+    from .coating import write_coated
     from .model import create_model_object
 
     _ensure_registered()
@@ -125,11 +123,8 @@ def write_model_blend(result, path) -> str:
     curvature = getattr(template, "curvature", None)
     if curvature is not None and len(curvature) == len(template.points_object):
         bridge.set_point_attribute(tobj.data, "curvature", np.asarray(curvature))
-    for name, ov, coating in zip(names, result.objects, result.coatings):
-        cobj = _mesh_with_colours(context, f"{name} coated", coating.points_object, template.faces, COATED_COLLECTION,
-                                  ov.frame.matrix_world, "COATED", objs[name])
-        fit = coating.fit
-        cobj.ssm.fit_json = fit.to_json() if hasattr(fit, "to_json") else json.dumps(dataclasses.asdict(fit))
+    for name, coating in zip(names, result.coatings):
+        write_coated(context, objs[name], coating, np.asarray(template.faces))
     create_model_object(context, result.model, name="SSM Model")
     path = str(Path(path).resolve())
     bpy.ops.wm.save_as_mainfile(filepath=path, check_existing=False, copy=True)
@@ -191,6 +186,16 @@ def _scene_options(group, schema: dict) -> dict:
             continue
         out[key] = value
     return out
+
+
+def _model_options(group) -> dict:
+    """[model] options from ``Scene.ssm_model`` (0 modes there means all; metrics_samples)."""
+    opts = _scene_options(group, {"alignment": "str", "n_modes": "int"})
+    if not opts.get("n_modes"):
+        opts.pop("n_modes", None)
+    if group is not None and "metrics_samples" in group.bl_rna.properties:
+        opts["specificity_samples"] = int(group.metrics_samples)
+    return opts
 
 
 def _set_scene_options(group, options: dict) -> None:
@@ -260,7 +265,7 @@ def project_from_scene(context, path) -> core.Project:
         objs[0].ssm.spacing_mm
     )
     c_opts = _scene_options(getattr(scene, "ssm_coating", None), core.params_schema(CoatingParams))
-    m_opts = {**core.MODEL_DEFAULTS, **_scene_options(getattr(scene, "ssm_model", None), core.MODEL_KEYS)}
+    m_opts = {**core.MODEL_DEFAULTS, **_model_options(getattr(scene, "ssm_model", None))}
     method = objs[0].ssm.frame_method.lower()
     return core.Project(path=path, instances=tuple(specs), template_instance=template_instance, spacing_mm=spacing,
                         frame_method=method if method in core.FRAME_METHODS else "auto", template_options=t_opts,
@@ -287,7 +292,10 @@ def load_project_into_scene(context, project: core.Project) -> list:
     scene = context.scene
     _set_scene_options(getattr(scene, "ssm_template", None), {**project.template_options, "spacing_mm": project.spacing_mm})
     _set_scene_options(getattr(scene, "ssm_coating", None), project.coating_options)
-    _set_scene_options(getattr(scene, "ssm_model", None), project.model_options)
+    m_opts = dict(project.model_options)
+    m_opts["n_modes"] = m_opts.get("n_modes") or 0  # the panel's 0 means every mode
+    m_opts["metrics_samples"] = m_opts.pop("specificity_samples", 300)
+    _set_scene_options(getattr(scene, "ssm_model", None), m_opts)
     if created:
         template = next((o for o in created if o.name == project.template_instance), created[0])
         for obj in context.view_layer.objects:

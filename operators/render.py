@@ -1,11 +1,11 @@
 """Pictures of a shape model: mean and ±2σ of the first modes in three views (paper fig. 10).
 
 :func:`render_modes_figure` lays out one copy of each shape per view in a grid inside a
-temporary scene (columns: axial, sagittal, coronal; rows: the mean, then one row per
-mode with the shapes b_k = -2√λ_k (blue) and +2√λ_k (red) of eq. (7) overlaid on the
-mean (grey), as in the paper's fig. 10), renders it once with an orthographic camera
-(Workbench, X-ray so the overlaid shapes show through, object outlines) and removes the
-temporary scene again. Works headless with the ``bpy`` module.
+temporary scene (columns: axial, sagittal, coronal; rows: the mean (grey), then one row
+per mode with the shapes b_k = -2√λ_k (blue) and +2√λ_k (red) of eq. (7) overlaid, as
+in the paper's fig. 10: opaque, so each colour shows where its shape reaches further),
+renders it once with an orthographic camera (Workbench, studio light, object outlines)
+and removes the temporary scene again. Works headless with the ``bpy`` module.
 """
 
 from __future__ import annotations
@@ -23,17 +23,17 @@ VIEWS = {
     "sagittal": np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]),
     "coronal": np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]]),
 }
-COLOURS = {"mean": (0.78, 0.78, 0.76, 1.0), "minus": (0.15, 0.35, 0.95, 1.0), "plus": (0.95, 0.2, 0.15, 1.0)}
+COLOURS = {"mean": (0.9, 0.9, 0.88, 1.0), "minus": (0.1, 0.3, 1.0, 1.0), "plus": (1.0, 0.15, 0.1, 1.0)}
 
 
 def _shapes(model, n_modes: int, sigmas: float):
-    """Rows of (label, [(kind, (N, 3) points)]): the mean, then mean ∓/± sigmas·√λ_k q_k (eq. 7)."""
+    """Rows of (label, [(kind, (N, 3) points)]): the mean, then mean ∓ sigmas·√λ_k q_k (eq. 7)."""
     mean = np.asarray(model.mean, float)
     rows = [("mean", [("mean", mean)])]
     k_max = min(int(n_modes), len(model.variances))
     for k in range(k_max):
         step = sigmas * np.sqrt(float(model.variances[k])) * np.asarray(model.modes[k], float)
-        rows.append((f"mode {k + 1}", [("mean", mean), ("minus", mean - step), ("plus", mean + step)]))
+        rows.append((f"mode {k + 1}", [("minus", mean - step), ("plus", mean + step)]))
     return rows
 
 
@@ -112,8 +112,7 @@ def render_modes_figure(
         shading = scene.display.shading
         shading.light = "STUDIO"
         shading.color_type = "OBJECT"
-        shading.show_xray = n_rows > 1
-        shading.xray_alpha = 0.55
+        shading.show_xray = False
         shading.show_object_outline = True
         scene.display.render_aa = "FXAA"
         bpy.ops.render.render(write_still=True, scene=scene.name)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import pkgutil
 import sys
 from pathlib import Path
 
@@ -30,11 +31,28 @@ def extension_package():
     module = sys.modules.get(PACKAGE_NAME)
     if module is not None and Path(getattr(module, "__file__", "") or "").resolve() == root / "__init__.py":
         return module
+    _alias_core(f"{PACKAGE_NAME}.ssm_addon")
     spec = importlib.util.spec_from_file_location(PACKAGE_NAME, root / "__init__.py", submodule_search_locations=[str(root)])
     module = importlib.util.module_from_spec(spec)
     sys.modules[PACKAGE_NAME] = module
     spec.loader.exec_module(module)
     return module
+
+
+def _alias_core(alias: str) -> None:
+    """Make ``<alias>.<module>`` the very modules of this core (one copy of every class).
+
+    The operators import the core relatively (``from ..ssm_addon import volume``); without
+    the alias the extension package would load a second copy whose classes differ from
+    the ones the build produced (``isinstance`` and ``except`` would miss).
+    """
+    core = sys.modules[__package__]
+    sys.modules.setdefault(alias, core)
+    for info in pkgutil.iter_modules(core.__path__):
+        if info.name == "__main__":
+            continue
+        module = importlib.import_module(f"{__package__}.{info.name}")
+        sys.modules.setdefault(f"{alias}.{info.name}", module)
 
 
 def write_blend_outputs(result, out_dir, log=print) -> dict:

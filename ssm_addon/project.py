@@ -855,7 +855,7 @@ def build(
         metrics = met.evaluate(model, n_samples=mo["specificity_samples"], seed=mo["seed"], max_loo=mo["max_loo"],
                                progress=stage("metrics", 0.9, 0.95), cancelled=cancelled)
         timings["metrics"] = time.perf_counter() - t0
-        say(f"metrics in {timings['metrics']:.2f} s")
+        say(f"metrics: compactness, generalization, specificity in {timings['metrics']:.2f} s")
 
         # 7. files
         check_cancelled(cancelled)
@@ -887,7 +887,7 @@ def build(
             report(progress, 0.96, "Blender: model.blend and pictures")
             files.update(blender_hook(result, tmp, say) or {})
             timings["blender"] = time.perf_counter() - t1
-        timings["write"] = time.perf_counter() - t0
+        timings["write"] = time.perf_counter() - t0 - timings.get("blender", 0.0)
         timings["total"] = time.perf_counter() - t_total
         extra["timings_s"] = dict(timings)
         extra["peak_memory"] = peak_memory_mb()

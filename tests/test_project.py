@@ -122,8 +122,9 @@ def test_unknown_table_suggests_closest(files):
 
 
 def test_template_keys_follow_template_params(files):
-    from ssm_addon.project import params_schema
     from ssm_addon.template import TemplateParams
+
+    from ssm_addon.project import params_schema
 
     schema = params_schema(TemplateParams)
     key = next(iter(schema))
@@ -321,7 +322,10 @@ def test_cancelled_build_writes_nothing(demo_population, tmp_path):
 
 
 def test_parallel_build_equals_serial(demo_population, tmp_path):
-    proj = read_project(demo_population)
+    quick = demo_population.with_name("quick.toml")  # a coarser, shorter build: equality is the point here
+    quick.write_text(demo_population.read_text().replace("spacing = 1.0", "spacing = 1.5")
+                     .replace("[coating]", "[coating]\nmax_iterations = 60"))
+    proj = read_project(quick)
     lines: list[str] = []
     r1 = build(proj, tmp_path / "serial", jobs=1, log=lines.append)
     r2 = build(proj, tmp_path / "parallel", jobs=2, log=None)

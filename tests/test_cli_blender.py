@@ -1,0 +1,113 @@
+"""The headless build inside Blender (``blender -b --command ssm build …``) and the project operators.
+
+The command is called the way Blender calls it: the handler ``operators.cli.command``
+of the registered extension with the arguments after ``--command ssm``. It must give the
+same ``model.npz`` as ``python -m ssm_addon build`` and a ``model.blend`` that opens with
+the model object (one shape key per mode), the instances and their landmarks.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+
+from ssm_addon import demo
+from ssm_addon.project import build, read_project
+
+pytestmark = pytest.mark.blender
+
+ARRAYS = ("mean", "faces", "modes", "variances", "instance_points", "instance_points_world")
+
+
+@pytest.fixture(scope="module")
+def small_demo(tmp_path_factory):
+    """Five demo vertebrae with a coarse, short build (the equality of the two routes is the point)."""
+    path = demo.make_demo_population(tmp_path_factory.mktemp("demo_blender"), n=5, seed=7)
+    path.write_text(path.read_text().replace("spacing = 1.0", "spacing = 1.5")
+                    .replace("[coating]", "[coating]\nmax_iterations = 60"))
+    return path
+
+
+def test_blender_command_build_equals_python_build(bpy_clean, small_demo, tmp_path):
+    bpy = bpy_clean
+    cli = sys.modules["ssm.operators.cli"]
+    assert cli._handle is not None  # registered with bpy.utils.register_cli_command
+    out = tmp_path / "blender"
+    assert cli.command(["build", str(small_demo), "--out", str(out)]) == 0
+
+    reference = tmp_path / "python"
+    build(read_project(small_demo), reference, log=None)
+    m_blender = np.load(out / "model.npz", allow_pickle=False)
+    m_python = np.load(reference / "model.npz", allow_pickle=False)
+    for key in ARRAYS:
+        assert np.allclose(m_blender[key], m_python[key], rtol=0, atol=1e-9), key
+    assert list(m_blender["instance_names"]) == list(m_python["instance_names"])
+
+    png = (out / "modes.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    img = bpy.data.images.load(str(out / "modes.png"))
+    assert tuple(img.size) == (3 * 160, 3 * 160)  # 3 views x (mean + 2 modes)
+    px = np.empty(img.size[0] * img.size[1] * 4, np.float32)
+    img.pixels.foreach_get(px)
+    assert px.reshape(-1, 4)[:, :3].std() > 0.05  # shapes drawn, not a blank frame
+
+    bpy.ops.wm.open_mainfile(filepath=str(out / "model.blend"))
+    k = m_blender["variances"].shape[0]
+    model_obj = bpy.data.objects["SSM Model"]
+    assert model_obj.ssm.role == "MODEL"
+    keys = model_obj.data.shape_keys.key_blocks
+    assert len(keys) == k + 1 and keys[0].name == "Basis"
+    co = np.empty(len(model_obj.data.vertices) * 3, np.float32)
+    model_obj.data.vertices.foreach_get("co", co)
+    assert np.allclose(co.reshape(-1, 3), m_blender["mean"], atol=1e-3)
+    instances = [o for o in bpy.data.objects if o.ssm.role == "INSTANCE"]
+    assert sorted(o.name for o in instances) == sorted(m_blender["instance_names"])
+    landmarks = [o for o in bpy.data.objects if o.ssm.role == "LANDMARK"]
+    assert len(landmarks) == 13 * len(instances)
+    assert bpy.data.objects["SSM Template"].ssm.role == "TEMPLATE"
+    assert sum(o.ssm.role == "COATED" for o in bpy.data.objects) == len(instances)
+
+
+def test_blender_command_reports_input_errors(bpy_clean, tmp_path, capsys):
+    cli = sys.modules["ssm.operators.cli"]
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[[instances]]\nname = 'a'\nvolume = 'missing.nii.gz'\nlandmarks = 'x.csv'\n")
+    assert cli.command(["build", str(bad), "--out", str(tmp_path / "out")]) == 2
+    assert "volume file not found" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_open_and_save_project_round_trip(bpy_clean, small_demo, tmp_path):
+    bpy = bpy_clean
+    project = read_project(small_demo)
+    assert bpy.ops.ssm.open_project(filepath=str(small_demo)) == {"FINISHED"}
+    instances = sorted(o.name for o in bpy.data.objects if o.ssm.role == "INSTANCE")
+    assert instances == sorted(project.names)
+    assert bpy.context.view_layer.objects.active.name == project.template_instance
+    empties = [o for o in bpy.data.objects if o.ssm.role == "LANDMARK"]
+    assert len(empties) == len(project.instances) * len(project.landmark_names)
+    first = project.instances[0]
+    emp = bpy.data.objects[f"{first.name} {first.landmark_set.names[0]}"]
+    assert np.allclose(np.array(emp.matrix_world.translation), first.landmark_set.points_world[0], atol=1e-3)
+
+    saved = tmp_path / "again" / "project.toml"
+    assert bpy.ops.ssm.save_project(filepath=str(saved)) == {"FINISHED"}
+    again = read_project(saved)
+    by_name = {i.name: i for i in again.instances}
+    assert set(by_name) == set(project.names)
+    assert again.template_instance == project.template_instance
+    for inst in project.instances:
+        copy = by_name[inst.name]
+        assert copy.volume == inst.volume and copy.label == inst.label
+        assert copy.landmarks.parent == saved.parent / "landmarks"
+        assert copy.landmark_set.names == inst.landmark_set.names
+        assert np.allclose(copy.landmark_set.points_world, inst.landmark_set.points_world, atol=1e-3)
+
+
+def test_save_project_needs_landmarked_instances(bpy_clean, tmp_path):
+    bpy = bpy_clean
+    with pytest.raises(RuntimeError, match="at least two"):
+        bpy.ops.ssm.save_project(filepath=str(tmp_path / "p.toml"))
+    assert not (tmp_path / "p.toml").exists()
