@@ -79,8 +79,12 @@ def _point_errors(residual: np.ndarray) -> np.ndarray:
     return np.sqrt(sq[:, 0::3] + sq[:, 1::3] + sq[:, 2::3]).mean(axis=1)
 
 
-def _top_modes(train: np.ndarray, gram_centred: np.ndarray, kmax: int) -> np.ndarray:
-    """First ``kmax`` orthonormal modes (rows, (kmax, 3N)) of centred data via its Gram matrix (eq. 6)."""
+def _top_modes(data: np.ndarray, rows, mu: np.ndarray, gram_centred: np.ndarray, kmax: int) -> np.ndarray:
+    """First ``kmax`` orthonormal modes (rows, (kmax, 3N)) via the Gram matrix (eq. 6).
+
+    The centred training vectors are ``data[rows] - mu``; the modes are formed as
+    Cᵀ data[rows] - (Σ C) mu without copying the training block.
+    """
     m = len(gram_centred)
     if kmax < m // 10:
         # a few leading eigenpairs: Lanczos is much cheaper than a dense n x n solve
@@ -94,7 +98,10 @@ def _top_modes(train: np.ndarray, gram_centred: np.ndarray, kmax: int) -> np.nda
     w, v = w[order], v[:, order]
     tol = max(w[0], 0.0) * m * 64 * np.finfo(float).eps
     k = int(min(kmax, np.count_nonzero(w > tol)))
-    return (v[:, :k] / np.sqrt(w[:k])).T @ train
+    coeff = v[:, :k] / np.sqrt(w[:k])
+    full = np.zeros((len(data), k))
+    full[rows] = coeff
+    return full.T @ data - np.outer(coeff.sum(axis=0), mu)
 
 
 def generalization(
@@ -164,6 +171,7 @@ def generalization(
         flat = flat - flat.mean(axis=0)  # shifts cancel in centred products; better rounding
         report(progress, 0.0, "Gram matrix")
         raw_gram = flat @ flat.T
+        total = flat.sum(axis=0)
     errors = np.zeros((n, len(ks)))
     for f in range(folds):
         check_cancelled(cancelled)
@@ -172,8 +180,8 @@ def generalization(
         train = np.flatnonzero(fold_of != f)
         scale = np.ones(len(test))
         if raw_gram is not None:
-            mu = flat[train].mean(axis=0)
-            xc = flat[train] - mu
+            mu = (total - flat[test].sum(axis=0)) / len(train)  # no copy of the training block
+            data, rows = flat, train
             kt = raw_gram[np.ix_(train, train)]
             rm = kt.mean(axis=0)
             g = kt - rm[None] - rm[:, None] + rm.mean()
@@ -185,11 +193,12 @@ def generalization(
             ya = s[:, None, None] * np.einsum("inj,ikj->ink", x[test], rot) + t[:, None]
             xt = aligned.reshape(len(train), -1)
             mu = xt.mean(axis=0)
-            xc = xt - mu
-            g = xc @ xc.T
             y = ya.reshape(len(test), -1) - mu
+            data, rows = xt - mu, slice(None)
+            mu = np.zeros_like(mu)
+            g = data @ data.T
             scale = s
-        modes = _top_modes(xc, g, kmax)
+        modes = _top_modes(data, rows, mu, g, kmax)
         b = y @ modes.T
         residual = y.copy()
         prev = 0

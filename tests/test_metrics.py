@@ -150,3 +150,15 @@ def test_write_outputs_writes_every_file(tmp_path, population):
     assert load_statismo(out["statismo"]).n_modes == model.n_modes
     assert out["plots"] == []
     assert json.loads(open(out["report"]).read())["files"]["npz"] == out["npz"]
+
+
+def test_plots_are_skipped_with_a_clear_message_without_matplotlib(tmp_path, population, monkeypatch):
+    import sys
+
+    _, model = population
+    monkeypatch.setitem(sys.modules, "matplotlib.figure", None)  # import fails as if not installed
+    info = write_plots(model, tmp_path)
+    assert info["files"] == [] and "matplotlib" in info["skipped"]
+    out = write_outputs(model, tmp_path / "o")
+    assert out["plots"] == [] and "matplotlib" in out["plots_skipped"]
+    assert os.path.exists(out["report"]) and os.path.exists(out["npz"])

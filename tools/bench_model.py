@@ -14,8 +14,8 @@ import argparse
 import resource
 import sys
 import tempfile
-import time
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -94,11 +94,11 @@ def main(argv=None):
     bpy = None
     if not args.no_blender:
         try:
-            import conftest  # noqa: F401 - temporary HOME for Blender
-
-            import bpy  # noqa: F811
+            import conftest  # sets a temporary HOME for Blender before bpy is imported
 
             pkg = conftest.load_extension_package()
+            import bpy  # noqa: F811
+
             pkg.register()
             from ssm.operators import model as opmodel
         except ImportError as err:
