@@ -164,6 +164,13 @@ def test_numpy_requirement_checked_against_every_blender_numpy(tmp_path):
     assert bx.BLENDER_NUMPY == min(bx.BLENDER_NUMPYS, key=lambda v: tuple(map(int, v.split("."))))
 
 
+def test_cli_rejects_unknown_platform(tmp_path, capsys):
+    code = bx.main(["--platforms", "beos-x64", "--offline", "--cache", str(tmp_path), "--out", str(tmp_path)])
+    assert code == 1
+    assert "unknown platform 'beos-x64'" in capsys.readouterr().err
+    assert not list(tmp_path.glob("*.zip"))
+
+
 @needs_bpy
 def test_build_without_wheels_excludes_dev_files_and_validates(tmp_path):
     zips = bx.build(out_dir=tmp_path, with_wheels=False, log=lambda *a: None)
