@@ -107,13 +107,31 @@ def triangle_index_colors(n_faces: int) -> np.ndarray:
 
 
 def set_face_colors(mesh: bpy.types.Mesh, rgba: np.ndarray, name: str = "triangle_index") -> None:
-    """Store per-face RGBA colours as a FACE colour attribute and make it active."""
+    """Give each face one RGBA colour, stored as a CORNER colour attribute and made active.
+
+    Blender colour attributes live on points or face corners; every corner of face i gets
+    colour i, so the viewport's *Attribute* colour mode and the material both show it.
+    """
+    rgba = np.ascontiguousarray(rgba, dtype=np.float32).reshape(-1, 4)
+    totals = np.empty(len(mesh.polygons), dtype=np.int32)
+    mesh.polygons.foreach_get("loop_total", totals)
+    starts = np.empty(len(mesh.polygons), dtype=np.int32)
+    mesh.polygons.foreach_get("loop_start", starts)
+    per_corner = np.empty((len(mesh.loops), 4), dtype=np.float32)
+    corner_face = np.repeat(np.arange(len(totals)), totals)
+    corner_index = np.repeat(starts, totals) + (np.arange(totals.sum()) - np.repeat(np.cumsum(totals) - totals, totals))
+    per_corner[corner_index] = rgba[corner_face]
     attr = mesh.color_attributes.get(name)
+    if attr is not None and attr.domain != "CORNER":
+        mesh.color_attributes.remove(attr)
+        attr = None
     if attr is None:
-        attr = mesh.color_attributes.new(name=name, type="FLOAT_COLOR", domain="FACE")
-    attr.data.foreach_set("color", np.ascontiguousarray(rgba, dtype=np.float32).ravel())
+        attr = mesh.color_attributes.new(name=name, type="FLOAT_COLOR", domain="CORNER")
+    attr.data.foreach_set("color", per_corner.ravel())
     mesh.color_attributes.active_color = attr
-    mesh.color_attributes.render_color_index = mesh.color_attributes.active_color_index
+    index = list(mesh.color_attributes).index(attr)
+    mesh.color_attributes.active_color_index = index
+    mesh.color_attributes.render_color_index = index
 
 
 def set_point_attribute(mesh: bpy.types.Mesh, name: str, values: np.ndarray) -> None:
@@ -140,7 +158,8 @@ def color_material(name: str = "SSM Triangle Colours", attribute: str = "triangl
     if mat is not None:
         return mat
     mat = bpy.data.materials.new(name)
-    mat.use_nodes = True
+    if bpy.app.version < (5, 0, 0):
+        mat.use_nodes = True  # always on (and deprecated) from Blender 5.0
     nodes = mat.node_tree.nodes
     bsdf = next((n for n in nodes if n.type == "BSDF_PRINCIPLED"), None)
     attr = nodes.new("ShaderNodeAttribute")

@@ -31,6 +31,10 @@ for _var, _sub in (
     os.environ[_var] = os.path.join(_TMP_HOME, _sub)
     os.makedirs(os.environ[_var], exist_ok=True)
 
+# matplotlib's font cache survives between sessions (HOME above is new every run).
+os.environ.setdefault("MPLCONFIGDIR", str(ROOT / ".cache" / "matplotlib"))
+os.makedirs(os.environ["MPLCONFIGDIR"], exist_ok=True)
+
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
