@@ -339,3 +339,30 @@ def test_parallel_build_equals_serial(demo_population, tmp_path):
         assert (tmp_path / "serial" / "coated" / f"{name}.ply").is_file()
     assert (tmp_path / "serial" / "template.ply").is_file()
     assert [line.split(":")[0] for line in lines][:5] == ["import", "template", "coating", "model", "metrics"]
+
+
+# ---------------------------------------------------------------------------------------
+# the other subcommands
+
+
+def test_info_lists_labels_with_voxel_counts(demo_population, capsys):
+    inst = read_project(demo_population).instances[0]
+    labels = np.asarray(nib.load(inst.volume).dataobj)
+    assert main(["info", str(inst.volume)]) == 0
+    out = capsys.readouterr().out
+    assert "spacing: 0.8 x 0.8 x 1.5 mm" in out
+    for label in (demo.VERTEBRA_LABEL, demo.NEIGHBOUR_LABEL):
+        assert f"{label:6d}: {int((labels == label).sum()):9d} voxels" in out
+
+
+def test_template_command_reports_genus_one_for_a_demo_vertebra(demo_population, tmp_path, capsys):
+    from ssm_addon.meshutil import genus, read_ply
+
+    inst = read_project(demo_population).instances[0]
+    out = tmp_path / "template.ply"
+    assert main(["template", str(inst.volume), "--label", "20", "--spacing", "1.0", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    verts, faces, _ = read_ply(out)
+    assert f"vertices: {len(verts)}" in text and f"faces:    {len(faces)}" in text
+    assert "genus:    1" in text and genus(len(verts), faces) == 1
+    assert "Euler characteristic: 0" in text
