@@ -67,6 +67,8 @@ def _parser() -> argparse.ArgumentParser:
     _, schema = _template_param_fields()
     group = p.add_argument_group("template parameters (TemplateParams; lengths in mm)")
     for name, kind in schema.items():
+        if name == "spacing_mm":  # that is --spacing
+            continue
         flag = "--" + name.replace("_", "-")
         if kind == "bool":
             group.add_argument(flag, dest=f"tp_{name}", action=argparse.BooleanOptionalAction, default=None)
@@ -116,6 +118,8 @@ def cmd_template(args) -> int:
 
     TemplateParams, schema = _template_param_fields()
     options = {name: getattr(args, f"tp_{name}") for name in schema if getattr(args, f"tp_{name}", None) is not None}
+    if "spacing_mm" in schema:
+        options["spacing_mm"] = args.spacing
     try:
         params = TemplateParams(**options)
     except (TypeError, ValueError) as err:

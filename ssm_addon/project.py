@@ -112,6 +112,12 @@ def _kind_of_field(f: dataclasses.Field) -> str:
     return "any"
 
 
+def _with_spacing(cls, options: dict, spacing_mm: float) -> dict:
+    """``options`` plus ``spacing_mm`` when the parameter class has that field."""
+    names = {f.name for f in dataclasses.fields(cls)}
+    return {**options, "spacing_mm": float(spacing_mm)} if "spacing_mm" in names else dict(options)
+
+
 def params_schema(cls) -> dict[str, str]:
     """The TOML keys a parameter dataclass accepts, with their kind (from its fields)."""
     return {f.name: _kind_of_field(f) for f in dataclasses.fields(cls) if f.init}
@@ -193,8 +199,9 @@ class Project:
 
     @property
     def template_params(self):
-        """TemplateParams with the file's values (lengths in mm)."""
-        return _param_classes()[0](**self.template_options)
+        """TemplateParams with the file's values (lengths in mm; spacing_mm = the project's spacing)."""
+        cls = _param_classes()[0]
+        return cls(**_with_spacing(cls, self.template_options, self.spacing_mm))
 
     @property
     def coating_params(self):
@@ -379,7 +386,12 @@ def read_project(path) -> Project:
 
     # [template]
     t_opts, t_more = _params_table(doc.get("template", {}), t_schema, TEMPLATE_PROJECT_KEYS, "template", ctx)
-    spacing = t_more.get("spacing", 1.0)
+    if "spacing_mm" in t_opts and "spacing" in t_more and t_opts["spacing_mm"] != t_more["spacing"]:
+        raise ctx.error(
+            f"[template] spacing ({t_more['spacing']}) and spacing_mm ({t_opts['spacing_mm']}) are the same setting "
+            "and differ; give one", ctx.lines.key("template", "spacing_mm"))
+    spacing = t_more.get("spacing", t_opts.pop("spacing_mm", 1.0))
+    t_opts.pop("spacing_mm", None)
     if not spacing > 0:
         raise ctx.error(f"[template] spacing must be > 0 mm, got {spacing}", ctx.lines.key("template", "spacing"))
     frame = t_more.get("frame", "auto")
@@ -388,7 +400,7 @@ def read_project(path) -> Project:
             f"[template] frame must be one of {', '.join(FRAME_METHODS)}, got {frame!r}", ctx.lines.key("template", "frame")
         )
     try:
-        TemplateParams(**t_opts)
+        TemplateParams(**_with_spacing(TemplateParams, t_opts, spacing))
     except (TypeError, ValueError) as err:
         raise ctx.error(f"[template]: {err}", ctx.lines.table("template")) from None
 
