@@ -56,7 +56,29 @@ def edges(faces) -> np.ndarray:
     """
     f = _faces(faces)
     e = np.sort(f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    return np.unique(e, axis=0) if len(e) else np.zeros((0, 2), dtype=np.int64)
+    return _unique_rows(e) if len(e) else np.zeros((0, 2), dtype=np.int64)
+
+
+def _unique_rows(a: np.ndarray, return_inverse: bool = False, return_counts: bool = False):
+    """``np.unique(a, axis=0)`` for small non-negative int rows via a scalar key (much faster)."""
+    a = np.asarray(a, dtype=np.int64)
+    k = a.shape[1]
+    base = int(a.max()) + 1 if a.size else 1
+    if base ** k >= 2**62:
+        return np.unique(a, axis=0, return_inverse=return_inverse, return_counts=return_counts)
+    key = np.zeros(len(a), dtype=np.int64)
+    for j in range(k):
+        key = key * base + a[:, j]
+    res = np.unique(key, return_inverse=return_inverse, return_counts=return_counts)
+    if not (return_inverse or return_counts):
+        res = (res,)
+    uk = res[0]
+    rows = np.empty((len(uk), k), dtype=np.int64)
+    for j in range(k - 1, -1, -1):
+        rows[:, j] = uk % base
+        uk = uk // base
+    out = (rows, *res[1:])
+    return out if len(out) > 1 else out[0]
 
 
 def euler_characteristic(vertices_count: int, faces) -> int:
@@ -201,11 +223,11 @@ def is_closed_manifold(faces) -> ManifoldReport:
     if len(f) == 0:
         return ManifoldReport(empty, empty, np.zeros(0, np.int64), empty, 0, 0)
     degenerate = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
-    _, counts_f = np.unique(np.sort(f, axis=1), axis=0, return_counts=True)
+    _, counts_f = _unique_rows(np.sort(f, axis=1), return_counts=True)
     duplicates = int((counts_f[counts_f > 1]).sum())
     directed = f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
     und = np.sort(directed, axis=1)
-    uniq, inv, cnt = np.unique(und, axis=0, return_inverse=True, return_counts=True)
+    uniq, inv, cnt = _unique_rows(und, return_inverse=True, return_counts=True)
     inv = inv.ravel()
     boundary = uniq[cnt == 1]
     nonmanifold = uniq[cnt >= 3]

@@ -1,0 +1,279 @@
+"""Template generation (paper 3.1, 3.3): reduction invariants, cube corners, triangulation
+invariants on analytic shapes and on the nine real VerSe vertebrae."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.sparse.csgraph import dijkstra
+from scipy.spatial import cKDTree
+
+from ssm_addon import meshutil as mu
+from ssm_addon import surface
+from ssm_addon import template as T
+from ssm_addon.errors import Cancelled, InputError
+from ssm_addon.volume import ObjectFrame, ObjectVolume
+
+# --------------------------------------------------------------------------- shapes
+
+
+def _grid(n):
+    return np.mgrid[:n, :n, :n].astype(float) - (n - 1) / 2
+
+
+def sphere(radius=12.0):
+    g = _grid(int(2 * radius + 6))
+    return (g**2).sum(0) <= radius**2
+
+
+def cube(side=20):
+    m = np.zeros((side + 6,) * 3, bool)
+    m[3:-3, 3:-3, 3:-3] = True
+    return m
+
+
+def torus(R=14.0, r=6.0):
+    g = _grid(int(2 * (R + r) + 6))
+    x, y, z = g
+    return (np.hypot(x, y) - R) ** 2 + z**2 <= r**2
+
+
+def double_torus():
+    """A 44 x 26 x 10 slab with two round holes of radius 6: genus 2."""
+    m = np.zeros((52, 34, 18), bool)
+    m[4:48, 4:30, 4:14] = True
+    i, j = np.mgrid[:52, :34]
+    for ci in (15.5, 36.5):
+        m[(i - ci) ** 2 + (j - 16.5) ** 2 <= 36] = False
+    return m
+
+
+SHAPES = {"sphere": (sphere, 0), "cube": (cube, 0), "torus": (torus, 1), "genus2": (double_torus, 2)}
+
+
+def object_volume(mask, spacing=1.0):
+    centre = (np.array(mask.shape) - 1) / 2 * spacing
+    return ObjectVolume(mask, spacing, -centre, ObjectFrame(np.array([10.0, -5.0, 3.0]), np.eye(3)), source="synthetic")
+
+
+# --------------------------------------------------------------------------- reduction
+
+
+@pytest.mark.parametrize("shape", ["sphere", "cube", "torus"])
+@pytest.mark.parametrize("selection", ["curvature", "random"])
+def test_reduction_keeps_points_apart_and_covers_the_surface(shape, selection):
+    """d(a, b) >= r(a) for a selected before b; every voxel within d < r(s) of a selected s."""
+    geo = surface.surface_geometry(SHAPES[shape][0]())
+    r = T.reduction_radii(geo.c, 2.0, 6.0, 2.0, (2, 98))
+    sel = T.reduce_points(geo.graph, r, curvature=geo.c, selection=selection, seed=3)
+    assert len(np.unique(sel)) == len(sel) > 4
+    d = dijkstra(geo.graph, indices=sel)  # (K, M) surface distances
+    dd = d[:, sel]
+    earlier = np.triu(np.ones((len(sel), len(sel)), bool), 1)  # row selected before column
+    assert np.all(dd[earlier] >= np.repeat(r[sel][:, None], len(sel), 1)[earlier])
+    assert np.all((d < r[sel][:, None]).any(0))
+    if selection == "curvature":
+        assert geo.c[sel[0]] == geo.c.max()
+
+
+def test_constant_radius_gives_fewer_points_when_larger():
+    geo = surface.surface_geometry(sphere())
+    counts = [len(T.reduce_points(geo.graph, r, selection="random", seed=0)) for r in (3.0, 5.0, 8.0)]
+    assert counts[0] > counts[1] > counts[2]
+
+
+def test_eq1_radius_runs_from_r_max_at_flat_to_r_min_at_sharp():
+    c = np.linspace(0.0, 1.0, 11)
+    r = T.reduction_radii(c, 2.0, 6.0, 1.0)
+    assert r[0] == 6.0 and r[-1] == 2.0
+    np.testing.assert_allclose(r, 6.0 - 4.0 * c)  # p = 1: linear
+    r3 = T.reduction_radii(c, 2.0, 6.0, 3.0)
+    assert np.all(r3[1:-1] < r[1:-1])  # p > 1: more small radii
+
+
+def test_reduction_refuses_curvature_order_without_curvature():
+    geo = surface.surface_geometry(sphere(8))
+    with pytest.raises(InputError, match="curvature"):
+        T.reduce_points(geo.graph, 3.0, selection="curvature")
+
+
+# --------------------------------------------------------------------------- cube (paper fig. 4)
+
+CUBE_PARAMS = dict(r_min_mm=2.0, r_max_mm=7.0, p=2.0, normal_radius_mm=3.0, patch_radius_mm=4.0, topology_radius_mm=0.0)
+
+
+def _corner_hits(template, side=20):
+    lo, hi = 3, 3 + side - 1
+    corners = np.array([[a, b, c] for a in (lo, hi) for b in (lo, hi) for c in (lo, hi)], float)
+    ov = object_volume(cube(side))
+    pts = ov.object_to_voxel(template.points_object)
+    d, _ = cKDTree(pts).query(corners)
+    return int((d <= 1.5).sum())
+
+
+def _hausdorff_to_surface(template, mask):
+    """Max distance (voxels) from the marching-cubes surface of ``mask`` to the template mesh,
+    the template sampled densely by barycentric points."""
+    ov = object_volume(mask)
+    v = ov.object_to_voxel(template.points_object)
+    f = template.faces
+    n = 12
+    ab = np.array([(i, j) for i in range(n + 1) for j in range(n + 1 - i)], float) / n
+    w = np.column_stack([1 - ab.sum(1), ab])
+    samples = np.einsum("sk,fkd->fsd", w, v[f]).reshape(-1, 3)
+    mv, _ = T.surface_mesh(mask)
+    d, _ = cKDTree(samples).query(mv)
+    return d.max()
+
+
+def test_curvature_guided_template_has_a_vertex_at_each_cube_corner_random_does_not():
+    ov = object_volume(cube())
+    tc = T.build_template(ov, T.TemplateParams(**CUBE_PARAMS, selection="curvature", radius="curvature"))
+    tr = T.build_template(ov, T.TemplateParams(**CUBE_PARAMS, selection="random", radius="constant", seed=1))
+    assert _corner_hits(tc) == 8
+    assert _corner_hits(tr) < 8
+
+
+def test_curvature_guided_template_needs_fewer_vertices_for_the_same_surface_distance():
+    mask = cube()
+    ov = object_volume(mask)
+    tc = T.build_template(ov, T.TemplateParams(**CUBE_PARAMS, selection="curvature", radius="curvature"))
+    h_c = _hausdorff_to_surface(tc, mask)
+    reached = None
+    for r in (7.0, 6.0, 5.0, 4.0, 3.0, 2.5, 2.0):
+        params = dict(CUBE_PARAMS, r_min_mm=r, r_max_mm=r)
+        tr = T.build_template(ov, T.TemplateParams(**params, selection="random", radius="constant", seed=1))
+        if _hausdorff_to_surface(tr, mask) <= h_c:
+            reached = len(tr.points_object)
+            break
+    assert reached is None or reached > len(tc.points_object)
+    if reached is None:  # even the densest random template stays farther: it has more vertices anyway
+        assert len(tr.points_object) > len(tc.points_object)
+
+
+# --------------------------------------------------------------------------- triangulation
+
+
+def _check_template(template, ov, genus):
+    f, n = template.faces, len(template.points_object)
+    ncomp, _ = mu.connected_components(f, n)
+    assert ncomp == 1
+    rep = mu.is_closed_manifold(f)
+    assert rep.ok, rep.summary()
+    assert mu.genus(n, f) == genus
+    vol = mu.signed_volume(template.points_object, f)
+    assert vol > 0
+    assert abs(vol / ov.volume_mm3 - 1.0) < 0.08
+    assert np.all(np.isfinite(template.curvature)) and np.all(template.curvature >= 0)
+
+
+@pytest.mark.parametrize("shape", list(SHAPES))
+def test_template_of_analytic_shape_is_one_closed_outward_manifold_of_its_genus(shape):
+    make, genus = SHAPES[shape]
+    ov = object_volume(make())
+    _check_template(T.build_template(ov, T.TemplateParams(r_min_mm=2.0, r_max_mm=5.0)), ov, genus)
+
+
+def test_template_at_half_mm_spacing_keeps_genus_and_scales_to_mm():
+    ov = object_volume(torus(16.0, 7.0), spacing=0.5)  # a torus of R = 8 mm, r = 3.5 mm
+    t = T.build_template(ov, T.TemplateParams(r_min_mm=1.0, r_max_mm=2.5, topology_radius_mm=1.0))
+    _check_template(t, ov, 1)
+    radial = np.hypot(t.points_object[:, 0], t.points_object[:, 1])
+    assert radial.max() < 8.0 + 3.5 + 0.5 and radial.min() > 8.0 - 3.5 - 0.5
+
+
+def test_seeded_runs_reproduce_the_same_template_and_other_seeds_differ():
+    ov = object_volume(torus())
+    p = T.TemplateParams(selection="random", seed=7, r_min_mm=2.0, r_max_mm=5.0)
+    a, b = T.build_template(ov, p), T.build_template(ov, p)
+    np.testing.assert_array_equal(a.points_object, b.points_object)
+    np.testing.assert_array_equal(a.faces, b.faces)
+    c = T.build_template(ov, T.TemplateParams(selection="random", seed=8, r_min_mm=2.0, r_max_mm=5.0))
+    assert len(c.points_object) != len(a.points_object) or not np.array_equal(c.points_object, a.points_object)
+
+
+def test_triangulation_repairs_a_voronoi_region_that_is_not_a_disk():
+    """Few seeds on a torus: regions wrap around the tube; inserted seeds make every region a disk."""
+    mask = torus()
+    verts, faces = T.surface_mesh(mask)
+    pts = verts[[0, len(verts) // 2, len(verts) // 4, 3 * len(verts) // 4]]
+    tri = T.triangulate(mask, pts)
+    assert tri.refinements > 0 and len(tri.seeds) > 4
+    assert mu.is_closed_manifold(tri.faces).ok
+    assert mu.genus(len(tri.seeds), tri.faces) == 1 == tri.genus
+
+
+def test_clean_topology_fills_cavities_and_small_tunnels_but_keeps_large_holes():
+    m = sphere(12.0)
+    c = (np.array(m.shape) - 1) / 2
+    m[tuple(c.astype(int) + [0, 0, 0])] = False  # a one-voxel cavity
+    m[int(c[0]) : int(c[0]) + 1, int(c[1]) : int(c[1]) + 1, :] = False  # a 1-voxel tunnel through
+    v, f = T.surface_mesh(m)
+    assert mu.genus(len(v), f) != 0 or mu.connected_components(f, len(v))[0] > 1
+    cleaned = T.clean_topology(m, 3.0)
+    v, f = T.surface_mesh(cleaned)
+    assert mu.connected_components(f, len(v))[0] == 1 and mu.genus(len(v), f) == 0
+    assert abs(cleaned.sum() / sphere(12.0).sum() - 1) < 0.02
+    tor = torus()
+    v, f = T.surface_mesh(T.clean_topology(tor, 3.0))
+    assert mu.genus(len(v), f) == 1
+
+
+def test_build_template_reports_progress_and_can_be_cancelled():
+    ov = object_volume(sphere(10.0))
+    messages = []
+    T.build_template(ov, progress=lambda f, m: messages.append((f, m)))
+    assert messages[0][0] == 0.0 and messages[-1][0] == 1.0
+    assert any("reduction" in m for _, m in messages) and any("triangulat" in m for _, m in messages)
+    with pytest.raises(Cancelled):
+        T.build_template(ov, cancelled=lambda: True)
+
+
+def test_params_reject_bad_values_naming_the_parameter():
+    with pytest.raises(InputError, match="r_min_mm"):
+        T.TemplateParams(r_min_mm=-1.0)
+    with pytest.raises(InputError, match="selection"):
+        T.TemplateParams(selection="best")
+    with pytest.raises(InputError, match="exceeds"):
+        T.TemplateParams(r_min_mm=5.0, r_max_mm=2.0)
+
+
+def test_save_and_load_template_round_trip(tmp_path):
+    ov = object_volume(sphere(8.0))
+    t = T.build_template(ov, T.TemplateParams(r_min_mm=2.0, r_max_mm=4.0))
+    path = T.save_template(tmp_path / "t.npz", t)
+    u = T.load_template(path)
+    np.testing.assert_array_equal(u.points_object, t.points_object)
+    np.testing.assert_array_equal(u.faces, t.faces)
+    np.testing.assert_allclose(u.points_world, t.points_world)
+    assert u.params["r_min_mm"] == 2.0
+    with np.load(path, allow_pickle=False) as z:
+        assert set(z.files) >= {"points_object", "faces", "curvature", "params_json"}
+
+
+# --------------------------------------------------------------------------- VerSe
+
+
+@pytest.fixture(scope="module")
+def verse_objects(verse_dir):
+    from conftest import VERSE_FILE, VERSE_LABELS
+
+    from ssm_addon import volume
+
+    lm = volume.read_label_map(VERSE_FILE)
+    out = {}
+    for name, label in VERSE_LABELS.items():
+        vol = volume.select_label(lm, label)
+        out[name] = volume.resample(vol, volume.object_frame(vol), 1.0)
+    return out
+
+
+@pytest.mark.parametrize("name", ["T9", "T10", "T11", "T12", "L1", "L2", "L3", "L4", "L5"])
+def test_template_of_verse_vertebra_is_closed_manifold_of_genus_one(verse_objects, name):
+    ov = verse_objects[name]
+    t = T.build_template(ov)
+    _check_template(t, ov, 1)
+    assert 300 < len(t.points_object) < 1000
+    assert len(t.faces) == 2 * len(t.points_object)  # genus 1: F = 2 V
+    if name == "L1":  # paper scale: about 600 points, 1200 triangles
+        assert 500 < len(t.points_object) < 750
