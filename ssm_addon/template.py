@@ -55,6 +55,7 @@ __all__ = [
     "build_template",
     "clean_topology",
     "load_template",
+    "object_volume_at_spacing",
     "reduce_points",
     "reduction_radii",
     "save_template",
@@ -626,6 +627,28 @@ def triangulate(
 
 
 # --------------------------------------------------------------------------- build
+def object_volume_at_spacing(object_volume: ObjectVolume, spacing_mm: float) -> ObjectVolume:
+    """The object volume on another isotropic grid of the same object frame.
+
+    Linear interpolation of the mask and threshold 0.5 (as in paper 2's resampling),
+    one background voxel padded on every side. Returns the input unchanged when the
+    spacing already matches (to 1e-9 mm).
+    """
+    ov = object_volume
+    h, h2 = float(ov.spacing_mm), float(spacing_mm)
+    if not h2 > 0:
+        raise InputError(f"{ov.source or 'object volume'}: spacing must be > 0 mm, got {spacing_mm!r}")
+    if abs(h - h2) < 1e-9:
+        return ov
+    shape = np.asarray(ov.mask.shape)
+    n2 = np.floor((shape - 1) * h / h2).astype(int) + 1
+    axes = [np.arange(n) * h2 / h for n in n2]
+    coords = np.meshgrid(*axes, indexing="ij", sparse=False)
+    m = ndi.map_coordinates(ov.mask.astype(np.float32), coords, order=1, mode="constant", cval=0.0) > 0.5
+    m = np.pad(m, 1)
+    return ObjectVolume(m, h2, np.asarray(ov.origin_object, float) - h2, ov.frame, ov.source)
+
+
 def build_template(object_volume: ObjectVolume, params: TemplateParams | None = None, progress=None,
                    cancelled=None) -> Template:
     """Build the template of paper 3 from one object volume.
