@@ -10,8 +10,9 @@ Pipeline of :func:`build_template` on an :class:`~ssm_addon.volume.ObjectVolume`
    0.75 × r_min = 3 mm) fills tunnels and holes narrower than about the point spacing, an
    *opening* with a ball of a third of that radius removes thin bridges (handles)
    and spurs the closing may have left, the largest 6-connected component is kept and
-   cavities are filled again. Ball morphology is done exactly through Euclidean
-   distance transforms (``edt(~m) <= r`` is the dilation by a ball of radius r).
+   cavities are filled again. Ball morphology is exact: the dilation by a ball of
+   radius r is the set where the squared distance to the mask is <= r², computed by
+   separable truncated minimisation.
 2. **Surface geometry** of the cleaned mask (:mod:`ssm_addon.surface`, paper 3.1–3.2):
    surface voxels, the 26-neighbour graph with Manhattan step lengths, normals and the
    curvature c = sqrt(k1² + k2²).
@@ -184,11 +185,35 @@ class Template:
 
 # --------------------------------------------------------------------------- topology
 def _ball_dilate(mask: np.ndarray, r: float) -> np.ndarray:
-    return ndi.distance_transform_edt(~mask) <= r
+    """Dilation by the ball {|d| <= r} (voxels), exact.
+
+    The squared Euclidean distance to the mask, truncated above r², computed separably:
+    min over (dx, dy, dz) of dx² + dy² + dz² is three nested 1D minimisations over offsets
+    |d| <= r (2 r shifted minima per axis, uint16). Much faster than a full distance
+    transform for the small radii used here.
+    """
+    rr = int(np.floor(r))
+    if rr <= 0:
+        return mask.copy()
+    inf = 3 * rr * rr + 1
+    if inf + rr * rr >= 2**16:
+        return ndi.distance_transform_edt(~mask) <= r
+    g = np.where(mask, 0, inf).astype(np.uint16)
+    for axis in range(3):
+        src = np.moveaxis(g, axis, 0)
+        out = src.copy()
+        for d in range(1, rr + 1):
+            d2 = np.uint16(d * d)
+            np.minimum(out[d:], src[:-d] + d2, out=out[d:])
+            np.minimum(out[:-d], src[d:] + d2, out=out[:-d])
+        np.minimum(out, np.uint16(inf), out=out)
+        g = np.moveaxis(out, 0, axis)
+    return g <= r * r
 
 
 def _ball_erode(mask: np.ndarray, r: float) -> np.ndarray:
-    return ndi.distance_transform_edt(mask) > r
+    """Erosion by the ball {|d| <= r} (voxels): voxels whose ball lies inside the mask."""
+    return ~_ball_dilate(~mask, r)
 
 
 def _fill_cavities(mask: np.ndarray) -> np.ndarray:
@@ -219,8 +244,7 @@ def clean_topology(mask: np.ndarray, radius_vox: float, opening_radius_vox: floa
 
     1. fill internal cavities (background components not connected to the border,
        ``binary_fill_holes``);
-    2. closing by a ball of radius ``radius_vox`` (exact, via Euclidean distance
-       transforms): fills tunnels and perforations narrower than about 2 r;
+    2. closing by a ball of radius ``radius_vox`` (exact ball morphology): fills tunnels and perforations narrower than about 2 r;
     3. opening by a ball of radius ``opening_radius_vox`` (default r / 3): removes
        bridges and spurs thinner than about 2 r / 3 (e.g. handles the closing made
        between close parts) without perforating plates thicker than that;
