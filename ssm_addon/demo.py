@@ -28,21 +28,25 @@ from .landmarks import LandmarkSet, write_landmarks
 VERTEBRA_LABEL = 20
 NEIGHBOUR_LABEL = 21
 
+#: Overall size: 1.2 gives a lumbar-sized vertebra (body about 48 mm wide, 31 mm high)
+#: whose default template has about the paper's 600 points at 1 mm.
+SIZE = 1.2
+
 #: Mean and standard deviation (mm) of the varying shape parameters (the known modes).
 MODES = {
-    "body_height": (26.0, 2.0),
-    "body_radius": (20.0, 1.5),
-    "spinous_length": (24.0, 3.0),
-    "transverse_length": (20.0, 2.5),
+    "body_height": (26.0 * SIZE, 2.0 * SIZE),
+    "body_radius": (20.0 * SIZE, 1.5 * SIZE),
+    "spinous_length": (24.0 * SIZE, 3.0 * SIZE),
+    "transverse_length": (20.0 * SIZE, 2.5 * SIZE),
 }
 
 # Fixed geometry (mm).
-RING_RADIUS = 13.0  # torus major radius (foramen centre to arch tube centre)
-RING_TUBE = 4.5  # torus minor radius (arch thickness / 2)
-SPINOUS_RADIUS = 4.0
-TRANSVERSE_RADIUS = 3.5
-BODY_GAP = 3.0  # body's posterior wall this far anterior of the foramen's anterior wall
-SMOOTH_MM = 1.5  # smooth-minimum width
+RING_RADIUS = 13.0 * SIZE  # torus major radius (foramen centre to arch tube centre)
+RING_TUBE = 4.5 * SIZE  # torus minor radius (arch thickness / 2)
+SPINOUS_RADIUS = 4.0 * SIZE
+TRANSVERSE_RADIUS = 3.5 * SIZE
+BODY_GAP = 3.0 * SIZE  # body's posterior wall this far anterior of the foramen's anterior wall
+SMOOTH_MM = 1.5 * SIZE  # smooth-minimum width
 
 LANDMARK_FORMATS = (".fcsv", ".mrk.json", ".csv", ".json")
 
@@ -64,8 +68,9 @@ class ShapeParams:
     def segments(self):
         """Spinous and transverse process axes as (start, end, radius) in canonical mm."""
         ls, lt = self.spinous_length, self.transverse_length
-        sp = (np.array([0.0, -(RING_RADIUS + 2.0), 0.0]), np.array([0.0, -(RING_RADIUS + 2.0 + ls), -0.35 * ls]))
-        tr = (np.array([RING_RADIUS + 1.0, -2.0, 0.0]), np.array([RING_RADIUS + 1.0 + lt, -6.0, 2.0]))
+        a, b = 1.0 * SIZE, 2.0 * SIZE
+        sp = (np.array([0.0, -(RING_RADIUS + b), 0.0]), np.array([0.0, -(RING_RADIUS + b + ls), -0.35 * ls]))
+        tr = (np.array([RING_RADIUS + a, -b, 0.0]), np.array([RING_RADIUS + a + lt, -6.0 * SIZE, b]))
         tl = (tr[0] * [-1, 1, 1], tr[1] * [-1, 1, 1])
         return [(*sp, SPINOUS_RADIUS), (*tr, TRANSVERSE_RADIUS), (*tl, TRANSVERSE_RADIUS)]
 
@@ -100,9 +105,9 @@ def vertebra_sdf(points: np.ndarray, shape: ShapeParams) -> np.ndarray:
 
 
 def neighbour_sdf(points: np.ndarray, shape: ShapeParams) -> np.ndarray:
-    """The body of the next vertebra down (a cylinder below a 6 mm disc), canonical mm."""
+    """The body of the next vertebra down (a cylinder below a 7 mm disc), canonical mm."""
     x, y, z = np.asarray(points).T
-    centre = (0.0, shape.body_centre_y, -shape.body_height - 6.0)
+    centre = (0.0, shape.body_centre_y, -shape.body_height - 6.0 * SIZE)
     return _cylinder_z(x, y, z, centre, shape.body_radius, shape.body_height / 2)
 
 
@@ -127,6 +132,15 @@ def landmarks_canonical(shape: ShapeParams) -> dict[str, np.ndarray]:
         u = (b - a) / np.linalg.norm(b - a)
         out[name] = b + r * u
     return {k: np.asarray(v, float) for k, v in out.items()}
+
+
+def canonical_box(shape: ShapeParams, margin_mm: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) canonical mm corners of a box holding the vertebra with a margin."""
+    lo = np.array([-(RING_RADIUS + SIZE + shape.transverse_length + TRANSVERSE_RADIUS),
+                   -(RING_RADIUS + 2 * SIZE + shape.spinous_length + SPINOUS_RADIUS),
+                   min(-shape.body_height / 2, -0.35 * shape.spinous_length - SPINOUS_RADIUS)])
+    hi = np.array([-lo[0], shape.body_centre_y + shape.body_radius, shape.body_height / 2])
+    return lo - margin_mm, hi + margin_mm
 
 
 def _rotation(rng: np.random.Generator, max_deg: float) -> np.ndarray:
@@ -237,9 +251,8 @@ def make_demo_population(
         rot = _rotation(rng, 10.0)
         shift = rng.uniform(-15.0, 15.0, size=3) + [0.0, 0.0, -40.0 * i]
         # Canonical bounding box (mm) with a margin, posed into world.
-        lo = np.array([-(RING_RADIUS + shape.transverse_length + 8), -(RING_RADIUS + shape.spinous_length + 10),
-                       -shape.body_height - 4])
-        hi = np.array([-lo[0], shape.body_centre_y + shape.body_radius + 4, shape.body_height / 2 + 6])
+        lo, hi = canonical_box(shape, margin_mm=4.0)
+        lo[2] = -shape.body_height - 4.0  # include part of the neighbour below
         corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
         affine, dims = _grid_affine(corners @ rot.T + shift, spacing, direction)
         to_canon = np.linalg.inv(pose_matrix(rot, shift)) @ affine

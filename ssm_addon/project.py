@@ -865,7 +865,7 @@ def build(
         report(progress, 0.9, "metrics: compactness, generalization, specificity")
         t0 = time.perf_counter()
         metrics = met.evaluate(model, n_samples=mo["specificity_samples"], seed=mo["seed"], max_loo=mo["max_loo"],
-                               progress=stage("metrics", 0.9, 0.95), cancelled=cancelled)
+                               cancelled=cancelled)
         timings["metrics"] = time.perf_counter() - t0
         say(f"metrics: compactness, generalization, specificity in {timings['metrics']:.2f} s")
 
@@ -903,7 +903,14 @@ def build(
         timings["total"] = time.perf_counter() - t_total
         extra["timings_s"] = dict(timings)
         extra["peak_memory"] = peak_memory_mb()
+        t1 = time.perf_counter()
         written = met.write_outputs(model, tmp, metrics, per_instance, extra=extra, plots=True)
+        timings["write"] += time.perf_counter() - t1
+        timings["total"] = time.perf_counter() - t_total
+        doc = json.loads((tmp / "report.json").read_text())  # the final figures, incl. writing the report
+        doc["timings_s"] = dict(timings)
+        doc["peak_memory"] = peak_memory_mb()
+        (tmp / "report.json").write_text(json.dumps(doc, indent=1))
         if not opts["statismo"]:
             Path(written.pop("statismo")).unlink()
         for key, value in written.items():

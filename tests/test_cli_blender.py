@@ -25,7 +25,7 @@ ARRAYS = ("mean", "faces", "modes", "variances", "instance_points", "instance_po
 def small_demo(tmp_path_factory):
     """Five demo vertebrae with a coarse, short build (the equality of the two routes is the point)."""
     path = demo.make_demo_population(tmp_path_factory.mktemp("demo_blender"), n=5, seed=7)
-    path.write_text(path.read_text().replace("spacing = 1.0", "spacing = 1.5")
+    path.write_text(path.read_text().replace("spacing = 1.0", "spacing = 1.0\nr_min_mm = 4.0\nr_max_mm = 8.0")
                     .replace("[coating]", "[coating]\nmax_iterations = 60"))
     return path
 

@@ -122,9 +122,8 @@ def test_unknown_table_suggests_closest(files):
 
 
 def test_template_keys_follow_template_params(files):
-    from ssm_addon.template import TemplateParams
-
     from ssm_addon.project import params_schema
+    from ssm_addon.template import TemplateParams
 
     schema = params_schema(TemplateParams)
     key = next(iter(schema))
@@ -254,14 +253,35 @@ def demo_surfaces(demo_population):
     return out
 
 
+def _euler(mask: np.ndarray) -> int:
+    from skimage.measure import marching_cubes
+
+    verts, faces, _, _ = marching_cubes(np.pad(mask, 1).astype(np.float32), 0.5)
+    e = np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1), axis=0)
+    return len(verts) - len(e) + len(faces)
+
+
 def test_demo_shapes_are_closed_genus_one_solids(demo_population, demo_surfaces):
+    """The implicit shapes are genus 1 (sampled finely); the label maps are one oblique, anisotropic solid each."""
+    from scipy import ndimage
+
     proj = read_project(demo_population)
+    truth = json.loads((demo_population.parent / "truth.json").read_text())
     assert len(proj.instances) == 6 and len(proj.landmark_names) == 13
-    for inst in proj.instances:
-        chi, components, _, img = demo_surfaces[inst.name]
+    for inst, t in zip(proj.instances, truth["instances"]):
+        shape = demo.ShapeParams(**t["shape"])
+        h = 0.7
+        lo, hi = demo.canonical_box(shape)
+        dims = tuple(int(d) for d in np.ceil((hi - lo) / h) + 1)
+        to_canon = np.diag([h, h, h, 1.0])
+        to_canon[:3, 3] = lo
+        fine = demo._rasterize(lambda q, s=shape: demo.vertebra_sdf(q, s), dims, to_canon)
+        assert not fine[0].any() and not fine[-1].any() and not fine[:, :, 0].any() and not fine[:, :, -1].any()
+        assert ndimage.label(fine)[1] == 1 and _euler(fine) == 0, inst.name  # genus (2 - chi) / 2 = 1
+        _, components, _, img = demo_surfaces[inst.name]
         assert np.allclose(img.header.get_zooms(), (0.8, 0.8, 1.5))
         assert not np.allclose(img.affine[:3, :3] / np.array([0.8, 0.8, 1.5]), np.diag([-1, -1, 1]))  # oblique
-        assert components == 1 and chi == 0, inst.name  # one closed surface of genus (2 - chi) / 2 = 1
+        assert components == 1, inst.name
         assert (np.asarray(img.dataobj) == demo.NEIGHBOUR_LABEL).any()
 
 
@@ -323,7 +343,7 @@ def test_cancelled_build_writes_nothing(demo_population, tmp_path):
 
 def test_parallel_build_equals_serial(demo_population, tmp_path):
     quick = demo_population.with_name("quick.toml")  # a coarser, shorter build: equality is the point here
-    quick.write_text(demo_population.read_text().replace("spacing = 1.0", "spacing = 1.5")
+    quick.write_text(demo_population.read_text().replace("spacing = 1.0", "spacing = 1.0\nr_min_mm = 4.0\nr_max_mm = 8.0")
                      .replace("[coating]", "[coating]\nmax_iterations = 60"))
     proj = read_project(quick)
     lines: list[str] = []
