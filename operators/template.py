@@ -69,8 +69,8 @@ class SSMTemplateSettings(bpy.types.PropertyGroup):
                                                description="Percentiles of c used as c min and c max in eq. (1)")
     seed: IntProperty(name="Seed", default=_D.seed, min=0)
     topology_auto: BoolProperty(name="Auto topology radius", default=True,
-                                description="Closing radius 0.75 x r min (fills tunnels below the point spacing)")
-    topology_value_mm: FloatProperty(name="Topology radius (mm)", default=3.0, min=0.0, soft_max=10.0,
+                                description="Closing radius = r min (fills tunnels below the point spacing)")
+    topology_value_mm: FloatProperty(name="Topology radius (mm)", default=4.0, min=0.0, soft_max=10.0,
                                      description="Closing radius of the topology cleaning (0: none)")
     max_refinements: IntProperty(name="Max refinements", default=_D.max_refinements, min=0, max=1000,
                                  description="Rounds of seed insertion allowed to reach the closed-ball property")
