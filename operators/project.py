@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 from pathlib import Path
@@ -30,9 +31,6 @@ from ..ssm_addon import volume as core_volume
 from ..ssm_addon.errors import InputError, SSMError
 from ..ssm_addon.meshutil import write_ply
 from . import bridge
-
-TEMPLATE_COLLECTION = "SSM Template"
-
 
 # ------------------------------------------------------------------ scene construction
 
@@ -83,17 +81,6 @@ def add_landmarks(context, instance_obj, landmark_set) -> None:
         set_landmark(context, instance_obj, name, p, order=i)
 
 
-def _mesh_with_colours(context, name, points, faces, collection, matrix_world, role, instance=None):
-    obj = bridge.new_mesh_object(context, name, points, faces, collection_name=collection, matrix_world=matrix_world)
-    bridge.set_face_colors(obj.data, bridge.triangle_index_colors(len(faces)))
-    obj.data.materials.clear()
-    obj.data.materials.append(bridge.color_material())
-    obj.ssm.role = role
-    if instance is not None:
-        obj.ssm.instance = instance
-    return obj
-
-
 def write_model_blend(result, path) -> str:
     """Write ``model.blend`` for a build result (an empty file plus the build's objects).
 
@@ -104,6 +91,7 @@ def write_model_blend(result, path) -> str:
     """
     from .coating import write_coated
     from .model import create_model_object
+    from .template import write_template_object
 
     _ensure_registered()
     bpy.ops.wm.read_homefile(use_empty=True)
@@ -117,12 +105,7 @@ def write_model_blend(result, path) -> str:
     names = list(result.project.names)
     ti = names.index(result.project.template_instance)
     template = result.template
-    frame_t = result.objects[ti].frame
-    tobj = _mesh_with_colours(context, "SSM Template", template.points_object, template.faces, TEMPLATE_COLLECTION,
-                              frame_t.matrix_world, "TEMPLATE", objs[names[ti]])
-    curvature = getattr(template, "curvature", None)
-    if curvature is not None and len(curvature) == len(template.points_object):
-        bridge.set_point_attribute(tobj.data, "curvature", np.asarray(curvature))
+    write_template_object(context, objs[names[ti]], template)
     for name, coating in zip(names, result.coatings):
         write_coated(context, objs[name], coating, np.asarray(template.faces))
     create_model_object(context, result.model, name="SSM Model")
@@ -186,6 +169,17 @@ def _scene_options(group, schema: dict) -> dict:
             continue
         out[key] = value
     return out
+
+
+def _template_options(group) -> dict:
+    """[template] options from ``Scene.ssm_template`` (TemplateParams fields, spacing apart)."""
+    if group is None:
+        return {}
+    from .template import params_from_settings
+
+    opts = dataclasses.asdict(params_from_settings(group))
+    opts.pop("spacing_mm", None)
+    return {k: v for k, v in opts.items() if v is not None}
 
 
 def _model_options(group) -> dict:
@@ -257,14 +251,12 @@ def project_from_scene(context, path) -> core.Project:
     if active is not None and active.ssm.role == "TEMPLATE" and active.ssm.instance is not None:
         active = active.ssm.instance
     template_instance = active.name if active is not None and active.name in {s.name for s in specs} else specs[0].name
-    TemplateParams, CoatingParams = core._param_classes()
     scene = context.scene
     t_group = getattr(scene, "ssm_template", None)
-    t_opts = _scene_options(t_group, core.params_schema(TemplateParams))
-    spacing = float(getattr(t_group, "spacing_mm", objs[0].ssm.spacing_mm)) if t_group is not None else float(
-        objs[0].ssm.spacing_mm
-    )
-    c_opts = _scene_options(getattr(scene, "ssm_coating", None), core.params_schema(CoatingParams))
+    spacing = float(t_group.spacing_mm) if t_group is not None else float(objs[0].ssm.spacing_mm)
+    t_opts = _template_options(t_group)
+    c_group = getattr(scene, "ssm_coating", None)
+    c_opts = {k: v for k, v in dataclasses.asdict(c_group.params()).items() if v is not None} if c_group else {}
     m_opts = {**core.MODEL_DEFAULTS, **_model_options(getattr(scene, "ssm_model", None))}
     method = objs[0].ssm.frame_method.lower()
     return core.Project(path=path, instances=tuple(specs), template_instance=template_instance, spacing_mm=spacing,
@@ -290,7 +282,10 @@ def load_project_into_scene(context, project: core.Project) -> list:
         add_landmarks(context, obj, spec.landmark_set)
         created.append(obj)
     scene = context.scene
-    _set_scene_options(getattr(scene, "ssm_template", None), {**project.template_options, "spacing_mm": project.spacing_mm})
+    t_opts = {**project.template_options, "spacing_mm": project.spacing_mm}
+    if t_opts.get("topology_radius_mm") is not None:
+        t_opts.update(topology_auto=False, topology_value_mm=t_opts.pop("topology_radius_mm"))
+    _set_scene_options(getattr(scene, "ssm_template", None), t_opts)
     _set_scene_options(getattr(scene, "ssm_coating", None), project.coating_options)
     m_opts = dict(project.model_options)
     m_opts["n_modes"] = m_opts.get("n_modes") or 0  # the panel's 0 means every mode

@@ -86,6 +86,10 @@ def test_open_and_save_project_round_trip(bpy_clean, small_demo, tmp_path):
     instances = sorted(o.name for o in bpy.data.objects if o.ssm.role == "INSTANCE")
     assert instances == sorted(project.names)
     assert bpy.context.view_layer.objects.active.name == project.template_instance
+    scene = bpy.context.scene
+    assert scene.ssm_template.r_min_mm == pytest.approx(4.0) and scene.ssm_template.r_max_mm == pytest.approx(8.0)
+    assert scene.ssm_coating.max_iterations == 60
+    scene.ssm_coating.k1 = 0.35
     empties = [o for o in bpy.data.objects if o.ssm.role == "LANDMARK"]
     assert len(empties) == len(project.instances) * len(project.landmark_names)
     first = project.instances[0]
@@ -98,6 +102,8 @@ def test_open_and_save_project_round_trip(bpy_clean, small_demo, tmp_path):
     by_name = {i.name: i for i in again.instances}
     assert set(by_name) == set(project.names)
     assert again.template_instance == project.template_instance
+    assert again.template_params.r_min_mm == pytest.approx(4.0) and again.spacing_mm == project.spacing_mm
+    assert again.coating_params.max_iterations == 60 and again.coating_params.k1 == pytest.approx(0.35)
     for inst in project.instances:
         copy = by_name[inst.name]
         assert copy.volume == inst.volume and copy.label == inst.label
