@@ -288,3 +288,42 @@ def test_landmarks_proposed_by_coating_without_landmarks(ellipsoid_pair):
     naive = np.linalg.norm(ellipsoid_landmarks(a) - truth, axis=1)
     print(f"proposed landmarks: error mean {err.mean():.3f} max {err.max():.3f} mm (unmoved: {naive.mean():.3f})")
     assert err.max() < 1.5 and err.mean() < naive.mean()
+
+
+def test_warped_rest_lengths_keep_correspondence_better_than_template_scaled(ellipsoid_pair):
+    """The default rest lengths ("warped") against the paper's scaled template lengths."""
+    a, b, _, ovb, template = ellipsoid_pair
+    truth = np.asarray(template.points_object) * b / a
+    errors = {}
+    for rest in C.REST_LENGTHS:
+        params = C.CoatingParams(rest_lengths=rest)
+        result = C.coat(template, ellipsoid_landmarks(a), ovb, ellipsoid_landmarks(a) * b / a, params)
+        errors[rest] = np.linalg.norm(result.points_object - truth, axis=1).mean()
+    print(f"rest lengths: correspondence error {errors}")
+    assert errors["warped"] < errors["template-scaled"]
+
+
+def test_verse_l1_template_coated_onto_l2_to_l5_and_t12(verse_dir):
+    """Real data: every coated vertex within one voxel; fewer folds than warp + projection."""
+    from conftest import VERSE_FILE, VERSE_LABELS
+
+    from ssm_addon import landmarks as L
+    from ssm_addon import volume as V
+
+    names = ["L1", "L2", "L3", "L4", "L5", "T12"]
+    obs = {k: V.load_object(VERSE_FILE, VERSE_LABELS[k], 1.0) for k in names}
+    lms = {
+        k: obs[k].frame.to_object(L.read_landmarks(verse_dir / "landmarks" / f"{k}.fcsv").points_world) for k in names
+    }
+    template = build_template(obs["L1"], TemplateParams())
+    faces = np.asarray(template.faces)
+    results = C.coat_all(template, lms["L1"], [obs[k] for k in names[1:]], [lms[k] for k in names[1:]], jobs=2,
+                         names=names[1:])  # fmt: skip
+    for k, r in zip(names[1:], results):
+        dm = C.DistanceMap.from_object_volume(obs[k])
+        paper = dm.project(C.landmark_warp(lms["L1"], lms[k])(template.points_object), 3)
+        folds_paper = int(C.folded_triangles(paper, faces, dm).sum())
+        print(f"{k}: {r.fit.mean_distance_mm:.3f}/{r.fit.max_distance_mm:.3f} mm, folds {r.fit.folded_after} of "
+              f"{len(faces)} (warp + projection: {folds_paper}), {r.fit.iterations} it, {r.fit.time_s:.1f} s")  # fmt: skip
+        assert r.fit.max_distance_mm < obs[k].spacing_mm
+        assert r.fit.folded_after < folds_paper
