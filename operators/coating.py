@@ -57,6 +57,18 @@ class SSMCoatingSettings(bpy.types.PropertyGroup):
     velocity_tol_mm: FloatProperty(name="Velocity tolerance", default=core.CoatingParams.velocity_tol_mm, min=0.0)
     fold_angle_deg: FloatProperty(name="Fold angle (°)", default=core.CoatingParams.fold_angle_deg, min=1.0, max=180.0)
     rest_lengths: EnumProperty(name="Rest lengths", items=REST_ITEMS, default=core.CoatingParams.rest_lengths)
+    use_registration: BoolProperty(
+        name="Surface registration",
+        default=True,
+        description="Smooth coarse-to-fine surface registration between warp and projection (off: the paper's scheme)",
+    )
+    registration_sigma_mm: FloatProperty(
+        name="Coarsest width (mm)", default=8.0, min=0.5, description="Widths used: this, half and a quarter of it"
+    )
+    regularization: FloatProperty(
+        name="Warp smoothing", default=0.0, min=0.0,
+        description="λ of the landmark warp (0: exact at the landmarks; ~1000 tolerates inconsistent landmarks)",
+    )  # fmt: skip
     selected_only: BoolProperty(name="Selected only", default=False, description="Coat only the selected instances")
 
     def params(self) -> core.CoatingParams:
@@ -74,6 +86,10 @@ class SSMCoatingSettings(bpy.types.PropertyGroup):
             velocity_tol_mm=self.velocity_tol_mm,
             fold_angle_deg=self.fold_angle_deg,
             rest_lengths=self.rest_lengths,
+            regularization=self.regularization,
+            registration_sigmas_mm=(
+                tuple(self.registration_sigma_mm / 2**i for i in range(3)) if self.use_registration else ()
+            ),
         )
 
 
@@ -280,6 +296,11 @@ class SSM_PT_coating(bpy.types.Panel):
             row = col.row(align=True)
             row.prop(s, "hardy_a")
             row.prop(s, "hardy_s_mm")
+        col.prop(s, "regularization")
+        col = layout.column(align=True)
+        col.prop(s, "use_registration")
+        if s.use_registration:
+            col.prop(s, "registration_sigma_mm")
         col = layout.column(align=True)
         col.prop(s, "rest_lengths")
         row = col.row(align=True)

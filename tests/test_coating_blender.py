@@ -64,11 +64,12 @@ def test_coat_template_creates_overlaying_coloured_meshes(bpy_clean, tmp_path):
         assert coated.ssm.role == "COATED" and coated.ssm.instance == obj
         assert len(coated.data.vertices) == len(tpl.data.vertices)
         np.testing.assert_array_equal(bridge.mesh_triangles(coated.data), bridge.mesh_triangles(tpl.data))
-        colours = coated.data.attributes["triangle_index"]  # FACE domain: not in color_attributes
-        assert colours.domain == "FACE"
-        rgba = np.empty(n_faces * 4, np.float32)
+        colours = coated.data.attributes["triangle_index"]
+        rgba = np.empty(len(colours.data) * 4, np.float32)
         colours.data.foreach_get("color", rgba)
-        np.testing.assert_allclose(rgba.reshape(-1, 4), bridge.triangle_index_colors(n_faces), atol=1e-6)
+        per_face = rgba.reshape(n_faces, -1, 4)  # FACE: one colour, CORNER: three per triangle
+        expected = bridge.triangle_index_colors(n_faces)[:, None, :]
+        np.testing.assert_allclose(per_face, np.broadcast_to(expected, per_face.shape), atol=1e-6)
         # the coated mesh overlays the instance: Blender-world vertices on the ellipsoid
         world = bridge.object_world_vertices(coated)
         r = np.sqrt((((world - CENTRES[k]) / AXES[k]) ** 2).sum(1))
@@ -104,4 +105,8 @@ def test_selected_only_and_missing_template(bpy_clean, tmp_path):
 def test_panel_registered(bpy_clean):
     bpy = bpy_clean
     assert hasattr(bpy.types, "SSM_PT_coating")
-    assert bpy.context.scene.ssm_coating.rest_lengths == "warped"
+    settings = bpy.context.scene.ssm_coating
+    assert settings.rest_lengths == "warped"
+    assert settings.params().registration_sigmas_mm == (8.0, 4.0, 2.0)
+    settings.use_registration = False
+    assert settings.params().registration_sigmas_mm == ()
