@@ -535,7 +535,7 @@ class CoatingParams:
     tangential_springs: bool = False
     k3: float = 0.0
     registration_sigmas_mm: tuple = (8.0, 4.0, 2.0)
-    registration_iterations: int = 10
+    registration_iterations: int = 5
     final_projection: bool = True
 
     def validate(self) -> None:
