@@ -49,6 +49,8 @@ __all__ = [
     "REST_LENGTHS",
     "ThinPlateSpline",
     "landmark_warp",
+    "warp_jacobian_det",
+    "fold_free_warp",
     "DistanceMap",
     "closest_points_on_triangles",
     "MeshLocation",
@@ -212,6 +214,42 @@ def landmark_warp(
         sol = sol + np.linalg.solve(a, rhs)
         tps = ThinPlateSpline(c, sol[:n], sol[n:], offset, kernel, float(hardy_a), s)
     return tps
+
+
+def warp_jacobian_det(tps: ThinPlateSpline, points: np.ndarray, step_mm: float = 1e-3) -> np.ndarray:
+    """(M,) determinant of the warp's Jacobian at points (central differences); <= 0: the warp folds space."""
+    p = np.asarray(points, float).reshape(-1, 3)
+    cols = [(tps(p + step_mm * e) - tps(p - step_mm * e)) / (2 * step_mm) for e in np.eye(3)]
+    return np.linalg.det(np.stack(cols, axis=2))
+
+
+def fold_free_warp(
+    source_points, target_points, points, kernel="biharmonic", hardy_a=0.5, hardy_s_mm=None, regularization=0.0,
+    max_steps: int = 12,
+):  # fmt: skip
+    """The landmark warp, smoothed just enough not to fold space at ``points``.
+
+    Inconsistent landmarks (e.g. extremal points that jump between anatomical parts)
+    make the interpolating warp fold the template (Jacobian determinant <= 0), and no
+    projection or relaxation untangles that. Starting from ``regularization``, λ is
+    raised (1, 4, 16, ... × the median landmark distance) until det J > 0 at every point.
+
+    Returns
+    -------
+    (tps, regularization used)
+    """
+    tps = landmark_warp(source_points, target_points, kernel, hardy_a, hardy_s_mm, regularization)
+    if np.all(warp_jacobian_det(tps, points) > 0):
+        return tps, float(regularization)
+    src = np.asarray(source_points, float)
+    scale = float(np.median(np.linalg.norm(src[:, None] - src[None], axis=2)))
+    lam = max(float(regularization), scale)
+    for _ in range(max_steps):
+        tps = landmark_warp(source_points, target_points, kernel, hardy_a, hardy_s_mm, lam)
+        if np.all(warp_jacobian_det(tps, points) > 0):
+            break
+        lam *= 4.0
+    return tps, lam
 
 
 # ---------------------------------------------------------------------------------------
@@ -516,6 +554,10 @@ class CoatingParams:
     registration_iterations : iterations per width.
     final_projection : project once more after the relaxation, so every vertex ends on
         the surface (vertices of folded triangles float while the surface force is off).
+    fold_smoothing : umbrella (Laplacian) force on the vertices of folded triangles,
+        whose surface force is switched off (paper 4.2), to untangle them.
+    fold_free_warp : raise the warp's regularization until it does not fold the
+        template (:func:`fold_free_warp`); the λ used is in the fit figures.
     """
 
     kernel: str = "biharmonic"
@@ -537,6 +579,8 @@ class CoatingParams:
     registration_sigmas_mm: tuple = (8.0, 4.0, 2.0)
     registration_iterations: int = 5
     final_projection: bool = True
+    fold_free_warp: bool = True
+    fold_smoothing: float = 1.0
 
     def validate(self) -> None:
         """Raise InputError for values that cannot work."""
@@ -589,6 +633,7 @@ class FitFigures:
     time_s: float = 0.0
     spacing_mm: float = 1.0
     converged: bool = True
+    warp_regularization: float = 0.0
 
     @property
     def max_landmark_residual_mm(self) -> float:
@@ -803,11 +848,12 @@ def relax(
         surface_on = np.ones(n, dtype=bool)
         if np.any(folded):
             surface_on[faces[folded].ravel()] = False
-        if params.k3 > 0:
+        k_smooth = params.k3 + params.fold_smoothing * ~surface_on
+        if np.any(k_smooth > 0):
             nsum = np.empty_like(p)
             for k in range(3):
                 nsum[:, k] = np.bincount(i0, p[i1, k], minlength=n) + np.bincount(i1, p[i0, k], minlength=n)
-            force += params.k3 * (nsum / deg[:, None] - p)
+            force += k_smooth[:, None] * (nsum / deg[:, None] - p)
         if params.tangential_springs:
             force -= np.einsum("ij,ij->i", force, nrm)[:, None] * nrm * surface_on[:, None]
         force += (params.k2 * -d * surface_on)[:, None] * nrm
@@ -942,7 +988,11 @@ def coat(
     t0 = time.perf_counter()
     report(progress, 0.0, "landmark warp")
     try:
-        tps = landmark_warp(src, dst, params.kernel, params.hardy_a, params.hardy_s_mm, params.regularization)
+        if params.fold_free_warp:
+            tps, lam = fold_free_warp(src, dst, pts, params.kernel, params.hardy_a, params.hardy_s_mm, params.regularization)
+        else:
+            tps = landmark_warp(src, dst, params.kernel, params.hardy_a, params.hardy_s_mm, params.regularization)
+            lam = params.regularization
     except InputError as err:
         raise InputError(f"{name or target.source or 'target'}: {err}") from None
     warped = tps(pts)
@@ -950,7 +1000,7 @@ def coat(
     coated, fit = _coat_arrays(
         pts, faces, warped, target, params, location, dst, sub_progress(progress, 0.05, 1.0), cancelled
     )
-    fit = FitFigures(**{**asdict(fit), "time_s": time.perf_counter() - t0})
+    fit = FitFigures(**{**asdict(fit), "time_s": time.perf_counter() - t0, "warp_regularization": float(lam)})
     return CoatingResult(coated, warped, fit, name)
 
 

@@ -327,3 +327,19 @@ def test_verse_l1_template_coated_onto_l2_to_l5_and_t12(verse_dir):
               f"{len(faces)} (warp + projection: {folds_paper}), {r.fit.iterations} it, {r.fit.time_s:.1f} s")  # fmt: skip
         assert r.fit.max_distance_mm < obs[k].spacing_mm
         assert r.fit.folded_after < folds_paper
+
+
+def test_fold_free_warp_smooths_inconsistent_landmarks_until_no_fold(ellipsoid_pair):
+    """An extremal landmark that jumps across the shape makes the exact warp fold space."""
+    a, _, _, _, template = ellipsoid_pair
+    src = ellipsoid_landmarks(a)
+    dst = src.copy()
+    dst[0] = [-5.0, 0.0, 0.0]  # "right" landmark pulled through the object
+    pts = np.asarray(template.points_object)
+    exact = C.landmark_warp(src, dst)
+    assert C.warp_jacobian_det(exact, pts).min() <= 0
+    tps, lam = C.fold_free_warp(src, dst, pts)
+    assert lam > 0 and C.warp_jacobian_det(tps, pts).min() > 0
+    # consistent landmarks keep the exact warp
+    tps, lam = C.fold_free_warp(src, src * 1.1, pts)
+    assert lam == 0 and np.abs(tps(src) - src * 1.1).max() < 1e-6
