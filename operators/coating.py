@@ -69,6 +69,14 @@ class SSMCoatingSettings(bpy.types.PropertyGroup):
         name="Warp smoothing", default=0.0, min=0.0,
         description="λ of the landmark warp (0: exact at the landmarks; ~1000 tolerates inconsistent landmarks)",
     )  # fmt: skip
+    fold_free_warp: BoolProperty(
+        name="Fold-free warp", default=True,
+        description="Smooth the warp just enough that inconsistent landmarks do not fold the template",
+    )  # fmt: skip
+    fold_smoothing: FloatProperty(
+        name="Fold smoothing", default=core.CoatingParams.fold_smoothing, min=0.0, soft_max=2.0,
+        description="Laplacian force on vertices of folded triangles (their surface force is off)",
+    )  # fmt: skip
     selected_only: BoolProperty(name="Selected only", default=False, description="Coat only the selected instances")
 
     def params(self) -> core.CoatingParams:
@@ -87,6 +95,8 @@ class SSMCoatingSettings(bpy.types.PropertyGroup):
             fold_angle_deg=self.fold_angle_deg,
             rest_lengths=self.rest_lengths,
             regularization=self.regularization,
+            fold_free_warp=self.fold_free_warp,
+            fold_smoothing=self.fold_smoothing,
             registration_sigmas_mm=(
                 tuple(self.registration_sigma_mm / 2**i for i in range(3)) if self.use_registration else ()
             ),
@@ -297,6 +307,7 @@ class SSM_PT_coating(bpy.types.Panel):
             row.prop(s, "hardy_a")
             row.prop(s, "hardy_s_mm")
         col.prop(s, "regularization")
+        col.prop(s, "fold_free_warp")
         col = layout.column(align=True)
         col.prop(s, "use_registration")
         if s.use_registration:
@@ -316,6 +327,7 @@ class SSM_PT_coating(bpy.types.Panel):
         row = col.row(align=True)
         row.prop(s, "velocity_tol_mm")
         row.prop(s, "fold_angle_deg")
+        col.prop(s, "fold_smoothing")
         layout.prop(s, "selected_only")
         layout.operator(SSM_OT_coat_template.bl_idname, icon="MOD_SHRINKWRAP")
         coated = coated_objects(context)
