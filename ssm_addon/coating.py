@@ -710,14 +710,19 @@ def _vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def _gaussian_smooth(points: np.ndarray, values: np.ndarray, weights: np.ndarray, sigma_mm: float, chunk=2048):
-    """Σ_j K_ij w_j u_j / Σ_j K_ij w_j with K = exp(-|p_i - p_j|² / 2σ²) (row chunks, O(N²))."""
+    """Σ_j K_ij w_j u_j / Σ_j K_ij w_j with K = exp(-|p_i - p_j|² / 2σ²) (row chunks, O(N²), float32 kernel)."""
     out = np.empty_like(values)
-    wv = np.hstack([values * weights[:, None], weights[:, None]])
-    sq = (points * points).sum(1)
+    wv = np.hstack([values * weights[:, None], weights[:, None]]).astype(np.float32)
+    p32 = points.astype(np.float32)
+    sq = (p32 * p32).sum(1)
+    scale = np.float32(-0.5 / sigma_mm**2)
     for s in range(0, len(points), chunk):
-        q = points[s : s + chunk]
-        d2 = np.maximum(sq[s : s + chunk, None] + sq[None, :] - 2.0 * q @ points.T, 0.0)
-        acc = np.exp(d2 * (-0.5 / sigma_mm**2)) @ wv
+        q = p32[s : s + chunk]
+        d2 = sq[s : s + chunk, None] + sq[None, :] - 2.0 * (q @ p32.T)
+        np.maximum(d2, 0.0, out=d2)
+        d2 *= scale
+        np.exp(d2, out=d2)
+        acc = (d2 @ wv).astype(np.float64)
         out[s : s + chunk] = acc[:, :3] / np.maximum(acc[:, 3:], 1e-12)
     return out
 

@@ -66,14 +66,18 @@ def geodesic_sphere(frequency: int):
     return verts, faces
 
 
-def measure(label, fn):
-    tracemalloc.start()
+def measure(label, fn, memory=True):
+    """Time one untraced run; then (``memory``) the peak of a second run under tracemalloc."""
     t = time.perf_counter()
     out = fn()
     el = time.perf_counter() - t
-    peak = tracemalloc.get_traced_memory()[1] / 2**20
-    tracemalloc.stop()
-    print(f"  {label:48s} {el:8.3f} s   peak {peak:7.1f} MiB", flush=True)
+    peak = ""
+    if memory:
+        tracemalloc.start()
+        fn()
+        peak = f"peak {tracemalloc.get_traced_memory()[1] / 2**20:7.1f} MiB"
+        tracemalloc.stop()
+    print(f"  {label:52s} {el:8.3f} s   {peak}", flush=True)
     return out, el
 
 
@@ -100,24 +104,31 @@ def run_cpd(source, target_points, max_iterations=150):
     return ty
 
 
-def bench_deformation():
+def bench_deformation(cpd_large=False):
     print("smooth random deformation (1 mm voxels)")
     for freq in (8, 22):
         template, target, lm_src, lm_dst, truth = deformation_case(freq)
         n = len(template.points_object)
         print(f" template {n} vertices, {len(template.faces)} triangles")
         dm, _ = measure("distance map", lambda: C.DistanceMap.from_object_volume(target))  # noqa: B023
-        res, t_coat = measure("coat (warp + projection + relaxation)",
+        res, t_coat = measure("coat (warp, registration, projection, relaxation)",
                               lambda: C.coat(template, lm_src, target, lm_dst))  # noqa: B023  # fmt: skip
         err = np.linalg.norm(res.points_object - truth, axis=1)
         wp = dm.project(res.warped_points_object, 3)
         err_wp = np.linalg.norm(wp - truth, axis=1)
+        paper, _ = measure("coat, paper scheme (no registration)", lambda: C.coat(  # noqa: B023
+            template, lm_src, target, lm_dst, C.CoatingParams(registration_sigmas_mm=())))  # noqa: B023  # fmt: skip
+        e_paper = np.linalg.norm(paper.points_object - truth, axis=1)
+        print(f"    paper scheme: corr. error mean {e_paper.mean():.3f} max {e_paper.max():.3f} mm")
         print(f"    coating: corr. error mean {err.mean():.3f} max {err.max():.3f} mm; warp+proj {err_wp.mean():.3f} / "
               f"{err_wp.max():.3f}; fit {res.fit.mean_distance_mm:.3f}/{res.fit.max_distance_mm:.3f} mm, "
               f"folds {res.fit.folded_before}->{res.fit.folded_after}, {res.fit.iterations} it")  # fmt: skip
         x = dm.surface_vertices
+        if n > 2000 and not cpd_large:
+            print("    CPD skipped for the large template (pycpd 2.0 is O(M^3) per iteration; --cpd-large runs 20 iterations)")
+            continue
         for start, label in ((template.points_object, "object frames"), (res.warped_points_object, "landmark warp")):
-            ty, t_cpd = measure(f"CPD from {label} ({len(x)} pts)", lambda: run_cpd(start, x))  # noqa: B023
+            ty, t_cpd = measure(f"CPD from {label} ({len(x)} pts)", lambda: run_cpd(start, x), memory=False)  # noqa: B023
             e = np.linalg.norm(ty - truth, axis=1)
             ed = dm.surface_distance(ty)
             print(f"    CPD ({label}): corr. error mean {e.mean():.3f} max {e.max():.3f} mm, surface dist mean "
@@ -162,8 +173,9 @@ def bench_verse():
 def main():
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--verse", action="store_true")
+    ap.add_argument("--cpd-large", action="store_true")
     args = ap.parse_args()
-    bench_deformation()
+    bench_deformation(args.cpd_large)
     bench_batch()
     if args.verse:
         bench_verse()
