@@ -1041,11 +1041,13 @@ def coat_all(
     progress: ProgressFn = None,
     cancelled: CancelledFn = None,
     names: list[str] | None = None,
+    start_method: str = "spawn",
 ) -> list[CoatingResult]:
     """Coat the template onto every target (paper 4), serially or across processes.
 
     Results are identical serial vs parallel (no random state; each instance is
-    computed by the same code). Processes (``jobs`` > 1, "spawn" context) are used
+    computed by the same code). Processes (``jobs`` > 1, ``start_method`` "spawn" or
+    "forkserver"; fork is avoided because the caller may hold threads) are used
     only outside Blender (inside Blender ``sys.executable`` is Blender itself), and
     only when there are at least two targets.
 
@@ -1075,7 +1077,9 @@ def coat_all(
         return results
     import multiprocessing
 
-    ctx = multiprocessing.get_context("spawn")
+    if start_method not in ("spawn", "forkserver"):
+        raise InputError(f"coating: start_method must be 'spawn' or 'forkserver', got {start_method!r}")
+    ctx = multiprocessing.get_context(start_method)
     arrays = CoatingTemplate(pts, faces)
     with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
         pending = {}

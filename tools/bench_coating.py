@@ -145,9 +145,13 @@ def bench_batch():
     targets = [ellipsoid_volume(x) for x in axes]
     lms = [ellipsoid_landmarks(a) * x / a for x in axes]
     serial, ts = measure("coat_all jobs=1", lambda: C.coat_all(template, ellipsoid_landmarks(a), targets, lms, jobs=1))
-    par, tp = measure("coat_all jobs=2 (spawn)", lambda: C.coat_all(template, ellipsoid_landmarks(a), targets, lms, jobs=2))
-    same = all(np.array_equal(s.points_object, p.points_object) for s, p in zip(serial, par))
-    print(f"    identical: {same}; per instance serial {ts / 4:.3f} s, parallel {tp / 4:.3f} s")
+    par, tp = measure("coat_all jobs=2 (spawn)", lambda: C.coat_all(template, ellipsoid_landmarks(a), targets, lms, jobs=2),
+                      memory=False)  # fmt: skip
+    fs, tf = measure("coat_all jobs=2 (forkserver)", lambda: C.coat_all(
+        template, ellipsoid_landmarks(a), targets, lms, jobs=2, start_method="forkserver"), memory=False)  # fmt: skip
+    same = all(np.array_equal(s.points_object, p.points_object) and np.array_equal(s.points_object, q.points_object)
+               for s, p, q in zip(serial, par, fs))  # fmt: skip
+    print(f"    identical: {same}; per instance serial {ts / 4:.3f} s, spawn {tp / 4:.3f} s, forkserver {tf / 4:.3f} s")
 
 
 def bench_verse():
