@@ -7,10 +7,10 @@ Long steps accept ``progress(fraction, message)`` with ``fraction`` in [0, 1] an
 
 from __future__ import annotations
 
-from typing import Callable, Optional
+from collections.abc import Callable
 
-ProgressFn = Optional[Callable[[float, str], None]]
-CancelledFn = Optional[Callable[[], bool]]
+ProgressFn = Callable[[float, str], None] | None
+CancelledFn = Callable[[], bool] | None
 
 
 def report(progress: ProgressFn, fraction: float, message: str) -> None:
