@@ -72,8 +72,12 @@ def test_build_model_from_coated_instances(built, population):
 
     np.testing.assert_allclose(bridge.get_point_attribute(obj.data, "variance"), model.point_variance, rtol=1e-5)
     assert model.params["fit"]["V03"]["rms_mm"] == pytest.approx(0.3)
-    colours = obj.data.attributes.get("triangle_index")
-    assert colours is not None and colours.domain == "FACE" and len(colours.data) == len(faces)
+    colours = obj.data.color_attributes.get("triangle_index")
+    assert colours is not None and colours.domain == "CORNER" and len(colours.data) == 3 * len(faces)
+    rgba = np.empty(len(colours.data) * 4, dtype=np.float32)
+    colours.data.foreach_get("color", rgba)
+    rgba = rgba.reshape(len(faces), 3, 4)
+    np.testing.assert_allclose(rgba, np.repeat(bridge.triangle_index_colors(len(faces))[:, None], 3, axis=1))
 
 
 def test_evaluated_mesh_at_mode_values_obeys_eq7(built):
