@@ -353,6 +353,117 @@ _PLY_TYPES = {
 }
 
 
+def _parse_ply(path: Path, raw: bytes) -> dict:
+    """Elements of a PLY file: {element: {property: values}} (ASCII or binary, either endian)."""
+    end = raw.find(b"end_header")
+    if not raw.startswith(b"ply") or end < 0:
+        raise InputError(f"{path}: not a PLY file (no 'ply' magic or 'end_header')")
+    body_start = raw.find(b"\n", end) + 1
+    fmt = None
+    elements: list[tuple[str, int, list]] = []
+    for line in raw[:end].decode("latin-1").splitlines():
+        words = line.split()
+        if not words:
+            continue
+        if words[0] == "format":
+            fmt = words[1]
+        elif words[0] == "element":
+            elements.append((words[1], int(words[2]), []))
+        elif words[0] == "property":
+            if words[1] == "list":
+                elements[-1][2].append((words[4], "list", _PLY_TYPES[words[2]], _PLY_TYPES[words[3]]))
+            else:
+                elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise InputError(f"{path}: unsupported PLY format {fmt!r}")
+    result: dict[str, dict[str, object]] = {}
+    if fmt == "ascii":
+        tokens = raw[body_start:].split()
+        pos = 0
+        for name, count, props in elements:
+            if all(len(p) == 2 for p in props):
+                n = count * len(props)
+                if pos + n > len(tokens):
+                    raise InputError(f"{path}: truncated PLY: element {name!r} incomplete")
+                arr = np.array(tokens[pos : pos + n], dtype=np.float64).reshape(count, len(props))
+                pos += n
+                result[name] = {p[0]: arr[:, i] for i, p in enumerate(props)}
+            else:
+                values = {p[0]: [] for p in props}
+                for _ in range(count):
+                    for p in props:
+                        if pos >= len(tokens):
+                            raise InputError(f"{path}: truncated PLY: element {name!r} incomplete")
+                        if len(p) == 2:
+                            values[p[0]].append(float(tokens[pos]))
+                            pos += 1
+                        else:
+                            k = int(tokens[pos])
+                            values[p[0]].append([int(t) for t in tokens[pos + 1 : pos + 1 + k]])
+                            pos += 1 + k
+                result[name] = values
+    else:
+        order = "<" if fmt == "binary_little_endian" else ">"
+        buf = memoryview(raw)
+        pos = body_start
+        for name, count, props in elements:
+            if all(len(p) == 2 for p in props):
+                dt = np.dtype([(p[0], order + p[1]) for p in props])
+                if pos + dt.itemsize * count > len(raw):
+                    raise InputError(f"{path}: truncated PLY: element {name!r} incomplete")
+                arr = np.frombuffer(buf, dtype=dt, count=count, offset=pos)
+                pos += dt.itemsize * count
+                result[name] = {p[0]: arr[p[0]] for p in props}
+                continue
+            # Fast path: every list has the length of the first one.
+            fields, first_len = [], None
+            probe = pos
+            for p in props:
+                if len(p) == 2:
+                    fields.append((p[0], order + p[1]))
+                    probe += np.dtype(p[1]).itemsize
+                else:
+                    if probe + np.dtype(p[2]).itemsize > len(raw):
+                        raise InputError(f"{path}: truncated PLY: element {name!r} incomplete")
+                    k = int(np.frombuffer(buf, dtype=order + p[2], count=1, offset=probe)[0])
+                    first_len = k if first_len is None else first_len
+                    fields.append((p[0] + "#n", order + p[2]))
+                    fields.append((p[0], order + p[3], (k,)))
+                    probe += np.dtype(p[2]).itemsize + k * np.dtype(p[3]).itemsize
+            dt = np.dtype(fields)
+            ok = pos + dt.itemsize * count <= len(raw)
+            if ok:
+                arr = np.frombuffer(buf, dtype=dt, count=count, offset=pos)
+                ok = all(np.all(arr[f[0]] == arr[f[0]][0]) for f in fields if f[0].endswith("#n")) if count else True
+                ok = ok and all(np.all(arr[f[0] + "#n"] == arr[f[0]].shape[1]) for f in fields if len(f) == 3)
+            if ok:
+                pos += dt.itemsize * count
+                result[name] = {f[0]: arr[f[0]] for f in fields if not f[0].endswith("#n")}
+                continue
+            values = {p[0]: [] for p in props}
+            for _ in range(count):
+                for p in props:
+                    if len(p) == 2:
+                        size = np.dtype(p[1]).itemsize
+                        if pos + size > len(raw):
+                            raise InputError(f"{path}: truncated PLY: element {name!r} incomplete")
+                        values[p[0]].append(float(np.frombuffer(buf, order + p[1], 1, pos)[0]))
+                        pos += size
+                    else:
+                        size = np.dtype(p[2]).itemsize
+                        if pos + size > len(raw):
+                            raise InputError(f"{path}: truncated PLY: element {name!r} incomplete")
+                        k = int(np.frombuffer(buf, order + p[2], 1, pos)[0])
+                        pos += size
+                        isize = np.dtype(p[3]).itemsize
+                        if pos + k * isize > len(raw):
+                            raise InputError(f"{path}: truncated PLY: element {name!r} incomplete")
+                        values[p[0]].append(np.frombuffer(buf, order + p[3], k, pos).tolist())
+                        pos += k * isize
+            result[name] = values
+    return result
+
+
 def read_ply(path) -> tuple[np.ndarray, np.ndarray, dict]:
     """Read a triangle mesh from PLY (ASCII or binary, little or big endian).
 
@@ -363,107 +474,47 @@ def read_ply(path) -> tuple[np.ndarray, np.ndarray, dict]:
         Polygons with more than three corners are fan-triangulated.
     vertex_scalars : dict of name -> (V,) float64 array
         Every other scalar vertex property.
+
+    Raises
+    ------
+    InputError
+        Unreadable, not PLY, unsupported format, truncated, or no vertex/face elements;
+        the message names the file.
     """
     path = Path(path)
     try:
-        data = path.read_bytes()
+        raw = path.read_bytes()
     except OSError as err:
         raise InputError(f"{path}: cannot read PLY file ({err})") from err
-    end = data.find(b"end_header")
-    if not data.startswith(b"ply") or end < 0:
-        raise InputError(f"{path}: not a PLY file (missing 'ply' magic or 'end_header')")
-    nl = data.find(b"\n", end)
-    header = data[:end].decode("ascii", "replace").splitlines()
-    body = data[nl + 1:]
-    fmt = None
-    elements: list[list] = []
-    for line in header:
-        tok = line.split()
-        if not tok:
-            continue
-        if tok[0] == "format":
-            fmt = tok[1]
-        elif tok[0] == "element":
-            elements.append([tok[1], int(tok[2]), []])
-        elif tok[0] == "property" and elements:
-            if tok[1] == "list":
-                elements[-1][2].append((tok[4], "list", _PLY_TYPES.get(tok[2]), _PLY_TYPES.get(tok[3])))
-            else:
-                elements[-1][2].append((tok[2], _PLY_TYPES.get(tok[1]), None, None))
-    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
-        raise InputError(f"{path}: unsupported PLY format {fmt!r}")
-    verts = np.zeros((0, 3))
-    faces = np.zeros((0, 3), dtype=np.int64)
-    scalars: dict[str, np.ndarray] = {}
-    if fmt == "ascii":
-        tokens = body.split()
-        pos = 0
-        for name, count, props in elements:
-            if all(p[1] != "list" for p in props):
-                k = len(props)
-                arr = np.array(tokens[pos:pos + count * k], dtype=float).reshape(count, k)
-                pos += count * k
-                cols = {p[0]: arr[:, i] for i, p in enumerate(props)}
-                if name == "vertex":
-                    verts, scalars = _vertex_cols(path, cols)
-            else:
-                polys = []
-                for _ in range(count):
-                    row = []
-                    for p in props:
-                        if p[1] == "list":
-                            n = int(tokens[pos])
-                            row = [int(t) for t in tokens[pos + 1:pos + 1 + n]]
-                            pos += 1 + n
-                        else:
-                            pos += 1
-                    polys.append(row)
-                if name == "face":
-                    faces = _fan(polys)
+    result = _parse_ply(path, raw)
+    vert = result.get("vertex")
+    face = result.get("face")
+    if vert is None or face is None or not all(c in vert for c in "xyz"):
+        raise InputError(f"{path}: PLY file needs 'vertex' (x, y, z) and 'face' elements")
+    vertices, scalars = _vertex_cols(path, vert)
+    key = "vertex_indices" if "vertex_indices" in face else ("vertex_index" if "vertex_index" in face else None)
+    if key is None:
+        raise InputError(f"{path}: PLY 'face' element has no vertex_indices list")
+    polys = face[key]
+    if isinstance(polys, np.ndarray) and polys.ndim == 2:
+        if polys.shape[1] == 3:
+            faces = polys.astype(np.int64)
+        else:
+            faces = _fan(polys.tolist())
     else:
-        end_char = "<" if fmt == "binary_little_endian" else ">"
-        pos = 0
-        for name, count, props in elements:
-            if all(p[1] != "list" for p in props):
-                dt = np.dtype([(p[0], end_char + p[1]) for p in props])
-                arr = np.frombuffer(body, dtype=dt, count=count, offset=pos)
-                pos += count * dt.itemsize
-                if name == "vertex":
-                    verts, scalars = _vertex_cols(path, {n: arr[n] for n in dt.names})
-                continue
-            list_props = [p for p in props if p[1] == "list"]
-            if len(props) == 1 and list_props:
-                _, _, ctype, itype = props[0]
-                cnt_dt = np.dtype(end_char + ctype)
-                idx_dt = np.dtype(end_char + itype)
-                # fast path: all triangles
-                first = np.frombuffer(body, dtype=cnt_dt, count=1, offset=pos)[0] if count else 3
-                rec = np.dtype([("n", cnt_dt), ("i", idx_dt, (int(first),))])
-                if count and pos + count * rec.itemsize <= len(body):
-                    arr = np.frombuffer(body, dtype=rec, count=count, offset=pos)
-                    if np.all(arr["n"] == first):
-                        pos += count * rec.itemsize
-                        if name == "face":
-                            faces = _fan(arr["i"].astype(np.int64))
-                        continue
-                polys = []
-                for _ in range(count):
-                    n = int(np.frombuffer(body, dtype=cnt_dt, count=1, offset=pos)[0])
-                    pos += cnt_dt.itemsize
-                    polys.append(np.frombuffer(body, dtype=idx_dt, count=n, offset=pos).astype(np.int64).tolist())
-                    pos += n * idx_dt.itemsize
-                if name == "face":
-                    faces = _fan(polys)
-            else:
-                raise InputError(f"{path}: element '{name}' mixes list and scalar properties (not supported)")
-    return verts, faces, scalars
+        faces = _fan([list(p) for p in polys])
+    return vertices, faces, scalars
 
 
 def _vertex_cols(path, cols: dict) -> tuple[np.ndarray, dict]:
     if not {"x", "y", "z"} <= set(cols):
         raise InputError(f"{path}: vertex element lacks x, y, z properties")
     v = np.column_stack([cols["x"], cols["y"], cols["z"]]).astype(np.float64)
-    rest = {k: np.asarray(c, dtype=np.float64) for k, c in cols.items() if k not in ("x", "y", "z")}
+    rest = {
+        k: np.asarray(c, dtype=np.float64)
+        for k, c in cols.items()
+        if k not in ("x", "y", "z") and np.ndim(c) == 1
+    }
     return v, rest
 
 

@@ -17,6 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError, check_cancelled
+from .meshutil import read_ply
+from .meshutil import signed_volume as mesh_signed_volume
 from .progress import report, sub_progress
 
 
@@ -730,143 +732,13 @@ def _read_stl(path: Path):
     return _merge_vertices(np.array(coords, dtype=np.float64))
 
 
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}  # fmt: skip
-
-
 def _fan(polys: list[list[int]]) -> np.ndarray:
     tris = [(p[0], p[i], p[i + 1]) for p in polys for i in range(1, len(p) - 1)]
     return np.array(tris, dtype=np.int64).reshape(-1, 3)
 
 
 def _read_ply(path: Path):
-    raw = path.read_bytes()
-    end = raw.find(b"end_header")
-    if not raw.startswith(b"ply") or end < 0:
-        raise InputError(f"{path}: not a PLY file (no 'ply' magic or 'end_header')")
-    body_start = raw.find(b"\n", end) + 1
-    fmt = None
-    elements: list[tuple[str, int, list]] = []
-    for line in raw[:end].decode("latin-1").splitlines():
-        words = line.split()
-        if not words:
-            continue
-        if words[0] == "format":
-            fmt = words[1]
-        elif words[0] == "element":
-            elements.append((words[1], int(words[2]), []))
-        elif words[0] == "property":
-            if words[1] == "list":
-                elements[-1][2].append((words[4], "list", _PLY_TYPES[words[2]], _PLY_TYPES[words[3]]))
-            else:
-                elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
-    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
-        raise InputError(f"{path}: unsupported PLY format {fmt!r}")
-    result: dict[str, dict[str, object]] = {}
-    if fmt == "ascii":
-        tokens = raw[body_start:].split()
-        pos = 0
-        for name, count, props in elements:
-            if all(len(p) == 2 for p in props):
-                n = count * len(props)
-                if pos + n > len(tokens):
-                    raise InputError(f"{path}: truncated PLY: element {name!r} incomplete")
-                arr = np.array(tokens[pos : pos + n], dtype=np.float64).reshape(count, len(props))
-                pos += n
-                result[name] = {p[0]: arr[:, i] for i, p in enumerate(props)}
-            else:
-                values = {p[0]: [] for p in props}
-                for _ in range(count):
-                    for p in props:
-                        if pos >= len(tokens):
-                            raise InputError(f"{path}: truncated PLY: element {name!r} incomplete")
-                        if len(p) == 2:
-                            values[p[0]].append(float(tokens[pos]))
-                            pos += 1
-                        else:
-                            k = int(tokens[pos])
-                            values[p[0]].append([int(t) for t in tokens[pos + 1 : pos + 1 + k]])
-                            pos += 1 + k
-                result[name] = values
-    else:
-        order = "<" if fmt == "binary_little_endian" else ">"
-        buf = memoryview(raw)
-        pos = body_start
-        for name, count, props in elements:
-            if all(len(p) == 2 for p in props):
-                dt = np.dtype([(p[0], order + p[1]) for p in props])
-                if pos + dt.itemsize * count > len(raw):
-                    raise InputError(f"{path}: truncated PLY: element {name!r} incomplete")
-                arr = np.frombuffer(buf, dtype=dt, count=count, offset=pos)
-                pos += dt.itemsize * count
-                result[name] = {p[0]: arr[p[0]] for p in props}
-                continue
-            # Fast path: every list has the length of the first one.
-            fields, first_len = [], None
-            probe = pos
-            for p in props:
-                if len(p) == 2:
-                    fields.append((p[0], order + p[1]))
-                    probe += np.dtype(p[1]).itemsize
-                else:
-                    if probe + np.dtype(p[2]).itemsize > len(raw):
-                        raise InputError(f"{path}: truncated PLY: element {name!r} incomplete")
-                    k = int(np.frombuffer(buf, dtype=order + p[2], count=1, offset=probe)[0])
-                    first_len = k if first_len is None else first_len
-                    fields.append((p[0] + "#n", order + p[2]))
-                    fields.append((p[0], order + p[3], (k,)))
-                    probe += np.dtype(p[2]).itemsize + k * np.dtype(p[3]).itemsize
-            dt = np.dtype(fields)
-            ok = pos + dt.itemsize * count <= len(raw)
-            if ok:
-                arr = np.frombuffer(buf, dtype=dt, count=count, offset=pos)
-                ok = all(np.all(arr[f[0]] == arr[f[0]][0]) for f in fields if f[0].endswith("#n")) if count else True
-                ok = ok and all(np.all(arr[f[0] + "#n"] == arr[f[0]].shape[1]) for f in fields if len(f) == 3)
-            if ok:
-                pos += dt.itemsize * count
-                result[name] = {f[0]: arr[f[0]] for f in fields if not f[0].endswith("#n")}
-                continue
-            values = {p[0]: [] for p in props}
-            for _ in range(count):
-                for p in props:
-                    if len(p) == 2:
-                        size = np.dtype(p[1]).itemsize
-                        if pos + size > len(raw):
-                            raise InputError(f"{path}: truncated PLY: element {name!r} incomplete")
-                        values[p[0]].append(float(np.frombuffer(buf, order + p[1], 1, pos)[0]))
-                        pos += size
-                    else:
-                        size = np.dtype(p[2]).itemsize
-                        if pos + size > len(raw):
-                            raise InputError(f"{path}: truncated PLY: element {name!r} incomplete")
-                        k = int(np.frombuffer(buf, order + p[2], 1, pos)[0])
-                        pos += size
-                        isize = np.dtype(p[3]).itemsize
-                        if pos + k * isize > len(raw):
-                            raise InputError(f"{path}: truncated PLY: element {name!r} incomplete")
-                        values[p[0]].append(np.frombuffer(buf, order + p[3], k, pos).tolist())
-                        pos += k * isize
-            result[name] = values
-    vert = result.get("vertex")
-    face = result.get("face")
-    if vert is None or face is None or not all(c in vert for c in "xyz"):
-        raise InputError(f"{path}: PLY file needs 'vertex' (x, y, z) and 'face' elements")
-    vertices = np.stack([np.asarray(vert[c], dtype=np.float64) for c in "xyz"], axis=1)
-    key = "vertex_indices" if "vertex_indices" in face else ("vertex_index" if "vertex_index" in face else None)
-    if key is None:
-        raise InputError(f"{path}: PLY 'face' element has no vertex_indices list")
-    polys = face[key]
-    if isinstance(polys, np.ndarray) and polys.ndim == 2:
-        if polys.shape[1] == 3:
-            faces = polys.astype(np.int64)
-        else:
-            faces = _fan(polys.tolist())
-    else:
-        faces = _fan([list(p) for p in polys])
+    vertices, faces, _ = read_ply(path)
     return vertices, faces
 
 
@@ -940,12 +812,6 @@ def mesh_edge_defects(faces: np.ndarray) -> tuple[int, int, int]:
     nonmanifold = int(np.count_nonzero(ucount > 2))
     flipped = int(np.count_nonzero(dcount > 1))
     return boundary, nonmanifold, flipped
-
-
-def mesh_signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
-    """Signed volume (mm³) enclosed by a closed triangle mesh; positive for outward faces."""
-    v = np.asarray(vertices, dtype=float)[np.asarray(faces)]
-    return float(np.einsum("ij,ij->i", v[:, 0], np.cross(v[:, 1], v[:, 2])).sum() / 6.0)
 
 
 def _edge_sign(P, u, v, px, py):
