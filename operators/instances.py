@@ -96,7 +96,7 @@ def stored_frame(obj) -> core.ObjectFrame | None:
     )
 
 
-def _abs_source(obj) -> str:
+def absolute_source_path(obj) -> str:
     return os.path.normpath(bpy.path.abspath(obj.ssm.source))
 
 
@@ -116,7 +116,7 @@ def clear_instance_cache() -> None:
     _CACHE.clear()
 
 
-def _mesh_file_world(obj) -> tuple[np.ndarray, np.ndarray]:
+def mesh_file_world(obj) -> tuple[np.ndarray, np.ndarray]:
     """A Blender-mesh instance's current mesh in its file world mm, and its triangles."""
     verts = blender_to_file_world(obj, bridge.object_world_vertices(obj))
     return verts, bridge.mesh_triangles(obj.data)
@@ -143,7 +143,7 @@ def instance_object_volume(obj, progress=None, cancelled=None) -> core.ObjectVol
     label = None if ssm.label < 0 else int(ssm.label)
     method = ssm.frame_method.lower()
     if ssm.source_kind == "BLENDER_MESH":
-        verts, faces = _mesh_file_world(obj)
+        verts, faces = mesh_file_world(obj)
         digest = hashlib.sha1(verts.astype(np.float32).tobytes() + faces.astype(np.int32).tobytes()).hexdigest()
         key = (obj.name, "BLENDER_MESH", label, spacing, digest)
         if key in _CACHE:
@@ -153,7 +153,7 @@ def instance_object_volume(obj, progress=None, cancelled=None) -> core.ObjectVol
             verts, faces, spacing, source=obj.name, patient_oriented=method == "patient", cancelled=cancelled
         )
     else:
-        path = _abs_source(obj)
+        path = absolute_source_path(obj)
         if not os.path.isfile(path):
             raise InputError(f"instance {obj.name!r}: source file {path} not found (moved? set its Source path)")
         key = (obj.name, path, label, spacing, os.path.getmtime(path))
@@ -192,7 +192,7 @@ def _instance_name(path: str, label: int | None, n_labels: int) -> str:
     return stem if label is None else f"{stem} L{label}"
 
 
-def _write_metadata(obj, *, kind, source, label, spacing, method, frame, import_matrix, volume_mm3, voxels):
+def write_instance_metadata(obj, *, kind, source, label, spacing, method, frame, import_matrix, volume_mm3, voxels):
     ssm = obj.ssm
     ssm.role = "INSTANCE"
     ssm.source_kind = kind
@@ -313,7 +313,7 @@ class SSM_OT_import_segmentation(BackgroundJob, bpy.types.Operator, ImportHelper
             replace = (
                 existing is not None
                 and is_instance(existing)
-                and _abs_source(existing) == os.path.normpath(item["path"])
+                and absolute_source_path(existing) == os.path.normpath(item["path"])
                 and existing.ssm.label == (-1 if item["label"] is None else item["label"])
             )
             matrix = item["frame"].matrix_world
@@ -326,7 +326,7 @@ class SSM_OT_import_segmentation(BackgroundJob, bpy.types.Operator, ImportHelper
                 matrix_world=matrix,
                 replace=replace,
             )
-            _write_metadata(
+            write_instance_metadata(
                 obj,
                 kind=item["kind"],
                 source=source,
@@ -409,7 +409,7 @@ class SSM_OT_add_mesh_instances(BackgroundJob, bpy.types.Operator):
             obj = bpy.data.objects[name]
             if coll.objects.get(obj.name) is None:
                 coll.objects.link(obj)
-            _write_metadata(
+            write_instance_metadata(
                 obj,
                 kind="BLENDER_MESH",
                 source="",

@@ -45,14 +45,14 @@ def _ensure_registered() -> None:
 
 def add_instance_object(context, name: str, spec, object_volume):
     """An instance object from a resampled volume: display surface in object mm, frame as matrix_world."""
-    from .instances import _write_metadata
+    from .instances import write_instance_metadata
 
     verts, faces = core_volume.display_surface(object_volume)
     frame = object_volume.frame
     obj = bridge.new_mesh_object(context, name, verts, faces, collection_name=bridge.INSTANCES_COLLECTION,
                                  matrix_world=frame.matrix_world)
     kind = "VOLUME" if spec.volume is not None else "MESH_FILE"
-    _write_metadata(
+    write_instance_metadata(
         obj,
         kind=kind,
         source=str(spec.source),
@@ -216,7 +216,7 @@ def project_from_scene(context, path) -> core.Project:
     Landmarks are exported as ``<folder>/landmarks/<instance>.fcsv`` (LPS, file world mm);
     instances made from Blender meshes as ``<folder>/meshes/<instance>.ply`` (file world mm).
     """
-    from .instances import _abs_source, _mesh_file_world, scene_instances
+    from .instances import absolute_source_path, mesh_file_world, scene_instances
     from .landmarks import landmark_sets_by_instance
 
     path = Path(path).resolve()
@@ -235,15 +235,15 @@ def project_from_scene(context, path) -> core.Project:
         core_landmarks.write_landmarks(lm_path, lm_sets[obj.name])
         ssm = obj.ssm
         if ssm.source_kind == "VOLUME":
-            spec = core.InstanceSpec(name=obj.name, landmarks=lm_path, volume=Path(_abs_source(obj)),
+            spec = core.InstanceSpec(name=obj.name, landmarks=lm_path, volume=Path(absolute_source_path(obj)),
                                      label=None if ssm.label < 0 else int(ssm.label))
         else:
             if ssm.source_kind == "MESH_FILE":
-                mesh_path = Path(_abs_source(obj))
+                mesh_path = Path(absolute_source_path(obj))
             else:
                 (folder / "meshes").mkdir(exist_ok=True)
                 mesh_path = folder / "meshes" / f"{_safe_name(obj.name)}.ply"
-                verts, faces = _mesh_file_world(obj)
+                verts, faces = mesh_file_world(obj)
                 write_ply(mesh_path, verts, faces)
             spec = core.InstanceSpec(name=obj.name, landmarks=lm_path, mesh=mesh_path, mesh_spacing=float(ssm.spacing_mm))
         specs.append(spec)
