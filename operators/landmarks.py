@@ -670,11 +670,22 @@ class SSM_OT_propose_landmarks(BackgroundJob, bpy.types.Operator):
         frames = instance_frame(src), instance_frame(target)
         self._target_name, self._source_name = target.name, src.name
         method, spacing, subset = self.method, self.spacing_mm, lm.subset(names)
+        volumes = {}
+        if method == "coating":
+            # the instances' own resampled masks (reloaded from source, cached) and, when
+            # the scene's template was built from the source, that template
+            from .instances import instance_object_volume
+            from .template import find_template
+
+            volumes = {"source_volume": instance_object_volume(src), "target_volume": instance_object_volume(target)}
+            tpl = find_template(context)
+            if tpl is not None and tpl.ssm.instance == src:
+                volumes["template"] = core.SurfaceMesh(bridge.mesh_vertices(tpl.data), bridge.mesh_triangles(tpl.data))
 
         def work(progress, cancelled):
             return core.propose_from_meshes(
                 subset, frames[0], meshes[0], frames[1], meshes[1], method=method, spacing_mm=spacing,
-                source=target.name, progress=progress, cancelled=cancelled,
+                source=target.name, progress=progress, cancelled=cancelled, **volumes,
             )  # fmt: skip
 
         return work

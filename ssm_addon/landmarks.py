@@ -35,7 +35,6 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 
@@ -710,6 +709,14 @@ def transfer_landmarks(
     return LandmarkSet(landmarks.names, target_frame.to_world(proposed), source)
 
 
+@dataclass(frozen=True)
+class SurfaceMesh:
+    """A triangulated surface in an object frame: ``points_object`` (N, 3) mm, ``faces`` (F, 3)."""
+
+    points_object: np.ndarray
+    faces: np.ndarray
+
+
 def propose_from_meshes(
     landmarks: LandmarkSet,
     source_frame,
@@ -722,6 +729,9 @@ def propose_from_meshes(
     source: str = "",
     progress=None,
     cancelled=None,
+    source_volume=None,
+    target_volume=None,
+    template=None,
 ) -> LandmarkSet:
     """Propose landmarks for a target instance given both instances' surface meshes.
 
@@ -740,8 +750,14 @@ def propose_from_meshes(
     source_mesh_world, target_mesh_world : tuple of ((V, 3) world mm vertices, (F, 3) faces)
         Closed surface meshes of the instances.
     method : {"frame", "coating"}
-    spacing_mm, template_spacing_mm : float
-        Voxel sizes (mm) of the target volume and of the source surface for coating.
+    spacing_mm : float
+        Voxel size (mm) for voxelizing a mesh where no volume is given.
+    template_spacing_mm : float
+        Unused; kept for callers of earlier versions.
+    source_volume, target_volume : ObjectVolume, optional
+        The instances' resampled masks (e.g. the Blender instance cache).
+    template : Template-like, optional
+        ``points_object`` (source object frame, mm) and ``faces``.
     source : str
         ``source`` of the result.
     progress, cancelled : callables, optional
@@ -759,13 +775,24 @@ def propose_from_meshes(
         return transfer_landmarks(landmarks, source_frame, target_frame, tv, method=method, source=source)
     report = progress or (lambda f, m: None)
     sv, sf = (np.asarray(a) for a in source_mesh_world)
-    report(0.0, "voxelizing the target")
-    target_ov = vol.resample(vol.voxelize_mesh(tv, tf, spacing_mm, source=source, cancelled=cancelled), target_frame, spacing_mm, cancelled=cancelled)
+    if target_volume is None:
+        report(0.0, "voxelizing the target")
+        target_volume = vol.resample(
+            vol.voxelize_mesh(tv, tf, spacing_mm, source=source, cancelled=cancelled), target_frame, spacing_mm,
+            cancelled=cancelled,
+        )
     check_cancelled(cancelled)
-    report(0.1, "surface of the source")
-    source_ov = vol.resample(vol.voxelize_mesh(sv, sf, template_spacing_mm, cancelled=cancelled), source_frame, template_spacing_mm, cancelled=cancelled)
-    pts, faces = vol.display_surface(source_ov)
-    surface = SimpleNamespace(points_object=pts, faces=faces)  # the template: source surface, object mm
+    if template is None:
+        from .template import TemplateParams, build_template
+
+        if source_volume is None:
+            report(0.05, "voxelizing the source")
+            source_volume = vol.resample(
+                vol.voxelize_mesh(sv, sf, spacing_mm, cancelled=cancelled), source_frame, spacing_mm, cancelled=cancelled
+            )
+        report(0.1, "template of the source")
+        template = build_template(source_volume, TemplateParams(spacing_mm=source_volume.spacing_mm), cancelled=cancelled)
+    target_ov, surface = target_volume, template
     check_cancelled(cancelled)
 
     def sub(fraction, message):
