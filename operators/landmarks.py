@@ -677,7 +677,11 @@ class SSM_OT_propose_landmarks(BackgroundJob, bpy.types.Operator):
             from .instances import instance_object_volume
             from .template import find_template
 
-            volumes = {"source_volume": instance_object_volume(src), "target_volume": instance_object_volume(target)}
+            for key, obj in (("source_volume", src), ("target_volume", target)):
+                try:
+                    volumes[key] = instance_object_volume(obj)
+                except SSMError as err:  # no reachable source: the core voxelizes the mesh instead
+                    self.report({"INFO"}, f"{obj.name}: {err}; using its mesh")
             tpl = find_template(context)
             if tpl is not None and tpl.ssm.instance == src:
                 volumes["template"] = core.SurfaceMesh(bridge.mesh_vertices(tpl.data), bridge.mesh_triangles(tpl.data))
