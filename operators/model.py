@@ -451,13 +451,14 @@ class SSM_OT_save_model(BackgroundJob, bpy.types.Operator):
         out_dir = bpy.path.abspath(self.directory)
         per_instance = dict(model.params.get("fit") or {})
         with_metrics, plots, n_samples = self.metrics, self.plots, self.n_samples
+        extra = {"model_object": obj.name}  # read here: the worker thread must not touch bpy
 
         def work(progress, cancelled):
             if with_metrics:
                 mets = core_metrics.evaluate(model, n_samples=n_samples, progress=progress, cancelled=cancelled)
             else:
                 mets = {"compactness": core_metrics.compactness(model)}
-            return core_metrics.write_outputs(model, out_dir, mets, per_instance, {"model_object": obj.name}, plots=plots)
+            return core_metrics.write_outputs(model, out_dir, mets, per_instance, extra, plots=plots)
 
         return work
 
