@@ -327,6 +327,49 @@ def test_verse_l1_template_coated_onto_l2_to_l5_and_t12(verse_dir):
               f"{len(faces)} (warp + projection: {folds_paper}), {r.fit.iterations} it, {r.fit.time_s:.1f} s")  # fmt: skip
         assert r.fit.max_distance_mm < obs[k].spacing_mm
         assert r.fit.folded_after < folds_paper
+    fit = {k: r.fit for k, r in zip(names[1:], results)}
+    # the lumbar neighbours are fold-free; T12 (short thoracic transverse processes) and
+    # L5 (landmarks ~40° tilted against L1's) keep folds: see the module docs
+    assert fit["L2"].folded_after == fit["L3"].folded_after == fit["L4"].folded_after == 0
+    assert fit["T12"].folded_after <= 25
+
+
+def test_verse_template_on_its_own_surface_has_no_fold(verse_dir):
+    """Fold test calibration: the L1 template on L1's (raw, uncleaned) surface is not folded,
+    although triangles that span thin processes flip the raw gradient at their centroid."""
+    from conftest import VERSE_FILE, VERSE_LABELS
+
+    from ssm_addon import volume as V
+
+    ov = V.load_object(VERSE_FILE, VERSE_LABELS["L1"], 1.0)
+    template = build_template(ov, TemplateParams())
+    pts, faces = np.asarray(template.points_object), np.asarray(template.faces)
+    dm = C.DistanceMap.from_object_volume(ov)
+    assert C.folded_triangles(pts, faces, dm).sum() == 0
+    raw = int(C.folded_triangles(pts, faces, dm, normal_sigma_mm=0.0).sum())
+    print(f"L1 template on L1: folds with the raw gradient {raw}, with the 3 mm smoothed normal 0")
+
+
+def test_untangle_removes_a_fold_and_leaves_the_rest(ellipsoid_pair):
+    a, _, ova, _, template = ellipsoid_pair
+    pts, faces = np.asarray(template.points_object, float), np.asarray(template.faces)
+    dm = C.DistanceMap.from_object_volume(ova)
+    on = dm.project(pts, 3)
+    assert C.folded_triangles(on, faces, dm).sum() == 0
+    # drag one vertex across its neighbours along the surface: its fan folds over
+    e = C._edges(faces)
+    i = int(np.argmax(on[:, 0]))
+    nb = np.unique(e[(e == i).any(axis=1)])
+    j = nb[nb != i][0]
+    bad = on.copy()
+    bad[i] = on[i] + 2.5 * (on[j] - on[i])
+    bad[i] = dm.project(bad[i][None], 3)[0]
+    assert C.folded_triangles(bad, faces, dm).sum() > 0
+    fixed, rounds = C.untangle(bad, faces, dm)
+    assert C.folded_triangles(fixed, faces, dm).sum() == 0 and rounds >= 1
+    assert dm.surface_distance(fixed).max() < 0.5
+    far = np.linalg.norm(on - on[i], axis=1) > 25.0
+    assert np.array_equal(fixed[far], bad[far])
 
 
 def test_fold_free_warp_smooths_inconsistent_landmarks_until_no_fold(ellipsoid_pair):
