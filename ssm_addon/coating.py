@@ -1,26 +1,40 @@
 """Coating: landmark warp, projection and mass-spring relaxation of the template (paper section 4).
 
 The template (points and triangles in the source instance's object frame, mm) is put
-onto every other instance in three steps:
+onto every other instance in five steps:
 
 1. a landmark warp, eq. (2), maps the template's landmarks exactly onto the instance's
    (:func:`landmark_warp`, :class:`ThinPlateSpline`); if inconsistent landmarks make
    it fold the template (det J <= 0), it is smoothed just enough not to
    (:func:`fold_free_warp`; the λ used is reported);
-2. (not in the paper) a smooth coarse-to-fine surface registration moves the warped
-   mesh onto the surface without folding it (:func:`register_to_surface`);
+2. (not in the paper) a smooth coarse-to-fine surface registration (Gaussian widths
+   16, 8, 4, 2 mm) moves the warped mesh onto the surface without folding it
+   (:func:`register_to_surface`);
 3. every vertex is projected onto the instance surface by a sub-voxel signed distance
    map (:class:`DistanceMap`, paper 4.2);
 4. a mass-spring relaxation, eq. (3), unfolds and regularises the mesh while a
    zero-length spring keeps every vertex on the surface (:func:`relax`); vertices of
    folded triangles lose the surface force (paper) and get a Laplacian force that
-   untangles them; a last projection puts every vertex back on the surface.
+   untangles them; a last projection puts every vertex back on the surface;
+5. (not in the paper) folds that are left are removed locally: umbrella smoothing of
+   the folded triangles' neighbourhood + reprojection, until none is left
+   (:func:`untangle`).
 
-Steps 2 and the fold handling were added after measuring the paper's scheme on VerSe
-(L1 template onto L2..L5, T12 with the extremal-point landmarks): 12-38 % of the
-triangles folded after warp + projection and the relaxation did not unfold them. With
-the defaults, 0.2-17 % remain (see tests/test_coating.py and tools/bench_coating.py);
-on synthetic shapes with known correspondence every step keeps or improves it.
+A triangle is folded when its normal is more than 90° from the surface normal at its
+centroid (paper 4.2); the surface normal is taken from the distance field smoothed at
+3 mm (:func:`folded_triangles`), because with the raw gradient the template's
+triangles that span a thin process (centroid inside, near the medial surface) count
+as folded even on the template's own instance (3 of 1,262 on VerSe L1; 0 smoothed).
+
+Steps 2, 5 and the fold handling were added after measuring the paper's scheme on
+VerSe (L1 template, 631 vertices, onto L2..L5, T12 with the extremal-point landmarks):
+12-38 % of the triangles folded after warp + projection, and the relaxation did not
+unfold them. With the defaults L2, L3, L4 end without folds, T12 with 8 and L5 with
+~210 of 1,262 (L5's landmarks are ~40° tilted against L1's and its posterior
+elements are matched to the wrong parts: a global mismatch local untangling cannot
+repair); every vertex ends within 0.3 mm of the raw surface. On synthetic shapes
+with known correspondence every step keeps or improves it (tests/test_coating.py,
+tools/bench_coating.py).
 
 Frames and units
 ----------------
@@ -500,9 +514,10 @@ class DistanceMap:
         base = np.minimum(np.floor(clamped).astype(np.int64), self._shape - 2)
         t = clamped - base
         corners = np.take(fields_flat, (base @ self._strides)[:, None] + self._corner_offsets, axis=0)
-        wx, wy, wz = (np.stack([1.0 - t[:, a], t[:, a]], axis=1) for a in range(3))
-        w = ((wx[:, :, None] * wy[:, None, :]).reshape(-1, 4, 1) * wz[:, None, :]).reshape(-1, 8, 1)
-        vals = (w * corners).sum(axis=1)
+        # corners are ordered (x, y, z) = 000, 001, 010, ..., 111: lerp z, then y, then x
+        c = corners[:, 0::2] + t[:, 2, None, None] * (corners[:, 1::2] - corners[:, 0::2])
+        c = c[:, 0::2] + t[:, 1, None, None] * (c[:, 1::2] - c[:, 0::2])
+        vals = c[:, 0] + t[:, 0, None] * (c[:, 1] - c[:, 0])
         d = vals[:, 0].copy()
         g = vals[:, 1:].copy()
         off = (vox - clamped) * self.spacing_mm
@@ -601,6 +616,10 @@ class CoatingParams:
     fold_check_interval : the relaxation re-detects folds every this many steps.
     untangle_iterations, untangle_rings : the fold removal after the relaxation
         (:func:`untangle`; 0 iterations: skip it).
+    frame_start_fold_fraction : when more than this fraction of the triangles is folded
+        after registration + projection from the landmark warp, the registration is
+        also run from the object-frame alignment alone (the template unmoved) and the
+        start with fewer folds is kept (``FitFigures.start``); > 1 disables it.
     """
 
     kernel: str = "biharmonic"
@@ -628,6 +647,7 @@ class CoatingParams:
     fold_check_interval: int = 5
     untangle_iterations: int = 60
     untangle_rings: int = 1
+    frame_start_fold_fraction: float = 0.05
 
     def validate(self) -> None:
         """Raise InputError for values that cannot work."""
@@ -684,6 +704,7 @@ class FitFigures:
     converged: bool = True
     warp_regularization: float = 0.0
     untangle_rounds: int = 0
+    start: str = "landmark warp"
 
     @property
     def max_landmark_residual_mm(self) -> float:
@@ -1018,14 +1039,31 @@ def _coat_arrays(
     report(progress, 0.0, "distance map")
     dm = distance_map if distance_map is not None else DistanceMap.from_object_volume(target)
     check_cancelled(cancelled)
-    start = warped
-    if params.registration_sigmas_mm and params.registration_iterations > 0:
-        report(progress, 0.1, "surface registration")
-        start = register_to_surface(
-            warped, faces, dm, params.registration_sigmas_mm, params.registration_iterations, cancelled
-        )
+    def registered(initial):
+        if params.registration_sigmas_mm and params.registration_iterations > 0:
+            return register_to_surface(
+                initial, faces, dm, params.registration_sigmas_mm, params.registration_iterations, cancelled
+            )
+        return initial
+
+    def folds(p):
+        return int(folded_triangles(p, faces, dm, params.fold_angle_deg, params.fold_normal_sigma_mm).sum())
+
+    report(progress, 0.1, "surface registration")
+    start = registered(warped)
     report(progress, 0.2, "projection")
     projected = dm.project(start, params.projection_iterations)
+    folded_before = folds(projected)
+    start_from = "landmark warp"
+    if folded_before > params.frame_start_fold_fraction * len(faces) and not np.array_equal(warped, points):
+        # inconsistent landmarks can mis-map whole parts (VerSe L1 -> L5): try the
+        # object-frame alignment alone and keep whichever start folds less
+        report(progress, 0.15, "surface registration from the object frames")
+        alt = registered(points)
+        alt_projected = dm.project(alt, params.projection_iterations)
+        alt_folds = folds(alt_projected)
+        if alt_folds < folded_before:
+            start, projected, folded_before, start_from = alt, alt_projected, alt_folds, "object frames"
     e = _edges(faces)
     if params.rest_lengths == "warped":
         d0 = np.linalg.norm(start[e[:, 1]] - start[e[:, 0]], axis=1)
@@ -1034,7 +1072,6 @@ def _coat_arrays(
     else:
         scale = math.sqrt(_mesh_area(projected, faces) / max(_mesh_area(points, faces), 1e-12))
         d0 = np.linalg.norm(points[e[:, 1]] - points[e[:, 0]], axis=1) * scale
-    folded_before = int(folded_triangles(projected, faces, dm, params.fold_angle_deg, params.fold_normal_sigma_mm).sum())
     check_cancelled(cancelled)
     coated, iterations, converged = relax(
         projected, faces, d0, dm, params, sub_progress(progress, 0.25, 0.95, "coating: "), cancelled, edges=e
@@ -1044,7 +1081,7 @@ def _coat_arrays(
     rounds = 0
     if params.untangle_iterations > 0:
         coated, rounds = untangle(coated, faces, dm, params, e, cancelled)
-    folded_after = int(folded_triangles(coated, faces, dm, params.fold_angle_deg, params.fold_normal_sigma_mm).sum())
+    folded_after = folds(coated)
     dist = dm.surface_distance(coated)
     residuals = ()
     if template_location is not None and target_landmarks is not None:
@@ -1061,6 +1098,7 @@ def _coat_arrays(
         spacing_mm=float(target.spacing_mm),
         converged=bool(converged),
         untangle_rounds=int(rounds),
+        start=start_from,
     )
     report(progress, 1.0, "coated")
     return coated, fit

@@ -304,7 +304,7 @@ def test_warped_rest_lengths_keep_correspondence_better_than_template_scaled(ell
 
 
 def test_verse_l1_template_coated_onto_l2_to_l5_and_t12(verse_dir):
-    """Real data: every coated vertex within one voxel; fewer folds than warp + projection."""
+    """Real data: every coated vertex within one voxel of the raw surface, no fold left."""
     from conftest import VERSE_FILE, VERSE_LABELS
 
     from ssm_addon import landmarks as L
@@ -327,11 +327,12 @@ def test_verse_l1_template_coated_onto_l2_to_l5_and_t12(verse_dir):
               f"{len(faces)} (warp + projection: {folds_paper}), {r.fit.iterations} it, {r.fit.time_s:.1f} s")  # fmt: skip
         assert r.fit.max_distance_mm < obs[k].spacing_mm
         assert r.fit.folded_after < folds_paper
-    fit = {k: r.fit for k, r in zip(names[1:], results)}
-    # the lumbar neighbours are fold-free; T12 (short thoracic transverse processes) and
-    # L5 (landmarks ~40° tilted against L1's) keep folds: see the module docs
-    assert fit["L2"].folded_after == fit["L3"].folded_after == fit["L4"].folded_after == 0
-    assert fit["T12"].folded_after <= 25
+        assert r.fit.folded_after == 0
+    # L5's and T12's extremal-point landmarks mis-map whole parts of L1 (> 5 % folded after
+    # registration from the landmark warp): those two start from the object frames
+    starts = {k: r.fit.start for k, r in zip(names[1:], results)}
+    print(starts)
+    assert starts["L2"] == "landmark warp" and starts["L5"] == "object frames"
 
 
 def test_verse_template_on_its_own_surface_has_no_fold(verse_dir):

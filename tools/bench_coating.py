@@ -171,7 +171,29 @@ def bench_verse():
         r, _ = measure(f"coat {k}", lambda: C.coat(template, lms["L1"], obs[k], lms[k], name=k))  # noqa: B023
         f = r.fit
         print(f"    {k}: mean {f.mean_distance_mm:.3f} max {f.max_distance_mm:.3f} mm, folds {f.folded_before}->"
-              f"{f.folded_after}, {f.iterations} it, landmark residual max {f.max_landmark_residual_mm:.2f} mm")  # fmt: skip
+              f"{f.folded_after}, {f.iterations} it, untangle {f.untangle_rounds} rounds, landmark residual max "
+              f"{f.max_landmark_residual_mm:.2f} mm")  # fmt: skip
+    bench_stages(template, lms["L1"], obs["L3"], lms["L3"])
+
+
+def bench_stages(template, src, target, dst, params=None):
+    """Time of each coating stage on one instance (what coat() does, step by step)."""
+    params = params or C.CoatingParams()
+    print(f"  stages of one coat() call ({target.source or 'target'}, {len(template.points_object)} vertices)")
+    pts, faces = np.asarray(template.points_object, float), np.asarray(template.faces)
+    tps, _ = measure("fold-free landmark warp", lambda: C.fold_free_warp(src, dst, pts), memory=False)
+    warped = tps[0](pts)
+    dm, _ = measure("distance map (EDT + marching cubes)", lambda: C.DistanceMap.from_object_volume(target), memory=False)
+    measure("smoothed normals for the fold test", lambda: dm.smooth_normals(pts, params.fold_normal_sigma_mm), memory=False)
+    reg, _ = measure("register_to_surface", lambda: C.register_to_surface(  # noqa: B023
+        warped, faces, dm, params.registration_sigmas_mm, params.registration_iterations), memory=False)  # fmt: skip
+    proj = dm.project(reg, params.projection_iterations)
+    e = C._edges(faces)
+    d0 = np.linalg.norm(reg[e[:, 1]] - reg[e[:, 0]], axis=1)
+    (relaxed, it, _), _ = measure("relax", lambda: C.relax(proj, faces, d0, dm, params, edges=e), memory=False)
+    relaxed = dm.project(relaxed, params.projection_iterations)
+    measure(f"untangle ({it} relaxation steps before)", lambda: C.untangle(relaxed, faces, dm, params, e), memory=False)
+    measure("fit figures (exact surface distances)", lambda: dm.surface_distance(relaxed), memory=False)
 
 
 def main():
