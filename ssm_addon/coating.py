@@ -67,6 +67,8 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from .errors import Cancelled, InputError, check_cancelled
+from .meshutil import edges as mesh_edges
+from .meshutil import face_normals, vertex_normals
 from .progress import CancelledFn, ProgressFn, report, sub_progress
 from .volume import ObjectVolume
 
@@ -285,21 +287,6 @@ def fold_free_warp(
 # ---------------------------------------------------------------------------------------
 # Geometry helpers
 # ---------------------------------------------------------------------------------------
-def _face_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(F, 3) unit normals (right-hand rule) of triangles; zero-area -> 0."""
-    v = points[faces]
-    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
-    norm = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
-
-
-def _edges(faces: np.ndarray) -> np.ndarray:
-    """(E, 2) unique undirected edges (i < j) of a triangle mesh."""
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    e.sort(axis=1)
-    return np.unique(e, axis=0)
-
-
 def _mesh_area(points: np.ndarray, faces: np.ndarray) -> float:
     v = points[faces]
     return 0.5 * float(np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1).sum())
@@ -762,15 +749,6 @@ class CoatingCancelled(Cancelled):
 # ---------------------------------------------------------------------------------------
 # Smooth surface registration (between the warp and the projection)
 # ---------------------------------------------------------------------------------------
-def _vertex_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    fn = np.cross(points[faces[:, 1]] - points[faces[:, 0]], points[faces[:, 2]] - points[faces[:, 0]])
-    vn = np.zeros_like(points)
-    for k in range(3):
-        for c in range(3):
-            vn[:, c] += np.bincount(faces[:, k], fn[:, c], minlength=len(points))
-    return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-12)
-
-
 def _gaussian_smooth(
     points: np.ndarray, values: np.ndarray, weights: np.ndarray, sigma_mm: float, chunk=2048, dense_max=4_000_000
 ):
@@ -876,7 +854,7 @@ def register_to_surface(
     for sigma in sigmas_mm:
         for _ in range(iterations):
             check_cancelled(cancelled)
-            vn = _vertex_normals(p, faces)
+            vn = vertex_normals(p, faces)
             near = distance_map.project(p, 2)
             w_fwd = (np.einsum("ij,ij->i", vn, distance_map.normals(near)) > cos_min).astype(float)
             _, j = cKDTree(p).query(targets)
@@ -912,7 +890,7 @@ def folded_triangles(
     none. ``normal_sigma_mm`` 0: the raw gradient (the paper's test). Degenerate
     (zero-area) triangles count as folded.
     """
-    fn = _face_normals(points, faces)
+    fn = face_normals(points, faces)
     cen = points[faces].mean(axis=1)
     sn = distance_map.smooth_normals(cen, normal_sigma_mm)
     cosang = np.einsum("ij,ij->i", fn, sn)
@@ -951,7 +929,7 @@ def untangle(
     points : (N, 3) mm; rounds used : int
     """
     p = np.array(points, dtype=float)
-    e = _edges(faces) if edges is None else edges
+    e = mesh_edges(faces) if edges is None else edges
     n = len(p)
     deg = np.maximum(np.bincount(e.ravel(), minlength=n), 1).astype(float)[:, None]
     rounds = 0
@@ -994,7 +972,7 @@ def relax(
     ----------
     points : (N, 3) mm, start positions (object frame of the distance map).
     faces : (F, 3) int triangles (outward oriented).
-    rest_lengths : (E,) mm, rest lengths d0 of ``edges`` (default ``_edges(faces)`` order).
+    rest_lengths : (E,) mm, rest lengths d0 of ``edges`` (default ``mesh_edges(faces)`` order).
     distance_map : DistanceMap of the target.
 
     Returns
@@ -1003,7 +981,7 @@ def relax(
     """
     p = np.array(points, dtype=float)
     faces = np.asarray(faces, np.int64)
-    e = _edges(faces) if edges is None else edges
+    e = mesh_edges(faces) if edges is None else edges
     d0 = np.asarray(rest_lengths, float)
     if len(d0) != len(e):
         raise InputError(f"relaxation: {len(d0)} rest lengths for {len(e)} edges")
@@ -1105,7 +1083,7 @@ def _coat_arrays(
         alt_folds = folds(alt_projected)
         if alt_folds < folded_before:
             start, projected, folded_before, start_from = alt, alt_projected, alt_folds, "object frames"
-    e = _edges(faces)
+    e = mesh_edges(faces)
     if params.rest_lengths == "warped":
         d0 = np.linalg.norm(start[e[:, 1]] - start[e[:, 0]], axis=1)
         # the warp lands near, not on, the surface: scale to the projected mesh's size

@@ -295,9 +295,10 @@ def vertex_normals(vertices, faces) -> np.ndarray:
     v = np.asarray(vertices, dtype=float)
     f = _faces(faces)
     fn = face_normals(v, f, normalize=False)
-    out = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(out, f[:, k], fn)
+    corners = f.ravel()
+    out = np.stack(
+        [np.bincount(corners, np.repeat(fn[:, c], 3), minlength=len(v)) for c in range(3)], axis=1
+    )
     ln = np.linalg.norm(out, axis=1, keepdims=True)
     return out / np.where(ln > 0, ln, 1.0)
 
