@@ -358,7 +358,7 @@ def test_untangle_removes_a_fold_and_leaves_the_rest(ellipsoid_pair):
     on = dm.project(pts, 3)
     assert C.folded_triangles(on, faces, dm).sum() == 0
     # drag one vertex across its neighbours along the surface: its fan folds over
-    e = C._edges(faces)
+    e = C.mesh_edges(faces)
     i = int(np.argmax(on[:, 0]))
     nb = np.unique(e[(e == i).any(axis=1)])
     j = nb[nb != i][0]
