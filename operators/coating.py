@@ -333,7 +333,7 @@ class SSM_PT_coating(bpy.types.Panel):
         coated = coated_objects(context)
         if coated:
             box = layout.box()
-            box.label(text="Fit (mean / max mm, folds)")
+            box.label(text="Fit (mean / max mm, folds, start)")
             for obj in coated:
                 fit = fit_of(obj)
                 if fit is None:
@@ -341,7 +341,7 @@ class SSM_PT_coating(bpy.types.Panel):
                 row = box.row()
                 row.label(
                     text=f"{obj.name.removesuffix(COATED_SUFFIX)}: {fit.mean_distance_mm:.2f} / {fit.max_distance_mm:.2f}, "
-                    f"{fit.folded_after}",
+                    f"{fit.folded_after}, {fit.start}",
                     icon="ERROR" if fit.poor else "CHECKMARK",
                 )
 
