@@ -25,6 +25,7 @@ from . import bridge
 from .instances import instance_object_volume, scene_instances
 from .jobs import BackgroundJob
 from .landmarks import instance_frame, landmark_sets_by_instance
+from .template import find_template
 
 TEMPLATE_NAME = "SSM Template"
 COATED_COLLECTION = "SSM Coated"
@@ -63,7 +64,17 @@ class SSMCoatingSettings(bpy.types.PropertyGroup):
         description="Smooth coarse-to-fine surface registration between warp and projection (off: the paper's scheme)",
     )
     registration_sigma_mm: FloatProperty(
-        name="Coarsest width (mm)", default=8.0, min=0.5, description="Widths used: this, half and a quarter of it"
+        name="Coarsest width (mm)",
+        default=core.CoatingParams.registration_sigmas_mm[0],
+        min=0.5,
+        description="Gaussian width of the first registration level; each further level halves it",
+    )
+    registration_levels: IntProperty(
+        name="Levels",
+        default=len(core.CoatingParams.registration_sigmas_mm),
+        min=1,
+        max=8,
+        description="Number of coarse-to-fine registration levels",
     )
     regularization: FloatProperty(
         name="Warp smoothing", default=0.0, min=0.0,
@@ -98,20 +109,14 @@ class SSMCoatingSettings(bpy.types.PropertyGroup):
             fold_free_warp=self.fold_free_warp,
             fold_smoothing=self.fold_smoothing,
             registration_sigmas_mm=(
-                tuple(self.registration_sigma_mm / 2**i for i in range(3)) if self.use_registration else ()
+                tuple(self.registration_sigma_mm / 2**i for i in range(self.registration_levels))
+                if self.use_registration
+                else ()
             ),
         )
 
 
 # ------------------------------------------------------------------------------ helpers
-
-
-def find_template(context):
-    """The template object (role TEMPLATE, preferably named "SSM Template") or None."""
-    obj = bpy.data.objects.get(TEMPLATE_NAME)
-    if obj is not None and obj.type == "MESH" and obj.ssm.role == "TEMPLATE":
-        return obj
-    return next((o for o in context.scene.objects if o.type == "MESH" and o.ssm.role == "TEMPLATE"), None)
 
 
 def coated_objects(context) -> list:
@@ -311,7 +316,9 @@ class SSM_PT_coating(bpy.types.Panel):
         col = layout.column(align=True)
         col.prop(s, "use_registration")
         if s.use_registration:
-            col.prop(s, "registration_sigma_mm")
+            row = col.row(align=True)
+            row.prop(s, "registration_sigma_mm")
+            row.prop(s, "registration_levels")
         col = layout.column(align=True)
         col.prop(s, "rest_lengths")
         row = col.row(align=True)

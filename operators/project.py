@@ -286,7 +286,13 @@ def load_project_into_scene(context, project: core.Project) -> list:
     if t_opts.get("topology_radius_mm") is not None:
         t_opts.update(topology_auto=False, topology_value_mm=t_opts.pop("topology_radius_mm"))
     _set_scene_options(getattr(scene, "ssm_template", None), t_opts)
-    _set_scene_options(getattr(scene, "ssm_coating", None), project.coating_options)
+    c_opts = dict(project.coating_options)
+    if "registration_sigmas_mm" in c_opts:  # the panel holds the coarsest width and the number of halvings
+        sigmas = list(c_opts.pop("registration_sigmas_mm"))
+        c_opts["use_registration"] = bool(sigmas)
+        if sigmas:
+            c_opts.update(registration_sigma_mm=float(sigmas[0]), registration_levels=len(sigmas))
+    _set_scene_options(getattr(scene, "ssm_coating", None), c_opts)
     m_opts = dict(project.model_options)
     m_opts["n_modes"] = m_opts.get("n_modes") or 0  # the panel's 0 means every mode
     m_opts["metrics_samples"] = m_opts.pop("specificity_samples", 300)
