@@ -107,6 +107,16 @@ def test_panel_registered(bpy_clean):
     assert hasattr(bpy.types, "SSM_PT_coating")
     settings = bpy.context.scene.ssm_coating
     assert settings.rest_lengths == "warped"
-    assert settings.params().registration_sigmas_mm == (8.0, 4.0, 2.0)
+    # the sidebar's defaults are the core's defaults (the same coating headless and in Blender)
+    import dataclasses
+
+    from ssm_addon.coating import CoatingParams
+
+    ui, core = settings.params(), CoatingParams()
+    for field in ("kernel", "k1", "k2", "k3", "mass", "damping", "dt", "max_iterations", "velocity_tol_mm",
+                  "fold_angle_deg", "rest_lengths", "regularization", "fold_free_warp", "fold_smoothing",
+                  "registration_sigmas_mm", "hardy_s_mm"):  # fmt: skip
+        assert getattr(ui, field) == pytest.approx(getattr(core, field)), field
+    assert {f.name for f in dataclasses.fields(core)} >= {"registration_sigmas_mm", "k1", "k2"}
     settings.use_registration = False
     assert settings.params().registration_sigmas_mm == ()
