@@ -7,8 +7,6 @@ scale is set to 0.001 m so the viewport shows mm).
 
 from __future__ import annotations
 
-import colorsys
-
 import bpy
 import numpy as np
 
@@ -99,10 +97,16 @@ def triangle_index_colors(n_faces: int) -> np.ndarray:
     hue = (i * 0.6180339887498949) % 1.0
     sat = 0.55 + 0.35 * ((i * 7) % 5) / 4.0
     val = 0.65 + 0.35 * ((i * 3) % 4) / 3.0
-    rgb = np.array([colorsys.hsv_to_rgb(h, s, v) for h, s, v in zip(hue, sat, val)], dtype=np.float32)
+    # HSV -> RGB, vectorised (colorsys.hsv_to_rgb per element)
+    sector = np.floor(hue * 6.0).astype(int) % 6
+    f = hue * 6.0 - np.floor(hue * 6.0)
+    p, q, t = val * (1 - sat), val * (1 - sat * f), val * (1 - sat * (1 - f))
+    table = np.stack([
+        np.stack([val, t, p], 1), np.stack([q, val, p], 1), np.stack([p, val, t], 1),
+        np.stack([p, q, val], 1), np.stack([t, p, val], 1), np.stack([val, p, q], 1),
+    ])  # fmt: skip
     rgba = np.ones((n_faces, 4), dtype=np.float32)
-    if n_faces:
-        rgba[:, :3] = rgb.reshape(-1, 3)
+    rgba[:, :3] = table[sector, i] if n_faces else np.zeros((0, 3))
     return rgba
 
 
