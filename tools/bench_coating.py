@@ -188,7 +188,7 @@ def bench_stages(template, src, target, dst, params=None):
     reg, _ = measure("register_to_surface", lambda: C.register_to_surface(  # noqa: B023
         warped, faces, dm, params.registration_sigmas_mm, params.registration_iterations), memory=False)  # fmt: skip
     proj = dm.project(reg, params.projection_iterations)
-    e = C._edges(faces)
+    e = C.mesh_edges(faces)
     d0 = np.linalg.norm(reg[e[:, 1]] - reg[e[:, 0]], axis=1)
     (relaxed, it, _), _ = measure("relax", lambda: C.relax(proj, faces, d0, dm, params, edges=e), memory=False)
     relaxed = dm.project(relaxed, params.projection_iterations)
