@@ -26,15 +26,9 @@ class BackgroundJob:
     _timer = None
     _thread = None
 
-    # -- subclass API -------------------------------------------------------------
-    def prepare(self, context):  # pragma: no cover - abstract
-        """Read inputs from bpy; return ``work(progress, cancelled)`` or None to abort."""
-        raise NotImplementedError
-
-    def finish(self, context, result):  # pragma: no cover - abstract
-        """Write ``result`` back into the scene (main thread). Return an operator set."""
-        raise NotImplementedError
-
+    # -- subclass API: ``prepare(context)`` returns ``work(progress, cancelled)`` (or None
+    # to abort) after reading its inputs from bpy; ``finish(context, result)`` writes the
+    # result back on the main thread and returns an operator result set (or None).
     def partial(self, context, state):
         """Called on cancel/error with the job state (override to keep partial results)."""
 
