@@ -32,8 +32,9 @@ VerSe (L1 template, 631 vertices, onto L2..L5, T12 with the extremal-point landm
 unfold them. L5's and T12's extremal-point landmarks (L5 ~40° tilted against L1,
 T12 with short thoracic transverse processes) mis-map whole parts of L1 (13 % and 8 %
 of the triangles folded after registration from the landmark warp), so when more than
-5 % are folded the registration also starts from the object frames alone and the
-start with fewer folds is kept (``FitFigures.start``). With the defaults all five end
+5 % are folded after the coarse widths (16, 8 mm) the registration also starts from the
+object frames alone and the start with fewer folds goes on to the fine widths
+(``FitFigures.start``). With the defaults all five end
 without folds and every vertex within 0.2 mm of the raw (uncleaned) surface, in
 0.6-0.8 s per instance (was 2.3 s). On synthetic shapes
 with known correspondence every step keeps or improves it (tests/test_coating.py,
@@ -625,9 +626,10 @@ class CoatingParams:
     untangle_iterations, untangle_rings : the fold removal after the relaxation
         (:func:`untangle`; 0 iterations: skip it).
     frame_start_fold_fraction : when more than this fraction of the triangles is folded
-        after registration + projection from the landmark warp, the registration is
-        also run from the object-frame alignment alone (the template unmoved) and the
-        start with fewer folds is kept (``FitFigures.start``); > 1 disables it.
+        after the coarse half of the registration widths (16, 8 mm of the defaults) +
+        projection from the landmark warp, those widths are also run from the
+        object-frame alignment alone (the template unmoved) and the start with fewer
+        folds goes on to the fine widths (``FitFigures.start``); > 1 disables it.
     """
 
     kernel: str = "biharmonic"
@@ -1083,31 +1085,37 @@ def _coat_arrays(
     report(progress, 0.0, "distance map")
     dm = distance_map if distance_map is not None else DistanceMap.from_object_volume(target)
     check_cancelled(cancelled)
-    def registered(initial):
-        if params.registration_sigmas_mm and params.registration_iterations > 0:
-            return register_to_surface(
-                initial, faces, dm, params.registration_sigmas_mm, params.registration_iterations, cancelled
-            )
+    sigmas = tuple(params.registration_sigmas_mm) if params.registration_iterations > 0 else ()
+    # the start (landmark warp or object frames) is chosen after the coarse half of the
+    # widths (16, 8 mm of 16..2): on VerSe this picks the same start as after all of
+    # them (L5, T12: 261 / 127 folded from the warp vs 23 / 20 from the frames; L2..L4
+    # <= 28 of 1,262), and the losing start does not run the fine widths
+    n_coarse = (len(sigmas) + 1) // 2
+
+    def registered(initial, widths):
+        if widths:
+            return register_to_surface(initial, faces, dm, widths, params.registration_iterations, cancelled)
         return initial
 
     def folds(p):
         return int(folded_triangles(p, faces, dm, params.fold_angle_deg, params.fold_normal_sigma_mm).sum())
 
     report(progress, 0.1, "surface registration")
-    start = registered(warped)
+    start = registered(warped, sigmas[:n_coarse])
+    start_from = "landmark warp"
+    if not np.array_equal(warped, points):
+        coarse_folds = folds(dm.project(start, params.projection_iterations))
+        if coarse_folds > params.frame_start_fold_fraction * len(faces):
+            # inconsistent landmarks can mis-map whole parts (VerSe L1 -> L5): try the
+            # object-frame alignment alone and keep whichever start folds less
+            report(progress, 0.15, "surface registration from the object frames")
+            alt = registered(points, sigmas[:n_coarse])
+            if folds(dm.project(alt, params.projection_iterations)) < coarse_folds:
+                start, start_from = alt, "object frames"
+    start = registered(start, sigmas[n_coarse:])
     report(progress, 0.2, "projection")
     projected = dm.project(start, params.projection_iterations)
     folded_before = folds(projected)
-    start_from = "landmark warp"
-    if folded_before > params.frame_start_fold_fraction * len(faces) and not np.array_equal(warped, points):
-        # inconsistent landmarks can mis-map whole parts (VerSe L1 -> L5): try the
-        # object-frame alignment alone and keep whichever start folds less
-        report(progress, 0.15, "surface registration from the object frames")
-        alt = registered(points)
-        alt_projected = dm.project(alt, params.projection_iterations)
-        alt_folds = folds(alt_projected)
-        if alt_folds < folded_before:
-            start, projected, folded_before, start_from = alt, alt_projected, alt_folds, "object frames"
     e = mesh_edges(faces)
     if params.rest_lengths == "warped":
         d0 = np.linalg.norm(start[e[:, 1]] - start[e[:, 0]], axis=1)
