@@ -60,7 +60,7 @@ import math
 import os
 import sys
 import time
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, ThreadPoolExecutor, wait
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -483,12 +483,6 @@ class DistanceMap:
         mask = np.asarray(ov.mask, dtype=bool)
         if mask.ndim != 3 or not mask.any():
             raise InputError(f"distance map: the object volume of {ov.source or 'an instance'} is empty")
-        padded = np.pad(mask, 1).astype(np.float32)
-        verts, faces, _, _ = marching_cubes(padded, level=0.5)
-        verts = (verts.astype(np.float64) - 1.0) * ov.spacing_mm + np.asarray(ov.origin_object, float)
-        faces = faces.astype(np.int64)
-        sdf = ndimage.distance_transform_edt(~mask)  # voxels, outside: to nearest inside centre
-        sdf -= 0.5
         # inside: distance to the nearest outside centre; every outside voxel nearer than
         # one beyond the mask's bounding box + 1 voxel lies in that box (clamping a voxel
         # onto the box brings it closer and keeps it outside), so the EDT runs on the box
@@ -496,8 +490,20 @@ class DistanceMap:
         hi = np.minimum(np.argwhere(mask).max(axis=0) + 2, mask.shape)
         box = tuple(slice(a, b) for a, b in zip(lo, hi))
         sub = mask[box]
+        # the two EDTs (scipy releases the GIL in them) run side by side on two threads,
+        # the marching cubes (holds the GIL) after the inside one: the same arrays as
+        # serially, ~1/3 less time
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            outside = pool.submit(ndimage.distance_transform_edt, ~mask)  # voxels, to nearest inside centre
+            inside = ndimage.distance_transform_edt(sub)
+            padded = np.pad(mask, 1).astype(np.float32)
+            verts, faces, _, _ = marching_cubes(padded, level=0.5)
+            sdf = outside.result()
+        verts = (verts.astype(np.float64) - 1.0) * ov.spacing_mm + np.asarray(ov.origin_object, float)
+        faces = faces.astype(np.int64)
+        sdf -= 0.5
         sdf_box = sdf[box]
-        sdf_box[sub] = 0.5 - ndimage.distance_transform_edt(sub)[sub]
+        sdf_box[sub] = 0.5 - inside[sub]
         sdf *= ov.spacing_mm
         locator = None
         nodes = np.empty((0, 3))
@@ -1108,7 +1114,14 @@ def _coat_arrays(
             return register_to_surface(initial, faces, dm, widths, params.registration_iterations, cancelled)
         return initial
 
+    # the smoothed field of the fold test (a Gaussian filter of the whole grid; scipy
+    # releases the GIL) is built on a second thread while the registration runs
+    pool = ThreadPoolExecutor(max_workers=1)
+    smoothed = pool.submit(dm.smooth_normals, np.zeros((1, 3)), params.fold_normal_sigma_mm)
+    pool.shutdown(wait=False)
+
     def folds(p):
+        smoothed.result()
         return int(folded_triangles(p, faces, dm, params.fold_angle_deg, params.fold_normal_sigma_mm).sum())
 
     report(progress, 0.1, "surface registration")
