@@ -493,12 +493,13 @@ class DistanceMap:
         # the two EDTs (scipy releases the GIL in them) run side by side on two threads,
         # the marching cubes (holds the GIL) after the inside one: the same arrays as
         # serially, ~1/3 less time
-        with ThreadPoolExecutor(max_workers=1) as pool:
+        with ThreadPoolExecutor(max_workers=2) as pool:
             outside = pool.submit(ndimage.distance_transform_edt, ~mask)  # voxels, to nearest inside centre
-            inside = ndimage.distance_transform_edt(sub)
+            inside = pool.submit(ndimage.distance_transform_edt, sub)
             padded = np.pad(mask, 1).astype(np.float32)
             verts, faces, _, _ = marching_cubes(padded, level=0.5)
             sdf = outside.result()
+            inside = inside.result()
         verts = (verts.astype(np.float64) - 1.0) * ov.spacing_mm + np.asarray(ov.origin_object, float)
         faces = faces.astype(np.int64)
         sdf -= 0.5
@@ -1115,9 +1116,11 @@ def _coat_arrays(
         return initial
 
     # the smoothed field of the fold test (a Gaussian filter of the whole grid; scipy
-    # releases the GIL) is built on a second thread while the registration runs
+    # releases the GIL) and the fit figures' triangle search tree are built on a
+    # second thread while the registration runs
     pool = ThreadPoolExecutor(max_workers=1)
     smoothed = pool.submit(dm.smooth_normals, np.zeros((1, 3)), params.fold_normal_sigma_mm)
+    located = pool.submit(lambda: dm._locator)
     pool.shutdown(wait=False)
 
     def folds(p):
@@ -1158,6 +1161,7 @@ def _coat_arrays(
     if params.untangle_iterations > 0:
         coated, rounds = untangle(coated, faces, dm, params, e, cancelled)
     folded_after = folds(coated)
+    located.result()
     dist = dm.surface_distance(coated)
     residuals = ()
     if template_location is not None and target_landmarks is not None:
