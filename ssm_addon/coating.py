@@ -486,8 +486,9 @@ class DistanceMap:
         # inside: distance to the nearest outside centre; every outside voxel nearer than
         # one beyond the mask's bounding box + 1 voxel lies in that box (clamping a voxel
         # onto the box brings it closer and keeps it outside), so the EDT runs on the box
-        lo = np.maximum(np.argwhere(mask).min(axis=0) - 1, 0)
-        hi = np.minimum(np.argwhere(mask).max(axis=0) + 2, mask.shape)
+        occupied = [np.flatnonzero(mask.any(axis=tuple(k for k in range(3) if k != a))) for a in range(3)]
+        lo = np.maximum(np.array([o[0] for o in occupied]) - 1, 0)
+        hi = np.minimum(np.array([o[-1] for o in occupied]) + 2, mask.shape)
         box = tuple(slice(a, b) for a, b in zip(lo, hi))
         sub = mask[box]
         # the two EDTs (scipy releases the GIL in them) run side by side on two threads,
@@ -891,8 +892,10 @@ def register_to_surface(
     # a stride thins them evenly
     targets = distance_map.surface_vertices
     stride = max(1, len(targets) // (target_density * n)) if target_density > 0 else 1
-    targets = targets[::stride]
-    target_normals = distance_map.normals(targets)
+    cache = distance_map.__dict__.setdefault("_registration_targets", {})
+    if stride not in cache:  # coat() registers in two parts (coarse, then fine widths)
+        cache[stride] = (targets[::stride], distance_map.normals(targets[::stride]))
+    targets, target_normals = cache[stride]
     cos_min = 0.3
     for sigma in sigmas_mm:
         for _ in range(iterations):
