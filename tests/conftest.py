@@ -87,3 +87,44 @@ def bpy_clean(bpy_module):
     bpy = bpy_module
     bpy.ops.wm.read_homefile(use_empty=True)
     yield bpy
+
+
+class RecordingLayout:
+    """A stand-in for UILayout: records labels, asserts props and operators exist."""
+
+    def __init__(self, log):
+        self.log = log
+
+    def __getattr__(self, name):  # row, column, box, split, separator, progress, ...
+        return lambda *a, **k: RecordingLayout(self.log)
+
+    def label(self, text="", **kw):
+        self.log.append(("label", text))
+
+    def prop(self, data, prop, **kw):
+        assert prop in data.bl_rna.properties, f"{type(data).__name__}.{prop}"
+        self.log.append(("prop", prop))
+
+    def operator(self, idname, **kw):
+        import bpy
+
+        group, name = idname.split(".")
+        assert hasattr(getattr(bpy.ops, group), name), idname
+        self.log.append(("operator", idname))
+        return type("Props", (), {})()
+
+    def operator_menu_enum(self, idname, prop, **kw):
+        self.operator(idname)
+
+    def template_list(self, list_type, list_id, data, prop, active_data, active_prop, **kw):
+        import bpy
+
+        assert hasattr(bpy.types, list_type)
+        assert prop in data.bl_rna.properties and active_prop in active_data.bl_rna.properties
+        self.log.append(("list", prop))
+
+
+@pytest.fixture()
+def layout_recorder():
+    """The :class:`RecordingLayout` class: ``layout_recorder(log)`` stands in for a UILayout."""
+    return RecordingLayout

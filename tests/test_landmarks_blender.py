@@ -340,48 +340,14 @@ def test_save_and_reopen_keeps_schema_and_landmarks(sphere, tmp_path):
     assert lm.missing_names(bpy.context, inst) == list(LANDMARK_PRESETS["lumbar-vertebra"][2:])
 
 
-class _Layout:
-    """A stand-in for UILayout that checks what the draw code asks for."""
-
-    def __init__(self, log):
-        self.log = log
-
-    def __getattr__(self, name):  # row, column, box, split, separator, ...
-        return lambda *a, **k: _Layout(self.log)
-
-    def label(self, text="", **kw):
-        self.log.append(("label", text))
-
-    def prop(self, data, prop, **kw):
-        assert prop in data.bl_rna.properties, prop
-        self.log.append(("prop", prop))
-
-    def operator(self, idname, **kw):
-        import bpy
-
-        group, name = idname.split(".")
-        assert hasattr(getattr(bpy.ops, group), name), idname
-        self.log.append(("operator", idname))
-        return type("Props", (), {})()
-
-    def operator_menu_enum(self, idname, prop, **kw):
-        self.operator(idname)
-
-    def template_list(self, list_type, list_id, data, prop, active_data, active_prop, **kw):
-        import bpy
-
-        assert hasattr(bpy.types, list_type) and prop in data.bl_rna.properties and active_prop in active_data.bl_rna.properties
-        self.log.append(("list", prop))
-
-
-def test_panel_and_list_draw_the_status(sphere):
+def test_panel_and_list_draw_the_status(sphere, layout_recorder):
     bpy, inst = sphere
     bpy.ops.ssm.landmark_schema_preset(preset="extremal-14")
     bpy.ops.ssm.place_landmarks(ray_origin=(50, -20, 400), ray_direction=(0, 0, -1))
     panel = bpy.types.SSM_PT_landmarks
     assert panel.bl_category == "SSM" and panel.bl_order == 10 and panel.bl_space_type == "VIEW_3D"
     log = []
-    panel.draw(type("P", (), {"layout": _Layout(log)})(), bpy.context)
+    panel.draw(type("P", (), {"layout": layout_recorder(log)})(), bpy.context)
     labels = [x[1] for x in log if x[0] == "label"]
     ops = {x[1] for x in log if x[0] == "operator"}
     assert {"ssm.place_landmarks", "ssm.snap_landmarks", "ssm.import_landmarks", "ssm.export_landmarks", "ssm.propose_landmarks",
@@ -391,7 +357,7 @@ def test_panel_and_list_draw_the_status(sphere):
     assert "Ball: 1 placed, 13 missing" in labels
     lst = bpy.types.SSM_UL_landmark_schema
     s = bpy.context.scene.ssm_landmarks
-    lst.draw_item(None, bpy.context, _Layout(log), s, s.names[0], 0, s, "active_index", 0)
+    lst.draw_item(None, bpy.context, layout_recorder(log), s, s.names[0], 0, s, "active_index", 0)
     assert ("prop", "landmark") in log
 
 

@@ -14,53 +14,18 @@ import pytest
 pytestmark = pytest.mark.blender
 
 
-class _Layout:
-    """A stand-in for UILayout: records labels, asserts props and operators exist."""
-
-    def __init__(self, log):
-        self.log = log
-
-    def __getattr__(self, name):  # row, column, box, split, separator, progress, ...
-        return lambda *a, **k: _Layout(self.log)
-
-    def label(self, text="", **kw):
-        self.log.append(("label", text))
-
-    def prop(self, data, prop, **kw):
-        assert prop in data.bl_rna.properties, f"{type(data).__name__}.{prop}"
-        self.log.append(("prop", prop))
-
-    def operator(self, idname, **kw):
-        import bpy
-
-        group, name = idname.split(".")
-        assert hasattr(getattr(bpy.ops, group), name), idname
-        self.log.append(("operator", idname))
-        return type("Props", (), {})()
-
-    def operator_menu_enum(self, idname, prop, **kw):
-        self.operator(idname)
-
-    def template_list(self, list_type, list_id, data, prop, active_data, active_prop, **kw):
-        import bpy
-
-        assert hasattr(bpy.types, list_type)
-        assert prop in data.bl_rna.properties and active_prop in active_data.bl_rna.properties
-        self.log.append(("list", prop))
-
-
 def _ssm_panels(bpy):
     panels = [getattr(bpy.types, name) for name in dir(bpy.types) if name.startswith("SSM_PT_")]
     return sorted(panels, key=lambda p: getattr(p, "bl_order", 0))
 
 
-def _draw_all_panels(bpy):
+def _draw_all_panels(bpy, layout_recorder):
     log = []
     for panel in _ssm_panels(bpy):
         assert panel.bl_category == "SSM" and panel.bl_space_type == "VIEW_3D"
         if hasattr(panel, "poll") and not panel.poll(bpy.context):
             continue
-        panel.draw(type("P", (), {"layout": _Layout(log)})(), bpy.context)
+        panel.draw(type("P", (), {"layout": layout_recorder(log)})(), bpy.context)
     return log
 
 
@@ -73,12 +38,12 @@ def population(tmp_path_factory):
     return folder
 
 
-def test_workflow_from_import_to_model_through_bpy_ops(bpy_clean, population):
+def test_workflow_from_import_to_model_through_bpy_ops(bpy_clean, population, layout_recorder):
     from ssm_addon import meshutil
 
     bpy = bpy_clean
     assert len(_ssm_panels(bpy)) >= 6
-    _draw_all_panels(bpy)  # an empty scene draws too
+    _draw_all_panels(bpy, layout_recorder)  # an empty scene draws too
 
     volumes = sorted(population.glob("demo_*.nii.gz"))
     instances = []
@@ -129,9 +94,9 @@ def test_workflow_from_import_to_model_through_bpy_ops(bpy_clean, population):
     assert bpy.ops.ssm.reset_modes() == {"FINISHED"}
     assert all(k.value == 0.0 for k in keys[1:])
 
-    log = _draw_all_panels(bpy)  # the model active
+    log = _draw_all_panels(bpy, layout_recorder)  # the model active
     bpy.context.view_layer.objects.active = instances[1]
-    log += _draw_all_panels(bpy)  # an instance active
+    log += _draw_all_panels(bpy, layout_recorder)  # an instance active
     ops = {x[1] for x in log if x[0] == "operator"}
     assert {"ssm.import_segmentation", "ssm.place_landmarks", "ssm.build_template", "ssm.coat_template",
             "ssm.build_model", "ssm.animate_modes", "ssm.save_project"} <= ops  # fmt: skip
