@@ -25,9 +25,8 @@ from . import bridge
 from .instances import instance_object_volume, scene_instances
 from .jobs import BackgroundJob
 from .landmarks import instance_frame, landmark_sets_by_instance
-from .template import find_template
+from .template import TEMPLATE_NAME, find_template
 
-TEMPLATE_NAME = "SSM Template"
 COATED_COLLECTION = "SSM Coated"
 COATED_SUFFIX = " coated"
 

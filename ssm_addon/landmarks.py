@@ -725,7 +725,6 @@ def propose_from_meshes(
     target_mesh_world,
     method: str = "frame",
     spacing_mm: float = 1.0,
-    template_spacing_mm: float = 2.0,
     source: str = "",
     progress=None,
     cancelled=None,
@@ -736,10 +735,12 @@ def propose_from_meshes(
     """Propose landmarks for a target instance given both instances' surface meshes.
 
     What the Blender proposal runs (off the UI thread): ``"frame"`` maps each landmark
-    to the nearest target mesh vertex after object-frame alignment; ``"coating"``
-    voxelizes the target mesh (``spacing_mm``) and resamples it along its object frame
-    (paper 2), takes the source's surface at ``template_spacing_mm`` as the template and
-    coats it onto the target (paper 4), reading the landmarks off the coated mesh.
+    to the nearest target mesh vertex after object-frame alignment; ``"coating"`` coats
+    a template of the source onto the target (paper 4) using only the object frames and
+    reads the landmarks off the coated mesh. The target's volume is ``target_volume`` or
+    its mesh voxelized at ``spacing_mm`` and resampled along its frame (paper 2); the
+    template is ``template`` or one built (paper 3, default parameters) from
+    ``source_volume`` or the voxelized source mesh.
 
     Parameters
     ----------
@@ -752,8 +753,6 @@ def propose_from_meshes(
     method : {"frame", "coating"}
     spacing_mm : float
         Voxel size (mm) for voxelizing a mesh where no volume is given.
-    template_spacing_mm : float
-        Unused; kept for callers of earlier versions.
     source_volume, target_volume : ObjectVolume, optional
         The instances' resampled masks (e.g. the Blender instance cache).
     template : Template-like, optional
