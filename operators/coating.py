@@ -19,6 +19,7 @@ import numpy as np
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty
 
 from ..ssm_addon import coating as core
+from ..ssm_addon import meshutil as mu
 from ..ssm_addon.errors import InputError
 from ..ssm_addon.landmarks import match_landmarks
 from . import bridge
@@ -165,7 +166,7 @@ def _coating_inputs(context, targets_selected_only: bool):
         target_lms.append(instance_frame(obj).to_object(lm.points_world))
     points = bridge.mesh_vertices(tpl.data)
     faces = bridge.mesh_triangles(tpl.data)
-    template = core.CoatingTemplate(points, faces)
+    template = mu.Mesh(points, faces)
     return template, src_lm, targets, target_lms, [o.name for o in instances]
 
 

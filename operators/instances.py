@@ -31,7 +31,11 @@ import numpy as np
 from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
+from ..ssm_addon import frame as FR
+from ..ssm_addon import imageio as IO
+from ..ssm_addon import resample as RS
 from ..ssm_addon import volume as core
+from ..ssm_addon import voxelize as VX
 from ..ssm_addon.errors import InputError, check_cancelled
 from ..ssm_addon.progress import report, sub_progress
 from . import bridge
@@ -41,7 +45,7 @@ from .properties import FRAME_METHODS
 VOXELS_PROP = "ssm_voxels"
 """Custom property of an instance: object voxel count in its input grid."""
 
-FILE_GLOB = ";".join(f"*{ext}" for ext in core.SUPPORTED_EXTENSIONS)
+FILE_GLOB = ";".join(f"*{ext}" for ext in IO.SUPPORTED_EXTENSIONS)
 
 _CACHE: dict[tuple, core.ObjectVolume] = {}
 
@@ -149,7 +153,7 @@ def instance_object_volume(obj, progress=None, cancelled=None) -> core.ObjectVol
         if key in _CACHE:
             return _CACHE[key]
         report(progress, 0.0, f"voxelizing {obj.name}")
-        vol = core.voxelize_mesh(
+        vol = VX.voxelize_mesh(
             verts, faces, spacing, source=obj.name, patient_oriented=method == "patient", cancelled=cancelled
         )
     else:
@@ -161,12 +165,12 @@ def instance_object_volume(obj, progress=None, cancelled=None) -> core.ObjectVol
             return _CACHE[key]
         report(progress, 0.0, f"reading {Path(path).name}")
         if ssm.source_kind == "MESH_FILE":
-            vol = core.load_mesh_volume(path, spacing, patient_oriented=method == "patient", cancelled=cancelled)
+            vol = VX.load_mesh_volume(path, spacing, patient_oriented=method == "patient", cancelled=cancelled)
         else:
-            vol = core.load_volume(path, label)
+            vol = IO.load_volume(path, label)
     check_cancelled(cancelled)
     frame = _frame_for(obj, vol, method)
-    ov = core.resample(vol, frame, spacing, progress=sub_progress(progress, 0.3, 1.0), cancelled=cancelled)
+    ov = RS.resample(vol, frame, spacing, progress=sub_progress(progress, 0.3, 1.0), cancelled=cancelled)
     _CACHE[key] = ov
     return ov
 
@@ -177,7 +181,7 @@ def _frame_for(obj, vol: core.Volume, method: str) -> core.ObjectFrame:
     The stored frame wins when they differ (e.g. the source changed since import), so
     landmarks placed in the instance's object frame stay valid.
     """
-    computed = core.object_frame(vol, method)
+    computed = FR.object_frame(vol, method)
     stored = stored_frame(obj)
     if stored is None:
         return computed
@@ -188,7 +192,7 @@ def _frame_for(obj, vol: core.Volume, method: str) -> core.ObjectFrame:
 
 
 def _instance_name(path: str, label: int | None, n_labels: int) -> str:
-    stem = core.file_stem(path)
+    stem = IO.file_stem(path)
     return stem if label is None else f"{stem} L{label}"
 
 
@@ -251,7 +255,7 @@ class SSM_OT_import_segmentation(BackgroundJob, bpy.types.Operator, ImportHelper
             found = sorted(
                 os.path.join(self.directory, n)
                 for n in os.listdir(self.directory)
-                if core.file_extension(n) in core.SUPPORTED_EXTENSIONS
+                if IO.file_extension(n) in IO.SUPPORTED_EXTENSIONS
             )
             if found:
                 return found
@@ -267,21 +271,21 @@ class SSM_OT_import_segmentation(BackgroundJob, bpy.types.Operator, ImportHelper
             for n, path in enumerate(paths):
                 prog = sub_progress(progress, n / len(paths), (n + 1) / len(paths), f"{Path(path).name}: ")
                 report(prog, 0.0, "reading")
-                if core.is_mesh_file(path):
-                    vols = [core.load_mesh_volume(path, spacing, patient_oriented=method == "PATIENT")]
+                if IO.is_mesh_file(path):
+                    vols = [VX.load_mesh_volume(path, spacing, patient_oriented=method == "PATIENT")]
                     kind = "MESH_FILE"
                 else:
-                    lm = core.read_label_map(path)
-                    labels = sorted(core.label_counts(lm)) if split else [label]
+                    lm = IO.read_label_map(path)
+                    labels = sorted(IO.label_counts(lm)) if split else [label]
                     if not labels:
                         raise InputError(f"{path}: empty mask: the label map has no non-zero voxels")
-                    vols = [core.select_label(lm, lab) for lab in labels]
+                    vols = [IO.select_label(lm, lab) for lab in labels]
                     kind = "VOLUME"
                 for k, vol in enumerate(vols):
                     check_cancelled(cancelled)
                     report(prog, (k + 0.2) / len(vols), f"label {vol.label}: object frame")
-                    frame = core.object_frame(vol, method.lower())
-                    ov = core.resample(vol, frame, spacing, cancelled=cancelled)
+                    frame = FR.object_frame(vol, method.lower())
+                    ov = RS.resample(vol, frame, spacing, cancelled=cancelled)
                     report(prog, (k + 0.7) / len(vols), f"label {vol.label}: surface")
                     verts_world, faces = core.display_surface(vol)
                     items.append(
@@ -391,11 +395,11 @@ class SSM_OT_add_mesh_instances(BackgroundJob, bpy.types.Operator):
             out = []
             for n, (name, verts, faces) in enumerate(data):
                 report(progress, n / len(data), f"voxelizing {name}")
-                vol = core.voxelize_mesh(
+                vol = VX.voxelize_mesh(
                     verts, faces, spacing, source=name, patient_oriented=patient, cancelled=cancelled
                 )
-                frame = core.object_frame(vol, method)
-                ov = core.resample(vol, frame, spacing, cancelled=cancelled)
+                frame = FR.object_frame(vol, method)
+                ov = RS.resample(vol, frame, spacing, cancelled=cancelled)
                 out.append((name, vol, frame, ov, verts, faces))
             report(progress, 1.0, "done")
             return out

@@ -29,6 +29,8 @@ from bpy_extras.io_utils import ExportHelper, ImportHelper
 from mathutils import Vector
 
 from ..ssm_addon import landmarks as core
+from ..ssm_addon import meshutil as mu
+from ..ssm_addon import proposal as PR
 from ..ssm_addon import volume as vol
 from ..ssm_addon.errors import InputError, SSMError
 from . import bridge
@@ -684,10 +686,10 @@ class SSM_OT_propose_landmarks(BackgroundJob, bpy.types.Operator):
                     self.report({"INFO"}, f"{obj.name}: {err}; using its mesh")
             tpl = find_template(context)
             if tpl is not None and tpl.ssm.instance == src:
-                volumes["template"] = core.SurfaceMesh(bridge.mesh_vertices(tpl.data), bridge.mesh_triangles(tpl.data))
+                volumes["template"] = mu.Mesh(bridge.mesh_vertices(tpl.data), bridge.mesh_triangles(tpl.data))
 
         def work(progress, cancelled):
-            return core.propose_from_meshes(
+            return PR.propose_from_meshes(
                 subset, frames[0], meshes[0], frames[1], meshes[1], method=method, spacing_mm=spacing,
                 source=target.name, progress=progress, cancelled=cancelled, **volumes,
             )  # fmt: skip

@@ -1,4 +1,4 @@
-"""``python -m ssm_addon``: the headless command line (also ``blender -b --command ssm …``).
+"""``ssm`` / ``python -m ssm_addon``: the headless command line (also ``blender -b --command ssm …``).
 
 Subcommands
 -----------
@@ -22,7 +22,7 @@ import sys
 import time
 from pathlib import Path
 
-from .errors import Cancelled, SSMError
+from .errors import Cancelled, InputError, SSMError
 
 EXIT_INPUT = 2
 EXIT_CANCELLED = 130
@@ -39,19 +39,13 @@ def _print_progress():
     return progress
 
 
-def _template_param_fields():
-    try:
-        from .project import params_schema
-        from .template import TemplateParams
-    except ImportError:  # the template stage is missing: no options
-        return None, {}
-    return TemplateParams, params_schema(TemplateParams)
-
-
 def _parser() -> argparse.ArgumentParser:
+    from . import params as P
+
     parser = argparse.ArgumentParser(
-        prog="python -m ssm_addon",
-        description="SSM Builder: point-based 3D statistical shape models from segmented volumes (headless).",
+        prog="ssm",
+        description="SSM Builder: point-based 3D statistical shape models from segmented volumes (headless). "
+                    "Also runs as `python -m ssm_addon` and `blender -b --command ssm`.",
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="{info,template,build,demo}")
 
@@ -61,25 +55,18 @@ def _parser() -> argparse.ArgumentParser:
     p = sub.add_parser("template", help="build a template from one object (paper 3) and write it as PLY")
     p.add_argument("volume", help="label map or closed mesh (STL/PLY/OBJ)")
     p.add_argument("--label", type=int, default=None, help="label to use (default: all non-zero voxels)")
-    p.add_argument("--spacing", type=float, default=1.0, help="isotropic resampling spacing in mm (default 1.0)")
-    p.add_argument("--frame", choices=("auto", "patient", "moments"), default="auto", help="object frame method")
     p.add_argument("--out", required=True, help="output PLY (vertices in world mm)")
-    _, schema = _template_param_fields()
-    group = p.add_argument_group("template parameters (TemplateParams; lengths in mm)")
-    for name, kind in schema.items():
-        if name == "spacing_mm":  # that is --spacing
-            continue
-        flag = "--" + name.replace("_", "-")
-        if kind == "bool":
-            group.add_argument(flag, dest=f"tp_{name}", action=argparse.BooleanOptionalAction, default=None)
-        elif kind in ("int", "float", "str"):
-            group.add_argument(flag, dest=f"tp_{name}", type={"int": int, "float": float, "str": str}[kind], default=None)
+    P.add_arguments(p.add_argument_group("template parameters ([template] of a project; lengths in mm)"),
+                    P.TemplateParams)
 
     p = sub.add_parser("build", help="build a shape model from a project file")
     p.add_argument("project", help="project file (TOML)")
     p.add_argument("--out", required=True, help="output folder (written atomically)")
     p.add_argument("--jobs", type=int, default=1, help="parallel workers for the per-instance work (default 1)")
     p.add_argument("--no-blend", action="store_true", help="do not write model.blend / modes.png even if bpy is available")
+    for section, cls in P.TABLES.items():
+        P.add_arguments(p.add_argument_group(f"[{section}] overrides (the project file's values otherwise)"), cls,
+                        prefix=section)
 
     p = sub.add_parser("demo", help="generate the synthetic demo population and build its model")
     p.add_argument("--out", required=True, help="output folder: population in OUT/population, model in OUT/model")
@@ -92,18 +79,19 @@ def _parser() -> argparse.ArgumentParser:
 
 def cmd_info(args) -> int:
     import numpy as np
+    from nibabel.affines import voxel_sizes
 
-    from . import volume as vol
+    from . import imageio
 
-    lm = vol.read_label_map(args.volume)
-    spacing = np.linalg.norm(lm.affine[:3, :3], axis=0)
+    lm = imageio.read_label_map(args.volume)
+    spacing = voxel_sizes(lm.affine)
     print(f"file:    {lm.path}")
     print(f"shape:   {' x '.join(str(s) for s in lm.labels.shape)} voxels")
     print(f"spacing: {' x '.join(f'{s:g}' for s in spacing)} mm")
     print("affine (voxel -> world RAS mm):")
     for row in lm.affine:
         print("   " + " ".join(f"{v:10.4f}" for v in row))
-    counts = vol.label_counts(lm)
+    counts = imageio.label_counts(lm)
     voxel_mm3 = float(abs(np.linalg.det(lm.affine[:3, :3])))
     print(f"labels:  {len(counts)} (background 0 not listed)")
     for label, count in counts.items():
@@ -112,25 +100,21 @@ def cmd_info(args) -> int:
 
 
 def cmd_template(args) -> int:
-    from . import volume as vol
+    from . import params as P
+    from .instances import load_object
     from .meshutil import euler_characteristic, genus, write_ply
     from .template import build_template
 
-    TemplateParams, schema = _template_param_fields()
-    options = {name: getattr(args, f"tp_{name}") for name in schema if getattr(args, f"tp_{name}", None) is not None}
-    if "spacing_mm" in schema:
-        options["spacing_mm"] = args.spacing
-    try:
-        params = TemplateParams(**options)
-    except (TypeError, ValueError) as err:
-        raise SSMError(f"template parameters: {err}") from None
+    params = P.from_arguments(args, P.TemplateParams)
     progress = _print_progress()
     t0 = time.perf_counter()
-    ov = vol.load_object(args.volume, label=args.label, spacing_mm=args.spacing, frame_method=args.frame,
-                         progress=progress)
+    ov = load_object(args.volume, label=args.label, spacing_mm=params.spacing_mm, frame_method=params.frame,
+                     progress=progress)
     template = build_template(ov, params, progress=progress)
     n_v, faces = len(template.points_object), template.faces
     out = Path(args.out)
+    if out.is_dir():
+        raise InputError(f"{out}: --out is a folder; give the PLY file to write, e.g. {out / 'template.ply'}")
     out.parent.mkdir(parents=True, exist_ok=True)
     write_ply(out, template.points_world, faces)
     print(f"vertices: {n_v}")
@@ -141,13 +125,30 @@ def cmd_template(args) -> int:
     return 0
 
 
-def _run_build(project_path, out, jobs: int, blend: bool, in_blender: bool) -> int:
+def _with_overrides(project, args):
+    """The project with the parameters given on the command line (``--coating-k1 0.3``)."""
+    import dataclasses
+
+    from . import params as P
+
+    if args is None:
+        return project
+    changes = {}
+    for section, cls in P.TABLES.items():
+        current = getattr(project, section)
+        updated = P.from_arguments(args, cls, prefix=section, base=current)
+        if updated != current:
+            changes[section] = updated
+    return dataclasses.replace(project, **changes) if changes else project
+
+
+def _run_build(project_path, out, jobs: int, blend: bool, in_blender: bool, args=None) -> int:
     from . import _blender
     from .project import build, read_project
 
-    project = read_project(project_path)
+    project = _with_overrides(read_project(project_path), args)
     hook = None
-    if blend and project.output_options.get("blend", True) and (in_blender or _blender.bpy_available()):
+    if blend and project.output.blend and (in_blender or _blender.bpy_available()):
         hook = _blender.write_blend_outputs
     elif blend and not in_blender:
         print("bpy is not importable: skipping model.blend and modes.png (pip install bpy==5.0.1)", flush=True)
@@ -169,7 +170,7 @@ def _run_build(project_path, out, jobs: int, blend: bool, in_blender: bool) -> i
 
 
 def cmd_build(args, in_blender: bool) -> int:
-    return _run_build(args.project, args.out, args.jobs, not args.no_blend, in_blender)
+    return _run_build(args.project, args.out, args.jobs, not args.no_blend, in_blender, args)
 
 
 def cmd_demo(args, in_blender: bool) -> int:

@@ -1,10 +1,10 @@
-"""Landmark sets, their file formats, matching by name, and landmark proposal (paper 4.1).
+"""Landmark sets, their file formats and matching by name (paper 4.1).
 
 The coating of paper section 4 is guided by a small set of corresponding landmarks
 (the paper used 15 per vertebra): pairs (P_i^s, P_i^d) on the template and on each
 instance, from which the landmark warp of eq. (2) is computed. This module reads and
-writes such sets, puts them into one common order (the *schema*), and proposes a set
-for a new instance from a landmarked one.
+writes such sets and puts them into one common order (the *schema*); proposing a set
+for a new instance is :mod:`ssm_addon.proposal`.
 
 Frames and units
 ----------------
@@ -12,7 +12,6 @@ Frames and units
   file, as in :mod:`ssm_addon.volume`);
 * 3D Slicer files may be stored in LPS (``CoordinateSystem = LPS`` / ``"coordinateSystem":
   "LPS"``): x and y are negated on read and on write;
-* the proposal works in *object* mm (the object frame of paper section 2).
 
 File formats (chosen by extension)
 ----------------------------------
@@ -42,16 +41,11 @@ from .errors import InputError
 
 __all__ = [
     "LANDMARK_PRESETS",
-    "PROPOSAL_METHODS",
     "LandmarkSet",
     "landmark_format",
     "match_landmarks",
     "order_by_schema",
-    "propose_from_meshes",
-    "propose_landmarks",
     "read_landmarks",
-    "surface_points_object",
-    "transfer_landmarks",
     "write_landmarks",
 ]
 
@@ -575,230 +569,3 @@ def order_by_schema(landmarks: LandmarkSet, names, allow_missing: bool = True, a
     if parts:
         raise InputError(f"{landmarks.source or 'landmark set'}: {'; '.join(parts)}")
     return landmarks.subset([n for n in names if n in have] + unknown)
-
-
-# --------------------------------------------------------------------------------------
-# proposal
-
-
-def surface_points_object(object_volume) -> np.ndarray:
-    """(M, 3) points on the 0.5 iso-surface of an ObjectVolume's mask, object mm.
-
-    Marching cubes (scikit-image) on the padded mask; the vertices lie on voxel edges
-    where the linearly interpolated mask is 0.5, i.e. on the object's surface.
-    """
-    from skimage.measure import marching_cubes
-
-    mask = np.pad(np.asarray(object_volume.mask, dtype=np.float32), 1)
-    if mask.max() <= 0.5:
-        raise InputError(f"{object_volume.source or 'object volume'}: empty mask, no surface to propose onto")
-    verts, _, _, _ = marching_cubes(mask, level=0.5)
-    return object_volume.voxel_to_object(verts - 1.0)
-
-
-def _propose_by_frame(source_points_object, target_points_object):
-    from scipy.spatial import cKDTree
-
-    _, idx = cKDTree(target_points_object).query(source_points_object)
-    return target_points_object[idx]
-
-
-PROPOSAL_METHODS = {"frame": "nearest target surface point after object-frame alignment", "coating": "coating.propose_landmarks_by_coating"}
-"""Proposal methods of :func:`propose_landmarks` (the ``method`` hook)."""
-
-
-def propose_landmarks(source_points_object, target, method: str = "frame", **options) -> np.ndarray:
-    """Propose landmarks on a target instance from a landmarked source instance.
-
-    Both instances are expressed in their own object frames (paper section 2: centre
-    of mass, second-moment axes), which aligns them as in the paper's fig. 8 (left);
-    each source landmark is then mapped to the nearest surface point of the target, so
-    the user only corrects the proposal.
-
-    Parameters
-    ----------
-    source_points_object : (L, 3) array
-        Source landmarks in the source's object frame, mm.
-    target : (M, 3) array or ObjectVolume
-        Target surface points in the target's object frame (mm), e.g. the target mesh's
-        vertices, or the target's ObjectVolume (its 0.5 iso-surface is used).
-    method : str
-        ``"frame"`` (this function: nearest surface point after frame alignment) or
-        ``"coating"``: a better proposal by coating (paper section 4): a triangulated
-        surface of the source, ``source_template`` (anything with ``points_object``
-        (N, 3) and ``faces`` (F, 3) in the source's object frame, e.g. a Template or the
-        source's mesh), is projected onto the target and relaxed, and each landmark is
-        read off the coated mesh at its barycentric place
-        (``ssm_addon.coating.propose_landmarks_by_coating``); ``target`` must then be
-        the target's ObjectVolume.
-    **options
-        Passed on to the chosen method (``"coating"``: ``source_template`` (required),
-        ``params``, ``progress``, ``cancelled``).
-
-    Returns
-    -------
-    (L, 3) float ndarray
-        Proposed landmarks on the target's surface, target object frame, mm (row i is
-        the proposal for source landmark i).
-    """
-    src = np.asarray(source_points_object, dtype=float).reshape(-1, 3)
-    if len(src) == 0:
-        raise InputError("landmark proposal: the source instance has no landmarks")
-    if method == "coating":
-        try:
-            from . import coating
-        except ImportError:
-            coating = None
-        func = getattr(coating, "propose_landmarks_by_coating", None)
-        if func is None:
-            raise InputError("landmark proposal: method 'coating' is not available (ssm_addon.coating has no propose_landmarks_by_coating)")
-        template = options.pop("source_template", None)
-        if template is None:
-            raise InputError("landmark proposal: method 'coating' needs source_template (the source's surface: points_object, faces)")
-        if not (hasattr(target, "mask") and hasattr(target, "voxel_to_object")):
-            raise InputError("landmark proposal: method 'coating' needs the target's ObjectVolume")
-        return np.asarray(func(template, src, target, **options), dtype=float).reshape(-1, 3)
-    if method != "frame":
-        raise InputError(f"landmark proposal: unknown method {method!r} (choose from {', '.join(PROPOSAL_METHODS)})")
-    if options:
-        raise InputError(f"landmark proposal: method 'frame' takes no options, got {', '.join(options)}")
-    if hasattr(target, "mask") and hasattr(target, "voxel_to_object"):
-        target_points = surface_points_object(target)
-    else:
-        target_points = np.asarray(target, dtype=float).reshape(-1, 3)
-    if len(target_points) == 0:
-        raise InputError("landmark proposal: the target has no surface points")
-    return _propose_by_frame(src, target_points)
-
-
-def transfer_landmarks(
-    landmarks: LandmarkSet,
-    source_frame,
-    target_frame,
-    target_surface_world,
-    method: str = "frame",
-    source: str = "",
-    **options,
-) -> LandmarkSet:
-    """Propose a landmark set for a target instance in world mm (see :func:`propose_landmarks`).
-
-    Parameters
-    ----------
-    landmarks : LandmarkSet
-        The source instance's landmarks, world mm.
-    source_frame, target_frame : ObjectFrame
-        Object frames (paper section 2) of the source and target instances.
-    target_surface_world : (M, 3) array or ObjectVolume
-        Target surface points in world mm (e.g. mesh vertices), or its ObjectVolume.
-    method : str
-        Proposal method (``"frame"`` or ``"coating"``).
-    source : str
-        ``source`` of the returned set (for messages).
-
-    Returns
-    -------
-    LandmarkSet
-        Same names, proposed positions in the target's world mm.
-    """
-    src_obj = source_frame.to_object(landmarks.points_world)
-    if hasattr(target_surface_world, "mask"):
-        target = target_surface_world
-    else:
-        target = target_frame.to_object(np.asarray(target_surface_world, float).reshape(-1, 3))
-    proposed = propose_landmarks(src_obj, target, method=method, **options)
-    return LandmarkSet(landmarks.names, target_frame.to_world(proposed), source)
-
-
-@dataclass(frozen=True)
-class SurfaceMesh:
-    """A triangulated surface in an object frame: ``points_object`` (N, 3) mm, ``faces`` (F, 3)."""
-
-    points_object: np.ndarray
-    faces: np.ndarray
-
-
-def propose_from_meshes(
-    landmarks: LandmarkSet,
-    source_frame,
-    source_mesh_world,
-    target_frame,
-    target_mesh_world,
-    method: str = "frame",
-    spacing_mm: float = 1.0,
-    source: str = "",
-    progress=None,
-    cancelled=None,
-    source_volume=None,
-    target_volume=None,
-    template=None,
-) -> LandmarkSet:
-    """Propose landmarks for a target instance given both instances' surface meshes.
-
-    What the Blender proposal runs (off the UI thread): ``"frame"`` maps each landmark
-    to the nearest target mesh vertex after object-frame alignment; ``"coating"`` coats
-    a template of the source onto the target (paper 4) using only the object frames and
-    reads the landmarks off the coated mesh. The target's volume is ``target_volume`` or
-    its mesh voxelized at ``spacing_mm`` and resampled along its frame (paper 2); the
-    template is ``template`` or one built (paper 3, default parameters) from
-    ``source_volume`` or the voxelized source mesh.
-
-    Parameters
-    ----------
-    landmarks : LandmarkSet
-        Source landmarks, world mm.
-    source_frame, target_frame : ObjectFrame
-        The instances' object frames.
-    source_mesh_world, target_mesh_world : tuple of ((V, 3) world mm vertices, (F, 3) faces)
-        Closed surface meshes of the instances.
-    method : {"frame", "coating"}
-    spacing_mm : float
-        Voxel size (mm) for voxelizing a mesh where no volume is given.
-    source_volume, target_volume : ObjectVolume, optional
-        The instances' resampled masks (e.g. the Blender instance cache).
-    template : Template-like, optional
-        ``points_object`` (source object frame, mm) and ``faces``.
-    source : str
-        ``source`` of the result.
-    progress, cancelled : callables, optional
-
-    Returns
-    -------
-    LandmarkSet
-        Same names, on the target's surface, world mm.
-    """
-    from . import volume as vol
-    from .errors import check_cancelled
-
-    tv, tf = (np.asarray(a) for a in target_mesh_world)
-    if method != "coating":
-        return transfer_landmarks(landmarks, source_frame, target_frame, tv, method=method, source=source)
-    report = progress or (lambda f, m: None)
-    sv, sf = (np.asarray(a) for a in source_mesh_world)
-    if target_volume is None:
-        report(0.0, "voxelizing the target")
-        target_volume = vol.resample(
-            vol.voxelize_mesh(tv, tf, spacing_mm, source=source, cancelled=cancelled), target_frame, spacing_mm,
-            cancelled=cancelled,
-        )
-    check_cancelled(cancelled)
-    if template is None:
-        from .template import TemplateParams, build_template
-
-        if source_volume is None:
-            report(0.05, "voxelizing the source")
-            source_volume = vol.resample(
-                vol.voxelize_mesh(sv, sf, spacing_mm, cancelled=cancelled), source_frame, spacing_mm, cancelled=cancelled
-            )
-        report(0.1, "template of the source")
-        template = build_template(source_volume, TemplateParams(spacing_mm=source_volume.spacing_mm), cancelled=cancelled)
-    target_ov, surface = target_volume, template
-    check_cancelled(cancelled)
-
-    def sub(fraction, message):
-        report(0.2 + 0.8 * fraction, message)
-
-    proposed = propose_landmarks(
-        source_frame.to_object(landmarks.points_world), target_ov, method="coating", source_template=surface, progress=sub, cancelled=cancelled
-    )
-    report(1.0, "done")
-    return LandmarkSet(landmarks.names, target_frame.to_world(proposed), source)

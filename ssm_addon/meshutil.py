@@ -9,17 +9,31 @@ usually mm) and ``faces (F, 3)`` integer arrays of vertex indices. A face
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components as _cc
+from scipy.spatial import cKDTree
 
 from .errors import InputError
 
 __all__ = [
     "ManifoldReport",
+    "Mesh",
+    "MeshLocation",
+    "MeshLocator",
+    "closest_points_on_triangles",
+    "face_centroids",
+    "locate_on_mesh",
+    "marching_cubes",
+    "MESH_EXTENSIONS",
+    "read_mesh",
+    "mesh_area",
+    "triangle_quality",
     "connected_components",
     "edges",
     "euler_characteristic",
@@ -303,6 +317,254 @@ def vertex_normals(vertices, faces) -> np.ndarray:
     return out / np.where(ln > 0, ln, 1.0)
 
 
+# ------------------------------------------------------------ points on meshes
+def mesh_area(points: np.ndarray, faces: np.ndarray) -> float:
+    v = points[faces]
+    return 0.5 * float(np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1).sum())
+
+
+def triangle_quality(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F,) normalised shape quality 4√3·area / Σ edge² (1 = equilateral, 0 = degenerate)."""
+    v = points[faces]
+    area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    l2 = ((v[:, 1] - v[:, 0]) ** 2).sum(1) + ((v[:, 2] - v[:, 1]) ** 2).sum(1) + ((v[:, 0] - v[:, 2]) ** 2).sum(1)
+    return np.divide(4.0 * math.sqrt(3.0) * area, l2, out=np.zeros_like(area), where=l2 > 0)
+
+
+def closest_points_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray):
+    """Closest points of triangles (a, b, c) to points p, all (M, 3), vectorised.
+
+    Returns
+    -------
+    closest : (M, 3) closest points; bary : (M, 3) their barycentric coordinates.
+    (Region tests as in Ericson, Real-Time Collision Detection, 5.1.5.)
+    """
+    ab, ac, ap = b - a, c - a, p - a
+    d1 = np.einsum("ij,ij->i", ab, ap)
+    d2 = np.einsum("ij,ij->i", ac, ap)
+    bp = p - b
+    d3 = np.einsum("ij,ij->i", ab, bp)
+    d4 = np.einsum("ij,ij->i", ac, bp)
+    cp = p - c
+    d5 = np.einsum("ij,ij->i", ab, cp)
+    d6 = np.einsum("ij,ij->i", ac, cp)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    m = len(p)
+    bary = np.empty((m, 3))
+    done = np.zeros(m, dtype=bool)
+
+    def put(mask, u, v, w):
+        nonlocal done
+        mask = mask & ~done
+        bary[mask, 0] = u[mask] if np.ndim(u) else u
+        bary[mask, 1] = v[mask] if np.ndim(v) else v
+        bary[mask, 2] = w[mask] if np.ndim(w) else w
+        done |= mask
+
+    with np.errstate(divide="ignore", invalid="ignore"):
+        put((d1 <= 0) & (d2 <= 0), 1.0, 0.0, 0.0)
+        put((d3 >= 0) & (d4 <= d3), 0.0, 1.0, 0.0)
+        t = d1 / (d1 - d3)
+        put((vc <= 0) & (d1 >= 0) & (d3 <= 0), 1.0 - t, t, 0.0)
+        put((d6 >= 0) & (d5 <= d6), 0.0, 0.0, 1.0)
+        t = d2 / (d2 - d6)
+        put((vb <= 0) & (d2 >= 0) & (d6 <= 0), 1.0 - t, 0.0, t)
+        t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        put((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), 0.0, 1.0 - t, t)
+        denom = va + vb + vc
+        v = vb / denom
+        w = vc / denom
+        put(np.ones(m, dtype=bool), 1.0 - v - w, v, w)
+    bad = ~np.all(np.isfinite(bary), axis=1)
+    if np.any(bad):  # degenerate triangles: nearest corner
+        corners = np.stack([a[bad], b[bad], c[bad]], axis=1)
+        k = np.argmin(((corners - p[bad, None, :]) ** 2).sum(-1), axis=1)
+        bary[bad] = np.eye(3)[k]
+    closest = bary[:, :1] * a + bary[:, 1:2] * b + bary[:, 2:] * c
+    return closest, bary
+
+
+def face_centroids(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F, 3) triangle centroids; the same values as ``points[faces].mean(axis=1)``
+    ((a + b) + c, / 3), without its slow reduction over the middle axis (6x)."""
+    c = points[faces[:, 0]] + points[faces[:, 1]]
+    c += points[faces[:, 2]]
+    c /= 3.0
+    return c
+
+
+class MeshLocator:
+    """Nearest points on a triangle mesh: exact distances to the k triangles whose centroids
+    are nearest (marching-cubes triangles are small and alike, so k = 6 already agrees with
+    an all-triangle search to ~0.005 voxel; k = 12 for fit figures)."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+        self.vertices = np.asarray(vertices, float)
+        self.faces = np.asarray(faces, np.int64)
+        self.tree = cKDTree(face_centroids(self.vertices, self.faces))
+
+    def query(self, points: np.ndarray, k: int = 6, chunk: int = 16384):
+        """Closest mesh points: (closest (M,3), distance (M,), triangle (M,), bary (M,3))."""
+        p = np.asarray(points, float).reshape(-1, 3)
+        k = int(min(k, len(self.faces)))
+        m = len(p)
+        out_c = np.empty((m, 3))
+        out_d = np.empty(m)
+        out_t = np.empty(m, dtype=np.int64)
+        out_b = np.empty((m, 3))
+        for s in range(0, m, chunk):
+            q = p[s : s + chunk]
+            _, idx = self.tree.query(q, k=k)
+            tri = idx.reshape(len(q), k).ravel()
+            f = self.faces[tri]
+            qq = np.repeat(q, k, axis=0)
+            cl, bary = closest_points_on_triangles(qq, self.vertices[f[:, 0]], self.vertices[f[:, 1]], self.vertices[f[:, 2]])
+            d2 = ((cl - qq) ** 2).sum(1).reshape(len(q), k)
+            pick = np.arange(len(q)) * k + np.argmin(d2, axis=1)
+            out_c[s : s + len(q)] = cl[pick]
+            out_d[s : s + len(q)] = np.sqrt(d2.ravel()[pick])
+            out_t[s : s + len(q)] = tri[pick]
+            out_b[s : s + len(q)] = bary[pick]
+        return out_c, out_d, out_t, out_b
+
+
+@dataclass(frozen=True)
+class MeshLocation:
+    """Points expressed on a triangle mesh: triangle index + barycentric coordinates."""
+
+    triangles: np.ndarray
+    bary: np.ndarray
+
+    def evaluate(self, points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+        """(L, 3) positions of the located points on a mesh with the same topology."""
+        f = np.asarray(faces)[self.triangles]
+        pts = np.asarray(points, float)
+        return np.einsum("lk,lkj->lj", self.bary, pts[f])
+
+
+def locate_on_mesh(points_on: np.ndarray, faces: np.ndarray, query: np.ndarray) -> MeshLocation:
+    """Express (L, 3) query points as their nearest points on a mesh (exact, all triangles)."""
+    v = np.asarray(points_on, float)
+    f = np.asarray(faces, np.int64)
+    q = np.asarray(query, float).reshape(-1, 3)
+    tris = np.empty(len(q), dtype=np.int64)
+    bary = np.empty((len(q), 3))
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    for i, x in enumerate(q):  # L landmarks (~15): a loop over landmarks, vectorised over triangles
+        cl, bc = closest_points_on_triangles(np.broadcast_to(x, a.shape), a, b, c)
+        j = int(np.argmin(((cl - x) ** 2).sum(1)))
+        tris[i], bary[i] = j, bc[j]
+    return MeshLocation(tris, bary)
+
+
+# ------------------------------------------------------------------ the mesh type
+@dataclass(frozen=True)
+class Mesh:
+    """A triangle mesh: ``vertices`` (V, 3) (mm, in the frame the owner names) and
+    ``faces`` (F, 3) int, counter-clockwise seen from outside.
+
+    Derived arrays are computed once and cached (the mesh is immutable).
+
+    Examples
+    --------
+    >>> tet = Mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float),
+    ...            np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]))
+    >>> len(tet.edges), tet.genus, round(tet.volume, 4)
+    (6, 0, 0.1667)
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+
+    def __post_init__(self):
+        v = np.asarray(self.vertices, dtype=float)
+        if v.ndim != 2 or v.shape[1:] != (3,):
+            raise InputError(f"mesh: vertices must be a (V, 3) array, got shape {v.shape}")
+        f = _faces(self.faces)
+        if len(f) and (f.min() < 0 or f.max() >= len(v)):
+            raise InputError(f"mesh: faces index vertices outside 0..{len(v) - 1}")
+        object.__setattr__(self, "vertices", v)
+        object.__setattr__(self, "faces", f)
+
+    @cached_property
+    def edges(self) -> np.ndarray:
+        """(E, 2) unique undirected edges (see :func:`edges`)."""
+        return edges(self.faces)
+
+    @cached_property
+    def face_normals(self) -> np.ndarray:
+        """(F, 3) unit face normals."""
+        return face_normals(self.vertices, self.faces)
+
+    @cached_property
+    def vertex_normals(self) -> np.ndarray:
+        """(V, 3) unit area-weighted vertex normals."""
+        return vertex_normals(self.vertices, self.faces)
+
+    @cached_property
+    def area(self) -> float:
+        """Surface area (unit²)."""
+        return mesh_area(self.vertices, self.faces)
+
+    @cached_property
+    def volume(self) -> float:
+        """Signed enclosed volume (unit³; positive when outward)."""
+        return signed_volume(self.vertices, self.faces)
+
+    @cached_property
+    def genus(self) -> int:
+        """Genus of a closed connected mesh."""
+        return int(genus(len(self.vertices), self.faces))
+
+    @cached_property
+    def locator(self) -> MeshLocator:
+        """Nearest-point queries on the triangles."""
+        return MeshLocator(self.vertices, self.faces)
+
+
+# ------------------------------------------------------------------ marching cubes
+def marching_cubes(mask, *, level: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """The surface of a binary mask: marching cubes at ``level``, faces outward.
+
+    The one marching-cubes call of the package (scikit-image): the mask is cropped to
+    its bounding box and padded by one background voxel, so objects touching the array
+    border are closed.
+
+    Parameters
+    ----------
+    mask : (I, J, K) bool ndarray
+
+    Returns
+    -------
+    vertices : (V, 3) float ndarray
+        Voxel coordinates (indices of ``mask``; vertices lie on voxel edges).
+    faces : (F, 3) int64 ndarray
+        Counter-clockwise seen from outside (positive :func:`signed_volume`).
+
+    Raises
+    ------
+    InputError
+        The mask is empty.
+    """
+    from skimage.measure import marching_cubes as _skimage_marching_cubes
+
+    m = np.asarray(mask, dtype=bool)
+    occupied = [np.flatnonzero(m.any(axis=tuple(a for a in range(3) if a != d))) for d in range(3)]
+    if any(o.size == 0 for o in occupied):
+        raise InputError("marching cubes: the mask is empty")
+    lo = np.array([o[0] for o in occupied])
+    hi = np.array([o[-1] for o in occupied]) + 1
+    sub = m[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
+    verts, faces, _, _ = _skimage_marching_cubes(np.pad(sub, 1).astype(np.float32), level=level)
+    verts = verts.astype(np.float64) - 1.0 + lo
+    faces = faces.astype(np.int64)
+    if signed_volume(verts, faces) < 0:
+        faces = faces[:, ::-1].copy()
+    return verts, faces
+
+
 # --------------------------------------------------------------------------- PLY I/O
 def write_ply(path, vertices, faces, vertex_scalars: dict | None = None, binary: bool = True) -> None:
     """Write a triangle mesh as PLY.
@@ -526,3 +788,100 @@ def _fan(polys) -> np.ndarray:
         polys = polys.tolist()
     tris = [(p[0], p[i], p[i + 1]) for p in polys for i in range(1, len(p) - 1)]
     return np.asarray(tris, dtype=np.int64).reshape(-1, 3)
+
+
+# --------------------------------------------------------------------------- mesh files
+MESH_EXTENSIONS = (".stl", ".ply", ".obj")
+
+
+def _merge_vertices(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(3F, 3) triangle corners -> unique vertices and (F, 3) faces (exact duplicates merged)."""
+    vertices, inverse = np.unique(corners, axis=0, return_inverse=True)
+    return vertices.astype(np.float64), inverse.reshape(-1, 3).astype(np.int64)
+
+
+def _read_stl(path: Path):
+    raw = path.read_bytes()
+    if len(raw) >= 84:
+        n = int(np.frombuffer(raw, dtype="<u4", count=1, offset=80)[0])
+        if len(raw) == 84 + 50 * n:
+            rec = np.dtype([("normal", "<f4", 3), ("v", "<f4", (3, 3)), ("attr", "<u2")])
+            tri = np.frombuffer(raw, dtype=rec, count=n, offset=84)["v"]
+            return _merge_vertices(tri.reshape(-1, 3))
+    head = raw[:512].lstrip().lower()
+    if not head.startswith(b"solid"):
+        raise InputError(f"{path}: not an STL file (binary size mismatch and no ASCII 'solid' header); truncated?")
+    import re
+
+    text = raw.decode("latin-1")
+    num = r"([-+0-9.eEinfINFnaN]+)"
+    coords = re.findall(rf"vertex\s+{num}\s+{num}\s+{num}", text)
+    if len(coords) == 0 or len(coords) % 3:
+        raise InputError(f"{path}: corrupt ASCII STL: {len(coords)} vertices is not a multiple of 3")
+    if text.count("endfacet") * 3 != len(coords):
+        raise InputError(f"{path}: corrupt or truncated ASCII STL (facet/vertex count mismatch)")
+    return _merge_vertices(np.array(coords, dtype=np.float64))
+
+
+def _read_ply(path: Path):
+    vertices, faces, _ = read_ply(path)
+    return vertices, faces
+
+
+def _read_obj(path: Path):
+    vertices: list[list[float]] = []
+    polys: list[list[int]] = []
+    with open(path, encoding="latin-1") as fh:
+        for lineno, line in enumerate(fh, 1):
+            if line.startswith("v "):
+                parts = line.split()
+                if len(parts) < 4:
+                    raise InputError(f"{path}: line {lineno}: a vertex needs three coordinates")
+                vertices.append([float(parts[1]), float(parts[2]), float(parts[3])])
+            elif line.startswith("f "):
+                poly = []
+                for tok in line.split()[1:]:
+                    idx = int(tok.split("/")[0])
+                    poly.append(len(vertices) + idx if idx < 0 else idx - 1)
+                polys.append(poly)
+    if not vertices or not polys:
+        raise InputError(f"{path}: OBJ file has no vertices or no faces")
+    return np.array(vertices, dtype=np.float64), _fan(polys)
+
+
+def read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a triangle surface mesh (STL binary/ASCII, PLY ascii/binary, OBJ).
+
+    Polygons are fan-triangulated, OBJ negative indices resolved, STL duplicate vertices
+    merged; faces that repeat a vertex are dropped. Coordinates are taken as mm.
+
+    Returns
+    -------
+    vertices_world : (V, 3) float ndarray, mm
+    faces : (F, 3) int ndarray
+    """
+    path = Path(path)
+    ext = path.suffix.lower()
+    if ext not in MESH_EXTENSIONS:
+        raise InputError(f"{path}: unknown file extension {ext or '(none)'!r}; supported: {', '.join(MESH_EXTENSIONS)}")
+    if not path.is_file():
+        raise InputError(f"{path}: file not found")
+    reader = {".stl": _read_stl, ".ply": _read_ply, ".obj": _read_obj}[ext]
+    try:
+        vertices, faces = reader(path)
+    except InputError:
+        raise
+    except Exception as err:  # noqa: BLE001 - every parser failure becomes a named InputError
+        raise InputError(
+            f"{path}: cannot read {ext[1:].upper()} mesh, corrupt or truncated? ({type(err).__name__}: {err})"
+        ) from err
+    vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if len(faces) == 0:
+        raise InputError(f"{path}: the mesh has no faces")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise InputError(f"{path}: face indices out of range (0..{len(vertices) - 1})")
+    if not np.all(np.isfinite(vertices)):
+        raise InputError(f"{path}: the mesh has NaN or infinite vertex coordinates")
+    keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])
+    return vertices, faces[keep]

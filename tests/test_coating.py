@@ -6,6 +6,13 @@ import numpy as np
 import pytest
 
 from ssm_addon import coating as C
+from ssm_addon import distance_map as DM
+from ssm_addon import instances as INS
+from ssm_addon import meshutil as mu
+from ssm_addon import params as P
+from ssm_addon import proposal as PR
+from ssm_addon import relaxation as RX
+from ssm_addon import warp as W
 from ssm_addon.errors import InputError
 from ssm_addon.volume import ObjectFrame, ObjectVolume
 
@@ -79,7 +86,7 @@ def make_template(ov: ObjectVolume, axes_mm=None):
     if build_template is not None:
         return build_template(ov, TemplateParams())
     v, f = icosphere(3)  # 642 vertices
-    dm = C.DistanceMap.from_object_volume(ov)
+    dm = DM.DistanceMap.from_object_volume(ov)
     return _Mesh(dm.project(v * np.asarray(axes_mm, float), 3), f)
 
 
@@ -106,22 +113,22 @@ def inverse_displacement(points, **kw):
 # ---------------------------------------------------------------------------------------
 # 4.1 landmark warp
 # ---------------------------------------------------------------------------------------
-@pytest.mark.parametrize("kernel", C.KERNELS)
+@pytest.mark.parametrize("kernel", W.KERNELS)
 def test_warp_hits_every_landmark(kernel):
     rng = np.random.default_rng(1)
     src = rng.uniform(-40, 40, (15, 3))
     dst = src + rng.normal(0, 5, (15, 3))
-    tps = C.landmark_warp(src, dst, kernel=kernel)
+    tps = W.landmark_warp(src, dst, kernel=kernel)
     assert np.abs(tps(src) - dst).max() < 1e-6
 
 
-@pytest.mark.parametrize("kernel", C.KERNELS)
+@pytest.mark.parametrize("kernel", W.KERNELS)
 def test_warp_reproduces_affine_map_exactly(kernel):
     rng = np.random.default_rng(2)
     src = rng.uniform(-30, 30, (12, 3))
     a = np.eye(3) + rng.normal(0, 0.3, (3, 3))
     b = rng.normal(0, 20, 3)
-    tps = C.landmark_warp(src, src @ a.T + b, kernel=kernel)
+    tps = W.landmark_warp(src, src @ a.T + b, kernel=kernel)
     pts = rng.uniform(-60, 60, (500, 3))
     assert np.abs(tps(pts) - (pts @ a.T + b)).max() < 1e-6
     assert np.abs(tps.weights).max() < 1e-9
@@ -138,12 +145,12 @@ def test_warp_reproduces_affine_map_exactly(kernel):
 )
 def test_warp_rejects_degenerate_landmarks(points, message):
     with pytest.raises(InputError, match=message):
-        C.landmark_warp(points, points + 1.0)
+        W.landmark_warp(points, points + 1.0)
 
 
 def test_warp_rejects_mismatched_landmark_counts():
     with pytest.raises(InputError, match="landmarks"):
-        C.landmark_warp(np.zeros((5, 3)), np.zeros((4, 3)))
+        W.landmark_warp(np.zeros((5, 3)), np.zeros((4, 3)))
 
 
 # ---------------------------------------------------------------------------------------
@@ -152,7 +159,7 @@ def test_warp_rejects_mismatched_landmark_counts():
 def test_projection_lands_on_marching_cubes_surface_at_subvoxel_accuracy():
     axes = np.array([18.0, 12.0, 9.0])
     ov = ellipsoid_volume(axes)
-    dm = C.DistanceMap.from_object_volume(ov)
+    dm = DM.DistanceMap.from_object_volume(ov)
     rng = np.random.default_rng(3)
     u = rng.normal(size=(2000, 3))
     on = u / np.sqrt(((u / axes) ** 2).sum(1, keepdims=True))
@@ -192,7 +199,7 @@ def test_ellipsoid_coating_follows_axis_scaling(ellipsoid_pair):
 
 
 def _quality(points, faces):
-    q = C.triangle_quality(points, faces)
+    q = mu.triangle_quality(points, faces)
     return q.mean(), q.min()
 
 
@@ -211,12 +218,12 @@ def test_smooth_deformation_is_recovered(deformed_pair):
     pts, faces = np.asarray(template.points_object), np.asarray(template.faces)
     truth = inverse_displacement(pts)
     result = C.coat(template, lm_src, target, lm_dst)
-    dm = C.DistanceMap.from_object_volume(target)
+    dm = DM.DistanceMap.from_object_volume(target)
     warp_proj = dm.project(result.warped_points_object, 3)
     rows = []
     for label, p in (("warp + projection", warp_proj), ("full coating", result.points_object)):
         err = np.linalg.norm(p - truth, axis=1)
-        folds = int(C.folded_triangles(p, faces, dm).sum())
+        folds = int(RX.folded_triangles(p, faces, dm).sum())
         qm, qmin = _quality(p, faces)
         rows.append((label, err.mean(), err.max(), folds, qm, qmin))
         print(f"{label:18s} corr. error mean {err.mean():.3f} max {err.max():.3f} voxel, folds {folds}, "
@@ -232,7 +239,7 @@ def test_smooth_deformation_is_recovered(deformed_pair):
 def test_fit_figures_are_measured_against_the_surface(ellipsoid_pair):
     a, b, _, ovb, template = ellipsoid_pair
     result = C.coat(template, ellipsoid_landmarks(a), ovb, ellipsoid_landmarks(a) * b / a)
-    dm = C.DistanceMap.from_object_volume(ovb)
+    dm = DM.DistanceMap.from_object_volume(ovb)
     d = dm.surface_distance(result.points_object)
     assert result.fit.mean_distance_mm == pytest.approx(d.mean())
     assert result.fit.max_distance_mm == pytest.approx(d.max())
@@ -282,7 +289,7 @@ def test_landmarks_proposed_by_coating_without_landmarks(ellipsoid_pair):
     a, _, _, _, template = ellipsoid_pair
     b = a * np.array([1.08, 0.95, 1.05])
     target = ellipsoid_volume(b)
-    proposed = C.propose_landmarks_by_coating(template, ellipsoid_landmarks(a), target)
+    proposed = PR.propose_landmarks_by_coating(template, ellipsoid_landmarks(a), target)
     truth = ellipsoid_landmarks(a) * b / a  # the axis scaling is the true correspondence
     err = np.linalg.norm(proposed - truth, axis=1)
     naive = np.linalg.norm(ellipsoid_landmarks(a) - truth, axis=1)
@@ -295,9 +302,9 @@ def test_warped_rest_lengths_keep_correspondence_better_than_template_scaled(ell
     a, b, _, ovb, template = ellipsoid_pair
     truth = np.asarray(template.points_object) * b / a
     errors = {}
-    for rest in C.REST_LENGTHS:
+    for rest in P.REST_LENGTHS:
         params = C.CoatingParams(rest_lengths=rest)
-        result = C.coat(template, ellipsoid_landmarks(a), ovb, ellipsoid_landmarks(a) * b / a, params)
+        result = C.coat(template, ellipsoid_landmarks(a), ovb, ellipsoid_landmarks(a) * b / a, params=params)
         errors[rest] = np.linalg.norm(result.points_object - truth, axis=1).mean()
     print(f"rest lengths: correspondence error {errors}")
     assert errors["warped"] < errors["template-scaled"]
@@ -308,10 +315,9 @@ def test_verse_l1_template_coated_onto_l2_to_l5_and_t12(verse_dir):
     from conftest import VERSE_FILE, VERSE_LABELS
 
     from ssm_addon import landmarks as L
-    from ssm_addon import volume as V
 
     names = ["L1", "L2", "L3", "L4", "L5", "T12"]
-    obs = {k: V.load_object(VERSE_FILE, VERSE_LABELS[k], 1.0) for k in names}
+    obs = {k: INS.load_object(VERSE_FILE, label=VERSE_LABELS[k], spacing_mm=1.0) for k in names}
     lms = {
         k: obs[k].frame.to_object(L.read_landmarks(verse_dir / "landmarks" / f"{k}.fcsv").points_world) for k in names
     }
@@ -320,9 +326,9 @@ def test_verse_l1_template_coated_onto_l2_to_l5_and_t12(verse_dir):
     results = C.coat_all(template, lms["L1"], [obs[k] for k in names[1:]], [lms[k] for k in names[1:]], jobs=2,
                          names=names[1:])  # fmt: skip
     for k, r in zip(names[1:], results):
-        dm = C.DistanceMap.from_object_volume(obs[k])
-        paper = dm.project(C.landmark_warp(lms["L1"], lms[k])(template.points_object), 3)
-        folds_paper = int(C.folded_triangles(paper, faces, dm).sum())
+        dm = DM.DistanceMap.from_object_volume(obs[k])
+        paper = dm.project(W.landmark_warp(lms["L1"], lms[k])(template.points_object), 3)
+        folds_paper = int(RX.folded_triangles(paper, faces, dm).sum())
         print(f"{k}: {r.fit.mean_distance_mm:.3f}/{r.fit.max_distance_mm:.3f} mm, folds {r.fit.folded_after} of "
               f"{len(faces)} (warp + projection: {folds_paper}), {r.fit.iterations} it, {r.fit.time_s:.1f} s")  # fmt: skip
         assert r.fit.max_distance_mm < obs[k].spacing_mm
@@ -340,34 +346,33 @@ def test_verse_template_on_its_own_surface_has_no_fold(verse_dir):
     although triangles that span thin processes flip the raw gradient at their centroid."""
     from conftest import VERSE_FILE, VERSE_LABELS
 
-    from ssm_addon import volume as V
 
-    ov = V.load_object(VERSE_FILE, VERSE_LABELS["L1"], 1.0)
+    ov = INS.load_object(VERSE_FILE, label=VERSE_LABELS["L1"], spacing_mm=1.0)
     template = build_template(ov, TemplateParams())
     pts, faces = np.asarray(template.points_object), np.asarray(template.faces)
-    dm = C.DistanceMap.from_object_volume(ov)
-    assert C.folded_triangles(pts, faces, dm).sum() == 0
-    raw = int(C.folded_triangles(pts, faces, dm, normal_sigma_mm=0.0).sum())
+    dm = DM.DistanceMap.from_object_volume(ov)
+    assert RX.folded_triangles(pts, faces, dm).sum() == 0
+    raw = int(RX.folded_triangles(pts, faces, dm, normal_sigma_mm=0.0).sum())
     print(f"L1 template on L1: folds with the raw gradient {raw}, with the 3 mm smoothed normal 0")
 
 
 def test_untangle_removes_a_fold_and_leaves_the_rest(ellipsoid_pair):
     a, _, ova, _, template = ellipsoid_pair
     pts, faces = np.asarray(template.points_object, float), np.asarray(template.faces)
-    dm = C.DistanceMap.from_object_volume(ova)
+    dm = DM.DistanceMap.from_object_volume(ova)
     on = dm.project(pts, 3)
-    assert C.folded_triangles(on, faces, dm).sum() == 0
+    assert RX.folded_triangles(on, faces, dm).sum() == 0
     # drag one vertex across its neighbours along the surface: its fan folds over
-    e = C.mesh_edges(faces)
+    e = mu.edges(faces)
     i = int(np.argmax(on[:, 0]))
     nb = np.unique(e[(e == i).any(axis=1)])
     j = nb[nb != i][0]
     bad = on.copy()
     bad[i] = on[i] + 2.5 * (on[j] - on[i])
     bad[i] = dm.project(bad[i][None], 3)[0]
-    assert C.folded_triangles(bad, faces, dm).sum() > 0
-    fixed, rounds = C.untangle(bad, faces, dm)
-    assert C.folded_triangles(fixed, faces, dm).sum() == 0 and rounds >= 1
+    assert RX.folded_triangles(bad, faces, dm).sum() > 0
+    fixed, rounds = RX.untangle(bad, faces, dm)
+    assert RX.folded_triangles(fixed, faces, dm).sum() == 0 and rounds >= 1
     assert dm.surface_distance(fixed).max() < 0.5
     far = np.linalg.norm(on - on[i], axis=1) > 25.0
     assert np.array_equal(fixed[far], bad[far])
@@ -380,10 +385,10 @@ def test_fold_free_warp_smooths_inconsistent_landmarks_until_no_fold(ellipsoid_p
     dst = src.copy()
     dst[0] = [-5.0, 0.0, 0.0]  # "right" landmark pulled through the object
     pts = np.asarray(template.points_object)
-    exact = C.landmark_warp(src, dst)
-    assert C.warp_jacobian_det(exact, pts).min() <= 0
-    tps, lam = C.fold_free_warp(src, dst, pts)
-    assert lam > 0 and C.warp_jacobian_det(tps, pts).min() > 0
+    exact = W.landmark_warp(src, dst)
+    assert W.warp_jacobian_det(exact, pts).min() <= 0
+    tps, lam = W.fold_free_warp(src, dst, pts)
+    assert lam > 0 and W.warp_jacobian_det(tps, pts).min() > 0
     # consistent landmarks keep the exact warp
-    tps, lam = C.fold_free_warp(src, src * 1.1, pts)
+    tps, lam = W.fold_free_warp(src, src * 1.1, pts)
     assert lam == 0 and np.abs(tps(src) - src * 1.1).max() < 1e-6

@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 from test_coating import ellipsoid_landmarks, icosphere
 
+from ssm_addon import distance_map as DM
+from ssm_addon import imageio as IO
 from ssm_addon import volume as V
 
 pytestmark = pytest.mark.blender
@@ -22,7 +24,7 @@ def _label_map(tmp_path):
     labels = np.zeros(shape, np.uint8)
     for k, axes in AXES.items():
         labels[((((ijk - CENTRES[k]) / axes) ** 2).sum(1) <= 1).reshape(shape)] = k
-    return V.write_label_map(tmp_path / "ellipsoids.nii.gz", labels, np.eye(4))
+    return IO.write_label_map(tmp_path / "ellipsoids.nii.gz", labels, np.eye(4))
 
 
 def _scene(bpy, tmp_path):
@@ -31,7 +33,6 @@ def _scene(bpy, tmp_path):
     from ssm.operators.instances import instance_object_volume
     from ssm.operators.landmarks import set_landmark
 
-    from ssm_addon import coating as C
 
     path = _label_map(tmp_path)
     assert bpy.ops.ssm.import_segmentation(filepath=str(path), split_labels=True, spacing_mm=1.0) == {"FINISHED"}
@@ -45,7 +46,7 @@ def _scene(bpy, tmp_path):
             set_landmark(bpy.context, obj, name, p)
     ov = instance_object_volume(inst[1])
     v, f = icosphere(3)
-    pts = C.DistanceMap.from_object_volume(ov).project(v * AXES[1], 3)
+    pts = DM.DistanceMap.from_object_volume(ov).project(v * AXES[1], 3)
     tpl = bridge.new_mesh_object(bpy.context, "SSM Template", pts, f, matrix_world=np.eye(4))
     tpl.ssm.role = "TEMPLATE"
     tpl.ssm.instance = inst[1]

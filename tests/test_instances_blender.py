@@ -6,6 +6,10 @@ import numpy as np
 import pytest
 from conftest import VERSE_FILE, VERSE_LABELS
 
+from ssm_addon import frame as FR
+from ssm_addon import imageio as IO
+from ssm_addon import instances as INS
+from ssm_addon import meshutil as mu
 from ssm_addon import volume as V
 
 pytestmark = pytest.mark.blender
@@ -26,7 +30,7 @@ def _label_map(tmp_path, name="synth.nii.gz"):
     labels = np.zeros(shape, np.uint8)
     labels[ell] = 20
     labels[ball & ~ell] = 7
-    return V.write_label_map(tmp_path / name, labels, A)
+    return IO.write_label_map(tmp_path / name, labels, A)
 
 
 def _world_vertices(obj):
@@ -46,12 +50,12 @@ def test_import_creates_instance_at_its_world_position(bpy_clean, tmp_path):
     obj = bpy.data.objects["synth L20"]
     assert obj.name in bpy.data.collections["SSM Instances"].objects
     assert bpy.context.scene.unit_settings.scale_length == pytest.approx(0.001)
-    vol = V.load_volume(path, 20)
+    vol = IO.load_volume(path, 20)
     verts, _ = V.display_surface(vol)
     world = _world_vertices(obj)
     np.testing.assert_allclose(world.min(axis=0), verts.min(axis=0), atol=1e-3)
     np.testing.assert_allclose(world.max(axis=0), verts.max(axis=0), atol=1e-3)
-    frame = V.object_frame(vol)
+    frame = FR.object_frame(vol)
     ssm = obj.ssm
     assert (ssm.role, ssm.source_kind, ssm.label) == ("INSTANCE", "VOLUME", 20)
     assert ssm.spacing_mm == pytest.approx(1.0)
@@ -104,7 +108,7 @@ def test_blend_round_trip_keeps_metadata_and_reloads_the_volume(bpy_clean, tmp_p
     np.testing.assert_allclose(ov.origin_object, ov_before.origin_object)
     np.testing.assert_allclose(ov.frame.axes_world, ov_before.frame.axes_world, atol=1e-6)
     assert ops.instance_object_volume(obj) is ov  # cached
-    ref = V.load_object(path, 20, 1.0)
+    ref = INS.load_object(path, label=20, spacing_mm=1.0)
     np.testing.assert_array_equal(ov.mask, ref.mask)
 
 
@@ -138,7 +142,7 @@ def test_add_mesh_instances_voxelizes_a_uv_sphere(bpy_clean):
     bpy.context.view_layer.update()
     verts = bridge.object_world_vertices(sphere)
     faces = bridge.mesh_triangles(sphere.data)
-    analytic = V.mesh_signed_volume(verts, faces)
+    analytic = mu.signed_volume(verts, faces)
     assert bpy.ops.ssm.add_mesh_instances(spacing_mm=1.0) == {"FINISHED"}
     ssm = sphere.ssm
     assert (ssm.role, ssm.source_kind, ssm.frame_method) == ("INSTANCE", "BLENDER_MESH", "MOMENTS")
@@ -196,7 +200,7 @@ def test_import_mesh_file_and_multiple_files(bpy_clean, tmp_path):
     assert _instances(bpy) == ["ball", "other L7"]
     ball = bpy.data.objects["ball"]
     assert (ball.ssm.source_kind, ball.ssm.frame_method, ball.ssm.label) == ("MESH_FILE", "MOMENTS", -1)
-    assert ball.ssm.volume_mm3 == pytest.approx(V.mesh_signed_volume(v, f), rel=0.02)
+    assert ball.ssm.volume_mm3 == pytest.approx(mu.signed_volume(v, f), rel=0.02)
 
 
 def test_panel_and_menu_are_registered(bpy_clean):
@@ -214,7 +218,7 @@ def test_import_verse_l1(bpy_clean, verse_dir):
     bpy.ops.ssm.import_segmentation(filepath=str(VERSE_FILE), label=label, spacing_mm=1.0)
     (name,) = _instances(bpy)
     obj = bpy.data.objects[name]
-    vol = V.load_volume(VERSE_FILE, label)
+    vol = IO.load_volume(VERSE_FILE, label)
     assert obj.ssm.volume_mm3 == pytest.approx(vol.volume_mm3, rel=1e-6)
     verts, _ = V.display_surface(vol)
     world = _world_vertices(obj)

@@ -12,6 +12,7 @@ from conftest import VERSE_FILE, VERSE_LABELS
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from ssm_addon import frame as FR
 from ssm_addon import volume as vol
 from ssm_addon.errors import InputError
 from ssm_addon.landmarks import (
@@ -20,13 +21,10 @@ from ssm_addon.landmarks import (
     landmark_format,
     match_landmarks,
     order_by_schema,
-    propose_from_meshes,
-    propose_landmarks,
     read_landmarks,
-    surface_points_object,
-    transfer_landmarks,
     write_landmarks,
 )
+from ssm_addon.proposal import propose_from_meshes, propose_landmarks, surface_points_object, transfer_landmarks
 
 
 def _example_set() -> LandmarkSet:
@@ -333,7 +331,7 @@ def _surface_voxel_centres_world(mask, affine):
 
 def _frame(mask, affine):
     """The object frame of paper section 2 (volume.object_frame, patient axes)."""
-    return vol.object_frame(vol.Volume(mask, affine, "verse", None, True))
+    return FR.object_frame(vol.Volume(mask, affine, "verse", None, True))
 
 
 def test_verse_lps_landmarks_land_on_the_l1_surface(verse_dir, verse_labels):

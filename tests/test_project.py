@@ -122,12 +122,11 @@ def test_unknown_table_suggests_closest(files):
 
 
 def test_template_keys_follow_template_params(files):
-    from ssm_addon.project import params_schema
-    from ssm_addon.template import TemplateParams
+    from ssm_addon.params import TemplateParams, specs
 
-    schema = params_schema(TemplateParams)
-    key = next(iter(schema))
-    value = {"bool": "true", "int": "3", "float": "2.5", "str": '"x"', "tuple": "[1, 2]"}[schema[key]]
+    spec = specs(TemplateParams)[2]
+    key = spec.key
+    value = {"bool": "true", "int": "3", "float": "2.5", "choice": '"x"', "floats": "[1, 2]"}[spec.kind]
     text = VALID.replace("spacing = 1.5", f"spacing = 1.5\n{key}_typo = {value}")
     msg = _error(files, text)
     assert f"unknown key '{key}_typo'" in msg and f"did you mean '{key}'" in msg
@@ -162,12 +161,12 @@ def test_wrong_type_says_expected_and_got(files):
 def test_wrong_type_of_parameter(files):
     text = VALID.replace("spacing = 1.5", 'spacing = "fine"')
     msg = _error(files, text)
-    assert "[template] spacing must be a number, got string 'fine'" in msg
+    assert "[template] spacing must be a number > 0 mm and <= 50 mm, got string 'fine'" in msg
 
 
 def test_bad_parameter_value(files):
     msg = _error(files, VALID.replace('kernel = "biharmonic"', 'kernel = "gaussian"'))
-    assert "[coating]" in msg and "unknown kernel 'gaussian'" in msg
+    assert "[coating] kernel must be one of 'biharmonic', 'thin-plate', 'hardy', got 'gaussian'" in msg
 
 
 def test_toml_syntax_error_has_line_and_column(files):
@@ -213,7 +212,8 @@ def test_write_project_round_trip(files, tmp_path):
     assert [i.volume for i in again.instances] == [i.volume for i in proj.instances]
     assert [i.label for i in again.instances] == [i.label for i in proj.instances]
     assert again.template_instance == proj.template_instance and again.spacing_mm == proj.spacing_mm
-    assert again.coating_options == proj.coating_options and again.model_options == proj.model_options
+    assert again.coating == proj.coating and again.model == proj.model and again.template == proj.template
+    assert write_project(tmp_path / "elsewhere" / "copy.toml", again).read_text() == text  # byte-identical
 
 
 def test_cli_prints_input_error_and_exits_2(files, capsys):

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+from ssm_addon import instances as INS
 from ssm_addon import surface
 from ssm_addon.errors import InputError
 
@@ -354,9 +355,8 @@ def test_bad_inputs_raise_input_error_naming_the_problem():
 def test_normals_point_out_of_a_real_vertebra(verse_dir):
     from conftest import VERSE_FILE, VERSE_LABELS
 
-    from ssm_addon import volume
 
-    ov = volume.load_object(VERSE_FILE, label=VERSE_LABELS["L1"], spacing_mm=1.0)
+    ov = INS.load_object(VERSE_FILE, label=VERSE_LABELS["L1"], spacing_mm=1.0)
     geo = surface.surface_geometry(ov.mask, normal_radius_vox=5, patch_radius_vox=7)
     assert len(geo.voxels) > 5000
     outside = np.rint(geo.voxels + 2 * geo.normals).astype(int)

@@ -8,7 +8,10 @@ import pytest
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
+from ssm_addon import frame as FR
+from ssm_addon import imageio as IO
 from ssm_addon import meshutil as mu
+from ssm_addon import resample as RS
 from ssm_addon import surface
 from ssm_addon import template as T
 from ssm_addon.errors import Cancelled, InputError
@@ -234,7 +237,7 @@ def test_params_reject_bad_values_naming_the_parameter():
         T.TemplateParams(r_min_mm=-1.0)
     with pytest.raises(InputError, match="selection"):
         T.TemplateParams(selection="best")
-    with pytest.raises(InputError, match="exceeds"):
+    with pytest.raises(InputError, match="must not exceed"):
         T.TemplateParams(r_min_mm=5.0, r_max_mm=2.0)
 
 
@@ -258,13 +261,12 @@ def test_save_and_load_template_round_trip(tmp_path):
 def verse_objects(verse_dir):
     from conftest import VERSE_FILE, VERSE_LABELS
 
-    from ssm_addon import volume
 
-    lm = volume.read_label_map(VERSE_FILE)
+    lm = IO.read_label_map(VERSE_FILE)
     out = {}
     for name, label in VERSE_LABELS.items():
-        vol = volume.select_label(lm, label)
-        out[name] = volume.resample(vol, volume.object_frame(vol), 1.0)
+        vol = IO.select_label(lm, label)
+        out[name] = RS.resample(vol, FR.object_frame(vol), 1.0)
     return out
 
 

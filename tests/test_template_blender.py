@@ -9,8 +9,8 @@ import pytest
 from conftest import VERSE_FILE, VERSE_LABELS
 from scipy.spatial import cKDTree
 
+from ssm_addon import imageio as IO
 from ssm_addon import meshutil as mu
-from ssm_addon import volume as V
 
 pytestmark = pytest.mark.blender
 
@@ -29,7 +29,7 @@ def _torus_label_map(tmp_path):
     tor = ((np.hypot(x, y) - 12.0) ** 2 + z**2 <= 25.0).reshape(shape)
     labels = np.zeros(shape, np.uint8)
     labels[tor] = 3
-    return V.write_label_map(tmp_path / "torus.nii.gz", labels, A)
+    return IO.write_label_map(tmp_path / "torus.nii.gz", labels, A)
 
 
 def _import(bpy, path, label):

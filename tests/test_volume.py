@@ -13,7 +13,13 @@ import numpy as np
 import pytest
 from conftest import ROOT, VERSE_FILE, VERSE_LABELS
 
+from ssm_addon import frame as FR
+from ssm_addon import imageio as IO
+from ssm_addon import instances as INS
+from ssm_addon import meshutil as mu
+from ssm_addon import resample as RS
 from ssm_addon import volume as V
+from ssm_addon import voxelize as VX
 from ssm_addon.errors import InputError
 
 # ----------------------------------------------------------------------------- fixtures
@@ -154,35 +160,35 @@ def test_core_imports_without_bpy():
 def test_every_reader_round_trips_oblique_anisotropic_affine(tmp_path, ellipsoid, ext):
     labels = ellipsoid.mask.astype(np.uint8) * 7
     labels[0, 0, 0] = 3  # a second label at the corner: orientation of the array matters
-    path = V.write_label_map(tmp_path / f"ell{ext}", labels, ellipsoid.affine)
-    lm = V.read_label_map(path)
+    path = IO.write_label_map(tmp_path / f"ell{ext}", labels, ellipsoid.affine)
+    lm = IO.read_label_map(path)
     assert lm.labels.shape == labels.shape
     np.testing.assert_array_equal(lm.labels, labels)
     np.testing.assert_allclose(lm.affine, ellipsoid.affine, atol=1e-5)
-    assert V.label_counts(lm) == {3: 1, 7: int(ellipsoid.mask.sum())}
+    assert IO.label_counts(lm) == {3: 1, 7: int(ellipsoid.mask.sum())}
 
 
 def test_npy_takes_spacing_from_caller_or_sidecar(tmp_path):
     labels = np.zeros((5, 6, 7), np.int16)
     labels[1:3, 2:4, 3:6] = 2
     np.save(tmp_path / "a.npy", labels)
-    lm = V.read_label_map(tmp_path / "a.npy", spacing_mm=(0.5, 0.7, 2.0))
+    lm = IO.read_label_map(tmp_path / "a.npy", spacing_mm=(0.5, 0.7, 2.0))
     np.testing.assert_allclose(lm.affine, np.diag([0.5, 0.7, 2.0, 1.0]))
     with pytest.raises(InputError, match=r"a\.npy: .*no voxel size"):
-        V.read_label_map(tmp_path / "a.npy")
+        IO.read_label_map(tmp_path / "a.npy")
     (tmp_path / "a.json").write_text(json.dumps({"spacing_mm": [1.5, 1.5, 3.0]}))
-    lm = V.read_label_map(tmp_path / "a.npy")
+    lm = IO.read_label_map(tmp_path / "a.npy")
     np.testing.assert_allclose(lm.affine, np.diag([1.5, 1.5, 3.0, 1.0]))
-    assert V.label_counts(lm) == {2: 12}
+    assert IO.label_counts(lm) == {2: 12}
 
 
 def test_npz_with_spacing_and_float_labels_are_rounded(tmp_path):
     labels = np.zeros((4, 4, 4))
     labels[1:3, 1:3, 1:3] = 19.0000001
     np.savez(tmp_path / "f.npz", labels=labels, spacing=np.array([1.0, 2.0, 3.0]))
-    lm = V.read_label_map(tmp_path / "f.npz")
+    lm = IO.read_label_map(tmp_path / "f.npz")
     assert lm.labels.dtype.kind in "iu"
-    assert V.label_counts(lm) == {19: 8}
+    assert IO.label_counts(lm) == {19: 8}
     np.testing.assert_allclose(lm.affine, np.diag([1.0, 2.0, 3.0, 1.0]))
 
 
@@ -196,7 +202,7 @@ def test_nrrd_in_ras_space_is_not_flipped(tmp_path):
         labels,
         {"space": "right-anterior-superior", "space directions": np.diag([0.5, 0.6, 0.7]), "space origin": [1, 2, 3]},
     )
-    lm = V.read_label_map(tmp_path / "r.nrrd")
+    lm = IO.read_label_map(tmp_path / "r.nrrd")
     expected = np.diag([0.5, 0.6, 0.7, 1.0])
     expected[:3, 3] = [1, 2, 3]
     np.testing.assert_allclose(lm.affine, expected)
@@ -213,7 +219,7 @@ def test_metaimage_lps_header_written_by_hand_is_converted_to_ras(tmp_path):
         "ElementType = MET_SHORT\nElementDataFile = LOCAL\n"
     )
     (tmp_path / "h.mha").write_bytes(header.encode() + labels.astype(">i2").ravel(order="F").tobytes())
-    lm = V.read_label_map(tmp_path / "h.mha")
+    lm = IO.read_label_map(tmp_path / "h.mha")
     np.testing.assert_array_equal(lm.labels, labels)
     # voxel (2, 1, 4): LPS = offset + 2*2*(0,1,0) + 1*3*(-1,0,0) + 4*4*(0,0,1) = (7, 24, 46)
     world = lm.affine @ np.array([2, 1, 4, 1.0])
@@ -224,7 +230,7 @@ def test_metaimage_lps_header_written_by_hand_is_converted_to_ras(tmp_path):
 
 
 def test_ellipsoid_frame_recovers_centre_and_axes(ellipsoid):
-    frame = V.object_frame(ellipsoid)
+    frame = FR.object_frame(ellipsoid)
     assert frame.method == "patient"
     assert np.linalg.norm(frame.origin_world - CENTRE) < 0.5 * SPACING.min()
     cos = np.abs(np.sum(frame.axes_world * OBJ_ROT, axis=0))
@@ -236,7 +242,7 @@ def test_ellipsoid_frame_recovers_centre_and_axes(ellipsoid):
 
 
 def test_moments_frame_orders_by_eigenvalue_and_is_right_handed(ellipsoid):
-    frame = V.object_frame(ellipsoid, "moments")
+    frame = FR.object_frame(ellipsoid, "moments")
     assert frame.method == "moments"
     assert np.all(np.diff(frame.second_moments_mm2) < 0)
     assert np.linalg.det(frame.axes_world) == pytest.approx(1.0)
@@ -260,14 +266,14 @@ def _perturbed(volume, rng, n=15):
 def test_frames_do_not_flip_under_small_perturbations(method, egg):
     A = ellipsoid_affine()
     base = V.Volume(mask=ellipsoid_mask(A, egg=egg), affine=A, source="egg" if egg else "ellipsoid")
-    ref = V.object_frame(base, method).axes_world
+    ref = FR.object_frame(base, method).axes_world
     rng = np.random.default_rng(4)
     variants = [_perturbed(base, rng) for _ in range(3)]
     for angles in ((2, 0, 0), (0, -2, 0), (0, 0, 2)):
         rot = rotation(*angles) @ OBJ_ROT
         variants.append(V.Volume(mask=ellipsoid_mask(A, rot=rot, egg=egg), affine=A, source="rotated"))
     for var in variants:
-        axes = V.object_frame(var, method).axes_world
+        axes = FR.object_frame(var, method).axes_world
         dots = np.sum(axes * ref, axis=0)
         assert np.all(dots > 0.99), (var.source, dots)
 
@@ -280,7 +286,7 @@ def test_patient_frame_pairs_axes_with_r_a_s_even_when_eigenvalues_reorder():
     for semi in ((15.0, 9.0, 6.0), (6.0, 9.0, 15.0), (9.0, 15.0, 6.0)):
         rot = rotation(5, -4, 6)
         vol = V.Volume(mask=ellipsoid_mask(A, shape, rot=rot, semi=np.array(semi), centre=np.zeros(3)), affine=A)
-        axes = V.object_frame(vol, "patient").axes_world
+        axes = FR.object_frame(vol, "patient").axes_world
         assert np.all(np.sum(axes * rot, axis=0) > 0.999), (semi, axes)
 
 
@@ -288,9 +294,9 @@ def test_patient_frame_pairs_axes_with_r_a_s_even_when_eigenvalues_reorder():
 
 
 def test_resampling_preserves_volume_and_leaves_background_border(ellipsoid):
-    frame = V.object_frame(ellipsoid)
+    frame = FR.object_frame(ellipsoid)
     for spacing in (1.0, 0.7):
-        ov = V.resample(ellipsoid, frame, spacing)
+        ov = RS.resample(ellipsoid, frame, spacing)
         assert ov.volume_mm3 == pytest.approx(ellipsoid.volume_mm3, rel=0.01)
         assert ov.volume_mm3 == pytest.approx(4 / 3 * np.pi * np.prod(SEMI_AXES), rel=0.02)
         m = ov.mask
@@ -311,21 +317,21 @@ def test_mask_touching_the_volume_border_still_resamples():
     mask = np.linalg.norm(world - [3.3, 9.6, 7.3], axis=-1) <= 9.0  # cut by three faces of the volume
     assert mask[0].any() and mask[:, :, 0].any() and mask[:, :, -1].any()
     vol = V.Volume(mask=mask, affine=A, source="border")
-    ov = V.resample(vol, V.object_frame(vol), 1.0)
+    ov = RS.resample(vol, FR.object_frame(vol), 1.0)
     assert ov.volume_mm3 == pytest.approx(vol.volume_mm3, rel=0.01)
     assert not ov.mask[[0, -1]].any() and not ov.mask[:, [0, -1]].any() and not ov.mask[:, :, [0, -1]].any()
     verts, faces = V.display_surface(vol)
-    assert V.mesh_edge_defects(faces) == (0, 0, 0)
-    assert V.mesh_signed_volume(verts, faces) == pytest.approx(vol.volume_mm3, rel=0.05)
+    assert VX.mesh_edge_defects(faces) == (0, 0, 0)
+    assert mu.signed_volume(verts, faces) == pytest.approx(vol.volume_mm3, rel=0.05)
 
 
 def test_display_surface_is_outward_in_world_and_object_mm(ellipsoid):
     verts, faces = V.display_surface(ellipsoid)
-    assert V.mesh_signed_volume(verts, faces) == pytest.approx(ellipsoid.volume_mm3, rel=0.03)
+    assert mu.signed_volume(verts, faces) == pytest.approx(ellipsoid.volume_mm3, rel=0.03)
     np.testing.assert_allclose(verts.mean(axis=0), CENTRE, atol=0.5)
-    ov = V.resample(ellipsoid, V.object_frame(ellipsoid), 1.0)
+    ov = RS.resample(ellipsoid, FR.object_frame(ellipsoid), 1.0)
     vo, fo = V.display_surface(ov)
-    assert V.mesh_signed_volume(vo, fo) > 0
+    assert mu.signed_volume(vo, fo) > 0
     assert np.linalg.norm(vo.mean(axis=0)) < 0.5
     vw, _ = V.display_surface(ov, to_world=True)
     np.testing.assert_allclose(vw, ov.frame.to_world(vo))
@@ -346,7 +352,7 @@ def test_summary_reports_voxels_volume_and_bbox(ellipsoid):
 def test_voxelized_icosphere_has_the_analytic_mesh_volume(tmp_path, fmt):
     v, f = icosphere(20.0, 3)
     v = v + np.array([3.3, -7.1, 12.4])
-    analytic = V.mesh_signed_volume(v, f)
+    analytic = mu.signed_volume(v, f)
     path = tmp_path / ("ico." + fmt.split("-")[0])
     {
         "stl-binary": write_stl_binary,
@@ -355,13 +361,13 @@ def test_voxelized_icosphere_has_the_analytic_mesh_volume(tmp_path, fmt):
         "ply-binary": lambda p, v, f: write_ply(p, v, f, True),
         "obj": write_obj_quads_negative,
     }[fmt](path, v, f)
-    rv, rf = V.read_mesh(path)
+    rv, rf = mu.read_mesh(path)
     assert len(rv) == len(v) and len(rf) == len(f)
-    assert V.mesh_signed_volume(rv, rf) == pytest.approx(analytic, rel=1e-5)
-    vol = V.load_mesh_volume(path, 1.0)
+    assert mu.signed_volume(rv, rf) == pytest.approx(analytic, rel=1e-5)
+    vol = VX.load_mesh_volume(path, 1.0)
     assert not vol.patient_oriented
     assert vol.volume_mm3 == pytest.approx(analytic, rel=0.02)
-    ov = V.load_object(path, spacing_mm=1.0)
+    ov = INS.load_object(path, spacing_mm=1.0)
     assert ov.frame.method == "moments"
     assert ov.volume_mm3 == pytest.approx(analytic, rel=0.02)
 
@@ -372,10 +378,10 @@ def test_obj_polygons_are_triangulated(tmp_path):
         + ["f 1 4 3 2", "f 5 6 7 8", "f 1 2 6 5", "f 2 3 7 6", "f 3 4 8 7", "f 4 1 5 8"]
     )
     (tmp_path / "c.obj").write_text(cube + "\n")
-    v, f = V.read_mesh(tmp_path / "c.obj")
+    v, f = mu.read_mesh(tmp_path / "c.obj")
     assert f.shape == (12, 3)
-    assert V.mesh_edge_defects(f) == (0, 0, 0)
-    assert V.mesh_signed_volume(v * 10, f) == pytest.approx(1000.0)
+    assert VX.mesh_edge_defects(f) == (0, 0, 0)
+    assert mu.signed_volume(v * 10, f) == pytest.approx(1000.0)
 
 
 def test_voxelizing_a_cube_whose_edges_and_vertices_hit_voxel_centres_is_exact():
@@ -385,12 +391,12 @@ def test_voxelizing_a_cube_whose_edges_and_vertices_hit_voxel_centres_is_exact()
         [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
          [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
     )  # fmt: skip
-    assert V.mesh_signed_volume(v, f) == pytest.approx(1000.0)
+    assert mu.signed_volume(v, f) == pytest.approx(1000.0)
     for spacing in (1.0, 0.5, 2.0, 2.5):
-        vol = V.voxelize_mesh(v, f, spacing)
+        vol = VX.voxelize_mesh(v, f, spacing)
         assert vol.volume_mm3 == pytest.approx(1000.0), spacing
     # a diagonal split through centres of the z faces (the triangles' shared edge) too
-    vol = V.voxelize_mesh(v + 0.0, f[:, ::-1], 1.0)  # inward faces: parity does not care
+    vol = VX.voxelize_mesh(v + 0.0, f[:, ::-1], 1.0)  # inward faces: parity does not care
     assert vol.volume_mm3 == pytest.approx(1000.0)
 
 
@@ -399,18 +405,18 @@ def test_voxelizing_a_cube_whose_edges_and_vertices_hit_voxel_centres_is_exact()
 
 @pytest.fixture(scope="module")
 def verse_frames(verse_dir):
-    lm = V.read_label_map(VERSE_FILE)
+    lm = IO.read_label_map(VERSE_FILE)
     out = {}
     for name, label in VERSE_LABELS.items():
-        vol = V.select_label(lm, label)
-        frame = V.object_frame(vol)
-        out[name] = (vol, frame, V.resample(vol, frame, 1.0))
+        vol = IO.select_label(lm, label)
+        frame = FR.object_frame(vol)
+        out[name] = (vol, frame, RS.resample(vol, frame, 1.0))
     return lm, out
 
 
 def test_verse_label_counts_list_all_nine_vertebrae(verse_frames):
     lm, _ = verse_frames
-    counts = V.label_counts(lm)
+    counts = IO.label_counts(lm)
     assert sorted(counts) == sorted(VERSE_LABELS.values())
     values, ref = np.unique(lm.labels[lm.labels != 0], return_counts=True)
     assert counts == dict(zip(values.tolist(), ref.tolist()))
@@ -446,16 +452,16 @@ def test_verse_neighbouring_vertebrae_get_corresponding_axes(verse_frames, names
 
 def test_missing_file_is_named(tmp_path):
     with pytest.raises(InputError, match=r"nothere\.nii\.gz: file not found"):
-        V.read_label_map(tmp_path / "nothere.nii.gz")
+        IO.read_label_map(tmp_path / "nothere.nii.gz")
 
 
 def test_unknown_extension_lists_supported(tmp_path):
     p = tmp_path / "scan.dcm"
     p.write_bytes(b"x")
     with pytest.raises(InputError, match=r"scan\.dcm: unknown file extension '\.dcm'; supported: .*\.nii\.gz.*\.nrrd"):
-        V.read_label_map(p)
+        IO.read_label_map(p)
     with pytest.raises(InputError, match=r"scan\.dcm: unknown file extension.*\.stl"):
-        V.read_mesh(p)
+        mu.read_mesh(p)
 
 
 @pytest.mark.parametrize("ext", [".nii.gz", ".nrrd", ".mha"])
@@ -463,39 +469,39 @@ def test_truncated_file_is_reported(tmp_path, ext):
     labels = np.zeros((30, 30, 30), np.int16)
     labels[5:20, 5:20, 5:20] = 1
     labels[8:12] = np.arange(30 * 30).reshape(1, 30, 30) % 7  # poorly compressible
-    p = V.write_label_map(tmp_path / f"t{ext}", labels, np.eye(4))
+    p = IO.write_label_map(tmp_path / f"t{ext}", labels, np.eye(4))
     data = p.read_bytes()
     p.write_bytes(data[: len(data) // 2])
     with pytest.raises(InputError, match=re.escape(p.name) + r": .*(corrupt|truncated)"):
-        V.read_label_map(p)
+        IO.read_label_map(p)
 
 
 def test_garbage_nifti_is_reported(tmp_path):
     p = tmp_path / "g.nii.gz"
     p.write_bytes(gzip.compress(b"not a nifti header" * 3))
     with pytest.raises(InputError, match=r"g\.nii\.gz: cannot read NIfTI file"):
-        V.read_label_map(p)
+        IO.read_label_map(p)
 
 
 def test_absent_label_lists_the_labels_present(tmp_path):
     labels = np.zeros((6, 6, 6), np.uint8)
     labels[1:3, 1:3, 1:3] = 4
     labels[3:5, 3:5, 3:4] = 9
-    p = V.write_label_map(tmp_path / "l.nii.gz", labels, np.eye(4))
+    p = IO.write_label_map(tmp_path / "l.nii.gz", labels, np.eye(4))
     with pytest.raises(
         InputError, match=r"l\.nii\.gz: label 5 is not present; labels present: 4 \(8 voxels\), 9 \(4 voxels\)"
     ):
-        V.load_volume(p, 5)
+        IO.load_volume(p, 5)
     with pytest.raises(InputError, match=r"l\.nii\.gz: label 0 is the background; pick a label from 4 \(8 voxels\)"):
-        V.load_volume(p, 0)
+        IO.load_volume(p, 0)
 
 
 def test_empty_label_map_is_reported(tmp_path):
-    p = V.write_label_map(tmp_path / "e.nrrd", np.zeros((5, 5, 5), np.uint8), np.eye(4))
+    p = IO.write_label_map(tmp_path / "e.nrrd", np.zeros((5, 5, 5), np.uint8), np.eye(4))
     with pytest.raises(InputError, match=r"e\.nrrd: empty mask"):
-        V.load_volume(p)
+        IO.load_volume(p)
     with pytest.raises(InputError, match=r"empty mask"):
-        V.object_frame(V.Volume(mask=np.zeros((3, 3, 3), bool), affine=np.eye(4), source="e"))
+        FR.object_frame(V.Volume(mask=np.zeros((3, 3, 3), bool), affine=np.eye(4), source="e"))
 
 
 def test_4d_image_is_rejected_but_singleton_4th_axis_is_squeezed(tmp_path):
@@ -505,22 +511,22 @@ def test_4d_image_is_rejected_but_singleton_4th_axis_is_squeezed(tmp_path):
     data[2, 2, 2] = 1
     nib.save(nib.Nifti1Image(data, np.eye(4)), str(tmp_path / "four.nii.gz"))
     with pytest.raises(InputError, match=r"four\.nii\.gz: 4-D image of shape \(5, 5, 5, 3\)"):
-        V.read_label_map(tmp_path / "four.nii.gz")
+        IO.read_label_map(tmp_path / "four.nii.gz")
     nib.save(nib.Nifti1Image(data[..., :1], np.eye(4)), str(tmp_path / "one.nii.gz"))
-    assert V.read_label_map(tmp_path / "one.nii.gz").labels.shape == (5, 5, 5)
+    assert IO.read_label_map(tmp_path / "one.nii.gz").labels.shape == (5, 5, 5)
 
 
 def test_open_mesh_is_rejected_with_edge_counts(tmp_path):
     v, f = icosphere(10.0, 1)
     write_stl_binary(tmp_path / "open.stl", v, f[1:])
     with pytest.raises(InputError, match=r"open\.stl: the mesh is not closed and watertight \(3 boundary edges"):
-        V.load_mesh_volume(tmp_path / "open.stl", 1.0)
+        VX.load_mesh_volume(tmp_path / "open.stl", 1.0)
     f2 = f.copy()
     f2[0] = f2[0, ::-1]  # one flipped face
     with pytest.raises(InputError, match=r"flipped: .*3 inconsistently oriented edges"):
-        V.voxelize_mesh(v, f2, 1.0, source="flipped")
+        VX.voxelize_mesh(v, f2, 1.0, source="flipped")
     with pytest.raises(InputError, match=r"nonmanifold: .*non-manifold"):
-        V.voxelize_mesh(v, np.vstack([f, f[:1], f[:1, ::-1]]), 1.0, source="nonmanifold")
+        VX.voxelize_mesh(v, np.vstack([f, f[:1], f[:1, ::-1]]), 1.0, source="nonmanifold")
 
 
 def test_voxelizing_a_vertebra_surface_gives_back_its_volume(verse_frames):
@@ -528,10 +534,10 @@ def test_voxelizing_a_vertebra_surface_gives_back_its_volume(verse_frames):
     _, items = verse_frames
     vol = items["L1"][0]
     verts, faces = V.display_surface(vol)
-    assert V.mesh_edge_defects(faces) == (0, 0, 0)
-    enclosed = V.mesh_signed_volume(verts, faces)
+    assert VX.mesh_edge_defects(faces) == (0, 0, 0)
+    enclosed = mu.signed_volume(verts, faces)
     assert enclosed == pytest.approx(vol.volume_mm3, rel=0.02)
-    assert V.voxelize_mesh(verts, faces, 1.0, source="L1").volume_mm3 == pytest.approx(enclosed, rel=0.01)
+    assert VX.voxelize_mesh(verts, faces, 1.0, source="L1").volume_mm3 == pytest.approx(enclosed, rel=0.01)
 
 
 def test_moment_signs_flip_between_verse_neighbours_where_patient_pairing_does_not(verse_frames):
@@ -539,7 +545,7 @@ def test_moment_signs_flip_between_verse_neighbours_where_patient_pairing_does_n
     signs flip between neighbours (e.g. L1/L2) and L5 swaps its two largest axes."""
     lm, items = verse_frames
     names = list(VERSE_LABELS)
-    moments = {n: V.object_frame(items[n][0], "moments").axes_world for n in names}
+    moments = {n: FR.object_frame(items[n][0], "moments").axes_world for n in names}
     flips = [(a, b) for a, b in zip(names, names[1:]) if np.any(np.sum(moments[a] * moments[b], axis=0) < 0)]
     assert ("L1", "L2") in flips
     assert np.sum(moments["L4"] * moments["L5"], axis=0)[0] < 0.5  # L5's first two axes swapped

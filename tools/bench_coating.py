@@ -35,6 +35,12 @@ from test_coating import (  # noqa: E402
 )
 
 from ssm_addon import coating as C  # noqa: E402
+from ssm_addon import distance_map as DM  # noqa: E402
+from ssm_addon import instances as INS  # noqa: E402
+from ssm_addon import meshutil as mu  # noqa: E402
+from ssm_addon import registration as RG  # noqa: E402
+from ssm_addon import relaxation as RX  # noqa: E402
+from ssm_addon import warp as W  # noqa: E402
 
 
 def geodesic_sphere(frequency: int):
@@ -85,8 +91,8 @@ def deformation_case(frequency):
     a = np.array([20.0, 14.0, 10.0])
     ova = ellipsoid_volume(a)
     v, f = geodesic_sphere(frequency)
-    pts = C.DistanceMap.from_object_volume(ova).project(v * a, 3)
-    template = C.CoatingTemplate(pts, f)
+    pts = DM.DistanceMap.from_object_volume(ova).project(v * a, 3)
+    template = mu.Mesh(pts, f)
     target = object_volume(lambda y: (((y + displacement(y)) / a) ** 2).sum(1) <= 1.0, a.max() + 3, source="deformed")
     lm_src = ellipsoid_landmarks(a)
     return template, target, lm_src, inverse_displacement(lm_src), inverse_displacement(pts)
@@ -110,7 +116,7 @@ def bench_deformation(cpd_large=False):
         template, target, lm_src, lm_dst, truth = deformation_case(freq)
         n = len(template.points_object)
         print(f" template {n} vertices, {len(template.faces)} triangles")
-        dm, _ = measure("distance map", lambda: C.DistanceMap.from_object_volume(target))  # noqa: B023
+        dm, _ = measure("distance map", lambda: DM.DistanceMap.from_object_volume(target))  # noqa: B023
         res, t_coat = measure("coat (warp, registration, projection, relaxation)",
                               lambda: C.coat(template, lm_src, target, lm_dst))  # noqa: B023  # fmt: skip
         err = np.linalg.norm(res.points_object - truth, axis=1)
@@ -158,12 +164,11 @@ def bench_verse():
     from conftest import VERSE_DIR, VERSE_FILE, VERSE_LABELS
 
     from ssm_addon import landmarks as L
-    from ssm_addon import volume as V
     from ssm_addon.template import TemplateParams, build_template
 
     print("VerSe: L1 template onto L2..L5, T12")
     names = ["L1", "L2", "L3", "L4", "L5", "T12"]
-    obs = {k: V.load_object(VERSE_FILE, VERSE_LABELS[k], 1.0) for k in names}
+    obs = {k: INS.load_object(VERSE_FILE, label=VERSE_LABELS[k], spacing_mm=1.0) for k in names}
     lms = {k: obs[k].frame.to_object(L.read_landmarks(VERSE_DIR / "landmarks" / f"{k}.fcsv").points_world) for k in names}
     template, _ = measure("build_template L1", lambda: build_template(obs["L1"], TemplateParams()))
     print(f"    template {len(template.points_object)} vertices")
@@ -181,18 +186,18 @@ def bench_stages(template, src, target, dst, params=None):
     params = params or C.CoatingParams()
     print(f"  stages of one coat() call ({target.source or 'target'}, {len(template.points_object)} vertices)")
     pts, faces = np.asarray(template.points_object, float), np.asarray(template.faces)
-    tps, _ = measure("fold-free landmark warp", lambda: C.fold_free_warp(src, dst, pts), memory=False)
+    tps, _ = measure("fold-free landmark warp", lambda: W.fold_free_warp(src, dst, pts), memory=False)
     warped = tps[0](pts)
-    dm, _ = measure("distance map (EDT + marching cubes)", lambda: C.DistanceMap.from_object_volume(target), memory=False)
+    dm, _ = measure("distance map (EDT + marching cubes)", lambda: DM.DistanceMap.from_object_volume(target), memory=False)
     measure("smoothed normals for the fold test", lambda: dm.smooth_normals(pts, params.fold_normal_sigma_mm), memory=False)
-    reg, _ = measure("register_to_surface", lambda: C.register_to_surface(  # noqa: B023
+    reg, _ = measure("register_to_surface", lambda: RG.register_to_surface(  # noqa: B023
         warped, faces, dm, params.registration_sigmas_mm, params.registration_iterations), memory=False)  # fmt: skip
     proj = dm.project(reg, params.projection_iterations)
-    e = C.mesh_edges(faces)
+    e = mu.edges(faces)
     d0 = np.linalg.norm(reg[e[:, 1]] - reg[e[:, 0]], axis=1)
-    (relaxed, it, _), _ = measure("relax", lambda: C.relax(proj, faces, d0, dm, params, edges=e), memory=False)
+    (relaxed, it, _), _ = measure("relax", lambda: RX.relax(proj, faces, d0, dm, params=params, edges=e), memory=False)
     relaxed = dm.project(relaxed, params.projection_iterations)
-    measure(f"untangle ({it} relaxation steps before)", lambda: C.untangle(relaxed, faces, dm, params, e), memory=False)
+    measure(f"untangle ({it} relaxation steps before)", lambda: RX.untangle(relaxed, faces, dm, params=params, edges=e), memory=False)
     measure("fit figures (exact surface distances)", lambda: dm.surface_distance(relaxed), memory=False)
 
 

@@ -24,6 +24,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from ssm_addon import instances as INS  # noqa: E402
 from ssm_addon import surface  # noqa: E402
 
 NORMAL_RADIUS_MM = 5.0
@@ -86,11 +87,10 @@ def main(argv=None) -> int:
     if not verse.exists():
         print(f"\nVerSe data not found at {verse}: skipping L1")
         return 0
-    from ssm_addon import volume
 
     for spacing in (1.0, 0.5):
         t0 = time.perf_counter()
-        ov = volume.load_object(verse, label=20, spacing_mm=spacing)
+        ov = INS.load_object(verse, label=20, spacing_mm=spacing)
         print(f"\n(load_object L1 at {spacing} mm: {time.perf_counter() - t0:.2f} s)")
         bench(f"VerSe L1 at {spacing} mm", ov.mask, spacing, args.repeat)
     return 0

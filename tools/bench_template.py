@@ -23,7 +23,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from ssm_addon import frame as FR  # noqa: E402
+from ssm_addon import imageio as IO  # noqa: E402
 from ssm_addon import meshutil as mu  # noqa: E402
+from ssm_addon import resample as RS  # noqa: E402
 from ssm_addon import surface  # noqa: E402
 from ssm_addon import template as T  # noqa: E402
 from ssm_addon import volume as V  # noqa: E402
@@ -76,12 +79,12 @@ def main(argv=None) -> int:
     if not path.exists():
         print(f"VerSe data not found at {path}")
         return 1
-    lm = V.read_label_map(path)
-    vol = V.select_label(lm, args.label)
-    frame = V.object_frame(vol)
+    lm = IO.read_label_map(path)
+    vol = IO.select_label(lm, args.label)
+    frame = FR.object_frame(vol)
     print(f"{os.cpu_count()} CPUs, numpy {np.__version__}")
     for h in args.spacing:
-        ov = V.resample(vol, frame, h)
+        ov = RS.resample(vol, frame, h)
         bench(ov, T.TemplateParams(spacing_mm=h))
     return 0
 

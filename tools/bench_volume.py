@@ -27,6 +27,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from ssm_addon import frame as FR  # noqa: E402
+from ssm_addon import imageio as IO  # noqa: E402
+from ssm_addon import resample as RS  # noqa: E402
 from ssm_addon import volume as V  # noqa: E402
 
 ROWS: list[tuple[str, float, float, str]] = []
@@ -46,15 +49,15 @@ def step(name: str, fn, note=lambda r: ""):
 
 
 def import_all(path, labels=None):
-    lm = step(f"read {Path(path).name}", lambda: V.read_label_map(path), lambda r: f"{r.labels.shape} {r.labels.dtype}")
-    counts = step("label counts", lambda: V.label_counts(lm), lambda r: f"{len(r)} labels")
+    lm = step(f"read {Path(path).name}", lambda: IO.read_label_map(path), lambda r: f"{r.labels.shape} {r.labels.dtype}")
+    counts = step("label counts", lambda: IO.label_counts(lm), lambda r: f"{len(r)} labels")
     total = 0.0
     for label in labels or sorted(counts):
 
         def one(label=label):
-            vol = V.select_label(lm, label)
-            frame = V.object_frame(vol)
-            return vol, V.resample(vol, frame, 1.0)
+            vol = IO.select_label(lm, label)
+            frame = FR.object_frame(vol)
+            return vol, RS.resample(vol, frame, 1.0)
 
         t0 = time.perf_counter()
         vol, ov = step(
@@ -83,7 +86,7 @@ def synthetic(path: Path):
         grid = np.ogrid[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
         inside = sum(((g - c) / s) ** 2 for g, c, s in zip(grid, centre, semi)) <= 1
         labels[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]][inside] = label
-    V.write_label_map(path, labels, affine)
+    IO.write_label_map(path, labels, affine)
 
 
 def main(argv):

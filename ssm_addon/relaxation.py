@@ -1,0 +1,179 @@
+"""The mass-spring relaxation of paper 4.2, eq. (3), fold detection and fold removal.
+
+F_i = Σ_j k1 (d_ij − d0_ij) e_ij + k2 d_DM(p_i), integrated with m a + g v = F
+(:func:`relax`); triangles whose normal turns away from the surface normal are folded
+(:func:`folded_triangles`) and lose the surface force while folded; folds left after
+the relaxation are removed locally (:func:`untangle`, not in the paper). Coordinates in
+mm, the target's object frame.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .distance_map import DistanceMap
+from .errors import InputError, check_cancelled
+from .meshutil import edges as mesh_edges
+from .meshutil import face_centroids, face_normals
+from .params import CoatingParams
+from .progress import CancelledFn, ProgressFn, report
+
+__all__ = ["folded_triangles", "relax", "untangle"]
+
+
+def folded_triangles(
+    points: np.ndarray, faces: np.ndarray, distance_map: DistanceMap, fold_angle_deg: float = 90.0,
+    normal_sigma_mm: float = 3.0,
+):
+    """(F,) bool: triangles whose normal deviates from the surface normal by > fold_angle_deg.
+
+    The surface normal is taken at the triangle's centroid (paper 4.2) from the
+    distance map smoothed at ``normal_sigma_mm`` (:meth:`DistanceMap.smooth_normals`):
+    the raw gradient flags correct triangles that span a thin process or lamina (their
+    centroid lies inside, near the medial surface, where the raw gradient flips; 3 of
+    1,262 triangles of the VerSe L1 template on its own surface), the 3 mm smoothed one
+    none. ``normal_sigma_mm`` 0: the raw gradient (the paper's test). Degenerate
+    (zero-area) triangles count as folded.
+    """
+    fn = face_normals(points, faces)
+    cen = face_centroids(points, faces)
+    sn = distance_map.smooth_normals(cen, normal_sigma_mm)
+    cosang = np.einsum("ij,ij->i", fn, sn)
+    zero = ~np.any(fn, axis=1)
+    return (cosang < math.cos(math.radians(fold_angle_deg))) | zero
+
+
+def _grow(vertices: np.ndarray, edges: np.ndarray, rings: int) -> np.ndarray:
+    """Boolean vertex set grown by ``rings`` edge rings."""
+    sel = vertices.copy()
+    for _ in range(rings):
+        hit = sel[edges[:, 0]] | sel[edges[:, 1]]
+        sel[edges[hit].ravel()] = True
+    return sel
+
+
+def untangle(
+    points: np.ndarray,
+    faces: np.ndarray,
+    distance_map: DistanceMap,
+    *,
+    params: CoatingParams | None = None,
+    edges: np.ndarray | None = None,
+    cancelled: CancelledFn = None,
+):
+    """Remove folds left on the surface: local umbrella smoothing + reprojection.
+
+    Not in the paper. Repeats up to ``params.untangle_iterations`` times: the vertices
+    of folded triangles (:func:`folded_triangles`) and their ``params.untangle_rings``
+    neighbour rings (one more ring every 10 rounds that leave folds) move halfway to the
+    average of their neighbours and back onto the surface (two projection steps);
+    stops as soon as no triangle is folded. Vertices away from folds do not move, so
+    correspondence elsewhere is untouched.
+
+    Returns
+    -------
+    points : (N, 3) mm; rounds used : int
+    """
+    params = CoatingParams() if params is None else params
+    p = np.array(points, dtype=float)
+    e = mesh_edges(faces) if edges is None else edges
+    n = len(p)
+    deg = np.maximum(np.bincount(e.ravel(), minlength=n), 1).astype(float)[:, None]
+    rounds = 0
+    for rounds in range(params.untangle_iterations):
+        folded = folded_triangles(p, faces, distance_map, params.fold_angle_deg, params.fold_normal_sigma_mm)
+        if not folded.any():
+            return p, rounds
+        check_cancelled(cancelled)
+        seed = np.zeros(n, dtype=bool)
+        seed[faces[folded].ravel()] = True
+        sel = _grow(seed, e, params.untangle_rings + rounds // 10)
+        nsum = np.empty_like(p)
+        for k in range(3):
+            nsum[:, k] = np.bincount(e[:, 0], p[e[:, 1], k], minlength=n) + np.bincount(e[:, 1], p[e[:, 0], k], minlength=n)
+        p[sel] += 0.5 * (nsum[sel] / deg[sel] - p[sel])
+        p[sel] = distance_map.project(p[sel], 2)
+    return p, params.untangle_iterations
+
+
+def relax(
+    points: np.ndarray,
+    faces: np.ndarray,
+    rest_lengths: np.ndarray,
+    distance_map: DistanceMap,
+    *,
+    params: CoatingParams | None = None,
+    progress: ProgressFn = None,
+    cancelled: CancelledFn = None,
+    edges: np.ndarray | None = None,
+):
+    """Mass-spring relaxation of a mesh on a surface, eq. (3) (paper 4.2).
+
+    F_i = Σ_j k1 (d_ij − d0_ij) e_ij + k2 d_DM(p_i), with m a + g v = F integrated by
+    semi-implicit Euler (v += dt (F − g v)/m; p += dt v) until max |v| <
+    ``params.velocity_tol_mm`` or ``params.max_iterations``. d_DM is the vector to the
+    nearest surface point, −d(p) ∇d/|∇d| from the distance map. Vertices of folded
+    triangles (normal vs surface normal) get no surface force while folded (paper) and
+    an umbrella force ``params.fold_smoothing`` (avg of neighbours − p) instead.
+
+    Parameters
+    ----------
+    points : (N, 3) mm, start positions (object frame of the distance map).
+    faces : (F, 3) int triangles (outward oriented).
+    rest_lengths : (E,) mm, rest lengths d0 of ``edges`` (default ``mesh_edges(faces)`` order).
+    distance_map : DistanceMap of the target.
+
+    Returns
+    -------
+    points : (N, 3) mm; iterations : int; converged : bool
+    """
+    params = CoatingParams() if params is None else params
+    p = np.array(points, dtype=float)
+    faces = np.asarray(faces, np.int64)
+    e = mesh_edges(faces) if edges is None else edges
+    d0 = np.asarray(rest_lengths, float)
+    if len(d0) != len(e):
+        raise InputError(f"relaxation: {len(d0)} rest lengths for {len(e)} edges")
+    n = len(p)
+    v = np.zeros_like(p)
+    i0, i1 = e[:, 0], e[:, 1]
+    deg = np.maximum(np.bincount(e.ravel(), minlength=n), 1).astype(float)
+    it = 0
+    converged = params.max_iterations == 0
+    for it in range(1, params.max_iterations + 1):
+        vec = p[i1] - p[i0]
+        length = np.linalg.norm(vec, axis=1)
+        unit = vec / np.maximum(length, 1e-12)[:, None]
+        fe = (params.k1 * (length - d0))[:, None] * unit  # force on i0 towards i1 when stretched
+        force = np.empty_like(p)
+        for k in range(3):
+            force[:, k] = np.bincount(i0, fe[:, k], minlength=n) - np.bincount(i1, fe[:, k], minlength=n)
+        d, g = distance_map.sample(p)
+        nrm = g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-12)
+        if (it - 1) % params.fold_check_interval == 0:
+            # fold detection: triangle normal vs (smoothed) surface normal at the centroid
+            folded = folded_triangles(p, faces, distance_map, params.fold_angle_deg, params.fold_normal_sigma_mm)
+            surface_on = np.ones(n, dtype=bool)
+            if np.any(folded):
+                surface_on[faces[folded].ravel()] = False
+        k_smooth = params.k3 + params.fold_smoothing * ~surface_on
+        if np.any(k_smooth > 0):
+            nsum = np.empty_like(p)
+            for k in range(3):
+                nsum[:, k] = np.bincount(i0, p[i1, k], minlength=n) + np.bincount(i1, p[i0, k], minlength=n)
+            force += k_smooth[:, None] * (nsum / deg[:, None] - p)
+        if params.tangential_springs:
+            force -= np.einsum("ij,ij->i", force, nrm)[:, None] * nrm * surface_on[:, None]
+        force += (params.k2 * -d * surface_on)[:, None] * nrm
+        v += params.dt * (force - params.damping * v) / params.mass
+        p += params.dt * v
+        vmax = float(np.sqrt((v * v).sum(1).max())) if n else 0.0
+        if it % 25 == 0:
+            report(progress, it / max(params.max_iterations, 1), f"relaxation step {it}")
+            check_cancelled(cancelled)
+        if vmax < params.velocity_tol_mm:
+            converged = True
+            break
+    return p, it, converged

@@ -1,0 +1,381 @@
+"""A shape study: its instances and parameters, and what each stage of the method made.
+
+The study is the state both front ends share. The command line builds one from a
+project file (:meth:`Study.from_project`), Blender from the scene; both then call the
+same stage functions, which read the study and return a product:
+
+====================  ==========================================  ===================
+stage                 function                                    product
+====================  ==========================================  ===================
+import (paper 2)      :func:`import_instances`                    ``volumes``
+template (paper 3)    :func:`make_template`                       ``template``
+coating (paper 4)     :func:`coat_instances`                      ``coatings``
+model (paper 5)       :func:`make_model`                          ``model``
+metrics               :func:`evaluate_model`                      ``metrics``
+====================  ==========================================  ===================
+
+:func:`run` is the loop over them. Every number that feeds a later stage is float64
+and lives here (Blender meshes are only views of it), so the same inputs give the same
+model in Blender and on the command line.
+
+Frames: landmarks are world mm of each instance's input file; volumes, the template
+and coatings are object mm (paper 2) of their instance; the model is in the model frame
+(the object frame, or Procrustes-aligned).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import platform
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import __version__
+from .coating import CoatingResult, coat_all
+from .errors import InputError, check_cancelled
+from .imageio import read_label_map
+from .instances import InstanceSpec, import_instance
+from .landmarks import LandmarkSet
+from .meshutil import genus
+from .model import ShapeModel, build_model
+from .params import CoatingParams, ModelParams, TemplateParams
+from .progress import CancelledFn, ProgressFn, report, sub_progress
+from .template import Template, build_template
+from .volume import ObjectVolume
+
+__all__ = [
+    "STAGES",
+    "Study",
+    "coat_instances",
+    "common_landmark_names",
+    "evaluate_model",
+    "import_instances",
+    "make_model",
+    "make_template",
+    "run",
+    "study_parameters",
+]
+
+Log = Callable[[str], None] | None
+
+
+@dataclass
+class Study:
+    """A shape study (paper fig. 1): inputs and the products of each stage.
+
+    Attributes
+    ----------
+    instances : tuple of InstanceSpec
+        The instances in study order (their sources and landmarks, world mm).
+    template_instance : str
+        Name of the instance the template is built from (paper 3).
+    template_params, coating_params, model_params : parameter objects
+        See :mod:`ssm_addon.params`; ``template_params.spacing_mm`` and ``.frame`` also
+        set every instance's import.
+    volumes : dict name -> ObjectVolume
+        Each imported instance, resampled in its object frame (paper 2).
+    template : Template or None
+    coatings : dict name -> CoatingResult
+        The template coated onto each instance (object mm of that instance).
+    model : ShapeModel or None
+    metrics : dict or None
+        Compactness, generalization, specificity.
+    timings_s : dict
+        Wall time per stage.
+    """
+
+    instances: tuple[InstanceSpec, ...]
+    template_instance: str = ""
+    template_params: TemplateParams = field(default_factory=TemplateParams)
+    coating_params: CoatingParams = field(default_factory=CoatingParams)
+    model_params: ModelParams = field(default_factory=ModelParams)
+    volumes: dict[str, ObjectVolume] = field(default_factory=dict)
+    template: Template | None = None
+    coatings: dict[str, CoatingResult] = field(default_factory=dict)
+    model: ShapeModel | None = None
+    metrics: dict | None = None
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.instances = tuple(self.instances)
+        names = [i.name for i in self.instances]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise InputError(f"study: instance names are not unique: {', '.join(dup)}")
+        if not self.template_instance and names:
+            self.template_instance = names[0]
+        if names and self.template_instance not in names:
+            raise InputError(f"study: the template instance {self.template_instance!r} is not one of the instances")
+
+    @classmethod
+    def from_project(cls, project) -> Study:
+        """The study of a parsed project file (:func:`ssm_addon.project.read_project`)."""
+        return cls(instances=project.instances, template_instance=project.template_instance,
+                   template_params=project.template, coating_params=project.coating, model_params=project.model)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(i.name for i in self.instances)
+
+    def instance(self, name: str) -> InstanceSpec:
+        for inst in self.instances:
+            if inst.name == name:
+                return inst
+        raise InputError(f"study: no instance named {name!r} (instances: {', '.join(self.names)})")
+
+    def landmarks(self, name: str) -> LandmarkSet | None:
+        """The instance's landmarks (world mm of its file), or None."""
+        lm = self.instance(name).landmark_set
+        return lm if lm is not None and len(lm) else None
+
+    def volume(self, name: str) -> ObjectVolume:
+        if name not in self.volumes:
+            raise InputError(f"study: instance {name!r} is not imported yet")
+        return self.volumes[name]
+
+
+STAGES = ("import", "template", "coating", "model", "metrics")
+
+
+def _versions() -> dict:
+    import scipy
+    import skimage
+
+    return {"ssm_builder": __version__, "python": platform.python_version(), "numpy": np.__version__,
+            "scipy": scipy.__version__, "scikit-image": skimage.__version__}
+
+
+def study_parameters(study: Study, landmark_names: Sequence[str] = ()) -> dict:
+    """Every parameter of the study as JSON-ready values (what ``model.npz`` records).
+
+    Deterministic: the same study gives the same dict (no times, dates or paths of the
+    machine), so identical builds give identical model files.
+    """
+    return {
+        "spacing_mm": float(study.template_params.spacing_mm),
+        "frame_method": study.template_params.frame,
+        "template_instance": study.template_instance,
+        "template": study.template_params.to_dict(),
+        "coating": study.coating_params.to_dict(),
+        "model": dataclasses.asdict(study.model_params),
+        "landmarks": list(landmark_names),
+        "versions": _versions(),
+    }
+
+
+# ----------------------------------------------------------------------------- stages
+def import_instances(study: Study, *, names: Sequence[str] | None = None, jobs: int = 1,
+                     progress: ProgressFn = None, cancelled: CancelledFn = None) -> dict[str, ObjectVolume]:
+    """Read every instance, compute its object frame and resample it (paper 2).
+
+    Label maps shared by several instances (one file, several labels) are read once.
+    With ``jobs`` > 1 the instances are processed in threads (the numeric work releases
+    the GIL); the result does not depend on ``jobs``.
+
+    Returns
+    -------
+    dict name -> ObjectVolume, in study order (only ``names``, default all).
+    """
+    todo = [study.instance(n) for n in (study.names if names is None else names)]
+    n = len(todo)
+    tp = study.template_params
+    shared = {}
+    paths = [inst.volume for inst in todo if inst.volume is not None]
+    for path in sorted({p for p in paths if paths.count(p) > 1}):
+        check_cancelled(cancelled)
+        try:
+            shared[path] = read_label_map(path)
+        except InputError as err:
+            raise InputError(f"instances using {path.name}: {err}") from None
+    done = [0]
+
+    def one(inst: InstanceSpec) -> ObjectVolume:
+        check_cancelled(cancelled)
+        ov = import_instance(inst, spacing_mm=tp.spacing_mm, frame_method=tp.frame,
+                             label_map=shared.get(inst.volume), cancelled=cancelled)
+        done[0] += 1
+        report(progress, done[0] / n, f"imported {inst.name} ({done[0]}/{n}): {ov.mask.shape} voxels at "
+                                      f"{ov.spacing_mm:g} mm, frame {ov.frame.method}")
+        return ov
+
+    workers = max(1, min(int(jobs or 1), n))
+    if workers == 1:
+        volumes = [one(inst) for inst in todo]
+    else:
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            volumes = list(pool.map(one, todo))
+    return {inst.name: ov for inst, ov in zip(todo, volumes)}
+
+
+def make_template(study: Study, *, progress: ProgressFn = None, cancelled: CancelledFn = None) -> Template:
+    """The template (paper 3) from the study's template instance."""
+    name = study.template_instance
+    try:
+        return build_template(study.volume(name), study.template_params, progress=progress, cancelled=cancelled)
+    except InputError as err:
+        raise InputError(f"template from instance {name!r}: {err}") from None
+
+
+def common_landmark_names(study: Study, names: Sequence[str]) -> tuple[str, ...]:
+    """The landmark names of the template instance that every one of ``names`` also has.
+
+    In the template instance's order; the landmark warp (eq. 2) uses exactly these.
+    """
+    ref = study.landmarks(study.template_instance)
+    if ref is None:
+        raise InputError(f"coating: the template's instance {study.template_instance!r} has no landmarks")
+    missing = [n for n in names if study.landmarks(n) is None]
+    if missing:
+        raise InputError(f"coating: instance(s) without landmarks: {', '.join(missing)}")
+    sets = [study.landmarks(n) for n in names]
+    common = tuple(x for x in ref.names if all(x in s.names for s in sets))
+    if len(common) < 4:
+        raise InputError(f"coating: only {len(common)} landmark name(s) shared by {study.template_instance} and "
+                         f"{', '.join(names)}; the landmark warp (eq. 2) needs at least 4")
+    return common
+
+
+def _landmarks_object(study: Study, name: str, common: Sequence[str]) -> np.ndarray:
+    lm = study.landmarks(name).subset(common)
+    return study.volume(name).frame.to_object(lm.points_world)
+
+
+def coat_instances(study: Study, *, names: Sequence[str] | None = None, jobs: int = 1,
+                   progress: ProgressFn = None, cancelled: CancelledFn = None) -> dict[str, CoatingResult]:
+    """Coat the template onto instances (paper 4), ``jobs`` processes.
+
+    Parameters
+    ----------
+    names : instance names (default: every instance).
+
+    Returns
+    -------
+    dict name -> CoatingResult (object mm of each instance). Cancelling raises
+    :class:`~ssm_addon.coating.CoatingCancelled` whose ``results`` keep the finished ones.
+    """
+    if study.template is None:
+        raise InputError("coating: build the template first")
+    names = list(study.names if names is None else names)
+    common = common_landmark_names(study, names)
+    src = _landmarks_object(study, study.template_instance, common)
+    targets = [study.volume(n) for n in names]
+    lms = [_landmarks_object(study, n, common) for n in names]
+    results = coat_all(study.template, src, targets, lms, params=study.coating_params, jobs=jobs,
+                       progress=progress, cancelled=cancelled, names=names)
+    return dict(zip(names, results))
+
+
+def make_model(study: Study, *, names: Sequence[str] | None = None, progress: ProgressFn = None,
+               cancelled: CancelledFn = None) -> ShapeModel:
+    """PCA of the coated instances (paper 5, eqs. 4–6), in study order.
+
+    Parameters
+    ----------
+    names : instances to use (default: every coated instance, in study order).
+    """
+    if names is None:
+        names = [n for n in study.names if n in study.coatings]
+    names = list(names)
+    missing = [n for n in names if n not in study.coatings]
+    if missing:
+        raise InputError(f"model: instance(s) not coated yet: {', '.join(missing)}")
+    if len(names) < 2:
+        raise InputError(f"model: need at least 2 coated instances, have {len(names)}")
+    if study.template is None:
+        raise InputError("model: no template")
+    pts = np.stack([study.coatings[n].points_object for n in names])
+    world = np.stack([study.volume(n).frame.to_world(study.coatings[n].points_object) for n in names])
+    common = ()
+    try:
+        common = common_landmark_names(study, names)
+    except InputError:
+        pass
+    params = study_parameters(study, common)
+    params["fit"] = {n: study.coatings[n].fit.to_dict() for n in names}
+    mp = study.model_params
+    return build_model(pts, study.template.faces, names, instance_points_world=world, alignment=mp.alignment,
+                       n_modes=mp.n_modes, params=params, progress=progress, cancelled=cancelled)
+
+
+def evaluate_model(study: Study, *, progress: ProgressFn = None, cancelled: CancelledFn = None) -> dict:
+    """Compactness, generalization and specificity of the study's model."""
+    from . import metrics
+
+    if study.model is None:
+        raise InputError("metrics: build the model first")
+    mp = study.model_params
+    return metrics.evaluate(study.model, n_samples=mp.specificity_samples, seed=mp.seed, max_loo=mp.max_loo,
+                            progress=progress, cancelled=cancelled)
+
+
+def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress: ProgressFn = None,
+        cancelled: CancelledFn = None, log: Log = None) -> Study:
+    """Run ``stages`` in order on ``study`` (filling its products) and return it.
+
+    Progress: import 0–15 %, template 15–30 %, coating 30–85 %, model 85–90 %, metrics
+    90–95 % of ``progress``; ``log`` receives one summary line per stage.
+    """
+    say = log or (lambda _m: None)
+    n = len(study.instances)
+    unknown = [s for s in stages if s not in STAGES]
+    if unknown:
+        raise InputError(f"study: unknown stage(s) {', '.join(unknown)} (stages: {', '.join(STAGES)})")
+    if "import" in stages:
+        t0 = time.perf_counter()
+        report(progress, 0.0, f"import: {n} instances at {study.template_params.spacing_mm:g} mm")
+        study.volumes.update(import_instances(study, jobs=jobs, progress=sub_progress(progress, 0.0, 0.15),
+                                              cancelled=cancelled))
+        study.timings_s["import"] = time.perf_counter() - t0
+        say(f"import: {n} instances in {study.timings_s['import']:.2f} s")
+    if "template" in stages:
+        check_cancelled(cancelled)
+        t0 = time.perf_counter()
+        report(progress, 0.15, f"template: from {study.template_instance}")
+        study.template = make_template(study, progress=sub_progress(progress, 0.15, 0.3), cancelled=cancelled)
+        study.timings_s["template"] = time.perf_counter() - t0
+        t = study.template
+        say(f"template: {len(t.points_object)} points, {len(t.faces)} triangles, "
+            f"genus {genus(len(t.points_object), t.faces)} from {study.template_instance} in "
+            f"{study.timings_s['template']:.2f} s")
+    if "coating" in stages:
+        check_cancelled(cancelled)
+        t0 = time.perf_counter()
+        report(progress, 0.3, f"coating: {n} instances, {jobs} job(s)")
+        coat_prog = sub_progress(progress, 0.3, 0.85)
+
+        def coat_progress(fraction: float, message: str) -> None:
+            if message.startswith("coated "):
+                report(coat_prog, fraction, message)
+
+        study.coatings.update(coat_instances(study, jobs=jobs, progress=coat_progress if progress else None,
+                                             cancelled=cancelled))
+        study.timings_s["coating"] = time.perf_counter() - t0
+        worst = max(c.fit.max_distance_mm for c in study.coatings.values())
+        say(f"coating: {n} instances in {study.timings_s['coating']:.2f} s (largest surface distance {worst:.2f} mm)")
+    if "model" in stages:
+        check_cancelled(cancelled)
+        t0 = time.perf_counter()
+        report(progress, 0.85, "model: PCA")
+        study.model = make_model(study, cancelled=cancelled)
+        study.timings_s["model"] = time.perf_counter() - t0
+        say(f"model: {study.model.n_modes} modes, {study.model.n_points} points in {study.timings_s['model']:.2f} s")
+    if "metrics" in stages:
+        check_cancelled(cancelled)
+        t0 = time.perf_counter()
+        report(progress, 0.9, "metrics: compactness, generalization, specificity")
+        study.metrics = evaluate_model(study, cancelled=cancelled)
+        study.timings_s["metrics"] = time.perf_counter() - t0
+        say(f"metrics: compactness, generalization, specificity in {study.timings_s['metrics']:.2f} s")
+    return study
+
+
+def landmark_names_of(study: Study) -> tuple[str, ...]:
+    """The landmark names the coating of every instance used (empty if none apply)."""
+    try:
+        return common_landmark_names(study, study.names)
+    except InputError:
+        return ()
