@@ -87,6 +87,60 @@ def matrix_to_numpy(matrix) -> np.ndarray:
     return np.array([list(row) for row in matrix], dtype=float)
 
 
+def store_arrays(idblock, key: str, arrays: dict) -> None:
+    """Keep arrays in the ID property ``idblock[key]`` exactly (float64 / int32 buffers).
+
+    Strings are stored as they are. Survives saving and re-opening the .blend bit for bit.
+    """
+    group = {}
+    for name, value in arrays.items():
+        if isinstance(value, str):
+            group[name] = value
+            continue
+        a = np.asarray(value)
+        group[f"{name}__shape"] = np.asarray(a.shape, dtype=np.int32) if a.ndim else np.zeros(0, np.int32)
+        if np.issubdtype(a.dtype, np.integer):
+            group[name] = np.ascontiguousarray(a, dtype=np.int32).ravel()
+        else:
+            group[name] = np.ascontiguousarray(a, dtype=np.float64).ravel()
+    idblock[key] = group
+
+
+def load_arrays(idblock, key: str) -> dict | None:
+    """The arrays stored by :func:`store_arrays` (float64 / int64), or None."""
+    group = idblock.get(key)
+    if group is None:
+        return None
+    out = {}
+    for name in group.keys():
+        if name.endswith("__shape"):
+            continue
+        value = group[name]
+        if isinstance(value, str):
+            out[name] = value
+            continue
+        shape = tuple(int(x) for x in np.asarray(group.get(f"{name}__shape", []), dtype=np.int64))
+        a = np.asarray(value)
+        a = a.astype(np.int64) if np.issubdtype(a.dtype, np.integer) else a.astype(np.float64)
+        out[name] = a.reshape(shape) if shape else a
+    return out
+
+
+def position_colors(points: np.ndarray) -> np.ndarray:
+    """(N, 4) RGBA: a smooth colour by position (each axis of the points' box -> R, G, B).
+
+    Computed from the template's points and given to every mesh that shares the
+    template's vertices (template, coated instances, model), corresponding places have
+    the same colour everywhere: correspondence visible at a glance.
+    """
+    p = np.asarray(points, dtype=float).reshape(-1, 3)
+    rgba = np.ones((len(p), 4), dtype=np.float32)
+    if len(p):
+        lo, hi = p.min(axis=0), p.max(axis=0)
+        rgba[:, :3] = 0.12 + 0.83 * (p - lo) / np.where(hi > lo, hi - lo, 1.0)
+    return rgba
+
+
 def triangle_index_colors(n_faces: int) -> np.ndarray:
     """(F, 4) float32 RGBA: a distinct colour per triangle index (golden-ratio hues).
 
@@ -125,6 +179,18 @@ def set_face_colors(mesh: bpy.types.Mesh, rgba: np.ndarray, name: str = "triangl
     corner_face = np.repeat(np.arange(len(totals)), totals)
     corner_index = np.repeat(starts, totals) + (np.arange(totals.sum()) - np.repeat(np.cumsum(totals) - totals, totals))
     per_corner[corner_index] = rgba[corner_face]
+    _set_corner_colors(mesh, per_corner, name)
+
+
+def set_vertex_colors(mesh: bpy.types.Mesh, rgba: np.ndarray, name: str = "correspondence") -> None:
+    """Give each vertex an RGBA colour on all its face corners (CORNER attribute, made active)."""
+    idx = np.empty(len(mesh.loops), dtype=np.int32)
+    mesh.loops.foreach_get("vertex_index", idx)
+    per_corner = np.ascontiguousarray(np.asarray(rgba, dtype=np.float32).reshape(-1, 4)[idx])
+    _set_corner_colors(mesh, per_corner, name)
+
+
+def _set_corner_colors(mesh, per_corner: np.ndarray, name: str) -> None:
     attr = mesh.color_attributes.get(name)
     if attr is not None and attr.domain != "CORNER":
         mesh.color_attributes.remove(attr)
@@ -136,6 +202,41 @@ def set_face_colors(mesh: bpy.types.Mesh, rgba: np.ndarray, name: str = "triangl
     index = list(mesh.color_attributes).index(attr)
     mesh.color_attributes.active_color_index = index
     mesh.color_attributes.render_color_index = index
+
+
+CORRESPONDENCE_ATTRIBUTE = "correspondence"
+
+
+def colour_correspondence(obj, template_points: np.ndarray, mode: str = "POSITION") -> None:
+    """Colour a mesh with the template's topology by correspondence and give it the material.
+
+    ``mode`` "POSITION": a smooth colour by the vertex's place on the template
+    (:func:`position_colors` of ``template_points``); "TRIANGLES": one colour per
+    triangle index (paper figs. 6-7). Either way corresponding places share a colour on
+    the template, every coated instance and the model.
+    """
+    mesh = obj.data
+    if mode == "TRIANGLES":
+        set_face_colors(mesh, triangle_index_colors(len(mesh.polygons)), name=CORRESPONDENCE_ATTRIBUTE)
+    else:
+        set_vertex_colors(mesh, position_colors(template_points), name=CORRESPONDENCE_ATTRIBUTE)
+    mat = color_material()
+    if not mesh.materials:
+        mesh.materials.append(mat)
+    else:
+        mesh.materials[0] = mat
+
+
+def recolour_scene(context) -> None:
+    """Repaint every template, coated and model mesh with the scene's colouring."""
+    mode = context.scene.ssm_display.colouring
+    template = next((o for o in context.scene.objects if o.type == "MESH" and o.ssm.role == "TEMPLATE"), None)
+    stored = load_arrays(template, "ssm_template") if template is not None else None
+    points = stored["points_object"] if stored else None
+    for obj in context.scene.objects:
+        if obj.type == "MESH" and obj.ssm.role in {"TEMPLATE", "COATED", "MODEL", "SAMPLE"}:
+            pts = points if points is not None and len(points) == len(obj.data.vertices) else mesh_vertices(obj.data)
+            colour_correspondence(obj, pts, mode)
 
 
 def set_point_attribute(mesh: bpy.types.Mesh, name: str, values: np.ndarray) -> None:
@@ -156,8 +257,8 @@ def get_point_attribute(mesh: bpy.types.Mesh, name: str) -> np.ndarray | None:
     return out
 
 
-def color_material(name: str = "SSM Triangle Colours", attribute: str = "triangle_index"):
-    """A material that shows a colour attribute (per-triangle colours) in renders."""
+def color_material(name: str = "SSM Correspondence Colours", attribute: str = "correspondence"):
+    """A material that shows the correspondence colour attribute in renders."""
     mat = bpy.data.materials.get(name)
     if mat is not None:
         return mat

@@ -11,9 +11,11 @@ _handle = None
 
 def command(argv):
     """Entry point Blender calls with the arguments after ``--command ssm``."""
-    from ..ssm_addon.__main__ import main
+    from ssm_addon.__main__ import main
 
-    return main(list(argv), in_blender=True)
+    from .project import write_build_outputs
+
+    return main(list(argv), in_blender=True, blend_writer=write_build_outputs)
 
 
 def register():

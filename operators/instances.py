@@ -1,219 +1,146 @@
 """Instances in Blender: importing label maps and meshes, and turning meshes into instances.
 
 An instance is a mesh object in the "SSM Instances" collection with ``obj.ssm.role ==
-"INSTANCE"``. For an imported label map or mesh file its mesh is the display surface
-(marching cubes, paper section 2) in *object* mm and ``obj.matrix_world`` is the object
-frame's matrix, so it sits at its world position (1 Blender unit = 1 mm). Its metadata:
-``source`` (relative to the .blend where possible), ``label``, ``spacing_mm``,
-``frame_method``, ``frame_origin``/``frame_axes`` (the object frame in the file's world
-mm), ``import_matrix`` (``matrix_world`` at import, row-major) and ``volume_mm3``.
-
-Keeping the volume data: *reload from source*. Nothing but the metadata is stored in
-the .blend; :func:`instance_object_volume` re-reads the source file (or, for an
-instance made from a Blender mesh, re-voxelizes the object's current mesh) and resamples
-it in the stored frame, caching the result in memory keyed by (object name, source,
-label, spacing, file mtime or mesh digest). A saved and re-opened .blend therefore
-continues the pipeline as long as the source files are where ``source`` points.
-
-Coordinates: the file's world mm and Blender world agree at import; if the user moves
-an instance afterwards, :func:`blender_to_file_world` / :func:`file_to_blender_world`
-convert (file world = import_matrix @ inverse(matrix_world) @ Blender world).
+"INSTANCE"`` (see ``operators/scene.py`` for what is stored where). For an imported
+label map or mesh file its mesh is the display surface (marching cubes of the input
+grid) in *object* mm and ``obj.matrix_world`` is the object frame, so it sits at its
+world position (1 Blender unit = 1 mm). Every instance of a study is resampled at the
+study's spacing with the study's frame method (``Scene.ssm_template``), as a project
+file's ``[template] spacing`` and ``frame``.
 """
 
 from __future__ import annotations
 
-import hashlib
 import os
 from pathlib import Path
 
 import bpy
 import numpy as np
-from bpy.props import BoolProperty, CollectionProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
+from bpy.props import BoolProperty, CollectionProperty, FloatProperty, IntProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
-from ..ssm_addon import frame as FR
-from ..ssm_addon import imageio as IO
-from ..ssm_addon import resample as RS
-from ..ssm_addon import volume as core
-from ..ssm_addon import voxelize as VX
-from ..ssm_addon.errors import InputError, check_cancelled
-from ..ssm_addon.progress import report, sub_progress
+from ssm_addon import imageio
+from ssm_addon import instances as core
+from ssm_addon.errors import InputError, check_cancelled
+from ssm_addon.instances import InstanceSpec
+from ssm_addon.progress import report, sub_progress
+from ssm_addon.volume import display_surface
+
 from . import bridge
 from .jobs import BackgroundJob
-from .properties import FRAME_METHODS
+from .properties import scene_params
+from .scene import (
+    absolute_source_path,
+    cache_volume,
+    clear_volume_cache,
+    is_instance,
+    next_order,
+    relative_source,
+    scene_instances,
+    write_frame,
+)
 
 VOXELS_PROP = "ssm_voxels"
 """Custom property of an instance: object voxel count in its input grid."""
 
-FILE_GLOB = ";".join(f"*{ext}" for ext in IO.SUPPORTED_EXTENSIONS)
-
-_CACHE: dict[tuple, core.ObjectVolume] = {}
-
-
-# ------------------------------------------------------------------------------ helpers
+FILE_GLOB = ";".join(f"*{ext}" for ext in imageio.SUPPORTED_EXTENSIONS)
+DEFAULT_NAME_PATTERN = "{stem} label {label}"
 
 
-def is_instance(obj) -> bool:
-    """True for an SSM instance (a mesh object with role INSTANCE)."""
-    return obj is not None and obj.type == "MESH" and obj.ssm.role == "INSTANCE"
+def instance_name(pattern: str, path, label: int | None) -> str:
+    """An instance's name from a pattern with ``{stem}`` (file name without extension) and ``{label}``.
 
-
-def scene_instances(context) -> list:
-    """The scene's instance objects, by name."""
-    return sorted((o for o in context.scene.objects if is_instance(o)), key=lambda o: o.name)
-
-
-def _import_matrix(obj) -> np.ndarray:
-    return np.array(obj.ssm.import_matrix, dtype=float).reshape(4, 4)
-
-
-def _apply(matrix: np.ndarray, points) -> np.ndarray:
-    pts = np.asarray(points, dtype=float).reshape(-1, 3)
-    return pts @ matrix[:3, :3].T + matrix[:3, 3]
-
-
-def blender_to_file_world(obj, points_blender_world) -> np.ndarray:
-    """(M, 3) Blender world mm -> the instance's file world mm.
-
-    file world = import_matrix @ inverse(matrix_world) @ p, so moving an instance in the
-    viewport after import does not change landmark coordinates in the file's frame.
+    Without a label (a mesh, or all labels) the ``{label}`` part and the text between it
+    and ``{stem}`` are dropped: "{stem} label {label}" gives "ball" for ball.stl.
     """
-    m = _import_matrix(obj) @ np.linalg.inv(bridge.matrix_to_numpy(obj.matrix_world))
-    return _apply(m, points_blender_world)
-
-
-def file_to_blender_world(obj, points_file_world) -> np.ndarray:
-    """(M, 3) file world mm -> Blender world mm (inverse of :func:`blender_to_file_world`)."""
-    m = bridge.matrix_to_numpy(obj.matrix_world) @ np.linalg.inv(_import_matrix(obj))
-    return _apply(m, points_file_world)
-
-
-def stored_frame(obj) -> core.ObjectFrame | None:
-    """The object frame stored on an instance (file world mm), or None if unset."""
-    axes = np.array(obj.ssm.frame_axes, dtype=float).reshape(3, 3)
-    if abs(np.linalg.det(axes) - 1.0) > 1e-4:
-        return None
-    return core.ObjectFrame(
-        origin_world=np.array(obj.ssm.frame_origin, dtype=float),
-        axes_world=axes,
-        method=obj.ssm.frame_method.lower(),
-    )
-
-
-def absolute_source_path(obj) -> str:
-    return os.path.normpath(bpy.path.abspath(obj.ssm.source))
-
-
-def _rel_source(path: str) -> str:
-    """``//``-relative path when the .blend is saved (and on the same drive), else absolute."""
-    path = os.path.abspath(path)
-    if not bpy.data.filepath:
-        return path
+    stem = imageio.file_stem(path)
+    if label is None:
+        pattern = pattern.replace("label {label}", "").replace("{label}", "")
     try:
-        return bpy.path.relpath(path)
-    except ValueError:
-        return path
+        name = pattern.format(stem=stem, label="" if label is None else label)
+    except (KeyError, IndexError, ValueError):
+        raise InputError(f"import: name pattern {pattern!r} may use only {{stem}} and {{label}}") from None
+    return " ".join(name.split()) or stem
 
 
-def clear_instance_cache() -> None:
-    """Forget every cached object volume (they are reloaded from source on demand)."""
-    _CACHE.clear()
-
-
-def mesh_file_world(obj) -> tuple[np.ndarray, np.ndarray]:
-    """A Blender-mesh instance's current mesh in its file world mm, and its triangles."""
-    verts = blender_to_file_world(obj, bridge.object_world_vertices(obj))
-    return verts, bridge.mesh_triangles(obj.data)
-
-
-def instance_object_volume(obj, progress=None, cancelled=None) -> core.ObjectVolume:
-    """The resampled object volume of an instance (paper section 2), reloaded from source.
-
-    Label-map and mesh-file instances re-read ``obj.ssm.source`` (resolved with
-    ``bpy.path.abspath``); Blender-mesh instances re-voxelize the object's current mesh in
-    its file world (import-matrix compensated). Resampled at ``obj.ssm.spacing_mm`` in
-    the frame stored on the object (so landmarks placed in that frame stay valid).
-    Cached in memory; works after saving and re-opening the .blend.
-
-    Raises
-    ------
-    InputError
-        Not an instance, source file missing, or any reader error.
-    """
-    if not is_instance(obj):
-        raise InputError(f"{obj.name!r} is not an SSM instance (import it or use 'Add selected meshes as instances')")
-    ssm = obj.ssm
-    spacing = float(ssm.spacing_mm)
-    label = None if ssm.label < 0 else int(ssm.label)
-    method = ssm.frame_method.lower()
-    if ssm.source_kind == "BLENDER_MESH":
-        verts, faces = mesh_file_world(obj)
-        digest = hashlib.sha1(verts.astype(np.float32).tobytes() + faces.astype(np.int32).tobytes()).hexdigest()
-        key = (obj.name, "BLENDER_MESH", label, spacing, digest)
-        if key in _CACHE:
-            return _CACHE[key]
-        report(progress, 0.0, f"voxelizing {obj.name}")
-        vol = VX.voxelize_mesh(
-            verts, faces, spacing, source=obj.name, patient_oriented=method == "patient", cancelled=cancelled
-        )
-    else:
-        path = absolute_source_path(obj)
-        if not os.path.isfile(path):
-            raise InputError(f"instance {obj.name!r}: source file {path} not found (moved? set its Source path)")
-        key = (obj.name, path, label, spacing, os.path.getmtime(path))
-        if key in _CACHE:
-            return _CACHE[key]
-        report(progress, 0.0, f"reading {Path(path).name}")
-        if ssm.source_kind == "MESH_FILE":
-            vol = VX.load_mesh_volume(path, spacing, patient_oriented=method == "patient", cancelled=cancelled)
-        else:
-            vol = IO.load_volume(path, label)
-    check_cancelled(cancelled)
-    frame = _frame_for(obj, vol, method)
-    ov = RS.resample(vol, frame, spacing, progress=sub_progress(progress, 0.3, 1.0), cancelled=cancelled)
-    _CACHE[key] = ov
-    return ov
-
-
-def _frame_for(obj, vol: core.Volume, method: str) -> core.ObjectFrame:
-    """The frame recomputed in double precision if it matches the stored (float32) one.
-
-    The stored frame wins when they differ (e.g. the source changed since import), so
-    landmarks placed in the instance's object frame stay valid.
-    """
-    computed = FR.object_frame(vol, method)
-    stored = stored_frame(obj)
-    if stored is None:
-        return computed
-    same = np.allclose(stored.origin_world, computed.origin_world, atol=1e-3) and np.allclose(
-        stored.axes_world, computed.axes_world, atol=1e-5
-    )
-    return computed if same else stored
-
-
-def _instance_name(path: str, label: int | None, n_labels: int) -> str:
-    stem = IO.file_stem(path)
-    return stem if label is None else f"{stem} L{label}"
-
-
-def write_instance_metadata(obj, *, kind, source, label, spacing, method, frame, import_matrix, volume_mm3, voxels):
+def write_instance(context, obj, spec: InstanceSpec, *, kind: str, frame, volume_mm3: float, voxels: int) -> None:
+    """The metadata of an instance object (its matrix_world is the import matrix)."""
     ssm = obj.ssm
     ssm.role = "INSTANCE"
     ssm.source_kind = kind
-    ssm.source = source
-    ssm.label = -1 if label is None else int(label)
-    ssm.spacing_mm = float(spacing)
-    ssm.frame_method = method
-    ssm.frame_origin = [float(x) for x in frame.origin_world]
-    ssm.frame_axes = [float(x) for x in np.asarray(frame.axes_world).ravel()]
-    ssm.import_matrix = [float(x) for x in np.asarray(import_matrix).ravel()]
+    ssm.source = relative_source(str(spec.source)) if spec.source is not None else ""
+    ssm.label = -1 if spec.label is None else int(spec.label)
+    ssm.mesh_spacing_mm = float(spec.mesh_spacing or 0.0)
     ssm.volume_mm3 = float(volume_mm3)
+    write_frame(obj, frame, bridge.matrix_to_numpy(obj.matrix_world))
     obj[VOXELS_PROP] = int(voxels)
 
 
+def import_items(specs, *, spacing_mm: float, frame_method: str, label_maps: dict | None = None, progress=None,
+                 cancelled=None) -> list[dict]:
+    """Read, frame and resample instances with the core (no bpy: runs in a worker thread).
+
+    Returns per instance what :func:`add_instance_objects` needs: the spec, the object
+    volume, the display surface (object mm) and the input-grid volume and voxel count.
+    """
+    items = []
+    for k, spec in enumerate(specs):
+        check_cancelled(cancelled)
+        prog = sub_progress(progress, k / len(specs), (k + 1) / len(specs), f"{spec.name}: ")
+        report(prog, 0.0, "reading")
+        label_map = (label_maps or {}).get(spec.volume)
+        vol = core.read_instance(spec, spacing_mm=spacing_mm, label_map=label_map, cancelled=cancelled)
+        report(prog, 0.3, "object frame and resampling")
+        ov = core.object_from_volume(vol, spacing_mm=spacing_mm, frame_method=frame_method, cancelled=cancelled)
+        report(prog, 0.7, "surface")
+        verts_world, faces = display_surface(vol)
+        items.append({"spec": spec, "kind": "MESH_FILE" if spec.mesh is not None else "VOLUME", "object_volume": ov,
+                      "vertices_object": ov.frame.to_object(verts_world), "faces": faces,
+                      "volume_mm3": vol.volume_mm3, "voxels": int(np.count_nonzero(vol.mask))})
+    return items
+
+
+def add_instance_objects(context, items: list[dict]) -> list:
+    """Create (or refresh) the instance objects of :func:`import_items` results (main thread).
+
+    An instance of the same source and label is refreshed and keeps its name and place
+    in the study; a new one gets the spec's name (made unique) and the next place.
+    """
+    bridge.ensure_mm_units(context.scene)
+    coll = bridge.ensure_collection(context.scene, bridge.INSTANCES_COLLECTION)
+    created = []
+    for item in items:
+        spec, ov = item["spec"], item["object_volume"]
+        existing = next((o for o in scene_instances(context) if absolute_source_path(o) == os.path.normpath(
+            str(spec.source)) and o.ssm.label == (-1 if spec.label is None else spec.label)), None)
+        if existing is not None:
+            obj = bridge.new_mesh_object(context, existing.name, item["vertices_object"], item["faces"],
+                                         matrix_world=ov.frame.matrix_world)
+        else:
+            name, k = spec.name, 2
+            while bpy.data.objects.get(name) is not None:
+                name, k = f"{spec.name} {k}", k + 1
+            obj = bridge.new_mesh_object(context, name, item["vertices_object"], item["faces"],
+                                         collection_name=coll.name, matrix_world=ov.frame.matrix_world, replace=False)
+            obj.ssm.order = next_order(context)
+        write_instance(context, obj, spec, kind=item["kind"], frame=ov.frame, volume_mm3=item["volume_mm3"],
+                       voxels=item["voxels"])
+        cache_volume(context, obj, ov)
+        created.append(obj)
+    return created
+
+
+def instance_object_volume(context, obj, progress=None, cancelled=None):
+    """The resampled object volume of an instance (paper 2), reloaded from its source and cached."""
+    from .scene import VolumeLoader
+
+    loader = VolumeLoader(context, [obj])
+    ov = loader.load(progress, cancelled)[obj.name]
+    loader.keep()
+    return ov
+
+
 # ---------------------------------------------------------------------------- operators
-
-
 class SSM_OT_import_segmentation(BackgroundJob, bpy.types.Operator, ImportHelper):
     """Import label maps (NIfTI, NRRD, MetaImage, NumPy) or closed meshes (STL, PLY, OBJ) as SSM instances"""
 
@@ -230,10 +157,14 @@ class SSM_OT_import_segmentation(BackgroundJob, bpy.types.Operator, ImportHelper
     split_labels: BoolProperty(
         name="Each label separately", default=False, description="Create one instance per label present in the map"
     )
-    spacing_mm: FloatProperty(
-        name="Spacing (mm)", default=1.0, min=0.05, soft_max=5.0, description="Isotropic resampling / voxelizing step"
+    name_pattern: StringProperty(
+        name="Name", default=DEFAULT_NAME_PATTERN,
+        description="Instance name: {stem} is the file name without extension, {label} the label",
     )
-    frame_method: EnumProperty(name="Frame", items=FRAME_METHODS, default="AUTO")
+    spacing_mm: FloatProperty(
+        name="Spacing (mm)", default=0.0, min=0.0, soft_max=5.0, options={"SKIP_SAVE"},
+        description="Sets the study's resampling spacing (every instance uses one; 0: keep the study's)",
+    )
 
     def invoke(self, context, event):
         self._browser = True
@@ -255,7 +186,7 @@ class SSM_OT_import_segmentation(BackgroundJob, bpy.types.Operator, ImportHelper
             found = sorted(
                 os.path.join(self.directory, n)
                 for n in os.listdir(self.directory)
-                if IO.file_extension(n) in IO.SUPPORTED_EXTENSIONS
+                if imageio.file_extension(n) in imageio.SUPPORTED_EXTENSIONS
             )
             if found:
                 return found
@@ -264,89 +195,43 @@ class SSM_OT_import_segmentation(BackgroundJob, bpy.types.Operator, ImportHelper
     def prepare(self, context):
         paths = [os.path.abspath(bpy.path.abspath(p)) for p in self._paths()]
         label = None if self.label < 0 else int(self.label)
-        split, spacing, method = bool(self.split_labels), float(self.spacing_mm), self.frame_method
+        split, pattern = bool(self.split_labels), self.name_pattern
+        tp = scene_params(context, "ssm_template")
+        spacing = float(self.spacing_mm) if self.spacing_mm > 0 else tp.spacing_mm
+        self._set_spacing = None
+        if self.spacing_mm > 0:
+            from ssm_addon import params as P
+
+            P.from_table(type(tp), {**P.to_table(tp), "spacing": P.shortest_float32(spacing)}, where="import:")
+            self._set_spacing = spacing
+        frame_method = tp.frame
 
         def work(progress, cancelled):
             items = []
             for n, path in enumerate(paths):
                 prog = sub_progress(progress, n / len(paths), (n + 1) / len(paths), f"{Path(path).name}: ")
                 report(prog, 0.0, "reading")
-                if IO.is_mesh_file(path):
-                    vols = [VX.load_mesh_volume(path, spacing, patient_oriented=method == "PATIENT")]
-                    kind = "MESH_FILE"
+                label_maps = {}
+                if imageio.is_mesh_file(path):
+                    specs = [InstanceSpec(name=instance_name(pattern, path, None), mesh=Path(path))]
                 else:
-                    lm = IO.read_label_map(path)
-                    labels = sorted(IO.label_counts(lm)) if split else [label]
+                    label_maps[Path(path)] = label_map = imageio.read_label_map(path)
+                    labels = sorted(imageio.label_counts(label_map)) if split else [label]
                     if not labels:
                         raise InputError(f"{path}: empty mask: the label map has no non-zero voxels")
-                    vols = [IO.select_label(lm, lab) for lab in labels]
-                    kind = "VOLUME"
-                for k, vol in enumerate(vols):
-                    check_cancelled(cancelled)
-                    report(prog, (k + 0.2) / len(vols), f"label {vol.label}: object frame")
-                    frame = FR.object_frame(vol, method.lower())
-                    ov = RS.resample(vol, frame, spacing, cancelled=cancelled)
-                    report(prog, (k + 0.7) / len(vols), f"label {vol.label}: surface")
-                    verts_world, faces = core.display_surface(vol)
-                    items.append(
-                        {
-                            "path": path,
-                            "kind": kind,
-                            "label": vol.label,
-                            "name": _instance_name(path, vol.label, len(vols)),
-                            "frame": frame,
-                            "object_volume": ov,
-                            "vertices_object": frame.to_object(verts_world),
-                            "faces": faces,
-                            "volume_mm3": vol.volume_mm3,
-                            "voxels": int(np.count_nonzero(vol.mask)),
-                        }
-                    )
+                    specs = [InstanceSpec(name=instance_name(pattern, path, lab), volume=Path(path), label=lab)
+                             for lab in labels]
+                items += import_items(specs, spacing_mm=spacing, frame_method=frame_method, label_maps=label_maps,
+                                      progress=sub_progress(prog, 0.2, 1.0), cancelled=cancelled)
             report(progress, 1.0, "done")
             return items
 
         return work
 
     def finish(self, context, items):
-        bridge.ensure_mm_units(context.scene)
-        coll = bridge.ensure_collection(context.scene, bridge.INSTANCES_COLLECTION)
-        created = []
-        for item in items:
-            source = _rel_source(item["path"])
-            existing = bpy.data.objects.get(item["name"])
-            replace = (
-                existing is not None
-                and is_instance(existing)
-                and absolute_source_path(existing) == os.path.normpath(item["path"])
-                and existing.ssm.label == (-1 if item["label"] is None else item["label"])
-            )
-            matrix = item["frame"].matrix_world
-            obj = bridge.new_mesh_object(
-                context,
-                item["name"],
-                item["vertices_object"],
-                item["faces"],
-                collection_name=coll.name,
-                matrix_world=matrix,
-                replace=replace,
-            )
-            write_instance_metadata(
-                obj,
-                kind=item["kind"],
-                source=source,
-                label=item["label"],
-                spacing=self.spacing_mm,
-                method=item["frame"].method.upper(),
-                frame=item["frame"],
-                import_matrix=matrix,
-                volume_mm3=item["volume_mm3"],
-                voxels=item["voxels"],
-            )
-            ov = item["object_volume"]
-            label = None if obj.ssm.label < 0 else obj.ssm.label
-            key = (obj.name, item["path"], label, float(obj.ssm.spacing_mm), os.path.getmtime(item["path"]))
-            _CACHE[key] = ov
-            created.append(obj)
+        if self._set_spacing is not None:
+            context.scene.ssm_template.spacing_mm = self._set_spacing
+        created = add_instance_objects(context, items)
         for obj in context.view_layer.objects:
             obj.select_set(obj in created)
         if created:
@@ -356,51 +241,53 @@ class SSM_OT_import_segmentation(BackgroundJob, bpy.types.Operator, ImportHelper
 
     def draw(self, context):
         layout = self.layout
+        layout.prop(self, "name_pattern")
         layout.prop(self, "split_labels")
         row = layout.row()
         row.enabled = not self.split_labels
         row.prop(self, "label")
-        layout.prop(self, "spacing_mm")
-        layout.prop(self, "frame_method")
+        box = layout.box()
+        box.label(text="Study (every instance)")
+        box.prop(context.scene.ssm_template, "spacing_mm")
+        box.prop(context.scene.ssm_template, "frame")
 
 
 class SSM_OT_add_mesh_instances(BackgroundJob, bpy.types.Operator):
-    """Turn the selected closed mesh objects into SSM instances (voxelized at the chosen spacing)"""
+    """Turn the selected closed mesh objects into SSM instances (voxelized at the study's spacing)"""
 
     bl_idname = "ssm.add_mesh_instances"
     bl_label = "Add Selected Meshes as Instances"
     bl_options = {"REGISTER", "UNDO"}
 
-    spacing_mm: FloatProperty(name="Spacing (mm)", default=1.0, min=0.05, soft_max=5.0)
-    frame_method: EnumProperty(
-        name="Frame",
-        items=FRAME_METHODS,
-        default="MOMENTS",
-        description="Moments unless the meshes are in patient coordinates (e.g. exported from 3D Slicer)",
-    )
+    spacing_mm: FloatProperty(name="Mesh spacing (mm)", default=0.0, min=0.0, soft_max=5.0,
+                              description="Voxelization step of the meshes (0: the study's spacing)")
 
     @classmethod
     def poll(cls, context):
-        return any(o.type == "MESH" for o in context.selected_objects)
+        if not any(o.type == "MESH" and not is_instance(o) for o in context.selected_objects):
+            cls.poll_message_set("Select one or more closed mesh objects that are not instances yet")
+            return False
+        return True
 
     def prepare(self, context):
-        objs = [o for o in context.selected_objects if o.type == "MESH"]
+        objs = [o for o in context.selected_objects if o.type == "MESH" and not is_instance(o)]
         if not objs:
             raise InputError("select one or more closed mesh objects")
         data = [(o.name, bridge.object_world_vertices(o), bridge.mesh_triangles(o.data)) for o in objs]
-        spacing, method = float(self.spacing_mm), self.frame_method.lower()
-        patient = method == "patient"
+        tp = scene_params(context, "ssm_template")
+        mesh_spacing = float(self.spacing_mm) or None
+        method = tp.frame
 
         def work(progress, cancelled):
             out = []
             for n, (name, verts, faces) in enumerate(data):
                 report(progress, n / len(data), f"voxelizing {name}")
-                vol = VX.voxelize_mesh(
-                    verts, faces, spacing, source=name, patient_oriented=patient, cancelled=cancelled
-                )
-                frame = FR.object_frame(vol, method)
-                ov = RS.resample(vol, frame, spacing, cancelled=cancelled)
-                out.append((name, vol, frame, ov, verts, faces))
+                from ssm_addon.voxelize import voxelize_mesh
+
+                vol = voxelize_mesh(verts, faces, mesh_spacing or tp.spacing_mm, source=name, cancelled=cancelled)
+                ov = core.object_from_volume(vol, spacing_mm=tp.spacing_mm, frame_method=method,
+                                             cancelled=cancelled)
+                out.append((name, vol, ov))
             report(progress, 1.0, "done")
             return out
 
@@ -409,31 +296,21 @@ class SSM_OT_add_mesh_instances(BackgroundJob, bpy.types.Operator):
     def finish(self, context, items):
         bridge.ensure_mm_units(context.scene)
         coll = bridge.ensure_collection(context.scene, bridge.INSTANCES_COLLECTION)
-        for name, vol, frame, ov, verts, faces in items:
+        for name, vol, ov in items:
             obj = bpy.data.objects[name]
             if coll.objects.get(obj.name) is None:
                 coll.objects.link(obj)
-            write_instance_metadata(
-                obj,
-                kind="BLENDER_MESH",
-                source="",
-                label=None,
-                spacing=self.spacing_mm,
-                method=frame.method.upper(),
-                frame=frame,
-                import_matrix=bridge.matrix_to_numpy(obj.matrix_world),
-                volume_mm3=vol.volume_mm3,
-                voxels=int(np.count_nonzero(vol.mask)),
-            )
-            digest = hashlib.sha1(verts.astype(np.float32).tobytes() + faces.astype(np.int32).tobytes()).hexdigest()
-            _CACHE[(obj.name, "BLENDER_MESH", None, float(obj.ssm.spacing_mm), digest)] = ov
+            if not is_instance(obj):
+                obj.ssm.order = next_order(context)
+            write_instance(context, obj, InstanceSpec(name=name, mesh_spacing=float(self.spacing_mm) or None),
+                           kind="BLENDER_MESH", frame=ov.frame, volume_mm3=vol.volume_mm3,
+                           voxels=int(np.count_nonzero(vol.mask)))
+            cache_volume(context, obj, ov)
         self.report({"INFO"}, f"Added {len(items)} instance(s)")
         return {"FINISHED"}
 
 
 # ------------------------------------------------------------------------------- panel
-
-
 class SSM_PT_instances(bpy.types.Panel):
     """Sidebar: the training instances and how to add them."""
 
@@ -449,6 +326,9 @@ class SSM_PT_instances(bpy.types.Panel):
         row = layout.row(align=True)
         row.operator(SSM_OT_import_segmentation.bl_idname, text="Import", icon="IMPORT")
         row.operator(SSM_OT_add_mesh_instances.bl_idname, text="Add Selected", icon="ADD")
+        col = layout.column(align=True)
+        col.prop(context.scene.ssm_template, "spacing_mm")
+        col.prop(context.scene.ssm_template, "frame")
         insts = scene_instances(context)
         if not insts:
             layout.label(text="No instances yet", icon="INFO")
@@ -460,8 +340,11 @@ class SSM_PT_instances(bpy.types.Panel):
             row.label(text=obj.name, icon=icon)
             label = "all" if obj.ssm.label < 0 else str(obj.ssm.label)
             voxels = obj.get(VOXELS_PROP, 0)
-            row.label(text=f"L {label} | {voxels} vox | {obj.ssm.volume_mm3 / 1000.0:.1f} cm³")
+            row.label(text=f"label {label} | {voxels} vox | {obj.ssm.volume_mm3 / 1000.0:.1f} cm³")
         layout.label(text=f"{len(insts)} instance(s)")
+        active = context.active_object
+        if is_instance(active) and active.ssm.source_kind != "BLENDER_MESH":
+            layout.prop(active.ssm, "source", text="Source")
 
 
 def menu_func_import(self, context):
@@ -471,10 +354,27 @@ def menu_func_import(self, context):
 classes = (SSM_OT_import_segmentation, SSM_OT_add_mesh_instances, SSM_PT_instances)
 
 
+@bpy.app.handlers.persistent
+def _relative_sources_on_save(filepath, *_args):
+    """Make instance sources relative to the .blend when it is saved (also the first save)."""
+    folder = os.path.dirname(bpy.path.abspath(filepath or bpy.data.filepath))
+    if not folder:
+        return
+    for obj in bpy.data.objects:
+        if obj.ssm.role == "INSTANCE" and obj.ssm.source and not obj.ssm.source.startswith("//"):
+            try:
+                obj.ssm.source = bpy.path.relpath(obj.ssm.source, start=folder)
+            except ValueError:  # another drive on Windows: stays absolute
+                pass
+
+
 def register_properties():
     bpy.types.TOPBAR_MT_file_import.append(menu_func_import)
+    bpy.app.handlers.save_pre.append(_relative_sources_on_save)
 
 
 def unregister_properties():
+    if _relative_sources_on_save in bpy.app.handlers.save_pre:
+        bpy.app.handlers.save_pre.remove(_relative_sources_on_save)
     bpy.types.TOPBAR_MT_file_import.remove(menu_func_import)
-    clear_instance_cache()
+    clear_volume_cache()

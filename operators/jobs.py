@@ -17,7 +17,7 @@ import traceback
 
 import bpy
 
-from ..ssm_addon.errors import Cancelled, SSMError
+from ssm_addon.errors import Cancelled, SSMError
 
 
 class BackgroundJob:

@@ -28,41 +28,34 @@ from bpy.props import (
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 from mathutils import Vector
 
-from ..ssm_addon import landmarks as core
-from ..ssm_addon import meshutil as mu
-from ..ssm_addon import proposal as PR
-from ..ssm_addon import volume as vol
-from ..ssm_addon.errors import InputError, SSMError
-from . import bridge
-from .instances import blender_to_file_world, file_to_blender_world
-from .jobs import BackgroundJob
+from ssm_addon import landmarks as core
+from ssm_addon import proposal
+from ssm_addon.errors import InputError, SSMError
+from ssm_addon.progress import sub_progress
 
-LANDMARK_PROP = "ssm_landmark"
-"""Custom property of a landmark empty: its landmark name."""
-ORDER_PROP = "ssm_landmark_index"
-"""Custom property of a landmark empty: its position in the schema/file it came from."""
+from . import bridge
+from .jobs import BackgroundJob
+from .scene import (
+    LANDMARK_PROP,
+    ORDER_PROP,
+    VolumeLoader,
+    blender_to_file_world,
+    find_template,
+    instance_landmarks,
+    is_instance,
+    landmark_empties,
+    scene_instances,
+    schema_names,
+    set_landmark,
+    stored_frame,
+    template_from_object,
+)
+
 PICK_RADIUS_PX = 12.0
 FILE_GLOB = "*.fcsv;*.mrk.json;*.csv;*.json"
 
 
-# ------------------------------------------------------------------------------ frames
-
-
-def instance_frame(obj) -> vol.ObjectFrame:
-    """The object frame (paper 2) stored on an instance (file world mm)."""
-    axes = np.array(obj.ssm.frame_axes, dtype=float).reshape(3, 3)
-    if abs(abs(np.linalg.det(axes)) - 1.0) > 1e-3:
-        raise InputError(f"instance {obj.name!r} has no object frame (import it with SSM, or set obj.ssm.frame_axes)")
-    return vol.ObjectFrame(np.array(obj.ssm.frame_origin, dtype=float), axes)
-
-
 # --------------------------------------------------------------------------- the scene
-
-
-def is_instance(obj) -> bool:
-    return obj is not None and obj.type == "MESH" and obj.ssm.role == "INSTANCE"
-
-
 def active_instance(context):
     """The active instance, or the instance of the active landmark; None otherwise."""
     obj = context.active_object
@@ -71,80 +64,17 @@ def active_instance(context):
     return obj if is_instance(obj) else None
 
 
-def instances(context) -> list:
-    """Instance objects of the scene, by name."""
-    return sorted((o for o in context.scene.objects if is_instance(o)), key=lambda o: o.name)
-
-
-def schema_names(context) -> tuple[str, ...]:
-    """The landmark schema: ordered names."""
-    return tuple(item.name for item in context.scene.ssm_landmarks.names)
-
-
-def landmark_empties(instance) -> dict:
-    """``{landmark name: empty}`` of an instance."""
-    out = {}
-    for obj in bpy.data.objects:
-        if obj.ssm.role == "LANDMARK" and obj.ssm.instance == instance and LANDMARK_PROP in obj:
-            out[str(obj[LANDMARK_PROP])] = obj
-    return out
-
-
-def _ordered_names(context, empties: dict) -> list[str]:
-    schema = schema_names(context)
-    extra = sorted((n for n in empties if n not in schema), key=lambda n: (empties[n].get(ORDER_PROP, 1 << 30), n))
-    return [n for n in schema if n in empties] + extra
-
-
 def missing_names(context, instance) -> list[str]:
     """Schema names the instance has no landmark for, in schema order."""
     have = landmark_empties(instance)
     return [n for n in schema_names(context) if n not in have]
 
 
-def instance_landmarks(context, instance) -> core.LandmarkSet:
-    """An instance's landmarks in file world mm (schema order, then extra names)."""
-    empties = landmark_empties(instance)
-    names = _ordered_names(context, empties)
-    pts = np.array([list(empties[n].matrix_world.translation) for n in names], dtype=float).reshape(-1, 3)
-    to_file = blender_to_file_world
-    return core.LandmarkSet(tuple(names), to_file(instance, pts) if len(pts) else pts, instance.name)
-
-
-def landmark_sets_by_instance(context) -> dict[str, core.LandmarkSet]:
-    """``{instance name: LandmarkSet}`` in file world mm for every instance with landmarks.
-
-    Names are in schema order (then names not in the schema); instances without any
-    landmark are left out. Used by the coating and project stages.
-    """
-    out = {}
-    for inst in instances(context):
-        lm = instance_landmarks(context, inst)
-        if len(lm):
-            out[inst.name] = lm
-    return out
-
-
-def _marker_size(context, instance) -> float:
-    size = context.scene.ssm_landmarks.marker_size_mm
-    return size if size > 0 else max(0.5, 0.015 * max(instance.dimensions))
-
-
-def set_landmark(context, instance, name: str, location_world, order: int | None = None):
-    """Create or move the landmark ``name`` of ``instance`` to a Blender-world point (mm)."""
-    emp = landmark_empties(instance).get(name)
-    loc = Vector([float(x) for x in location_world])
-    if emp is None:
-        emp = bridge.add_empty(context, f"{instance.name} {name}", loc, parent=instance, size=_marker_size(context, instance))
-        emp.ssm.role = "LANDMARK"
-        emp.ssm.instance = instance
-        emp[LANDMARK_PROP] = name
-        schema = schema_names(context)
-        emp[ORDER_PROP] = schema.index(name) if name in schema else (order if order is not None else len(schema))
-        emp.show_name = False
-    else:
-        emp.matrix_world.translation = loc
-    return emp
+def _poll_instance(cls, context) -> bool:
+    if active_instance(context) is None:
+        cls.poll_message_set("Make an SSM instance (or one of its landmarks) active")
+        return False
+    return True
 
 
 def ray_hit(instance, origin_world, direction_world, depsgraph=None):
@@ -184,7 +114,7 @@ def place_landmark(context, instance, origin_world, direction_world, name: str =
     hit = ray_hit(instance, origin_world, direction_world, context.evaluated_depsgraph_get())
     if hit is None:
         return None, name
-    return set_landmark(context, instance, name, hit), name
+    return set_landmark(context, instance, name, blender_world=hit), name
 
 
 # ----------------------------------------------------------------------------- schema
@@ -231,7 +161,7 @@ class SSMLandmarkSettings(bpy.types.PropertyGroup):
     marker_size_mm: FloatProperty(name="Marker size", description="Landmark sphere radius in mm (0: 1.5 % of the instance size)", default=0.0, min=0.0)
 
 
-def _add_name(settings, name: str, index: int | None = None) -> int:
+def add_schema_name(settings, name: str, index: int | None = None) -> int:
     item = settings.names.add()
     item.previous = name
     item.landmark = name
@@ -243,10 +173,10 @@ def _add_name(settings, name: str, index: int | None = None) -> int:
     return last
 
 
-def _set_schema(settings, names) -> None:
+def set_schema(settings, names) -> None:
     settings.names.clear()
     for n in names:
-        _add_name(settings, n)
+        add_schema_name(settings, n)
     settings.active_index = 0
 
 
@@ -283,7 +213,7 @@ class SSM_OT_landmark_schema_add(bpy.types.Operator):
             self.report({"ERROR"}, f"landmark schema: {name!r} is already in the schema")
             return {"CANCELLED"}
         at = settings.active_index + 1 if len(settings.names) else 0
-        settings.active_index = _add_name(settings, name, at)
+        settings.active_index = add_schema_name(settings, name, at)
         return {"FINISHED"}
 
 
@@ -366,7 +296,7 @@ class SSM_OT_landmark_schema_preset(bpy.types.Operator):
     )
 
     def execute(self, context):
-        _set_schema(context.scene.ssm_landmarks, core.LANDMARK_PRESETS[self.preset])
+        set_schema(context.scene.ssm_landmarks, core.LANDMARK_PRESETS[self.preset])
         return {"FINISHED"}
 
 
@@ -379,7 +309,7 @@ class SSM_OT_landmark_schema_from_instance(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return active_instance(context) is not None
+        return _poll_instance(cls, context)
 
     def execute(self, context):
         inst = active_instance(context)
@@ -388,7 +318,7 @@ class SSM_OT_landmark_schema_from_instance(bpy.types.Operator):
             self.report({"ERROR"}, f"{inst.name}: no landmarks to take the schema from")
             return {"CANCELLED"}
         names = sorted(empties, key=lambda n: (empties[n].get(ORDER_PROP, 1 << 30), n))
-        _set_schema(context.scene.ssm_landmarks, names)
+        set_schema(context.scene.ssm_landmarks, names)
         return {"FINISHED"}
 
 
@@ -408,7 +338,7 @@ class SSM_OT_place_landmarks(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return active_instance(context) is not None
+        return _poll_instance(cls, context)
 
     # -- one placement (scripts, redo panel, and every click of the modal) --------
     def _place(self, context, instance, origin, direction, name):
@@ -533,7 +463,7 @@ class SSM_OT_snap_landmarks(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return active_instance(context) is not None
+        return _poll_instance(cls, context)
 
     def execute(self, context):
         inst = active_instance(context)
@@ -546,7 +476,7 @@ class SSM_OT_snap_landmarks(bpy.types.Operator):
         for emp in empties:
             found, loc, _n, _i = inst.closest_point_on_mesh(inv @ emp.matrix_world.translation, depsgraph=depsgraph)
             if found:
-                emp.matrix_world.translation = inst.matrix_world @ loc
+                set_landmark(context, inst, str(emp[LANDMARK_PROP]), blender_world=np.array(inst.matrix_world @ loc))
         self.report({"INFO"}, f"{inst.name}: snapped {len(empties)} landmark(s)")
         return {"FINISHED"}
 
@@ -566,7 +496,7 @@ class SSM_OT_import_landmarks(bpy.types.Operator, ImportHelper):
 
     @classmethod
     def poll(cls, context):
-        return active_instance(context) is not None
+        return _poll_instance(cls, context)
 
     def execute(self, context):
         inst = active_instance(context)
@@ -574,18 +504,16 @@ class SSM_OT_import_landmarks(bpy.types.Operator, ImportHelper):
         try:
             lm = core.read_landmarks(self.filepath)
             if not len(settings.names):
-                _set_schema(settings, lm.names)
+                set_schema(settings, lm.names)
             lm = core.order_by_schema(lm, schema_names(context), allow_missing=True, allow_extra=self.add_to_schema)
         except SSMError as err:
             self.report({"ERROR"}, str(err))
             return {"CANCELLED"}
         for n in lm.names:
             if n not in schema_names(context):
-                _add_name(settings, n)
-        to_blender = file_to_blender_world
-        pts = to_blender(inst, lm.points_world)
-        for i, (name, p) in enumerate(zip(lm.names, pts)):
-            set_landmark(context, inst, name, p, order=i)
+                add_schema_name(settings, n)
+        for i, (name, p) in enumerate(zip(lm.names, lm.points_world)):
+            set_landmark(context, inst, name, file_world=p, order=i)
         missing = missing_names(context, inst)
         msg = f"{inst.name}: imported {len(lm)} landmark(s)" + (f"; missing {', '.join(missing)}" if missing else "")
         self.report({"INFO"}, msg)
@@ -611,7 +539,7 @@ class SSM_OT_export_landmarks(bpy.types.Operator, ExportHelper):
 
     @classmethod
     def poll(cls, context):
-        return active_instance(context) is not None
+        return _poll_instance(cls, context)
 
     def execute(self, context):
         inst = active_instance(context)
@@ -652,7 +580,7 @@ class SSM_OT_propose_landmarks(BackgroundJob, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return active_instance(context) is not None
+        return _poll_instance(cls, context)
 
     def prepare(self, context):
         target = active_instance(context)
@@ -665,46 +593,50 @@ class SSM_OT_propose_landmarks(BackgroundJob, bpy.types.Operator):
         names = [n for n in lm.names if n not in have and (n in schema or not schema)]
         if not names:
             raise InputError(f"propose landmarks: {src.name} has none of {target.name}'s missing landmarks")
-        to_file = blender_to_file_world
-        meshes = [
-            (to_file(obj, bridge.object_world_vertices(obj)), bridge.mesh_triangles(obj.data)) for obj in (src, target)
-        ]
-        frames = instance_frame(src), instance_frame(target)
+        meshes = [(blender_to_file_world(obj, bridge.object_world_vertices(obj)), bridge.mesh_triangles(obj.data))
+                  for obj in (src, target)]
+        frames = stored_frame(src), stored_frame(target)
+        if None in frames:
+            raise InputError("propose landmarks: both instances need their object frame (import them with SSM)")
         self._target_name, self._source_name = target.name, src.name
         method, spacing, subset = self.method, self.spacing_mm, lm.subset(names)
-        volumes = {}
+        loader, template = None, None
         if method == "coating":
             # the instances' own resampled masks (reloaded from source, cached) and, when
             # the scene's template was built from the source, that template
-            from .instances import instance_object_volume
-            from .template import find_template
-
-            for key, obj in (("source_volume", src), ("target_volume", target)):
-                try:
-                    volumes[key] = instance_object_volume(obj)
-                except SSMError as err:  # no reachable source: the core voxelizes the mesh instead
-                    self.report({"INFO"}, f"{obj.name}: {err}; using its mesh")
+            try:
+                loader = VolumeLoader(context, [src, target])
+            except SSMError as err:  # no reachable source: the core voxelizes the meshes instead
+                self.report({"INFO"}, f"{err}; using the meshes")
             tpl = find_template(context)
             if tpl is not None and tpl.ssm.instance == src:
-                volumes["template"] = mu.Mesh(bridge.mesh_vertices(tpl.data), bridge.mesh_triangles(tpl.data))
+                template = template_from_object(tpl)
+        self._loader = loader
 
         def work(progress, cancelled):
-            return PR.propose_from_meshes(
+            extra = {}
+            if loader is not None:
+                vols = loader.load(sub_progress(progress, 0.0, 0.2), cancelled)
+                extra = {"source_volume": vols[src.name], "target_volume": vols[target.name]}
+            return proposal.propose_from_meshes(
                 subset, frames[0], meshes[0], frames[1], meshes[1], method=method, spacing_mm=spacing,
-                source=target.name, progress=progress, cancelled=cancelled, **volumes,
+                source=target.name, progress=sub_progress(progress, 0.2, 1.0), cancelled=cancelled,
+                template=template, **extra,
             )  # fmt: skip
 
         return work
 
-    def finish(self, context, proposal):
+    def finish(self, context, result):
+        if self._loader is not None:
+            self._loader.keep()
         target = bpy.data.objects.get(self._target_name)
         if target is None:
             self.report({"ERROR"}, f"propose landmarks: instance {self._target_name!r} is gone")
             return {"CANCELLED"}
-        to_blender = file_to_blender_world
-        for name, p in zip(proposal.names, to_blender(target, proposal.points_world)):
-            set_landmark(context, target, name, p)
-        self.report({"INFO"}, f"{target.name}: proposed {len(proposal)} landmark(s) from {self._source_name}; check and correct them")
+        for name, p in zip(result.names, result.points_world):
+            set_landmark(context, target, name, file_world=p)
+        self.report({"INFO"}, f"{target.name}: proposed {len(result)} landmark(s) from {self._source_name}; "
+                              "check and correct them")
         return {"FINISHED"}
 
 
@@ -763,7 +695,7 @@ class SSM_PT_landmarks(bpy.types.Panel):
             row.operator("ssm.propose_landmarks", text="Propose", icon="SHADERFX")
         layout.prop(settings, "marker_size_mm")
 
-        all_instances = instances(context)
+        all_instances = scene_instances(context)
         if all_instances:
             col = layout.column(align=True)
             col.label(text="Instances")

@@ -20,21 +20,22 @@ import os
 
 import bpy
 import numpy as np
-from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+from bpy.props import BoolProperty, FloatProperty, IntProperty, StringProperty
 
-from ..ssm_addon import metrics as core_metrics
-from ..ssm_addon.errors import InputError
-from ..ssm_addon.model import ShapeModel, _validated, build_model
+from ssm_addon import metrics as core_metrics
+from ssm_addon.errors import InputError
+from ssm_addon.model import ShapeModel, model_from_arrays
+from ssm_addon.params import ModelParams
+from ssm_addon.study import make_model
+
 from . import bridge
 from .jobs import BackgroundJob
+from .properties import draw_params
+from .scene import coated_objects, scene_instances, study_from_scene
 
 MODEL_KEY = "ssm_model"
 MODEL_COLLECTION = "SSM Model"
-ALIGNMENT_ITEMS = [
-    ("none", "Object frame", "No further normalisation (paper 5): size stays part of the variability"),
-    ("rigid", "Rigid Procrustes", "Generalized Procrustes alignment: rotation and translation"),
-    ("similarity", "Similarity Procrustes", "Generalized Procrustes alignment with scale"),
-]
+MODEL_NAME = "SSM Model"
 
 
 # ---------------------------------------------------------------------------------------
@@ -85,7 +86,7 @@ def model_from_object(obj: bpy.types.Object) -> ShapeModel:
         }
     except (KeyError, ValueError, TypeError) as err:
         raise InputError(f"object '{obj.name}': the stored SSM model is damaged ({err})") from err
-    return _validated(arrays, f"object '{obj.name}'")
+    return model_from_arrays(arrays, f"object '{obj.name}'")
 
 
 def mode_keys(obj) -> list:
@@ -107,6 +108,13 @@ def find_model_object(context) -> bpy.types.Object | None:
     return None
 
 
+def _poll_model(cls, context) -> bool:
+    if find_model_object(context) is None:
+        cls.poll_message_set("Build the model first (Model panel)")
+        return False
+    return True
+
+
 def _require_model(context) -> bpy.types.Object:
     obj = find_model_object(context)
     if obj is None:
@@ -114,7 +122,27 @@ def _require_model(context) -> bpy.types.Object:
     return obj
 
 
-def create_model_object(context, model: ShapeModel, name: str = "SSM Model", n_keys: int | None = None):
+def model_location(context, model: ShapeModel) -> np.ndarray:
+    """Where the model object goes (Blender world mm): right of the instances, level with them.
+
+    The mean shape is in the model frame (object mm); the object's origin is put one
+    model width to the right (+x) of the instances' bounding box, at the height and depth
+    of their centre, so the model is seen beside the population.
+    """
+    from mathutils import Vector
+
+    insts = scene_instances(context)
+    width = float(np.ptp(model.mean[:, 0])) if model.n_points else 0.0
+    if not insts:
+        return np.zeros(3)
+    corners = np.concatenate([np.array([ob.matrix_world @ Vector(c) for c in ob.bound_box]) for ob in insts])
+    lo, hi = corners.min(axis=0), corners.max(axis=0)
+    centre = (lo + hi) / 2.0
+    return np.array([hi[0] + 0.25 * width - float(model.mean[:, 0].min()), centre[1], centre[2]])
+
+
+def create_model_object(context, model: ShapeModel, name: str = MODEL_NAME, n_keys: int | None = None,
+                        template_points: np.ndarray | None = None):
     """Create (or replace) the model mesh object from a ShapeModel.
 
     Mean shape with the template faces and triangle-index colours, one shape key per mode
@@ -132,13 +160,15 @@ def create_model_object(context, model: ShapeModel, name: str = "SSM Model", n_k
     """
     scene = context.scene
     bridge.ensure_mm_units(scene)
-    obj = bridge.new_mesh_object(context, name, model.mean, model.faces, collection_name=MODEL_COLLECTION)
+    matrix = np.eye(4)
+    matrix[:3, 3] = model_location(context, model)
+    obj = bridge.new_mesh_object(context, name, model.mean, model.faces, collection_name=MODEL_COLLECTION,
+                                 matrix_world=matrix)
+    if obj.data.shape_keys is not None and obj.data.shape_keys.animation_data is not None:
+        obj.data.shape_keys.animation_data_clear()
     mesh = obj.data
-    bridge.set_face_colors(mesh, bridge.triangle_index_colors(len(model.faces)))
-    mat = bridge.color_material()
-    if mat.name not in mesh.materials:
-        mesh.materials.clear()
-        mesh.materials.append(mat)
+    bridge.colour_correspondence(obj, model.mean if template_points is None else template_points,
+                                 scene.ssm_display.colouring)
     k = model.n_modes if n_keys is None else min(int(n_keys), model.n_modes)
     sd = model.standard_deviations
     keys = {f"Mode {i + 1}": model.mean + sd[i] * model.modes[i] for i in range(k)}
@@ -156,82 +186,6 @@ def create_model_object(context, model: ShapeModel, name: str = "SSM Model", n_k
 
 
 # ---------------------------------------------------------------------------------------
-# reading the coated instances
-# ---------------------------------------------------------------------------------------
-def _frame_of(obj) -> tuple[np.ndarray, np.ndarray] | None:
-    """(origin (3,), axes (3,3) columns) of the object frame, from the object or its instance."""
-    for source in (obj, obj.ssm.instance):
-        if source is None:
-            continue
-        axes = np.array(source.ssm.frame_axes, dtype=float).reshape(3, 3)
-        if abs(np.linalg.det(axes)) > 0.5:
-            return np.array(source.ssm.frame_origin, dtype=float), axes
-    return None
-
-
-def coated_instances(context) -> list:
-    """Coated objects (role COATED) of the scene, sorted by instance name."""
-    objs = [ob for ob in context.scene.objects if ob.type == "MESH" and ob.ssm.role == "COATED"]
-    return sorted(objs, key=_instance_name)
-
-
-def _instance_name(obj) -> str:
-    return obj.ssm.instance.name if obj.ssm.instance is not None else obj.name
-
-
-def gather_coated(context):
-    """Points (object frame), world points, faces, names and fit figures of the coated instances."""
-    objs = coated_instances(context)
-    if len(objs) < 2:
-        raise InputError(f"Build Model: need at least 2 coated instances (role 'Coated instance'), found {len(objs)}")
-    faces = bridge.mesh_triangles(objs[0].data)
-    npts = len(objs[0].data.vertices)
-    pts, world, names, fits = [], [], [], {}
-    for ob in objs:
-        if len(ob.data.vertices) != npts:
-            raise InputError(
-                f"Build Model: '{ob.name}' has {len(ob.data.vertices)} points, '{objs[0].name}' has {npts}; "
-                "all coated instances must share the template's topology"
-            )
-        tris = bridge.mesh_triangles(ob.data)
-        if tris.shape != faces.shape or not np.array_equal(tris, faces):
-            raise InputError(f"Build Model: '{ob.name}' has different triangles than '{objs[0].name}'")
-        p = bridge.mesh_vertices(ob.data)
-        frame = _frame_of(ob)
-        pts.append(p)
-        world.append(p if frame is None else p @ frame[1].T + frame[0])
-        name = _instance_name(ob)
-        names.append(name)
-        if ob.ssm.fit_json:
-            try:
-                fits[name] = json.loads(ob.ssm.fit_json)
-            except json.JSONDecodeError:
-                fits[name] = {"fit_json": ob.ssm.fit_json}
-    if len(set(names)) != len(names):
-        dup = sorted({n for n in names if names.count(n) > 1})
-        raise InputError(f"Build Model: instance names are not unique: {dup}")
-    return np.stack(pts), np.stack(world), faces, names, fits
-
-
-# ---------------------------------------------------------------------------------------
-# settings
-# ---------------------------------------------------------------------------------------
-class SSMModelSettings(bpy.types.PropertyGroup):
-    """``Scene.ssm_model``: model building, display and animation settings."""
-
-    n_modes: IntProperty(name="Modes", description="Modes to keep (0: every non-zero mode, at most n-1)", default=0, min=0)
-    alignment: EnumProperty(name="Alignment", items=ALIGNMENT_ITEMS, default="none")
-    show_modes: IntProperty(name="Shown modes", description="Modes listed in the panel", default=8, min=1, max=200)
-    anim_modes: IntProperty(name="Animated modes", description="Sweep the first modes in turn", default=3, min=1)
-    anim_frames: IntProperty(name="Frames per mode", default=48, min=6)
-    anim_amplitude: FloatProperty(name="Amplitude", description="Sweep amplitude in standard deviations", default=2.0, min=0.1, max=3.0)
-    sample_seed: IntProperty(name="Seed", description="Seed of the random shape", default=0, min=0)
-    sample_sd_limit: FloatProperty(name="Limit", description="Clip each mode weight to ±limit standard deviations", default=3.0, min=0.1)
-    metrics_samples: IntProperty(name="Specificity samples", default=300, min=10)
-    last_directory: StringProperty(name="Last directory", subtype="DIR_PATH")
-
-
-# ---------------------------------------------------------------------------------------
 # operators
 # ---------------------------------------------------------------------------------------
 class SSM_OT_build_model(BackgroundJob, bpy.types.Operator):
@@ -241,33 +195,34 @@ class SSM_OT_build_model(BackgroundJob, bpy.types.Operator):
     bl_label = "Build Model"
     bl_options = {"REGISTER", "UNDO"}
 
+    @classmethod
+    def poll(cls, context):
+        n = len(coated_objects(context))
+        if n < 2:
+            cls.poll_message_set(f"Coat the template onto at least 2 instances first ({n} coated)")
+            return False
+        return True
+
     def prepare(self, context):
-        settings = context.scene.ssm_model
-        pts, world, faces, names, fits = gather_coated(context)
-        alignment = settings.alignment
-        n_modes = settings.n_modes or None
+        study = study_from_scene(context)
+        if len(study.coatings) < 2:
+            raise InputError(f"Build Model: need at least 2 coated instances, found {len(study.coatings)}")
+        self._template_points = study.template.points_object if study.template is not None else None
 
         def work(progress, cancelled):
-            return build_model(
-                pts,
-                faces,
-                names,
-                instance_points_world=world,
-                alignment=alignment,
-                n_modes=n_modes,
-                params={"fit": fits, "source": "Blender coated instances"},
-                progress=progress,
-                cancelled=cancelled,
-            )
+            return make_model(study, progress=progress, cancelled=cancelled)
 
         return work
 
     def finish(self, context, model):
-        obj = create_model_object(context, model)
+        obj = create_model_object(context, model, template_points=self._template_points)
         conc = model.variability_concentration()
         k3 = min(3, model.n_modes)
         share = conc[k3 - 1] * 100 if k3 else 0.0
-        self.report({"INFO"}, f"{obj.name}: {model.n_modes} modes from {model.n_instances} instances; first {k3}: {share:.1f} %")
+        loc = np.array(obj.matrix_world.translation)
+        self.report({"INFO"}, f"{obj.name}: {model.n_modes} modes from {model.n_instances} instances; first {k3}: "
+                              f"{share:.1f} %; placed at ({loc[0]:.0f}, {loc[1]:.0f}, {loc[2]:.0f}) mm, right of "
+                              "the instances")
         return {"FINISHED"}
 
 
@@ -321,10 +276,17 @@ class SSM_OT_animate_modes(bpy.types.Operator):
     bl_label = "Animate Modes"
     bl_options = {"REGISTER", "UNDO"}
 
-    n_modes: IntProperty(name="Modes", description="Animate the first modes", default=3, min=1)
-    frames_per_mode: IntProperty(name="Frames per mode", default=48, min=6)
-    amplitude: FloatProperty(name="Amplitude (σ)", default=2.0, min=0.1, max=3.0)
+    n_modes: IntProperty(name="Modes", description="Animate the first modes (default: the panel's)", default=3, min=1,
+                         options={"SKIP_SAVE"})
+    frames_per_mode: IntProperty(name="Frames per mode", default=48, min=6, options={"SKIP_SAVE"},
+                                 description="Frames of one mode's sweep (default: the panel's)")
+    amplitude: FloatProperty(name="Amplitude (σ)", default=2.0, min=0.1, max=3.0, options={"SKIP_SAVE"},
+                             description="Sweep amplitude in standard deviations (default: the panel's)")
     cyclic: BoolProperty(name="Loop", description="Cycles modifier on every F-curve", default=True)
+
+    @classmethod
+    def poll(cls, context):
+        return _poll_model(cls, context)
 
     def execute(self, context):
         try:
@@ -332,6 +294,11 @@ class SSM_OT_animate_modes(bpy.types.Operator):
         except InputError as err:
             self.report({"ERROR"}, str(err))
             return {"CANCELLED"}
+        s = context.scene.ssm_model
+        for prop, setting in (("n_modes", "anim_modes"), ("frames_per_mode", "anim_frames"),
+                              ("amplitude", "anim_amplitude")):
+            if not self.properties.is_property_set(prop):
+                setattr(self, prop, getattr(s, setting))
         kbs = mode_keys(obj)
         m = min(self.n_modes, len(kbs))
         if m == 0:
@@ -372,11 +339,22 @@ class SSM_OT_random_shape(bpy.types.Operator):
     bl_label = "Random Shape"
     bl_options = {"REGISTER", "UNDO"}
 
-    seed: IntProperty(name="Seed", default=0, min=0)
+    seed: IntProperty(name="Seed", default=0, min=0, options={"SKIP_SAVE"},
+                      description="Seed of the shape (default: the panel's)")
     n_modes: IntProperty(name="Modes", description="Modes used (0: all)", default=0, min=0)
-    sd_limit: FloatProperty(name="Limit (σ)", description="Clip each weight to ±limit standard deviations", default=3.0, min=0.1)
+    sd_limit: FloatProperty(name="Limit (σ)", description="Clip each weight to ±limit standard deviations (default: "
+                            "the panel's)", default=3.0, min=0.1, options={"SKIP_SAVE"})
+
+    @classmethod
+    def poll(cls, context):
+        return _poll_model(cls, context)
 
     def execute(self, context):
+        s = context.scene.ssm_model
+        if not self.properties.is_property_set("seed"):
+            self.seed = s.sample_seed
+        if not self.properties.is_property_set("sd_limit"):
+            self.sd_limit = s.sample_sd_limit
         try:
             obj = _require_model(context)
             model = model_from_object(obj)
@@ -390,10 +368,9 @@ class SSM_OT_random_shape(bpy.types.Operator):
         matrix = np.array(obj.matrix_world, dtype=float)
         width = float(np.ptp(model.mean[:, 0])) if model.n_points else 0.0
         matrix[:3, 3] += matrix[:3, 0] * 1.3 * width
-        sample = bridge.new_mesh_object(context, name, points, model.faces, collection_name=MODEL_COLLECTION, matrix_world=matrix)
-        bridge.set_face_colors(sample.data, bridge.triangle_index_colors(len(model.faces)))
-        if not sample.data.materials:
-            sample.data.materials.append(bridge.color_material())
+        sample = bridge.new_mesh_object(context, name, points, model.faces, collection_name=MODEL_COLLECTION,
+                                        matrix_world=matrix)
+        bridge.colour_correspondence(sample, model.mean, context.scene.ssm_display.colouring)
         sample.ssm.role = "SAMPLE"
         sample["ssm_z"] = np.asarray(z, dtype=np.float64)
         sample["ssm_seed"] = int(self.seed)
@@ -408,7 +385,12 @@ class SSM_OT_reset_modes(bpy.types.Operator):
     bl_label = "Reset Modes"
     bl_options = {"REGISTER", "UNDO"}
 
-    clear_animation: BoolProperty(name="Clear animation", description="Also remove the mode keyframes", default=False)
+    clear_animation: BoolProperty(name="Clear animation", description="Also remove the mode keyframes (else the "
+                                  "animation sets the values again on the next frame)", default=True)
+
+    @classmethod
+    def poll(cls, context):
+        return _poll_model(cls, context)
 
     def execute(self, context):
         try:
@@ -434,7 +416,12 @@ class SSM_OT_save_model(BackgroundJob, bpy.types.Operator):
     directory: StringProperty(name="Directory", subtype="DIR_PATH")
     metrics: BoolProperty(name="Quality metrics", description="Generalization and specificity (compactness always)", default=True)
     plots: BoolProperty(name="Plots", description="Spectrum and cumulative variance images (needs matplotlib)", default=True)
-    n_samples: IntProperty(name="Specificity samples", default=300, min=10)
+    n_samples: IntProperty(name="Specificity samples", default=500, min=1, options={"SKIP_SAVE"},
+                           description="Random shapes of the specificity metric (default: the model settings')")
+
+    @classmethod
+    def poll(cls, context):
+        return _poll_model(cls, context)
 
     def invoke(self, context, event):
         if not self.directory:
@@ -450,12 +437,16 @@ class SSM_OT_save_model(BackgroundJob, bpy.types.Operator):
         model = model_from_object(obj)
         out_dir = bpy.path.abspath(self.directory)
         per_instance = dict(model.params.get("fit") or {})
-        with_metrics, plots, n_samples = self.metrics, self.plots, self.n_samples
+        if not self.properties.is_property_set("n_samples"):
+            self.n_samples = context.scene.ssm_model.specificity_samples
+        mp = context.scene.ssm_model
+        with_metrics, plots, n_samples, seed, max_loo = self.metrics, self.plots, self.n_samples, mp.seed, mp.max_loo
         extra = {"model_object": obj.name}  # read here: the worker thread must not touch bpy
 
         def work(progress, cancelled):
             if with_metrics:
-                mets = core_metrics.evaluate(model, n_samples=n_samples, progress=progress, cancelled=cancelled)
+                mets = core_metrics.evaluate(model, n_samples=n_samples, seed=seed, max_loo=max_loo,
+                                             progress=progress, cancelled=cancelled)
             else:
                 mets = {"compactness": core_metrics.compactness(model)}
             return core_metrics.write_outputs(model, out_dir, mets, per_instance, extra, plots=plots)
@@ -478,6 +469,8 @@ class SSM_OT_save_model(BackgroundJob, bpy.types.Operator):
 class SSM_PT_model(bpy.types.Panel):
     """Model: build, per-mode variance bars and sliders, animation, sampling, files."""
 
+    bl_idname = "SSM_PT_model"
+
     bl_space_type = "VIEW_3D"
     bl_region_type = "UI"
     bl_category = "SSM"
@@ -487,13 +480,9 @@ class SSM_PT_model(bpy.types.Panel):
     def draw(self, context):
         layout = self.layout
         settings = context.scene.ssm_model
-        col = layout.column(align=True)
-        col.prop(settings, "alignment")
-        col.prop(settings, "n_modes")
-        n_coated = sum(1 for ob in context.scene.objects if ob.ssm.role == "COATED")
-        row = layout.row()
-        row.enabled = n_coated >= 2
-        row.operator("ssm.build_model", text=f"Build Model ({n_coated} coated)", icon="MOD_MESHDEFORM")
+        draw_params(layout, settings, ModelParams)
+        n_coated = len(coated_objects(context))
+        layout.operator("ssm.build_model", text=f"Build Model ({n_coated} coated)", icon="MOD_MESHDEFORM")
         obj = find_model_object(context)
         if obj is None:
             layout.label(text="No model yet", icon="INFO")
@@ -501,6 +490,9 @@ class SSM_PT_model(bpy.types.Panel):
         g = obj[MODEL_KEY]
         shp = json.loads(g["shape_json"])
         layout.label(text=f"{obj.name}: {shp['n']} instances, {shp['N']} points, {shp['K']} modes")
+        loc = obj.matrix_world.translation
+        layout.label(text=f"at ({loc[0]:.0f}, {loc[1]:.0f}, {loc[2]:.0f}) mm, right of the instances",
+                     icon="OBJECT_ORIGIN")
         fractions = np.asarray(g["fractions"])
         cum = np.cumsum(fractions)
         box = layout.box()
@@ -517,35 +509,38 @@ class SSM_PT_model(bpy.types.Panel):
         box.prop(settings, "show_modes")
         row = layout.row(align=True)
         op = row.operator("ssm.reset_modes", text="Reset", icon="LOOP_BACK")
-        op.clear_animation = False
+        op.clear_animation = True
         col = layout.column(align=True)
         col.prop(settings, "anim_modes")
         col.prop(settings, "anim_frames")
         col.prop(settings, "anim_amplitude")
-        op = col.operator("ssm.animate_modes", icon="ANIM")
-        op.n_modes, op.frames_per_mode, op.amplitude = settings.anim_modes, settings.anim_frames, settings.anim_amplitude
+        col.operator("ssm.animate_modes", icon="ANIM")
         row = layout.row(align=True)
         row.prop(settings, "sample_seed")
-        op = row.operator("ssm.random_shape", icon="MOD_NOISE")
-        op.seed, op.sd_limit = settings.sample_seed, settings.sample_sd_limit
-        op = layout.operator("ssm.save_model", icon="EXPORT")
-        op.n_samples = settings.metrics_samples
+        row.operator("ssm.random_shape", icon="MOD_NOISE")
+        layout.operator("ssm.save_model", icon="EXPORT")
+
+
+class SSM_PT_model_advanced(bpy.types.Panel):
+    bl_label = "Advanced"
+    bl_idname = "SSM_PT_model_advanced"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "SSM"
+    bl_parent_id = "SSM_PT_model"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        draw_params(self.layout, context.scene.ssm_model, ModelParams, advanced=True)
+        self.layout.prop(context.scene.ssm_display, "colouring")
 
 
 classes = (
-    SSMModelSettings,
     SSM_OT_build_model,
     SSM_OT_animate_modes,
     SSM_OT_random_shape,
     SSM_OT_reset_modes,
     SSM_OT_save_model,
     SSM_PT_model,
+    SSM_PT_model_advanced,
 )
-
-
-def register_properties():
-    bpy.types.Scene.ssm_model = PointerProperty(type=SSMModelSettings)
-
-
-def unregister_properties():
-    del bpy.types.Scene.ssm_model

@@ -1,13 +1,28 @@
-"""Properties shared by every stage: what an object is to SSM Builder, and its metadata.
+"""Properties: what an object is to SSM Builder, and the parameters of every stage.
 
-Stage-specific settings (template parameters, coating parameters, the landmark schema,
-the model's numbers) live in the module of their stage as ``Scene.ssm_<stage>``.
+The stage parameters are not written here: each Blender property group is derived from
+the core's parameter dataclass (:mod:`ssm_addon.params`, their one definition) by
+:func:`param_group`, with the same names, defaults, ranges, choices and descriptions.
+:func:`params_from_group` reads a group back into the dataclass (floats as the user
+typed them, not with Blender's single-precision noise) and :func:`set_group` writes one
+in; :func:`draw_params` draws the fields of a group, plain or advanced.
 """
 
 from __future__ import annotations
 
 import bpy
-from bpy.props import EnumProperty, FloatProperty, FloatVectorProperty, IntProperty, PointerProperty, StringProperty
+from bpy.props import (
+    BoolProperty,
+    EnumProperty,
+    FloatProperty,
+    FloatVectorProperty,
+    IntProperty,
+    PointerProperty,
+    StringProperty,
+)
+
+from ssm_addon import params as P
+from ssm_addon.errors import InputError
 
 ROLES = [
     ("NONE", "None", "Not part of an SSM build"),
@@ -25,15 +40,15 @@ SOURCE_KINDS = [
     ("BLENDER_MESH", "Blender mesh", "Voxelized from this object's own mesh data"),
 ]
 
-FRAME_METHODS = [
-    ("AUTO", "Auto", "Patient axes where the input has an orientation, else moments"),
-    ("PATIENT", "Patient axes", "Pair each principal axis with the nearest patient axis (R, A, S)"),
-    ("MOMENTS", "Moments", "Eigenvalue order and third-moment signs"),
+COLOURINGS = [
+    ("POSITION", "Position on the template", "A smooth colour by each point's place on the template: corresponding "
+                                             "places have the same colour on every instance and the model"),
+    ("TRIANGLES", "Triangle index", "One colour per triangle, as the paper's figs. 6-7"),
 ]
 
 
 class SSMObjectProperties(bpy.types.PropertyGroup):
-    """Per-object SSM metadata (``obj.ssm``)."""
+    """Per-object SSM metadata (``obj.ssm``); the arrays live in ID properties (float64)."""
 
     role: EnumProperty(name="Role", items=ROLES, default="NONE")
     source_kind: EnumProperty(name="Source kind", items=SOURCE_KINDS, default="VOLUME")
@@ -43,27 +58,205 @@ class SSMObjectProperties(bpy.types.PropertyGroup):
         options={"PATH_SUPPORTS_BLEND_RELATIVE"},
     )
     label: IntProperty(name="Label", description="Label picked from the label map (-1: all non-zero)", default=-1)
-    spacing_mm: FloatProperty(name="Spacing", description="Isotropic resampling spacing in mm", default=1.0, min=0.05, unit="NONE")
-    frame_method: EnumProperty(name="Frame", items=FRAME_METHODS, default="AUTO")
-    frame_origin: FloatVectorProperty(name="Frame origin", size=3, description="Centre of mass in world mm")
-    frame_axes: FloatVectorProperty(name="Frame axes", size=9, description="Object axes (columns, row-major 3x3) in world")
-    import_matrix: FloatVectorProperty(
-        name="Import matrix",
-        size=16,
-        description="matrix_world at import (row-major); maps Blender world back to the file's world mm",
-        default=(1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1),
-    )
+    mesh_spacing_mm: FloatProperty(name="Mesh spacing", description="Voxelization step of a mesh instance in mm "
+                                   "(0: the study's spacing)", default=0.0, min=0.0)
+    order: IntProperty(name="Order", description="Position of the instance in the study", default=0)
     volume_mm3: FloatProperty(name="Volume", description="Object volume in mm³", default=0.0)
     instance: PointerProperty(name="Instance", type=bpy.types.Object, description="The instance this object belongs to")
     fit_json: StringProperty(name="Fit", description="Fit figures of a coated instance (JSON)")
 
 
-classes = (SSMObjectProperties,)
+# ---------------------------------------------------------------------- parameter groups
+def _auto_name(name: str) -> str:
+    return f"{name}_auto"
+
+
+def _blender_property(s: P.Spec):
+    """The bpy property of one parameter (see :class:`ssm_addon.params.Spec`)."""
+    unit = f" ({s.unit})" if s.unit and s.unit != "deg" else (" (°)" if s.unit == "deg" else "")
+    name = f"{s.label}{unit}"
+    desc = s.help[:1].upper() + s.help[1:] + (f". {s.range_text().capitalize()}" if s.kind not in ("bool",) else "")
+    if s.kind == "bool":
+        return BoolProperty(name=name, description=desc, default=bool(s.default))
+    if s.kind == "choice":
+        items = [(c, c.replace("-", " ").capitalize(), f"{s.key} = {c!r}") for c in s.choices]
+        return EnumProperty(name=name, description=desc, items=items, default=s.default)
+    if s.kind == "int":
+        kw = {}
+        if s.minimum is not None:
+            kw["min"] = int(s.minimum)
+        if s.maximum is not None:
+            kw["max"] = int(min(s.maximum, 2**31 - 1))
+        default = s.default if s.default is not None else int(s.minimum or 0)
+        return IntProperty(name=name, description=desc, default=int(default), **kw)
+    if s.kind == "float":
+        kw = {"precision": 3, "step": 10}
+        if s.minimum is not None:
+            kw["min"] = float(s.minimum)
+        if s.maximum is not None:
+            kw["max"] = float(s.maximum)
+        default = s.default if s.default is not None else float(s.minimum or 0.0)
+        return FloatProperty(name=name, description=desc, default=float(default), **kw)
+    if s.kind == "floats" and s.size:
+        kw = {}
+        if s.minimum is not None:
+            kw["min"] = float(s.minimum)
+        if s.maximum is not None:
+            kw["max"] = float(s.maximum)
+        return FloatVectorProperty(name=name, description=desc, size=s.size, default=tuple(s.default), **kw)
+    if s.kind == "floats":  # any length: typed as a list
+        return StringProperty(name=name, description=desc + " (comma-separated)",
+                              default=", ".join(f"{v:g}" for v in s.default))
+    return StringProperty(name=name, description=desc, default=str(s.default or ""))
+
+
+def param_group(cls, name: str, extra: dict | None = None) -> type:
+    """A ``bpy.types.PropertyGroup`` subclass with one property per parameter of ``cls``.
+
+    Optional parameters (None allowed) get a companion ``<name>_auto`` toggle; ``extra``
+    adds further (UI-only) annotations.
+    """
+    annotations = {}
+    for s in P.specs(cls):
+        annotations[s.name] = _blender_property(s)
+        if s.optional:
+            annotations[_auto_name(s.name)] = BoolProperty(
+                name="Auto", default=s.default is None, description=f"Automatic: {s.none_means}")
+    annotations.update(extra or {})
+    doc = f"{cls.__name__} as Blender properties (derived from ssm_addon.params)."
+    return type(name, (bpy.types.PropertyGroup,), {"__annotations__": annotations, "__doc__": doc,
+                                                    "params_class": cls})
+
+
+def _read(s: P.Spec, group):
+    if s.optional and getattr(group, _auto_name(s.name)):
+        return None
+    value = getattr(group, s.name)
+    if s.kind == "float":
+        return P.shortest_float32(value)
+    if s.kind == "floats" and s.size:
+        return tuple(P.shortest_float32(v) for v in value)
+    if s.kind == "floats":
+        text = str(value).replace(";", ",").strip()
+        try:
+            return tuple(float(v) for v in text.split(",") if v.strip())
+        except ValueError:
+            raise InputError(f"{s.label}: {text!r} is not a comma-separated list of numbers") from None
+    if s.kind == "int":
+        return int(value)
+    if s.kind == "bool":
+        return bool(value)
+    return str(value)
+
+
+def params_from_group(cls, group):
+    """The parameter object of ``cls`` from a group made by :func:`param_group` (validated).
+
+    Floats are read as the shortest decimal of their single-precision value, so 0.2
+    typed in the sidebar is 0.2, the same number as 0.2 in a project file.
+    """
+    values = {s.key: _read(s, group) for s in P.specs(cls)}
+    return P.from_table(cls, {k: v for k, v in values.items() if v is not None},
+                        where=f"{cls.__name__.removesuffix('Params')} settings:")
+
+
+def set_group(group, params) -> None:
+    """Write a parameter object into its property group."""
+    for s in P.specs(type(params)):
+        value = getattr(params, s.name)
+        if s.optional:
+            setattr(group, _auto_name(s.name), value is None)
+            if value is None:
+                continue
+        if s.kind == "floats" and not s.size:
+            setattr(group, s.name, ", ".join(repr(float(v)) for v in value))
+        elif s.kind == "floats":
+            setattr(group, s.name, tuple(float(v) for v in value))
+        else:
+            setattr(group, s.name, value)
+
+
+def draw_params(layout, group, cls, *, advanced: bool = False, skip=()) -> None:
+    """Draw the (plain or advanced) parameters of ``cls`` from its group."""
+    col = layout.column(align=True)
+    for s in P.specs(cls):
+        if s.advanced != advanced or s.name in skip:
+            continue
+        if s.optional:
+            row = col.row(align=True)
+            row.prop(group, _auto_name(s.name), text="", icon="AUTO")
+            sub = row.row(align=True)
+            sub.enabled = not getattr(group, _auto_name(s.name))
+            sub.prop(group, s.name)
+        else:
+            col.prop(group, s.name)
+
+
+# ------------------------------------------------------------------------ scene settings
+SSMTemplateSettings = param_group(P.TemplateParams, "SSMTemplateSettings")
+SSMCoatingSettings = param_group(P.CoatingParams, "SSMCoatingSettings", extra={
+    "selected_only": BoolProperty(name="Selected only", default=False, description="Coat only the selected instances"),
+})
+SSMModelSettings = param_group(P.ModelParams, "SSMModelSettings", extra={
+    "show_modes": IntProperty(name="Shown modes", description="Modes listed in the panel", default=8, min=1, max=200),
+    "anim_modes": IntProperty(name="Animated modes", description="Sweep the first modes in turn", default=3, min=1),
+    "anim_frames": IntProperty(name="Frames per mode", default=48, min=6),
+    "anim_amplitude": FloatProperty(name="Amplitude (σ)", description="Sweep amplitude in standard deviations",
+                                    default=2.0, min=0.1, max=3.0),
+    "sample_seed": IntProperty(name="Seed", description="Seed of the random shape", default=0, min=0),
+    "sample_sd_limit": FloatProperty(name="Limit (σ)", description="Clip each mode weight to ±limit standard "
+                                     "deviations", default=3.0, min=0.1),
+    "last_directory": StringProperty(name="Last directory", subtype="DIR_PATH"),
+})
+SSMOutputSettings = param_group(P.OutputParams, "SSMOutputSettings")
+
+
+def _recolour(self, context):
+    from . import bridge
+
+    bridge.recolour_scene(context)
+
+
+def _instance_poll(self, obj):
+    return obj.type == "MESH" and obj.ssm.role == "INSTANCE"
+
+
+class SSMStudySettings(bpy.types.PropertyGroup):
+    """``Scene.ssm_display``: the study's template instance and how correspondence is shown."""
+
+    colouring: EnumProperty(name="Correspondence colours", items=COLOURINGS, default="POSITION", update=_recolour)
+    template_instance: PointerProperty(name="Template instance", type=bpy.types.Object, poll=_instance_poll,
+                                       description="The instance the template is built from ([template] instance)")
+
+
+#: Scene property name -> (group class, parameter class).
+SCENE_GROUPS = {
+    "ssm_template": (SSMTemplateSettings, P.TemplateParams),
+    "ssm_coating": (SSMCoatingSettings, P.CoatingParams),
+    "ssm_model": (SSMModelSettings, P.ModelParams),
+    "ssm_output": (SSMOutputSettings, P.OutputParams),
+}
+
+
+def scene_params(context, key: str):
+    """The parameter object held by ``Scene.<key>`` (e.g. ``"ssm_coating"``)."""
+    group_cls, cls = SCENE_GROUPS[key]
+    return params_from_group(cls, getattr(context.scene, key))
+
+
+classes = (SSMObjectProperties, SSMTemplateSettings, SSMCoatingSettings, SSMModelSettings, SSMOutputSettings,
+           SSMStudySettings)
 
 
 def register_properties():
     bpy.types.Object.ssm = PointerProperty(type=SSMObjectProperties)
+    for key, (group_cls, _cls) in SCENE_GROUPS.items():
+        setattr(bpy.types.Scene, key, PointerProperty(type=group_cls))
+    bpy.types.Scene.ssm_display = PointerProperty(type=SSMStudySettings)
 
 
 def unregister_properties():
+    del bpy.types.Scene.ssm_display
+    for key in reversed(SCENE_GROUPS):
+        delattr(bpy.types.Scene, key)
     del bpy.types.Object.ssm

@@ -142,16 +142,19 @@ def _with_overrides(project, args):
     return dataclasses.replace(project, **changes) if changes else project
 
 
-def _run_build(project_path, out, jobs: int, blend: bool, in_blender: bool, args=None) -> int:
+def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> int:
     from . import _blender
     from .project import build, read_project
 
     project = _with_overrides(read_project(project_path), args)
     hook = None
-    if blend and project.output.blend and (in_blender or _blender.bpy_available()):
-        hook = _blender.write_blend_outputs
-    elif blend and not in_blender:
-        print("bpy is not importable: skipping model.blend and modes.png (pip install bpy==5.0.1)", flush=True)
+    if blend and project.output.blend:
+        hook = writer or _blender.blend_writer()
+        if hook is None:
+            why = ("bpy is not importable (pip install bpy==5.0.1)" if not _blender.bpy_available() else
+                   "the Blender layer is not installed with this core (run `blender -b --command ssm build ...` "
+                   "with the extension, or from a source checkout)")
+            print(f"skipping model.blend and modes.png: {why}", flush=True)
     print(f"project: {project.path} ({len(project.instances)} instances, {len(project.landmark_names)} landmarks)",
           flush=True)
     result = build(project, out, jobs=jobs, progress=_print_progress(), log=lambda m: print(m, flush=True),
@@ -169,11 +172,11 @@ def _run_build(project_path, out, jobs: int, blend: bool, in_blender: bool, args
     return 0
 
 
-def cmd_build(args, in_blender: bool) -> int:
-    return _run_build(args.project, args.out, args.jobs, not args.no_blend, in_blender, args)
+def cmd_build(args, writer) -> int:
+    return _run_build(args.project, args.out, args.jobs, not args.no_blend, writer, args)
 
 
-def cmd_demo(args, in_blender: bool) -> int:
+def cmd_demo(args, writer) -> int:
     from .demo import make_demo_population
 
     out = Path(args.out)
@@ -181,10 +184,10 @@ def cmd_demo(args, in_blender: bool) -> int:
     project = make_demo_population(out / "population", n=args.n, seed=args.seed)
     print(f"demo population: {args.n} synthetic vertebrae in {out / 'population'} ({time.perf_counter() - t0:.1f} s)",
           flush=True)
-    return _run_build(project, out / "model", args.jobs, not args.no_blend, in_blender)
+    return _run_build(project, out / "model", args.jobs, not args.no_blend, writer)
 
 
-def main(argv=None, in_blender: bool = False) -> int:
+def main(argv=None, in_blender: bool = False, blend_writer=None) -> int:
     """Run a subcommand; returns the exit status (0 ok, 2 bad input, 130 cancelled).
 
     Parameters
@@ -192,8 +195,10 @@ def main(argv=None, in_blender: bool = False) -> int:
     argv : list of str, optional
         Arguments after ``python -m ssm_addon`` (default ``sys.argv[1:]``).
     in_blender : bool
-        True when called by ``blender -b --command ssm …`` (operators/cli.py): the
-        running ``bpy`` writes ``model.blend``.
+        True when called by ``blender -b --command ssm …`` (operators/cli.py).
+    blend_writer : callable, optional
+        The Blender layer's ``write_build_outputs`` (the extension passes its own);
+        None: found from a source checkout when ``bpy`` is importable.
     """
     try:
         args = _parser().parse_args(sys.argv[1:] if argv is None else list(argv))
@@ -205,9 +210,9 @@ def main(argv=None, in_blender: bool = False) -> int:
         if args.command == "template":
             return cmd_template(args)
         if args.command == "build":
-            return cmd_build(args, in_blender)
+            return cmd_build(args, blend_writer)
         if args.command == "demo":
-            return cmd_demo(args, in_blender)
+            return cmd_demo(args, blend_writer)
     except Cancelled as err:
         print(f"cancelled: {err}", file=sys.stderr)
         return EXIT_CANCELLED

@@ -25,7 +25,7 @@ from .resample import resample
 from .volume import LabelMap, ObjectFrame, ObjectVolume, Volume
 from .voxelize import load_mesh_volume, voxelize_mesh
 
-__all__ = ["InstanceSpec", "import_instance", "load_object", "object_from_mesh", "object_from_volume"]
+__all__ = ["InstanceSpec", "import_instance", "load_object", "object_from_mesh", "object_from_volume", "read_instance"]
 
 
 @dataclass(frozen=True)
@@ -150,6 +150,22 @@ def object_from_mesh(vertices_world: np.ndarray, faces: np.ndarray, *, spacing_m
     return object_from_volume(vol, spacing_mm=spacing_mm, frame_method=frame_method, cancelled=cancelled)
 
 
+def read_instance(spec: InstanceSpec, *, spacing_mm: float, label_map: LabelMap | None = None,
+                  cancelled: CancelledFn = None) -> Volume:
+    """The read step of :func:`import_instance`: the instance's binary object in its input grid.
+
+    A mesh is voxelized at ``spec.mesh_spacing`` (or ``spacing_mm``).
+    """
+    try:
+        if spec.mesh is not None:
+            return load_mesh_volume(spec.mesh, spec.mesh_spacing or spacing_mm, cancelled=cancelled)
+        if spec.volume is None:
+            raise InputError("no source file (volume or mesh)")
+        return select_label(label_map, spec.label) if label_map is not None else load_volume(spec.volume, spec.label)
+    except InputError as err:
+        raise InputError(f"instance {spec.name!r}: {err}") from None
+
+
 def import_instance(spec: InstanceSpec, *, spacing_mm: float, frame_method: str = "auto",
                     label_map: LabelMap | None = None, progress: ProgressFn = None,
                     cancelled: CancelledFn = None) -> ObjectVolume:
@@ -160,9 +176,10 @@ def import_instance(spec: InstanceSpec, *, spacing_mm: float, frame_method: str 
     InputError
         Naming the instance and the file.
     """
+    report(progress, 0.0, f"reading {spec.name}")
+    vol = read_instance(spec, spacing_mm=spacing_mm, label_map=label_map, cancelled=cancelled)
     try:
-        return load_object(spec.source, label=spec.label, spacing_mm=spacing_mm, frame_method=frame_method,
-                           mesh=spec.mesh is not None, mesh_spacing_mm=spec.mesh_spacing, label_map=label_map,
-                           progress=progress, cancelled=cancelled)
+        return object_from_volume(vol, spacing_mm=spacing_mm, frame_method=frame_method,
+                                  progress=sub_progress(progress, 0.4, 1.0), cancelled=cancelled)
     except InputError as err:
         raise InputError(f"instance {spec.name!r}: {err}") from None

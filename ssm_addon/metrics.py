@@ -31,8 +31,8 @@ from .model import (
     ALIGNMENTS,
     ShapeModel,
     _jsonable,
-    _procrustes_fit,
     generalized_procrustes,
+    procrustes_fit,
     save_npz,
     save_statismo,
 )
@@ -189,7 +189,7 @@ def generalization(
         else:
             aligned, _ = generalized_procrustes(x[train], scale=alignment == "similarity")
             mean_shape = aligned.mean(axis=0)
-            s, rot, t = _procrustes_fit(x[test], mean_shape, scale=alignment == "similarity")
+            s, rot, t = procrustes_fit(x[test], mean_shape, scale=alignment == "similarity")
             ya = s[:, None, None] * np.einsum("inj,ikj->ink", x[test], rot) + t[:, None]
             xt = aligned.reshape(len(train), -1)
             mu = xt.mean(axis=0)

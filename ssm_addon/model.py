@@ -184,7 +184,7 @@ class ShapeModel:
         points = _check_shape_points(points, self.n_points, "model.project")
         if self.alignment == "none":
             return points, (1.0, np.eye(3), np.zeros(3))
-        s, rot, t = _procrustes_fit(points[None], self.mean, scale=self.alignment == "similarity")
+        s, rot, t = procrustes_fit(points[None], self.mean, scale=self.alignment == "similarity")
         s, rot, t = float(s[0]), rot[0], t[0]
         return s * points @ rot.T + t, (s, rot, t)
 
@@ -271,7 +271,7 @@ class ShapeModel:
 # ---------------------------------------------------------------------------------------
 # Procrustes
 # ---------------------------------------------------------------------------------------
-def _procrustes_fit(src: np.ndarray, dst: np.ndarray, scale: bool):
+def procrustes_fit(src: np.ndarray, dst: np.ndarray, scale: bool):
     """Least-squares similarity (or rigid) transforms of many shapes onto one target.
 
     Finds s_i, R_i, t_i minimising Σ |s_i R_i x + t_i - y|² for every shape src[i]
@@ -336,11 +336,11 @@ def generalized_procrustes(
     it = 0
     aligned = shapes
     for it in range(1, max_iter + 1):  # noqa: B007 - reported below
-        s, rot, t = _procrustes_fit(shapes, ref, scale)
+        s, rot, t = procrustes_fit(shapes, ref, scale)
         aligned = s[:, None, None] * np.einsum("inj,ikj->ink", shapes, rot) + t[:, None]
         new = aligned.mean(axis=0)
         # keep the mean in the frame (and, with scale, the size) of the input mean
-        s2, rot2, t2 = _procrustes_fit(new[None], frame_ref, scale=False)
+        s2, rot2, t2 = procrustes_fit(new[None], frame_ref, scale=False)
         new = new @ rot2[0].T + t2[0]
         if scale:
             c = new.mean(0)
@@ -352,7 +352,7 @@ def generalized_procrustes(
         if change <= tol * max(size_ref, 1e-300):
             converged = True
             break
-    s, rot, t = _procrustes_fit(shapes, ref, scale)
+    s, rot, t = procrustes_fit(shapes, ref, scale)
     aligned = s[:, None, None] * np.einsum("inj,ikj->ink", shapes, rot) + t[:, None]
     return aligned, {"iterations": it, "converged": converged, "final_change_mm": change}
 
@@ -600,7 +600,7 @@ def save_npz(model: ShapeModel, path) -> Path:
     return path
 
 
-def _validated(arrays: dict, where: str) -> ShapeModel:
+def model_from_arrays(arrays: dict, where: str = "model") -> ShapeModel:
     """Check shapes of the model arrays and make a ShapeModel (errors name ``where``)."""
     mean = np.asarray(arrays["mean"], dtype=float)
     if mean.ndim != 2 or mean.shape[1] != 3:
@@ -669,7 +669,7 @@ def load_npz(path) -> ShapeModel:
     if not isinstance(params, dict):
         raise InputError(f"{path}: 'params_json' is not a JSON object")
     arrays["params"] = params
-    return _validated(arrays, str(path))
+    return model_from_arrays(arrays, str(path))
 
 
 def save_statismo(model: ShapeModel, path, noise_variance: float = 0.0) -> Path:
@@ -777,7 +777,7 @@ def load_statismo(path) -> ShapeModel:
             world = np.zeros((0, npts, 3))
             params = {"source": str(path), "total_variance_mm2": float(variances.sum())}
     k = variances.size
-    return _validated(
+    return model_from_arrays(
         {
             "mean": mean,
             "faces": cells.T.astype(np.int64),

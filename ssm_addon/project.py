@@ -513,7 +513,7 @@ def write_study_files(study: Study, folder: Path, *, output: OutputParams, proje
 
     files: dict = {}
     tpl = study.template
-    tframe = study.volume(study.template_instance).frame
+    tframe = study.frame(study.template_instance)
     write_ply(folder / "template.ply", tframe.to_world(tpl.points_object), tpl.faces)
     files["template"] = "template.ply"
     names = list(study.model.instance_names)

@@ -159,6 +159,7 @@ def propose_from_meshes(
     source_mesh_world,
     target_frame,
     target_mesh_world,
+    *,
     method: str = "frame",
     spacing_mm: float = 1.0,
     source: str = "",

@@ -45,7 +45,7 @@ from .model import ShapeModel, build_model
 from .params import CoatingParams, ModelParams, TemplateParams
 from .progress import CancelledFn, ProgressFn, report, sub_progress
 from .template import Template, build_template
-from .volume import ObjectVolume
+from .volume import ObjectFrame, ObjectVolume
 
 __all__ = [
     "STAGES",
@@ -78,6 +78,9 @@ class Study:
         set every instance's import.
     volumes : dict name -> ObjectVolume
         Each imported instance, resampled in its object frame (paper 2).
+    frames : dict name -> ObjectFrame
+        Object frames known without the volume (e.g. stored with a Blender scene);
+        :meth:`frame` prefers the volume's.
     template : Template or None
     coatings : dict name -> CoatingResult
         The template coated onto each instance (object mm of that instance).
@@ -94,6 +97,7 @@ class Study:
     coating_params: CoatingParams = field(default_factory=CoatingParams)
     model_params: ModelParams = field(default_factory=ModelParams)
     volumes: dict[str, ObjectVolume] = field(default_factory=dict)
+    frames: dict[str, ObjectFrame] = field(default_factory=dict)
     template: Template | None = None
     coatings: dict[str, CoatingResult] = field(default_factory=dict)
     model: ShapeModel | None = None
@@ -131,6 +135,14 @@ class Study:
         """The instance's landmarks (world mm of its file), or None."""
         lm = self.instance(name).landmark_set
         return lm if lm is not None and len(lm) else None
+
+    def frame(self, name: str) -> ObjectFrame:
+        """The instance's object frame (paper 2): its volume's, else a known one."""
+        if name in self.volumes:
+            return self.volumes[name].frame
+        if name in self.frames:
+            return self.frames[name]
+        raise InputError(f"study: instance {name!r} is not imported yet (no object frame)")
 
     def volume(self, name: str) -> ObjectVolume:
         if name not in self.volumes:
@@ -241,7 +253,7 @@ def common_landmark_names(study: Study, names: Sequence[str]) -> tuple[str, ...]
 
 def _landmarks_object(study: Study, name: str, common: Sequence[str]) -> np.ndarray:
     lm = study.landmarks(name).subset(common)
-    return study.volume(name).frame.to_object(lm.points_world)
+    return study.frame(name).to_object(lm.points_world)
 
 
 def coat_instances(study: Study, *, names: Sequence[str] | None = None, jobs: int = 1,
@@ -288,14 +300,14 @@ def make_model(study: Study, *, names: Sequence[str] | None = None, progress: Pr
     if study.template is None:
         raise InputError("model: no template")
     pts = np.stack([study.coatings[n].points_object for n in names])
-    world = np.stack([study.volume(n).frame.to_world(study.coatings[n].points_object) for n in names])
+    world = np.stack([study.frame(n).to_world(study.coatings[n].points_object) for n in names])
     common = ()
     try:
         common = common_landmark_names(study, names)
     except InputError:
         pass
     params = study_parameters(study, common)
-    params["fit"] = {n: study.coatings[n].fit.to_dict() for n in names}
+    params["fit"] = {n: {k: v for k, v in study.coatings[n].fit.to_dict().items() if k != "time_s"} for n in names}
     mp = study.model_params
     return build_model(pts, study.template.faces, names, instance_points_world=world, alignment=mp.alignment,
                        n_modes=mp.n_modes, params=params, progress=progress, cancelled=cancelled)
@@ -327,8 +339,9 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
     if "import" in stages:
         t0 = time.perf_counter()
         report(progress, 0.0, f"import: {n} instances at {study.template_params.spacing_mm:g} mm")
-        study.volumes.update(import_instances(study, jobs=jobs, progress=sub_progress(progress, 0.0, 0.15),
-                                              cancelled=cancelled))
+        volumes = import_instances(study, jobs=jobs, progress=sub_progress(progress, 0.0, 0.15), cancelled=cancelled)
+        study.volumes.update(volumes)
+        study.frames.update({n: v.frame for n, v in volumes.items()})
         study.timings_s["import"] = time.perf_counter() - t0
         say(f"import: {n} instances in {study.timings_s['import']:.2f} s")
     if "template" in stages:

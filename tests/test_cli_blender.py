@@ -114,6 +114,6 @@ def test_open_and_save_project_round_trip(bpy_clean, small_demo, tmp_path):
 
 def test_save_project_needs_landmarked_instances(bpy_clean, tmp_path):
     bpy = bpy_clean
-    with pytest.raises(RuntimeError, match="at least two"):
+    with pytest.raises(RuntimeError, match="no SSM instances in the scene"):
         bpy.ops.ssm.save_project(filepath=str(tmp_path / "p.toml"))
     assert not (tmp_path / "p.toml").exists()

@@ -29,10 +29,11 @@ def _label_map(tmp_path):
 
 def _scene(bpy, tmp_path):
     """Three ellipsoid instances with landmarks (true map: axis scaling) and a template on instance 1."""
-    from ssm.operators import bridge
     from ssm.operators.instances import instance_object_volume
-    from ssm.operators.landmarks import set_landmark
+    from ssm.operators.scene import set_landmark, stored_frame
+    from ssm.operators.template import write_template_object
 
+    from ssm_addon.template import Template
 
     path = _label_map(tmp_path)
     assert bpy.ops.ssm.import_segmentation(filepath=str(path), split_labels=True, spacing_mm=1.0) == {"FINISHED"}
@@ -40,16 +41,14 @@ def _scene(bpy, tmp_path):
     base = ellipsoid_landmarks(AXES[1])
     names = [f"lm{i}" for i in range(len(base))]
     for k, obj in inst.items():
-        frame = V.ObjectFrame(np.array(obj.ssm.frame_origin), np.array(obj.ssm.frame_axes).reshape(3, 3))
-        world = frame.to_world(base * AXES[k] / AXES[1])
+        world = stored_frame(obj).to_world(base * AXES[k] / AXES[1])
         for name, p in zip(names, world):
-            set_landmark(bpy.context, obj, name, p)
-    ov = instance_object_volume(inst[1])
+            set_landmark(bpy.context, obj, name, file_world=p)
+    ov = instance_object_volume(bpy.context, inst[1])
     v, f = icosphere(3)
     pts = DM.DistanceMap.from_object_volume(ov).project(v * AXES[1], 3)
-    tpl = bridge.new_mesh_object(bpy.context, "SSM Template", pts, f, matrix_world=np.eye(4))
-    tpl.ssm.role = "TEMPLATE"
-    tpl.ssm.instance = inst[1]
+    template = Template(points_object=pts, faces=f, curvature=np.zeros(len(pts)), frame=ov.frame)
+    tpl = write_template_object(bpy.context, inst[1], template)
     return inst, tpl
 
 
@@ -65,12 +64,17 @@ def test_coat_template_creates_overlaying_coloured_meshes(bpy_clean, tmp_path):
         assert coated.ssm.role == "COATED" and coated.ssm.instance == obj
         assert len(coated.data.vertices) == len(tpl.data.vertices)
         np.testing.assert_array_equal(bridge.mesh_triangles(coated.data), bridge.mesh_triangles(tpl.data))
-        colours = coated.data.attributes["triangle_index"]
+        # the same correspondence colours as the template, corner by corner
+        colours = coated.data.attributes["correspondence"]
         rgba = np.empty(len(colours.data) * 4, np.float32)
         colours.data.foreach_get("color", rgba)
-        per_face = rgba.reshape(n_faces, -1, 4)  # FACE: one colour, CORNER: three per triangle
-        expected = bridge.triangle_index_colors(n_faces)[:, None, :]
-        np.testing.assert_allclose(per_face, np.broadcast_to(expected, per_face.shape), atol=1e-6)
+        tpl_rgba = np.empty_like(rgba)
+        tpl.data.attributes["correspondence"].data.foreach_get("color", tpl_rgba)
+        np.testing.assert_array_equal(rgba, tpl_rgba)
+        assert rgba.reshape(n_faces, 3, 4)[:, :, :3].std() > 0.1
+        # float64 points kept with the object; the mesh is their float32 view
+        stored = bridge.load_arrays(coated, "ssm_coating")["points_object"]
+        np.testing.assert_allclose(bridge.mesh_vertices(coated.data), stored, atol=1e-4)
         # the coated mesh overlays the instance: Blender-world vertices on the ellipsoid
         world = bridge.object_world_vertices(coated)
         r = np.sqrt((((world - CENTRES[k]) / AXES[k]) ** 2).sum(1))
@@ -111,13 +115,17 @@ def test_panel_registered(bpy_clean):
     # the sidebar's defaults are the core's defaults (the same coating headless and in Blender)
     import dataclasses
 
+    from ssm.operators.properties import params_from_group
+
     from ssm_addon.coating import CoatingParams
 
-    ui, core = settings.params(), CoatingParams()
+    ui, core = params_from_group(CoatingParams, settings), CoatingParams()
     for field in ("kernel", "k1", "k2", "k3", "mass", "damping", "dt", "max_iterations", "velocity_tol_mm",
                   "fold_angle_deg", "rest_lengths", "regularization", "fold_free_warp", "fold_smoothing",
                   "registration_sigmas_mm", "hardy_s_mm"):  # fmt: skip
         assert getattr(ui, field) == pytest.approx(getattr(core, field)), field
     assert {f.name for f in dataclasses.fields(core)} >= {"registration_sigmas_mm", "k1", "k2"}
-    settings.use_registration = False
-    assert settings.params().registration_sigmas_mm == ()
+    settings.registration_sigmas_mm = ""  # the paper's scheme: no registration
+    assert params_from_group(CoatingParams, settings).registration_sigmas_mm == ()
+    settings.k1 = 0.35  # typed in the sidebar: the same number as 0.35 in a project file
+    assert params_from_group(CoatingParams, settings).k1 == 0.35

@@ -45,9 +45,10 @@ def _instances(bpy):
 
 def test_import_creates_instance_at_its_world_position(bpy_clean, tmp_path):
     bpy = bpy_clean
+    from ssm.operators import scene
     path = _label_map(tmp_path)
     assert bpy.ops.ssm.import_segmentation(filepath=str(path), label=20, spacing_mm=1.0) == {"FINISHED"}
-    obj = bpy.data.objects["synth L20"]
+    obj = bpy.data.objects["synth label 20"]
     assert obj.name in bpy.data.collections["SSM Instances"].objects
     assert bpy.context.scene.unit_settings.scale_length == pytest.approx(0.001)
     vol = IO.load_volume(path, 20)
@@ -58,11 +59,13 @@ def test_import_creates_instance_at_its_world_position(bpy_clean, tmp_path):
     frame = FR.object_frame(vol)
     ssm = obj.ssm
     assert (ssm.role, ssm.source_kind, ssm.label) == ("INSTANCE", "VOLUME", 20)
-    assert ssm.spacing_mm == pytest.approx(1.0)
-    assert ssm.frame_method == "PATIENT"
-    np.testing.assert_allclose(ssm.frame_origin, frame.origin_world, atol=1e-4)
-    np.testing.assert_allclose(np.array(ssm.frame_axes).reshape(3, 3), frame.axes_world, atol=1e-6)
-    np.testing.assert_allclose(np.array(ssm.import_matrix).reshape(4, 4), np.array(obj.matrix_world), atol=1e-4)
+    assert bpy.context.scene.ssm_template.spacing_mm == pytest.approx(1.0)
+    stored = scene.stored_frame(obj)
+    assert stored.method == "patient"
+    # the frame is kept in double precision: exactly the core's
+    np.testing.assert_array_equal(stored.origin_world, frame.origin_world)
+    np.testing.assert_array_equal(stored.axes_world, frame.axes_world)
+    np.testing.assert_allclose(scene.import_matrix(obj), np.array(obj.matrix_world), atol=1e-4)
     assert ssm.volume_mm3 == pytest.approx(vol.volume_mm3, rel=1e-6)
     assert obj["ssm_voxels"] == int(vol.mask.sum())
     assert bpy.path.abspath(ssm.source) == str(path)
@@ -72,53 +75,55 @@ def test_split_labels_creates_one_instance_per_label(bpy_clean, tmp_path):
     bpy = bpy_clean
     path = _label_map(tmp_path)
     bpy.ops.ssm.import_segmentation(filepath=str(path), split_labels=True, spacing_mm=1.5)
-    assert _instances(bpy) == ["synth L20", "synth L7"]
-    assert bpy.data.objects["synth L7"].ssm.spacing_mm == pytest.approx(1.5)
+    assert _instances(bpy) == ["synth label 20", "synth label 7"]
+    assert bpy.context.scene.ssm_template.spacing_mm == pytest.approx(1.5)  # one spacing for the study
     # importing the same file again replaces, it does not duplicate
     bpy.ops.ssm.import_segmentation(filepath=str(path), split_labels=True, spacing_mm=1.5)
-    assert _instances(bpy) == ["synth L20", "synth L7"]
+    assert _instances(bpy) == ["synth label 20", "synth label 7"]
 
 
 def test_blend_round_trip_keeps_metadata_and_reloads_the_volume(bpy_clean, tmp_path):
     bpy = bpy_clean
     from ssm.operators import instances as ops
+    from ssm.operators import scene
 
     blend = tmp_path / "scene.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))
     path = _label_map(tmp_path)
     bpy.ops.ssm.import_segmentation(filepath=str(path), label=20, spacing_mm=1.0)
-    obj = bpy.data.objects["synth L20"]
+    obj = bpy.data.objects["synth label 20"]
     assert obj.ssm.source == "//synth.nii.gz"  # relative to the saved .blend
-    before = {k: getattr(obj.ssm, k) for k in ("label", "spacing_mm", "frame_method", "volume_mm3", "source")}
-    before_vec = {k: np.array(getattr(obj.ssm, k)) for k in ("frame_origin", "frame_axes", "import_matrix")}
-    ov_before = ops.instance_object_volume(obj)
+    before = {k: getattr(obj.ssm, k) for k in ("label", "volume_mm3", "source", "order")}
+    frame_before, import_before = scene.stored_frame(obj), scene.import_matrix(obj)
+    ov_before = ops.instance_object_volume(bpy.context, obj)
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))
     bpy.ops.wm.read_homefile(use_empty=True)
-    assert "synth L20" not in bpy.data.objects
+    assert "synth label 20" not in bpy.data.objects
     bpy.ops.wm.open_mainfile(filepath=str(blend))
-    obj = bpy.data.objects["synth L20"]
+    obj = bpy.data.objects["synth label 20"]
     assert obj.ssm.role == "INSTANCE"
     for k, v in before.items():
         assert getattr(obj.ssm, k) == v, k
-    for k, v in before_vec.items():
-        np.testing.assert_array_equal(np.array(getattr(obj.ssm, k)), v, err_msg=k)
-    ops.clear_instance_cache()
-    ov = ops.instance_object_volume(obj)
+    np.testing.assert_array_equal(scene.stored_frame(obj).axes_world, frame_before.axes_world)
+    np.testing.assert_array_equal(scene.stored_frame(obj).origin_world, frame_before.origin_world)
+    np.testing.assert_array_equal(scene.import_matrix(obj), import_before)
+    scene.clear_volume_cache()
+    ov = ops.instance_object_volume(bpy.context, obj)
     np.testing.assert_array_equal(ov.mask, ov_before.mask)
     np.testing.assert_allclose(ov.origin_object, ov_before.origin_object)
     np.testing.assert_allclose(ov.frame.axes_world, ov_before.frame.axes_world, atol=1e-6)
-    assert ops.instance_object_volume(obj) is ov  # cached
+    assert ops.instance_object_volume(bpy.context, obj) is ov  # cached
     ref = INS.load_object(path, label=20, spacing_mm=1.0)
     np.testing.assert_array_equal(ov.mask, ref.mask)
 
 
 def test_moving_an_instance_keeps_file_world_coordinates(bpy_clean, tmp_path):
     bpy = bpy_clean
-    from ssm.operators import instances as ops
+    from ssm.operators import scene as ops
 
     path = _label_map(tmp_path)
     bpy.ops.ssm.import_segmentation(filepath=str(path), label=7)
-    obj = bpy.data.objects["synth L7"]
+    obj = bpy.data.objects["synth label 7"]
     p_file = np.array([[1.0, 2.0, 3.0], [-4.0, 5.0, 60.0]])
     np.testing.assert_allclose(ops.blender_to_file_world(obj, p_file), p_file, atol=1e-4)
     world_before = _world_vertices(obj)
@@ -133,7 +138,7 @@ def test_moving_an_instance_keeps_file_world_coordinates(bpy_clean, tmp_path):
 
 def test_add_mesh_instances_voxelizes_a_uv_sphere(bpy_clean):
     bpy = bpy_clean
-    from ssm.operators import bridge
+    from ssm.operators import bridge, scene
     from ssm.operators import instances as ops
 
     bpy.ops.mesh.primitive_uv_sphere_add(radius=12.0, segments=32, ring_count=16, location=(5.0, -3.0, 40.0))
@@ -145,18 +150,20 @@ def test_add_mesh_instances_voxelizes_a_uv_sphere(bpy_clean):
     analytic = mu.signed_volume(verts, faces)
     assert bpy.ops.ssm.add_mesh_instances(spacing_mm=1.0) == {"FINISHED"}
     ssm = sphere.ssm
-    assert (ssm.role, ssm.source_kind, ssm.frame_method) == ("INSTANCE", "BLENDER_MESH", "MOMENTS")
+    assert (ssm.role, ssm.source_kind) == ("INSTANCE", "BLENDER_MESH")
+    frame = scene.stored_frame(sphere)
+    assert frame.method == "moments"  # "auto" for a mesh
     assert sphere.name in bpy.data.collections["SSM Instances"].objects
     assert ssm.volume_mm3 == pytest.approx(analytic, rel=0.02)
-    np.testing.assert_allclose(ssm.frame_origin, [5.0, -3.0, 40.0], atol=0.05)
-    axes = np.array(ssm.frame_axes).reshape(3, 3)
+    np.testing.assert_allclose(frame.origin_world, [5.0, -3.0, 40.0], atol=0.05)
+    axes = frame.axes_world
     assert abs(axes[1, 0]) > 0.999 and abs(axes[0, 1]) > 0.999  # longest axis along y, then x
-    ov = ops.instance_object_volume(sphere)
+    ov = ops.instance_object_volume(bpy.context, sphere)
     assert ov.volume_mm3 == pytest.approx(analytic, rel=0.02)
-    ops.clear_instance_cache()
+    scene.clear_volume_cache()
     sphere.location = (100.0, 0.0, 0.0)  # moving it does not change its file world volume
     bpy.context.view_layer.update()
-    ov2 = ops.instance_object_volume(sphere)
+    ov2 = ops.instance_object_volume(bpy.context, sphere)
     np.testing.assert_array_equal(ov2.mask, ov.mask)
 
 
@@ -197,9 +204,11 @@ def test_import_mesh_file_and_multiple_files(bpy_clean, tmp_path):
     bpy.ops.ssm.import_segmentation(
         directory=str(tmp_path), files=[{"name": "ball.stl"}, {"name": "other.nii.gz"}], label=7
     )
-    assert _instances(bpy) == ["ball", "other L7"]
+    assert _instances(bpy) == ["ball", "other label 7"]
     ball = bpy.data.objects["ball"]
-    assert (ball.ssm.source_kind, ball.ssm.frame_method, ball.ssm.label) == ("MESH_FILE", "MOMENTS", -1)
+    from ssm.operators import scene
+
+    assert (ball.ssm.source_kind, scene.stored_frame(ball).method, ball.ssm.label) == ("MESH_FILE", "moments", -1)
     assert ball.ssm.volume_mm3 == pytest.approx(mu.signed_volume(v, f), rel=0.02)
 
 
@@ -234,6 +243,6 @@ def test_import_a_directory_takes_every_supported_file(bpy_clean, tmp_path):
     _label_map(folder, "b.nrrd")
     (folder / "notes.txt").write_text("not an image")
     bpy.ops.ssm.import_segmentation(directory=str(folder), label=20)
-    assert _instances(bpy) == ["a L20", "b L20"]
-    a, b = bpy.data.objects["a L20"], bpy.data.objects["b L20"]
+    assert _instances(bpy) == ["a label 20", "b label 20"]
+    a, b = bpy.data.objects["a label 20"], bpy.data.objects["b label 20"]
     np.testing.assert_allclose(np.array(a.matrix_world), np.array(b.matrix_world), atol=1e-4)

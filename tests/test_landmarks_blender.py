@@ -13,10 +13,18 @@ from ssm_addon.landmarks import LANDMARK_PRESETS, LandmarkSet, read_landmarks, w
 pytestmark = pytest.mark.blender
 
 
-def _ops():
-    import ssm.operators.landmarks as lmops
+class _Ops:
+    """The landmark operators' module and the scene helpers they use, under one name."""
 
-    return lmops
+    def __getattr__(self, name):
+        import ssm.operators.landmarks as lmops
+        import ssm.operators.scene as scene
+
+        return getattr(lmops, name) if hasattr(lmops, name) else getattr(scene, name)
+
+
+def _ops():
+    return _Ops()
 
 
 def _rotation(seed):
@@ -36,11 +44,11 @@ def _make_instance(bpy, name, vertices_local, faces, matrix_world, frame=None):
     from ssm.operators import bridge
 
     obj = bridge.new_mesh_object(bpy.context, name, vertices_local, faces, collection_name=bridge.INSTANCES_COLLECTION, matrix_world=matrix_world)
+    from ssm.operators import scene
+
     obj.ssm.role = "INSTANCE"
-    obj.ssm.import_matrix = [float(v) for v in np.asarray(matrix_world).ravel()]
-    if frame is not None:
-        obj.ssm.frame_origin = [float(v) for v in frame.origin_world]
-        obj.ssm.frame_axes = [float(v) for v in frame.axes_world.ravel()]
+    m = np.asarray(matrix_world, dtype=float)
+    scene.write_frame(obj, frame if frame is not None else vol.ObjectFrame(m[:3, 3], m[:3, :3]), m)
     bpy.context.view_layer.objects.active = obj
     return obj
 
@@ -114,7 +122,7 @@ def test_schema_operators_edit_the_ordered_names(sphere):
 def test_place_landmark_from_ray_lands_on_surface_and_advances(sphere):
     bpy, inst = sphere
     lm = _ops()
-    _ops()._set_schema(bpy.context.scene.ssm_landmarks, ("a", "b", "c"))
+    _ops().set_schema(bpy.context.scene.ssm_landmarks, ("a", "b", "c"))
     centre = np.array([50.0, -20.0, 300.0])
     rays = {"a": (centre + [0, 0, 100], [0, 0, -1]), "b": (centre + [-80, 5, 3], [1, 0, 0]), "c": (centre + [30, 30, 30], [-1, -1, -1])}
     for expected in ("a", "b", "c"):
@@ -153,7 +161,7 @@ def test_place_landmark_from_ray_lands_on_surface_and_advances(sphere):
 def test_landmarks_follow_a_moved_instance_and_snap_to_its_surface(sphere):
     bpy, inst = sphere
     lm = _ops()
-    lm._set_schema(bpy.context.scene.ssm_landmarks, ("a", "b"))
+    lm.set_schema(bpy.context.scene.ssm_landmarks, ("a", "b"))
     centre = np.array([50.0, -20.0, 300.0])
     bpy.ops.ssm.place_landmarks(ray_origin=centre + [0, 0, 100], ray_direction=(0, 0, -1))
     bpy.ops.ssm.place_landmarks(ray_origin=centre + [100, 0, 0], ray_direction=(-1, 0, 0))
@@ -251,7 +259,7 @@ def test_import_verse_fcsv_lands_on_l1_and_exports_every_format(bpy_clean, verse
 
 def test_import_errors_are_clear(sphere, tmp_path):
     bpy, inst = sphere
-    _ops()._set_schema(bpy.context.scene.ssm_landmarks, ("a", "b", "c"))
+    _ops().set_schema(bpy.context.scene.ssm_landmarks, ("a", "b", "c"))
     (tmp_path / "unknown.csv").write_text("a,1,2,3\ntip,4,5,6\nwing,7,8,9\n")
     with pytest.raises(RuntimeError, match=r"unknown\.csv: not in the schema tip, wing"):
         bpy.ops.ssm.import_landmarks(filepath=str(tmp_path / "unknown.csv"))
@@ -302,7 +310,7 @@ def test_landmarks_on_instances_made_by_the_import_operator(bpy_clean, verse_dir
     made = {}
     for name in ("L1", "L2"):
         assert bpy.ops.ssm.import_segmentation(filepath=str(VERSE_FILE), label=VERSE_LABELS[name]) == {"FINISHED"}
-        made[name] = next(o for o in lm.instances(bpy.context) if o.ssm.label == VERSE_LABELS[name])
+        made[name] = next(o for o in lm.scene_instances(bpy.context) if o.ssm.label == VERSE_LABELS[name])
     bpy.context.view_layer.objects.active = made["L1"]
     assert bpy.ops.ssm.import_landmarks(filepath=str(verse_dir / "landmarks" / "L1.fcsv")) == {"FINISHED"}
     assert max(_distance_to_mesh(made["L1"], _world(e)) for e in lm.landmark_empties(made["L1"]).values()) <= 2.0
@@ -370,9 +378,9 @@ def test_propose_by_coating_in_blender(bpy_clean):
     m_tgt = _matrix(_rotation(2), [100.0, 40.0, -70.0])
     src = _make_instance(bpy, "Sphere", v, f, m_src, vol.ObjectFrame(m_src[:3, 3], m_src[:3, :3]))
     tgt = _make_instance(bpy, "Ellipsoid", v / 10.0 * semi, f, m_tgt, vol.ObjectFrame(m_tgt[:3, 3], m_tgt[:3, :3]))
-    lm._set_schema(bpy.context.scene.ssm_landmarks, ("x", "y"))
+    lm.set_schema(bpy.context.scene.ssm_landmarks, ("x", "y"))
     for name, p in zip(("x", "y"), (m_src[:3, :3] @ [10.0, 0, 0] + m_src[:3, 3], m_src[:3, :3] @ [0, 10.0, 0] + m_src[:3, 3])):
-        lm.set_landmark(bpy.context, src, name, p)
+        lm.set_landmark(bpy.context, src, name, blender_world=p)
     bpy.context.view_layer.objects.active = tgt
     assert bpy.ops.ssm.propose_landmarks(source="Sphere", method="coating") == {"FINISHED"}
     got = {n: m_tgt[:3, :3].T @ (_world(e) - m_tgt[:3, 3]) for n, e in lm.landmark_empties(tgt).items()}

@@ -227,9 +227,9 @@ def test_rigid_procrustes_removes_random_rigid_transforms():
     # aligned instances agree with those of the untransformed population up to one rigid motion
     a = model.instance_points.reshape(-1, 3)
     b = ref.instance_points.reshape(-1, 3)
-    from ssm_addon.model import _procrustes_fit
+    from ssm_addon.model import procrustes_fit
 
-    s, rot, t = _procrustes_fit(a[None], b, scale=False)
+    s, rot, t = procrustes_fit(a[None], b, scale=False)
     assert np.abs(a @ rot[0].T + t[0] - b).max() < 1e-6
     # projection aligns a moved shape first: a moved training shape reconstructs exactly
     q = random_rotation(rng)
@@ -246,10 +246,10 @@ def test_similarity_procrustes_removes_scale():
     assert model.params["alignment_info"]["converged"]
     # equal up to one global scale: the same spectrum shape, the same aligned shapes
     np.testing.assert_allclose(model.variances / model.total_variance, ref.variances / ref.total_variance, rtol=1e-5)
-    from ssm_addon.model import _procrustes_fit
+    from ssm_addon.model import procrustes_fit
 
     a, b = model.instance_points.reshape(-1, 3), ref.instance_points.reshape(-1, 3)
-    s, rot, t = _procrustes_fit(a[None], b, scale=True)
+    s, rot, t = procrustes_fit(a[None], b, scale=True)
     assert np.abs(s[0] * a @ rot[0].T + t[0] - b).max() < 1e-5
     # rigid alignment cannot remove the scale
     rigid = build_model(scaled, FACES, names(10), alignment="rigid")

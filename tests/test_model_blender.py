@@ -25,19 +25,28 @@ def population():
 
 def add_coated(bpy, population, n=N_INST):
     """Coated instances as the coating stage leaves them: object-frame points, an instance with a frame."""
-    from ssm.operators import bridge
+    from ssm.operators import bridge, scene
+    from ssm.operators.coating import write_coated
+    from ssm.operators.template import write_template_object
+
+    from ssm_addon.coating import CoatingResult, FitFigures
+    from ssm_addon.template import Template
+    from ssm_addon.volume import ObjectFrame
 
     shapes, faces, frames = population
     ctx = bpy.context
     for i in range(n):
         inst = bridge.new_mesh_object(ctx, f"V{i:02d}", np.zeros((0, 3)), np.zeros((0, 3), int), "SSM Instances")
         inst.ssm.role = "INSTANCE"
-        inst.ssm.frame_origin = frames[i][0]
-        inst.ssm.frame_axes = frames[i][1].ravel()
-        coated = bridge.new_mesh_object(ctx, f"V{i:02d} coated", shapes[i], faces, "SSM Coated")
-        coated.ssm.role = "COATED"
-        coated.ssm.instance = inst
-        coated.ssm.fit_json = json.dumps({"rms_mm": 0.1 * i})
+        inst.ssm.order = i
+        frame = ObjectFrame(np.asarray(frames[i][0], float), np.asarray(frames[i][1], float))
+        scene.write_frame(inst, frame, frame.matrix_world)
+        bridge.set_matrix_world(inst, frame.matrix_world)
+        if i == 0:
+            write_template_object(ctx, inst, Template(shapes[0], faces, np.zeros(len(shapes[0])), frame))
+        fit = FitFigures(mean_distance_mm=0.1 * i, max_distance_mm=0.2 * i, folded_before=0, folded_after=0,
+                         iterations=10)
+        write_coated(ctx, inst, CoatingResult(shapes[i], shapes[i], fit, f"V{i:02d}"), faces, shapes[0])
 
 
 @pytest.fixture()
@@ -52,7 +61,7 @@ def built(bpy_clean, population):
 
 
 def test_build_model_from_coated_instances(built, population):
-    from ssm.ssm_addon.model import build_model
+    from ssm_addon.model import build_model
 
     bpy, obj, model = built
     shapes, faces, frames = population
@@ -61,23 +70,27 @@ def test_build_model_from_coated_instances(built, population):
     assert list(model.instance_names) == [f"V{i:02d}" for i in range(N_INST)]
     np.testing.assert_allclose(model.variances, ref.variances, rtol=1e-6)
     np.testing.assert_allclose(model.mean, ref.mean, atol=1e-5)
-    # world points through each instance's object frame (float32 mesh storage)
+    # world points through each instance's object frame, in double precision (no float32 mesh on the way)
+    np.testing.assert_allclose(model.instance_points, ref.instance_points, rtol=0, atol=1e-12)
     for i in (0, 6):
         origin, axes = frames[i]
-        np.testing.assert_allclose(model.instance_points_world[i], shapes[i] @ axes.T + origin, atol=1e-4)
+        np.testing.assert_allclose(model.instance_points_world[i], shapes[i] @ axes.T + origin, rtol=0, atol=1e-9)
     kbs = obj.data.shape_keys.key_blocks
     assert [kb.name for kb in kbs] == ["Basis"] + [f"Mode {k + 1}" for k in range(model.n_modes)]
     assert all(kb.slider_min == -3 and kb.slider_max == 3 for kb in kbs[1:])
     from ssm.operators import bridge
 
     np.testing.assert_allclose(bridge.get_point_attribute(obj.data, "variance"), model.point_variance, rtol=1e-5)
-    assert model.params["fit"]["V03"]["rms_mm"] == pytest.approx(0.3)
-    colours = obj.data.color_attributes.get("triangle_index")
+    assert model.params["fit"]["V03"]["mean_distance_mm"] == pytest.approx(0.3)
+    colours = obj.data.color_attributes.get("correspondence")
     assert colours is not None and colours.domain == "CORNER" and len(colours.data) == 3 * len(faces)
     rgba = np.empty(len(colours.data) * 4, dtype=np.float32)
     colours.data.foreach_get("color", rgba)
     rgba = rgba.reshape(len(faces), 3, 4)
-    np.testing.assert_allclose(rgba, np.repeat(bridge.triangle_index_colors(len(faces))[:, None], 3, axis=1))
+    np.testing.assert_allclose(rgba, bridge.position_colors(shapes[0])[faces])  # the template's colours
+    # beside the instances, not at the world origin
+    xs = [np.array(o.matrix_world.translation)[0] for o in bpy.data.objects if o.ssm.role == "INSTANCE"]
+    assert obj.matrix_world.translation[0] + model.mean[:, 0].min() > max(xs)
 
 
 def test_evaluated_mesh_at_mode_values_obeys_eq7(built):
@@ -148,7 +161,7 @@ def test_random_shape_and_reset(built):
 
 def test_save_model_writes_files_and_blend_reopen_keeps_model(built, tmp_path):
     from ssm.operators import model as opmodel
-    from ssm.ssm_addon.model import load_npz, load_statismo
+    from ssm_addon.model import load_npz, load_statismo
 
     bpy, obj, model = built
     out = tmp_path / "out"
@@ -159,7 +172,7 @@ def test_save_model_writes_files_and_blend_reopen_keeps_model(built, tmp_path):
     assert load_statismo(out / "model.h5").n_modes == model.n_modes
     report = json.loads((out / "report.json").read_text())
     assert report["metrics"]["generalization"]["method"] == "leave-one-out"
-    assert report["fit_summary"]["rms_mm"]["n"] == N_INST
+    assert report["fit_summary"]["mean_distance_mm"]["n"] == N_INST
     blend = tmp_path / "model.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(blend))
     bpy.ops.wm.read_homefile(use_empty=True)
@@ -174,7 +187,7 @@ def test_save_model_writes_files_and_blend_reopen_keeps_model(built, tmp_path):
 
 def test_create_model_object_from_a_shape_model(bpy_clean, population):
     from ssm.operators import model as opmodel
-    from ssm.ssm_addon.model import build_model
+    from ssm_addon.model import build_model
 
     bpy = bpy_clean
     shapes, faces, _ = population
@@ -190,9 +203,10 @@ def test_create_model_object_from_a_shape_model(bpy_clean, population):
 def test_build_model_needs_two_coated_instances(bpy_clean, population):
     bpy = bpy_clean
     add_coated(bpy, population, n=1)
-    with pytest.raises(RuntimeError, match="at least 2 coated"):
+    assert not bpy.ops.ssm.build_model.poll()
+    with pytest.raises(RuntimeError, match="at least 2 instances first"):
         bpy.ops.ssm.build_model()
-    with pytest.raises(RuntimeError, match="no SSM model"):
+    with pytest.raises(RuntimeError, match="Build the model first"):
         bpy.ops.ssm.random_shape()
 
 

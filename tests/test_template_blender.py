@@ -58,18 +58,26 @@ def test_build_template_creates_coloured_template_overlaying_the_instance(bpy_cl
     d, _ = cKDTree(iw).query(tw)
     assert np.percentile(d, 95) < 1.0
     assert mu.signed_volume(tw, faces) == pytest.approx(inst.ssm.volume_mm3, rel=0.08)
-    # per-triangle colours and curvature (1/mm; a torus of r = 5 mm has |k| up to 1/5 + ...)
-    col = tpl.data.color_attributes["triangle_index"]  # one colour per face, on its corners
+    # correspondence colours: smooth by position on the template (default), on face corners
+    stored = bridge.load_arrays(tpl, "ssm_template")
+    col = tpl.data.color_attributes["correspondence"]
     assert col.domain == "CORNER" and len(col.data) == 3 * len(faces)
     rgba = np.empty(len(col.data) * 4, np.float32)
     col.data.foreach_get("color", rgba)
+    np.testing.assert_allclose(rgba.reshape(-1, 3, 4), bridge.position_colors(stored["points_object"])[faces],
+                               atol=1e-6)
+    bpy.context.scene.ssm_display.colouring = "TRIANGLES"  # the paper's per-triangle colours (figs. 6-7)
+    col.data.foreach_get("color", rgba)
     np.testing.assert_allclose(rgba.reshape(-1, 3, 4), np.repeat(bridge.triangle_index_colors(len(faces))[:, None], 3, 1),
                                atol=1e-6)
+    # curvature (1/mm; a torus of r = 5 mm has |k| up to 1/5 + ...)
     curv = bridge.get_point_attribute(tpl.data, "curvature")
     assert len(curv) == n and 0.1 < np.median(curv) < 0.4
     assert tpl.data.materials[0].name == bridge.color_material().name
-    params = json.loads(tpl["ssm_template_params"])
+    params = json.loads(stored["params_json"])
     assert params["r_min_mm"] == 2.0 and params["genus"] == 1
+    # the mesh is a float32 view of the float64 template
+    np.testing.assert_allclose(bridge.mesh_vertices(tpl.data), stored["points_object"], atol=1e-4)
     # a second build replaces the template (one object), with the new parameters
     s.r_max_mm = 3.0
     bpy.context.view_layer.objects.active = inst
@@ -84,8 +92,10 @@ def test_build_template_at_another_spacing_than_the_instance(bpy_clean, tmp_path
     s = bpy.context.scene.ssm_template
     s.r_min_mm, s.r_max_mm, s.spacing_mm = 2.0, 4.0, 0.75
     assert bpy.ops.ssm.build_template() == {"FINISHED"}
+    from ssm.operators import bridge
+
     tpl = bpy.data.objects["SSM Template"]
-    assert json.loads(tpl["ssm_template_params"])["object_spacing_mm"] == 0.75
+    assert json.loads(bridge.load_arrays(tpl, "ssm_template")["params_json"])["object_spacing_mm"] == 0.75
 
 
 def test_build_template_needs_an_active_instance(bpy_clean):

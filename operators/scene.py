@@ -1,0 +1,424 @@
+"""The study in the scene: where the core's :class:`~ssm_addon.study.Study` lives in a .blend.
+
+Every operator builds a study from the scene (:func:`study_from_scene`), calls one
+core stage function on it, and writes the product back. What is stored where:
+
+* **instances**: mesh objects (role INSTANCE) in the "SSM Instances" collection, in
+  study order (``obj.ssm.order``). The source file (relative to the .blend once it is
+  saved), label and mesh spacing are properties; the object frame (paper 2) and the
+  import matrix are float64 ID properties (``obj["ssm_frame"]``). The mesh is a display
+  surface only.
+* **volumes**: never stored. They are recomputed from the source by the core's
+  :func:`~ssm_addon.instances.import_instance` (the same call as the command line) and
+  kept in memory for the session (:data:`_VOLUMES`).
+* **landmarks**: sphere empties parented to their instance; each keeps its position
+  in the instance's file world mm as float64 (``emp["ssm_point_mm"]``). The empty's
+  location is a view of it: an empty the user moved is read back from its location
+  (deliberately), an unmoved one gives the stored value exactly.
+* **template**, **coatings**: the template object and one coated object per instance,
+  with their float64 points in ``obj["ssm_template"]`` / ``obj["ssm_coating"]``; their
+  meshes are float32 views.
+* **model**: the model object's ``obj["ssm_model"]`` (see ``operators/model.py``).
+* **parameters**: the scene's property groups derived from :mod:`ssm_addon.params`.
+
+So a saved and re-opened .blend continues exactly where it was, as long as the source
+files are where the instances say.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+from ssm_addon import instances as core_instances
+from ssm_addon.coating import CoatingResult, FitFigures
+from ssm_addon.errors import InputError
+from ssm_addon.instances import InstanceSpec
+from ssm_addon.landmarks import LandmarkSet
+from ssm_addon.params import CoatingParams, ModelParams, TemplateParams
+from ssm_addon.progress import report, sub_progress
+from ssm_addon.study import Study
+from ssm_addon.template import Template
+from ssm_addon.volume import ObjectFrame, ObjectVolume
+
+from . import bridge
+from .properties import scene_params
+
+FRAME_KEY = "ssm_frame"
+TEMPLATE_KEY = "ssm_template"
+COATING_KEY = "ssm_coating"
+POINT_KEY = "ssm_point_mm"
+LANDMARK_PROP = "ssm_landmark"
+ORDER_PROP = "ssm_landmark_index"
+TEMPLATE_NAME = "SSM Template"
+TEMPLATE_COLLECTION = "SSM Template"
+COATED_COLLECTION = "SSM Coated"
+COATED_SUFFIX = " coated"
+MOVED_TOLERANCE_MM = 1e-3
+"""A landmark empty farther than this from its stored position was moved by the user."""
+
+_VOLUMES: dict[tuple, ObjectVolume] = {}
+
+
+# ---------------------------------------------------------------------------- instances
+def is_instance(obj) -> bool:
+    """True for an SSM instance (a mesh object with role INSTANCE)."""
+    return obj is not None and obj.type == "MESH" and obj.ssm.role == "INSTANCE"
+
+
+def scene_instances(context) -> list:
+    """The scene's instance objects in study order."""
+    return sorted((o for o in context.scene.objects if is_instance(o)), key=lambda o: (o.ssm.order, o.name))
+
+
+def next_order(context) -> int:
+    return max((o.ssm.order for o in context.scene.objects if is_instance(o)), default=-1) + 1
+
+
+def stored_frame(obj) -> ObjectFrame | None:
+    """The object frame of an instance (file world mm, float64), or None."""
+    d = bridge.load_arrays(obj, FRAME_KEY)
+    if d is None:
+        return None
+    return ObjectFrame(origin_world=d["origin_world"], axes_world=d["axes_world"],
+                       second_moments_mm2=d.get("second_moments_mm2", np.zeros(3)), method=d.get("method", "moments"))
+
+
+def import_matrix(obj) -> np.ndarray:
+    """(4, 4) ``matrix_world`` at import (float64); maps Blender world back to file world."""
+    d = bridge.load_arrays(obj, FRAME_KEY)
+    return d["import_matrix"] if d is not None and "import_matrix" in d else np.eye(4)
+
+
+def write_frame(obj, frame: ObjectFrame, import_mat: np.ndarray) -> None:
+    bridge.store_arrays(obj, FRAME_KEY, {
+        "origin_world": frame.origin_world, "axes_world": frame.axes_world,
+        "second_moments_mm2": frame.second_moments_mm2, "method": frame.method, "import_matrix": import_mat,
+    })
+
+
+def _moved(obj) -> np.ndarray | None:
+    """Blender world -> file world of an instance the user moved, else None (identity)."""
+    imp = import_matrix(obj)
+    cur = bridge.matrix_to_numpy(obj.matrix_world)
+    if np.allclose(cur, imp.astype(np.float32), rtol=0, atol=1e-4 * max(1.0, float(np.abs(imp).max()))):
+        return None
+    return imp @ np.linalg.inv(cur)
+
+
+def blender_to_file_world(obj, points_blender_world) -> np.ndarray:
+    """(M, 3) Blender world mm -> the instance's file world mm.
+
+    file world = import_matrix @ inverse(matrix_world) @ p, so moving an instance in the
+    viewport after import does not change landmark coordinates in the file's frame.
+    """
+    pts = np.asarray(points_blender_world, dtype=float).reshape(-1, 3)
+    m = _moved(obj)
+    return pts if m is None else pts @ m[:3, :3].T + m[:3, 3]
+
+
+def file_to_blender_world(obj, points_file_world) -> np.ndarray:
+    """(M, 3) file world mm -> Blender world mm (inverse of :func:`blender_to_file_world`)."""
+    pts = np.asarray(points_file_world, dtype=float).reshape(-1, 3)
+    m = _moved(obj)
+    if m is None:
+        return pts
+    inv = np.linalg.inv(m)
+    return pts @ inv[:3, :3].T + inv[:3, 3]
+
+
+def object_to_blender_matrix(instance) -> np.ndarray:
+    """(4, 4) the instance's object frame (mm) -> Blender world (mm)."""
+    frame = stored_frame(instance)
+    if frame is None:
+        raise InputError(f"instance {instance.name!r} has no object frame (import it with SSM)")
+    m = _moved(instance)
+    fw = frame.matrix_world
+    return fw if m is None else np.linalg.inv(m) @ fw
+
+
+def absolute_source_path(obj) -> str:
+    return os.path.normpath(bpy.path.abspath(obj.ssm.source)) if obj.ssm.source else ""
+
+
+def relative_source(path: str) -> str:
+    """``//``-relative path when the .blend is saved (and on the same drive), else absolute."""
+    path = os.path.abspath(path)
+    if not bpy.data.filepath:
+        return path
+    try:
+        return bpy.path.relpath(path)
+    except ValueError:
+        return path
+
+
+def mesh_file_world(obj) -> tuple[np.ndarray, np.ndarray]:
+    """A Blender-mesh instance's current mesh in its file world mm, and its triangles."""
+    verts = blender_to_file_world(obj, bridge.object_world_vertices(obj))
+    return verts, bridge.mesh_triangles(obj.data)
+
+
+def instance_spec(context, obj) -> InstanceSpec:
+    """The instance as the core sees it (source, label, landmarks in file world mm)."""
+    ssm = obj.ssm
+    lm = instance_landmarks(context, obj)
+    lm = lm if len(lm) else None
+    path = Path(absolute_source_path(obj)) if obj.ssm.source else None
+    mesh_spacing = float(ssm.mesh_spacing_mm) or None
+    if ssm.source_kind == "VOLUME":
+        return InstanceSpec(name=obj.name, volume=path, label=None if ssm.label < 0 else int(ssm.label), landmark_set=lm)
+    if ssm.source_kind == "MESH_FILE":
+        return InstanceSpec(name=obj.name, mesh=path, mesh_spacing=mesh_spacing, landmark_set=lm)
+    return InstanceSpec(name=obj.name, mesh_spacing=mesh_spacing, landmark_set=lm)
+
+
+# ---------------------------------------------------------------------------- landmarks
+def schema_names(context) -> tuple[str, ...]:
+    """The landmark schema: ordered names."""
+    return tuple(item.name for item in context.scene.ssm_landmarks.names)
+
+
+def landmark_empties(instance) -> dict:
+    """``{landmark name: empty}`` of an instance."""
+    out = {}
+    for obj in bpy.data.objects:
+        if obj.ssm.role == "LANDMARK" and obj.ssm.instance == instance and LANDMARK_PROP in obj:
+            out[str(obj[LANDMARK_PROP])] = obj
+    return out
+
+
+def ordered_landmark_names(context, empties: dict) -> list[str]:
+    schema = schema_names(context)
+    extra = sorted((n for n in empties if n not in schema), key=lambda n: (empties[n].get(ORDER_PROP, 1 << 30), n))
+    return [n for n in schema if n in empties] + extra
+
+
+def landmark_point(instance, emp) -> np.ndarray:
+    """A landmark in the instance's file world mm (float64).
+
+    The stored value, unless the empty was moved away from it in the viewport; then the
+    empty's location, converted.
+    """
+    here = np.array(emp.matrix_world.translation, dtype=float)
+    stored = emp.get(POINT_KEY)
+    if stored is not None:
+        stored = np.array(stored, dtype=float)
+        if np.linalg.norm(file_to_blender_world(instance, stored)[0] - here) <= MOVED_TOLERANCE_MM:
+            return stored
+    return blender_to_file_world(instance, here)[0]
+
+
+def instance_landmarks(context, instance) -> LandmarkSet:
+    """An instance's landmarks in file world mm (schema order, then extra names)."""
+    empties = landmark_empties(instance)
+    names = ordered_landmark_names(context, empties)
+    pts = np.array([landmark_point(instance, empties[n]) for n in names], dtype=float).reshape(-1, 3)
+    return LandmarkSet(tuple(names), pts, instance.name)
+
+
+def landmark_sets_by_instance(context) -> dict[str, LandmarkSet]:
+    """``{instance name: LandmarkSet}`` (file world mm) for every instance with landmarks."""
+    out = {}
+    for inst in scene_instances(context):
+        lm = instance_landmarks(context, inst)
+        if len(lm):
+            out[inst.name] = lm
+    return out
+
+
+def _marker_size(context, instance) -> float:
+    size = context.scene.ssm_landmarks.marker_size_mm
+    return size if size > 0 else max(0.5, 0.015 * max(instance.dimensions))
+
+
+def set_landmark(context, instance, name: str, *, file_world=None, blender_world=None, order: int | None = None):
+    """Create or move the landmark ``name`` of ``instance``.
+
+    Give its position in the instance's file world mm (``file_world``, kept exactly) or
+    in Blender world mm (``blender_world``, e.g. a click).
+    """
+    from mathutils import Vector
+
+    if file_world is None:
+        file_world = blender_to_file_world(instance, blender_world)[0]
+    file_world = np.asarray(file_world, dtype=float).reshape(3)
+    loc = Vector(file_to_blender_world(instance, file_world)[0].tolist())
+    emp = landmark_empties(instance).get(name)
+    if emp is None:
+        emp = bridge.add_empty(context, f"{instance.name} {name}", loc, parent=instance,
+                               size=_marker_size(context, instance))
+        emp.ssm.role = "LANDMARK"
+        emp.ssm.instance = instance
+        emp[LANDMARK_PROP] = name
+        schema = schema_names(context)
+        emp[ORDER_PROP] = schema.index(name) if name in schema else (order if order is not None else len(schema))
+        emp.show_name = False
+    else:
+        emp.matrix_world.translation = loc
+    emp[POINT_KEY] = file_world.astype(np.float64)
+    return emp
+
+
+# ------------------------------------------------------------------------------ volumes
+def _volume_key(context, obj):
+    tp = scene_params(context, "ssm_template")
+    ssm = obj.ssm
+    base = (tp.spacing_mm, tp.frame, ssm.source_kind, ssm.label, float(ssm.mesh_spacing_mm))
+    if ssm.source_kind == "BLENDER_MESH":
+        verts, faces = mesh_file_world(obj)
+        digest = hashlib.sha1(verts.astype(np.float32).tobytes() + faces.astype(np.int32).tobytes()).hexdigest()
+        return (*base, "mesh", digest)
+    path = absolute_source_path(obj)
+    if not os.path.isfile(path):
+        raise InputError(f"instance {obj.name!r}: source file {path or '(none)'} not found (moved? set its Source "
+                         f"path in the Instances panel)")
+    return (*base, path, os.path.getmtime(path))
+
+
+class VolumeLoader:
+    """The volumes a job needs: cached ones at once, the others read in the worker thread.
+
+    Built on the main thread (it reads the scene); :meth:`load` uses only the core, so
+    it runs in a worker; :meth:`keep` caches what was read (main thread again).
+    """
+
+    def __init__(self, context, objs):
+        self.ready: dict[str, ObjectVolume] = {}
+        self.todo: list = []
+        self.keys: dict[str, tuple] = {}
+        self.loaded: dict[str, ObjectVolume] = {}
+        tp = scene_params(context, "ssm_template")
+        self.spacing, self.frame_method = tp.spacing_mm, tp.frame
+        for obj in objs:
+            key = _volume_key(context, obj)
+            self.keys[obj.name] = key
+            if key in _VOLUMES:
+                self.ready[obj.name] = _VOLUMES[key]
+                continue
+            spec = instance_spec(context, obj)
+            mesh = mesh_file_world(obj) if obj.ssm.source_kind == "BLENDER_MESH" else None
+            self.todo.append((spec, mesh, stored_frame(obj)))
+
+    def load(self, progress=None, cancelled=None) -> dict[str, ObjectVolume]:
+        """Every requested volume (reads the missing ones with the core's import)."""
+        out = dict(self.ready)
+        n = len(self.todo)
+        for k, (spec, mesh, frame) in enumerate(self.todo):
+            prog = sub_progress(progress, k / max(n, 1), (k + 1) / max(n, 1), f"{spec.name}: ")
+            report(prog, 0.0, "reading")
+            if mesh is not None:
+                ov = core_instances.object_from_mesh(mesh[0], mesh[1], spacing_mm=self.spacing,
+                                                     mesh_spacing_mm=spec.mesh_spacing,
+                                                     frame_method=self.frame_method, source=spec.name,
+                                                     cancelled=cancelled)
+            else:
+                ov = core_instances.import_instance(spec, spacing_mm=self.spacing, frame_method=self.frame_method,
+                                                    progress=prog, cancelled=cancelled)
+            if frame is not None and not (np.allclose(ov.frame.origin_world, frame.origin_world, atol=1e-6)
+                                          and np.allclose(ov.frame.axes_world, frame.axes_world, atol=1e-9)):
+                raise InputError(f"instance {spec.name!r}: its object frame differs from the one at import (the "
+                                 f"source or the frame setting changed); import it again")
+            out[spec.name] = ov
+            self.loaded[spec.name] = ov
+        return out
+
+    def keep(self) -> None:
+        for name, ov in self.loaded.items():
+            _VOLUMES[self.keys[name]] = ov
+
+
+def cache_volume(context, obj, ov: ObjectVolume) -> None:
+    _VOLUMES[_volume_key(context, obj)] = ov
+
+
+def clear_volume_cache() -> None:
+    """Forget every cached object volume (they are reloaded from source on demand)."""
+    _VOLUMES.clear()
+
+
+# ------------------------------------------------------------------ template and coatings
+def find_template(context):
+    """The template object (role TEMPLATE with stored points), or None."""
+    obj = bpy.data.objects.get(TEMPLATE_NAME)
+    if obj is not None and obj.type == "MESH" and obj.ssm.role == "TEMPLATE" and TEMPLATE_KEY in obj:
+        return obj
+    return next((o for o in context.scene.objects
+                 if o.type == "MESH" and o.ssm.role == "TEMPLATE" and TEMPLATE_KEY in o), None)
+
+
+def template_from_object(obj) -> Template:
+    """The float64 template stored on the template object."""
+    d = bridge.load_arrays(obj, TEMPLATE_KEY)
+    if d is None or obj.ssm.instance is None:
+        raise InputError(f"{obj.name!r}: no template stored (build the template)")
+    frame = stored_frame(obj.ssm.instance)
+    return Template(points_object=d["points_object"], faces=d["faces"], curvature=d["curvature"], frame=frame,
+                    params=json.loads(d.get("params_json", "{}")))
+
+
+def coated_objects(context) -> list:
+    """Coated meshes of the scene whose instance exists, in study order."""
+    order = {o: i for i, o in enumerate(scene_instances(context))}
+    objs = [o for o in context.scene.objects if o.type == "MESH" and o.ssm.role == "COATED" and o.ssm.instance in order]
+    return sorted(objs, key=lambda o: order[o.ssm.instance])
+
+
+def coated_object_of(instance):
+    """The coated mesh of an instance (found by its instance pointer, so renames are safe)."""
+    return next((o for o in bpy.data.objects if o.ssm.role == "COATED" and o.ssm.instance == instance), None)
+
+
+def coating_from_object(obj) -> CoatingResult:
+    d = bridge.load_arrays(obj, COATING_KEY)
+    if d is None:
+        raise InputError(f"{obj.name!r}: no coating stored (coat the template again)")
+    fit = FitFigures.from_json(obj.ssm.fit_json) if obj.ssm.fit_json else FitFigures(0, 0, 0, 0, 0)
+    return CoatingResult(points_object=d["points_object"], warped_points_object=d.get("warped_points_object",
+                         d["points_object"]), fit=fit, name=obj.ssm.instance.name)
+
+
+# --------------------------------------------------------------------------------- study
+def study_from_scene(context, *, template_instance: str | None = None, template: bool = True,
+                     coatings: bool = True) -> Study:
+    """The scene's study: instances (study order), parameters, frames, template, coatings.
+
+    Volumes are not loaded here (see :class:`VolumeLoader`).
+    """
+    objs = scene_instances(context)
+    if not objs:
+        raise InputError("no SSM instances in the scene: import segmentations first (File > Import > "
+                         "Segmentation (SSM))")
+    tpl = find_template(context) if template else None
+    if template_instance is None:
+        chosen = context.scene.ssm_display.template_instance
+        if tpl is not None and tpl.ssm.instance is not None and is_instance(tpl.ssm.instance):
+            template_instance = tpl.ssm.instance.name
+        elif is_instance(chosen) and chosen in objs:
+            template_instance = chosen.name
+        else:
+            template_instance = objs[0].name
+    study = Study(instances=tuple(instance_spec(context, o) for o in objs), template_instance=template_instance,
+                  template_params=scene_params(context, "ssm_template"),
+                  coating_params=scene_params(context, "ssm_coating"),
+                  model_params=scene_params(context, "ssm_model"))
+    for o in objs:
+        frame = stored_frame(o)
+        if frame is not None:
+            study.frames[o.name] = frame
+    if tpl is not None and tpl.ssm.instance is not None and tpl.ssm.instance.name == template_instance:
+        study.template = template_from_object(tpl)
+    if coatings:
+        for obj in coated_objects(context):
+            if COATING_KEY in obj:
+                study.coatings[obj.ssm.instance.name] = coating_from_object(obj)
+    return study
+
+
+def param_classes():
+    """The parameter classes the scene holds (for tests and panels)."""
+    return TemplateParams, CoatingParams, ModelParams
