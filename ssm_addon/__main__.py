@@ -143,15 +143,15 @@ def _with_overrides(project, args):
 
 
 def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> int:
-    from . import _blender
+    from . import blender_layer
     from .project import build, read_project
 
     project = _with_overrides(read_project(project_path), args)
     hook = None
     if blend and project.output.blend:
-        hook = writer or _blender.blend_writer()
+        hook = writer or blender_layer.blend_writer()
         if hook is None:
-            why = ("bpy is not importable (pip install bpy==5.0.1)" if not _blender.bpy_available() else
+            why = ("bpy is not importable (pip install bpy==5.0.1)" if not blender_layer.bpy_available() else
                    "the Blender layer is not installed with this core (run `blender -b --command ssm build ...` "
                    "with the extension, or from a source checkout)")
             print(f"skipping model.blend and modes.png: {why}", flush=True)
@@ -225,5 +225,18 @@ def main(argv=None, in_blender: bool = False, blend_writer=None) -> int:
     return EXIT_INPUT  # pragma: no cover - argparse requires a command
 
 
+def run() -> None:
+    """The ``ssm`` command (``pip install .``): :func:`main` with the process's arguments."""
+    try:
+        code = main()
+        sys.stdout.flush()
+    except BrokenPipeError:  # e.g. `ssm info FILE | head`: the reader left, that is fine
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        code = 0
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    run()

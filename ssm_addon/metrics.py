@@ -30,8 +30,8 @@ from .errors import InputError, SSMError, check_cancelled
 from .model import (
     ALIGNMENTS,
     ShapeModel,
-    _jsonable,
     generalized_procrustes,
+    jsonable,
     procrustes_fit,
     save_npz,
     save_statismo,
@@ -371,14 +371,14 @@ def aggregate_fit(per_instance: dict) -> dict:
     for key, vals in values.items():
         a = np.asarray(vals)
         out[key] = {"mean": a.mean(), "std": a.std(), "min": a.min(), "max": a.max(), "n": len(a)}
-    return _jsonable(out)
+    return jsonable(out)
 
 
 def model_summary(model: ShapeModel) -> dict:
     """Numbers that describe a model (sizes, spectrum, eq. 8 both ways)."""
     k = model.n_modes
     coord = model.variability_concentration("coordinate") if model.n_points else np.zeros(0)
-    return _jsonable(
+    return jsonable(
         {
             "n_instances": model.n_instances,
             "n_points": model.n_points,
@@ -415,7 +415,7 @@ def write_report(path, model: ShapeModel, metrics: dict | None = None, per_insta
     }
     if extra:
         doc.update(extra)
-    path.write_text(json.dumps(_jsonable(doc), indent=1))
+    path.write_text(json.dumps(jsonable(doc), indent=1))
     return path
 
 

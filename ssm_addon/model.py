@@ -536,7 +536,7 @@ def build_model(
         instance_names=names,
         instance_points=x,
         instance_points_world=world,
-        params=_jsonable(all_params),
+        params=jsonable(all_params),
     )
 
 
@@ -548,14 +548,14 @@ def _versions() -> dict:
     return out
 
 
-def _jsonable(obj):
+def jsonable(obj):
     """Convert numpy scalars/arrays and tuples inside ``obj`` to plain JSON types."""
     if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
+        return {str(k): jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
+        return [jsonable(v) for v in obj]
     if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
+        return jsonable(obj.tolist())
     if isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, float) and not np.isfinite(obj):
@@ -595,7 +595,7 @@ def save_npz(model: ShapeModel, path) -> Path:
         instance_names=names,
         instance_points=np.asarray(model.instance_points, dtype=float),
         instance_points_world=np.asarray(model.instance_points_world, dtype=float),
-        params_json=np.asarray(json.dumps(_jsonable(model.params))),
+        params_json=np.asarray(json.dumps(jsonable(model.params))),
     )
     return path
 
@@ -726,7 +726,7 @@ def save_statismo(model: ShapeModel, path, noise_variance: float = 0.0) -> Path:
         extra.create_dataset("instance_names", data=np.asarray(model.instance_names, dtype=object), dtype=h5py.string_dtype())
         extra.create_dataset("instance_points", data=np.asarray(model.instance_points, dtype=float))
         extra.create_dataset("instance_points_world", data=np.asarray(model.instance_points_world, dtype=float))
-        extra.create_dataset("params_json", data=json.dumps(_jsonable(model.params)))
+        extra.create_dataset("params_json", data=json.dumps(jsonable(model.params)))
     return path
 
 

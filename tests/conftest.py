@@ -19,6 +19,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+#: The user's real home, before the tests point HOME elsewhere (pip's download cache lives there).
+REAL_HOME = Path(os.path.expanduser("~"))
 _TMP_HOME = tempfile.mkdtemp(prefix="ssm-test-home-")
 for _var, _sub in (
     ("HOME", ""),

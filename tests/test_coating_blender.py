@@ -10,7 +10,6 @@ from test_coating import ellipsoid_landmarks, icosphere
 
 from ssm_addon import distance_map as DM
 from ssm_addon import imageio as IO
-from ssm_addon import volume as V
 
 pytestmark = pytest.mark.blender
 

@@ -78,9 +78,9 @@ def test_manifest_tags_are_blender_tags():
 
 def test_extension_files_exclude_dev_files():
     files = [p.as_posix() for p in bx.extension_files(ROOT)]
-    for needed in ("__init__.py", "blender_manifest.toml", "operators/__init__.py", "ssm_addon/__init__.py"):
+    for needed in ("__init__.py", "blender_manifest.toml", "operators/__init__.py"):
         assert needed in files
-    assert "ssm_addon/volume.py" in files
+    assert not any(str(f).startswith("ssm_addon") for f in files)  # bundled as a wheel instead
     for prefix in ("tests/", "tools/", ".venv/", "docs/", ".ci/", ".git/", "wheels_cache/", "dist/", "scripts/"):
         assert not any(f.startswith(prefix) for f in files), prefix
     assert not any("__pycache__" in f or f.endswith((".pyc", ".zip")) for f in files)
@@ -173,11 +173,15 @@ def test_cli_rejects_unknown_platform(tmp_path, capsys):
 
 @needs_bpy
 def test_build_without_wheels_excludes_dev_files_and_validates(tmp_path):
-    zips = bx.build(out_dir=tmp_path, with_wheels=False, log=lambda *a: None)
+    zips = bx.build(out_dir=tmp_path, cache=tmp_path / "cache", with_wheels=False, log=lambda *a: None)
     assert [z.name for z in zips] == ["ssm-0.1.0.zip"]
     names = zipfile.ZipFile(zips[0]).namelist()
-    assert "__init__.py" in names and "blender_manifest.toml" in names and "ssm_addon/volume.py" in names
-    for prefix in ("tests/", "tools/", ".venv/", "docs/", ".ci/", "wheels/"):
+    assert "__init__.py" in names and "blender_manifest.toml" in names and "operators/scene.py" in names
+    # the core is in the zip once: as its wheel, imported as ssm_addon (not as a folder of the extension)
+    assert "wheels/ssm_builder-0.1.0-py3-none-any.whl" in names
+    assert not any(n.startswith("ssm_addon/") for n in names)
+    assert [n for n in names if n.startswith("wheels/")] == ["wheels/ssm_builder-0.1.0-py3-none-any.whl"]
+    for prefix in ("tests/", "tools/", ".venv/", "docs/", ".ci/"):
         assert not any(n.startswith(prefix) for n in names), prefix
 
 
@@ -232,6 +236,26 @@ INSTALL_SCRIPT = textwrap.dedent(
                 "collections": [c.name for c in o.users_collection],
                 "world_vertices": [list(o.matrix_world @ v.co) for v in o.data.vertices] if o.type == "MESH" else [],
             } for o in new]
+        # the core exists once, under its one name, from the extension's wheel
+        core = sys.modules["ssm_addon"]
+        out["core_file"] = core.__file__
+        out["core_copies"] = sorted(k for k in sys.modules if k.endswith(".ssm_addon") or ".ssm_addon." in k)
+        ops_scene = sys.modules["bl_ext.user_default.ssm.operators.scene"]
+        out["one_study_class"] = ops_scene.Study is sys.modules["ssm_addon.study"].Study
+        # the workflow: a second instance, landmarks, template, coating, model
+        bpy.ops.ssm.import_segmentation(filepath=nifti, label=3)
+        insts = sorted((o for o in bpy.data.objects if o.ssm.role == "INSTANCE"), key=lambda o: o.ssm.label)
+        for obj, path in zip(insts, sys.argv[4:6]):
+            bpy.context.view_layer.objects.active = obj
+            bpy.ops.ssm.import_landmarks(filepath=path, add_to_schema=True)
+        bpy.context.view_layer.objects.active = insts[0]
+        s = bpy.context.scene.ssm_template
+        s.r_min_mm, s.r_max_mm = 2.0, 3.0
+        out["template"] = sorted(bpy.ops.ssm.build_template())
+        out["coat"] = sorted(bpy.ops.ssm.coat_template())
+        out["model"] = sorted(bpy.ops.ssm.build_model())
+        model = next(o for o in bpy.data.objects if o.ssm.role == "MODEL")
+        out["mode_keys"] = [k.name for k in model.data.shape_keys.key_blocks]
     except Exception:
         out["errors"].append(traceback.format_exc())
     print("SSM_RESULT " + json.dumps(out))
@@ -250,19 +274,35 @@ def _isolated_python_path(dest: Path) -> Path:
 
 
 def _write_ball_nifti(path: Path):
-    """A 24x24x16 label map, 1x1x2 mm: label 1 a ball of radius 6 mm centred at voxel (10, 12, 8)."""
+    """A 48x24x16 label map, 1x1x2 mm: label 1 a ball of radius 6 mm centred at voxel (10, 12, 8),
+    label 2 a small block, label 3 an ellipsoid (8, 6.5, 6 mm) centred at voxel (34, 12, 8).
+
+    Returns the ball's centre (world mm) and the six axis-extreme landmarks of the ball and
+    of the ellipsoid as CSV files (``name,x,y,z``, world mm) next to ``path``.
+    """
     nib = pytest.importorskip("nibabel")
-    ijk = np.indices((24, 24, 16)).reshape(3, -1).T * np.array([1.0, 1.0, 2.0])
-    inside = np.linalg.norm(ijk - np.array([10.0, 12.0, 16.0]), axis=1) <= 6.0
-    labels = np.zeros(24 * 24 * 16, np.int16)
-    labels[inside] = 1
-    labels = labels.reshape(24, 24, 16)
+    shape = (48, 24, 16)
+    ijk = np.indices(shape).reshape(3, -1).T * np.array([1.0, 1.0, 2.0])
+    ball_c, ell_c, ell_r = np.array([10.0, 12.0, 16.0]), np.array([34.0, 12.0, 16.0]), np.array([8.0, 6.5, 6.0])
+    labels = np.zeros(len(ijk), np.int16)
+    labels[np.linalg.norm(ijk - ball_c, axis=1) <= 6.0] = 1
+    labels[(((ijk - ell_c) / ell_r) ** 2).sum(axis=1) <= 1.0] = 3
+    labels = labels.reshape(shape)
     labels[20:23, 20:23, 1:3] = 2
     affine = np.diag([1.0, 1.0, 2.0, 1.0])
     affine[:3, 3] = (-30.0, 5.0, 40.0)
     nib.save(nib.Nifti1Image(labels, affine), str(path))
-    centre_world = np.array([10.0, 12.0, 16.0]) + affine[:3, 3]
-    return centre_world
+    csvs = []
+    for tag, centre, radii in (("ball", ball_c, np.full(3, 6.0)), ("ellipsoid", ell_c, ell_r)):
+        rows = []
+        for k, axis in enumerate("xyz"):
+            for sign, side in ((1, "plus"), (-1, "minus")):
+                p = centre + affine[:3, 3]
+                p[k] += sign * radii[k]
+                rows.append(f"{axis}-{side},{p[0]!r},{p[1]!r},{p[2]!r}")
+        csvs.append(path.with_name(f"{tag}.csv"))
+        csvs[-1].write_text("name,x,y,z\n" + "\n".join(rows) + "\n")
+    return ball_c + affine[:3, 3], csvs
 
 
 def _build_linux_zip(out_dir: Path) -> Path:
@@ -309,12 +349,12 @@ def test_linux_zip_installs_enables_and_imports(tmp_path):
     env.pop("PYTHONPATH", None)
     iso = _isolated_python_path(tmp_path / "iso")
     nifti = tmp_path / "ball.nii.gz"
-    centre_world = _write_ball_nifti(nifti)
+    centre_world, landmark_files = _write_ball_nifti(nifti)
     script = tmp_path / "install_and_run.py"
     script.write_text(INSTALL_SCRIPT)
 
     proc = subprocess.run(
-        [sys.executable, "-S", str(script), str(zip_path), str(iso), str(nifti)],
+        [sys.executable, "-S", str(script), str(zip_path), str(iso), str(nifti), *map(str, landmark_files)],
         env=env, cwd=tmp_path, capture_output=True, text=True, timeout=600,
     )
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("SSM_RESULT ")]
@@ -348,3 +388,9 @@ def test_linux_zip_installs_enables_and_imports(tmp_path):
     assert np.linalg.norm(verts.mean(axis=0) - centre_world) < 1.0
     radii = np.linalg.norm(verts - centre_world, axis=1)
     assert 4.5 < radii.min() and radii.max() < 7.5
+    # one core: the wheel's ssm_addon, no second copy under the extension's package
+    assert Path(result["core_file"]).is_relative_to(site), result["core_file"]
+    assert result["core_copies"] == [] and result["one_study_class"]
+    # and the workflow runs: template, coating, model with one mode for two instances
+    assert (result["template"], result["coat"], result["model"]) == (["FINISHED"],) * 3
+    assert result["mode_keys"] == ["Basis", "Mode 1"]

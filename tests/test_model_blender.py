@@ -161,6 +161,7 @@ def test_random_shape_and_reset(built):
 
 def test_save_model_writes_files_and_blend_reopen_keeps_model(built, tmp_path):
     from ssm.operators import model as opmodel
+
     from ssm_addon.model import load_npz, load_statismo
 
     bpy, obj, model = built
@@ -187,6 +188,7 @@ def test_save_model_writes_files_and_blend_reopen_keeps_model(built, tmp_path):
 
 def test_create_model_object_from_a_shape_model(bpy_clean, population):
     from ssm.operators import model as opmodel
+
     from ssm_addon.model import build_model
 
     bpy = bpy_clean

@@ -72,6 +72,7 @@ NEVER_BUNDLE = frozenset({"numpy"})
 #: Top-level entries of the repo that are not part of the extension. The manifest's
 #: ``[build] paths_exclude_pattern`` excludes the same again inside ``blender_ext.py``.
 STAGE_EXCLUDE_TOP = frozenset({
+    "ssm_addon",  # the core goes in once, as its wheel (imported as ``ssm_addon``)
     ".git", ".github", ".ci", ".venv", "venv", "tests", "tools", "docs", "build", "dist",
     "wheels", "wheels_cache", "scripts", ".pytest_cache", ".ruff_cache", "pyproject.toml", ".gitignore",
     "requirements.txt", "requirements-dev.txt", "out", "demo_out",
@@ -418,6 +419,27 @@ def stage(stage_dir: Path, wheels: dict[str, Path], platforms: list[str], root: 
 # Step 3: Blender's build and validate
 
 
+def core_wheel(dest: Path, root: Path = ROOT) -> Path:
+    """Build the core's wheel (``ssm_addon``, pure Python) into ``dest`` with this interpreter.
+
+    ``pip wheel --no-build-isolation`` uses the setuptools of the running environment
+    (``requirements-dev.txt``), so it needs no network.
+    """
+    dest.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="ssm-core-wheel-") as tmp:
+        proc = subprocess.run([sys.executable, "-m", "pip", "wheel", str(root), "--no-deps", "--no-build-isolation",
+                               "--quiet", "-w", tmp], capture_output=True, text=True, cwd=tmp)
+        built = sorted(Path(tmp).glob("ssm_builder-*.whl"))
+        if proc.returncode != 0 or not built:
+            raise BuildError(f"building the core wheel failed:\n{proc.stdout[-2000:]}{proc.stderr[-2000:]}")
+        out = dest / built[0].name
+        shutil.copy2(built[0], out)
+    shutil.rmtree(root / "build", ignore_errors=True)
+    for info in root.glob("*.egg-info"):
+        shutil.rmtree(info, ignore_errors=True)
+    return out
+
+
 def run_blender_ext(*args: str) -> str:
     """Run ``blender_ext.py`` with this interpreter; raise BuildError on failure."""
     proc = subprocess.run([sys.executable, str(blender_ext_path()), *args], capture_output=True, text=True)
@@ -449,7 +471,8 @@ def build(
     offline : bool
         Use only the wheel cache.
     with_wheels : bool
-        False builds one platform-independent zip without dependencies.
+        False builds one platform-independent zip without dependencies (the core's own
+        wheel is always bundled).
 
     Returns
     -------
@@ -468,6 +491,10 @@ def build(
         wheels = merge_wheels(resolved)
         for path in wheels.values():
             check_numpy_compatible(path)
+    core_dir = Path(cache) / "core"
+    shutil.rmtree(core_dir, ignore_errors=True)
+    core = core_wheel(core_dir, root)
+    wheels = {core.name: core, **wheels}
     t_wheels = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="ssm-ext-stage-") as tmp:
         stage_dir = stage(Path(tmp) / "ssm", wheels, platforms if with_wheels else [], root)

@@ -1,0 +1,188 @@
+"""The shape of the code: an installable core, no import cycles, one read -> frame -> resample,
+no private names across modules, and every parameter reachable from every front end."""
+
+from __future__ import annotations
+
+import ast
+import os
+import subprocess
+import sys
+import venv
+from pathlib import Path
+
+import pytest
+from conftest import REAL_HOME, ROOT
+
+from ssm_addon import params as P
+
+CORE = ROOT / "ssm_addon"
+OPERATORS = ROOT / "operators"
+
+
+def _modules(folder: Path) -> list[str]:
+    return sorted(p.stem for p in folder.glob("*.py") if p.stem not in ("__init__", "__main__"))
+
+
+def _relative_imports(path: Path) -> set[str]:
+    """Sibling modules a module imports (``from .x import``, ``from . import x``)."""
+    tree = ast.parse(path.read_text())
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.level == 1:
+            if node.module:
+                out.add(node.module.split(".")[0])
+            else:
+                out.update(a.name for a in node.names)
+        if isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").startswith("ssm_addon."):
+            out.add("ssm_addon:" + node.module.split(".")[1])
+    return out
+
+
+@pytest.mark.parametrize("folder", [CORE, OPERATORS], ids=["core", "operators"])
+def test_modules_import_each_other_without_cycles(folder):
+    graph = {m: {d for d in _relative_imports(folder / f"{m}.py") if d in _modules(folder)} for m in _modules(folder)}
+    state: dict[str, int] = {}
+
+    def visit(m, path):
+        if state.get(m) == 1:
+            raise AssertionError(f"import cycle: {' -> '.join([*path, m])}")
+        if state.get(m) == 2:
+            return
+        state[m] = 1
+        for d in sorted(graph[m]):
+            visit(d, [*path, m])
+        state[m] = 2
+
+    for m in graph:
+        visit(m, [])
+
+
+@pytest.mark.slow
+def test_each_core_module_imports_on_its_own_in_a_fresh_interpreter():
+    code = "import importlib, sys\nfor m in sys.argv[1:]:\n    importlib.import_module('ssm_addon.' + m)\n"
+    for m in _modules(CORE):  # one interpreter per module: no module relies on another's side effects
+        proc = subprocess.run([sys.executable, "-c", code, m], cwd=ROOT, capture_output=True, text=True,
+                              env={**os.environ, "PYTHONPATH": str(ROOT)})
+        assert proc.returncode == 0, f"ssm_addon.{m}: {proc.stderr[-1500:]}"
+        assert "bpy" not in proc.stderr
+
+
+def test_no_private_names_used_across_modules():
+    offenders = []
+    for folder in (CORE, OPERATORS):
+        for path in sorted(folder.glob("*.py")):
+            tree = ast.parse(path.read_text())
+            for node in ast.walk(tree):
+                if isinstance(node, ast.ImportFrom) and (node.level > 0 or (node.module or "").startswith("ssm_addon")):
+                    offenders += [f"{path.name}: {node.module}.{a.name}" for a in node.names
+                                  if a.name.startswith("_") and not a.name.startswith("__")]
+    assert not offenders, offenders
+
+
+def test_read_frame_resample_exists_once():
+    """Only ssm_addon.instances chains reading, the object frame and resampling (paper 2)."""
+    callers = {}
+    for folder in (CORE, OPERATORS):
+        for path in sorted(folder.glob("*.py")):
+            tree = ast.parse(path.read_text())
+            for node in ast.walk(tree):
+                if isinstance(node, ast.Call):
+                    f = node.func
+                    name = f.attr if isinstance(f, ast.Attribute) else getattr(f, "id", "")
+                    if name in ("object_frame", "resample"):
+                        callers.setdefault(name, set()).add(f"{folder.name}/{path.name}")
+    assert callers["object_frame"] == {"ssm_addon/instances.py"}, callers
+    # resample is also the template's re-gridding and the mesh proposal's fallback, both on a given frame
+    assert callers["resample"] <= {"ssm_addon/instances.py", "ssm_addon/proposal.py"}, callers
+
+
+def test_every_parameter_has_a_project_key_and_a_command_line_option():
+    from ssm_addon.__main__ import _parser
+
+    parser = _parser()
+    build = parser._subparsers._group_actions[0].choices["build"]  # noqa: SLF001 - argparse has no public accessor
+    flags = {opt for action in build._actions for opt in action.option_strings}  # noqa: SLF001
+    for section, cls in P.TABLES.items():
+        keys = P.keys(cls)
+        for s in P.specs(cls):
+            assert s.key in keys and keys[s.key] is s
+            assert f"--{section}-{s.key.replace('_', '-')}" in flags, (section, s.key)
+            assert s.help and s.label
+            if s.kind == "choice":
+                assert s.default in s.choices
+            # the default passes its own validation
+            P.check_value(s, s.default, section)
+
+
+def test_command_line_options_override_the_project(tmp_path):
+    from ssm_addon.__main__ import _parser, _with_overrides
+    from ssm_addon.project import Project
+
+    args = _parser().parse_args(["build", "p.toml", "--out", "o", "--coating-k1", "0.3", "--template-spacing", "0.5",
+                                 "--coating-registration-sigmas-mm", "8", "4", "--model-n-modes", "3"])
+    project = Project(path=tmp_path / "p.toml", instances=(), template_instance="")
+    changed = _with_overrides(project, args)
+    assert changed.coating.k1 == 0.3 and changed.template.spacing_mm == 0.5
+    assert changed.coating.registration_sigmas_mm == (8.0, 4.0) and changed.model.n_modes == 3
+    bad = _parser().parse_args(["build", "p.toml", "--out", "o", "--coating-k2", "0.1"])
+    from ssm_addon.errors import InputError
+
+    with pytest.raises(InputError, match="k2 .* must exceed k1"):
+        _with_overrides(project, bad)
+
+
+def test_parameters_validated_with_the_allowed_range():
+    from ssm_addon.errors import InputError
+
+    with pytest.raises(InputError, match=r"coating parameters: dt must be a number > 0 and <= 2, got 100.0"):
+        P.CoatingParams(dt=100.0)
+    with pytest.raises(InputError, match=r"seed must be an integer >= 0"):
+        P.TemplateParams(seed=-1)
+    with pytest.raises(InputError, match=r"picture_modes must be an integer >= 1 and <= 10, got 0"):
+        P.OutputParams(picture_modes=0)
+    with pytest.raises(InputError, match=r"r_min_mm must be a number > 0 mm and <= 1000 mm, got nan"):
+        P.TemplateParams(r_min_mm=float("nan"))
+    assert P.shortest_float32(0.20000000298023224) == 0.2
+    assert P.shortest_float32(1e-7) == float("1e-07")
+
+
+@pytest.mark.slow
+def test_pip_install_gives_a_working_ssm_command_from_any_folder(tmp_path):
+    """``pip install .`` into a clean venv without bpy: ``ssm --help``, ``ssm info``, ``ssm build``."""
+    wheels = tmp_path / "wheels"
+    proc = subprocess.run([sys.executable, "-m", "pip", "wheel", str(ROOT), "--no-deps", "--no-build-isolation",
+                           "-q", "-w", str(wheels)], capture_output=True, text=True, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    (wheel,) = wheels.glob("ssm_builder-*.whl")
+    env_dir = tmp_path / "venv"
+    venv.EnvBuilder(with_pip=True).create(env_dir)
+    py, ssm = env_dir / "bin" / "python", env_dir / "bin" / "ssm"
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
+    env["PIP_CACHE_DIR"] = str(REAL_HOME / ".cache" / "pip")
+    proc = subprocess.run([str(py), "-m", "pip", "install", "-q", str(wheel)], capture_output=True, text=True,
+                          env=env, cwd=tmp_path, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+
+    def run(*args):
+        return subprocess.run([str(ssm), *map(str, args)], capture_output=True, text=True, env=env, cwd=elsewhere,
+                              timeout=600)
+
+    assert subprocess.run([str(py), "-c", "import bpy"], capture_output=True, env=env).returncode != 0
+    out = run("--help")
+    assert out.returncode == 0 and "build" in out.stdout and "template" in out.stdout
+    from ssm_addon import demo
+
+    project = demo.make_demo_population(tmp_path / "population", n=4, seed=2)
+    lm = next((tmp_path / "population").glob("demo_*.nii.gz"))
+    out = run("info", lm)
+    assert out.returncode == 0 and "labels:" in out.stdout, out.stderr
+    out = run("build", project, "--out", tmp_path / "model", "--template-r-min-mm", "4.5")
+    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
+    assert "skipping model.blend" in out.stdout  # no bpy in this environment: said, not a traceback
+    assert (tmp_path / "model" / "model.npz").is_file() and (tmp_path / "model" / "report.json").is_file()
+    # the installed core is the one that ran (not the checkout's)
+    where = subprocess.run([str(py), "-c", "import ssm_addon; print(ssm_addon.__file__)"], capture_output=True,
+                           text=True, env=env, cwd=elsewhere)
+    assert str(env_dir) in where.stdout
