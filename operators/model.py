@@ -449,7 +449,8 @@ class SSM_OT_save_model(BackgroundJob, bpy.types.Operator):
                                              progress=progress, cancelled=cancelled)
             else:
                 mets = {"compactness": core_metrics.compactness(model)}
-            return core_metrics.write_outputs(model, out_dir, mets, per_instance, extra, plots=plots)
+            return core_metrics.write_outputs(model, out_dir, metrics=mets, per_instance=per_instance, extra=extra,
+                                              plots=plots)
 
         return work
 

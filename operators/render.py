@@ -10,8 +10,14 @@ and removes the temporary scene again. Works headless with the ``bpy`` module.
 
 from __future__ import annotations
 
+import shutil
+import tempfile
+from pathlib import Path
+
 import bpy
 import numpy as np
+
+from ssm_addon.metrics import label_grid_picture, modes_figure_labels
 
 from . import bridge
 
@@ -42,7 +48,7 @@ def render_modes_figure(
     path,
     n_modes: int = 2,
     sigmas: float = 2.0,
-    cell_px: int = 160,
+    cell_px: int = 320,
     views=("axial", "sagittal", "coronal"),
 ) -> str:
     """Render the mean and ±``sigmas``·√λ of the first modes in three views into one PNG.
@@ -59,7 +65,9 @@ def render_modes_figure(
     sigmas : float
         Weight in standard deviations: b_k = ±sigmas √λ_k (paper: 2).
     cell_px : int
-        Pixels per view cell; the image is ``len(views)·cell_px`` × ``rows·cell_px``.
+        Pixels per view cell; the rendered grid is ``len(views)·cell_px`` ×
+        ``rows·cell_px``, and the picture adds the row labels (mean; mode k with ±σ and
+        its share of the variance) and column labels (the views).
 
     Returns
     -------
@@ -106,7 +114,8 @@ def render_modes_figure(
         rd.resolution_percentage = 100
         rd.image_settings.file_format = "PNG"
         rd.image_settings.color_mode = "RGB"
-        rd.filepath = str(path)
+        raw = Path(tempfile.mkdtemp(prefix="ssm-fig10-")) / "grid.png"
+        rd.filepath = str(raw)
         scene.view_settings.view_transform = "Standard"
         rd.engine = "BLENDER_WORKBENCH"
         shading = scene.display.shading
@@ -129,4 +138,13 @@ def render_modes_figure(
         bpy.data.scenes.remove(scene)
         if world is not None and world.users == 0:
             bpy.data.worlds.remove(world)
+    try:
+        import matplotlib.image as mpimg
+
+        grid = mpimg.imread(str(raw))
+        label_grid_picture(grid, path, row_labels=modes_figure_labels(model, n_modes, sigmas),
+                           column_labels=list(views),
+                           title=f"Mean shape and the first {len(rows) - 1} modes (eq. 7, b = ±{sigmas:g}√λ)")
+    finally:
+        shutil.rmtree(raw.parent, ignore_errors=True)
     return str(path)

@@ -47,7 +47,7 @@ def _parser() -> argparse.ArgumentParser:
         description="SSM Builder: point-based 3D statistical shape models from segmented volumes (headless). "
                     "Also runs as `python -m ssm_addon` and `blender -b --command ssm`.",
     )
-    sub = parser.add_subparsers(dest="command", required=True, metavar="{info,template,build,demo}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{info,template,build,demo,params}")
 
     p = sub.add_parser("info", help="labels, voxel counts, spacing and affine of a label map")
     p.add_argument("volume", help="label map (NIfTI, NRRD, MetaImage, .npz)")
@@ -67,6 +67,8 @@ def _parser() -> argparse.ArgumentParser:
     for section, cls in P.TABLES.items():
         P.add_arguments(p.add_argument_group(f"[{section}] overrides (the project file's values otherwise)"), cls,
                         prefix=section)
+
+    sub.add_parser("params", help="print the parameter reference (every table, key, default and range) as Markdown")
 
     p = sub.add_parser("demo", help="generate the synthetic demo population and build its model")
     p.add_argument("--out", required=True, help="output folder: population in OUT/population, model in OUT/model")
@@ -213,6 +215,11 @@ def main(argv=None, in_blender: bool = False, blend_writer=None) -> int:
             return cmd_build(args, blend_writer)
         if args.command == "demo":
             return cmd_demo(args, blend_writer)
+        if args.command == "params":
+            from .params import markdown_tables
+
+            print(markdown_tables())
+            return 0
     except Cancelled as err:
         print(f"cancelled: {err}", file=sys.stderr)
         return EXIT_CANCELLED

@@ -194,7 +194,7 @@ def _rasterize(sdf, dims, voxel_to_canon: np.ndarray, block: int = 4) -> np.ndar
 
 
 def make_demo_population(
-    out_dir, n: int = 24, seed: int = 0, spacing_mm: float = 1.0, voxel_mm=(0.8, 0.8, 1.5)
+    out_dir, *, n: int = 24, seed: int = 0, spacing_mm: float = 1.0, voxel_mm=(0.8, 0.8, 1.5)
 ) -> Path:
     """Generate ``n`` synthetic vertebra label maps, landmark files and a project file.
 

@@ -106,7 +106,7 @@ def _top_modes(data: np.ndarray, rows, mu: np.ndarray, gram_centred: np.ndarray,
 
 def generalization(
     instance_points,
-    faces=None,
+    *, faces=None,
     ks=None,
     alignment: str = "none",
     folds: int | None = None,
@@ -227,7 +227,7 @@ def generalization(
 # ---------------------------------------------------------------------------------------
 def specificity(
     model: ShapeModel,
-    instance_points=None,
+    *, instance_points=None,
     ks=None,
     n_samples: int = 500,
     seed: int = 0,
@@ -307,7 +307,7 @@ def specificity(
 
 def evaluate(
     model: ShapeModel,
-    ks=None,
+    *, ks=None,
     n_samples: int = 500,
     seed: int = 0,
     max_loo: int = 100,
@@ -322,7 +322,7 @@ def evaluate(
     out = {"compactness": compactness(model)}
     out["generalization"] = generalization(
         model.instance_points,
-        model.faces,
+        faces=model.faces,
         ks=ks,
         alignment=model.alignment,
         max_loo=max_loo,
@@ -399,7 +399,7 @@ def model_summary(model: ShapeModel) -> dict:
     )
 
 
-def write_report(path, model: ShapeModel, metrics: dict | None = None, per_instance: dict | None = None, extra=None):
+def write_report(path, model: ShapeModel, *, metrics: dict | None = None, per_instance: dict | None = None, extra=None):
     """Write ``report.json``: model summary, metrics, per-instance fit figures and their summary.
 
     Returns the path written.
@@ -466,6 +466,51 @@ def _save(fig, path):
     return path
 
 
+def modes_figure_labels(model: ShapeModel, n_modes: int, sigmas: float = 2.0) -> list[str]:
+    """Row labels of the fig-10 picture: the mean, then each mode with ±σ and its share of the variance."""
+    share = model.variances / max(model.total_variance, np.finfo(float).tiny)
+    rows = ["mean shape"]
+    for k in range(min(int(n_modes), model.n_modes)):
+        rows.append(f"mode {k + 1}: {100 * share[k]:.1f} % of variance\n"
+                    f"blue −{sigmas:g}σ, red +{sigmas:g}σ")
+    return rows
+
+
+def label_grid_picture(grid_rgb: np.ndarray, path_png, *, row_labels, column_labels, title: str = "") -> Path:
+    """A rendered picture grid (rows × columns of equal cells) with row and column labels.
+
+    Used for the paper's fig. 10 (``operators/render.py`` renders the shapes; the
+    labels are drawn here, so the picture reads on its own in a paper).
+
+    Parameters
+    ----------
+    grid_rgb : (H, W, 3 or 4) array in [0, 1]
+        The cells, ``len(row_labels)`` rows by ``len(column_labels)`` columns.
+    """
+    img = np.asarray(grid_rgb)
+    h, w = img.shape[:2]
+    n_rows, n_cols = len(row_labels), len(column_labels)
+    left_px, top_px = 320, 90 if title else 50
+    fig, _ = _figure(width=(w + left_px + 20) / 100, height=(h + top_px + 10) / 100)
+    fig.clear()
+    ax = fig.add_axes([left_px / (w + left_px + 20), 10 / (h + top_px + 10), w / (w + left_px + 20),
+                       h / (h + top_px + 10)])
+    ax.imshow(img, interpolation="lanczos")
+    ax.set_xticks([(c + 0.5) * w / n_cols for c in range(n_cols)], column_labels, fontsize=15)
+    ax.xaxis.tick_top()
+    ax.set_yticks([(r + 0.5) * h / n_rows for r in range(n_rows)], row_labels, fontsize=13)
+    ax.tick_params(length=0)
+    for spine in ax.spines.values():
+        spine.set_visible(False)
+    for r in range(1, n_rows):
+        ax.axhline(r * h / n_rows, color="#bbbbbb", lw=0.8)
+    for c in range(1, n_cols):
+        ax.axvline(c * w / n_cols, color="#bbbbbb", lw=0.8)
+    if title:
+        fig.suptitle(title, fontsize=16, y=1 - 12 / (h + top_px + 10), va="top")
+    return _save(fig, path_png)
+
+
 def plot_spectrum(model: ShapeModel, path_png):
     """Eigenvalues λ_k on a log scale (paper fig. 9, left). Returns the PNG path."""
     fig, (ax,) = _figure()
@@ -524,7 +569,7 @@ def write_plots(model: ShapeModel, out_dir, metrics: dict | None = None) -> dict
 def write_outputs(
     model: ShapeModel,
     out_dir,
-    metrics: dict | None = None,
+    *, metrics: dict | None = None,
     per_instance: dict | None = None,
     extra: dict | None = None,
     plots: bool = True,
@@ -544,5 +589,5 @@ def write_outputs(
         written["plots_skipped"] = plot_info["skipped"]
     ext = dict(extra or {})
     ext["files"] = {k: v for k, v in written.items()}
-    written["report"] = str(write_report(out_dir / "report.json", model, metrics, per_instance, ext))
+    written["report"] = str(write_report(out_dir / "report.json", model, metrics=metrics, per_instance=per_instance, extra=ext))
     return written

@@ -150,7 +150,7 @@ class ShapeModel:
             raise InputError(f"model: z has shape {z.shape}; expected (m,) with m <= {self.n_modes}")
         return self.generate(z * self.standard_deviations[: z.shape[0]])
 
-    def sample(self, n_samples: int = 1, k: int | None = None, seed=None, sd_limit: float | None = None) -> np.ndarray:
+    def sample(self, n_samples: int = 1, *, k: int | None = None, seed=None, sd_limit: float | None = None) -> np.ndarray:
         """Random shapes with b_k ~ N(0, λ_k) on the first ``k`` modes.
 
         Parameters
@@ -307,7 +307,7 @@ def procrustes_fit(src: np.ndarray, dst: np.ndarray, scale: bool):
 
 
 def generalized_procrustes(
-    shapes: np.ndarray, scale: bool = False, tol: float = 1e-10, max_iter: int = 100
+    shapes: np.ndarray, *, scale: bool = False, tol: float = 1e-10, max_iter: int = 100
 ) -> tuple[np.ndarray, dict]:
     """Generalized Procrustes alignment of corresponding point sets.
 
@@ -423,7 +423,7 @@ def build_model(
     instance_points,
     faces,
     instance_names,
-    instance_points_world=None,
+    *, instance_points_world=None,
     alignment: str = "none",
     n_modes: int | None = None,
     params: dict | None = None,

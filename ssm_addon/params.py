@@ -120,9 +120,9 @@ class Spec:
         unit = f" {self.unit}" if self.unit and self.unit != "deg" else ("°" if self.unit == "deg" else "")
         parts = []
         if lo is not None:
-            parts.append(f"{'>' if self.exclusive_minimum else '>='} {lo:g}{unit}")
+            parts.append(f"{'>' if self.exclusive_minimum else '>='} {_num(lo)}{unit}")
         if hi is not None:
-            parts.append(f"<= {hi:g}{unit}")
+            parts.append(f"<= {_num(hi)}{unit}")
         what = {"int": "an integer", "float": "a number", "floats": "numbers", "str": "a string"}[self.kind]
         if self.kind == "floats" and self.size:
             what = f"{self.size} numbers"
@@ -130,6 +130,11 @@ class Spec:
         if self.optional:
             text += f" (or omitted: {self.none_means})"
         return text
+
+
+def _num(x) -> str:
+    x = float(x)
+    return str(int(x)) if x.is_integer() and abs(x) < 1e12 else f"{x:g}"
 
 
 def param(default, *, help: str, label: str | None = None, unit: str = "", minimum=None, maximum=None,
@@ -599,3 +604,27 @@ class OutputParams:
 
 #: The parameter classes by project table.
 TABLES = {"template": TemplateParams, "coating": CoatingParams, "model": ModelParams, "output": OutputParams}
+
+
+def markdown_tables() -> str:
+    """The parameter reference (``docs/parameters.md``), generated from the definitions."""
+    out = ["# Parameters", "",
+           "Generated from `ssm_addon/params.py` (`python -m ssm_addon params`); the same names are the",
+           "project file's keys, the `ssm build --<table>-<key>` options and the SSM sidebar's fields.", ""]
+    for section, cls in TABLES.items():
+        out += [f"## [{section}]", "", (cls.__doc__ or "").strip().splitlines()[0], "",
+                "| key | default | allowed | meaning |", "|---|---|---|---|"]
+        if section == "template":
+            out.append("| `instance` | first instance | an instance name | the instance the template is built from |")
+        for s in specs(cls):
+            unit = f" {s.unit}" if s.unit and s.unit != "deg" else ("°" if s.unit == "deg" else "")
+            if s.default is None:
+                default = f"auto ({s.none_means})"
+            else:
+                value = list(s.default) if isinstance(s.default, tuple) else s.default
+                default = f"`{value!r}`".replace("'", '"') + unit
+            allowed = s.range_text().replace("|", "\\|")
+            adv = " *(advanced)*" if s.advanced else ""
+            out.append(f"| `{s.key}` | {default} | {allowed} | {s.help}{adv} |")
+        out.append("")
+    return "\n".join(out)

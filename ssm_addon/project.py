@@ -530,7 +530,8 @@ def write_study_files(study: Study, folder: Path, *, output: OutputParams, proje
                      "triangles": int(len(tpl.faces)), "genus": int(genus(len(tpl.points_object), tpl.faces))},
         **(extra or {}),
     }
-    written = met.write_outputs(study.model, folder, study.metrics, per_instance, extra=info, plots=True)
+    written = met.write_outputs(study.model, folder, metrics=study.metrics, per_instance=per_instance, extra=info,
+                                plots=True)
     if not output.statismo:
         Path(written.pop("statismo")).unlink()
     for key, value in written.items():

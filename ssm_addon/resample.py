@@ -13,7 +13,7 @@ __all__ = ["resample"]
 
 
 def resample(
-    volume: Volume, frame: ObjectFrame, spacing_mm: float = 1.0, progress=None, cancelled=None
+    volume: Volume, frame: ObjectFrame, spacing_mm: float = 1.0, *, progress=None, cancelled=None
 ) -> ObjectVolume:
     """Isotropic resampling of the object along its object axes (paper section 2).
 

@@ -237,7 +237,7 @@ def reduction_radii(c: np.ndarray, r_min: float, r_max: float, p: float, percent
 def reduce_points(
     graph: sp.csr_matrix,
     radius_vox,
-    order: np.ndarray | None = None,
+    *, order: np.ndarray | None = None,
     curvature: np.ndarray | None = None,
     selection: str = "curvature",
     seed: int = 0,
@@ -445,7 +445,7 @@ def _bad_labels(labels, n_regions, mesh_faces, mesh_edges, tris) -> np.ndarray:
 def triangulate(
     mask: np.ndarray,
     points_vox: np.ndarray,
-    max_refinements: int = 30,
+    *, max_refinements: int = 30,
     mesh: tuple[np.ndarray, np.ndarray] | None = None,
     progress=None,
     cancelled=None,
@@ -575,7 +575,7 @@ def object_volume_at_spacing(object_volume: ObjectVolume, spacing_mm: float) -> 
     return ObjectVolume(m, h2, np.asarray(ov.origin_object, float) - h2, ov.frame, ov.source)
 
 
-def build_template(object_volume: ObjectVolume, params: TemplateParams | None = None, progress=None,
+def build_template(object_volume: ObjectVolume, params: TemplateParams | None = None, *, progress=None,
                    cancelled=None) -> Template:
     """Build the template of paper 3 from one object volume.
 

@@ -50,7 +50,7 @@ def voxelize_mesh(
     vertices_world: np.ndarray,
     faces: np.ndarray,
     spacing_mm: float,
-    source: str = "",
+    *, source: str = "",
     patient_oriented: bool = False,
     cancelled=None,
 ) -> Volume:

@@ -48,10 +48,15 @@ def test_blender_command_build_equals_python_build(bpy_clean, small_demo, tmp_pa
     png = (out / "modes.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
     img = bpy.data.images.load(str(out / "modes.png"))
-    assert tuple(img.size) == (3 * 160, 3 * 160)  # 3 views x (mean + 2 modes)
+    # 3 views x (mean + 2 modes) cells of 320 px, plus the row labels (left) and column labels and title (top)
+    assert tuple(img.size) == (3 * 320 + 340, 3 * 320 + 100)
     px = np.empty(img.size[0] * img.size[1] * 4, np.float32)
     img.pixels.foreach_get(px)
-    assert px.reshape(-1, 4)[:, :3].std() > 0.05  # shapes drawn, not a blank frame
+    rgb = px.reshape(img.size[1], img.size[0], 4)[::-1, :, :3]  # Blender's rows run bottom-up
+    assert rgb[100:, 340:].std() > 0.05  # shapes drawn, not a blank frame
+    assert (rgb[100:, :320].min(axis=2) < 0.3).sum() > 500  # dark text in the row label margin
+    assert (rgb[:95, 340:].min(axis=2) < 0.3).sum() > 500  # and in the column labels and title
+    assert (rgb[100:, :3].min(axis=2) < 0.5).sum() == 0  # no label runs off the left edge
 
     bpy.ops.wm.open_mainfile(filepath=str(out / "model.blend"))
     k = m_blender["variances"].shape[0]

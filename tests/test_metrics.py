@@ -126,7 +126,8 @@ def test_aggregate_fit_summarises_numeric_figures():
 def test_report_and_plots(tmp_path, population):
     _, model = population
     metrics = evaluate(model, ks=[1, 2, 3, 4], n_samples=100)
-    path = write_report(tmp_path / "report.json", model, metrics, {"inst00": {"rms_mm": 0.4}}, {"note": "test"})
+    path = write_report(tmp_path / "report.json", model, metrics=metrics, per_instance={"inst00": {"rms_mm": 0.4}},
+                        extra={"note": "test"})
     doc = json.loads(path.read_text())
     assert doc["model"]["n_modes"] == model.n_modes
     assert doc["metrics"]["generalization"]["k"] == [1, 2, 3, 4]

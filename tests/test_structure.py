@@ -186,3 +186,8 @@ def test_pip_install_gives_a_working_ssm_command_from_any_folder(tmp_path):
     where = subprocess.run([str(py), "-c", "import ssm_addon; print(ssm_addon.__file__)"], capture_output=True,
                            text=True, env=env, cwd=elsewhere)
     assert str(env_dir) in where.stdout
+
+
+def test_parameter_reference_in_docs_is_generated_from_the_definitions():
+    assert (ROOT / "docs" / "parameters.md").read_text() == P.markdown_tables() + "\n", (
+        "docs/parameters.md is stale: run `python -m ssm_addon params > docs/parameters.md`")

@@ -41,6 +41,7 @@ from ssm_addon import meshutil as mu  # noqa: E402
 from ssm_addon import registration as RG  # noqa: E402
 from ssm_addon import relaxation as RX  # noqa: E402
 from ssm_addon import warp as W  # noqa: E402
+from ssm_addon.template import Template  # noqa: E402
 
 
 def geodesic_sphere(frequency: int):
@@ -92,7 +93,7 @@ def deformation_case(frequency):
     ova = ellipsoid_volume(a)
     v, f = geodesic_sphere(frequency)
     pts = DM.DistanceMap.from_object_volume(ova).project(v * a, 3)
-    template = mu.Mesh(pts, f)
+    template = Template(points_object=pts, faces=f, curvature=np.zeros(len(pts)), frame=ova.frame)
     target = object_volume(lambda y: (((y + displacement(y)) / a) ** 2).sum(1) <= 1.0, a.max() + 3, source="deformed")
     lm_src = ellipsoid_landmarks(a)
     return template, target, lm_src, inverse_displacement(lm_src), inverse_displacement(pts)
@@ -123,7 +124,7 @@ def bench_deformation(cpd_large=False):
         wp = dm.project(res.warped_points_object, 3)
         err_wp = np.linalg.norm(wp - truth, axis=1)
         paper, _ = measure("coat, paper scheme (no registration)", lambda: C.coat(  # noqa: B023
-            template, lm_src, target, lm_dst, C.CoatingParams(registration_sigmas_mm=())))  # noqa: B023  # fmt: skip
+            template, lm_src, target, lm_dst, params=C.CoatingParams(registration_sigmas_mm=())))  # noqa: B023  # fmt: skip
         e_paper = np.linalg.norm(paper.points_object - truth, axis=1)
         print(f"    paper scheme: corr. error mean {e_paper.mean():.3f} max {e_paper.max():.3f} mm")
         print(f"    coating: corr. error mean {err.mean():.3f} max {err.max():.3f} mm; warp+proj {err_wp.mean():.3f} / "

@@ -58,7 +58,7 @@ def bench(ov: V.ObjectVolume, params: T.TemplateParams) -> None:
         return T.reduce_points(geo.graph, r, curvature=geo.c, selection=params.selection, seed=params.seed)
 
     sel, t3 = step("point density reduction", reduce, lambda s: f"{len(s)} points")
-    tri, t4 = step("triangulation", lambda: T.triangulate(mask, geo.voxels[sel], params.max_refinements),
+    tri, t4 = step("triangulation", lambda: T.triangulate(mask, geo.voxels[sel], max_refinements=params.max_refinements),
                    lambda t: f"{len(t.seeds)} vertices, {len(t.faces)} triangles, genus {t.genus}, "
                              f"{t.refinements} refinements")
     print(f"  {'sum of stages':<28s} {t1 + t2 + t3 + t4:8.2f} s")
