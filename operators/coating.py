@@ -17,11 +17,12 @@ from bpy.props import BoolProperty, IntProperty
 from ssm_addon import coating as core
 from ssm_addon.errors import InputError
 from ssm_addon.params import CoatingParams
+from ssm_addon.quality import check_coating
 from ssm_addon.study import coat_instances
 
 from . import bridge
 from .jobs import BackgroundJob
-from .properties import draw_params
+from .properties import draw_params, scene_params
 from .scene import (
     COATED_COLLECTION,
     COATED_SUFFIX,
@@ -137,12 +138,13 @@ class SSM_OT_coat_template(BackgroundJob, bpy.types.Operator):
         self._loader.keep()
         results, was_cancelled = outcome
         written = self._write(context, results)
-        poor = [o.name for o in written if fit_of(o).poor]
+        gates = scene_params(context, "ssm_quality")
+        findings = [f for o in written for f in check_coating(o.ssm.instance.name, fit_of(o), gates)]
         msg = f"coated {len(written)} instance(s)"
         if was_cancelled:
             msg = f"cancelled: kept {len(written)} of {len(results)} coated instance(s)"
-        if poor:
-            self.report({"WARNING"}, f"{msg}; poor fit (folds or > 1 voxel): {', '.join(poor)}")
+        if findings:
+            self.report({"WARNING"}, f"{msg}; quality gates failed: " + "; ".join(str(f) for f in findings))
         else:
             self.report({"INFO"}, msg)
         return {"FINISHED"}
@@ -182,16 +184,20 @@ class SSM_PT_coating(bpy.types.Panel):
         if coated:
             box = layout.box()
             box.label(text="Fit (mean / max mm, folds, start)")
+            gates = scene_params(context, "ssm_quality")
             for obj in coated:
                 fit = fit_of(obj)
                 if fit is None:
                     continue
+                findings = check_coating(obj.ssm.instance.name, fit, gates)
                 row = box.row()
                 row.label(
                     text=f"{obj.ssm.instance.name}: {fit.mean_distance_mm:.2f} / {fit.max_distance_mm:.2f}, "
                     f"{fit.folded_after}, {fit.start}",
-                    icon="ERROR" if fit.poor else "CHECKMARK",
+                    icon="ERROR" if findings else "CHECKMARK",
                 )
+                for f in findings:
+                    box.label(text=f"    {f.gate}: {f.message}", icon="BLANK1")
 
 
 class SSM_PT_coating_advanced(bpy.types.Panel):

@@ -64,6 +64,7 @@ def show_study(context, study, *, output: OutputParams | None = None) -> dict:
     set_group(scene.ssm_template, study.template_params)
     set_group(scene.ssm_coating, study.coating_params)
     set_group(scene.ssm_model, study.model_params)
+    set_group(scene.ssm_quality, study.quality_params)
     if output is not None:
         set_group(scene.ssm_output, output)
     objs = {}
@@ -170,7 +171,7 @@ def project_from_scene(context, path) -> core.Project:
                                   mesh=spec.mesh, mesh_spacing=spec.mesh_spacing, landmark_set=spec.landmark_set))
     return core.Project(path=path, instances=tuple(specs), template_instance=study.template_instance,
                         template=study.template_params, coating=study.coating_params, model=study.model_params,
-                        output=scene_params(context, "ssm_output"),
+                        output=scene_params(context, "ssm_output"), quality=study.quality_params,
                         landmark_names=specs[0].landmark_set.names if specs else ())
 
 
@@ -187,7 +188,8 @@ def load_project_into_scene(context, project: core.Project) -> list:
     items = import_items(project.instances, spacing_mm=project.template.spacing_mm,
                          frame_method=project.template.frame)
     for key, params in (("ssm_template", project.template), ("ssm_coating", project.coating),
-                        ("ssm_model", project.model), ("ssm_output", project.output)):
+                        ("ssm_model", project.model), ("ssm_output", project.output),
+                        ("ssm_quality", project.quality)):
         set_group(getattr(scene, key), params)
     created = add_instance_objects(context, items)
     for obj, spec in zip(created, project.instances):
@@ -284,4 +286,22 @@ class SSM_PT_project_output(bpy.types.Panel):
         draw_params(self.layout, context.scene.ssm_output, OutputParams)
 
 
-classes = (SSM_OT_save_project, SSM_OT_open_project, SSM_PT_project, SSM_PT_project_output)
+class SSM_PT_project_quality(bpy.types.Panel):
+    bl_label = "Quality gates"
+    bl_idname = "SSM_PT_project_quality"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "SSM"
+    bl_parent_id = "SSM_PT_project"
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        from ssm_addon.params import QualityParams
+
+        from .properties import draw_params
+
+        draw_params(self.layout, context.scene.ssm_quality, QualityParams)
+        draw_params(self.layout, context.scene.ssm_quality, QualityParams, advanced=True)
+
+
+classes = (SSM_OT_save_project, SSM_OT_open_project, SSM_PT_project, SSM_PT_project_output, SSM_PT_project_quality)

@@ -209,6 +209,7 @@ SSMModelSettings = param_group(P.ModelParams, "SSMModelSettings", extra={
     "last_directory": StringProperty(name="Last directory", subtype="DIR_PATH"),
 })
 SSMOutputSettings = param_group(P.OutputParams, "SSMOutputSettings")
+SSMQualitySettings = param_group(P.QualityParams, "SSMQualitySettings")
 
 
 def _recolour(self, context):
@@ -235,6 +236,7 @@ SCENE_GROUPS = {
     "ssm_coating": (SSMCoatingSettings, P.CoatingParams),
     "ssm_model": (SSMModelSettings, P.ModelParams),
     "ssm_output": (SSMOutputSettings, P.OutputParams),
+    "ssm_quality": (SSMQualitySettings, P.QualityParams),
 }
 
 
@@ -245,7 +247,7 @@ def scene_params(context, key: str):
 
 
 classes = (SSMObjectProperties, SSMTemplateSettings, SSMCoatingSettings, SSMModelSettings, SSMOutputSettings,
-           SSMStudySettings)
+           SSMQualitySettings, SSMStudySettings)
 
 
 def register_properties():

@@ -405,7 +405,8 @@ def study_from_scene(context, *, template_instance: str | None = None, template:
     study = Study(instances=tuple(instance_spec(context, o) for o in objs), template_instance=template_instance,
                   template_params=scene_params(context, "ssm_template"),
                   coating_params=scene_params(context, "ssm_coating"),
-                  model_params=scene_params(context, "ssm_model"))
+                  model_params=scene_params(context, "ssm_model"),
+                  quality_params=scene_params(context, "ssm_quality"))
     for o in objs:
         frame = stored_frame(o)
         if frame is not None:

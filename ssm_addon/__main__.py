@@ -12,7 +12,9 @@ Subcommands
 ``demo --out DIR [--n N] [--jobs N] [--seed S] [--no-blend]``
     Generate the synthetic demo population (:mod:`ssm_addon.demo`) and build it.
 
-Errors in the input print one message (no traceback) and exit with status 2.
+Errors in the input print one message (no traceback) and exit with status 2; a strict
+build whose quality gates fail exits with 3; an interrupted one with 130 (SIGINT), 143
+(SIGTERM) or 129 (SIGHUP).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from pathlib import Path
 from .errors import Cancelled, InputError, SSMError
 
 EXIT_INPUT = 2
+EXIT_QUALITY = 3
 EXIT_CANCELLED = 130
 
 
@@ -171,6 +174,10 @@ def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> 
         print(f"  {'plot':9s} {f}")
     if "coated" in result.files:
         print(f"  {'coated':9s} {result.files['coated']}/<name>.ply")
+    from .quality import warnings_text
+
+    if result.study.findings:  # said last, where a reader looks
+        print("\n" + warnings_text(result.study.findings), flush=True)
     return 0
 
 
@@ -227,8 +234,10 @@ def main(argv=None, in_blender: bool = False, blend_writer=None) -> int:
         print("interrupted", file=sys.stderr)
         return EXIT_CANCELLED
     except SSMError as err:
+        from .quality import QualityError
+
         print(f"error: {err}", file=sys.stderr)
-        return EXIT_INPUT
+        return EXIT_QUALITY if isinstance(err, QualityError) else EXIT_INPUT
     return EXIT_INPUT  # pragma: no cover - argparse requires a command
 
 

@@ -548,7 +548,35 @@ class CoatingParams:
     def consistency(self) -> str:
         if not self.k2 > self.k1:
             return f"k2 ({self.k2:g}) must exceed k1 ({self.k1:g}) so that vertices settle on the surface (paper 4.2)"
+        limit = self.stable_dt()
+        if self.dt >= limit:
+            return (f"dt ({self.dt:g}) is beyond the relaxation's stability bound: with k1 = {self.k1:g}, k2 = "
+                    f"{self.k2:g}, k3 = {self.k3:g}, fold_smoothing = {self.fold_smoothing:g}, mass = {self.mass:g} and "
+                    f"damping = {self.damping:g} the integrator needs dt < {limit:.3g}")
         return ""
+
+    def stable_dt(self) -> float:
+        """The largest stable time step of the relaxation's semi-implicit Euler integrator.
+
+        The stiffest mode of a vertex is bounded by k2 + k3 + fold_smoothing + 2·k1·d with
+        d = 10 neighbours (the graph Laplacian's largest eigenvalue is at most twice the
+        degree); the update of m x'' + g x' + k x = 0 is stable while the spectral radius
+        of its 2 × 2 step matrix is below 1.
+        """
+        k = self.k2 + self.k3 + self.fold_smoothing + 2.0 * self.k1 * 10.0
+        m, g = self.mass, self.damping
+
+        def radius(dt):
+            a = np.array([[1 - dt * dt * k / m, dt * (1 - dt * g / m)], [-dt * k / m, 1 - dt * g / m]])
+            return float(np.abs(np.linalg.eigvals(a)).max())
+
+        lo, hi = 0.0, 1.0
+        while radius(hi) < 1.0 - 1e-12 and hi < 1e6:
+            lo, hi = hi, hi * 2.0
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if radius(mid) < 1.0 - 1e-12 else (lo, mid)
+        return lo
 
     def validate(self) -> None:
         """Raise InputError for values that cannot work (checked on construction too)."""
@@ -602,8 +630,58 @@ class OutputParams:
         check(self, self._where)
 
 
+@dataclass(frozen=True)
+class QualityParams:
+    """Thresholds of the quality gates (``ssm_addon.quality``); the project's ``[quality]`` table.
+
+    An instance that fails a gate is named with the reason: last in the command's
+    output (WARNINGS), in ``report.json`` and ``report.html``, and in the Blender panel.
+    """
+
+    strict: bool = param(False, label="Strict",
+                         help="fail the build (non-zero exit, the output folder untouched) when any gate fails")
+    min_voxels: int = param(64, minimum=1, maximum=10**9, label="Min voxels", advanced=True,
+                            help="an instance with fewer voxels at the study's spacing is an error")
+    max_second_component: float = param(0.05, minimum=0.0, maximum=1.0, label="Max second part", advanced=True,
+                                        help="largest share of the voxels a second connected part may hold")
+    max_volume_ratio: float = param(3.0, minimum=1.0, maximum=1000.0, label="Max volume ratio", advanced=True,
+                                    help="largest factor between an instance's volume and the study's median")
+    max_landmark_distance_mm: float = param(10.0, unit="mm", minimum=0.0, exclusive_minimum=True, maximum=10000.0,
+                                            label="Max landmark distance",
+                                            help="a landmark farther from its instance's surface is an error")
+    max_landmark_residual_mm: float = param(20.0, unit="mm", minimum=0.0, maximum=10000.0,
+                                            label="Max landmark residual",
+                                            help="largest distance between a coated landmark and the given one")
+    max_folded_triangles: int = param(0, minimum=0, maximum=10**9, label="Max folds",
+                                      help="folded triangles allowed on a coated instance")
+    max_surface_distance_vox: float = param(1.0, minimum=0.0, maximum=1000.0, label="Max surface distance (voxels)",
+                                            help="largest distance of a coated vertex from the surface, in voxels "
+                                                 "of the study's spacing")
+    require_convergence: bool = param(False, label="Require convergence", advanced=True,
+                                      help="flag a relaxation that stopped at its iteration limit")
+    outlier_probability: float = param(0.99, minimum=0.5, maximum=1.0, exclusive_minimum=True,
+                                       label="Outlier quantile", advanced=True,
+                                       help="probability of the prediction region (F test of the leave-one-out "
+                                            "Mahalanobis distance) outside which an instance is an outlier")
+    outlier_variance_fraction: float = param(0.95, minimum=0.0, maximum=1.0, exclusive_minimum=True,
+                                             label="Outlier modes (variance)", advanced=True,
+                                             help="the outlier score uses the modes that hold this share of the "
+                                                  "variance")
+    max_loo_error_ratio: float = param(3.0, minimum=1.0, maximum=1000.0, label="Max reconstruction ratio",
+                                       advanced=True,
+                                       help="largest leave-one-out reconstruction error relative to the median")
+    max_outlier_instances: int = param(1000, minimum=3, maximum=10**7, label="Outlier scores up to", advanced=True,
+                                       help="leave-one-out outlier scores are computed up to this many instances")
+
+    _where = "quality parameters:"
+
+    def __post_init__(self):
+        check(self, self._where)
+
+
 #: The parameter classes by project table.
-TABLES = {"template": TemplateParams, "coating": CoatingParams, "model": ModelParams, "output": OutputParams}
+TABLES = {"template": TemplateParams, "coating": CoatingParams, "model": ModelParams, "output": OutputParams,
+          "quality": QualityParams}
 
 
 def markdown_tables() -> str:

@@ -55,8 +55,9 @@ from .errors import InputError, check_cancelled
 from .instances import InstanceSpec
 from .landmarks import LandmarkSet, match_landmarks, read_landmarks
 from .meshutil import genus, write_ply
-from .params import CoatingParams, ModelParams, OutputParams, TemplateParams
+from .params import CoatingParams, ModelParams, OutputParams, QualityParams, TemplateParams
 from .progress import CancelledFn, ProgressFn, report, sub_progress
+from .quality import QualityError, warnings_text
 from .study import Study, run, study_parameters
 
 __all__ = ["BuildResult", "Project", "build", "read_project", "write_project"]
@@ -99,6 +100,7 @@ class Project:
     coating: CoatingParams = field(default_factory=CoatingParams)
     model: ModelParams = field(default_factory=ModelParams)
     output: OutputParams = field(default_factory=OutputParams)
+    quality: QualityParams = field(default_factory=QualityParams)
     landmark_names: tuple[str, ...] = ()
 
     @property
@@ -330,6 +332,7 @@ def read_project(path) -> Project:
     coating = _params(CoatingParams, doc, "coating", ctx)
     model = _params(ModelParams, doc, "model", ctx)
     output = _params(OutputParams, doc, "output", ctx)
+    quality = _params(QualityParams, doc, "quality", ctx)
 
     instances = _instances(doc, ctx, path.parent)
     if len(instances) < 2:
@@ -355,7 +358,7 @@ def read_project(path) -> Project:
         raise ctx.error(f"[template] instance {template_instance!r} is not an instance name{hint}", line)
 
     return Project(path=path, instances=tuple(instances), template_instance=template_instance, template=template,
-                   coating=coating, model=model, output=output, landmark_names=matched[0].names)
+                   coating=coating, model=model, output=output, quality=quality, landmark_names=matched[0].names)
 
 
 # --------------------------------------------------------------------------------------
@@ -390,7 +393,7 @@ def project_text(project: Project, base: Path) -> str:
     lines = ["# SSM Builder project (paths relative to this file)", "", "[template]",
              f"instance = {toml_value(project.template_instance)}"]
     for section, params in (("template", project.template), ("coating", project.coating),
-                            ("model", project.model), ("output", project.output)):
+                            ("model", project.model), ("output", project.output), ("quality", project.quality)):
         if section != "template":
             lines += ["", f"[{section}]"]
         lines += [f"{k} = {toml_value(v)}" for k, v in P.to_table(params).items()]
@@ -528,6 +531,9 @@ def write_study_files(study: Study, folder: Path, *, output: OutputParams, proje
         "parameters": study_parameters(study, study.model.params.get("landmarks", ())),
         "template": {"instance": study.template_instance, "points": int(len(tpl.points_object)),
                      "triangles": int(len(tpl.faces)), "genus": int(genus(len(tpl.points_object), tpl.faces))},
+        "quality": {"parameters": dataclasses.asdict(study.quality_params),
+                    "findings": [f.to_dict() for f in study.findings],
+                    "outlier_scores": study.outlier_scores},
         **(extra or {}),
     }
     written = met.write_outputs(study.model, folder, metrics=study.metrics, per_instance=per_instance, extra=info,
@@ -593,6 +599,9 @@ def build(
     try:
         run(study, jobs=jobs, progress=sub_progress(progress, 0.0, 0.95), cancelled=cancelled, log=say)
         check_cancelled(cancelled)
+        if project.quality.strict and study.findings:
+            raise QualityError(f"{len(study.findings)} quality gate(s) failed and [quality] strict is set; nothing "
+                               f"was written to {out_dir}:\n" + warnings_text(study.findings))
         report(progress, 0.95, "writing outputs")
         t0 = time.perf_counter()
         result = BuildResult(out_dir=out_dir, project=project, study=study, files={}, report={})

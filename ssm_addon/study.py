@@ -42,8 +42,9 @@ from .instances import InstanceSpec, import_instance
 from .landmarks import LandmarkSet
 from .meshutil import genus
 from .model import ShapeModel, build_model
-from .params import CoatingParams, ModelParams, TemplateParams
+from .params import CoatingParams, ModelParams, QualityParams, TemplateParams
 from .progress import CancelledFn, ProgressFn, report, sub_progress
+from .quality import check_coating, check_landmarks_on_surface, check_model, check_volume, check_volumes_together
 from .template import Template, build_template
 from .volume import ObjectFrame, ObjectVolume
 
@@ -87,6 +88,10 @@ class Study:
     model : ShapeModel or None
     metrics : dict or None
         Compactness, generalization, specificity.
+    findings : list of Finding
+        Failed quality gates (:mod:`ssm_addon.quality`), in stage order.
+    outlier_scores : dict name -> dict
+        Leave-one-out Mahalanobis distance and reconstruction error per instance.
     timings_s : dict
         Wall time per stage.
     """
@@ -96,12 +101,15 @@ class Study:
     template_params: TemplateParams = field(default_factory=TemplateParams)
     coating_params: CoatingParams = field(default_factory=CoatingParams)
     model_params: ModelParams = field(default_factory=ModelParams)
+    quality_params: QualityParams = field(default_factory=QualityParams)
     volumes: dict[str, ObjectVolume] = field(default_factory=dict)
     frames: dict[str, ObjectFrame] = field(default_factory=dict)
     template: Template | None = None
     coatings: dict[str, CoatingResult] = field(default_factory=dict)
     model: ShapeModel | None = None
     metrics: dict | None = None
+    findings: list = field(default_factory=list)
+    outlier_scores: dict = field(default_factory=dict)
     timings_s: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self):
@@ -119,7 +127,8 @@ class Study:
     def from_project(cls, project) -> Study:
         """The study of a parsed project file (:func:`ssm_addon.project.read_project`)."""
         return cls(instances=project.instances, template_instance=project.template_instance,
-                   template_params=project.template, coating_params=project.coating, model_params=project.model)
+                   template_params=project.template, coating_params=project.coating, model_params=project.model,
+                   quality_params=project.quality)
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -268,11 +277,22 @@ def coat_instances(study: Study, *, names: Sequence[str] | None = None, jobs: in
     -------
     dict name -> CoatingResult (object mm of each instance). Cancelling raises
     :class:`~ssm_addon.coating.CoatingCancelled` whose ``results`` keep the finished ones.
+
+    Raises
+    ------
+    InputError
+        Before any coating, when a landmark lies farther than ``[quality]
+        max_landmark_distance_mm`` from its instance's surface (a wrong file, an offset,
+        LPS read as RAS: the message says which).
     """
     if study.template is None:
         raise InputError("coating: build the template first")
     names = list(study.names if names is None else names)
     common = common_landmark_names(study, names)
+    for name in dict.fromkeys([study.template_instance, *names]):  # landmarks on their instance's surface
+        inst = study.instance(name)
+        check_landmarks_on_surface(name, study.volume(name), study.landmarks(name), study.quality_params,
+                                   source=str(inst.landmarks) if inst.landmarks is not None else "")
     src = _landmarks_object(study, study.template_instance, common)
     targets = [study.volume(n) for n in names]
     lms = [_landmarks_object(study, n, common) for n in names]
@@ -342,6 +362,7 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
         volumes = import_instances(study, jobs=jobs, progress=sub_progress(progress, 0.0, 0.15), cancelled=cancelled)
         study.volumes.update(volumes)
         study.frames.update({n: v.frame for n, v in volumes.items()})
+        _add_findings(study, check_imports(study, names=list(volumes)), say)
         study.timings_s["import"] = time.perf_counter() - t0
         say(f"import: {n} instances in {study.timings_s['import']:.2f} s")
     if "template" in stages:
@@ -364,8 +385,9 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
             if message.startswith("coated "):
                 report(coat_prog, fraction, message)
 
-        study.coatings.update(coat_instances(study, jobs=jobs, progress=coat_progress if progress else None,
-                                             cancelled=cancelled))
+        coated = coat_instances(study, jobs=jobs, progress=coat_progress if progress else None, cancelled=cancelled)
+        study.coatings.update(coated)
+        _add_findings(study, [f for n, c in coated.items() for f in check_coating(n, c.fit, study.quality_params)], say)
         study.timings_s["coating"] = time.perf_counter() - t0
         worst = max(c.fit.max_distance_mm for c in study.coatings.values())
         say(f"coating: {n} instances in {study.timings_s['coating']:.2f} s (largest surface distance {worst:.2f} mm)")
@@ -374,6 +396,8 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
         t0 = time.perf_counter()
         report(progress, 0.85, "model: PCA")
         study.model = make_model(study, cancelled=cancelled)
+        findings, study.outlier_scores = check_model(study.model, study.quality_params)
+        _add_findings(study, findings, say)
         study.timings_s["model"] = time.perf_counter() - t0
         say(f"model: {study.model.n_modes} modes, {study.model.n_points} points in {study.timings_s['model']:.2f} s")
     if "metrics" in stages:
@@ -384,6 +408,30 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
         study.timings_s["metrics"] = time.perf_counter() - t0
         say(f"metrics: compactness, generalization, specificity in {study.timings_s['metrics']:.2f} s")
     return study
+
+
+def check_imports(study: Study, names: Sequence[str] | None = None) -> list:
+    """The import gates (:mod:`ssm_addon.quality`) on imported instances.
+
+    Raises
+    ------
+    InputError
+        An instance with too few voxels.
+    """
+    qp = study.quality_params
+    names = list(study.names if names is None else names)
+    found = []
+    for name in names:
+        found += check_volume(name, study.volume(name), qp)
+    found += check_volumes_together({n: study.volume(n).volume_mm3 for n in study.names if n in study.volumes}, qp)
+    return found
+
+
+def _add_findings(study: Study, findings: list, say) -> None:
+    keep = {(f.instance, f.gate) for f in findings}
+    study.findings = [f for f in study.findings if (f.instance, f.gate) not in keep] + list(findings)
+    for f in findings:
+        say(f"WARNING {f.instance or 'study'} [{f.gate}]: {f.message}")
 
 
 def landmark_names_of(study: Study) -> tuple[str, ...]:
