@@ -15,7 +15,6 @@
 from __future__ import annotations
 
 import os
-import re
 from pathlib import Path
 
 import bpy
@@ -26,7 +25,7 @@ from bpy_extras.io_utils import ExportHelper, ImportHelper
 from ssm_addon import landmarks as core_landmarks
 from ssm_addon import project as core
 from ssm_addon.errors import InputError, SSMError
-from ssm_addon.instances import InstanceSpec
+from ssm_addon.instances import InstanceSpec, file_names
 from ssm_addon.meshutil import write_ply
 from ssm_addon.params import OutputParams
 
@@ -131,11 +130,6 @@ def write_build_outputs(result, out_dir: Path, log=print) -> dict:
 # ------------------------------------------------------------------------ save / open
 
 
-def safe_file_name(name: str) -> str:
-    """An instance name as a file name (letters, digits, ``._-``; others become ``_``)."""
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._") or "instance"
-
-
 def project_from_scene(context, path) -> core.Project:
     """The scene's study as a Project for ``path``, writing its landmark (and mesh) files.
 
@@ -150,10 +144,7 @@ def project_from_scene(context, path) -> core.Project:
     missing = [i.name for i in study.instances if i.landmark_set is None]
     if missing:
         raise InputError(f"no landmarks on instance(s) {', '.join(missing)}: place or import them first")
-    files = {i.name: safe_file_name(i.name) for i in study.instances}
-    clash = sorted({f for f in files.values() if list(files.values()).count(f) > 1})
-    if clash:
-        raise InputError(f"instance names give the same file name ({', '.join(clash)}): rename the instances")
+    files = file_names(i.name for i in study.instances)
     (folder / "landmarks").mkdir(parents=True, exist_ok=True)
     objs = {o.name: o for o in scene_instances(context)}
     specs = []

@@ -51,6 +51,33 @@ def _check_file(path, kinds: tuple[str, ...]) -> tuple[Path, str]:
     return path, ext
 
 
+MAX_DISTINCT_LABELS = 1000
+"""A label map with more distinct values than this is taken for an intensity image."""
+
+
+def _refuse_intensities(data: np.ndarray, path) -> None:
+    """Refuse images that look like intensities (CT, MR) rather than labels.
+
+    Labels are few distinct whole numbers (TotalSegmentator: ~120); a CT has thousands
+    of values, an interpolated map fractional ones. Checked on at most ~2 million voxels
+    sampled evenly, so it costs well under a second on any image.
+    """
+    flat = data.reshape(-1)
+    sample = flat[:: max(1, flat.size // 2_000_000)]
+    if data.dtype.kind == "f":
+        frac = np.abs(sample - np.rint(sample))
+        bad = np.count_nonzero(frac > 1e-3)
+        if bad > 0.001 * sample.size:
+            raise InputError(f"{path}: looks like an intensity image, not a label map: {100 * bad / sample.size:.1f} % "
+                             f"of the voxels hold fractional values (e.g. {float(sample[np.argmax(frac)]):g}); give the "
+                             "segmentation (whole-number labels, 0 = background)")
+    values = np.unique(sample)
+    if values.size > MAX_DISTINCT_LABELS:
+        raise InputError(f"{path}: looks like an intensity image, not a label map: {values.size:,} distinct values "
+                         f"from {float(values[0]):g} to {float(values[-1]):g} (a label map has a few labels, 0 = "
+                         f"background; more than {MAX_DISTINCT_LABELS} are refused); give the segmentation")
+
+
 def _as_labels(data: np.ndarray, path) -> np.ndarray:
     """3-D integer labels from a raw image array (4-D with a singleton 4th axis is squeezed).
 
@@ -69,12 +96,13 @@ def _as_labels(data: np.ndarray, path) -> np.ndarray:
         raise InputError(f"{path}: {data.ndim}-D image of shape {tuple(data.shape)}; a label map must be 3-D")
     if data.dtype == bool:
         return data.astype(np.uint8)
+    if data.dtype.kind not in "iuf":
+        raise InputError(f"{path}: unsupported voxel type {data.dtype}; expected integer or float labels")
+    if data.dtype.kind == "f" and not np.isfinite(data).all():
+        raise InputError(f"{path}: the label map contains NaN or infinite values")
+    _refuse_intensities(data, path)
     if data.dtype.kind in "iu":
         return data
-    if data.dtype.kind != "f":
-        raise InputError(f"{path}: unsupported voxel type {data.dtype}; expected integer or float labels")
-    if not np.isfinite(data).all():
-        raise InputError(f"{path}: the label map contains NaN or infinite values")
     lo, hi = float(data.min()), float(data.max())
     dtype = np.result_type(np.min_scalar_type(int(round(lo))), np.min_scalar_type(int(round(hi))))
     return np.rint(data).astype(dtype)

@@ -25,7 +25,8 @@ from .resample import resample
 from .volume import LabelMap, ObjectFrame, ObjectVolume, Volume
 from .voxelize import load_mesh_volume, voxelize_mesh
 
-__all__ = ["InstanceSpec", "import_instance", "load_object", "object_from_mesh", "object_from_volume", "read_instance"]
+__all__ = ["InstanceSpec", "file_names", "import_instance", "load_object", "object_from_mesh", "object_from_volume",
+           "read_instance", "safe_file_name"]
 
 
 @dataclass(frozen=True)
@@ -61,6 +62,31 @@ class InstanceSpec:
     def source(self) -> Path:
         """The label map or mesh file."""
         return self.volume if self.volume is not None else self.mesh
+
+
+def safe_file_name(name: str) -> str:
+    """An instance name as a file name: letters, digits and ``._-`` kept, the rest ``_``.
+
+    Output files of an instance (``coated/<file name>.ply``, ``landmarks/<file name>.fcsv``)
+    use this, so a name like ``../../x`` or ``L1/L2`` cannot leave the output folder.
+
+    >>> safe_file_name("../../escaped"), safe_file_name("L1 (left)")
+    ('escaped', 'L1_left')
+    """
+    cleaned = "".join(c if c.isascii() and (c.isalnum() or c in "._-") else "_" for c in name)
+    return "_".join(part for part in cleaned.split("_") if part).strip("._") or "instance"
+
+
+def file_names(names) -> dict[str, str]:
+    """``{instance name: safe file name}``; an error when two names give the same file name."""
+    out = {n: safe_file_name(n) for n in names}
+    seen: dict[str, str] = {}
+    for n, f in out.items():
+        key = f.lower()  # case-insensitive file systems
+        if key in seen:
+            raise InputError(f"instances {seen[key]!r} and {n!r} would write the same files ({f}.*); rename one")
+        seen[key] = n
+    return out
 
 
 def object_from_volume(volume: Volume, *, spacing_mm: float, frame_method: str = "auto",

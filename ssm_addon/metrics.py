@@ -275,23 +275,32 @@ def specificity(
     scores = centred @ q.T  # (n, kmax)
     norms = (centred**2).sum(axis=1)
     rng = np.random.default_rng(seed)
-    z = rng.standard_normal((int(n_samples), kmax))
     sd = model.standard_deviations[:kmax]
-    means, stds, rms = [], [], []
-    for j, k in enumerate(ks):
-        check_cancelled(cancelled)
-        report(progress, j / len(ks), f"specificity: k = {k}")
-        b = z[:, :k] * sd[:k]
-        d2 = (b**2).sum(axis=1)[:, None] - 2.0 * b @ scores[:, :k].T + norms[None]
-        nearest = np.argmin(d2, axis=1)
-        err = np.empty(len(b))
-        for start in range(0, len(b), chunk):
-            sl = slice(start, start + chunk)
-            diff = b[sl] @ q[:k] - centred[nearest[sl]]
-            err[sl] = _point_errors(diff)
-        means.append(float(err.mean()))
-        stds.append(float(err.std()))
-        rms.append(float(np.sqrt(np.maximum(d2[np.arange(len(b)), nearest], 0.0) / model.n_points).mean()))
+    total = int(n_samples)
+    # samples in blocks (bounded memory for any n_samples); the generator fills row after
+    # row, so the blocks are the same numbers as one (n_samples, kmax) draw
+    block = max(1, min(total, 1 << 22 // max(n + kmax, 1)))
+    sums = np.zeros((len(ks), 3))  # per k: sum of errors, of squared errors, of RMS distances
+    done = 0
+    while done < total:
+        z = rng.standard_normal((min(block, total - done), kmax))
+        for j, k in enumerate(ks):
+            check_cancelled(cancelled)
+            report(progress, (done + (j / len(ks)) * len(z)) / total, f"specificity: k = {k}")
+            b = z[:, :k] * sd[:k]
+            d2 = (b**2).sum(axis=1)[:, None] - 2.0 * b @ scores[:, :k].T + norms[None]
+            nearest = np.argmin(d2, axis=1)
+            err = np.empty(len(b))
+            for start in range(0, len(b), chunk):
+                sl = slice(start, start + chunk)
+                diff = b[sl] @ q[:k] - centred[nearest[sl]]
+                err[sl] = _point_errors(diff)
+            rms_b = np.sqrt(np.maximum(d2[np.arange(len(b)), nearest], 0.0) / model.n_points)
+            sums[j] += (err.sum(), (err * err).sum(), rms_b.sum())
+        done += len(z)
+    means = [float(s[0] / total) for s in sums]
+    stds = [float(np.sqrt(max(s[1] / total - (s[0] / total) ** 2, 0.0))) for s in sums]
+    rms = [float(s[2] / total) for s in sums]
     report(progress, 1.0, "specificity done")
     return {
         "k": ks,

@@ -52,7 +52,7 @@ import numpy as np
 
 from . import params as P
 from .errors import InputError, check_cancelled
-from .instances import InstanceSpec
+from .instances import InstanceSpec, file_names
 from .landmarks import LandmarkSet, match_landmarks, read_landmarks
 from .meshutil import genus, write_ply
 from .params import CoatingParams, ModelParams, OutputParams, QualityParams, TemplateParams
@@ -348,6 +348,10 @@ def read_project(path) -> Project:
     instances = [dataclasses.replace(inst, landmark_set=lm) for inst, lm in zip(instances, matched)]
 
     names = [i.name for i in instances]
+    try:
+        file_names(names)
+    except InputError as err:
+        raise ctx.error(str(err), ctx.lines.table("instances", 0)) from None
     template_instance = doc.get("template", {}).get("instance", names[0])
     line = ctx.lines.key("template", "instance")
     if not isinstance(template_instance, str):
@@ -520,10 +524,11 @@ def write_study_files(study: Study, folder: Path, *, output: OutputParams, proje
     write_ply(folder / "template.ply", tframe.to_world(tpl.points_object), tpl.faces)
     files["template"] = "template.ply"
     names = list(study.model.instance_names)
+    safe = file_names(names)
     if output.coated_meshes:
         (folder / "coated").mkdir()
         for name, pw in zip(names, study.model.instance_points_world):
-            write_ply(folder / "coated" / f"{name}.ply", np.asarray(pw, float), tpl.faces)
+            write_ply(folder / "coated" / f"{safe[name]}.ply", np.asarray(pw, float), tpl.faces)
         files["coated"] = "coated"
     per_instance = {n: study.coatings[n].fit for n in names}
     info = {
@@ -594,6 +599,9 @@ def build(
         raise InputError(f"{out_dir}: output path exists and is not a folder")
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     t_total = time.perf_counter()
+    if len(project.instances) < 3:
+        raise InputError(f"{project.path}: {len(project.instances)} instances; a model with its metrics (leave-one-out "
+                         "generalization) needs at least 3")
     study = Study.from_project(project)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.building-", dir=out_dir.parent))
     try:

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
-from nibabel.affines import apply_affine
+from nibabel.affines import apply_affine, voxel_sizes
 
 from .errors import InputError, check_cancelled
 from .progress import report
+from .resources import BYTES_PER_OBJECT_VOXEL, check_allocation
 from .volume import ObjectFrame, ObjectVolume, Volume, bounding_box
 
 __all__ = ["resample"]
@@ -47,6 +48,14 @@ def resample(
     except InputError as err:
         raise InputError(f"{name}: empty mask: no object voxels") from err
     pad = 2
+    # before any large allocation: the object's box at the new spacing, and its float crop
+    box_vox = np.array([s.stop - s.start for s in box], dtype=float)
+    extent_mm = box_vox * voxel_sizes(volume.affine)
+    along_axes = np.abs(frame.axes_world.T @ volume.affine[:3, :3]) @ box_vox  # the box seen along the object axes
+    estimate = float(np.prod(np.ceil(along_axes / h) + 2 * pad + 2)) * BYTES_PER_OBJECT_VOXEL
+    check_allocation(estimate + 4.0 * np.prod([s.stop - s.start + 2 * pad for s in box], dtype=float),
+                     f"{name}: resampling the object's box ({' x '.join(f'{e:.0f}' for e in extent_mm)} mm) at {h:g} mm",
+                     "use a coarser [template] spacing, or check the mask for stray voxels far from the object")
     sub = np.pad(volume.mask[box], pad).astype(np.float32)
     offset = np.array([s.start for s in box], dtype=float) - pad  # input index of sub[0, 0, 0]
     A = volume.affine[:3, :3]
@@ -61,6 +70,9 @@ def resample(
     lo = np.floor((obj.min(axis=0) - reach) / h).astype(np.int64) - pad
     hi = np.ceil((obj.max(axis=0) + reach) / h).astype(np.int64) + pad
     shape = tuple(int(s) for s in hi - lo + 1)
+    check_allocation(float(np.prod(shape, dtype=float)) * BYTES_PER_OBJECT_VOXEL,
+                     f"{name}: resampling at {h:g} mm ({' x '.join(str(s) for s in shape)} voxels)",
+                     "use a coarser [template] spacing, or check the mask for stray voxels far from the object")
     origin_object = lo * h
     # output voxel index -> sub index: inv(A) (to_world(origin + h*ijk) - t) - offset
     Ainv = np.linalg.inv(A)

@@ -11,6 +11,7 @@ import numpy as np
 
 from .errors import InputError, check_cancelled
 from .meshutil import read_mesh
+from .resources import BYTES_PER_OBJECT_VOXEL, check_allocation
 from .volume import Volume
 
 
@@ -104,8 +105,9 @@ def voxelize_mesh(
     lo = np.floor(v.min(axis=0) / h).astype(np.int64) - 2
     hi = np.ceil(v.max(axis=0) / h).astype(np.int64) + 2
     shape = tuple(int(s) for s in hi - lo + 1)
-    if np.prod(shape, dtype=np.float64) > 2e9:
-        raise InputError(f"{name}: a {shape} voxel grid at {h} mm is too large; use a coarser spacing")
+    check_allocation(float(np.prod(shape, dtype=np.float64)) * BYTES_PER_OBJECT_VOXEL,
+                     f"{name}: voxelizing at {h:g} mm ({' x '.join(str(s) for s in shape)} voxels)",
+                     "use a coarser mesh_spacing (or [template] spacing)")
     origin = lo * h
     P = (v - origin) / h  # vertex coordinates in voxel-index units
     nx, ny, nz = shape
