@@ -20,6 +20,7 @@ build whose quality gates fail exits with 3; an interrupted one with 130 (SIGINT
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import time
 from pathlib import Path
@@ -29,6 +30,35 @@ from .errors import Cancelled, InputError, SSMError
 EXIT_INPUT = 2
 EXIT_QUALITY = 3
 EXIT_CANCELLED = 130
+
+
+class Interrupted(BaseException):
+    """SIGTERM or SIGHUP arrived: unwinds like KeyboardInterrupt (workers stopped, temporary
+    folders removed, the output folder as it was)."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+        self.name = signal.Signals(signum).name
+
+
+def _catch_signals() -> dict:
+    """SIGTERM and SIGHUP raise :class:`Interrupted` in the main thread (SIGINT raises
+    KeyboardInterrupt already); returns the previous handlers."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+
+    def handler(signum, _frame):
+        raise Interrupted(signum)
+
+    previous = {}
+    for name in ("SIGTERM", "SIGHUP"):
+        signum = getattr(signal, name, None)
+        if signum is not None:
+            previous[signum] = signal.signal(signum, handler)
+    return previous
 
 
 def _print_progress():
@@ -67,6 +97,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder (written atomically)")
     p.add_argument("--jobs", type=int, default=1, help="parallel workers for the per-instance work (default 1)")
     p.add_argument("--no-blend", action="store_true", help="do not write model.blend / modes.png even if bpy is available")
+    p.add_argument("--force", action="store_true",
+                   help="write into an existing folder that holds files an SSM build did not write (they are kept)")
+    p.add_argument("--strict", action="store_true",
+                   help="fail (exit 3, the output folder untouched) when a quality gate fails ([quality] strict)")
     for section, cls in P.TABLES.items():
         P.add_arguments(p.add_argument_group(f"[{section}] overrides (the project file's values otherwise)"), cls,
                         prefix=section)
@@ -154,7 +188,7 @@ def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> 
     project = _with_overrides(read_project(project_path), args)
     hook = None
     if blend and project.output.blend:
-        hook = writer or blender_layer.blend_writer()
+        hook = writer or blender_layer.blend_writer_in_child()
         if hook is None:
             why = ("bpy is not importable (pip install bpy==5.0.1)" if not blender_layer.bpy_available() else
                    "the Blender layer is not installed with this core (run `blender -b --command ssm build ...` "
@@ -162,8 +196,12 @@ def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> 
             print(f"skipping model.blend and modes.png: {why}", flush=True)
     print(f"project: {project.path} ({len(project.instances)} instances, {len(project.landmark_names)} landmarks)",
           flush=True)
+    if args is not None and getattr(args, "strict", False) and not project.quality.strict:
+        import dataclasses
+
+        project = dataclasses.replace(project, quality=dataclasses.replace(project.quality, strict=True))
     result = build(project, out, jobs=jobs, progress=_print_progress(), log=lambda m: print(m, flush=True),
-                   blender_hook=hook)
+                   blender_hook=hook, force=bool(getattr(args, "force", False)))
     t = result.timings_s
     print("timings: " + ", ".join(f"{k} {v:.2f} s" for k, v in t.items()), flush=True)
     print(f"outputs in {result.out_dir}:")
@@ -213,6 +251,7 @@ def main(argv=None, in_blender: bool = False, blend_writer=None) -> int:
         args = _parser().parse_args(sys.argv[1:] if argv is None else list(argv))
     except SystemExit as exc:  # argparse: --help (0) or a usage error (2); never exit Blender
         return exc.code if isinstance(exc.code, int) else EXIT_INPUT
+    restore = {} if in_blender else _catch_signals()
     try:
         if args.command == "info":
             return cmd_info(args)
@@ -227,17 +266,23 @@ def main(argv=None, in_blender: bool = False, blend_writer=None) -> int:
 
             print(markdown_tables())
             return 0
+    except Interrupted as sig:
+        print(f"interrupted by {sig.name}: stopped; the output folder is as it was", file=sys.stderr)
+        return 128 + sig.signum
+    except KeyboardInterrupt:
+        print("interrupted by SIGINT: stopped; the output folder is as it was", file=sys.stderr)
+        return EXIT_CANCELLED
     except Cancelled as err:
         print(f"cancelled: {err}", file=sys.stderr)
-        return EXIT_CANCELLED
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
         return EXIT_CANCELLED
     except SSMError as err:
         from .quality import QualityError
 
         print(f"error: {err}", file=sys.stderr)
         return EXIT_QUALITY if isinstance(err, QualityError) else EXIT_INPUT
+    finally:
+        for signum, handler in restore.items():
+            signal.signal(signum, handler)
     return EXIT_INPUT  # pragma: no cover - argparse requires a command
 
 

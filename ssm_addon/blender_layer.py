@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import os
 import sys
 from pathlib import Path
 
@@ -54,3 +55,80 @@ def blend_writer():
     if pkg is None:
         return None
     return importlib.import_module(f"{pkg.__name__}.operators.project").write_build_outputs
+
+
+def blend_writer_in_child():
+    """Like :func:`blend_writer`, but the Blender step runs in its own process and session.
+
+    The study is handed over on disk (:mod:`ssm_addon.store`: arrays and JSON, no
+    pickles). A signal (Ctrl-C, SIGTERM, SIGHUP) reaches only this process, which stops
+    the child and cleans up: it cannot interrupt Blender's C code half-way (that
+    segfaulted). Returns None when the Blender layer is not available.
+    """
+    if not bpy_available() or extension_root() is None:
+        return None
+
+    def write(result, out_dir, log=print):
+        import dataclasses
+        import shutil
+        import subprocess
+        import tempfile
+
+        from .errors import SSMError
+        from .store import save_study
+
+        out_dir = Path(out_dir)
+        handover = Path(tempfile.mkdtemp(prefix="ssm-blender-step-"))
+        try:
+            save_study(result.study, handover, extra={"output": dataclasses.asdict(result.project.output)})
+            cmd = [sys.executable, "-m", "ssm_addon.blender_layer", str(handover), str(out_dir)]
+            if log is None:
+                cmd.append("--quiet")
+            env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+                filter(None, [str(Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH")]))}
+            child = subprocess.Popen(cmd, start_new_session=True, env=env)
+            try:
+                while child.poll() is None:
+                    try:
+                        child.wait(0.1)
+                    except subprocess.TimeoutExpired:
+                        pass
+            except BaseException:
+                child.terminate()
+                try:
+                    child.wait(1.0)
+                except subprocess.TimeoutExpired:
+                    child.kill()
+                    child.wait()
+                raise
+        finally:
+            shutil.rmtree(handover, ignore_errors=True)
+        if child.returncode != 0:
+            raise SSMError(f"the Blender step (model.blend, modes.png) failed in its process (exit "
+                           f"{child.returncode}); rerun with --no-blend to build without it")
+        return {key: name for key, name in (("picture", "modes.png"), ("blend", "model.blend"))
+                if (out_dir / name).is_file()}
+
+    return write
+
+
+def _child_main(argv) -> int:
+    """``python -m ssm_addon.blender_layer STUDY_DIR OUT_DIR [--quiet]``: the Blender step."""
+    from types import SimpleNamespace
+
+    from . import params as P
+    from .store import load_study
+
+    study, extra = load_study(argv[0])
+    output = P.from_table(P.OutputParams, extra.get("output", {}))
+    result = SimpleNamespace(study=study, model=study.model, project=SimpleNamespace(output=output))
+    writer = blend_writer()
+    if writer is None:
+        print("the Blender layer is not available", file=sys.stderr)
+        return 2
+    writer(result, Path(argv[1]), log=None if "--quiet" in argv else (lambda m: print(m, flush=True)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_child_main(sys.argv[1:]))

@@ -385,6 +385,26 @@ def _coat_job(args):
     return coat(template, src, target, dst, params=params, name=name)
 
 
+def _ignore_sigint() -> None:
+    """Worker initializer: Ctrl-C is for the main process, which stops the workers."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _stop_workers(before: set) -> None:
+    """Terminate the worker processes started since ``before`` (an interrupt or error in the batch)."""
+    import multiprocessing
+
+    children = [c for c in multiprocessing.active_children() if c.pid not in before]
+    for child in children:
+        child.terminate()
+    for child in children:
+        child.join(1.0)
+        if child.is_alive():
+            child.kill()
+
+
 def _in_blender() -> bool:
     return "bpy" in sys.modules
 
@@ -441,7 +461,9 @@ def coat_all(
         raise InputError(f"coating: start_method must be 'spawn' or 'forkserver', got {start_method!r}")
     ctx = multiprocessing.get_context(start_method)
     arrays = Mesh(pts, faces)
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx) as pool:
+    before = {c.pid for c in multiprocessing.active_children()}
+    pool = ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=_ignore_sigint)
+    try:
         pending = {}
         queue = list(range(n))
         done_count = 0
@@ -477,4 +499,9 @@ def coat_all(
                 )
             while queue and len(pending) < jobs:
                 submit(queue.pop(0))
+    except BaseException:
+        pool.shutdown(wait=False, cancel_futures=True)
+        _stop_workers(before)  # an interrupt or error: no worker outlives the batch
+        raise
+    pool.shutdown(wait=True)
     return results

@@ -24,7 +24,6 @@ import datetime
 import json
 import os
 import platform
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -458,7 +457,6 @@ def build_model(
     ShapeModel
         Mean (eq. 4), eigenmodes and eigenvalues of S (eq. 5) via the Gram problem (eq. 6).
     """
-    t0 = time.perf_counter()
     x = np.asarray(instance_points, dtype=float)
     if x.ndim != 3 or x.shape[2] != 3:
         raise InputError(f"build_model: instance_points has shape {x.shape}; expected (n, N, 3)")
@@ -490,7 +488,6 @@ def build_model(
     if alignment != "none":
         x, align_info = generalized_procrustes(x, scale=alignment == "similarity")
     check_cancelled(cancelled)
-    t_align = time.perf_counter()
 
     mean = x.mean(axis=0)  # eq. 4
     centred = (x - mean).reshape(n, -1)  # rows: (p_i - p̄)ᵀ
@@ -502,7 +499,6 @@ def build_model(
     variances, modes, ortho_err = _modes_from_gram(centred, gram, n_norm, n_modes)
     modes = _fix_signs(modes)
     total_var = float(np.trace(gram)) / n_norm
-    t_end = time.perf_counter()
     report(progress, 1.0, f"{len(variances)} modes")
 
     all_params = {
@@ -523,8 +519,6 @@ def build_model(
         "units": "mm",
         "frame": "object frame (paper 2, 5)" + ("" if alignment == "none" else f" after {alignment} Procrustes"),
         "versions": _versions(),
-        "timings_s": {"alignment": t_align - t0, "pca": t_end - t_align, "total": t_end - t0},
-        "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     }
     if params:
         all_params.update(params)
@@ -586,17 +580,39 @@ def save_npz(model: ShapeModel, path) -> Path:
     names = np.asarray([str(s) for s in model.instance_names])
     if names.size == 0:
         names = np.zeros(0, dtype="<U1")
-    np.savez(
-        path,
-        mean=np.asarray(model.mean, dtype=float),
-        faces=np.asarray(model.faces, dtype=np.int64),
-        modes=np.asarray(model.modes, dtype=float),
-        variances=np.asarray(model.variances, dtype=float),
-        instance_names=names,
-        instance_points=np.asarray(model.instance_points, dtype=float),
-        instance_points_world=np.asarray(model.instance_points_world, dtype=float),
-        params_json=np.asarray(json.dumps(jsonable(model.params))),
-    )
+    write_npz(path, {
+        "mean": np.asarray(model.mean, dtype=float),
+        "faces": np.asarray(model.faces, dtype=np.int64),
+        "modes": np.asarray(model.modes, dtype=float),
+        "variances": np.asarray(model.variances, dtype=float),
+        "instance_names": names,
+        "instance_points": np.asarray(model.instance_points, dtype=float),
+        "instance_points_world": np.asarray(model.instance_points_world, dtype=float),
+        "params_json": np.asarray(json.dumps(jsonable(model.params), sort_keys=True)),
+    })
+    return path
+
+
+def write_npz(path, arrays: dict) -> Path:
+    """``np.savez`` with fixed member dates: the same arrays give the same bytes.
+
+    ``np.savez`` stamps every member with the current time, so two identical builds
+    would differ; here each ``<key>.npy`` member has the zip epoch (1980-01-01). The file
+    reads with ``np.load(path, allow_pickle=False)``.
+    """
+    import io
+    import zipfile
+
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
+        for key, value in arrays.items():
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, np.asanyarray(value), allow_pickle=False)
+            info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.external_attr = 0o644 << 16
+            zf.writestr(info, buf.getvalue())
+    os.replace(tmp, path)
     return path
 
 

@@ -50,6 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import __version__
 from . import params as P
 from .errors import InputError, check_cancelled
 from .instances import InstanceSpec, file_names
@@ -494,19 +495,96 @@ def peak_memory_mb() -> dict:
     }
 
 
-def _final_move(tmp: Path, out_dir: Path) -> None:
-    """Move the finished build from ``tmp`` into ``out_dir`` (entry by entry if it exists)."""
+MANIFEST = ".ssm-build.json"
+"""The list of files a build wrote into its output folder (so a rebuild knows what is its own)."""
+
+
+def _files_under(folder: Path) -> list[str]:
+    out = []
+    for dirpath, _dirs, files in os.walk(folder):
+        for f in files:
+            out.append((Path(dirpath) / f).relative_to(folder).as_posix())
+    return sorted(out)
+
+
+def _previous_outputs(out_dir: Path) -> set[str]:
+    """The files the previous build wrote into ``out_dir`` (its manifest), or none."""
+    path = out_dir / MANIFEST
+    if not path.is_file():
+        return set()
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        files = doc["files"]
+        if doc.get("tool") != "ssm-builder" or not all(isinstance(f, str) for f in files):
+            raise ValueError("not an SSM Builder manifest")
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise InputError(f"{path}: unreadable build manifest ({err}); give a new output folder") from None
+    return {f for f in files if not Path(f).is_absolute() and ".." not in Path(f).parts}
+
+
+def check_output_folder(out_dir: Path, inputs, *, force: bool = False) -> None:
+    """Refuse an output folder the build would not own, before any work.
+
+    * ``out_dir`` may not be, or contain, an input file (project, label maps, meshes,
+      landmarks): a build never writes where its inputs are;
+    * an existing ``out_dir`` holding files an earlier build did not write (no manifest
+      entry) is refused unless ``force``; even then those files are kept, never
+      overwritten or deleted.
+    """
+    for path in inputs:
+        path = Path(path).resolve()
+        if path == out_dir or out_dir in path.parents:
+            raise InputError(f"{out_dir}: the output folder holds an input of the build ({path}); choose another "
+                             "--out (a build never writes where its inputs are)")
     if not out_dir.exists():
-        os.replace(tmp, out_dir)
         return
     if not out_dir.is_dir():
         raise InputError(f"{out_dir}: output path exists and is not a folder")
-    for entry in sorted(tmp.iterdir()):
-        target = out_dir / entry.name
-        if target.is_dir() and not target.is_symlink():
-            shutil.rmtree(target)
-        os.replace(entry, target)
-    tmp.rmdir()
+    ours = _previous_outputs(out_dir) | {MANIFEST}
+    foreign = [f for f in _files_under(out_dir) if f not in ours]
+    if foreign and not force:
+        shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
+        raise InputError(f"{out_dir}: the output folder holds {len(foreign)} file(s) an SSM build did not write "
+                         f"({shown}); give a new or empty folder, or --force to write beside them (they are kept)")
+
+
+def _final_move(tmp: Path, out_dir: Path) -> None:
+    """Put the finished build in place: exactly this build's files, nothing else touched.
+
+    A new ``out_dir`` is the renamed temporary folder. In an existing one, the files of
+    the previous build (its manifest) are removed, the new ones moved in, and files the
+    build did not write stay; a new output that would replace such a file is refused.
+    """
+    new = _files_under(tmp)
+    (tmp / MANIFEST).write_text(json.dumps({"tool": "ssm-builder", "version": __version__, "files": new}, indent=1)
+                                + "\n", encoding="utf-8")
+    if not out_dir.exists():
+        os.replace(tmp, out_dir)
+        return
+    ours = _previous_outputs(out_dir)
+    clash = [f for f in new if (out_dir / f).exists() and f not in ours]
+    if clash:
+        raise InputError(f"{out_dir}: would replace {len(clash)} file(s) an SSM build did not write ({', '.join(clash[:3])}"
+                         f"{' ...' if len(clash) > 3 else ''}); they are kept: give another output folder")
+    for f in sorted(ours):
+        target = out_dir / f
+        if target.is_file() or target.is_symlink():
+            target.unlink()
+    for f in new + [MANIFEST]:
+        target = out_dir / f
+        target.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(tmp / f, target)
+    for dirpath, _dirs, _files in sorted(os.walk(out_dir), key=lambda e: -len(e[0])):  # empty folders we left
+        d = Path(dirpath)
+        if d != out_dir and not any(d.iterdir()) and any(Path(f).parent == d.relative_to(out_dir) for f in ours):
+            d.rmdir()
+    shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def write_study_files(study: Study, folder: Path, *, output: OutputParams, project_path: Path | None = None,
@@ -563,6 +641,7 @@ def build(
     log: Callable[[str], None] | None = print,
     blend: bool | None = None,
     blender_hook: Callable | None = None,
+    force: bool = False,
 ) -> BuildResult:
     """Run the whole pipeline and write the outputs into ``out_dir`` atomically.
 
@@ -592,18 +671,31 @@ def build(
         ``hook(result, tmp_dir, log) -> dict of written files``, called before the final
         move (the command line passes the Blender writer when ``bpy`` is importable; the
         core never imports ``bpy`` itself).
+    force : bool
+        Write into an existing folder that holds files an SSM build did not write (they
+        are kept; see :func:`check_output_folder`).
+
+    The output folder then holds exactly this build's files (listed in
+    ``.ssm-build.json``): outputs of an earlier build that this one does not write are
+    removed, files the build did not write are never touched.
     """
     say = log or (lambda _msg: None)
     out_dir = Path(out_dir).expanduser().resolve()
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError(f"{out_dir}: output path exists and is not a folder")
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    inputs = [project.path] + [p for i in project.instances for p in (i.volume, i.mesh, i.landmarks) if p is not None]
+    check_output_folder(out_dir, inputs, force=force)
+    try:
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise InputError(f"{out_dir}: cannot create the output folder's parent ({err.strerror})") from None
+    if not os.access(out_dir.parent, os.W_OK) or (out_dir.exists() and not os.access(out_dir, os.W_OK)):
+        raise InputError(f"{out_dir}: not writable (check the folder's permissions)")
     t_total = time.perf_counter()
     if len(project.instances) < 3:
         raise InputError(f"{project.path}: {len(project.instances)} instances; a model with its metrics (leave-one-out "
                          "generalization) needs at least 3")
     study = Study.from_project(project)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.building-", dir=out_dir.parent))
+    os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes it private; the output folder follows the umask
     try:
         run(study, jobs=jobs, progress=sub_progress(progress, 0.0, 0.95), cancelled=cancelled, log=say)
         check_cancelled(cancelled)

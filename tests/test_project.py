@@ -322,7 +322,7 @@ def test_failing_build_leaves_output_folder_untouched(demo_population, tmp_path)
     out.mkdir()
     (out / "keep.txt").write_text("earlier content")
     with pytest.raises(InputError, match="label 99 is not present"):
-        build(read_project(bad), out, log=None)
+        build(read_project(bad), out, log=None, force=True)
     assert sorted(p.name for p in out.iterdir()) == ["keep.txt"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no temporary folder left
 

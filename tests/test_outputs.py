@@ -1,0 +1,110 @@
+"""A build writes only its own files: foreign files kept, stale outputs removed, no escapes,
+identical builds give identical model files, and permissions follow the umask."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
+import pytest
+
+from ssm_addon import demo
+from ssm_addon.__main__ import main
+from ssm_addon.errors import InputError
+from ssm_addon.project import MANIFEST, build, read_project
+
+
+@pytest.fixture(scope="module")
+def quick_project(tmp_path_factory):
+    """Four demo vertebrae and a coarse, short build (seconds)."""
+    folder = tmp_path_factory.mktemp("owned")
+    path = demo.make_demo_population(folder / "population", n=4, seed=11)
+    path.write_text(path.read_text().replace("spacing = 1.0", "spacing = 1.0\nr_min_mm = 4.0\nr_max_mm = 8.0")
+                    .replace("[model]", "[model]\nspecificity_samples = 50"))
+    return path
+
+
+def _digest(folder: Path) -> dict[str, str]:
+    return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_existing_folder_with_a_foreign_file_is_refused_then_kept_with_force(quick_project, tmp_path):
+    out = tmp_path / "out"
+    (out / "coated").mkdir(parents=True)
+    (out / "notes.txt").write_text("mine")
+    (out / "coated" / "my_mesh.ply").write_text("also mine")
+    with pytest.raises(InputError, match=r"holds 2 file\(s\) an SSM build did not write .*--force"):
+        build(read_project(quick_project), out, log=None)
+    assert sorted(_digest(out)) == ["coated/my_mesh.ply", "notes.txt"]
+    build(read_project(quick_project), out, log=None, force=True)
+    assert (out / "notes.txt").read_text() == "mine" and (out / "coated" / "my_mesh.ply").read_text() == "also mine"
+    assert (out / "model.npz").is_file() and (out / MANIFEST).is_file()
+
+
+def test_rebuild_leaves_exactly_its_own_outputs_and_identical_model_bytes(quick_project, tmp_path):
+    out = tmp_path / "out"
+    build(read_project(quick_project), out, log=None)
+    first = _digest(out)
+    assert "model.h5" in first and any(k.startswith("coated/") for k in first)
+    (out / "mine.txt").write_text("a file of mine")
+    quiet = quick_project.with_name("quiet.toml")
+    quiet.write_text(quick_project.read_text().replace("[model]", "[output]\ncoated_meshes = false\nstatismo = false\n\n[model]"))
+    build(read_project(quiet), out, log=None, force=True)
+    second = _digest(out)
+    assert "model.h5" not in second and not any(k.startswith("coated/") for k in second)  # stale outputs gone
+    assert not (out / "coated").exists()
+    assert second["mine.txt"] == hashlib.sha256(b"a file of mine").hexdigest()  # foreign file untouched
+    assert second["model.npz"] == first["model.npz"]  # identical builds: identical model file
+
+
+def test_output_folder_may_not_hold_an_input(quick_project):
+    folder = quick_project.parent
+    with pytest.raises(InputError, match="holds an input of the build"):
+        build(read_project(quick_project), folder, log=None, force=True)
+    with pytest.raises(InputError, match="holds an input of the build"):
+        build(read_project(quick_project), folder.parent, log=None, force=True)
+
+
+def test_failed_build_leaves_an_earlier_output_byte_identical(quick_project, tmp_path):
+    out = tmp_path / "out"
+    build(read_project(quick_project), out, log=None)
+    before = _digest(out)
+    bad = quick_project.with_name("bad.toml")
+    bad.write_text(quick_project.read_text().replace("label = 20", "label = 99", 1))
+    with pytest.raises(InputError, match="label 99 is not present"):
+        build(read_project(bad), out, log=None)
+    assert _digest(out) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no temporary folder left
+
+
+def test_instance_names_cannot_escape_the_output_folder(quick_project, tmp_path):
+    text = quick_project.read_text()
+    first = read_project(quick_project).names[0]
+    escaping = quick_project.with_name("escape.toml")
+    escaping.write_text(text.replace(f'name = "{first}"', 'name = "../../escaped"', 1))
+    out = tmp_path / "deep" / "out"
+    build(read_project(escaping), out, log=None)
+    assert (out / "coated" / "escaped.ply").is_file()
+    assert not list(tmp_path.rglob("escaped.ply"))[1:] and not (tmp_path / "escaped.ply").exists()
+
+
+def test_output_permissions_follow_the_umask(quick_project, tmp_path):
+    old = os.umask(0o022)
+    try:
+        build(read_project(quick_project), tmp_path / "out", log=None)
+    finally:
+        os.umask(old)
+    assert (tmp_path / "out").stat().st_mode & 0o777 == 0o755
+    assert (tmp_path / "out" / "model.npz").stat().st_mode & 0o777 == 0o644
+
+
+def test_command_line_force_and_foreign_file_message(quick_project, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.me").write_text("x")
+    assert main(["build", str(quick_project), "--out", str(out), "--no-blend"]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert main(["build", str(quick_project), "--out", str(out), "--no-blend", "--force"]) == 0
+    assert (out / "keep.me").read_text() == "x"

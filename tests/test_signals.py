@@ -1,0 +1,114 @@
+"""Interrupting a headless build: SIGINT, SIGTERM and SIGHUP at any step stop it within 2 s
+with one line and exit 128 + signal, end the worker processes, remove the temporary
+folder and leave the output folder as it was; the Blender step cannot be made to crash."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from conftest import ROOT
+
+from ssm_addon import demo
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def project(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("signals")
+    path = demo.make_demo_population(folder / "population", n=8, seed=4)
+    return path
+
+
+def _children(pid: int) -> set[int]:
+    """Every descendant process of ``pid`` (from /proc)."""
+    found, todo = set(), [pid]
+    while todo:
+        p = todo.pop()
+        for task in Path(f"/proc/{p}/task").glob("*"):
+            try:
+                kids = (task / "children").read_text().split()
+            except OSError:
+                continue
+            for k in map(int, kids):
+                if k not in found:
+                    found.add(k)
+                    todo.append(k)
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def _interrupt(project: Path, out: Path, signum: int, when: str, extra=()):
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, "-u", "-m", "ssm_addon", "build", str(project), "--out", str(out),
+                             "--jobs", "2", *extra], cwd=out.parent, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    seen = []
+    deadline = time.monotonic() + 240
+    for line in proc.stdout:
+        seen.append(line)
+        if when in line:
+            break
+        assert time.monotonic() < deadline, "".join(seen[-20:])
+    else:
+        pytest.fail(f"the build ended before {when!r}:\n{''.join(seen[-20:])}{proc.stderr.read()[-2000:]}")
+    time.sleep(0.3)  # well inside the step
+    kids = _children(proc.pid)
+    t0 = time.monotonic()
+    proc.send_signal(signum)
+    proc.wait(timeout=30)
+    elapsed = time.monotonic() - t0
+    rest = proc.stdout.read()
+    err = proc.stderr.read()
+    time.sleep(0.5)
+    return proc.returncode, elapsed, err, [k for k in kids if _alive(k)], seen, rest
+
+
+@pytest.mark.parametrize(("signum", "code"), [(signal.SIGTERM, 143), (signal.SIGINT, 130), (signal.SIGHUP, 129)])
+def test_signal_during_coating_with_two_workers_stops_cleanly(project, tmp_path, signum, code):
+    out = tmp_path / "out"
+    rc, elapsed, err, alive, seen, rest = _interrupt(project, out, signum, "coating:", ("--no-blend",))
+    assert rc == code, err
+    assert elapsed < 2.0, f"took {elapsed:.2f} s"
+    assert f"interrupted by {signal.Signals(signum).name}" in err and "Traceback" not in err + rest
+    assert len(err.strip().splitlines()) == 1, err
+    assert alive == [], f"processes left: {alive}"
+    assert not out.exists()
+    assert list(tmp_path.iterdir()) == []  # no temporary folder
+
+
+def test_sigterm_leaves_an_earlier_output_as_it_was(project, tmp_path):
+    out = tmp_path / "out"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    subprocess.run([sys.executable, "-m", "ssm_addon", "build", str(project), "--out", str(out), "--no-blend"],
+                   cwd=tmp_path, env=env, check=True, capture_output=True)
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    rc, _elapsed, err, alive, _seen, _rest = _interrupt(project, out, signal.SIGTERM, "template:", ("--no-blend",))
+    assert rc == 143 and alive == [], err
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+@pytest.mark.blender
+def test_signal_during_the_blender_step_cannot_crash_it(project, tmp_path):
+    pytest.importorskip("bpy")
+    out = tmp_path / "out"
+    for signum, code in ((signal.SIGINT, 130), (signal.SIGTERM, 143)):
+        rc, elapsed, err, alive, _seen, rest = _interrupt(project, out, signum, "Blender: model.blend")
+        assert rc == code, err[-2000:]
+        assert "Segmentation fault" not in err + rest and "Traceback" not in err
+        assert elapsed < 2.0 and alive == []
+        assert not out.exists() and list(tmp_path.iterdir()) == []
