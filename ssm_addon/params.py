@@ -234,14 +234,15 @@ def convert(s: Spec, value, where: str = ""):
     raise AssertionError(s.kind)  # pragma: no cover
 
 
-def _check_number(s: Spec, v: float, what: str) -> None:
+def _check_number(s: Spec, value, what: str) -> None:
+    v = float(value)
     if not math.isfinite(v):
-        raise InputError(f"{what} must be {s.range_text()}, got {v!r}")
+        raise InputError(f"{what} must be {s.range_text()}, got {value!r}")
     lo, hi = s.minimum, s.maximum
     if lo is not None and (v <= lo if s.exclusive_minimum else v < lo):
-        raise InputError(f"{what} must be {s.range_text()}, got {v!r}")
+        raise InputError(f"{what} must be {s.range_text()}, got {value!r}")
     if hi is not None and v > hi:
-        raise InputError(f"{what} must be {s.range_text()}, got {v!r}")
+        raise InputError(f"{what} must be {s.range_text()}, got {value!r}")
 
 
 def check_value(s: Spec, value, where: str = "") -> None:
@@ -254,12 +255,12 @@ def check_value(s: Spec, value, where: str = "") -> None:
     if s.kind == "choice" and value not in s.choices:
         raise InputError(f"{what} must be {s.range_text()}, got {value!r}")
     if s.kind in ("float", "int"):
-        _check_number(s, float(value), what)
+        _check_number(s, value, what)
     if s.kind == "floats":
         if s.size is not None and len(value) != s.size:
             raise InputError(f"{what} must be {s.range_text()}, got {len(value)}: {list(value)!r}")
         for v in value:
-            _check_number(s, float(v), what)
+            _check_number(s, v, what)
 
 
 def check(params, where: str = "") -> None:

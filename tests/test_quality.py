@@ -1,0 +1,187 @@
+"""Quality gates and input sanity: each gate fires on the case it exists for, and says why."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import nibabel as nib
+import numpy as np
+import pytest
+from conftest import VERSE_FILE
+from test_model import synthetic_population
+
+from ssm_addon import demo
+from ssm_addon import quality as Q
+from ssm_addon.__main__ import main
+from ssm_addon.errors import InputError
+from ssm_addon.landmarks import LandmarkSet, read_landmarks, write_landmarks
+from ssm_addon.model import build_model
+from ssm_addon.params import CoatingParams, QualityParams
+from ssm_addon.project import build, read_project
+
+
+@pytest.fixture(scope="module")
+def population(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("gates")
+    path = demo.make_demo_population(folder / "population", n=5, seed=21)
+    path.write_text(path.read_text().replace("spacing = 1.0", "spacing = 1.0\nr_min_mm = 4.0\nr_max_mm = 8.0")
+                    .replace("[model]", "[model]\nspecificity_samples = 50"))
+    return path
+
+
+def _variant(population, tmp_path, name, edit):
+    folder = tmp_path / name
+    shutil.copytree(population.parent, folder)
+    project = folder / population.name
+    edit(project, read_project(project))
+    return project
+
+
+def _first_landmarks(project):
+    inst = read_project(project).instances[0]
+    return inst.landmarks, inst
+
+
+def test_a_landmark_file_one_metre_away_is_an_error_naming_file_and_landmark(population, tmp_path):
+    def edit(path, proj):
+        lm_path, inst = _first_landmarks(path)
+        lm = inst.landmark_set
+        write_landmarks(lm_path, LandmarkSet(lm.names, lm.points_world + [1000.0, 0, 0], "x"))
+
+    project = _variant(population, tmp_path, "offset", edit)
+    lm_path, inst = _first_landmarks(project)
+    with pytest.raises(InputError) as err:
+        build(read_project(project), tmp_path / "out", log=None)
+    msg = str(err.value)
+    assert f"instance {inst.name!r}" in msg and lm_path.name in msg and "mm from the instance's surface" in msg
+    assert "max_landmark_distance_mm" in msg and "all 13 landmarks are far" in msg
+    assert not (tmp_path / "out").exists()
+
+
+def test_another_instances_landmark_file_is_an_error(population, tmp_path):
+    def edit(path, proj):
+        a, b = proj.instances[0], proj.instances[1]
+        shutil.copy(b.landmarks, a.landmarks.with_suffix(".tmp"))
+        # instance 0 gets instance 1's landmarks (same names, another pose): the wrong file
+        write_landmarks(a.landmarks, LandmarkSet(b.landmark_set.names, b.landmark_set.points_world, "wrong"))
+
+    project = _variant(population, tmp_path, "wrong", edit)
+    with pytest.raises(InputError, match="mm from the instance's surface"):
+        build(read_project(project), tmp_path / "out", log=None)
+
+
+def test_landmarks_in_lps_declared_as_ras_get_an_error_that_says_so(tmp_path, verse_dir):
+    from ssm_addon.instances import load_object
+
+    ov = load_object(VERSE_FILE, label=20, spacing_mm=1.0)
+    lm = read_landmarks(verse_dir / "landmarks" / "L1.fcsv")  # correct: read as LPS -> RAS
+    assert Q.check_landmarks_on_surface("L1", ov, lm, QualityParams()).max() < 1.5  # surface voxel centres
+    flipped = LandmarkSet(lm.names, lm.points_world * [-1.0, -1.0, 1.0], "L1.csv")  # LPS numbers taken as RAS
+    with pytest.raises(InputError, match="look like LPS declared as RAS"):
+        Q.check_landmarks_on_surface("L1", ov, flipped, QualityParams(), source="L1.csv")
+
+
+def test_a_two_component_target_and_an_odd_volume_are_flagged(population, tmp_path):
+    def edit(path, proj):
+        inst = proj.instances[2]
+        img = nib.load(inst.volume)
+        labels = np.asarray(img.dataobj).copy()
+        other = labels == demo.NEIGHBOUR_LABEL
+        labels[other] = demo.VERTEBRA_LABEL  # the neighbouring vertebra under the same label
+        nib.save(nib.Nifti1Image(labels, img.affine), str(inst.volume))
+
+    project = _variant(population, tmp_path, "two", edit)
+    name = read_project(project).instances[2].name
+    result = build(read_project(project), tmp_path / "out", log=None)
+    gates = {(f.instance, f.gate) for f in result.study.findings}
+    assert (name, "components") in gates
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert any(f["instance"] == name and f["gate"] == "components" for f in report["quality"]["findings"])
+
+
+def test_strict_build_with_a_failing_gate_exits_3_and_writes_nothing(population, tmp_path, capsys):
+    project = population.with_name("strict.toml")
+    project.write_text(population.read_text() + "\n[quality]\nmax_surface_distance_vox = 0.0001\n")
+    out = tmp_path / "out"
+    assert main(["build", str(project), "--out", str(out), "--no-blend"]) == 0
+    stdout = capsys.readouterr().out
+    warnings = stdout[stdout.index("WARNINGS"):]
+    assert "[surface_distance]" in warnings and stdout.rstrip().endswith(warnings.rstrip())  # said last
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    assert main(["build", str(project), "--out", str(out), "--no-blend", "--strict"]) == 3
+    err = capsys.readouterr().err
+    assert "quality gate(s) failed" in err and "[surface_distance]" in err
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before
+
+
+def test_dt_beyond_the_stability_bound_is_refused_with_the_bound():
+    with pytest.raises(InputError, match=r"dt \(1\) is beyond the relaxation's stability bound.*dt < 0\.667"):
+        CoatingParams(dt=1.0)
+    assert CoatingParams(dt=0.6).dt == 0.6
+
+
+def test_intensity_image_is_refused(tmp_path):
+    from ssm_addon.imageio import read_label_map
+
+    rng = np.random.default_rng(0)
+    ct = np.clip(rng.normal(40, 300, size=(40, 40, 30)), -1024, 3071).astype(np.int16)
+    nib.save(nib.Nifti1Image(ct, np.eye(4)), str(tmp_path / "ct.nii.gz"))
+    with pytest.raises(InputError, match=r"ct\.nii\.gz: looks like an intensity image, not a label map: [\d,]+ distinct"):
+        read_label_map(tmp_path / "ct.nii.gz")
+    smooth = (rng.random((20, 20, 20)) * 3).astype(np.float32)
+    nib.save(nib.Nifti1Image(smooth, np.eye(4)), str(tmp_path / "mr.nii.gz"))
+    with pytest.raises(InputError, match="fractional values"):
+        read_label_map(tmp_path / "mr.nii.gz")
+
+
+def test_a_few_voxels_is_an_error():
+    from ssm_addon.volume import ObjectFrame, ObjectVolume
+
+    mask = np.zeros((5, 5, 5), bool)
+    mask[2, 2, 2] = True
+    ov = ObjectVolume(mask, 1.0, np.zeros(3), ObjectFrame(np.zeros(3), np.eye(3)), "one.nii.gz")
+    with pytest.raises(InputError, match="only 1 voxel"):
+        Q.check_volume("x", ov, QualityParams())
+
+
+def test_outlier_gate_flags_a_shape_far_out_and_rarely_an_ordinary_one():
+    flagged_ordinary = 0
+    trials = 20
+    for seed in range(trials):
+        shapes, *_ = synthetic_population(n=20, n_points=60, noise_mm=0.3, seed=seed)
+        model = build_model(shapes, np.zeros((0, 3), int), [f"s{i}" for i in range(20)])
+        findings, scores = Q.check_model(model, QualityParams())
+        flagged_ordinary += sum(f.gate == "outlier" for f in findings)
+        assert set(scores) == {f"s{i}" for i in range(20)}
+    # 400 ordinary shapes at the 99 % level: about 4 expected
+    assert flagged_ordinary <= 12, flagged_ordinary
+    shapes, mean, fields, lam = synthetic_population(n=20, n_points=60, noise_mm=0.3, seed=99)
+    shapes[7] = mean + 8.0 * np.sqrt(lam[0]) * fields[0]  # 8 standard deviations along the first mode
+    model = build_model(shapes, np.zeros((0, 3), int), [f"s{i}" for i in range(20)])
+    findings, scores = Q.check_model(model, QualityParams())
+    assert ("s7", "outlier") in {(f.instance, f.gate) for f in findings}
+    assert scores["s7"]["p_value"] < 1e-3
+
+
+def test_loo_scores_equal_an_explicit_leave_one_out_model():
+    shapes, *_ = synthetic_population(n=8, n_points=30, noise_mm=0.5, seed=5)
+    scores = Q.loo_outlier_scores(shapes, variance_fraction=0.95)
+    i = 3
+    rest = np.delete(shapes, i, axis=0)
+    m = build_model(rest, np.zeros((0, 3), int), [str(k) for k in range(7)])
+    k = int(scores["modes"][i])
+    b = m.project(shapes[i], k=k)
+    assert scores["mahalanobis2"][i] == pytest.approx(float(np.sum(b**2 / m.variances[:k])), rel=1e-9)
+    recon = m.generate(np.concatenate([b, np.zeros(m.n_modes - k)]))
+    rms = np.sqrt(((recon - shapes[i]) ** 2).sum() / shapes.shape[1])
+    assert scores["loo_error_mm"][i] == pytest.approx(rms, rel=1e-9)
+
+
+def test_bad_input_table_in_the_docs_lists_the_messages():
+    from conftest import ROOT
+
+    text = (ROOT / "docs" / "bad-inputs.md").read_text()
+    for needle in ("looks like an intensity image", "mm from the instance's surface", "stability bound",
+                   "did not write", "holds an input of the build", "would need about", "quality gate(s) failed"):
+        assert needle in text, needle
