@@ -59,11 +59,11 @@ def _refuse_intensities(data: np.ndarray, path) -> None:
     """Refuse images that look like intensities (CT, MR) rather than labels.
 
     Labels are few distinct whole numbers (TotalSegmentator: ~120); a CT has thousands
-    of values, an interpolated map fractional ones. Checked on at most ~2 million voxels
-    sampled evenly, so it costs well under a second on any image.
+    of values, an interpolated map fractional ones. Checked on at most ~1 million voxels
+    sampled evenly (O(n) counting), a few milliseconds on any image.
     """
     flat = data.reshape(-1)
-    sample = flat[:: max(1, flat.size // 2_000_000)]
+    sample = np.ascontiguousarray(flat[:: max(1, flat.size // 500_000)])
     if data.dtype.kind == "f":
         frac = np.abs(sample - np.rint(sample))
         bad = np.count_nonzero(frac > 1e-3)
@@ -71,11 +71,15 @@ def _refuse_intensities(data: np.ndarray, path) -> None:
             raise InputError(f"{path}: looks like an intensity image, not a label map: {100 * bad / sample.size:.1f} % "
                              f"of the voxels hold fractional values (e.g. {float(sample[np.argmax(frac)]):g}); give the "
                              "segmentation (whole-number labels, 0 = background)")
-    values = np.unique(sample)
-    if values.size > MAX_DISTINCT_LABELS:
-        raise InputError(f"{path}: looks like an intensity image, not a label map: {values.size:,} distinct values "
-                         f"from {float(values[0]):g} to {float(values[-1]):g} (a label map has a few labels, 0 = "
-                         f"background; more than {MAX_DISTINCT_LABELS} are refused); give the segmentation")
+    lo, hi = float(sample.min()), float(sample.max())
+    if hi - lo < 1 << 20:  # whole numbers in a modest range: count them in O(n)
+        distinct = int(np.count_nonzero(np.bincount((np.rint(sample) - lo).astype(np.int64))))
+    else:
+        distinct = int(np.unique(sample).size)
+    if distinct > MAX_DISTINCT_LABELS:
+        raise InputError(f"{path}: looks like an intensity image, not a label map: {distinct:,} distinct values "
+                         f"from {lo:g} to {hi:g} (a label map has a few labels, 0 = background; more than "
+                         f"{MAX_DISTINCT_LABELS} are refused); give the segmentation")
 
 
 def _as_labels(data: np.ndarray, path) -> np.ndarray:
