@@ -26,6 +26,7 @@ from ssm_addon import metrics as core_metrics
 from ssm_addon.errors import InputError
 from ssm_addon.model import ShapeModel, model_from_arrays
 from ssm_addon.params import ModelParams
+from ssm_addon.report import write_report_html
 from ssm_addon.study import make_model
 
 from . import bridge
@@ -449,14 +450,16 @@ class SSM_OT_save_model(BackgroundJob, bpy.types.Operator):
                                              progress=progress, cancelled=cancelled)
             else:
                 mets = {"compactness": core_metrics.compactness(model)}
-            return core_metrics.write_outputs(model, out_dir, metrics=mets, per_instance=per_instance, extra=extra,
-                                              plots=plots)
+            written = core_metrics.write_outputs(model, out_dir, metrics=mets, per_instance=per_instance, extra=extra,
+                                                 plots=plots)
+            written["html"] = str(write_report_html(out_dir, model, title=f"SSM Builder: {extra['model_object']}"))
+            return written
 
         return work
 
     def finish(self, context, written):
         context.scene.ssm_model.last_directory = os.path.dirname(written["npz"])
-        msg = f"saved {os.path.dirname(written['npz'])}: model.npz, model.h5, report.json"
+        msg = f"saved {os.path.dirname(written['npz'])}: model.npz, model.h5, report.json, report.html"
         if written.get("plots_skipped"):
             self.report({"WARNING"}, f"{msg}; {written['plots_skipped']}")
         else:

@@ -205,7 +205,7 @@ def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> 
     t = result.timings_s
     print("timings: " + ", ".join(f"{k} {v:.2f} s" for k, v in t.items()), flush=True)
     print(f"outputs in {result.out_dir}:")
-    for key in ("npz", "statismo", "report", "blend", "picture"):
+    for key in ("npz", "statismo", "report", "html", "blend", "picture"):
         if key in result.files:
             print(f"  {key:9s} {result.files[key]}")
     for f in result.files.get("plots", []):

@@ -59,6 +59,7 @@ from .meshutil import genus, write_ply
 from .params import CoatingParams, ModelParams, OutputParams, QualityParams, TemplateParams
 from .progress import CancelledFn, ProgressFn, report, sub_progress
 from .quality import QualityError, warnings_text
+from .report import write_report_html
 from .study import Study, run, study_parameters
 
 __all__ = ["BuildResult", "Project", "build", "read_project", "write_project"]
@@ -717,10 +718,14 @@ def build(
         files.update(write_study_files(study, tmp, output=project.output, project_path=project.path, extra=extra))
         study.timings_s["write"] = time.perf_counter() - t0 - study.timings_s.get("blender", 0.0)
         study.timings_s["total"] = time.perf_counter() - t_total
+        t_html = time.perf_counter()
         doc = json.loads((tmp / "report.json").read_text())
         doc["timings_s"] = dict(study.timings_s)
         doc["peak_memory"] = peak_memory_mb()
         (tmp / "report.json").write_text(json.dumps(doc, indent=1))
+        write_report_html(tmp, study.model, title=f"SSM Builder: {project.path.stem}")
+        files["html"] = "report.html"
+        study.timings_s["report_html"] = time.perf_counter() - t_html
         check_cancelled(cancelled)
         _final_move(tmp, out_dir)
     except BaseException:

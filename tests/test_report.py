@@ -1,0 +1,74 @@
+"""report.html: one self-contained page, checked in a real headless browser."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+from ssm_addon import demo
+from ssm_addon.project import build, read_project
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                  "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("report")
+    path = demo.make_demo_population(folder / "population", n=5, seed=8)
+    path.write_text(path.read_text().replace("spacing = 1.0", "spacing = 1.0\nr_min_mm = 4.0\nr_max_mm = 8.0")
+                    .replace("[model]", "[model]\nspecificity_samples = 50")
+                    + "\n[quality]\nmax_surface_distance_vox = 0.12\n")  # some instances fail a gate
+    result = build(read_project(path), folder / "out", log=None)
+    return folder / "out", result
+
+
+def test_report_is_one_self_contained_file(built):
+    out, result = built
+    page = (out / "report.html").read_text()
+    assert result.files["html"].endswith("report.html")
+    srcs = re.findall(r'src="([^"]*)"', page) + re.findall(r'href="([^"]*)"', page)
+    assert srcs and all(s.startswith("data:image/png;base64,") for s in srcs)  # nothing to fetch
+    assert "http://" not in page and "https://" not in page
+    names = list(result.study.names)
+    for name in names:  # a row, with its picture, per instance
+        assert f"<b>{name}</b>" in page and f'alt="{name}"' in page
+    for f in result.study.findings:
+        assert f.message.split(" (")[0][:40] in page.replace("&#x27;", "'")
+    assert page.count('<tr class="warn">') == len({f.instance for f in result.study.findings if f.instance})
+    for fig in ("paper fig. 9", "Compactness, generalization and specificity by number of modes"):
+        assert fig in page
+
+
+def _chromium(*args, timeout=120):
+    return subprocess.run([CHROMIUM, *CHROMIUM_FLAGS, *args], capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="Chromium not installed (.ci/run installs Debian's chromium)")
+def test_report_opens_in_a_headless_browser_without_errors(built, tmp_path):
+    out, result = built
+    url = (out / "report.html").as_uri()
+    dom = _chromium(f"--user-data-dir={tmp_path / 'profile'}", "--enable-logging=stderr", "--v=0",
+                    "--virtual-time-budget=5000", "--dump-dom", url)
+    assert dom.returncode == 0, dom.stderr[-2000:]
+    console = [ln for ln in dom.stderr.splitlines() if ":CONSOLE" in ln]
+    assert console == [], console  # the page logs nothing, and raises nothing
+    total = int(re.search(r'data-images="(\d+)"', dom.stdout).group(1))
+    decoded = int(re.search(r'data-images-decoded="(\d+)"', dom.stdout).group(1))
+    assert total == len(result.study.names) + 2 and decoded == total  # every picture decodes
+    shot = tmp_path / "report.png"
+    cap = _chromium(f"--user-data-dir={tmp_path / 'profile2'}", "--window-size=1200,1600",
+                    f"--screenshot={shot}", url)
+    assert cap.returncode == 0 and shot.is_file(), cap.stderr[-2000:]
+    from PIL import Image
+
+    img = np.asarray(Image.open(shot).convert("RGB")).astype(float) / 255
+    assert img.shape == (1600, 1200, 3)
+    assert img.std() > 0.05  # drawn, not blank
+    warn = np.all(np.abs(img - np.array([0xFF, 0xF1, 0xE6]) / 255) < 0.02, axis=2)
+    assert warn.sum() > 2000  # the warnings box is on the first screen
