@@ -279,7 +279,7 @@ def specificity(
     total = int(n_samples)
     # samples in blocks (bounded memory for any n_samples); the generator fills row after
     # row, so the blocks are the same numbers as one (n_samples, kmax) draw
-    block = max(1, min(total, 1 << 22 // max(n + kmax, 1)))
+    block = max(1, min(total, (1 << 22) // max(n + kmax, 1)))
     sums = np.zeros((len(ks), 3))  # per k: sum of errors, of squared errors, of RMS distances
     done = 0
     while done < total:

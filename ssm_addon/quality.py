@@ -135,6 +135,35 @@ def _surface_points_world(object_volume) -> np.ndarray:
     return object_volume.frame.to_world(object_volume.voxel_to_object(verts))
 
 
+def _near_surface_distances(object_volume, points_world: np.ndarray, limit_mm: float) -> np.ndarray:
+    """Distances (mm) of points to the mask's surface, looked up in a window of ``limit_mm``.
+
+    The surface is taken at the boundary voxels' centres less half a voxel (within a
+    voxel of the marching-cubes surface); a point with no boundary voxel within
+    ``limit_mm`` gets ``inf``. A few hundred voxels per point: milliseconds per instance.
+    """
+    ov = object_volume
+    mask = np.asarray(ov.mask, dtype=bool)
+    h = float(ov.spacing_mm)
+    ijk = ov.object_to_voxel(ov.frame.to_object(points_world))
+    w = int(np.ceil(limit_mm / h)) + 2
+    out = np.full(len(ijk), np.inf)
+    shape = np.array(mask.shape)
+    for k, c in enumerate(ijk):
+        lo = np.maximum(np.floor(c).astype(int) - w, 0)
+        hi = np.minimum(np.floor(c).astype(int) + w + 2, shape)
+        if np.any(hi <= lo):
+            continue
+        sub = mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+        pad = np.pad(sub, 1, mode="edge")
+        boundary = sub & ~(pad[:-2, 1:-1, 1:-1] & pad[2:, 1:-1, 1:-1] & pad[1:-1, :-2, 1:-1] & pad[1:-1, 2:, 1:-1]
+                           & pad[1:-1, 1:-1, :-2] & pad[1:-1, 1:-1, 2:])
+        idx = np.argwhere(boundary)
+        if len(idx):
+            out[k] = max(float(np.sqrt(((idx + lo - c) ** 2).sum(axis=1).min())) * h - 0.5 * h, 0.0)
+    return out
+
+
 def check_landmarks_on_surface(name: str, object_volume, landmarks, params: QualityParams,
                                source: str = "") -> np.ndarray:
     """Every landmark must lie within ``params.max_landmark_distance_mm`` of its instance's surface.
@@ -152,10 +181,13 @@ def check_landmarks_on_surface(name: str, object_volume, landmarks, params: Qual
 
     if landmarks is None or not len(landmarks):
         return np.zeros(0)
-    tree = cKDTree(_surface_points_world(object_volume))
     pts = np.asarray(landmarks.points_world, dtype=float)
-    d = tree.query(pts)[0]
     limit = params.max_landmark_distance_mm
+    d = _near_surface_distances(object_volume, pts, limit)
+    if float(d.max()) <= limit:
+        return d
+    tree = cKDTree(_surface_points_world(object_volume))  # the exact figures, for the message
+    d = tree.query(pts)[0]
     if float(d.max()) <= limit:
         return d
     worst = int(np.argmax(d))

@@ -39,58 +39,45 @@ def _shade(points: np.ndarray, faces: np.ndarray, colours: np.ndarray, view: np.
 
 
 def instance_thumbnails(points: np.ndarray, faces: np.ndarray, names, *, size_px: int = THUMB_PX) -> dict[str, bytes]:
-    """A small PNG of every shape (one figure, cut into tiles): ``{name: png bytes}``.
+    """A small PNG of every shape: ``{name: png bytes}`` (Pillow, painter's algorithm).
 
     Parameters
     ----------
     points : (n, N, 3) float, mm
         The coated instances in the model frame; all seen along the axis in which the
-        mean shape is thinnest (its largest silhouette).
+        mean shape is thinnest (its largest silhouette), at one scale, coloured by their
+        place on the mean shape (corresponding regions share a colour), Lambert-shaded.
     faces : (F, 3) int
     names : n names
     """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.collections import PolyCollection
-    from matplotlib.figure import Figure
-    from PIL import Image
+    from PIL import Image, ImageDraw
 
     pts = np.asarray(points, float)
-    n = len(pts)
     faces = np.asarray(faces)
-    if n == 0 or not len(faces):
+    if len(pts) == 0 or not len(faces):
         return {}
     mean = pts.mean(axis=0)
-    ext = np.ptp(mean, axis=0)
-    depth = int(np.argmin(ext))
+    depth = int(np.argmin(np.ptp(mean, axis=0)))
     sx, sy = [a for a in range(3) if a != depth]
     view = np.eye(3)[[sx, sy, depth]]
     lo, hi = mean.min(axis=0), mean.max(axis=0)
     colours = np.ones((len(mean), 4))
-    colours[:, :3] = 0.15 + 0.8 * (mean - lo) / np.where(hi > lo, hi - lo, 1.0)  # the template's place
-    cols = min(n, 8)
-    rows = -(-n // cols)
-    dpi = 100
-    fig = Figure(figsize=(cols * size_px / dpi, rows * size_px / dpi), dpi=dpi)
-    FigureCanvasAgg(fig)
+    colours[:, :3] = 0.15 + 0.8 * (mean - lo) / np.where(hi > lo, hi - lo, 1.0)
     half = 0.55 * float(np.max(np.ptp(pts.reshape(-1, 3)[:, [sx, sy]], axis=0)))
-    for i in range(n):
-        r, c = divmod(i, cols)
-        ax = fig.add_axes([c / cols, 1 - (r + 1) / rows, 1 / cols, 1 / rows])
-        ax.set_axis_off()
-        centre = pts[i].mean(axis=0)
-        polys, rgba = _shade(pts[i] - centre, faces, colours, view)
-        ax.add_collection(PolyCollection(polys, facecolors=rgba, edgecolors="none", antialiased=False))
-        ax.set_xlim(-half, half)
-        ax.set_ylim(-half, half)
-        ax.set_aspect("equal")
-    fig.canvas.draw()
-    image = np.asarray(fig.canvas.buffer_rgba())[:, :, :3]
+    ss = 2  # supersampling, for smooth edges
+    size = size_px * ss
     out = {}
     for i, name in enumerate(names):
-        r, c = divmod(i, cols)
-        tile = image[r * size_px:(r + 1) * size_px, c * size_px:(c + 1) * size_px]
+        polys, rgba = _shade(pts[i] - pts[i].mean(axis=0), faces, colours, view)
+        xy = (polys / (2 * half) + 0.5) * size
+        xy[:, :, 1] = size - xy[:, :, 1]  # screen y runs down
+        img = Image.new("RGB", (size, size), (255, 255, 255))
+        draw = ImageDraw.Draw(img)
+        fill = (np.clip(rgba[:, :3], 0, 1) * 255).astype(np.uint8)
+        for tri, col in zip(xy.tolist(), fill.tolist()):
+            draw.polygon([tuple(v) for v in tri], fill=tuple(col))
         buf = io.BytesIO()
-        Image.fromarray(np.ascontiguousarray(tile)).save(buf, format="PNG", optimize=False)
+        img.resize((size_px, size_px), Image.LANCZOS).save(buf, format="PNG")
         out[str(name)] = buf.getvalue()
     return out
 
