@@ -189,3 +189,21 @@ def test_reset_clears_the_animation_and_script_calls_use_the_panel_settings(bpy_
     settings.sample_seed = 11
     assert bpy.ops.ssm.random_shape() == {"FINISHED"}
     assert "SSM Sample 11" in bpy.data.objects
+
+
+def test_the_wrong_vertebras_landmark_file_is_refused_in_blender(bpy_clean, verse_dir):
+    bpy = bpy_clean
+    insts = {}
+    for name, file in (("L1", "L1"), ("L2", "L4")):  # L2 gets L4's landmark file
+        before = set(bpy.data.objects)
+        bpy.ops.ssm.import_segmentation(filepath=str(VERSE_FILE), label=VERSE_LABELS[name])
+        (obj,) = [o for o in bpy.data.objects if o not in before and o.ssm.role == "INSTANCE"]
+        obj.name = name
+        insts[name] = obj
+        _select(bpy, obj)
+        bpy.ops.ssm.import_landmarks(filepath=str(verse_dir / "landmarks" / f"{file}.fcsv"))
+    _select(bpy, insts["L1"])
+    assert bpy.ops.ssm.build_template() == {"FINISHED"}
+    with pytest.raises(RuntimeError, match=r"instance 'L2': landmark .* mm from the instance's surface"):
+        bpy.ops.ssm.coat_template()
+    assert not [o for o in bpy.data.objects if o.ssm.role == "COATED"]  # nothing shown as a fit
