@@ -80,7 +80,7 @@ def _parser() -> argparse.ArgumentParser:
         description="SSM Builder: point-based 3D statistical shape models from segmented volumes (headless). "
                     "Also runs as `python -m ssm_addon` and `blender -b --command ssm`.",
     )
-    sub = parser.add_subparsers(dest="command", required=True, metavar="{info,template,build,demo,params}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{info,template,build,fit,demo,params}")
 
     p = sub.add_parser("info", help="labels, voxel counts, spacing and affine of a label map")
     p.add_argument("volume", help="label map (NIfTI, NRRD, MetaImage, .npz)")
@@ -106,6 +106,24 @@ def _parser() -> argparse.ArgumentParser:
                         prefix=section)
 
     sub.add_parser("params", help="print the parameter reference (every table, key, default and range) as Markdown")
+
+    p = sub.add_parser("fit", help="fit a built model to new data: coefficients, pose, completion, outlier score")
+    p.add_argument("model", help="model.npz (ssm build) or a statismo .h5 file")
+    p.add_argument("--volume", help="label map of the target")
+    p.add_argument("--label", type=int, default=None, help="label of the target in --volume")
+    p.add_argument("--mesh", help="closed surface mesh of the target (STL/PLY/OBJ, world mm)")
+    p.add_argument("--points", help="point cloud of the target (CSV x,y,z or PLY, world mm)")
+    p.add_argument("--landmarks", help="landmarks of the target (matched by name to the model's)")
+    p.add_argument("--partial", action="store_true",
+                   help="the target covers part of the shape: predict the rest with its uncertainty")
+    p.add_argument("--free", action="store_true", help="also relax the fit freely onto the target (fitted_free.ply)")
+    p.add_argument("--project", help="fit every instance of a project file (a batch)")
+    p.add_argument("--glob", help="fit every file of a glob pattern (a batch; --label applies)")
+    p.add_argument("--jobs", type=int, default=1, help="parallel workers of a batch")
+    p.add_argument("--outlier-probability", type=float, default=0.99,
+                   help="chi-square quantile of the Mahalanobis distance above which a target is an outlier")
+    p.add_argument("--out", required=True, help="output folder")
+    P.add_arguments(p.add_argument_group("fit parameters"), P.FitParams)
 
     p = sub.add_parser("demo", help="generate the synthetic demo population and build its model")
     p.add_argument("--out", required=True, help="output folder: population in OUT/population, model in OUT/model")
@@ -219,6 +237,41 @@ def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> 
     return 0
 
 
+def cmd_fit(args) -> int:
+    from . import apply
+    from . import params as P
+
+    params = P.from_arguments(args, P.FitParams)
+    if not 0.5 < args.outlier_probability < 1.0:
+        raise InputError(f"--outlier-probability must be between 0.5 and 1, got {args.outlier_probability}")
+    out = Path(args.out)
+    if args.project or args.glob:
+        targets = apply.targets_from_project(args.project) if args.project else \
+            apply.targets_from_glob(args.glob, args.label)
+        docs = apply.fit_batch(args.model, targets, out, params=params, partial=args.partial, free=args.free,
+                               outlier_probability=args.outlier_probability, jobs=args.jobs,
+                               progress=_print_progress())
+        for d in docs:
+            flag = "  OUTLIER" if d["outlier"] else ""
+            print(f"{d['name']}: Mahalanobis {d['mahalanobis']:.2f} (p = {d['p_value']:.3g}), mean distance "
+                  f"{d['mean_distance_mm']:.2f} mm{flag}")
+        print(f"coefficients: {out / 'coefficients.csv'}")
+        return 0
+    model = apply.load_model(args.model)
+    name = Path(args.volume or args.mesh or args.points or args.landmarks or "target").name
+    t = apply.FitTarget(name=name, volume=Path(args.volume) if args.volume else None, label=args.label,
+                        mesh=Path(args.mesh) if args.mesh else None, points=Path(args.points) if args.points else None,
+                        landmarks=Path(args.landmarks) if args.landmarks else None)
+    doc = apply.fit_to_folder(model, t, out, params=params, partial=args.partial, free=args.free,
+                              outlier_probability=args.outlier_probability, model_path=str(args.model),
+                              progress=_print_progress())
+    print(f"Mahalanobis distance {doc['mahalanobis']:.2f} on {doc['n_modes']} modes (p = {doc['p_value']:.3g})"
+          f"{': an OUTLIER' if doc['outlier'] else ''}; mean distance {doc['mean_distance_mm']:.2f} mm, largest "
+          f"{doc['max_distance_mm']:.2f} mm")
+    print(f"written: {out / 'fitted.ply'}, {out / 'fit.json'}, {out / 'fit.npz'}, {out / 'fit.png'}")
+    return 0
+
+
 def cmd_build(args, writer) -> int:
     return _run_build(args.project, args.out, args.jobs, not args.no_blend, writer, args)
 
@@ -261,6 +314,8 @@ def main(argv=None, in_blender: bool = False, blend_writer=None) -> int:
             return cmd_build(args, blend_writer)
         if args.command == "demo":
             return cmd_demo(args, blend_writer)
+        if args.command == "fit":
+            return cmd_fit(args)
         if args.command == "params":
             from .params import markdown_tables
 

@@ -38,6 +38,8 @@ from .errors import InputError
 
 __all__ = [
     "CoatingParams",
+    "CorrespondenceParams",
+    "FitParams",
     "ModelParams",
     "OutputParams",
     "Spec",
@@ -632,6 +634,68 @@ class OutputParams:
 
 
 @dataclass(frozen=True)
+class FitParams:
+    """Fitting a model to new data (``ssm fit``, and the model-driven coating).
+
+    The fit minimises Σ w |T(p̄ + Q b) − y|²/σ² + η Σ b_k²/λ_k over the pose T and the
+    mode weights b (paper eq. 7 with the model's Gaussian prior).
+    """
+
+    noise_mm: float = param(1.0, unit="mm", minimum=0.0, exclusive_minimum=True, maximum=1000.0,
+                            label="Noise", help="standard deviation of the target's points around the shape: "
+                                                "larger trusts the prior more")
+    prior_weight: float = param(1.0, minimum=0.0, maximum=1e9, label="Prior weight",
+                                help="weight η of the model's Gaussian prior (1: as the model says; 0: none)")
+    n_modes: int | None = param(None, kind="int", minimum=1, maximum=100000, none_means="every mode of the model",
+                                label="Modes", help="modes used by the fit")
+    scale: bool = param(False, label="Scale", help="fit a similarity pose (with scale), not only a rigid one")
+    iterations: int = param(60, minimum=1, maximum=10000, label="Iterations", advanced=True,
+                            help="most correspondence and solve steps")
+    tolerance_mm: float = param(0.001, unit="mm", minimum=0.0, maximum=100.0, label="Tolerance", advanced=True,
+                                help="stop when the shape's points move less than this (RMS)")
+    landmark_weight: float = param(10.0, minimum=0.0, maximum=1e9, label="Landmark weight",
+                                   help="weight of one landmark against one surface correspondence")
+
+    _where = "fit parameters:"
+
+    def __post_init__(self):
+        check(self, self._where)
+
+
+CORRESPONDENCE_METHODS = ("landmarks", "model")
+
+
+@dataclass(frozen=True)
+class CorrespondenceParams:
+    """How correspondence is found; the project's ``[correspondence]`` table.
+
+    ``"landmarks"`` is the paper's single pass: the template coated onto every instance
+    by its landmarks. ``"model"`` continues with the mean shape as template (paper 3.3)
+    and refines every instance with a model built without it, fitted to its surface with
+    its landmarks as soft constraints (paper 7's bootstrap); instances without landmarks
+    start from the object frames.
+    """
+
+    method: str = param("landmarks", choices=CORRESPONDENCE_METHODS, label="Method",
+                        help="'landmarks': the paper's single pass; 'model': mean-shape template and "
+                             "model-driven refinement, landmarks optional but on the template instance")
+    iterations: int = param(3, minimum=1, maximum=100, label="Rounds",
+                            help="most refinement rounds of the 'model' method")
+    tolerance_mm: float = param(0.05, unit="mm", minimum=0.0, maximum=100.0, label="Stop below",
+                                help="stop the refinement when the mean shape moves less than this (RMS)")
+    landmark_weight: float = param(10.0, minimum=0.0, maximum=1e9, label="Landmark weight",
+                                   help="weight of a given landmark in the model fit (0: landmarks ignored)")
+    fit_noise_mm: float = param(1.0, unit="mm", minimum=0.0, exclusive_minimum=True, maximum=1000.0,
+                                label="Fit noise", advanced=True,
+                                help="noise σ of the model fit to each instance's surface")
+
+    _where = "correspondence parameters:"
+
+    def __post_init__(self):
+        check(self, self._where)
+
+
+@dataclass(frozen=True)
 class QualityParams:
     """Thresholds of the quality gates (``ssm_addon.quality``); the project's ``[quality]`` table.
 
@@ -681,8 +745,8 @@ class QualityParams:
 
 
 #: The parameter classes by project table.
-TABLES = {"template": TemplateParams, "coating": CoatingParams, "model": ModelParams, "output": OutputParams,
-          "quality": QualityParams}
+TABLES = {"template": TemplateParams, "coating": CoatingParams, "correspondence": CorrespondenceParams,
+          "model": ModelParams, "output": OutputParams, "quality": QualityParams}
 
 
 def markdown_tables() -> str:

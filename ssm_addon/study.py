@@ -40,7 +40,7 @@ from .errors import InputError, check_cancelled
 from .imageio import read_label_map
 from .instances import InstanceSpec, import_instance
 from .landmarks import LandmarkSet
-from .meshutil import genus
+from .meshutil import genus, locate_on_mesh
 from .model import ShapeModel, build_model
 from .params import CoatingParams, ModelParams, QualityParams, TemplateParams
 from .progress import CancelledFn, ProgressFn, report, sub_progress
@@ -327,10 +327,27 @@ def make_model(study: Study, *, names: Sequence[str] | None = None, progress: Pr
     except InputError:
         pass
     params = study_parameters(study, common)
+    params["landmark_locations"] = template_landmark_locations(study)
     params["fit"] = {n: {k: v for k, v in study.coatings[n].fit.to_dict().items() if k != "time_s"} for n in names}
     mp = study.model_params
     return build_model(pts, study.template.faces, names, instance_points_world=world, alignment=mp.alignment,
                        n_modes=mp.n_modes, params=params, progress=progress, cancelled=cancelled)
+
+
+def template_landmark_locations(study: Study) -> dict:
+    """The template instance's landmarks as points of the template mesh (triangle, barycentric).
+
+    With the template's connectivity they are the same points of every coated instance
+    and of the mean shape: the landmarks a model knows (``ssm fit --landmarks``) and the
+    ones written for every instance.
+    """
+    lm = study.landmarks(study.template_instance)
+    if lm is None or study.template is None:
+        return {"names": [], "triangles": [], "bary": []}
+    pts = study.frame(study.template_instance).to_object(lm.points_world)
+    loc = locate_on_mesh(study.template.points_object, study.template.faces, pts)
+    return {"names": list(lm.names), "triangles": [int(t) for t in loc.triangles],
+            "bary": [[float(x) for x in row] for row in loc.bary]}
 
 
 def evaluate_model(study: Study, *, progress: ProgressFn = None, cancelled: CancelledFn = None) -> dict:
