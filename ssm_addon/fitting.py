@@ -5,8 +5,9 @@ target (a surface, a point cloud, landmarks, or a part of any of these) alternat
 
 1. correspondences: each model point to its closest target point, and each target point
    to its closest model point (only the latter for a partial target, so the unobserved
-   part of the model is not pulled onto the observed part); model landmarks (points of
-   the mean mesh, barycentric) to the target's landmarks of the same name;
+   part of the model is not pulled onto the observed part), each observing the distance
+   along the shape's normal (point to plane); model landmarks (points of the mean mesh,
+   barycentric) to the target's landmarks of the same name (point to point);
 2. the pose T (rigid, or with scale) that best maps the current shape onto those points
    (weighted Procrustes);
 3. the coefficients b: the posterior mean of the linear Gaussian model
@@ -32,7 +33,7 @@ from scipy.spatial import cKDTree
 
 from .errors import InputError, check_cancelled
 from .landmarks import LandmarkSet
-from .meshutil import MeshLocator
+from .meshutil import MeshLocator, vertex_normals
 from .params import FitParams
 from .progress import CancelledFn, ProgressFn, report
 
@@ -150,6 +151,7 @@ class FitResult:
     iterations: int
     converged: bool
     n_modes: int
+    b_covariance: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         return {"coefficients": [float(x) for x in self.coefficients], "b_mm": [float(x) for x in self.b],
@@ -187,6 +189,45 @@ def _procrustes(src: np.ndarray, dst: np.ndarray, w: np.ndarray, scale: bool) ->
     rot = u @ corr @ vt
     s = float((sv * np.diag(corr)).sum() / max((w * (a * a).sum(axis=1)).sum(), 1e-300)) if scale else 1.0
     return Pose(rot, md - s * rot @ ms, s)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(M, 3, 3) cross-product matrices [v]× of (M, 3) vectors."""
+    z = np.zeros(len(v))
+    return np.stack([np.stack([z, -v[:, 2], v[:, 1]], 1), np.stack([v[:, 2], z, -v[:, 0]], 1),
+                     np.stack([-v[:, 1], v[:, 0], z], 1)], 1)
+
+
+def _posterior(q, shape, faces, rows_v, w, pose, lm_pairs, w_lm, sigma2, params, lam, k):
+    """Posterior covariance of b and per-point shape variance (mm², model frame), pose included.
+
+    Linearised at the fit: the parameters are b and a small rotation ω and translation τ
+    of the model frame (x_i ≈ s_i + Q_i b − [s_i]× ω + τ); the pose has a flat prior. Its
+    uncertainty matters most for a partial target, whose pose the data pins least.
+    """
+    n = len(shape)
+    jac = np.concatenate([q, -_skew(shape), np.broadcast_to(np.eye(3), (n, 3, 3))], axis=2)  # (N, 3, K+6)
+    s2 = sigma2 / pose.scale ** 2
+    m = jac.shape[2]
+    if len(rows_v):
+        ja = jac[rows_v]
+        if len(faces):
+            nrm = vertex_normals(shape, faces)[rows_v]
+            jn = np.einsum("pd,pdm->pm", nrm, ja)
+            info = np.einsum("p,pm,pl->ml", w, jn, jn)
+        else:
+            info = np.einsum("p,pdm,pdl->ml", w, ja, ja)
+    else:
+        info = np.zeros((m, m))
+    if lm_pairs is not None:
+        jl = np.einsum("lk,lkdm->ldm", lm_pairs[2], jac[lm_pairs[1]])
+        info = info + w_lm * np.einsum("idm,idl->ml", jl, jl)
+    prior = np.zeros((m, m))
+    prior[:k, :k] = params.prior_weight * np.diag(1.0 / lam)
+    prior[k:, k:] = 1e-9 * np.eye(6)  # (almost) flat: the pose is what the data says
+    cov = np.linalg.inv(info / s2 + prior)
+    per_point = np.einsum("ndm,ml,ndl->n", jac, cov, jac)
+    return cov[:k, :k], per_point
 
 
 def fit_model(model, target: Target, *, params: FitParams | None = None, pose: Pose | None = None,
@@ -272,11 +313,20 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
             wp = np.concatenate([wp, np.full(len(lm_shape), w_lm)])
         if len(src) >= 3:
             pose = _procrustes(src, dst, wp, params.scale)
-        # coefficients: the posterior of the linear model in the model frame
+        # coefficients: the posterior of the linear model in the model frame. A surface
+        # correspondence observes the distance along the shape's normal only (point to
+        # plane): where it lies along the surface is not observed, so sliding is neither
+        # penalised nor mistaken for information (calibrated posterior, no tangential bias)
         yl = pose.inverse(y) - mean[rows_v]  # (P, 3)
+        nrm = vertex_normals(shape, model.faces)[rows_v] if len(model.faces) else None
         qa = q[rows_v]  # (P, 3, K)
-        a = np.einsum("p,pdk,pdl->kl", w, qa, qa)
-        rhs = np.einsum("p,pdk,pd->k", w, qa, yl)
+        if nrm is not None:
+            qn = np.einsum("pd,pdk->pk", nrm, qa)  # (P, K): n·Q
+            a = np.einsum("p,pk,pl->kl", w, qn, qn)
+            rhs = np.einsum("p,pk,p->k", w, qn, np.einsum("pd,pd->p", nrm, yl))
+        else:
+            a = np.einsum("p,pdk,pdl->kl", w, qa, qa)
+            rhs = np.einsum("p,pdk,pd->k", w, qa, yl)
         if lm_pairs is not None:
             qlm = np.einsum("lk,lkdm->ldm", lm_pairs[2], q[lm_pairs[1]])
             mlm = np.einsum("lk,lkj->lj", lm_pairs[2], mean[lm_pairs[1]])
@@ -294,8 +344,7 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
         if move < params.tolerance_mm:
             converged = True
             break
-    cov_b = np.linalg.inv(precision) if k else np.zeros((0, 0))
-    per_point = np.einsum("ndk,kl,ndl->n", q, cov_b, q) if k else np.zeros(npts)
+    cov_b, per_point = _posterior(q, shape, model.faces, rows_v, w, pose, lm_pairs, w_lm, sigma2, params, lam, k)
     sd = pose.scale * np.sqrt(np.maximum(per_point, 0.0))
     x = pose.apply(shape)
     if target.has_surface:
@@ -317,4 +366,5 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
     d2 = float(np.sum(z * z))
     return FitResult(points=x, coefficients=z, b=b, pose=pose, posterior_sd_mm=sd, mahalanobis=math.sqrt(d2),
                      p_value=float(chdtrc(k, d2)) if k else 1.0, mean_distance_mm=mean_d, max_distance_mm=max_d,
-                     landmark_residuals_mm=residuals, iterations=it, converged=converged, n_modes=k)
+                     landmark_residuals_mm=residuals, iterations=it, converged=converged, n_modes=k,
+                     b_covariance=cov_b)

@@ -1,0 +1,207 @@
+"""Fitting a model to new data: exact recovery, completion with calibrated uncertainty,
+statismo files from another tool, leave-one-out on real vertebrae, bad input, the command."""
+
+from __future__ import annotations
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+from scipy.spatial import ConvexHull
+from test_model import random_rotation, synthetic_population
+
+from ssm_addon import apply, meshutil
+from ssm_addon.__main__ import main
+from ssm_addon.errors import InputError
+from ssm_addon.fitting import Pose, Target, fit_model
+from ssm_addon.landmarks import LandmarkSet, write_landmarks
+from ssm_addon.model import build_model, load_statismo, save_npz, save_statismo
+from ssm_addon.params import FitParams
+
+
+@pytest.fixture(scope="module")
+def model():
+    shapes, mean, _, _ = synthetic_population(n=40, n_points=500, noise_mm=0.05, seed=2)
+    stretch = np.array([3.0, 1.8, 1.0])  # an ellipsoid-like population: no rotational symmetry to slide along
+    shapes, mean = shapes * stretch, mean * stretch
+    faces = ConvexHull(mean).simplices
+    if meshutil.signed_volume(mean, faces) < 0:
+        faces = faces[:, ::-1]
+    return build_model(shapes, faces, [f"s{i}" for i in range(40)], n_modes=6)
+
+
+def _posed(model, z, seed=0, scale=1.0, rotate=True):
+    rng = np.random.default_rng(seed)
+    rot = random_rotation(rng) if rotate else np.eye(3)
+    t = rng.normal(scale=20.0, size=3)
+    shape = model.generate(np.asarray(z) * model.standard_deviations[: len(z)])
+    return scale * shape @ rot.T + t, Pose(rot, t, scale)
+
+
+def test_a_model_shape_is_fitted_back_to_its_coefficients_and_pose(model):
+    z = np.array([1.3, -0.7, 0.4, 0.2, -0.3, 0.1])
+    target, pose = _posed(model, z, seed=3)
+    start = Pose(pose.rotation @ _small_rotation(0.15), pose.translation + [3.0, -2.0, 1.0])
+    res = fit_model(model, Target.from_mesh(target, model.faces), pose=start,
+                    params=FitParams(noise_mm=1e-4, iterations=400, tolerance_mm=1e-10))
+    assert np.abs(res.coefficients - z).max() < 1e-6
+    assert np.abs(res.pose.rotation - pose.rotation).max() < 1e-6
+    assert np.abs(res.pose.translation - pose.translation).max() < 1e-5
+    assert res.mean_distance_mm < 1e-6 and res.converged
+
+
+def test_with_noise_the_coefficients_are_recovered_within_the_noise(model):
+    z = np.array([1.0, -1.0, 0.5, 0.0, 0.0, 0.0])
+    target, pose = _posed(model, z, seed=4)
+    noise = 0.2
+    noisy = target + np.random.default_rng(1).normal(scale=noise, size=target.shape)
+    res = fit_model(model, Target.from_points(noisy), pose=Pose(pose.rotation, pose.translation),
+                    params=FitParams(noise_mm=noise))
+    assert np.sqrt(((res.points - target) ** 2).sum(axis=1).mean()) < 0.5 * noise  # the fit averages the noise out
+    e = res.b - z * model.standard_deviations  # and its error is what its posterior says
+    assert e @ np.linalg.solve(res.b_covariance, e) < 22.5  # chi-square(6) 99.9 % quantile
+
+
+def _small_rotation(angle):
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+def test_completion_predicts_the_missing_part_and_its_uncertainty_is_calibrated(model):
+    within, total, errors = 0, 0, []
+    sd_rng = np.random.default_rng(11)
+    for trial in range(12):
+        z = sd_rng.standard_normal(model.n_modes)
+        shape = model.generate(z * model.standard_deviations)
+        noise = 0.05
+        seen = shape[:, 0] > np.quantile(shape[:, 0], 0.4)  # 40 % of the shape removed (one side)
+        observed = shape[seen] + sd_rng.normal(scale=noise, size=(seen.sum(), 3))
+        res = fit_model(model, Target.from_points(observed), pose=Pose(), partial=True,
+                        params=FitParams(noise_mm=noise))
+        err = np.linalg.norm(res.points - shape, axis=1)
+        missing = ~seen
+        errors.append(err[missing].mean())
+        within += int((err[missing] <= 2 * res.posterior_sd_mm[missing]).sum())
+        total += int(missing.sum())
+        assert res.posterior_sd_mm[missing].mean() > res.posterior_sd_mm[seen].mean()  # less known where unseen
+    share = within / total
+    print(f"\ncompletion: missing part mean error {np.mean(errors):.3f} mm; {100 * share:.1f} % within 2 SD")
+    assert share >= 0.90
+    assert np.mean(errors) < 0.5 * np.mean(model.standard_deviations[:2])
+
+
+def test_our_statismo_file_and_another_tools_fit_identically(model, tmp_path):
+    ours = tmp_path / "ours.h5"
+    save_statismo(model, ours)
+    other = tmp_path / "other.h5"
+    with h5py.File(other, "w") as f:  # the statismo 0.9 layout, as another tool writes it (no /ssm extras)
+        f.create_group("version")
+        f["version/majorVersion"], f["version/minorVersion"] = np.int32(0), np.int32(9)
+        f["model/mean"] = model.mean.reshape(-1).astype(np.float32)
+        f["model/pcaBasis"] = model.modes.reshape(model.n_modes, -1).T.astype(np.float32)
+        f["model/pcaVariance"] = model.variances.astype(np.float32)
+        f["model/noiseVariance"] = np.float32(0.0)
+        rep = f.create_group("representer")
+        rep.attrs["name"] = "itkStandardMeshRepresenter"
+        rep.attrs["datasetType"] = "POLYGON_MESH"
+        rep["points"] = model.mean.T.astype(np.float32)
+        rep["cells"] = np.asarray(model.faces, np.int32).T
+        f.create_group("modelinfo")["build-time"] = "2026-01-01"
+    a, b = load_statismo(ours), load_statismo(other)
+    target, pose = _posed(a, [1.0, 0.5], seed=7)
+    fits = [fit_model(m, Target.from_mesh(target, a.faces), pose=Pose(pose.rotation, pose.translation))
+            for m in (a, b)]
+    np.testing.assert_array_equal(fits[0].points, fits[1].points)
+    np.testing.assert_array_equal(fits[0].coefficients, fits[1].coefficients)
+
+
+def test_bad_inputs_are_named(model, tmp_path):
+    npz = tmp_path / "model.npz"
+    save_npz(model, npz)
+    (tmp_path / "notes.txt").write_text("not a model")
+    with pytest.raises(InputError, match=r"notes\.txt: not a model"):
+        apply.load_model(tmp_path / "notes.txt")
+    lm = LandmarkSet(("tip", "base"), np.zeros((2, 3)), "lm.csv")
+    with pytest.raises(InputError, match=r"lm\.csv: none of the landmark names \(tip, base\) is one the model knows"):
+        fit_model(model, Target.from_landmarks(lm))
+    with pytest.raises(InputError, match="nothing to fit to"):
+        apply.load_target(apply.FitTarget(name="x"), model)
+    with pytest.raises(InputError, match="no points"):
+        Target.from_points(np.zeros((0, 3)), source="empty.csv")
+
+
+@pytest.fixture(scope="module")
+def verse_models(verse_dir, tmp_path_factory):
+    """The nine VerSe vertebrae built into a model (landmarks known), for leave-one-out fits."""
+    from test_build_verse import write_verse_project
+
+    from ssm_addon.project import build, read_project
+
+    folder = tmp_path_factory.mktemp("verse_fit")
+    project = read_project(write_verse_project(folder, verse_dir))
+    result = build(project, folder / "all", log=None)
+    return project, result
+
+
+def test_leave_one_out_fit_of_a_real_vertebra(verse_models, tmp_path):
+    from ssm_addon.model import build_model
+
+    project, result = verse_models
+    study = result.study
+    left = "L3"
+    names = [n for n in study.names if n != left]
+    m8 = build_model(np.stack([study.coatings[n].points_object for n in names]), study.template.faces, names,
+                     params={**study.model.params})
+    save_npz(m8, tmp_path / "m8.npz")
+    inst = study.instance(left)
+    t = apply.FitTarget(name=left, volume=inst.volume, label=inst.label)
+    doc = apply.fit_to_folder(apply.load_model(tmp_path / "m8.npz"), t, tmp_path / "fit", free=True)
+    print(f"\nL3 from a model of the other 8: constrained fit mean {doc['mean_distance_mm']:.2f} / max "
+          f"{doc['max_distance_mm']:.2f} mm, free fit mean {doc['free']['mean_distance_mm']:.2f} / max "
+          f"{doc['free']['max_distance_mm']:.2f} mm")
+    assert doc["mean_distance_mm"] < 2.5 and doc["free"]["max_distance_mm"] < 1.0
+    assert (tmp_path / "fit" / "fitted_free.ply").is_file() and (tmp_path / "fit" / "fit.png").is_file()
+
+
+def test_fit_command_single_and_batch(model, tmp_path, capsys):
+    npz = tmp_path / "model.npz"
+    save_npz(model, npz)
+    pts, _ = _posed(model, [0.5, -0.5], seed=9, rotate=False)  # in the model's (patient-like) axes, moved
+    csv_path = tmp_path / "target.csv"
+    np.savetxt(csv_path, pts, delimiter=",")
+    assert main(["fit", str(npz), "--points", str(csv_path), "--out", str(tmp_path / "one")]) == 0
+    doc = json.loads((tmp_path / "one" / "fit.json").read_text())
+    for key in ("coefficients", "pose", "mahalanobis", "p_value", "mean_distance_mm", "max_distance_mm", "outlier"):
+        assert key in doc
+    assert doc["mean_distance_mm"] < 0.5
+    fit = np.load(tmp_path / "one" / "fit.npz", allow_pickle=False)
+    assert fit["posterior_mean"].shape == model.mean.shape and fit["posterior_sd_mm"].shape == (model.n_points,)
+    for i in range(3):
+        far = (model.generate(np.array([0, 0, 0, 0, 0, 9.0]) * model.standard_deviations[:6]) if i == 2 else
+               model.generate(np.array([0.3 * i, 0.2]) * model.standard_deviations[:2]))
+        write = tmp_path / "batch" / f"s{i}.csv"
+        write.parent.mkdir(exist_ok=True)
+        np.savetxt(write, far, delimiter=",")
+    from ssm_addon.apply import FitTarget, fit_batch
+
+    targets = [FitTarget(name=f"s{i}", points=tmp_path / "batch" / f"s{i}.csv") for i in range(3)]
+    docs = fit_batch(npz, targets, tmp_path / "batch_out", params=FitParams(noise_mm=0.1))
+    rows = (tmp_path / "batch_out" / "coefficients.csv").read_text().splitlines()
+    assert rows[0].startswith("name,z1,z2") and len(rows) == 4
+    assert [d["outlier"] for d in docs] == [False, False, True]  # 9 SD along mode 6: flagged
+
+
+def test_landmarks_alone_are_a_target(tmp_path):
+    shapes, mean, _, _ = synthetic_population(n=20, n_points=200, noise_mm=0.05, seed=4)
+    faces = ConvexHull(mean).simplices
+    names = [f"p{i}" for i in range(8)]
+    tris = list(range(0, 80, 10))
+    params = {"landmark_locations": {"names": names, "triangles": tris, "bary": [[1 / 3] * 3] * 8}}
+    m = build_model(shapes, faces, [f"s{i}" for i in range(20)], params=params)
+    truth = m.generate(np.array([1.0, -0.5]) * m.standard_deviations[:2])
+    lm_pts = truth[faces[tris]].mean(axis=1)
+    write_landmarks(tmp_path / "lm.csv", LandmarkSet(tuple(names), lm_pts, "lm"))
+    res = fit_model(m, Target.from_landmarks(LandmarkSet(tuple(names), lm_pts, "lm")),
+                    params=FitParams(noise_mm=0.05))
+    assert max(res.landmark_residuals_mm.values()) < 0.2
