@@ -16,6 +16,7 @@ MODULES = (
     "template",
     "coating",
     "model",
+    "fit",
     "project",
 )
 

@@ -210,6 +210,8 @@ SSMModelSettings = param_group(P.ModelParams, "SSMModelSettings", extra={
 })
 SSMOutputSettings = param_group(P.OutputParams, "SSMOutputSettings")
 SSMQualitySettings = param_group(P.QualityParams, "SSMQualitySettings")
+SSMFitSettings = param_group(P.FitParams, "SSMFitSettings")
+SSMCorrespondenceSettings = param_group(P.CorrespondenceParams, "SSMCorrespondenceSettings")
 
 
 def _recolour(self, context):
@@ -237,6 +239,8 @@ SCENE_GROUPS = {
     "ssm_model": (SSMModelSettings, P.ModelParams),
     "ssm_output": (SSMOutputSettings, P.OutputParams),
     "ssm_quality": (SSMQualitySettings, P.QualityParams),
+    "ssm_fit": (SSMFitSettings, P.FitParams),
+    "ssm_correspondence": (SSMCorrespondenceSettings, P.CorrespondenceParams),
 }
 
 
@@ -247,7 +251,7 @@ def scene_params(context, key: str):
 
 
 classes = (SSMObjectProperties, SSMTemplateSettings, SSMCoatingSettings, SSMModelSettings, SSMOutputSettings,
-           SSMQualitySettings, SSMStudySettings)
+           SSMQualitySettings, SSMFitSettings, SSMCorrespondenceSettings, SSMStudySettings)
 
 
 def register_properties():

@@ -92,6 +92,18 @@ def _read_points(path: Path) -> np.ndarray:
     return pts
 
 
+def pose_of_points(points: np.ndarray) -> Pose:
+    """A start pose from a point set alone: its centroid and principal axes paired with the
+    patient axes (R, A, S), as the object frame of an image (paper 2)."""
+    from .frame import frame_axes_patient
+
+    pts = np.asarray(points, float)
+    centre = pts.mean(axis=0)
+    _, vecs = np.linalg.eigh(np.cov((pts - centre).T))
+    axes, _ = frame_axes_patient(vecs)
+    return Pose(axes, centre)
+
+
 def load_target(t: FitTarget, model, *, spacing_mm: float | None = None) -> tuple[Target, Pose | None]:
     """The fitting target of some files (world mm) and a start pose from its object frame.
 
@@ -124,12 +136,7 @@ def load_target(t: FitTarget, model, *, spacing_mm: float | None = None) -> tupl
             Pose(frame.axes_world, frame.origin_world)
     if t.points is not None:
         pts = _read_points(t.points)
-        from .frame import frame_axes_patient
-
-        centre = pts.mean(axis=0)
-        _, vecs = np.linalg.eigh(np.cov((pts - centre).T))
-        axes, _ = frame_axes_patient(vecs)
-        return Target.from_points(pts, source=str(t.points), landmarks=landmarks), Pose(axes, centre)
+        return Target.from_points(pts, source=str(t.points), landmarks=landmarks), pose_of_points(pts)
     if landmarks is not None:
         return Target.from_landmarks(landmarks, source=str(t.landmarks)), None
     raise InputError(f"{t.name}: nothing to fit to: give --volume, --mesh, --points and/or --landmarks")

@@ -37,7 +37,7 @@ from .meshutil import MeshLocator, vertex_normals
 from .params import FitParams
 from .progress import CancelledFn, ProgressFn, report
 
-__all__ = ["FitResult", "Pose", "Target", "fit_model", "model_landmarks"]
+__all__ = ["FitResult", "Pose", "Target", "fit_best", "fit_model", "model_landmarks"]
 
 
 @dataclass(frozen=True)
@@ -368,3 +368,20 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
                      p_value=float(chdtrc(k, d2)) if k else 1.0, mean_distance_mm=mean_d, max_distance_mm=max_d,
                      landmark_residuals_mm=residuals, iterations=it, converged=converged, n_modes=k,
                      b_covariance=cov_b)
+
+
+def fit_best(model, target: Target, poses, *, params: FitParams | None = None, partial: bool = False,
+             progress: ProgressFn = None, cancelled: CancelledFn = None) -> FitResult:
+    """:func:`fit_model` from several start poses; the fit closest to the target wins.
+
+    For targets whose pose is not known (a mesh drawn anywhere): e.g. the target's
+    centroid with the model's axes, and its principal axes paired with the patient axes.
+    """
+    best = None
+    poses = list(poses)
+    for i, pose in enumerate(poses):
+        res = fit_model(model, target, params=params, pose=pose, partial=partial, cancelled=cancelled)
+        report(progress, (i + 1) / len(poses), f"start {i + 1} of {len(poses)}: {res.mean_distance_mm:.3f} mm")
+        if best is None or res.mean_distance_mm < best.mean_distance_mm:
+            best = res
+    return best

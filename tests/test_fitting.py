@@ -71,7 +71,7 @@ def _small_rotation(angle):
 def test_completion_predicts_the_missing_part_and_its_uncertainty_is_calibrated(model):
     within, total, errors = 0, 0, []
     sd_rng = np.random.default_rng(11)
-    for trial in range(12):
+    for _trial in range(12):
         z = sd_rng.standard_normal(model.n_modes)
         shape = model.generate(z * model.standard_deviations)
         noise = 0.05

@@ -1,0 +1,154 @@
+"""Fitting the model in Blender: ``ssm.fit_model`` on the active mesh (paper 5's model in use).
+
+The model object's shape-key values are set to the fitted coefficients (the fit seen as
+slider positions) and a mesh ``"<target> fitted"`` shows the fitted shape at the target,
+with its posterior standard deviation per vertex as the colour attribute
+``posterior_sd`` (and the float attribute ``posterior_sd_mm``). In Edit Mode only the
+selected vertices are the target: the rest of the shape is completed, its uncertainty in
+the colours. Runs the core's :func:`~ssm_addon.fitting.fit_model`; an error leaves the
+scene as it was.
+"""
+
+from __future__ import annotations
+
+import json
+
+import bpy
+import numpy as np
+from bpy.props import BoolProperty
+
+from ssm_addon.apply import pose_of_points
+from ssm_addon.errors import InputError
+from ssm_addon.fitting import Pose, Target, fit_best
+from ssm_addon.params import FitParams
+
+from . import bridge
+from .jobs import BackgroundJob
+from .model import find_model_object, mode_keys, model_from_object
+from .properties import draw_params, scene_params
+from .scene import is_instance, object_to_blender_matrix
+
+FIT_COLLECTION = "SSM Fits"
+
+
+def _target_object(context):
+    obj = context.active_object
+    if obj is None or obj.type != "MESH" or obj.ssm.role in {"MODEL", "SAMPLE", "LANDMARK"}:
+        return None
+    return obj
+
+
+def sd_colours(sd: np.ndarray) -> np.ndarray:
+    """(N, 4) RGBA from posterior standard deviations: blue (certain) to red (uncertain)."""
+    rel = (sd - sd.min()) / max(float(np.ptp(sd)), 1e-12)
+    rgba = np.ones((len(sd), 4), dtype=np.float32)
+    rgba[:, 0] = 0.15 + 0.8 * rel
+    rgba[:, 1] = 0.35 + 0.3 * (1 - np.abs(2 * rel - 1))
+    rgba[:, 2] = 0.9 - 0.75 * rel
+    return rgba
+
+
+class SSM_OT_fit_model(BackgroundJob, bpy.types.Operator):
+    """Fit the SSM model to the active mesh (its selected vertices in Edit Mode: completion); the model's sliders show the fit"""
+
+    bl_idname = "ssm.fit_model"
+    bl_label = "Fit Model"
+    bl_options = {"REGISTER", "UNDO"}
+
+    partial: BoolProperty(name="Selected vertices only", default=False, options={"SKIP_SAVE"},
+                          description="Fit to the selected vertices and complete the rest (default in Edit Mode)")
+
+    @classmethod
+    def poll(cls, context):
+        if find_model_object(context) is None:
+            cls.poll_message_set("Build (or open) a model first")
+            return False
+        if _target_object(context) is None:
+            cls.poll_message_set("Make the mesh to fit active (not the model itself)")
+            return False
+        return True
+
+    def prepare(self, context):
+        model_obj = find_model_object(context)
+        target = _target_object(context)
+        model = model_from_object(model_obj)
+        partial = self.partial or target.mode == "EDIT"
+        if target.mode == "EDIT":
+            target.update_from_editmode()
+        verts = bridge.object_world_vertices(target)
+        if partial:
+            sel = np.zeros(len(target.data.vertices), dtype=bool)
+            target.data.vertices.foreach_get("select", sel)
+            if sel.sum() < 10:
+                raise InputError(f"fit model: select at least 10 vertices of {target.name!r} to fit to "
+                                 f"({int(sel.sum())} selected)")
+            tgt = Target.from_points(verts[sel], source=target.name)
+        else:
+            tgt = Target.from_mesh(verts, bridge.mesh_triangles(target.data), source=target.name)
+        if is_instance(target):  # the training's start: the instance's object frame
+            m = object_to_blender_matrix(target)
+            starts = [Pose(m[:3, :3], m[:3, 3])]
+        else:  # a mesh anywhere: the model's axes at its centroid, or its principal axes
+            centre = verts.mean(axis=0) - model.mean.mean(axis=0)
+            starts = [Pose(np.eye(3), centre), pose_of_points(verts)]
+        params = scene_params(context, "ssm_fit")
+        self._names = (model_obj.name, target.name)
+
+        def work(progress, cancelled):
+            return fit_best(model, tgt, starts, params=params, partial=partial, progress=progress,
+                            cancelled=cancelled), model.faces
+
+        return work
+
+    def finish(self, context, outcome):
+        result, faces = outcome
+        model_obj, target = (bpy.data.objects.get(n) for n in self._names)
+        if model_obj is None or target is None:
+            self.report({"ERROR"}, "fit model: the model or the target was removed meanwhile")
+            return {"CANCELLED"}
+        for kb, z in zip(mode_keys(model_obj), result.coefficients):
+            kb.slider_min, kb.slider_max = min(-3.0, float(z) - 0.5), max(3.0, float(z) + 0.5)
+            kb.value = float(z)
+        obj = bridge.new_mesh_object(context, f"{target.name} fitted", result.points, faces,
+                                     collection_name=FIT_COLLECTION, matrix_world=np.eye(4))
+        bridge.set_vertex_colors(obj.data, sd_colours(result.posterior_sd_mm), name="posterior_sd")
+        bridge.set_point_attribute(obj.data, "posterior_sd_mm", result.posterior_sd_mm)
+        mat = bridge.color_material("SSM Posterior SD", attribute="posterior_sd")
+        if not obj.data.materials:
+            obj.data.materials.append(mat)
+        else:
+            obj.data.materials[0] = mat
+        obj.ssm.role = "SAMPLE"
+        obj["ssm_fit_json"] = json.dumps(result.to_dict())
+        self.report({"INFO"}, f"{target.name}: Mahalanobis {result.mahalanobis:.2f} on {result.n_modes} modes "
+                              f"(p = {result.p_value:.2g}), mean distance {result.mean_distance_mm:.2f} mm; posterior "
+                              f"SD up to {result.posterior_sd_mm.max():.2f} mm")
+        return {"FINISHED"}
+
+
+class SSM_PT_fit(bpy.types.Panel):
+    bl_label = "Fit"
+    bl_idname = "SSM_PT_fit"
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "SSM"
+    bl_order = 45
+    bl_options = {"DEFAULT_CLOSED"}
+
+    def draw(self, context):
+        layout = self.layout
+        target = _target_object(context)
+        layout.label(text=f"Target: {target.name}" if target else "Make a mesh active", icon="OBJECT_DATA")
+        if target is not None and target.mode == "EDIT":
+            layout.label(text="Edit Mode: the selected vertices (completion)", icon="VERTEXSEL")
+        draw_params(layout, context.scene.ssm_fit, FitParams)
+        layout.operator(SSM_OT_fit_model.bl_idname, icon="MOD_SHRINKWRAP")
+        fitted = bpy.data.objects.get(f"{target.name} fitted") if target else None
+        if fitted is not None and "ssm_fit_json" in fitted:
+            d = json.loads(fitted["ssm_fit_json"])
+            layout.label(text=f"Mahalanobis {d['mahalanobis']:.2f} (p = {d['p_value']:.2g})")
+            layout.label(text=f"mean distance {d['mean_distance_mm']:.2f} mm, SD up to "
+                              f"{d['posterior_sd_mm']['max']:.2f} mm")
+
+
+classes = (SSM_OT_fit_model, SSM_PT_fit)

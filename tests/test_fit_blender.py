@@ -1,0 +1,79 @@
+"""Fit Model in Blender: the model's sliders show the fit; Edit Mode selection completes a shape."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_model_blender import add_coated
+from test_model_blender import population as population_fixture
+
+pytestmark = pytest.mark.blender
+
+
+@pytest.fixture()
+def scene_with_model(bpy_clean):
+    bpy = bpy_clean
+    population = population_fixture.__wrapped__()
+    add_coated(bpy, population)
+    assert bpy.ops.ssm.build_model() == {"FINISHED"}
+    bpy.context.scene.ssm_fit.noise_mm = 0.05  # the targets below are exact model shapes
+    from ssm.operators import model as opmodel
+
+    model_obj = opmodel.find_model_object(bpy.context)
+    return bpy, model_obj, opmodel.model_from_object(model_obj)
+
+
+def _target(bpy, model, z):
+    from ssm.operators import bridge
+
+    shape = model.generate(np.asarray(z) * model.standard_deviations[: len(z)])
+    obj = bridge.new_mesh_object(bpy.context, "New bone", shape, model.faces, matrix_world=np.eye(4))
+    for o in bpy.context.view_layer.objects:
+        o.select_set(o == obj)
+    bpy.context.view_layer.objects.active = obj
+    return obj, shape
+
+
+def test_fit_model_sets_the_sliders_to_the_fitted_coefficients(scene_with_model):
+    bpy, model_obj, model = scene_with_model
+    z = [1.2, -0.6, 0.3]
+    target, shape = _target(bpy, model, z)
+    assert bpy.ops.ssm.fit_model() == {"FINISHED"}
+    from ssm.operators.model import mode_keys
+
+    values = [kb.value for kb in mode_keys(model_obj)[:3]]
+    np.testing.assert_allclose(values, z, atol=0.1)
+    fitted = bpy.data.objects["New bone fitted"]
+    from ssm.operators import bridge
+
+    np.testing.assert_allclose(bridge.mesh_vertices(fitted.data), shape, atol=0.3)
+    sd = bridge.get_point_attribute(fitted.data, "posterior_sd_mm")
+    assert sd is not None and len(sd) == model.n_points and "posterior_sd" in fitted.data.color_attributes
+
+
+def test_edit_mode_selection_completes_the_shape_with_its_uncertainty(scene_with_model):
+    bpy, model_obj, model = scene_with_model
+    target, shape = _target(bpy, model, [0.8, 0.4])
+    keep = shape[:, 0] > np.quantile(shape[:, 0], 0.8)  # one end: 20 % of the vertices
+    target.data.vertices.foreach_set("select", keep)
+    bpy.ops.object.mode_set(mode="EDIT")
+    assert bpy.ops.ssm.fit_model() == {"FINISHED"}
+    bpy.ops.object.mode_set(mode="OBJECT")
+    from ssm.operators import bridge
+
+    fitted = bpy.data.objects["New bone fitted"]
+    sd = bridge.get_point_attribute(fitted.data, "posterior_sd_mm")
+    assert np.all(np.isfinite(sd)) and sd.min() > 0
+    err = np.linalg.norm(bridge.mesh_vertices(fitted.data) - shape, axis=1)
+    assert err[~keep].mean() < 0.5  # the unselected 80 % predicted from one end (mm)
+
+
+def test_a_failed_fit_leaves_the_scene_as_it_was(scene_with_model):
+    bpy, model_obj, model = scene_with_model
+    target, _ = _target(bpy, model, [0.5])
+    target.data.vertices.foreach_set("select", np.zeros(len(target.data.vertices), bool))
+    target.data.vertices[0].select = True
+    names = sorted(o.name for o in bpy.data.objects)
+    with pytest.raises(RuntimeError, match="select at least 10 vertices"):
+        bpy.ops.ssm.fit_model(partial=True)
+    assert sorted(o.name for o in bpy.data.objects) == names
