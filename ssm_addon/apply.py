@@ -110,8 +110,8 @@ def load_target(t: FitTarget, model, *, spacing_mm: float | None = None) -> tupl
     A label map or mesh gets the start pose of the training (its object frame, paper 2,
     the model's frame method); a point cloud the frame of its points; landmarks alone none.
     """
-    from .frame import object_frame
     from .imageio import load_volume
+    from .instances import instance_frame
     from .meshutil import read_mesh
     from .volume import display_surface
     from .voxelize import voxelize_mesh
@@ -126,12 +126,12 @@ def load_target(t: FitTarget, model, *, spacing_mm: float | None = None) -> tupl
     if t.volume is not None:
         vol = load_volume(t.volume, t.label)
         verts, faces = display_surface(vol)
-        frame = object_frame(vol, method)
+        frame = instance_frame(vol, method)
         return Target.from_mesh(verts, faces, source=str(t.volume), landmarks=landmarks), \
             Pose(frame.axes_world, frame.origin_world)
     if t.mesh is not None:
         verts, faces = read_mesh(t.mesh)
-        frame = object_frame(voxelize_mesh(verts, faces, spacing, source=str(t.mesh)), method)
+        frame = instance_frame(voxelize_mesh(verts, faces, spacing, source=str(t.mesh)), method)
         return Target.from_mesh(verts, faces, source=str(t.mesh), landmarks=landmarks), \
             Pose(frame.axes_world, frame.origin_world)
     if t.points is not None:

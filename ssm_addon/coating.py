@@ -385,7 +385,7 @@ def _coat_job(args):
     return coat(template, src, target, dst, params=params, name=name)
 
 
-def _ignore_sigint() -> None:
+def ignore_sigint() -> None:
     """Worker initializer: Ctrl-C is for the main process, which stops the workers."""
     import signal
 
@@ -462,7 +462,7 @@ def coat_all(
     ctx = multiprocessing.get_context(start_method)
     arrays = Mesh(pts, faces)
     before = {c.pid for c in multiprocessing.active_children()}
-    pool = ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=_ignore_sigint)
+    pool = ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=ignore_sigint)
     try:
         pending = {}
         queue = list(range(n))

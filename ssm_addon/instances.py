@@ -25,7 +25,7 @@ from .resample import resample
 from .volume import LabelMap, ObjectFrame, ObjectVolume, Volume
 from .voxelize import load_mesh_volume, voxelize_mesh
 
-__all__ = ["InstanceSpec", "file_names", "import_instance", "load_object", "object_from_mesh", "object_from_volume",
+__all__ = ["InstanceSpec", "file_names", "import_instance", "instance_frame", "load_object", "object_from_mesh", "object_from_volume",
            "read_instance", "safe_file_name"]
 
 
@@ -89,6 +89,15 @@ def file_names(names) -> dict[str, str]:
     return out
 
 
+def instance_frame(volume: Volume, frame_method: str = "auto") -> ObjectFrame:
+    """The object frame (paper section 2) of an object as read (world mm).
+
+    The one place a frame is computed: the import below, and a fitting target's start
+    pose (:mod:`ssm_addon.apply`), so a new shape starts in the frame its training had.
+    """
+    return object_frame(volume, frame_method)
+
+
 def object_from_volume(volume: Volume, *, spacing_mm: float, frame_method: str = "auto",
                        frame: ObjectFrame | None = None, progress: ProgressFn = None,
                        cancelled: CancelledFn = None) -> ObjectVolume:
@@ -110,7 +119,7 @@ def object_from_volume(volume: Volume, *, spacing_mm: float, frame_method: str =
     """
     check_cancelled(cancelled)
     report(progress, 0.0, "object frame")
-    frame = object_frame(volume, frame_method) if frame is None else frame
+    frame = instance_frame(volume, frame_method) if frame is None else frame
     check_cancelled(cancelled)
     return resample(volume, frame, spacing_mm, progress=sub_progress(progress, 0.2, 1.0), cancelled=cancelled)
 

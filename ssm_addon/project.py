@@ -56,7 +56,7 @@ from .errors import InputError, check_cancelled
 from .instances import InstanceSpec, file_names
 from .landmarks import LandmarkSet, match_landmarks, read_landmarks
 from .meshutil import genus, write_ply
-from .params import CoatingParams, ModelParams, OutputParams, QualityParams, TemplateParams
+from .params import CoatingParams, CorrespondenceParams, ModelParams, OutputParams, QualityParams, TemplateParams
 from .progress import CancelledFn, ProgressFn, report, sub_progress
 from .quality import QualityError, warnings_text
 from .report import write_report_html
@@ -103,6 +103,7 @@ class Project:
     model: ModelParams = field(default_factory=ModelParams)
     output: OutputParams = field(default_factory=OutputParams)
     quality: QualityParams = field(default_factory=QualityParams)
+    correspondence: CorrespondenceParams = field(default_factory=CorrespondenceParams)
     landmark_names: tuple[str, ...] = ()
 
     @property
@@ -226,7 +227,7 @@ def _params(cls, doc: dict, section: str, ctx: _Context, extra=()):
     return P.from_table(cls, values, where=f"{ctx.at(ctx.lines.table(section))}: [{section}]", lines=lines)
 
 
-def _instances(doc: dict, ctx: _Context, base: Path) -> list[InstanceSpec]:
+def _instances(doc: dict, ctx: _Context, base: Path, landmarks_required: bool = True) -> list[InstanceSpec]:
     raw = doc.get("instances")
     if raw is None or (isinstance(raw, list) and not raw):
         raise ctx.error("no [[instances]]: a project needs at least two instances, each with name, volume (or mesh) "
@@ -263,8 +264,9 @@ def _instances(doc: dict, ctx: _Context, base: Path) -> list[InstanceSpec]:
         if has_volume == has_mesh:
             problem = "both volume and mesh" if has_volume else "neither volume nor mesh"
             raise ctx.error(f"{what}: give exactly one of 'volume' (label map) or 'mesh', got {problem}", head)
-        if "landmarks" not in table:
-            raise ctx.error(f"{what}: missing key 'landmarks' (a .fcsv, .mrk.json, .csv or .json file)", head)
+        if "landmarks" not in table and landmarks_required:
+            raise ctx.error(f"{what}: missing key 'landmarks' (a .fcsv, .mrk.json, .csv or .json file; optional "
+                            "with [correspondence] method = \"model\")", head)
         if has_mesh and "label" in table:
             raise ctx.error(f"{what}: 'label' applies to volumes, not meshes", ctx.lines.key(*where, "label"))
         if has_volume and "mesh_spacing" in table:
@@ -276,12 +278,14 @@ def _instances(doc: dict, ctx: _Context, base: Path) -> list[InstanceSpec]:
                             ctx.lines.key(*where, "mesh_spacing"))
         volume = _existing_file(table["volume"], "volume", what, ctx, where, base) if has_volume else None
         mesh = _existing_file(table["mesh"], "mesh", what, ctx, where, base) if has_mesh else None
-        lm_path = _existing_file(table["landmarks"], "landmarks", what, ctx, where, base)
-        try:
-            lms = read_landmarks(lm_path)
-        except InputError as err:
-            raise ctx.error(f"{what}: {err}", ctx.lines.key(*where, "landmarks")) from None
-        lms = LandmarkSet(lms.names, lms.points_world, source=f"instance {name!r} ({lm_path.name})")
+        lm_path, lms = None, None
+        if "landmarks" in table:
+            lm_path = _existing_file(table["landmarks"], "landmarks", what, ctx, where, base)
+            try:
+                lms = read_landmarks(lm_path)
+            except InputError as err:
+                raise ctx.error(f"{what}: {err}", ctx.lines.key(*where, "landmarks")) from None
+            lms = LandmarkSet(lms.names, lms.points_world, source=f"instance {name!r} ({lm_path.name})")
         out.append(InstanceSpec(name=name, landmarks=lm_path, volume=volume, label=table.get("label"), mesh=mesh,
                                 mesh_spacing=mesh_spacing, landmark_set=lms))
     return out
@@ -335,19 +339,25 @@ def read_project(path) -> Project:
     model = _params(ModelParams, doc, "model", ctx)
     output = _params(OutputParams, doc, "output", ctx)
     quality = _params(QualityParams, doc, "quality", ctx)
+    correspondence = _params(CorrespondenceParams, doc, "correspondence", ctx)
 
-    instances = _instances(doc, ctx, path.parent)
+    instances = _instances(doc, ctx, path.parent, landmarks_required=correspondence.method == "landmarks")
     if len(instances) < 2:
         raise ctx.error(f"only one instance ({instances[0].name!r}): a shape model needs at least two",
                         ctx.lines.table("instances", 0))
+    marked = [inst for inst in instances if inst.landmark_set is not None]
+    if not marked:
+        raise ctx.error("no instance has landmarks: the template instance needs them (they name the places "
+                        "written for every instance)")
     try:
-        matched = match_landmarks([inst.landmark_set for inst in instances])
+        matched = match_landmarks([inst.landmark_set for inst in marked])
     except InputError as err:
-        raise ctx.error(f"landmark names differ between instances (reference: instance {instances[0].name!r}): "
+        raise ctx.error(f"landmark names differ between instances (reference: instance {marked[0].name!r}): "
                         f"{err}") from None
     if len(matched[0]) < 4:
         raise ctx.error(f"{len(matched[0])} landmarks: the landmark warp (eq. 2) needs at least 4 per instance")
-    instances = [dataclasses.replace(inst, landmark_set=lm) for inst, lm in zip(instances, matched)]
+    by_name = {inst.name: lm for inst, lm in zip(marked, matched)}
+    instances = [dataclasses.replace(inst, landmark_set=by_name.get(inst.name)) for inst in instances]
 
     names = [i.name for i in instances]
     try:
@@ -362,9 +372,13 @@ def read_project(path) -> Project:
         close = difflib.get_close_matches(template_instance, names, n=1)
         hint = f" (did you mean {close[0]!r}?)" if close else ""
         raise ctx.error(f"[template] instance {template_instance!r} is not an instance name{hint}", line)
+    if by_name.get(template_instance) is None:
+        raise ctx.error(f"[template] instance {template_instance!r} has no landmarks; the template instance needs "
+                        "them", line)
 
     return Project(path=path, instances=tuple(instances), template_instance=template_instance, template=template,
-                   coating=coating, model=model, output=output, quality=quality, landmark_names=matched[0].names)
+                   coating=coating, model=model, output=output, quality=quality, correspondence=correspondence,
+                   landmark_names=matched[0].names)
 
 
 # --------------------------------------------------------------------------------------
@@ -399,7 +413,8 @@ def project_text(project: Project, base: Path) -> str:
     lines = ["# SSM Builder project (paths relative to this file)", "", "[template]",
              f"instance = {toml_value(project.template_instance)}"]
     for section, params in (("template", project.template), ("coating", project.coating),
-                            ("model", project.model), ("output", project.output), ("quality", project.quality)):
+                            ("correspondence", project.correspondence), ("model", project.model),
+                            ("output", project.output), ("quality", project.quality)):
         if section != "template":
             lines += ["", f"[{section}]"]
         lines += [f"{k} = {toml_value(v)}" for k, v in P.to_table(params).items()]

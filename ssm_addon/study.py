@@ -42,7 +42,7 @@ from .instances import InstanceSpec, import_instance
 from .landmarks import LandmarkSet
 from .meshutil import genus, locate_on_mesh
 from .model import ShapeModel, build_model
-from .params import CoatingParams, ModelParams, QualityParams, TemplateParams
+from .params import CoatingParams, CorrespondenceParams, ModelParams, QualityParams, TemplateParams
 from .progress import CancelledFn, ProgressFn, report, sub_progress
 from .quality import check_coating, check_landmarks_on_surface, check_model, check_volume, check_volumes_together
 from .template import Template, build_template
@@ -102,6 +102,7 @@ class Study:
     coating_params: CoatingParams = field(default_factory=CoatingParams)
     model_params: ModelParams = field(default_factory=ModelParams)
     quality_params: QualityParams = field(default_factory=QualityParams)
+    correspondence_params: CorrespondenceParams = field(default_factory=CorrespondenceParams)
     volumes: dict[str, ObjectVolume] = field(default_factory=dict)
     frames: dict[str, ObjectFrame] = field(default_factory=dict)
     template: Template | None = None
@@ -110,6 +111,8 @@ class Study:
     metrics: dict | None = None
     findings: list = field(default_factory=list)
     outlier_scores: dict = field(default_factory=dict)
+    coating_start: dict = field(default_factory=dict)
+    correspondence_rounds: list = field(default_factory=list)
     timings_s: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self):
@@ -128,7 +131,7 @@ class Study:
         """The study of a parsed project file (:func:`ssm_addon.project.read_project`)."""
         return cls(instances=project.instances, template_instance=project.template_instance,
                    template_params=project.template, coating_params=project.coating, model_params=project.model,
-                   quality_params=project.quality)
+                   quality_params=project.quality, correspondence_params=project.correspondence)
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -236,9 +239,13 @@ def make_template(study: Study, *, progress: ProgressFn = None, cancelled: Cance
     """The template (paper 3) from the study's template instance."""
     name = study.template_instance
     try:
-        return build_template(study.volume(name), study.template_params, progress=progress, cancelled=cancelled)
+        template = build_template(study.volume(name), study.template_params, progress=progress, cancelled=cancelled)
     except InputError as err:
         raise InputError(f"template from instance {name!r}: {err}") from None
+    study_with = Study(instances=study.instances, template_instance=name, template=template, frames={
+        name: study.frame(name)})
+    template.params["landmark_locations"] = template_landmark_locations(study_with)
+    return template
 
 
 def common_landmark_names(study: Study, names: Sequence[str]) -> tuple[str, ...]:
@@ -301,6 +308,39 @@ def coat_instances(study: Study, *, names: Sequence[str] | None = None, jobs: in
     return dict(zip(names, results))
 
 
+def _coat_from_frames_job(args):
+    from .coating import coat_from_start
+
+    template, target, params, name = args
+    return coat_from_start(template, target, params=params, name=name)
+
+
+def coat_from_frames(study: Study, names: Sequence[str], *, jobs: int = 1, cancelled: CancelledFn = None
+                     ) -> dict[str, CoatingResult]:
+    """Coat the template onto instances from the object frames alone (no landmarks; paper 2's
+    alignment, then the coating's registration, projection and relaxation)."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    from .meshutil import Mesh
+
+    mesh = Mesh(study.template.points_object, study.template.faces)
+    args = [(mesh, study.volume(n), study.coating_params, n) for n in names]
+    if jobs > 1 and len(args) > 1:
+        import multiprocessing
+
+        from .coating import ignore_sigint
+
+        with ProcessPoolExecutor(max_workers=min(jobs, len(args)), mp_context=multiprocessing.get_context("spawn"),
+                                 initializer=ignore_sigint) as pool:
+            results = list(pool.map(_coat_from_frames_job, args))
+    else:
+        results = []
+        for a in args:
+            check_cancelled(cancelled)
+            results.append(_coat_from_frames_job(a))
+    return dict(zip(names, results))
+
+
 def make_model(study: Study, *, names: Sequence[str] | None = None, progress: ProgressFn = None,
                cancelled: CancelledFn = None) -> ShapeModel:
     """PCA of the coated instances (paper 5, eqs. 4–6), in study order.
@@ -339,8 +379,11 @@ def template_landmark_locations(study: Study) -> dict:
 
     With the template's connectivity they are the same points of every coated instance
     and of the mean shape: the landmarks a model knows (``ssm fit --landmarks``) and the
-    ones written for every instance.
+    ones written for every instance. Located once, on the template built from the
+    template instance (kept in ``template.params`` when the mean shape takes its place).
     """
+    if study.template is not None and "landmark_locations" in (study.template.params or {}):
+        return study.template.params["landmark_locations"]
     lm = study.landmarks(study.template_instance)
     if lm is None or study.template is None:
         return {"names": [], "triangles": [], "bary": []}
@@ -402,7 +445,31 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
             if message.startswith("coated "):
                 report(coat_prog, fraction, message)
 
-        coated = coat_instances(study, jobs=jobs, progress=coat_progress if progress else None, cancelled=cancelled)
+        cp = study.correspondence_params
+        if cp.method == "landmarks":
+            coated = coat_instances(study, jobs=jobs, progress=coat_progress if progress else None,
+                                    cancelled=cancelled)
+            study.coating_start.update({name: "landmarks" for name in coated})
+        else:
+            with_lm = [name for name in study.names if study.landmarks(name) is not None]
+            if study.template_instance not in with_lm:
+                raise InputError(f"[correspondence] method = \"model\": the template instance "
+                                 f"{study.template_instance!r} needs landmarks (they name the places every other "
+                                 "instance's landmarks are written for)")
+            others = [name for name in study.names if name not in with_lm]
+            coated = coat_instances(study, names=with_lm, jobs=jobs, cancelled=cancelled) if len(with_lm) > 1 else {}
+            coated.update(coat_from_frames(study, [nm for nm in with_lm if nm not in coated] + others, jobs=jobs,
+                                           cancelled=cancelled))
+            study.coating_start.update({name: "landmarks" if name in with_lm and len(with_lm) > 1 else
+                                        "object frames" for name in coated})
+            say(f"coating: {len(with_lm)} by landmarks, {len(coated) - len(with_lm) if len(with_lm) > 1 else len(coated)}"
+                " from the object frames; refining with the model")
+            study.coatings.update(coated)
+            from .correspondence import refine_rounds
+
+            study.correspondence_rounds = refine_rounds(study, cp, jobs=jobs, progress=coat_prog,
+                                                        cancelled=cancelled, log=say)
+            coated = {name: study.coatings[name] for name in study.names}
         study.coatings.update(coated)
         _add_findings(study, [f for n, c in coated.items() for f in check_coating(n, c.fit, study.quality_params)], say)
         study.timings_s["coating"] = time.perf_counter() - t0

@@ -1,0 +1,205 @@
+"""Model-guided correspondence: the mean shape as template, coating driven by the model.
+
+The paper's single pass coats one instance's template onto every other by landmarks
+(paper 4). Its section 3.3 proposes a second pass with the mean shape as template, and
+section 7 a bootstrap in which a preliminary model replaces the landmarks. This module
+does both (``[correspondence] method = "model"``):
+
+1. **Start**: instances with landmarks are coated by them (paper 4); instances without
+   start from the object frames alone (paper 2 aligns them roughly).
+2. **Rounds**, each: the model of the current coatings; the **mean shape becomes the
+   template** (same triangles); every instance is **fitted by the model built without it**
+   (leave-one-out, so an instance never fits itself) — pose and coefficients under the
+   model's prior, against its surface, its landmarks as soft constraints of weight
+   ``landmark_weight`` — and that fit is relaxed onto its surface (registration,
+   projection, relaxation of paper 4.2). The rounds stop when the mean shape moves less
+   than ``tolerance_mm`` (RMS) or after ``iterations``.
+
+The per-instance step (:func:`refine_instance`) is a pure function of arrays, so rounds
+run in processes. Frames: each instance's object frame (paper 2), which the model frame
+(paper 5, alignment none) shares; the fits start at the identity pose.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .coating import CoatingResult, coat_from_start
+from .errors import InputError, check_cancelled
+from .fitting import Pose, Target, fit_model
+from .meshutil import Mesh, marching_cubes
+from .model import build_model
+from .params import CoatingParams, CorrespondenceParams, FitParams
+from .progress import CancelledFn, ProgressFn, report
+
+__all__ = ["RoundFigures", "refine_instance", "refine_rounds"]
+
+
+@dataclass(frozen=True)
+class RoundFigures:
+    """What one refinement round did.
+
+    Attributes
+    ----------
+    round : int
+    mean_change_mm : float
+        RMS movement of the mean shape's points against the previous round.
+    instance_change_mm : dict name -> mm
+        RMS movement of each instance's coated points.
+    fit_distance_mm : dict name -> mm
+        Mean surface distance of each instance's model fit (before its relaxation).
+    folds : dict name -> int
+        Folded triangles left after the relaxation.
+    seconds : float
+    """
+
+    round: int
+    mean_change_mm: float
+    instance_change_mm: dict = field(default_factory=dict)
+    fit_distance_mm: dict = field(default_factory=dict)
+    folds: dict = field(default_factory=dict)
+    seconds: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {"round": self.round, "mean_change_mm": self.mean_change_mm,
+                "instance_change_mm": self.instance_change_mm, "fit_distance_mm": self.fit_distance_mm,
+                "folds": self.folds, "seconds": self.seconds}
+
+
+def refine_instance(others: np.ndarray, faces: np.ndarray, template_points: np.ndarray, target,
+                    landmark_locations: dict, landmarks_object: dict, *, fit: FitParams,
+                    coating: CoatingParams, name: str = "") -> tuple[CoatingResult, float]:
+    """One instance in one round: fit the model of ``others`` to it, relax the fit onto it.
+
+    Parameters
+    ----------
+    others : (n-1, N, 3) mm
+        The other instances' coated points (their object frames = the model frame).
+    faces : (F, 3)
+    template_points : (N, 3) mm
+        The current template (the mean shape), for the relaxation's rest shape.
+    target : ObjectVolume
+        The instance.
+    landmark_locations : {"names", "triangles", "bary"}
+        The template's landmarks as points of the mesh.
+    landmarks_object : dict name -> (3,) mm
+        The instance's landmarks in its object frame (soft constraints; may be empty).
+
+    Returns
+    -------
+    (CoatingResult, mean surface distance of the model fit in mm)
+    """
+    from .landmarks import LandmarkSet
+
+    model = build_model(others, faces, [str(i) for i in range(len(others))],
+                        params={"landmark_locations": landmark_locations})
+    verts, tris = marching_cubes(target.mask)
+    names = [n for n in landmark_locations.get("names", ()) if n in landmarks_object]
+    lms = LandmarkSet(tuple(names), np.array([landmarks_object[n] for n in names]).reshape(-1, 3), name) \
+        if names and fit.landmark_weight > 0 else None
+    result = fit_model(model, Target.from_mesh(target.voxel_to_object(verts), tris, landmarks=lms), params=fit,
+                       pose=Pose())
+    coated = coat_from_start(Mesh(template_points, faces), target, start=result.points, params=coating,
+                             start_label="model fit", name=name)
+    return coated, float(result.mean_distance_mm)
+
+
+def _refine_job(args):
+    return refine_instance(*args[:6], fit=args[6], coating=args[7], name=args[8])
+
+
+def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progress: ProgressFn = None,
+                  cancelled: CancelledFn = None, log=None) -> list[RoundFigures]:
+    """Refinement rounds on a coated study (every instance coated): updates ``study.template``
+    (the mean shape, in the model frame) and ``study.coatings``; returns each round's figures.
+
+    Raises
+    ------
+    InputError
+        Fewer than 3 coated instances, or a round whose mean shape moves more than the
+        instances' size (the refinement diverged; nothing is kept).
+    """
+    say = log or (lambda _m: None)
+    names = list(study.names)
+    if len(names) < 3:
+        raise InputError(f"model-guided correspondence needs at least 3 instances, the study has {len(names)}")
+    missing = [n for n in names if n not in study.coatings]
+    if missing:
+        raise InputError(f"model-guided correspondence: instance(s) not coated yet: {', '.join(missing)}")
+    faces = np.asarray(study.template.faces)
+    # the template's landmarks as mesh points, located at make_template (study.py)
+    locations = (study.template.params or {}).get("landmark_locations") or {"names": [], "triangles": [], "bary": []}
+    fit = FitParams(noise_mm=params.fit_noise_mm, landmark_weight=params.landmark_weight)
+    lm_object = {}
+    for n in names:
+        lm = study.landmarks(n)
+        lm_object[n] = {} if lm is None else dict(zip(lm.names, study.frame(n).to_object(lm.points_world)))
+    rounds: list[RoundFigures] = []
+    prev_mean = np.mean([study.coatings[n].points_object for n in names], axis=0)
+    size = float(np.linalg.norm(np.ptp(prev_mean, axis=0)))
+    workers = max(1, min(int(jobs or 1), len(names), os.cpu_count() or 1))
+    for r in range(1, params.iterations + 1):
+        check_cancelled(cancelled)
+        t0 = time.perf_counter()
+        points = np.stack([study.coatings[n].points_object for n in names])
+        mean = points.mean(axis=0)  # the mean shape: the new template (paper 3.3)
+        args = [(np.delete(points, i, axis=0), faces, mean, study.volume(n), locations, lm_object[n], fit,
+                 study.coating_params, n) for i, n in enumerate(names)]
+        results: list = [None] * len(names)
+        if workers > 1:
+            import multiprocessing
+
+            from .coating import ignore_sigint
+
+            with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                                     initializer=ignore_sigint) as pool:
+                for i, res in enumerate(pool.map(_refine_job, args)):
+                    results[i] = res
+                    report(progress, (r - 1 + (i + 1) / len(names)) / params.iterations,
+                           f"round {r}: refined {names[i]} ({i + 1}/{len(names)})")
+                    check_cancelled(cancelled)
+        else:
+            for i, a in enumerate(args):
+                check_cancelled(cancelled)
+                results[i] = _refine_job(a)
+                report(progress, (r - 1 + (i + 1) / len(names)) / params.iterations,
+                       f"round {r}: refined {names[i]} ({i + 1}/{len(names)})")
+        new_points = np.stack([c.points_object for c, _ in results])
+        new_mean = new_points.mean(axis=0)
+        change = float(np.sqrt(((new_mean - prev_mean) ** 2).sum(axis=1).mean()))
+        if not math.isfinite(change) or change > size:
+            raise InputError(f"model-guided correspondence diverged in round {r}: the mean shape moved {change:.1f} mm "
+                             f"(the shapes are {size:.0f} mm across); check the instances' frames and landmarks")
+        fig = RoundFigures(
+            round=r, mean_change_mm=change,
+            instance_change_mm={n: float(np.sqrt(((new_points[i] - points[i]) ** 2).sum(axis=1).mean()))
+                                for i, n in enumerate(names)},
+            fit_distance_mm={n: d for n, (_, d) in zip(names, results)},
+            folds={n: int(c.fit.folded_after) for n, (c, _) in zip(names, results)},
+            seconds=time.perf_counter() - t0)
+        rounds.append(fig)
+        for n, (c, _) in zip(names, results):
+            study.coatings[n] = c
+        study.template = _mean_template(study, mean, faces)
+        say(f"correspondence round {r}: mean shape moved {change:.3f} mm; instances moved up to "
+            f"{max(fig.instance_change_mm.values()):.2f} mm; folds left {sum(fig.folds.values())} "
+            f"({fig.seconds:.1f} s)")
+        prev_mean = new_mean
+        if change < params.tolerance_mm:
+            break
+    return rounds
+
+
+def _mean_template(study, mean_points: np.ndarray, faces: np.ndarray):
+    """The mean shape as the study's template (model frame; curvature and frame kept)."""
+    from dataclasses import replace
+
+    t = study.template
+    return replace(t, points_object=np.asarray(mean_points, float), faces=faces,
+                   params={**t.params, "mean_shape_template": True})

@@ -1,0 +1,80 @@
+"""Evaluation of ``ssm fit`` on real and demo data: leave-one-out fits and completion.
+
+Usage: ``.venv/bin/python tools/eval_fit.py``
+
+For VerSe (the nine vertebrae of sub-verse004, when ``../shared/data`` is present) and
+the 24-instance demo: every instance fitted by a model of the others (built from the
+study's coatings), its surface distance for the model-constrained fit and for the free
+fit (the coating's relaxation from it); and completion: the instance with one side
+(x > median, 40–50 %) removed, the predicted missing part's distance to the real surface
+and the share of its points within 2 posterior standard deviations of it.
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
+
+from ssm_addon import demo  # noqa: E402
+from ssm_addon.coating import coat_from_start  # noqa: E402
+from ssm_addon.distance_map import DistanceMap  # noqa: E402
+from ssm_addon.fitting import Pose, Target, fit_model  # noqa: E402
+from ssm_addon.meshutil import Mesh, marching_cubes  # noqa: E402
+from ssm_addon.model import build_model  # noqa: E402
+from ssm_addon.params import FitParams  # noqa: E402
+from ssm_addon.project import build, read_project  # noqa: E402
+
+
+def evaluate(label: str, project_path: Path, out: Path) -> None:
+    result = build(read_project(project_path), out, jobs=2, log=None)
+    s = result.study
+    print(f"\n{label}: {len(s.names)} instances, template {len(s.template.points_object)} points")
+    print(f"  {'instance':10s} {'fit mean/max (mm)':>18s} {'free mean/max (mm)':>19s} {'Mahal.':>7s} "
+          f"{'completion: missing mean/max (mm), within 2 SD':>48s}")
+    rows = []
+    for left in s.names:
+        names = [n for n in s.names if n != left]
+        m = build_model(np.stack([s.coatings[n].points_object for n in names]), s.template.faces, names)
+        ov = s.volume(left)
+        verts, faces = marching_cubes(ov.mask)
+        surf = ov.voxel_to_object(verts)
+        dm = DistanceMap.from_object_volume(ov)
+        res = fit_model(m, Target.from_mesh(surf, faces), pose=Pose())  # object frame = model frame
+        fit_d = dm.surface_distance(res.points)
+        free = coat_from_start(Mesh(res.points, s.template.faces), ov, start=res.points, distance_map=dm)
+        free_d = dm.surface_distance(free.points_object)
+        seen = surf[:, 0] <= np.median(surf[:, 0])
+        part = fit_model(m, Target.from_points(surf[seen]), pose=Pose(), partial=True,
+                         params=FitParams(noise_mm=0.5))
+        missing = part.points[:, 0] > np.median(surf[:, 0])
+        miss_d = dm.surface_distance(part.points[missing])
+        within = float((miss_d <= 2 * part.posterior_sd_mm[missing]).mean())
+        rows.append((fit_d.mean(), free_d.mean(), miss_d.mean(), within))
+        print(f"  {left:10s} {fit_d.mean():8.2f} / {fit_d.max():6.2f} {free_d.mean():9.3f} / {free_d.max():6.3f} "
+              f"{res.mahalanobis:7.2f} {miss_d.mean():12.2f} / {miss_d.max():6.2f}, {100 * within:5.1f} %")
+    a = np.array(rows)
+    print(f"  mean: fit {a[:, 0].mean():.2f} mm, free {a[:, 1].mean():.3f} mm, completion missing part "
+          f"{a[:, 2].mean():.2f} mm, {100 * a[:, 3].mean():.1f} % within 2 SD")
+
+
+def main() -> None:
+    from conftest import VERSE_DIR
+
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        if VERSE_DIR.exists():
+            from test_build_verse import write_verse_project
+
+            evaluate("VerSe sub-verse004 (T9-L5)", write_verse_project(tmp, VERSE_DIR), tmp / "verse")
+        evaluate("demo (24)", demo.make_demo_population(tmp / "demo", n=24, seed=0), tmp / "demo_out")
+
+
+if __name__ == "__main__":
+    main()
