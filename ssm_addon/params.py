@@ -621,6 +621,9 @@ class OutputParams:
     """What a build writes besides ``model.npz`` and ``report.json``; the ``[output]`` table."""
 
     coated_meshes: bool = param(True, label="Coated meshes", help="write coated/<name>.ply per instance")
+    landmarks: bool = param(True, label="Carried landmarks",
+                            help="write landmarks/<name>.<ext> per instance: the template instance's landmarks "
+                                 "where the coating carried them (for review and correction)")
     statismo: bool = param(True, label="Statismo file", help="write model.h5 (statismo 0.9 layout)")
     blend: bool = param(True, label="Blender file", help="write model.blend when bpy is available")
     picture: bool = param(True, label="Mode picture", help="write modes.png (paper fig. 10) when bpy is available")

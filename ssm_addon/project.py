@@ -54,13 +54,13 @@ from . import __version__
 from . import params as P
 from .errors import InputError, check_cancelled
 from .instances import InstanceSpec, file_names
-from .landmarks import LandmarkSet, match_landmarks, read_landmarks
+from .landmarks import LandmarkSet, landmark_format, match_landmarks, read_landmarks, write_landmarks
 from .meshutil import genus, write_ply
 from .params import CoatingParams, CorrespondenceParams, ModelParams, OutputParams, QualityParams, TemplateParams
 from .progress import CancelledFn, ProgressFn, report, sub_progress
 from .quality import QualityError, warnings_text
 from .report import write_report_html
-from .study import Study, run, study_parameters
+from .study import Study, carried_landmarks, landmark_distances, run, study_parameters
 
 __all__ = ["BuildResult", "Project", "build", "read_project", "write_project"]
 
@@ -624,12 +624,28 @@ def write_study_files(study: Study, folder: Path, *, output: OutputParams, proje
         for name, pw in zip(names, study.model.instance_points_world):
             write_ply(folder / "coated" / f"{safe[name]}.ply", np.asarray(pw, float), tpl.faces)
         files["coated"] = "coated"
+    carried = carried_landmarks(study)
+    if output.landmarks and carried:
+        given = study.instance(study.template_instance).landmarks
+        ext = landmark_format(given) if given is not None else "fcsv"
+        (folder / "landmarks").mkdir()
+        for name in names:
+            write_landmarks(folder / "landmarks" / f"{safe[name]}.{ext}", carried[name])
+        files["landmarks"] = "landmarks"
     per_instance = {n: study.coatings[n].fit for n in names}
+    cp = study.correspondence_params
+    correspondence = {
+        "method": cp.method,
+        "start": {n: study.coating_start.get(n, study.coatings[n].fit.start) for n in names},
+        "rounds": [r.to_dict() for r in study.correspondence_rounds],
+        "carried_landmark_distance_mm": landmark_distances(study, carried),
+    }
     info = {
         "project": str(project_path) if project_path else "",
         "parameters": study_parameters(study, study.model.params.get("landmarks", ())),
         "template": {"instance": study.template_instance, "points": int(len(tpl.points_object)),
                      "triangles": int(len(tpl.faces)), "genus": int(genus(len(tpl.points_object), tpl.faces))},
+        "correspondence": correspondence,
         "quality": {"parameters": dataclasses.asdict(study.quality_params),
                     "findings": [f.to_dict() for f in study.findings],
                     "outlier_scores": study.outlier_scores},

@@ -51,10 +51,12 @@ from .volume import ObjectFrame, ObjectVolume
 __all__ = [
     "STAGES",
     "Study",
+    "carried_landmarks",
     "coat_instances",
     "common_landmark_names",
     "evaluate_model",
     "import_instances",
+    "landmark_distances",
     "make_model",
     "make_template",
     "run",
@@ -391,6 +393,41 @@ def template_landmark_locations(study: Study) -> dict:
     loc = locate_on_mesh(study.template.points_object, study.template.faces, pts)
     return {"names": list(lm.names), "triangles": [int(t) for t in loc.triangles],
             "bary": [[float(x) for x in row] for row in loc.bary]}
+
+
+def carried_landmarks(study: Study) -> dict[str, LandmarkSet]:
+    """The template instance's landmarks carried over to every coated instance (world mm).
+
+    Each landmark is a fixed point of the template's triangles
+    (:func:`template_landmark_locations`); on an instance it is that point of the
+    instance's coating, in the instance's file-world frame. These are the landmarks a
+    build writes for review (``landmarks/<name>.<ext>``), also for instances that had none.
+    """
+    loc = template_landmark_locations(study)
+    if not loc["names"]:
+        return {}
+    faces = np.asarray(study.template.faces)
+    tris, bary = np.asarray(loc["triangles"], int), np.asarray(loc["bary"], float)
+    out = {}
+    for name in study.names:
+        if name not in study.coatings:
+            continue
+        corners = np.asarray(study.coatings[name].points_object)[faces[tris]]  # (L, 3, 3)
+        pts = study.frame(name).to_world(np.einsum("lk,lkd->ld", bary, corners))
+        out[name] = LandmarkSet(tuple(loc["names"]), pts, f"{name} (carried over by the coating)")
+    return out
+
+
+def landmark_distances(study: Study, carried: dict[str, LandmarkSet]) -> dict[str, dict[str, float]]:
+    """Per instance with given landmarks: distance (mm) of each carried-over landmark to the given one."""
+    out = {}
+    for name, lm in carried.items():
+        given = study.landmarks(name)
+        if given is None:
+            continue
+        g = given.as_dict()
+        out[name] = {n: float(np.linalg.norm(p - g[n])) for n, p in zip(lm.names, lm.points_world) if n in g}
+    return out
 
 
 def evaluate_model(study: Study, *, progress: ProgressFn = None, cancelled: CancelledFn = None) -> dict:

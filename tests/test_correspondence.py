@@ -1,0 +1,151 @@
+"""Model-guided correspondence (``[correspondence] method = "model"``): landmark-light projects,
+refinement rounds, landmarks carried over to every instance, and its bad inputs."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+
+import numpy as np
+import pytest
+
+from ssm_addon import demo
+from ssm_addon.correspondence import refine_instance
+from ssm_addon.errors import InputError
+from ssm_addon.landmarks import read_landmarks
+from ssm_addon.project import build, read_project
+
+QUICK = {"spacing = 1.0": "spacing = 1.0\nr_min_mm = 4.0\nr_max_mm = 8.0",
+         "[model]": "[model]\nspecificity_samples = 50"}
+
+
+@pytest.fixture(scope="module")
+def population(tmp_path_factory):
+    """Six demo vertebrae, coarse template (seconds per build)."""
+    folder = tmp_path_factory.mktemp("corr")
+    path = demo.make_demo_population(folder / "population", n=6, seed=5)
+    text = path.read_text()
+    for a, b in QUICK.items():
+        text = text.replace(a, b)
+    path.write_text(text)
+    return path
+
+
+def _variant(path, name: str, *, correspondence: str = "", keep_landmarks=None):
+    """The project with a [correspondence] table and landmarks kept on ``keep_landmarks`` only."""
+    text = path.read_text()
+    if keep_landmarks is not None:
+        blocks = text.split("[[instances]]")
+        for i, block in enumerate(blocks[1:], start=1):
+            inst = re.search(r'name = "([^"]+)"', block).group(1)
+            if inst not in keep_landmarks:
+                blocks[i] = re.sub(r'landmarks = "[^"]+"\n', "", block)
+        text = "[[instances]]".join(blocks)
+    text = text.replace("[coating]", f"{correspondence}\n\n[coating]") if correspondence else text
+    out = path.with_name(name)
+    out.write_text(text)
+    return out
+
+
+def _template(path) -> str:
+    return read_project(path).template_instance
+
+
+def _landmark_ext(path) -> str:
+    """The extension of the template instance's landmark file (e.g. ``mrk.json``)."""
+    project = read_project(path)
+    spec = next(i for i in project.instances if i.name == project.template_instance)
+    return spec.landmarks.name.split(".", 1)[1]
+
+
+def _sha(path):
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_landmarks_method_is_the_single_pass(population, tmp_path):
+    """method = "landmarks" (the default) builds exactly what a project without the table builds."""
+    build(read_project(population), tmp_path / "a", log=None)
+    explicit = _variant(population, "explicit.toml", correspondence='[correspondence]\nmethod = "landmarks"')
+    build(read_project(explicit), tmp_path / "b", log=None)
+    assert _sha(tmp_path / "a" / "model.npz") == _sha(tmp_path / "b" / "model.npz")
+    doc = json.loads((tmp_path / "a" / "report.json").read_text())
+    assert doc["correspondence"]["method"] == "landmarks" and doc["correspondence"]["rounds"] == []
+    assert set(doc["correspondence"]["start"].values()) <= {"landmark warp", "landmarks", "object frames"}
+    # carried-over landmarks: written for every instance, in the template instance's format
+    written = sorted(p.name for p in (tmp_path / "a" / "landmarks").iterdir())
+    ext = _landmark_ext(population)
+    assert written == [f"demo_{i:02d}.{ext}" for i in range(6)]
+    # on the template instance they are its own landmarks, located on the template (< 1 voxel off)
+    d = doc["correspondence"]["carried_landmark_distance_mm"][_template(population)]
+    assert max(d.values()) < 1.0, d
+
+
+def test_model_method_with_landmarks_on_the_template_only(population, tmp_path):
+    """Only the template instance is landmarked: every other instance starts from the object
+    frames, is refined with the model, and gets landmarks near its true (unused) ones."""
+    tpl = _template(population)
+    proj = _variant(population, "light.toml", correspondence='[correspondence]\nmethod = "model"\niterations = 2',
+                    keep_landmarks={tpl})
+    lines = []
+    result = build(read_project(proj), tmp_path / "out", log=lines.append)
+    doc = result.report
+    corr = doc["correspondence"]
+    assert corr["method"] == "model"
+    assert all(s == "object frames" for s in corr["start"].values()), corr["start"]
+    assert 1 <= len(corr["rounds"]) <= 2
+    last = corr["rounds"][-1]
+    assert set(last["instance_change_mm"]) == {f"demo_{i:02d}" for i in range(6)}
+    assert sum(last["folds"].values()) == 0
+    assert any(line.startswith("correspondence round 1") for line in lines)
+    # landmarks carried to the instances that had none, against the demo's true landmark files
+    folder = population.parent
+    errors = []
+    for i in range(6):
+        name = f"demo_{i:02d}"
+        if name == tpl:
+            continue
+        truth_file = next(p for p in folder.iterdir() if p.stem.split(".")[0] == name and p.suffix != ".gz")
+        truth = read_landmarks(truth_file).as_dict()
+        ext = _landmark_ext(population)
+        carried = read_landmarks(tmp_path / "out" / "landmarks" / f"{name}.{ext}")
+        errors += [np.linalg.norm(p - truth[n]) for n, p in zip(carried.names, carried.points_world)]
+    assert np.median(errors) < 2.5 and np.max(errors) < 8.0, np.round(errors, 2)
+    assert corr["carried_landmark_distance_mm"].keys() == {tpl}
+
+
+def test_model_method_needs_landmarks_on_the_template_instance(population, tmp_path):
+    tpl = _template(population)
+    proj = _variant(population, "nolm.toml", correspondence='[correspondence]\nmethod = "model"',
+                    keep_landmarks={f"demo_{i:02d}" for i in range(6)} - {tpl})
+    out = tmp_path / "out"
+    with pytest.raises(InputError, match=rf"nolm.toml:\d+: \[template\] instance '{tpl}' has no landmarks"):
+        build(read_project(proj), out, log=None)
+    assert not out.exists()
+    assert not list(tmp_path.glob(".out.building-*"))
+
+
+def test_landmarks_method_still_needs_landmarks_everywhere(population):
+    tpl = _template(population)
+    proj = _variant(population, "missing.toml", keep_landmarks={tpl})
+    other = "demo_00" if tpl != "demo_00" else "demo_02"
+    with pytest.raises(InputError, match=rf"missing.toml.*{other}.*landmarks"):
+        read_project(proj)
+
+
+def test_a_diverging_refinement_is_refused_and_writes_nothing(population, tmp_path, monkeypatch):
+    """A round whose mean shape jumps by more than the shapes' size stops the build by name."""
+    import ssm_addon.correspondence as corr
+
+    def runaway(*args, **kwargs):
+        coated, d = refine_instance(*args, **kwargs)
+        from dataclasses import replace
+
+        return replace(coated, points_object=coated.points_object * 50.0), d
+
+    monkeypatch.setattr(corr, "refine_instance", runaway)
+    proj = _variant(population, "diverge.toml", correspondence='[correspondence]\nmethod = "model"')
+    out = tmp_path / "out"
+    with pytest.raises(InputError, match=r"model-guided correspondence diverged in round 1"):
+        build(read_project(proj), out, log=None)
+    assert not out.exists()
