@@ -11,14 +11,17 @@ again replaces its coated mesh (found by the instance pointer, so renaming is sa
 
 from __future__ import annotations
 
+import json
+
 import bpy
 from bpy.props import BoolProperty, IntProperty
 
 from ssm_addon import coating as core
 from ssm_addon.errors import InputError
-from ssm_addon.params import CoatingParams
+from ssm_addon.params import CoatingParams, CorrespondenceParams
+from ssm_addon.progress import sub_progress
 from ssm_addon.quality import check_coating
-from ssm_addon.study import coat_instances
+from ssm_addon.study import coat_instances, refine_correspondence
 
 from . import bridge
 from .jobs import BackgroundJob
@@ -86,6 +89,9 @@ class SSM_OT_coat_template(BackgroundJob, bpy.types.Operator):
         return True
 
     def prepare(self, context):
+        self._model_method = scene_params(context, "ssm_correspondence").method == "model"
+        if self._model_method:  # the model method coats the whole study, as a build does
+            return prepare_refinement(self, context, fresh=True)
         selected = self.selected_only or context.scene.ssm_coating.selected_only
         objs = scene_instances(context)
         if selected:
@@ -135,6 +141,8 @@ class SSM_OT_coat_template(BackgroundJob, bpy.types.Operator):
         return written
 
     def finish(self, context, outcome):
+        if self._model_method:
+            return finish_refinement(self, context, outcome)
         self._loader.keep()
         results, was_cancelled = outcome
         written = self._write(context, results)
@@ -151,11 +159,106 @@ class SSM_OT_coat_template(BackgroundJob, bpy.types.Operator):
 
     def partial(self, context, state):
         """On an error after some instances finished, keep those (Esc is handled in ``work``)."""
+        if self._model_method:
+            return
         err = state.get("error")
         results = getattr(err, "results", None)
         if results:
             written = self._write(context, dict(zip(self._names, results)))
             self.report({"INFO"}, f"kept {len(written)} finished coated instance(s)")
+
+
+ROUNDS_KEY = "ssm_correspondence_rounds"
+
+
+class SSM_OT_refine_correspondence(BackgroundJob, bpy.types.Operator):
+    """Refine the correspondence with the model: the mean shape as template, each instance fitted by the model of the others and relaxed onto its surface (paper 3.3, 7). Instances not coated yet start from their landmarks or object frames. Esc keeps the scene as it was"""
+
+    bl_idname = "ssm.refine_correspondence"
+    bl_label = "Refine Correspondence"
+    bl_options = {"REGISTER", "UNDO"}
+
+    cancel_after: IntProperty(
+        default=-1, options={"HIDDEN", "SKIP_SAVE"},
+        description="Scripts/tests: act as if Esc was pressed after N instances were refined")
+
+    @classmethod
+    def poll(cls, context):
+        if find_template(context) is None:
+            cls.poll_message_set("Build the template first (Template panel)")
+            return False
+        if len(scene_instances(context)) < 3:
+            cls.poll_message_set("Refinement needs at least 3 instances")
+            return False
+        return True
+
+    def prepare(self, context):
+        return prepare_refinement(self, context, fresh=False)
+
+    def finish(self, context, outcome):
+        return finish_refinement(self, context, outcome)
+
+
+def prepare_refinement(op, context, *, fresh: bool):
+    """The work of the model method on the scene's study (``fresh``: start every instance
+    again, as a headless build does; else further rounds from the current coatings)."""
+    study = study_from_scene(context, coatings=not fresh)
+    if study.template is None:
+        raise InputError("refine correspondence: no template (build the template first)")
+    loader = VolumeLoader(context, scene_instances(context))
+    op._loader, op._faces, op._fresh = loader, study.template.faces, fresh
+    cancel_after = getattr(op, "cancel_after", -1)
+    refined = [0]
+
+    def work(progress, cancelled):
+        def counting(fraction, message):
+            refined[0] += " refined " in message
+            if progress is not None:
+                progress(fraction, message)
+
+        def stop():
+            return bool(cancelled and cancelled()) or 0 <= cancel_after <= refined[0]
+
+        study.volumes.update(loader.load(sub_progress(progress, 0.0, 0.1), stop))
+        coatings = refine_correspondence(study, progress=sub_progress(counting, 0.1, 1.0), cancelled=stop)
+        return coatings, study.correspondence_rounds, study.coating_start, study.template.points_object
+
+    return work
+
+
+def finish_refinement(op, context, outcome):
+    """Write the refined coatings and the rounds' figures into the scene."""
+    op._loader.keep()
+    coatings, rounds, starts, mean_points = outcome
+    written = []
+    for name, result in coatings.items():
+        inst = bpy.data.objects.get(name)
+        if inst is not None:
+            obj = write_coated(context, inst, result, op._faces, mean_points)
+            obj["ssm_coating_start"] = starts.get(name, result.fit.start)
+            written.append(obj)
+    previous = [] if op._fresh else correspondence_rounds(context)
+    context.scene[ROUNDS_KEY] = json.dumps(previous + [r.to_dict() for r in rounds])
+    folds = sum(c.fit.folded_after for c in coatings.values())
+    last = rounds[-1] if rounds else None
+    msg = (f"refined {len(written)} instance(s) in {len(rounds)} round(s)"
+           + (f"; mean shape moved {last.mean_change_mm:.3f} mm in the last" if last else ""))
+    gates = scene_params(context, "ssm_quality")
+    findings = [f for o in written for f in check_coating(o.ssm.instance.name, fit_of(o), gates)]
+    if folds or findings:
+        op.report({"WARNING"}, f"{msg}; {folds} folded triangle(s) left"
+                  + ("; quality gates failed: " + "; ".join(str(f) for f in findings) if findings else ""))
+    else:
+        op.report({"INFO"}, msg)
+    return {"FINISHED"}
+
+
+def correspondence_rounds(context) -> list[dict]:
+    """The refinement rounds run in this scene (``Scene["ssm_correspondence_rounds"]``)."""
+    try:
+        return json.loads(context.scene.get(ROUNDS_KEY, "[]"))
+    except ValueError:
+        return []
 
 
 class SSM_PT_coating(bpy.types.Panel):
@@ -179,6 +282,14 @@ class SSM_PT_coating(bpy.types.Panel):
         draw_params(layout, s, CoatingParams)
         layout.prop(s, "selected_only")
         layout.operator(SSM_OT_coat_template.bl_idname, icon="MOD_SHRINKWRAP")
+        box = layout.box()
+        box.label(text="Model-guided correspondence", icon="MOD_MESHDEFORM")
+        draw_params(box, context.scene.ssm_correspondence, CorrespondenceParams)
+        box.operator(SSM_OT_refine_correspondence.bl_idname, icon="FILE_REFRESH")
+        for r in correspondence_rounds(context)[-6:]:
+            moved = max(r["instance_change_mm"].values(), default=0.0)
+            box.label(text=f"round {r['round']}: mean {r['mean_change_mm']:.3f} mm, instances ≤ {moved:.2f} mm, "
+                      f"folds {sum(r['folds'].values())}, {r['seconds']:.0f} s")
         layout.prop(context.scene.ssm_display, "colouring")
         coated = coated_objects(context)
         if coated:
@@ -193,7 +304,7 @@ class SSM_PT_coating(bpy.types.Panel):
                 row = box.row()
                 row.label(
                     text=f"{obj.ssm.instance.name}: {fit.mean_distance_mm:.2f} / {fit.max_distance_mm:.2f}, "
-                    f"{fit.folded_after}, {fit.start}",
+                    f"{fit.folded_after}, {obj.get('ssm_coating_start', fit.start)}",
                     icon="ERROR" if findings else "CHECKMARK",
                 )
                 for f in findings:
@@ -213,4 +324,4 @@ class SSM_PT_coating_advanced(bpy.types.Panel):
         draw_params(self.layout, context.scene.ssm_coating, CoatingParams, advanced=True)
 
 
-classes = (SSM_OT_coat_template, SSM_PT_coating, SSM_PT_coating_advanced)
+classes = (SSM_OT_coat_template, SSM_OT_refine_correspondence, SSM_PT_coating, SSM_PT_coating_advanced)

@@ -39,6 +39,10 @@ class BackgroundJob:
             if work is None:
                 return {"CANCELLED"}
             result = work(self._print_progress, lambda: False)
+        except Cancelled as err:
+            self.partial(context, {"error": err})
+            self.report({"WARNING"}, f"{self.bl_label}: cancelled ({err}); the scene is as it was")
+            return {"CANCELLED"}
         except SSMError as err:
             self.report({"ERROR"}, str(err))
             return {"CANCELLED"}

@@ -35,6 +35,7 @@ from ssm_addon.progress import sub_progress
 
 from . import bridge
 from .jobs import BackgroundJob
+from .properties import scene_params
 from .scene import (
     LANDMARK_PROP,
     ORDER_PROP,
@@ -561,7 +562,7 @@ class SSM_OT_export_landmarks(bpy.types.Operator, ExportHelper):
 
 
 class SSM_OT_propose_landmarks(BackgroundJob, bpy.types.Operator):
-    """Propose the active instance's missing landmarks from a landmarked instance (object frames aligned; then nearest surface point, or coating)"""
+    """Propose the active instance's missing landmarks: from the scene's model (fitted to it) when one exists, else from a landmarked instance (object frames aligned; then nearest surface point, or coating)"""
 
     bl_idname = "ssm.propose_landmarks"
     bl_label = "Propose Landmarks"
@@ -571,10 +572,13 @@ class SSM_OT_propose_landmarks(BackgroundJob, bpy.types.Operator):
     method: EnumProperty(
         name="Method",
         items=[
+            ("auto", "Automatic", "The model when the scene has one with landmarks, else object frames"),
+            ("model", "Model", "Fit the scene's model to the instance (its placed landmarks as soft constraints) "
+             "and read the landmarks off the fit (paper 7; a second or so)"),
             ("frame", "Object frames", "Align by object frames, take the nearest surface point (instant)"),
             ("coating", "Coating", "Coat the source's surface onto the target (paper 4) and read the landmarks off it (tens of seconds)"),
         ],
-        default="frame",
+        default="auto",
     )
     spacing_mm: FloatProperty(name="Spacing", description="Voxel size for coating (target volume), mm", default=1.0, min=0.1)
 
@@ -582,8 +586,45 @@ class SSM_OT_propose_landmarks(BackgroundJob, bpy.types.Operator):
     def poll(cls, context):
         return _poll_instance(cls, context)
 
+    def _model(self, context):
+        """The scene's model if it carries landmarks (``method`` auto or model), else None."""
+        if self.method not in ("auto", "model"):
+            return None
+        from .model import find_model_object, model_from_object
+
+        obj = find_model_object(context)
+        model = model_from_object(obj) if obj is not None else None
+        if model is not None and (model.params or {}).get("landmark_locations", {}).get("names"):
+            return model
+        if self.method == "model":
+            raise InputError("propose landmarks: no model with landmarks in the scene (build the model from a "
+                             "landmarked template first, or propose from an instance)")
+        return None
+
+    def _prepare_model(self, context, target, model):
+        frame = stored_frame(target)
+        if frame is None:
+            raise InputError(f"propose landmarks: {target.name} has no object frame (import it with SSM)")
+        have = landmark_empties(target)
+        known = instance_landmarks(context, target) if have else None
+        names = [n for n in model.params["landmark_locations"]["names"] if n not in have]
+        if not names:
+            raise InputError(f"propose landmarks: {target.name} already has every landmark the model knows")
+        mesh = (blender_to_file_world(target, bridge.object_world_vertices(target)), bridge.mesh_triangles(target.data))
+        params = scene_params(context, "ssm_fit")
+        self._target_name, self._source_name, self._loader = target.name, "the model", None
+
+        def work(progress, cancelled):
+            return proposal.propose_by_model(model, frame, mesh, known=known, names=names, params=params,
+                                             source=target.name, progress=progress, cancelled=cancelled)
+
+        return work
+
     def prepare(self, context):
         target = active_instance(context)
+        model = self._model(context)
+        if model is not None:
+            return self._prepare_model(context, target, model)
         src = bpy.data.objects.get(self.source) if self.source else context.scene.ssm_landmarks.proposal_source
         if not is_instance(src) or src == target:
             raise InputError("propose landmarks: choose another, landmarked instance to propose from")
@@ -599,7 +640,7 @@ class SSM_OT_propose_landmarks(BackgroundJob, bpy.types.Operator):
         if None in frames:
             raise InputError("propose landmarks: both instances need their object frame (import them with SSM)")
         self._target_name, self._source_name = target.name, src.name
-        method, spacing, subset = self.method, self.spacing_mm, lm.subset(names)
+        method, spacing, subset = ("frame" if self.method == "auto" else self.method), self.spacing_mm, lm.subset(names)
         loader, template = None, None
         if method == "coating":
             # the instances' own resampled masks (reloaded from source, cached) and, when

@@ -64,6 +64,7 @@ def show_study(context, study, *, output: OutputParams | None = None) -> dict:
     set_group(scene.ssm_coating, study.coating_params)
     set_group(scene.ssm_model, study.model_params)
     set_group(scene.ssm_quality, study.quality_params)
+    set_group(scene.ssm_correspondence, study.correspondence_params)
     if output is not None:
         set_group(scene.ssm_output, output)
     objs = {}
@@ -142,15 +143,22 @@ def project_from_scene(context, path) -> core.Project:
     if len(study.instances) < 2:
         raise InputError(f"the scene has {len(study.instances)} SSM instance(s); a project needs at least two")
     missing = [i.name for i in study.instances if i.landmark_set is None]
-    if missing:
-        raise InputError(f"no landmarks on instance(s) {', '.join(missing)}: place or import them first")
+    model_method = study.correspondence_params.method == "model"
+    if missing and not model_method:
+        raise InputError(f"no landmarks on instance(s) {', '.join(missing)}: place or import them first (or set "
+                         "the correspondence method to Model, which needs them on the template instance only)")
+    if study.template_instance in missing:
+        raise InputError(f"no landmarks on the template instance {study.template_instance}: place or import them "
+                         "first")
     files = file_names(i.name for i in study.instances)
     (folder / "landmarks").mkdir(parents=True, exist_ok=True)
     objs = {o.name: o for o in scene_instances(context)}
     specs = []
     for spec in study.instances:
-        lm_path = folder / "landmarks" / f"{files[spec.name]}.fcsv"
-        core_landmarks.write_landmarks(lm_path, spec.landmark_set)
+        lm_path = None
+        if spec.landmark_set is not None:
+            lm_path = folder / "landmarks" / f"{files[spec.name]}.fcsv"
+            core_landmarks.write_landmarks(lm_path, spec.landmark_set)
         if spec.source is None:  # a Blender mesh: written out
             (folder / "meshes").mkdir(exist_ok=True)
             mesh_path = folder / "meshes" / f"{files[spec.name]}.ply"
@@ -163,7 +171,8 @@ def project_from_scene(context, path) -> core.Project:
     return core.Project(path=path, instances=tuple(specs), template_instance=study.template_instance,
                         template=study.template_params, coating=study.coating_params, model=study.model_params,
                         output=scene_params(context, "ssm_output"), quality=study.quality_params,
-                        landmark_names=specs[0].landmark_set.names if specs else ())
+                        correspondence=study.correspondence_params,
+                        landmark_names=study.landmarks(study.template_instance).names)
 
 
 def load_project_into_scene(context, project: core.Project) -> list:
@@ -180,13 +189,15 @@ def load_project_into_scene(context, project: core.Project) -> list:
                          frame_method=project.template.frame)
     for key, params in (("ssm_template", project.template), ("ssm_coating", project.coating),
                         ("ssm_model", project.model), ("ssm_output", project.output),
-                        ("ssm_quality", project.quality)):
+                        ("ssm_quality", project.quality), ("ssm_correspondence", project.correspondence)):
         set_group(getattr(scene, key), params)
     created = add_instance_objects(context, items)
     for obj, spec in zip(created, project.instances):
         if obj.name != spec.name and bpy.data.objects.get(spec.name) is None:
             obj.name = spec.name
         lm = spec.landmark_set
+        if lm is None:
+            continue
         for name in lm.names:
             if name not in {i.name for i in scene.ssm_landmarks.names}:
                 add_schema_name(scene.ssm_landmarks, name)

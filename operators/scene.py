@@ -406,7 +406,8 @@ def study_from_scene(context, *, template_instance: str | None = None, template:
                   template_params=scene_params(context, "ssm_template"),
                   coating_params=scene_params(context, "ssm_coating"),
                   model_params=scene_params(context, "ssm_model"),
-                  quality_params=scene_params(context, "ssm_quality"))
+                  quality_params=scene_params(context, "ssm_quality"),
+                  correspondence_params=scene_params(context, "ssm_correspondence"))
     for o in objs:
         frame = stored_frame(o)
         if frame is not None:

@@ -25,6 +25,7 @@ from .voxelize import voxelize_mesh
 
 __all__ = [
     "PROPOSAL_METHODS",
+    "propose_by_model",
     "propose_from_meshes",
     "propose_landmarks",
     "propose_landmarks_by_coating",
@@ -261,3 +262,57 @@ def propose_landmarks_by_coating(
     location = locate_on_mesh(mesh.vertices, mesh.faces, src)
     coated = coat_from_start(mesh, target, params=params, progress=progress, cancelled=cancelled).points_object
     return location.evaluate(coated, mesh.faces)
+
+
+def propose_by_model(model, target_frame, target_mesh_world, *, known: LandmarkSet | None = None,
+                     names=None, params=None, source: str = "", progress=None, cancelled=None) -> LandmarkSet:
+    """Landmarks for a target from a built model (paper 7's bootstrap): fit, then read them off.
+
+    The model (pose and mode weights under its Gaussian prior,
+    :func:`ssm_addon.fitting.fit_model`) is fitted to the target's surface, starting from
+    the target's object frame (the frame the model's instances were built in, paper 2),
+    with the target's ``known`` landmarks as soft constraints; the model's landmarks
+    (the template instance's, as points of the mean mesh) are read off the fitted shape.
+
+    Parameters
+    ----------
+    model : ShapeModel
+        With landmarks (``params["landmark_locations"]``).
+    target_frame : ObjectFrame
+    target_mesh_world : ((V, 3) world mm, (F, 3))
+        The target's closed surface.
+    known : LandmarkSet, optional
+        The target's landmarks already placed (world mm).
+    names : sequence of str, optional
+        Landmarks wanted (default: every landmark of the model).
+    params : FitParams, optional
+
+    Returns
+    -------
+    LandmarkSet
+        World mm, on the fitted shape (within the fit's surface distance of the target).
+
+    Raises
+    ------
+    InputError
+        The model carries no landmarks, or none of ``names``.
+    """
+    from .fitting import Pose, Target, fit_model, model_landmarks
+
+    model_names, tris, bary = model_landmarks(model)
+    if not model_names:
+        raise InputError("propose landmarks: the model carries no landmarks (build it from a landmarked template)")
+    wanted = [n for n in (model_names if names is None else names) if n in model_names]
+    if not wanted:
+        raise InputError(f"propose landmarks: the model has none of {', '.join(names)} "
+                         f"(it has {', '.join(model_names)})")
+    verts, faces = (np.asarray(a) for a in target_mesh_world)
+    target = Target.from_mesh(target_frame.to_object(verts), faces, source=source,
+                              landmarks=None if known is None or not len(known) else
+                              LandmarkSet(known.names, target_frame.to_object(known.points_world), source))
+    result = fit_model(model, target, params=params, pose=Pose(), progress=progress, cancelled=cancelled)
+    corners = np.asarray(result.points)[np.asarray(model.faces)[tris]]
+    pts = np.einsum("lk,lkd->ld", bary, corners)
+    index = {n: i for i, n in enumerate(model_names)}
+    rows = [index[n] for n in wanted]
+    return LandmarkSet(tuple(wanted), target_frame.to_world(pts[rows]), source)

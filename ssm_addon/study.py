@@ -57,6 +57,8 @@ __all__ = [
     "evaluate_model",
     "import_instances",
     "landmark_distances",
+    "refine_correspondence",
+    "start_coatings",
     "make_model",
     "make_template",
     "run",
@@ -343,6 +345,62 @@ def coat_from_frames(study: Study, names: Sequence[str], *, jobs: int = 1, cance
     return dict(zip(names, results))
 
 
+def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: int = 1,
+                   cancelled: CancelledFn = None) -> dict[str, CoatingResult]:
+    """The first coatings of the model method: by landmarks where given, else from the frames.
+
+    Instances with landmarks are coated by them (paper 4) when at least two instances have
+    landmarks (the template instance and another); the rest start from the object frames
+    (paper 2). ``study.coating_start`` records which start each instance had.
+
+    Raises
+    ------
+    InputError
+        The template instance has no landmarks (they name the places carried to every
+        instance).
+    """
+    names = list(study.names if names is None else names)
+    with_lm = [n for n in study.names if study.landmarks(n) is not None]
+    if study.template_instance not in with_lm:
+        raise InputError(f"[correspondence] method = \"model\": the template instance {study.template_instance!r} "
+                         "needs landmarks (they name the places carried to every other instance)")
+    by_landmarks = [n for n in names if n in with_lm] if len(with_lm) > 1 else []
+    coated = coat_instances(study, names=by_landmarks, jobs=jobs, cancelled=cancelled) if by_landmarks else {}
+    coated.update(coat_from_frames(study, [n for n in names if n not in coated], jobs=jobs, cancelled=cancelled))
+    study.coating_start.update({n: "landmarks" if n in by_landmarks else "object frames" for n in coated})
+    return {n: coated[n] for n in names}
+
+
+def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn = None, cancelled: CancelledFn = None,
+                          log: Log = None) -> dict[str, CoatingResult]:
+    """The model method's coating (``[correspondence] method = "model"``).
+
+    Instances not coated yet get their start (:func:`start_coatings`); then the rounds of
+    :func:`ssm_addon.correspondence.refine_rounds` (the mean shape as template, each
+    instance fitted by the model of the others and relaxed onto its surface). Updates
+    ``study.coatings``, ``study.template`` (the mean shape) and
+    ``study.correspondence_rounds``; nothing is changed when it fails or is cancelled.
+    """
+    from .correspondence import refine_rounds
+
+    say = log or (lambda _m: None)
+    missing = [n for n in study.names if n not in study.coatings]
+    work = dataclasses.replace(study, coatings=dict(study.coatings), coating_start=dict(study.coating_start))
+    if missing:
+        started = start_coatings(work, missing, jobs=jobs, cancelled=cancelled)
+        work.coatings.update(started)
+        starts = [work.coating_start[n] for n in missing]
+        say(f"coating: {starts.count('landmarks')} by landmarks, {starts.count('object frames')} from the object "
+            "frames; refining with the model")
+    rounds = refine_rounds(work, study.correspondence_params, jobs=jobs, progress=progress, cancelled=cancelled,
+                           log=say)
+    study.coatings.update(work.coatings)
+    study.coating_start.update(work.coating_start)
+    study.template = work.template
+    study.correspondence_rounds = list(study.correspondence_rounds) + rounds
+    return {n: study.coatings[n] for n in study.names}
+
+
 def make_model(study: Study, *, names: Sequence[str] | None = None, progress: ProgressFn = None,
                cancelled: CancelledFn = None) -> ShapeModel:
     """PCA of the coated instances (paper 5, eqs. 4–6), in study order.
@@ -482,31 +540,12 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
             if message.startswith("coated "):
                 report(coat_prog, fraction, message)
 
-        cp = study.correspondence_params
-        if cp.method == "landmarks":
+        if study.correspondence_params.method == "landmarks":
             coated = coat_instances(study, jobs=jobs, progress=coat_progress if progress else None,
                                     cancelled=cancelled)
             study.coating_start.update({name: "landmarks" for name in coated})
         else:
-            with_lm = [name for name in study.names if study.landmarks(name) is not None]
-            if study.template_instance not in with_lm:
-                raise InputError(f"[correspondence] method = \"model\": the template instance "
-                                 f"{study.template_instance!r} needs landmarks (they name the places every other "
-                                 "instance's landmarks are written for)")
-            others = [name for name in study.names if name not in with_lm]
-            coated = coat_instances(study, names=with_lm, jobs=jobs, cancelled=cancelled) if len(with_lm) > 1 else {}
-            coated.update(coat_from_frames(study, [nm for nm in with_lm if nm not in coated] + others, jobs=jobs,
-                                           cancelled=cancelled))
-            study.coating_start.update({name: "landmarks" if name in with_lm and len(with_lm) > 1 else
-                                        "object frames" for name in coated})
-            say(f"coating: {len(with_lm)} by landmarks, {len(coated) - len(with_lm) if len(with_lm) > 1 else len(coated)}"
-                " from the object frames; refining with the model")
-            study.coatings.update(coated)
-            from .correspondence import refine_rounds
-
-            study.correspondence_rounds = refine_rounds(study, cp, jobs=jobs, progress=coat_prog,
-                                                        cancelled=cancelled, log=say)
-            coated = {name: study.coatings[name] for name in study.names}
+            coated = refine_correspondence(study, jobs=jobs, progress=coat_prog, cancelled=cancelled, log=say)
         study.coatings.update(coated)
         _add_findings(study, [f for n, c in coated.items() for f in check_coating(n, c.fit, study.quality_params)], say)
         study.timings_s["coating"] = time.perf_counter() - t0

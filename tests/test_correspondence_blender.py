@@ -1,0 +1,104 @@
+"""Model-guided correspondence in Blender: Coat Template with the model method equals the
+headless build's coating, Refine Correspondence adds rounds and Esc keeps the scene,
+and Propose Landmarks fits the scene's model."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_correspondence import _template, _variant
+
+from ssm_addon import demo
+from ssm_addon.landmarks import read_landmarks
+from ssm_addon.project import build, read_project
+
+pytestmark = pytest.mark.blender
+
+
+@pytest.fixture(scope="module")
+def light_project(tmp_path_factory):
+    """Five demo vertebrae, landmarks on the template instance only, method = "model"."""
+    folder = tmp_path_factory.mktemp("corr_blender")
+    path = demo.make_demo_population(folder / "population", n=5, seed=9)
+    path.write_text(path.read_text().replace("spacing = 1.0", "spacing = 1.0\nr_min_mm = 4.0\nr_max_mm = 8.0")
+                    .replace("[model]", "[model]\nspecificity_samples = 50"))
+    tpl = _template(path)
+    return _variant(path, "light.toml", correspondence='[correspondence]\nmethod = "model"\niterations = 2',
+                    keep_landmarks={tpl})
+
+
+def _coatings(bpy):
+    from ssm.operators import bridge
+
+    return {o.ssm.instance.name: bridge.load_arrays(o, "ssm_coating")["points_object"]
+            for o in bpy.data.objects if o.ssm.role == "COATED"}
+
+
+def _select(bpy, obj):
+    for o in bpy.context.view_layer.objects:
+        o.select_set(o == obj)
+    bpy.context.view_layer.objects.active = obj
+
+
+def test_model_method_in_blender_equals_the_headless_build(bpy_clean, light_project, tmp_path):
+    bpy = bpy_clean
+    from ssm.operators.coating import correspondence_rounds
+
+    headless = build(read_project(light_project), tmp_path / "out", log=None)
+    assert bpy.ops.ssm.open_project(filepath=str(light_project)) == {"FINISHED"}
+    assert bpy.context.scene.ssm_correspondence.method == "model"
+    assert bpy.ops.ssm.build_template() == {"FINISHED"}
+    assert bpy.ops.ssm.coat_template() == {"FINISHED"}  # the model method: starts + rounds, as the build
+    coated = _coatings(bpy)
+    assert set(coated) == set(headless.study.names)
+    for name, pts in coated.items():
+        np.testing.assert_allclose(pts, headless.study.coatings[name].points_object, atol=1e-9, err_msg=name)
+    rounds = correspondence_rounds(bpy.context)
+    assert [r["mean_change_mm"] for r in rounds] == pytest.approx(
+        [r["mean_change_mm"] for r in headless.report["correspondence"]["rounds"]], abs=1e-9)
+    starts = {o.ssm.instance.name: o["ssm_coating_start"] for o in bpy.data.objects if o.ssm.role == "COATED"}
+    assert starts == headless.report["correspondence"]["start"]
+
+    # Esc during a further refinement: nothing changes
+    assert bpy.ops.ssm.refine_correspondence(cancel_after=2) == {"CANCELLED"}
+    after = _coatings(bpy)
+    assert all(np.array_equal(after[n], coated[n]) for n in coated)
+    assert correspondence_rounds(bpy.context) == rounds
+
+    # a further round: appended to the panel's figures, coatings replaced (not duplicated)
+    n_objects = len(bpy.data.objects)
+    bpy.context.scene.ssm_correspondence.iterations = 1
+    assert bpy.ops.ssm.refine_correspondence() == {"FINISHED"}
+    assert len(correspondence_rounds(bpy.context)) == len(rounds) + 1
+    assert len(bpy.data.objects) == n_objects
+    moved = [np.linalg.norm(_coatings(bpy)[n] - coated[n], axis=1).max() for n in coated]
+    assert max(moved) > 0.0
+
+
+def test_propose_landmarks_fits_the_scene_model(bpy_clean, light_project):
+    bpy = bpy_clean
+    from ssm.operators.scene import landmark_empties, scene_instances
+
+    assert bpy.ops.ssm.open_project(filepath=str(light_project)) == {"FINISHED"}
+    assert bpy.ops.ssm.build_template() == {"FINISHED"}
+    assert bpy.ops.ssm.coat_template() == {"FINISHED"}
+    assert bpy.ops.ssm.build_model() == {"FINISHED"}
+    tpl = _template(light_project)
+    others = [o for o in scene_instances(bpy.context) if o.name != tpl]
+    errors = []
+    for obj in others:
+        assert not landmark_empties(obj)
+        _select(bpy, obj)
+        assert bpy.ops.ssm.propose_landmarks() == {"FINISHED"}  # automatic: the model
+        placed = landmark_empties(obj)
+        truth_file = next(p for p in light_project.parent.iterdir()
+                          if p.name.split(".")[0] == obj.name and not p.name.endswith(".nii.gz"))
+        truth = read_landmarks(truth_file).as_dict()
+        from ssm.operators.scene import landmark_point
+
+        errors += [np.linalg.norm(landmark_point(obj, emp) - truth[name]) for name, emp in placed.items()]
+        assert set(placed) == set(truth)
+    assert np.median(errors) < 2.5 and np.max(errors) < 8.0, np.round(errors, 2)
+    # a second proposal has nothing left to place: said, not silently done
+    with pytest.raises(RuntimeError, match="already has every landmark the model knows"):
+        bpy.ops.ssm.propose_landmarks(method="model")
