@@ -147,11 +147,15 @@ def deformed_population(n: int, label: int, seed: int, workdir: Path):
     return names, files, maps
 
 
+LANDMARK_WEIGHT = [None]
+
+
 def run_study(specs, template_name: str, method: str, iterations: int, jobs: int, spacing: float | None = None):
     study = Study(instances=specs, template_instance=template_name)
     if spacing:
         study.template_params = replace(study.template_params, spacing_mm=spacing)
-    study.correspondence_params = CorrespondenceParams(method=method, iterations=iterations)
+    extra = {} if LANDMARK_WEIGHT[0] is None else {"landmark_weight": LANDMARK_WEIGHT[0]}
+    study.correspondence_params = CorrespondenceParams(method=method, iterations=iterations, **extra)
     t0 = time.perf_counter()
     say = lambda m: print("  " + m, flush=True)  # noqa: E731
     run(study, stages=("import", "template"), jobs=jobs, log=say)
@@ -266,7 +270,9 @@ def main(argv=None):
     ap.add_argument("--n", type=int, default=20)
     ap.add_argument("--label", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--landmark-weight", type=float, default=None)
     args = ap.parse_args(argv)
+    LANDMARK_WEIGHT[0] = args.landmark_weight
     if args.population == "femur10":
         eval_femur(args)
     else:
