@@ -25,7 +25,7 @@ from bpy_extras.io_utils import ExportHelper, ImportHelper
 from ssm_addon import landmarks as core_landmarks
 from ssm_addon import project as core
 from ssm_addon.errors import InputError, SSMError
-from ssm_addon.instances import InstanceSpec, file_names
+from ssm_addon.instances import InstanceSpec, file_names, import_instance
 from ssm_addon.meshutil import write_ply
 from ssm_addon.params import OutputParams
 
@@ -69,7 +69,10 @@ def show_study(context, study, *, output: OutputParams | None = None) -> dict:
         set_group(scene.ssm_output, output)
     objs = {}
     for order, spec in enumerate(study.instances):
-        ov = study.volumes[spec.name]
+        ov = study.volumes.get(spec.name)
+        if ov is None:  # a streamed build keeps no volumes: read this one again (the same frame)
+            ov = import_instance(spec, spacing_mm=study.template_params.spacing_mm,
+                                 frame_method=study.template_params.frame)
         verts, faces = display_surface(ov)
         obj = bridge.new_mesh_object(context, spec.name, verts, faces, collection_name=bridge.INSTANCES_COLLECTION,
                                      matrix_world=ov.frame.matrix_world)

@@ -104,6 +104,11 @@ def _parser() -> argparse.ArgumentParser:
     for section, cls in P.TABLES.items():
         P.add_arguments(p.add_argument_group(f"[{section}] overrides (the project file's values otherwise)"), cls,
                         prefix=section)
+    p.add_argument("--scheduler", dest="compute__scheduler", default=None,
+                   help="where per-instance work runs: processes (default), dask-local, serial, or a Dask scheduler "
+                        "address tcp://host:8786 (same as --compute-scheduler)")
+    p.add_argument("--cache", dest="compute__cache", default=None, metavar="PATH",
+                   help="per-instance cache folder for resuming ('auto': DIR.cache beside --out; 'off')")
 
     sub.add_parser("params", help="print the parameter reference (every table, key, default and range) as Markdown")
 
@@ -191,6 +196,9 @@ def _with_overrides(project, args):
     if args is None:
         return project
     changes = {}
+    cache = getattr(args, "compute__cache", None)
+    if cache not in (None, "auto", "off"):  # a folder given on the command line is relative to the working folder
+        args.compute__cache = str(Path(cache).expanduser().resolve())
     for section, cls in P.TABLES.items():
         current = getattr(project, section)
         updated = P.from_arguments(args, cls, prefix=section, base=current)

@@ -381,8 +381,10 @@ def coat(
 
 
 def _coat_job(args):
+    from .compute import run_one_thread
+
     template, src, target, dst, params, name = args
-    return coat(template, src, target, dst, params=params, name=name)
+    return run_one_thread(lambda _: coat(template, src, target, dst, params=params, name=name), None)
 
 
 def ignore_sigint() -> None:
@@ -435,6 +437,8 @@ def coat_all(
     raised with ``.results``, a list with the finished :class:`CoatingResult` and
     None for the instances not coated.
     """
+    from .compute import run_one_thread
+
     params = CoatingParams() if params is None else params
     pts, faces = _template_arrays(template)
     if len(targets) != len(target_landmarks_object_list):
@@ -449,8 +453,10 @@ def coat_all(
                 raise CoatingCancelled(f"coating cancelled after {i} of {n} instances", results)
             sub = sub_progress(progress, i / n, (i + 1) / n, f"{names[i]}: ")
             try:
-                results[i] = coat(template, template_landmarks_object, tgt, lm, params=params, progress=sub,
-                                  cancelled=cancelled, name=names[i])
+                results[i] = run_one_thread(
+                    lambda _, tgt=tgt, lm=lm, sub=sub, i=i: coat(template, template_landmarks_object, tgt, lm,
+                                                                 params=params, progress=sub, cancelled=cancelled,
+                                                                 name=names[i]), None)
             except Cancelled:
                 raise CoatingCancelled(f"coating cancelled after {i} of {n} instances", results) from None
             report(progress, (i + 1) / n, f"coated {names[i]} ({i + 1}/{n})")

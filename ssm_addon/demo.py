@@ -226,7 +226,8 @@ def make_demo_population(
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     spacing = np.broadcast_to(np.asarray(voxel_mm, float), (3,)).copy()
-    names = [f"demo_{i:02d}" for i in range(n)]
+    width = max(2, len(str(n - 1)))
+    names = [f"demo_{i:0{width}d}" for i in range(n)]
     b = rng.normal(size=(n, len(MODES)))
     b = np.clip(b, -2.5, 2.5)
     shapes = [ShapeParams(**{k: m + s * bi for (k, (m, s)), bi in zip(MODES.items(), row)}) for row in b]

@@ -408,6 +408,43 @@ def _modes_from_gram(centred: np.ndarray, gram: np.ndarray, n_norm: float, n_mod
     return w / n_norm, modes, ortho_err
 
 
+RANDOMIZED_MIN_ELEMENTS = 20_000_000
+"""n·3N (shape-vector entries) from which ``solver="auto"`` uses the randomized SVD (160 MB in float64)."""
+
+
+def _modes_randomized(centred: np.ndarray, n_norm: float, k: int, *, seed: int = 0, oversample: int = 10,
+                      power_iterations: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """The first ``k`` eigenpairs of S = P Pᵀ / n_norm by a randomized SVD of the centred data.
+
+    Range finder with ``power_iterations`` subspace iterations (re-orthonormalised each
+    time), then the exact SVD of the small projected matrix (Halko, Martinsson & Tropp
+    2011, algorithms 4.4 and 5.1). Deterministic for a given ``seed``. Costs
+    O(n·3N·(k + oversample)·(2q + 2)) flops and O(n + 3N)·(k + oversample) extra memory.
+
+    Returns variances (k,) and orthonormal modes (k, 3N).
+    """
+    n, d = centred.shape
+    ell = int(min(k + oversample, n, d))
+    rng = np.random.default_rng(seed)
+    y = centred @ rng.standard_normal((d, ell)).astype(centred.dtype, copy=False)
+    for _ in range(power_iterations):
+        q, _ = np.linalg.qr(y)
+        z, _ = np.linalg.qr(centred.T @ q)
+        y = centred @ z
+    q, _ = np.linalg.qr(y)
+    _, sv, vt = np.linalg.svd(q.T @ centred, full_matrices=False)
+    k = min(k, len(sv))
+    return (sv[:k].astype(float) ** 2) / n_norm, vt[:k].astype(float)
+
+
+def _modes_for_fraction(variances: np.ndarray, total: float, fraction: float | None) -> int:
+    """Number of leading modes whose variance reaches ``fraction`` of ``total`` (all when None)."""
+    if fraction is None or total <= 0 or not len(variances):
+        return len(variances)
+    cum = np.cumsum(variances) / total
+    return int(min(len(variances), np.searchsorted(cum, fraction - 1e-12) + 1))
+
+
 def _fix_signs(modes: np.ndarray) -> np.ndarray:
     """Make each mode's largest-magnitude component positive (deterministic sign)."""
     if modes.size == 0:
@@ -425,6 +462,9 @@ def build_model(
     *, instance_points_world=None,
     alignment: str = "none",
     n_modes: int | None = None,
+    variance_fraction: float | None = None,
+    solver: str = "auto",
+    precision: str = "float64",
     params: dict | None = None,
     progress=None,
     cancelled=None,
@@ -447,6 +487,16 @@ def build_model(
         generalized Procrustes alignment without / with scaling.
     n_modes : int, optional
         Keep at most this many modes (default: all with a non-zero eigenvalue, <= n-1).
+    variance_fraction : float in (0, 1], optional
+        Keep the fewest leading modes that explain this fraction of the total variance.
+    solver : {"auto", "exact", "randomized"}
+        ``"exact"``: the Gram eigenproblem (eq. 6). ``"randomized"``: a randomized SVD
+        of the centred data for the leading modes only (needs ``n_modes`` or
+        ``variance_fraction``). ``"auto"``: randomized when n·3N ≥
+        :data:`RANDOMIZED_MIN_ELEMENTS` and a mode limit below n/4 is given, else exact.
+    precision : {"float64", "float32"}
+        ``"float32"`` halves the memory of the instance points and of the solver for very
+        large studies (mean, modes and variances stay float64; about 7 significant digits).
     params : dict, optional
         Extra JSON-serialisable parameters to record (e.g. template and coating settings).
     ddof : int
@@ -457,7 +507,13 @@ def build_model(
     ShapeModel
         Mean (eq. 4), eigenmodes and eigenvalues of S (eq. 5) via the Gram problem (eq. 6).
     """
-    x = np.asarray(instance_points, dtype=float)
+    if precision not in ("float64", "float32"):
+        raise InputError(f"build_model: precision must be 'float64' or 'float32', got {precision!r}")
+    if solver not in ("auto", "exact", "randomized"):
+        raise InputError(f"build_model: solver must be 'auto', 'exact' or 'randomized', got {solver!r}")
+    if variance_fraction is not None and not 0 < variance_fraction <= 1:
+        raise InputError(f"build_model: variance_fraction must be in (0, 1], got {variance_fraction}")
+    x = np.asarray(instance_points, dtype=np.float64 if precision == "float64" else np.float32)
     if x.ndim != 3 or x.shape[2] != 3:
         raise InputError(f"build_model: instance_points has shape {x.shape}; expected (n, N, 3)")
     n, npts, _ = x.shape
@@ -477,9 +533,9 @@ def build_model(
     if ddof not in (0, 1):
         raise InputError(f"build_model: ddof must be 0 (paper, 1/n) or 1 (1/(n-1)), got {ddof}")
     if instance_points_world is None:
-        world = x.copy()
+        world = x  # the same numbers; x itself is replaced, never changed in place
     else:
-        world = np.asarray(instance_points_world, dtype=float)
+        world = np.asarray(instance_points_world, dtype=x.dtype)
         if world.shape != x.shape:
             raise InputError(f"build_model: instance_points_world has shape {world.shape}, expected {x.shape}")
 
@@ -489,16 +545,43 @@ def build_model(
         x, align_info = generalized_procrustes(x, scale=alignment == "similarity")
     check_cancelled(cancelled)
 
-    mean = x.mean(axis=0)  # eq. 4
-    centred = (x - mean).reshape(n, -1)  # rows: (p_i - p̄)ᵀ
-    report(progress, 0.2, "Gram matrix (eq. 6)")
-    gram = centred @ centred.T
-    check_cancelled(cancelled)
-    report(progress, 0.6, "eigen-decomposition")
+    mean = x.mean(axis=0, dtype=np.float64)  # eq. 4
+    centred = x.reshape(n, -1) - mean.reshape(-1).astype(x.dtype)  # rows: (p_i - p̄)ᵀ
     n_norm = float(n - ddof)
-    variances, modes, ortho_err = _modes_from_gram(centred, gram, n_norm, n_modes)
-    modes = _fix_signs(modes)
-    total_var = float(np.trace(gram)) / n_norm
+    total_var = float(np.einsum("ij,ij->", centred, centred, dtype=np.float64)) / n_norm
+    limit = n_modes if n_modes is not None else None
+    use_randomized = solver == "randomized" or (
+        solver == "auto" and centred.size >= RANDOMIZED_MIN_ELEMENTS
+        and (n_modes is not None and n_modes < n // 4 or variance_fraction is not None and variance_fraction < 1))
+    if use_randomized:
+        if n_modes is None and variance_fraction is None:
+            raise InputError("build_model: the randomized solver needs n_modes or variance_fraction")
+        report(progress, 0.2, "randomized SVD of the centred shapes")
+        k = int(min(n_modes if n_modes is not None else 64, n - 1))
+        while True:
+            variances, modes = _modes_randomized(centred, n_norm, k)
+            check_cancelled(cancelled)
+            enough = _modes_for_fraction(variances, total_var, variance_fraction) < len(variances)
+            if n_modes is not None or enough or variance_fraction is None or k >= n - 1:
+                break
+            k = int(min(2 * k, n - 1))  # the fraction needs more modes than computed: double
+        ortho_err = float(np.abs(modes @ modes.T - np.eye(len(modes))).max()) if len(modes) else 0.0
+        eigensolver = "randomized SVD of the centred shape vectors (Halko et al. 2011), 4 power iterations"
+    else:
+        report(progress, 0.2, "Gram matrix (eq. 6)")
+        gram = (centred @ centred.T).astype(np.float64)
+        total_var = float(np.trace(gram)) / n_norm
+        check_cancelled(cancelled)
+        report(progress, 0.6, "eigen-decomposition")
+        variances, modes, ortho_err = _modes_from_gram(centred.astype(np.float64, copy=False), gram, n_norm, limit)
+        eigensolver = "Gram matrix P^T P (n x n, eq. 6), q_i = P q~_i / |P q~_i|"
+        del gram
+    keep = _modes_for_fraction(variances, total_var, variance_fraction)
+    variances, modes = variances[:keep], modes[:keep]
+    if n_modes is not None:
+        variances, modes = variances[:n_modes], modes[:n_modes]
+    modes = _fix_signs(np.asarray(modes, dtype=np.float64))
+    del centred
     report(progress, 1.0, f"{len(variances)} modes")
 
     all_params = {
@@ -506,7 +589,9 @@ def build_model(
         "alignment_info": align_info,
         "ddof": ddof,
         "normalisation": f"S = 1/{'n' if ddof == 0 else '(n-1)'} sum (p_i - mean)(p_i - mean)^T (eq. 5)",
-        "eigensolver": "Gram matrix P^T P (n x n, eq. 6), q_i = P q~_i / |P q~_i|",
+        "eigensolver": eigensolver,
+        "variance_fraction_requested": variance_fraction,
+        "precision": precision,
         "orthogonality_error_gram": ortho_err,
         "reorthonormalised": ortho_err > 1e-12,
         "sign_convention": "largest-magnitude component of each mode positive",

@@ -38,6 +38,7 @@ from .errors import InputError
 
 __all__ = [
     "CoatingParams",
+    "ComputeParams",
     "CorrespondenceParams",
     "FitParams",
     "ModelParams",
@@ -603,6 +604,16 @@ class ModelParams:
                                 "Procrustes")
     n_modes: int | None = param(None, kind="int", minimum=1, maximum=100000, none_means="every non-zero mode",
                                 label="Modes", help="number of modes kept")
+    variance_fraction: float | None = param(None, kind="float", minimum=0.0, exclusive_minimum=True, maximum=1.0,
+                                            none_means="no limit", label="Variance kept",
+                                            help="keep the fewest leading modes explaining this fraction of the "
+                                                 "total variance (with n_modes, the smaller)")
+    solver: str = param("auto", choices=("auto", "exact", "randomized"), label="Solver", advanced=True,
+                        help="'exact': Gram eigenproblem (eq. 6); 'randomized': randomized SVD for the leading modes "
+                             "(needs n_modes or variance_fraction); 'auto': randomized for large studies with a mode "
+                             "limit")
+    precision: str = param("float64", choices=("float64", "float32"), label="Precision", advanced=True,
+                           help="'float32' halves the memory of the instance points for very large studies")
     specificity_samples: int = param(500, minimum=1, maximum=1_000_000, label="Specificity samples", advanced=True,
                                      help="random shapes drawn for the specificity metric")
     max_loo: int = param(100, minimum=1, maximum=1_000_000, label="Max leave-one-out", advanced=True,
@@ -748,8 +759,35 @@ class QualityParams:
 
 
 #: The parameter classes by project table.
+@dataclass(frozen=True)
+class ComputeParams:
+    """Where a build's per-instance work runs and where it keeps its cache; the ``[compute]`` table.
+
+    Not shown in Blender, which keeps local processes. See :mod:`ssm_addon.compute` and
+    :mod:`ssm_addon.cache`.
+    """
+
+    scheduler: str = param("processes", kind="str", label="Scheduler",
+                           help="'processes' (local, --jobs of them), 'dask-local' (a Dask LocalCluster of --jobs "
+                                "workers), 'serial', or a Dask scheduler address such as tcp://host:8786")
+    cache: str = param("auto", kind="str", label="Cache",
+                       help="per-instance cache folder for resuming: 'auto' (DIR.cache beside the output folder), "
+                            "'off', or a folder (relative to the project file)")
+
+    _where = "compute parameters:"
+
+    def __post_init__(self):
+        check(self, self._where)
+        from .compute import check_scheduler
+
+        check_scheduler(self.scheduler, f"{self._where} scheduler")
+        if not str(self.cache).strip():
+            raise InputError(f"{self._where} cache: empty; use 'auto', 'off' or a folder")
+
+
 TABLES = {"template": TemplateParams, "coating": CoatingParams, "correspondence": CorrespondenceParams,
-          "model": ModelParams, "output": OutputParams, "quality": QualityParams}
+          "model": ModelParams, "output": OutputParams, "quality": QualityParams,
+          "compute": ComputeParams}
 
 
 def markdown_tables() -> str:

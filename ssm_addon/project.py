@@ -52,11 +52,20 @@ import numpy as np
 
 from . import __version__
 from . import params as P
+from .compute import Executor
 from .errors import InputError, check_cancelled
 from .instances import InstanceSpec, file_names
 from .landmarks import LandmarkSet, landmark_format, match_landmarks, read_landmarks, write_landmarks
 from .meshutil import genus, write_ply
-from .params import CoatingParams, CorrespondenceParams, ModelParams, OutputParams, QualityParams, TemplateParams
+from .params import (
+    CoatingParams,
+    ComputeParams,
+    CorrespondenceParams,
+    ModelParams,
+    OutputParams,
+    QualityParams,
+    TemplateParams,
+)
 from .progress import CancelledFn, ProgressFn, report, sub_progress
 from .quality import QualityError, warnings_text
 from .report import write_report_html
@@ -104,6 +113,7 @@ class Project:
     output: OutputParams = field(default_factory=OutputParams)
     quality: QualityParams = field(default_factory=QualityParams)
     correspondence: CorrespondenceParams = field(default_factory=CorrespondenceParams)
+    compute: ComputeParams = field(default_factory=ComputeParams)
     landmark_names: tuple[str, ...] = ()
 
     @property
@@ -340,6 +350,9 @@ def read_project(path) -> Project:
     output = _params(OutputParams, doc, "output", ctx)
     quality = _params(QualityParams, doc, "quality", ctx)
     correspondence = _params(CorrespondenceParams, doc, "correspondence", ctx)
+    compute = _params(ComputeParams, doc, "compute", ctx)
+    if compute.cache not in ("auto", "off") and not Path(compute.cache).is_absolute():
+        compute = dataclasses.replace(compute, cache=str((path.parent / compute.cache).resolve()))
 
     instances = _instances(doc, ctx, path.parent, landmarks_required=correspondence.method == "landmarks")
     if len(instances) < 2:
@@ -378,7 +391,7 @@ def read_project(path) -> Project:
 
     return Project(path=path, instances=tuple(instances), template_instance=template_instance, template=template,
                    coating=coating, model=model, output=output, quality=quality, correspondence=correspondence,
-                   landmark_names=matched[0].names)
+                   compute=compute, landmark_names=matched[0].names)
 
 
 # --------------------------------------------------------------------------------------
@@ -418,6 +431,11 @@ def project_text(project: Project, base: Path) -> str:
         if section != "template":
             lines += ["", f"[{section}]"]
         lines += [f"{k} = {toml_value(v)}" for k, v in P.to_table(params).items()]
+    compute = P.to_table(project.compute, only_changed=True)  # written only when set (Blender has no such panel)
+    if compute:
+        if compute.get("cache") not in (None, "auto", "off"):
+            compute["cache"] = _relative(Path(compute["cache"]), base)
+        lines += ["", "[compute]"] + [f"{k} = {toml_value(v)}" for k, v in compute.items()]
     for inst in project.instances:
         lines += ["", "[[instances]]", f"name = {toml_value(inst.name)}"]
         if inst.volume is not None:
@@ -663,6 +681,33 @@ def write_study_files(study: Study, folder: Path, *, output: OutputParams, proje
     return files
 
 
+def open_cache(project: Project, out_dir: Path, cache=None):
+    """The build's :class:`~ssm_addon.cache.BuildCache`, or None when it is off.
+
+    ``cache``: a folder, "auto" (``DIR.cache`` beside ``out_dir``), "off", or None for
+    the project's ``[compute] cache``.
+
+    Raises
+    ------
+    InputError
+        The cache folder is the output folder or inside it (a build replaces that
+        folder), or it is an input file.
+    """
+    from .cache import BuildCache
+
+    setting = project.compute.cache if cache is None else str(cache)
+    if setting == "off":
+        return None
+    folder = out_dir.parent / f"{out_dir.name}.cache" if setting == "auto" else Path(setting).expanduser().resolve()
+    if folder == out_dir or out_dir in folder.parents:
+        raise InputError(f"--cache {folder}: inside the output folder {out_dir}, which a build replaces; put the "
+                         "cache beside it")
+    inputs = {p.resolve() for i in project.instances for p in (i.volume, i.mesh, i.landmarks) if p is not None}
+    if folder in inputs or any(folder in p.parents for p in inputs):
+        raise InputError(f"--cache {folder}: holds the study's input files; choose another folder")
+    return BuildCache(folder)
+
+
 def build(
     project: Project,
     out_dir,
@@ -674,6 +719,8 @@ def build(
     blend: bool | None = None,
     blender_hook: Callable | None = None,
     force: bool = False,
+    scheduler: str | None = None,
+    cache=None,
 ) -> BuildResult:
     """Run the whole pipeline and write the outputs into ``out_dir`` atomically.
 
@@ -706,6 +753,13 @@ def build(
     force : bool
         Write into an existing folder that holds files an SSM build did not write (they
         are kept; see :func:`check_output_folder`).
+    scheduler : str, optional
+        Where the per-instance work runs (:mod:`ssm_addon.compute`); default the
+        project's ``[compute] scheduler``.
+    cache : path, "auto", "off" or None
+        The per-instance cache (:mod:`ssm_addon.cache`); None: the project's ``[compute]
+        cache`` ("auto": ``DIR.cache`` beside ``out_dir``). A rerun takes every entry
+        whose inputs and parameters are unchanged from there.
 
     The output folder then holds exactly this build's files (listed in
     ``.ssm-build.json``): outputs of an earlier build that this one does not write are
@@ -726,10 +780,17 @@ def build(
         raise InputError(f"{project.path}: {len(project.instances)} instances; a model with its metrics (leave-one-out "
                          "generalization) needs at least 3")
     study = Study.from_project(project)
+    build_cache = open_cache(project, out_dir, cache)
+    if project.correspondence.method == "model" and build_cache is not None:
+        say("cache: not used by [correspondence] method = \"model\" (its rounds depend on every instance)")
+        build_cache = None
+    executor = Executor(scheduler or project.compute.scheduler, jobs)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.building-", dir=out_dir.parent))
     os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes it private; the output folder follows the umask
     try:
-        run(study, jobs=jobs, progress=sub_progress(progress, 0.0, 0.95), cancelled=cancelled, log=say)
+        with executor:
+            run(study, jobs=jobs, progress=sub_progress(progress, 0.0, 0.95), cancelled=cancelled, log=say,
+                executor=executor, cache=build_cache)
         check_cancelled(cancelled)
         if project.quality.strict and study.findings:
             raise QualityError(f"{len(study.findings)} quality gate(s) failed and [quality] strict is set; nothing "
@@ -745,7 +806,11 @@ def build(
             files.update(blender_hook(result, tmp, say) or {})
             study.timings_s["blender"] = time.perf_counter() - t1
         check_cancelled(cancelled)
-        extra = {"timings_s": dict(study.timings_s), "peak_memory": peak_memory_mb()}
+        extra = {"timings_s": dict(study.timings_s), "peak_memory": peak_memory_mb(),
+                 "compute": {"scheduler": executor.scheduler, "workers": executor.jobs,
+                             "cache": str(build_cache.folder) if build_cache is not None else None,
+                             "from_cache": study.streamed.get("cached", 0),
+                             "computed": study.streamed.get("computed", len(study.names))}}
         files.update(write_study_files(study, tmp, output=project.output, project_path=project.path, extra=extra))
         study.timings_s["write"] = time.perf_counter() - t0 - study.timings_s.get("blender", 0.0)
         study.timings_s["total"] = time.perf_counter() - t_total

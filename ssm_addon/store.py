@@ -26,21 +26,9 @@ from .model import model_from_arrays, write_npz
 from .quality import Finding
 from .study import Study
 from .template import Template
-from .volume import ObjectFrame, ObjectVolume
+from .volume import ObjectVolume, frame_from_arrays, frame_to_arrays
 
 __all__ = ["load_study", "save_study"]
-
-
-def _frame_arrays(prefix: str, frame: ObjectFrame, out: dict) -> None:
-    out[f"{prefix}/origin_world"] = np.asarray(frame.origin_world, float)
-    out[f"{prefix}/axes_world"] = np.asarray(frame.axes_world, float)
-    out[f"{prefix}/second_moments_mm2"] = np.asarray(frame.second_moments_mm2, float)
-    out[f"{prefix}/method"] = np.asarray(frame.method)
-
-
-def _frame(prefix: str, a) -> ObjectFrame:
-    return ObjectFrame(origin_world=a[f"{prefix}/origin_world"], axes_world=a[f"{prefix}/axes_world"],
-                       second_moments_mm2=a[f"{prefix}/second_moments_mm2"], method=str(a[f"{prefix}/method"]))
 
 
 def _clean(obj):
@@ -80,16 +68,16 @@ def save_study(study: Study, folder, *, extra: dict | None = None) -> Path:
         arrays[f"volume/{k}/spacing_mm"] = np.asarray(ov.spacing_mm, float)
         arrays[f"volume/{k}/origin_object"] = np.asarray(ov.origin_object, float)
         arrays[f"volume/{k}/source"] = np.asarray(ov.source)
-        _frame_arrays(f"volume/{k}/frame", ov.frame, arrays)
+        frame_to_arrays(f"volume/{k}/frame", ov.frame, arrays)
     for name, frame in study.frames.items():
-        _frame_arrays(f"frame/{index[name]}", frame, arrays)
+        frame_to_arrays(f"frame/{index[name]}", frame, arrays)
     t = study.template
     if t is not None:
         arrays["template/points_object"] = np.asarray(t.points_object, float)
         arrays["template/faces"] = np.asarray(t.faces, np.int64)
         arrays["template/curvature"] = np.asarray(t.curvature, float)
         arrays["template/params_json"] = np.asarray(json.dumps(_clean(t.params)))
-        _frame_arrays("template/frame", t.frame, arrays)
+        frame_to_arrays("template/frame", t.frame, arrays)
     for name, c in study.coatings.items():
         k = index[name]
         arrays[f"coating/{k}/points_object"] = np.asarray(c.points_object, float)
@@ -145,17 +133,17 @@ def load_study(folder) -> tuple[Study, dict]:
         if f"volume/{k}/mask" in a:
             study.volumes[spec.name] = ObjectVolume(
                 mask=a[f"volume/{k}/mask"], spacing_mm=float(a[f"volume/{k}/spacing_mm"]),
-                origin_object=a[f"volume/{k}/origin_object"], frame=_frame(f"volume/{k}/frame", a),
+                origin_object=a[f"volume/{k}/origin_object"], frame=frame_from_arrays(f"volume/{k}/frame", a),
                 source=str(a[f"volume/{k}/source"]))
         if f"frame/{k}/origin_world" in a:
-            study.frames[spec.name] = _frame(f"frame/{k}", a)
+            study.frames[spec.name] = frame_from_arrays(f"frame/{k}", a)
         if f"coating/{k}/points_object" in a:
             study.coatings[spec.name] = CoatingResult(
                 points_object=a[f"coating/{k}/points_object"], warped_points_object=a[f"coating/{k}/warped_points_object"],
                 fit=FitFigures.from_json(str(a[f"coating/{k}/fit_json"])), name=spec.name)
     if "template/points_object" in a:
         study.template = Template(points_object=a["template/points_object"], faces=a["template/faces"],
-                                  curvature=a["template/curvature"], frame=_frame("template/frame", a),
+                                  curvature=a["template/curvature"], frame=frame_from_arrays("template/frame", a),
                                   params=json.loads(str(a["template/params_json"])))
     if "model/mean" in a:
         study.model = model_from_arrays({**{k: a[f"model/{k}"] for k in (

