@@ -125,6 +125,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--project", help="fit every instance of a project file (a batch)")
     p.add_argument("--glob", help="fit every file of a glob pattern (a batch; --label applies)")
     p.add_argument("--jobs", type=int, default=1, help="parallel workers of a batch")
+    p.add_argument("--scheduler", default="processes",
+                   help="where a batch runs: processes (default), dask-local, serial, or a Dask scheduler address")
     p.add_argument("--outlier-probability", type=float, default=0.99,
                    help="chi-square quantile of the Mahalanobis distance above which a target is an outlier")
     p.add_argument("--out", required=True, help="output folder")
@@ -258,7 +260,7 @@ def cmd_fit(args) -> int:
             apply.targets_from_glob(args.glob, args.label)
         docs = apply.fit_batch(args.model, targets, out, params=params, partial=args.partial, free=args.free,
                                outlier_probability=args.outlier_probability, jobs=args.jobs,
-                               progress=_print_progress())
+                               progress=_print_progress(), scheduler=args.scheduler)
         for d in docs:
             flag = "  OUTLIER" if d["outlier"] else ""
             print(f"{d['name']}: Mahalanobis {d['mahalanobis']:.2f} (p = {d['p_value']:.3g}), mean distance "

@@ -23,7 +23,6 @@ import glob
 import io
 import json
 import math
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -245,8 +244,16 @@ def _fit_job(args):
 
 def fit_batch(model_path, targets: list[FitTarget], out_dir, *, params: FitParams | None = None,
               partial: bool = False, free: bool = False, outlier_probability: float = 0.99, jobs: int = 1,
-              progress: ProgressFn = None) -> list[dict]:
-    """Fit a model to many targets (one folder each, ``jobs`` processes) and write ``coefficients.csv``."""
+              progress: ProgressFn = None, scheduler: str = "processes") -> list[dict]:
+    """Fit a model to many targets (one folder each) and write ``coefficients.csv``.
+
+    Each target is fitted by one call on ``scheduler`` (:class:`~ssm_addon.compute.Executor`:
+    ``jobs`` local processes, a Dask LocalCluster or a Dask scheduler address); the worker
+    reads the model and the target from their paths and writes the target's folder (on a
+    remote cluster ``out_dir`` must be on a shared file system).
+    """
+    from .compute import Executor
+
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     names = [t.name for t in targets]
@@ -255,18 +262,8 @@ def fit_batch(model_path, targets: list[FitTarget], out_dir, *, params: FitParam
     folders = file_names(names)
     args = [(str(model_path), t, out_dir / folders[t.name], params, partial, free, outlier_probability)
             for t in targets]
-    docs: list[dict] = []
-    if jobs > 1 and len(targets) > 1:
-        import multiprocessing
-
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
-            for i, doc in enumerate(pool.map(_fit_job, args)):
-                docs.append(doc)
-                report(progress, (i + 1) / len(args), f"fitted {doc['name']} ({i + 1}/{len(args)})")
-    else:
-        for i, a in enumerate(args):
-            docs.append(_fit_job(a))
-            report(progress, (i + 1) / len(args), f"fitted {docs[-1]['name']} ({i + 1}/{len(args)})")
+    with Executor(scheduler, jobs if len(targets) > 1 else 1) as executor:
+        docs = executor.map(_fit_job, args, progress=progress, labels=names, verb="fitted")
     k = max((len(d["coefficients"]) for d in docs), default=0)
     with open(out_dir / "coefficients.csv", "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
