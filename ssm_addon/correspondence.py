@@ -34,18 +34,18 @@ from __future__ import annotations
 import math
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from .coating import CoatingResult, coat
+from .compute import Executor
 from .errors import InputError, check_cancelled
 from .fitting import Pose, Target, fit_model
 from .meshutil import Mesh, marching_cubes
 from .model import build_model
 from .params import CoatingParams, CorrespondenceParams, FitParams
-from .progress import CancelledFn, ProgressFn, report
+from .progress import CancelledFn, ProgressFn, sub_progress
 
 __all__ = ["RoundFigures", "refine_instance", "refine_rounds"]
 
@@ -130,9 +130,13 @@ def _refine_job(args):
 
 
 def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progress: ProgressFn = None,
-                  cancelled: CancelledFn = None, log=None) -> list[RoundFigures]:
+                  cancelled: CancelledFn = None, log=None, executor=None) -> list[RoundFigures]:
     """Refinement rounds on a coated study (every instance coated): updates ``study.template``
     (the mean shape, in the model frame) and ``study.coatings``; returns each round's figures.
+
+    Each round maps :func:`refine_instance` over the instances on ``executor``
+    (:class:`~ssm_addon.compute.Executor`; default ``jobs`` local processes). Its inputs
+    include the instance's resampled volume, which travels to the worker.
 
     Raises
     ------
@@ -158,57 +162,52 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
     rounds: list[RoundFigures] = []
     prev_mean = np.mean([study.coatings[n].points_object for n in names], axis=0)
     size = float(np.linalg.norm(np.ptp(prev_mean, axis=0)))
-    workers = max(1, min(int(jobs or 1), len(names), os.cpu_count() or 1))
-    for r in range(1, params.iterations + 1):
-        check_cancelled(cancelled)
-        t0 = time.perf_counter()
-        points = np.stack([study.coatings[n].points_object for n in names])
-        mean = points.mean(axis=0)  # the mean shape: the new template (paper 3.3)
-        args = [(np.delete(points, i, axis=0), faces, mean, study.volume(n), locations, lm_object[n], fit,
-                 study.coating_params, n) for i, n in enumerate(names)]
-        results: list = [None] * len(names)
-        if workers > 1:
-            import multiprocessing
-
-            from .coating import ignore_sigint
-
-            with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                                     initializer=ignore_sigint) as pool:
-                for i, res in enumerate(pool.map(_refine_job, args)):
-                    results[i] = res
-                    report(progress, (r - 1 + (i + 1) / len(names)) / params.iterations,
-                           f"round {r}: refined {names[i]} ({i + 1}/{len(names)})")
-                    check_cancelled(cancelled)
-        else:
-            for i, a in enumerate(args):
-                check_cancelled(cancelled)
-                results[i] = _refine_job(a)
-                report(progress, (r - 1 + (i + 1) / len(names)) / params.iterations,
-                       f"round {r}: refined {names[i]} ({i + 1}/{len(names)})")
-        new_points = np.stack([c.points_object for c, _ in results])
-        new_mean = new_points.mean(axis=0)
-        change = float(np.sqrt(((new_mean - prev_mean) ** 2).sum(axis=1).mean()))
-        if not math.isfinite(change) or change > size:
-            raise InputError(f"model-guided correspondence diverged in round {r}: the mean shape moved {change:.1f} mm "
-                             f"(the shapes are {size:.0f} mm across); check the instances' frames and landmarks")
-        fig = RoundFigures(
-            round=r, mean_change_mm=change,
-            instance_change_mm={n: float(np.sqrt(((new_points[i] - points[i]) ** 2).sum(axis=1).mean()))
-                                for i, n in enumerate(names)},
-            fit_distance_mm={n: d for n, (_, d) in zip(names, results)},
-            folds={n: int(c.fit.folded_after) for n, (c, _) in zip(names, results)},
-            seconds=time.perf_counter() - t0)
-        rounds.append(fig)
-        for n, (c, _) in zip(names, results):
-            study.coatings[n] = c
-        study.template = _mean_template(study, mean, faces)
-        say(f"correspondence round {r}: mean shape moved {change:.3f} mm; instances moved up to "
-            f"{max(fig.instance_change_mm.values()):.2f} mm; folds left {sum(fig.folds.values())} "
-            f"({fig.seconds:.1f} s)")
-        prev_mean = new_mean
-        if change < params.tolerance_mm:
-            break
+    own = executor is None
+    executor = Executor("processes", max(1, min(int(jobs or 1), len(names), os.cpu_count() or 1))) if own else executor
+    try:
+        for r in range(1, params.iterations + 1):
+            check_cancelled(cancelled)
+            t0 = time.perf_counter()
+            points = np.stack([study.coatings[n].points_object for n in names])
+            mean = points.mean(axis=0)  # the mean shape: the new template (paper 3.3)
+            args = [(np.delete(points, i, axis=0), faces, mean, study.volume(n), locations, lm_object[n], fit,
+                     study.coating_params, n) for i, n in enumerate(names)]
+            results = executor.map(_refine_job, args, labels=names, verb=f"round {r}: refined",
+                                   progress=sub_progress(progress, (r - 1) / params.iterations, r / params.iterations),
+                                   cancelled=cancelled)
+            prev_mean = _finish_round(study, names, points, results, prev_mean, faces, size, r, t0, rounds, say,
+                                      mean)
+            if rounds[-1].mean_change_mm < params.tolerance_mm:
+                break
+    finally:
+        if own:
+            executor.close()
     return rounds
+
+
+def _finish_round(study, names, points, results, prev_mean, faces, size, r, t0, rounds, say, mean):
+    """Check a round, record its figures, and make its coatings and mean shape the study's."""
+    new_points = np.stack([c.points_object for c, _ in results])
+    new_mean = new_points.mean(axis=0)
+    change = float(np.sqrt(((new_mean - prev_mean) ** 2).sum(axis=1).mean()))
+    if not math.isfinite(change) or change > size:
+        raise InputError(f"model-guided correspondence diverged in round {r}: the mean shape moved {change:.1f} mm "
+                         f"(the shapes are {size:.0f} mm across); check the instances' frames and landmarks")
+    fig = RoundFigures(
+        round=r, mean_change_mm=change,
+        instance_change_mm={n: float(np.sqrt(((new_points[i] - points[i]) ** 2).sum(axis=1).mean()))
+                            for i, n in enumerate(names)},
+        fit_distance_mm={n: d for n, (_, d) in zip(names, results)},
+        folds={n: int(c.fit.folded_after) for n, (c, _) in zip(names, results)},
+        seconds=time.perf_counter() - t0)
+    rounds.append(fig)
+    for n, (c, _) in zip(names, results):
+        study.coatings[n] = c
+    study.template = _mean_template(study, mean, faces)
+    say(f"correspondence round {r}: mean shape moved {change:.3f} mm; instances moved up to "
+        f"{max(fig.instance_change_mm.values()):.2f} mm; folds left {sum(fig.folds.values())} "
+        f"({fig.seconds:.1f} s)")
+    return new_mean
 
 
 def _mean_template(study, mean_points: np.ndarray, faces: np.ndarray):

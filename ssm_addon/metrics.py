@@ -29,6 +29,7 @@ import numpy as np
 from .errors import InputError, SSMError, check_cancelled
 from .model import (
     ALIGNMENTS,
+    RANDOMIZED_MIN_ELEMENTS,
     ShapeModel,
     generalized_procrustes,
     jsonable,
@@ -162,16 +163,87 @@ def generalization(
     ks = sorted({int(k) for k in ks if 1 <= int(k) <= kcap})
     if not ks:
         raise InputError(f"generalization: no valid k (1..{kcap}) for {n} instances in {folds} folds")
-    kmax = ks[-1]
     method = "leave-one-out" if folds == n else f"{folds}-fold cross-validation (n = {n} > {max_loo})"
 
     flat = x.reshape(n, -1)
     raw_gram = None
-    if alignment == "none":
+    if alignment == "none" and folds < n and flat.size >= RANDOMIZED_MIN_ELEMENTS:
+        errors = _generalization_randomized(flat, fold_of, folds, ks, progress=progress, cancelled=cancelled)
+        method += ", leading modes of each fold by randomized SVD"
+    elif alignment == "none":
         flat = flat - flat.mean(axis=0)  # shifts cancel in centred products; better rounding
         report(progress, 0.0, "Gram matrix")
         raw_gram = flat @ flat.T
         total = flat.sum(axis=0)
+    if raw_gram is not None or alignment != "none":
+        errors = _generalization_folds(x, flat, raw_gram, total if raw_gram is not None else None, fold_of, ks,
+                                       alignment, progress, cancelled)
+    report(progress, 1.0, "generalization done")
+    return {
+        "k": ks,
+        "mean_mm": errors.mean(axis=0).tolist(),
+        "std_mm": errors.std(axis=0).tolist(),
+        "per_instance_mm": errors.tolist(),
+        "method": method,
+        "folds": folds,
+        "alignment": alignment,
+        "error": "mean point-to-point distance (mm) of the held-out shape to its reconstruction",
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+def _generalization_randomized(flat: np.ndarray, fold_of: np.ndarray, folds: int, ks, *, progress=None,
+                               cancelled=None, oversample: int = 10, power_iterations: int = 3) -> np.ndarray:
+    """k-fold generalization errors for large studies, with bounded memory.
+
+    Each fold's leading modes come from a randomized SVD of its centred training rows,
+    applied implicitly ((X − 1μᵀ)M = XM − 1(μᵀM), test rows weighted 0), so no n × n
+    Gram matrix and no copy of the n × 3N data is made.
+    """
+    n, d = flat.shape
+    kmax = ks[-1]
+    ell = int(min(kmax + oversample, n, d))
+    errors = np.zeros((n, len(ks)))
+    rng = np.random.default_rng(0)
+    for f in range(folds):
+        check_cancelled(cancelled)
+        report(progress, 0.05 + 0.95 * f / folds, f"generalization: fold {f + 1}/{folds}")
+        test = np.flatnonzero(fold_of == f)
+        train_w = (fold_of != f).astype(float)
+        mu = (train_w @ flat) / train_w.sum()
+
+        def a_times(m, mu=mu, w=train_w):
+            return (flat @ m - (mu @ m)[None]) * w[:, None]
+
+        def at_times(y, mu=mu):
+            return flat.T @ y - np.outer(mu, y.sum(axis=0))
+
+        y = a_times(rng.standard_normal((d, ell)))
+        for _ in range(power_iterations):
+            qy, _ = np.linalg.qr(y)
+            z, _ = np.linalg.qr(at_times(qy))
+            y = a_times(z)
+        qy, _ = np.linalg.qr(y)
+        _, _, vt = np.linalg.svd(at_times(qy).T, full_matrices=False)
+        modes = vt[:kmax]
+        yt = flat[test] - mu
+        b = yt @ modes.T
+        residual = yt
+        prev = 0
+        for j, k in enumerate(ks):
+            kk = min(k, modes.shape[0])
+            if kk > prev:
+                residual = residual - b[:, prev:kk] @ modes[prev:kk]
+                prev = kk
+            errors[test, j] = _point_errors(residual)
+    return errors
+
+
+def _generalization_folds(x, flat, raw_gram, total, fold_of, ks, alignment, progress, cancelled):
+    """The exact folds (Gram route, or Procrustes per fold): errors (n, len(ks))."""
+    n = x.shape[0]
+    folds = int(fold_of.max()) + 1
+    kmax = ks[-1]
     errors = np.zeros((n, len(ks)))
     for f in range(folds):
         check_cancelled(cancelled)
@@ -208,18 +280,7 @@ def generalization(
                 residual -= b[:, prev:kk] @ modes[prev:kk]
                 prev = kk
             errors[test, j] = _point_errors(residual) / scale
-    report(progress, 1.0, "generalization done")
-    return {
-        "k": ks,
-        "mean_mm": errors.mean(axis=0).tolist(),
-        "std_mm": errors.std(axis=0).tolist(),
-        "per_instance_mm": errors.tolist(),
-        "method": method,
-        "folds": folds,
-        "alignment": alignment,
-        "error": "mean point-to-point distance (mm) of the held-out shape to its reconstruction",
-        "seconds": time.perf_counter() - t0,
-    }
+    return errors
 
 
 # ---------------------------------------------------------------------------------------
@@ -269,11 +330,17 @@ def specificity(
     if not ks:
         raise InputError(f"specificity: no valid k (1..{model.n_modes})")
     n = x.shape[0]
-    centred = (x - model.mean).reshape(n, -1)
+    flat = x.reshape(n, -1)
+    mu = model.mean.reshape(-1)
     kmax = ks[-1]
     q = model.modes[:kmax].reshape(kmax, -1)
-    scores = centred @ q.T  # (n, kmax)
-    norms = (centred**2).sum(axis=1)
+    scores = np.empty((n, kmax))
+    norms = np.empty(n)
+    rows = max(1, (1 << 24) // max(flat.shape[1], 1))  # centred rows in blocks of 128 MB: no n x 3N copy
+    for start in range(0, n, rows):
+        c = flat[start:start + rows] - mu
+        scores[start:start + rows] = c @ q.T  # (n, kmax)
+        norms[start:start + rows] = (c**2).sum(axis=1)
     rng = np.random.default_rng(seed)
     sd = model.standard_deviations[:kmax]
     total = int(n_samples)
@@ -293,7 +360,7 @@ def specificity(
             err = np.empty(len(b))
             for start in range(0, len(b), chunk):
                 sl = slice(start, start + chunk)
-                diff = b[sl] @ q[:k] - centred[nearest[sl]]
+                diff = b[sl] @ q[:k] - (flat[nearest[sl]] - mu)
                 err[sl] = _point_errors(diff)
             rms_b = np.sqrt(np.maximum(d2[np.arange(len(b)), nearest], 0.0) / model.n_points)
             sums[j] += (err.sum(), (err * err).sum(), rms_b.sum())

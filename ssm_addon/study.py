@@ -374,7 +374,7 @@ def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: in
 
 
 def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn = None, cancelled: CancelledFn = None,
-                          log: Log = None) -> dict[str, CoatingResult]:
+                          log: Log = None, executor=None) -> dict[str, CoatingResult]:
     """The model method's coating (``[correspondence] method = "model"``).
 
     Instances not coated yet get their start (:func:`start_coatings`); then the rounds of
@@ -395,7 +395,7 @@ def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn =
         say(f"coating: {starts.count('landmarks')} by landmarks, {starts.count('object frames')} from the object "
             "frames; refining with the model")
     rounds = refine_rounds(work, study.correspondence_params, jobs=jobs, progress=progress, cancelled=cancelled,
-                           log=say)
+                           log=say, executor=executor)
     study.coatings.update(work.coatings)
     study.coating_start.update(work.coating_start)
     study.template = work.template
@@ -758,7 +758,8 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
                                     cancelled=cancelled)
             study.coating_start.update({name: "landmarks" for name in coated})
         else:
-            coated = refine_correspondence(study, jobs=jobs, progress=coat_prog, cancelled=cancelled, log=say)
+            coated = refine_correspondence(study, jobs=jobs, progress=coat_prog, cancelled=cancelled, log=say,
+                                           executor=executor)
         study.coatings.update(coated)
         _add_findings(study, [f for n, c in coated.items() for f in check_coating(n, c.fit, study.quality_params)], say)
         study.timings_s["coating"] = time.perf_counter() - t0

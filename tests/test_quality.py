@@ -185,3 +185,21 @@ def test_bad_input_table_in_the_docs_lists_the_messages():
     for needle in ("looks like an intensity image", "mm from the instance's surface", "stability bound",
                    "did not write", "holds an input of the build", "would need about", "quality gate(s) failed"):
         assert needle in text, needle
+
+
+def test_large_study_outlier_scores_agree_with_the_exact_ones():
+    """Above EXACT_LOO_MAX instances the scores come from a rank-one downdate in the leading modes."""
+    rng = np.random.default_rng(11)
+    n, npts = 160, 150
+    basis = np.linalg.qr(rng.standard_normal((3 * npts, 5)))[0].T
+    x = (rng.standard_normal((n, 5)) * [9.0, 6.0, 4.0, 3.0, 2.0]) @ basis + 0.3 * rng.standard_normal((n, 3 * npts))
+    x[7] += 40.0 * basis[2]  # one outlier
+    x = x.reshape(n, npts, 3)
+    exact = Q.loo_outlier_scores(x, variance_fraction=0.95)
+    xc = x.reshape(n, -1) - x.reshape(n, -1).mean(axis=0)
+    fast = Q._loo_scores_in_subspace(xc @ xc.T, npts, 0.95)  # noqa: SLF001 - the path used above EXACT_LOO_MAX
+    assert np.array_equal(fast["modes"], exact["modes"])
+    np.testing.assert_allclose(fast["mahalanobis2"], exact["mahalanobis2"], rtol=1e-6)
+    np.testing.assert_allclose(fast["loo_error_mm"], exact["loo_error_mm"], rtol=1e-6)
+    np.testing.assert_allclose(fast["max_t"], exact["max_t"], rtol=1e-6)
+    assert int(np.argmax(fast["mahalanobis2"])) == 7
