@@ -60,11 +60,12 @@ import math
 import os
 import sys
 import time
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, ThreadPoolExecutor, wait
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from .compute import Executor, run_one_thread
 from .distance_map import DistanceMap
 from .errors import Cancelled, InputError, check_cancelled
 from .meshutil import Mesh, MeshLocation, locate_on_mesh, mesh_area
@@ -381,30 +382,8 @@ def coat(
 
 
 def _coat_job(args):
-    from .compute import run_one_thread
-
     template, src, target, dst, params, name = args
-    return run_one_thread(lambda _: coat(template, src, target, dst, params=params, name=name), None)
-
-
-def ignore_sigint() -> None:
-    """Worker initializer: Ctrl-C is for the main process, which stops the workers."""
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
-def _stop_workers(before: set) -> None:
-    """Terminate the worker processes started since ``before`` (an interrupt or error in the batch)."""
-    import multiprocessing
-
-    children = [c for c in multiprocessing.active_children() if c.pid not in before]
-    for child in children:
-        child.terminate()
-    for child in children:
-        child.join(1.0)
-        if child.is_alive():
-            child.kill()
+    return coat(template, src, target, dst, params=params, name=name)  # the executor limits the BLAS threads
 
 
 def _in_blender() -> bool:
@@ -437,8 +416,6 @@ def coat_all(
     raised with ``.results``, a list with the finished :class:`CoatingResult` and
     None for the instances not coated.
     """
-    from .compute import run_one_thread
-
     params = CoatingParams() if params is None else params
     pts, faces = _template_arrays(template)
     if len(targets) != len(target_landmarks_object_list):
@@ -461,53 +438,18 @@ def coat_all(
                 raise CoatingCancelled(f"coating cancelled after {i} of {n} instances", results) from None
             report(progress, (i + 1) / n, f"coated {names[i]} ({i + 1}/{n})")
         return results
-    import multiprocessing
-
-    if start_method not in ("spawn", "forkserver"):
-        raise InputError(f"coating: start_method must be 'spawn' or 'forkserver', got {start_method!r}")
-    ctx = multiprocessing.get_context(start_method)
     arrays = Mesh(pts, faces)
-    before = {c.pid for c in multiprocessing.active_children()}
-    pool = ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=ignore_sigint)
-    try:
-        pending = {}
-        queue = list(range(n))
-        done_count = 0
+    args = [(arrays, template_landmarks_object, targets[i], target_landmarks_object_list[i], params, names[i])
+            for i in range(n)]
 
-        def submit(i):
-            fut = pool.submit(
-                _coat_job, (arrays, template_landmarks_object, targets[i], target_landmarks_object_list[i], params, names[i])
-            )
-            pending[fut] = i
+    def keep(i, result):
+        results[i] = result
 
-        for _ in range(jobs):  # keep at most `jobs` in flight so cancellation stops early
-            if queue:
-                submit(queue.pop(0))
-        while pending:
-            finished, _ = wait(list(pending), timeout=0.2, return_when=FIRST_COMPLETED)
-            for fut in finished:
-                i = pending.pop(fut)
-                results[i] = fut.result()
-                done_count += 1
-                report(progress, done_count / n, f"coated {names[i]} ({done_count}/{n})")
-            if cancelled is not None and cancelled():
-                for fut in pending:
-                    fut.cancel()
-                # let running instances finish so nothing half-written is returned
-                for fut, i in list(pending.items()):
-                    if not fut.cancelled():
-                        try:
-                            results[i] = fut.result()
-                        except Exception:  # noqa: BLE001 - cancelled batch: keep what finished cleanly
-                            pass
-                raise CoatingCancelled(
-                    f"coating cancelled after {sum(r is not None for r in results)} of {n} instances", results
-                )
-            while queue and len(pending) < jobs:
-                submit(queue.pop(0))
-    except BaseException:
-        pool.shutdown(wait=False, cancel_futures=True)
-        _stop_workers(before)  # an interrupt or error: no worker outlives the batch
-        raise
-    pool.shutdown(wait=True)
+    with Executor("processes", jobs, start_method=start_method) as executor:
+        try:
+            executor.map(_coat_job, args, on_result=keep, labels=names, verb="coated", progress=progress,
+                         cancelled=cancelled)
+        except Cancelled:
+            raise CoatingCancelled(f"coating cancelled after {sum(r is not None for r in results)} of {n} instances",
+                                   results) from None
     return results

@@ -24,12 +24,13 @@ from __future__ import annotations
 import os
 import sys
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 
 from .errors import Cancelled, InputError
 from .progress import CancelledFn, ProgressFn, report
 
-__all__ = ["SCHEDULERS", "Executor", "check_scheduler", "run_one_thread", "time_left_text"]
+__all__ = ["SCHEDULERS", "Executor", "check_scheduler", "ignore_sigint", "run_one_thread", "stop_children",
+           "time_left_text"]
 
 SCHEDULERS = ("serial", "processes", "dask-local")
 """Scheduler names; anything else must be a Dask scheduler address (``tcp://``, ``tls://``, ``ucx://``)."""
@@ -87,13 +88,15 @@ def run_one_thread(fn: Callable, item):
         return fn(item)
 
 
-def _ignore_sigint() -> None:
+def ignore_sigint() -> None:
+    """Worker initializer: Ctrl-C is for the main process, which stops the workers."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
-def _stop_children(before: set) -> None:
+def stop_children(before: set) -> None:
+    """Terminate the worker processes started since ``before`` (pids), killing those that linger."""
     import multiprocessing
 
     children = [c for c in multiprocessing.active_children() if c.pid not in before]
@@ -127,9 +130,12 @@ class Executor:
         :data:`CONNECT_TIMEOUT_S`.
     """
 
-    def __init__(self, scheduler: str = "processes", jobs: int = 1):
+    def __init__(self, scheduler: str = "processes", jobs: int = 1, *, start_method: str = "spawn"):
         self.scheduler = check_scheduler(scheduler)
         self.jobs = max(1, int(jobs or 1))
+        if start_method not in ("spawn", "forkserver"):  # fork is avoided: the caller may hold threads
+            raise InputError(f"start_method must be 'spawn' or 'forkserver', got {start_method!r}")
+        self.start_method = start_method
         self._client = None
         self._cluster = None
         self._pool = None
@@ -236,12 +242,12 @@ class Executor:
 
         before = {c.pid for c in multiprocessing.active_children()}
         if self._pool is None:
-            self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=multiprocessing.get_context("spawn"),
-                                             initializer=_ignore_sigint)
+            context = multiprocessing.get_context(self.start_method)
+            self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=context, initializer=ignore_sigint)
         pool = self._pool
         queue = list(range(len(items)))
         pending: dict = {}
-        ahead = 2 * self.jobs  # a few in flight per worker; cancellation stops early
+        ahead = self.jobs  # one in flight per worker: cancellation stops after the running ones
 
         try:
             while queue or pending:
@@ -264,7 +270,7 @@ class Executor:
         except BaseException:
             self._pool = None
             pool.shutdown(wait=False, cancel_futures=True)
-            _stop_children(before)  # an interrupt or error: no worker outlives the map
+            stop_children(before)  # an interrupt or error: no worker outlives the map
             raise
 
     def _map_dask(self, fn, items, arrived, cancelled) -> None:
@@ -295,7 +301,3 @@ class Executor:
             raise
 
 
-def iter_chunks(seq: Sequence, size: int) -> Iterable[Sequence]:
-    """Consecutive slices of ``seq`` of at most ``size`` items."""
-    for start in range(0, len(seq), max(1, int(size))):
-        yield seq[start:start + size]

@@ -234,6 +234,26 @@ SUBSPACE_MODES = 300
 :func:`_loo_scores_in_subspace`); below it, one n × n eigenproblem per instance."""
 
 
+def _descending_eig(mat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenpairs of a symmetric matrix, largest first, without the numerically zero ones."""
+    w, v = np.linalg.eigh(mat)
+    order = np.argsort(w)[::-1]
+    w, v = w[order], v[:, order]
+    keep = w > 1e-10 * max(w[0], 1e-300)
+    return w[keep], v[:, keep]
+
+
+def _row_scores(lam: np.ndarray, b: np.ndarray, total: float, tt: float, npts: int, m: int,
+                variance_fraction: float) -> tuple[float, int, float, float]:
+    """(D², K, reconstruction RMS in mm, largest t) of one held-out shape, from its LOO model's
+    variances ``lam`` (descending), its coefficients ``b``, the total variance and |y|² = ``tt``."""
+    k = int(min(np.searchsorted(np.cumsum(lam) / total, variance_fraction - 1e-12) + 1, len(lam)))
+    d2 = float(np.sum(b[:k] ** 2 / lam[:k]))
+    rms = math.sqrt(max(tt - float(np.sum(b[:k] ** 2)), 0.0) / npts)
+    t = float(np.max(np.abs(b[:k]) / np.sqrt(lam[:k] * (m + 1) / max(m - 1, 1))))
+    return d2, k, rms, t
+
+
 def _loo_scores_in_subspace(gram: np.ndarray, npts: int, variance_fraction: float) -> dict:
     """Leave-one-out scores from one eigendecomposition plus an r × r one per instance.
 
@@ -257,21 +277,12 @@ def _loo_scores_in_subspace(gram: np.ndarray, npts: int, variance_fraction: floa
     m2, ks, err, tmax = np.full(n, np.nan), np.zeros(n, dtype=int), np.full(n, np.nan), np.full(n, np.nan)
     for i in range(n):
         ci = c[i]
-        s_loo = (np.diag(w[:r]) - (n / m) * np.outer(ci, ci)) / m
-        lam, u = np.linalg.eigh(s_loo)
-        order = np.argsort(lam)[::-1]
-        lam, u = lam[order], u[:, order]
-        keep = lam > 1e-10 * max(lam[0], 1e-300)
-        lam, u = lam[keep], u[:, keep]
+        lam, u = _descending_eig((np.diag(w[:r]) - (n / m) * np.outer(ci, ci)) / m)
         if not len(lam):
             continue
         total_i = (total - sq[i] * n / m) / m  # exact variance of the model without i
-        b = u.T @ (ci * (n / m))
-        k = int(min(np.searchsorted(np.cumsum(lam) / total_i, variance_fraction - 1e-12) + 1, len(lam)))
-        m2[i] = float(np.sum(b[:k] ** 2 / lam[:k]))
-        ks[i] = k
-        err[i] = math.sqrt(max(sq[i] * (n / m) ** 2 - float(np.sum(b[:k] ** 2)), 0.0) / npts)
-        tmax[i] = float(np.max(np.abs(b[:k]) / np.sqrt(lam[:k] * (m + 1) / max(m - 1, 1))))
+        m2[i], ks[i], err[i], tmax[i] = _row_scores(lam, u.T @ (ci * (n / m)), total_i, sq[i] * (n / m) ** 2, npts,
+                                                     m, variance_fraction)
     return {"mahalanobis2": m2, "modes": ks, "loo_error_mm": err, "max_t": tmax}
 
 
@@ -309,22 +320,12 @@ def loo_outlier_scores(instance_points: np.ndarray, *, variance_fraction: float 
         g = gram[np.ix_(rest, rest)] + a * (col[:, None] + col[None, :]) + a * a * g_ii
         yt = (col + a * g_ii) * (n / (n - 1))
         tt = g_ii * (n / (n - 1)) ** 2
-        w, v = np.linalg.eigh(g)
-        order = np.argsort(w)[::-1]
-        w, v = w[order], v[:, order]
-        keep = w > 1e-10 * max(w[0], 1e-300)
-        w, v = w[keep], v[:, keep]
+        w, v = _descending_eig(g)
         if not len(w):
             continue
         lam = w / (n - 1)
-        b = (v.T @ yt) / np.sqrt(w)
-        k = int(np.searchsorted(np.cumsum(lam) / lam.sum(), variance_fraction - 1e-12) + 1)
-        k = min(k, len(w))
-        m2[i] = float(np.sum(b[:k] ** 2 / lam[:k]))
-        ks[i] = k
-        err[i] = math.sqrt(max(tt - float(np.sum(b[:k] ** 2)), 0.0) / npts)
-        m = n - 1
-        tmax[i] = float(np.max(np.abs(b[:k]) / np.sqrt(lam[:k] * (m + 1) / max(m - 1, 1))))
+        m2[i], ks[i], err[i], tmax[i] = _row_scores(lam, (v.T @ yt) / np.sqrt(w), float(lam.sum()), tt, npts, n - 1,
+                                                     variance_fraction)
     return {"mahalanobis2": m2, "modes": ks, "loo_error_mm": err, "max_t": tmax}
 
 

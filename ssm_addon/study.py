@@ -51,8 +51,10 @@ from .volume import ObjectFrame, ObjectVolume
 
 __all__ = [
     "STAGES",
+    "InstanceJob",
     "Study",
     "carried_landmarks",
+    "coat_from_source",
     "coat_instances",
     "common_landmark_names",
     "evaluate_model",
@@ -63,6 +65,7 @@ __all__ = [
     "make_model",
     "make_template",
     "run",
+    "stream_instances",
     "study_parameters",
 ]
 
@@ -99,6 +102,9 @@ class Study:
         Leave-one-out Mahalanobis distance and reconstruction error per instance.
     timings_s : dict
         Wall time per stage.
+    streamed : dict
+        After a streamed build (:func:`stream_instances`): instances taken from the cache
+        (``cached``) and coated (``computed``).
     """
 
     instances: tuple[InstanceSpec, ...]
@@ -325,25 +331,13 @@ def coat_from_frames(study: Study, names: Sequence[str], *, jobs: int = 1, cance
                      ) -> dict[str, CoatingResult]:
     """Coat the template onto instances from the object frames alone (no landmarks; paper 2's
     alignment, then the coating's registration, projection and relaxation)."""
-    from concurrent.futures import ProcessPoolExecutor
-
+    from .compute import Executor
     from .meshutil import Mesh
 
     mesh = Mesh(study.template.points_object, study.template.faces)
     args = [(mesh, study.volume(n), study.coating_params, n) for n in names]
-    if jobs > 1 and len(args) > 1:
-        import multiprocessing
-
-        from .coating import ignore_sigint
-
-        with ProcessPoolExecutor(max_workers=min(jobs, len(args)), mp_context=multiprocessing.get_context("spawn"),
-                                 initializer=ignore_sigint) as pool:
-            results = list(pool.map(_coat_from_frames_job, args))
-    else:
-        results = []
-        for a in args:
-            check_cancelled(cancelled)
-            results.append(_coat_from_frames_job(a))
+    with Executor("processes", min(jobs, len(args)) if args else 1) as executor:
+        results = executor.map(_coat_from_frames_job, args, labels=list(names), verb="coated", cancelled=cancelled)
     return dict(zip(names, results))
 
 
