@@ -178,4 +178,6 @@ def test_large_study_generalization_agrees_with_the_gram_route():
     fold_of = np.empty(n, dtype=int)
     fold_of[np.random.default_rng(0).permutation(n)] = np.arange(n) % 10  # generalization's seeded partition
     fast = M._generalization_randomized(x.reshape(n, -1), fold_of, 10, [1, 2, 3, 4, 5])  # noqa: SLF001
-    np.testing.assert_allclose(fast, np.array(exact["per_instance_mm"]), rtol=1e-6)
+    # the same errors to float32 precision of the residuals (one power iteration, float32 residual vectors)
+    np.testing.assert_allclose(fast, np.array(exact["per_instance_mm"]), rtol=2e-4)
+    assert abs(fast.mean() / np.mean(exact["per_instance_mm"]) - 1) < 1e-5
