@@ -505,7 +505,16 @@ class CoatingParams:
     velocity_tol_mm: float = param(0.005, unit="mm", minimum=0.0, maximum=100.0, label="Velocity tolerance",
                                    advanced=True, help="the relaxation stops when the largest speed is below this")
     max_iterations: int = param(25, minimum=0, maximum=100000, label="Max iterations",
-                                help="iteration limit of the relaxation")
+                                help="most relaxation steps in all; it stops earlier, converged, when the largest "
+                                     "speed falls below the velocity tolerance (a settled relaxation: "
+                                     "springs = 'tension' and 2000)")
+    fold_iterations: int = param(25, minimum=0, maximum=100000, label="Fold steps", advanced=True,
+                                 help="first steps with the paper's fold handling (vertices of folded triangles lose "
+                                      "the surface force); then every vertex is held to the surface and the mesh "
+                                      "settles")
+    springs: str = param("linear", choices=("linear", "tension"), label="Springs",
+                         help="'linear': eq. (3) as printed; 'tension': an edge spring pulls when stretched and never "
+                              "pushes, so a compressed mesh cannot buckle into folds when it settles")
     fold_angle_deg: float = param(90.0, unit="deg", minimum=0.0, exclusive_minimum=True, maximum=180.0,
                                   label="Fold angle", advanced=True,
                                   help="a triangle is folded when its normal and the surface normal differ by more")

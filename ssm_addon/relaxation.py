@@ -112,11 +112,31 @@ def relax(
     """Mass-spring relaxation of a mesh on a surface, eq. (3) (paper 4.2).
 
     F_i = Σ_j k1 (d_ij − d0_ij) e_ij + k2 d_DM(p_i), with m a + g v = F integrated by
-    semi-implicit Euler (v += dt (F − g v)/m; p += dt v) until max |v| <
-    ``params.velocity_tol_mm`` or ``params.max_iterations``. d_DM is the vector to the
-    nearest surface point, −d(p) ∇d/|∇d| from the distance map. Vertices of folded
-    triangles (normal vs surface normal) get no surface force while folded (paper) and
-    an umbrella force ``params.fold_smoothing`` (avg of neighbours − p) instead.
+    semi-implicit Euler (v += dt (F − g v)/m; p += dt v). d_DM is the vector to the
+    nearest surface point, −d(p) ∇d/|∇d| from the distance map. Two phases:
+
+    1. ``params.fold_iterations`` steps with the paper's fold handling: vertices of
+       folded triangles (normal vs surface normal, re-detected every
+       ``params.fold_check_interval`` steps) get no surface force and an umbrella force
+       ``params.fold_smoothing`` (average of the neighbours − p) instead.
+    2. Settling: every vertex is held to the surface, no umbrella force, until the
+       largest speed is below ``params.velocity_tol_mm`` (converged) or
+       ``params.max_iterations`` steps in all.
+
+    Why two phases: switching vertices between the two force laws every few steps
+    kicks the mesh, and the umbrella force (divided by each vertex's own degree, on
+    the folded vertices only) is not the gradient of an energy, so the system never
+    settles (on VerSe vertebrae 160–200 vertices still moved faster than the tolerance
+    after 400 steps). Phase 2 is conservative and converges. With ``params.springs =
+    "tension"`` a spring pulls when stretched and never pushes: the warped template's
+    rest lengths do not fit the surface everywhere, and at equilibrium linear springs
+    buckle the compressed parts into folds.
+
+    The defaults (25 steps in all, linear springs) stop inside phase 1, as the paper's
+    pass did, because it places points best: on a deformed-vertebra population with
+    known correspondence the mean error is 0.95 mm (95th percentile 2.91) against 1.06
+    (3.33) when settled with tension springs, which on VerSe T9–L5 converges by
+    tolerance on every vertebra in 165–905 steps and leaves no fold (25 steps: up to 18).
 
     Parameters
     ----------
@@ -142,17 +162,25 @@ def relax(
     deg = np.maximum(np.bincount(e.ravel(), minlength=n), 1).astype(float)
     it = 0
     converged = params.max_iterations == 0
+    tension = params.springs == "tension"
+    surface_on = np.ones(n, dtype=bool)
     for it in range(1, params.max_iterations + 1):
+        folding = it <= params.fold_iterations
+        if it == params.fold_iterations + 1:
+            surface_on = np.ones(n, dtype=bool)  # settling: every vertex held to the surface
         vec = p[i1] - p[i0]
         length = np.linalg.norm(vec, axis=1)
         unit = vec / np.maximum(length, 1e-12)[:, None]
-        fe = (params.k1 * (length - d0))[:, None] * unit  # force on i0 towards i1 when stretched
+        stretch = length - d0
+        if tension:
+            stretch = np.maximum(stretch, 0.0)
+        fe = (params.k1 * stretch)[:, None] * unit  # force on i0 towards i1 when stretched
         force = np.empty_like(p)
         for k in range(3):
             force[:, k] = np.bincount(i0, fe[:, k], minlength=n) - np.bincount(i1, fe[:, k], minlength=n)
         d, g = distance_map.sample(p)
         nrm = g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-12)
-        if (it - 1) % params.fold_check_interval == 0:
+        if folding and (it - 1) % params.fold_check_interval == 0:
             # fold detection: triangle normal vs (smoothed) surface normal at the centroid
             folded = folded_triangles(p, faces, distance_map, params.fold_angle_deg, params.fold_normal_sigma_mm)
             surface_on = np.ones(n, dtype=bool)

@@ -394,3 +394,28 @@ def test_fold_free_warp_smooths_inconsistent_landmarks_until_no_fold(ellipsoid_p
     # consistent landmarks keep the exact warp
     tps, lam = W.fold_free_warp(src, src * 1.1, pts)
     assert lam == 0 and np.abs(tps(src) - src * 1.1).max() < 1e-6
+
+
+def test_settled_relaxation_converges_on_every_verse_vertebra_without_folds(verse_dir):
+    """The two-phase relaxation with tension springs settles by tolerance (not by its cap) and
+    leaves no fold on T9..L5 from the L1 template; the paper-length default (25 steps) does not."""
+    from conftest import VERSE_FILE, VERSE_LABELS
+
+    from ssm_addon import landmarks as L
+    from ssm_addon.params import CoatingParams
+
+    obs = {k: INS.load_object(VERSE_FILE, label=v, spacing_mm=1.0) for k, v in VERSE_LABELS.items()}
+    lms = {k: obs[k].frame.to_object(L.read_landmarks(verse_dir / "landmarks" / f"{k}.fcsv").points_world)
+           for k in VERSE_LABELS}
+    template = build_template(obs["L1"], TemplateParams())
+    others = [k for k in VERSE_LABELS if k != "L1"]
+    settled = CoatingParams(springs="tension", max_iterations=2000)
+    results = C.coat_all(template, lms["L1"], [obs[k] for k in others], [lms[k] for k in others], jobs=2,
+                         names=others, params=settled)
+    for k, r in zip(others, results):
+        print(f"{k}: converged {r.fit.converged} in {r.fit.iterations} steps, folds {r.fit.folded_after}")
+        assert r.fit.converged and r.fit.iterations < settled.max_iterations, k
+        assert r.fit.folded_after == 0, k
+        assert r.fit.max_distance_mm < obs[k].spacing_mm
+    default = C.coat(template, lms["L1"], obs["L5"], lms["L5"])
+    assert not default.fit.converged and default.fit.iterations == 25
