@@ -30,6 +30,7 @@ import numpy as np
 from . import __version__
 from .coating import CoatingResult, FitFigures
 from .errors import InputError
+from .model import jsonable
 from .quality import Finding
 from .template import Template
 from .volume import ObjectFrame, frame_from_arrays, frame_to_arrays
@@ -235,7 +236,7 @@ class BuildCache:
         arrays = {"points_object": np.asarray(template.points_object, float),
                   "faces": np.asarray(template.faces, np.int64),
                   "curvature": np.asarray(template.curvature, float),
-                  "params_json": np.asarray(json.dumps(_jsonable(template.params)))}
+                  "params_json": np.asarray(json.dumps(jsonable(template.params)))}
         frame_to_arrays("frame", template.frame, arrays)
         self._write(self.template_path(key), arrays)
 
@@ -243,9 +244,3 @@ class BuildCache:
 def _finding_dict(f: Finding) -> dict:
     d = f.to_dict()
     return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in d.items()}
-
-
-def _jsonable(obj):
-    from .model import jsonable
-
-    return jsonable(obj)

@@ -278,26 +278,24 @@ class Executor:
 
         client = self._client
         queue = list(range(len(items)))
-        ahead = 2 * self.workers
-        index = {}
+        live: dict = {}  # key -> (future, index)
 
         def submit(i):
             fut = client.submit(run_one_thread, fn, items[i], pure=False, key=f"ssm-{os.getpid()}-{id(items)}-{i}")
-            index[fut.key] = i
+            live[fut.key] = (fut, i)
             return fut
 
-        first = [submit(queue.pop(0)) for _ in range(min(ahead, len(queue)))]
-        stream = as_completed(first, with_results=False)
+        stream = as_completed([submit(queue.pop(0)) for _ in range(min(2 * self.workers, len(queue)))])
         try:
             for fut in stream:
-                arrived(index.pop(fut.key), fut.result())
+                _, i = live.pop(fut.key)
+                arrived(i, fut.result())
                 if cancelled is not None and cancelled():
                     raise Cancelled("cancelled by the user")
                 if queue:
                     stream.add(submit(queue.pop(0)))
         except BaseException:
-            for fut in list(stream.futures) if hasattr(stream, "futures") else []:
-                fut.cancel()
+            client.cancel([f for f, _ in live.values()])
             raise
 
 

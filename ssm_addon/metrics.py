@@ -230,16 +230,24 @@ def _generalization_randomized(flat: np.ndarray, fold_of: np.ndarray, folds: int
         _, _, vt = np.linalg.svd(at_times(qy).T, full_matrices=False)
         modes = vt[:kmax].astype(np.float32)
         yt = (flat[test] - mu).astype(np.float32)
-        b = yt @ modes.T
-        residual = yt  # a fresh copy: updated in place
-        prev = 0
-        for j, k in enumerate(ks):
-            kk = min(k, modes.shape[0])
-            if kk > prev:
-                residual -= b[:, prev:kk] @ modes[prev:kk]
-                prev = kk
-            errors[test, j] = _point_errors(residual)
+        errors[test] = _reconstruction_errors(yt, modes, ks)
     return errors
+
+
+def _reconstruction_errors(y: np.ndarray, modes: np.ndarray, ks) -> np.ndarray:
+    """(h, len(ks)) mean point distances (mm) of held-out vectors ``y`` (h, 3N, centred)
+    to their reconstruction with the first k of ``modes`` (rows, orthonormal), for each k.
+    ``y`` is updated in place (pass a copy)."""
+    b = y @ modes.T
+    out = np.empty((len(y), len(ks)))
+    prev = 0
+    for j, k in enumerate(ks):
+        kk = min(k, modes.shape[0])
+        if kk > prev:
+            y -= b[:, prev:kk] @ modes[prev:kk]
+            prev = kk
+        out[:, j] = _point_errors(y)
+    return out
 
 
 def _generalization_folds(x, flat, raw_gram, total, fold_of, ks, alignment, progress, cancelled):
@@ -274,15 +282,7 @@ def _generalization_folds(x, flat, raw_gram, total, fold_of, ks, alignment, prog
             g = data @ data.T
             scale = s
         modes = _top_modes(data, rows, mu, g, kmax)
-        b = y @ modes.T
-        residual = y.copy()
-        prev = 0
-        for j, k in enumerate(ks):
-            kk = min(k, modes.shape[0])
-            if kk > prev:
-                residual -= b[:, prev:kk] @ modes[prev:kk]
-                prev = kk
-            errors[test, j] = _point_errors(residual) / scale
+        errors[test] = _reconstruction_errors(y.copy(), modes, ks) / scale[:, None]
     return errors
 
 

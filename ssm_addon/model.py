@@ -549,7 +549,6 @@ def build_model(
     centred = x.reshape(n, -1) - mean.reshape(-1).astype(x.dtype)  # rows: (p_i - p̄)ᵀ
     n_norm = float(n - ddof)
     total_var = float(np.einsum("ij,ij->", centred, centred, dtype=np.float64)) / n_norm
-    limit = n_modes if n_modes is not None else None
     use_randomized = solver == "randomized" or (
         solver == "auto" and centred.size >= RANDOMIZED_MIN_ELEMENTS
         and (n_modes is not None and n_modes < n // 4 or variance_fraction is not None and variance_fraction < 1))
@@ -573,13 +572,12 @@ def build_model(
         total_var = float(np.trace(gram)) / n_norm
         check_cancelled(cancelled)
         report(progress, 0.6, "eigen-decomposition")
-        variances, modes, ortho_err = _modes_from_gram(centred.astype(np.float64, copy=False), gram, n_norm, limit)
+        variances, modes, ortho_err = _modes_from_gram(centred.astype(np.float64, copy=False), gram, n_norm, n_modes)
         eigensolver = "Gram matrix P^T P (n x n, eq. 6), q_i = P q~_i / |P q~_i|"
         del gram
-    keep = _modes_for_fraction(variances, total_var, variance_fraction)
+    keep = min(_modes_for_fraction(variances, total_var, variance_fraction),
+               len(variances) if n_modes is None else n_modes)
     variances, modes = variances[:keep], modes[:keep]
-    if n_modes is not None:
-        variances, modes = variances[:n_modes], modes[:n_modes]
     modes = _fix_signs(np.asarray(modes, dtype=np.float64))
     del centred
     report(progress, 1.0, f"{len(variances)} modes")

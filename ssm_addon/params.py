@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from .compute import check_scheduler
 from .errors import InputError
 
 __all__ = [
@@ -787,8 +788,6 @@ class ComputeParams:
 
     def __post_init__(self):
         check(self, self._where)
-        from .compute import check_scheduler
-
         check_scheduler(self.scheduler, f"{self._where} scheduler")
         if not str(self.cache).strip():
             raise InputError(f"{self._where} cache: empty; use 'auto', 'off' or a folder")

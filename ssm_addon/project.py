@@ -784,11 +784,10 @@ def build(
     if project.correspondence.method == "model" and build_cache is not None:
         say("cache: not used by [correspondence] method = \"model\" (its rounds depend on every instance)")
         build_cache = None
-    executor = Executor(scheduler or project.compute.scheduler, jobs)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.building-", dir=out_dir.parent))
     os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes it private; the output folder follows the umask
     try:
-        with executor:
+        with Executor(scheduler or project.compute.scheduler, jobs) as executor:  # closed before the files
             run(study, jobs=jobs, progress=sub_progress(progress, 0.0, 0.95), cancelled=cancelled, log=say,
                 executor=executor, cache=build_cache)
         check_cancelled(cancelled)

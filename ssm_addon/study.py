@@ -711,12 +711,8 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
         report(progress, 0.0, f"import, template and coating: {n} instances on {executor.describe()}")
         study.streamed = stream_instances(study, executor, cache=cache, progress=sub_progress(progress, 0.0, 0.85),
                                           cancelled=cancelled, log=say)
-        coated = study.coatings
-        _add_findings(study, [f for nm, c in coated.items() for f in check_coating(nm, c.fit, study.quality_params)],
-                      say)
-        worst = max(c.fit.max_distance_mm for c in coated.values())
-        say(f"coating: {n} instances in {study.timings_s['coating']:.2f} s ({study.streamed['computed']} coated, "
-            f"{study.streamed['cached']} from the cache; largest surface distance {worst:.2f} mm)")
+        _coating_done(study, study.coatings, say, f"{study.streamed['computed']} coated, "
+                      f"{study.streamed['cached']} from the cache; ")
         stages = [s for s in stages if s not in ("import", "template", "coating")]
     if "import" in stages:
         t0 = time.perf_counter()
@@ -755,10 +751,8 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
             coated = refine_correspondence(study, jobs=jobs, progress=coat_prog, cancelled=cancelled, log=say,
                                            executor=executor)
         study.coatings.update(coated)
-        _add_findings(study, [f for n, c in coated.items() for f in check_coating(n, c.fit, study.quality_params)], say)
         study.timings_s["coating"] = time.perf_counter() - t0
-        worst = max(c.fit.max_distance_mm for c in study.coatings.values())
-        say(f"coating: {n} instances in {study.timings_s['coating']:.2f} s (largest surface distance {worst:.2f} mm)")
+        _coating_done(study, coated, say)
     if "model" in stages:
         check_cancelled(cancelled)
         t0 = time.perf_counter()
@@ -776,6 +770,14 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
         study.timings_s["metrics"] = time.perf_counter() - t0
         say(f"metrics: compactness, generalization, specificity in {study.timings_s['metrics']:.2f} s")
     return study
+
+
+def _coating_done(study: Study, coated: dict, say, counts: str = "") -> None:
+    """The coating gates on ``coated`` and the stage's summary line."""
+    _add_findings(study, [f for n, c in coated.items() for f in check_coating(n, c.fit, study.quality_params)], say)
+    worst = max(c.fit.max_distance_mm for c in study.coatings.values())
+    say(f"coating: {len(study.instances)} instances in {study.timings_s['coating']:.2f} s ({counts}largest surface "
+        f"distance {worst:.2f} mm)")
 
 
 def check_imports(study: Study, names: Sequence[str] | None = None) -> list:

@@ -121,14 +121,15 @@ def cmd_resume(args) -> None:
         t0 = time.perf_counter()
         proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                 start_new_session=True)
-        while len(list((cache / "instances").glob("*.npz"))) < n // 2 if (cache / "instances").exists() else True:
+        def cached() -> int:
+            return len(list((cache / "instances").glob("*.npz")))
+
+        while proc.poll() is None and cached() < n // 2:  # the cache folder appears with its first entry
             time.sleep(0.05)
-            if proc.poll() is not None:
-                break
         killed_after = time.perf_counter() - t0
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
-        done = len(list((cache / "instances").glob("*.npz")))
+        done = cached()
         t1 = time.perf_counter()
         res = subprocess.run(cmd, env=env, capture_output=True, text=True)
         rerun = time.perf_counter() - t1
