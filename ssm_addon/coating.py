@@ -12,10 +12,12 @@ onto every other instance in five steps:
    (:mod:`ssm_addon.registration`);
 3. every vertex is projected onto the instance surface by a sub-voxel signed distance
    map (:mod:`ssm_addon.distance_map`, paper 4.2);
-4. a mass-spring relaxation, eq. (3), unfolds and regularises the mesh while a
-   zero-length spring keeps every vertex on the surface (:mod:`ssm_addon.relaxation`); vertices of
-   folded triangles lose the surface force (paper) and get a Laplacian force that
-   untangles them; a last projection puts every vertex back on the surface;
+4. a mass-spring relaxation, eq. (3), unfolds the mesh while a zero-length spring keeps
+   every vertex on the surface (:mod:`ssm_addon.relaxation`); vertices of folded triangles
+   lose the surface force (paper) and get a Laplacian force that untangles them, then the
+   mesh settles (by the velocity tolerance) on tension springs whose rest lengths are the
+   projected mesh's edges, so it keeps the registration's spacing where nothing was
+   folded; a last projection puts every vertex back on the surface;
 5. (not in the paper) folds that are left are removed locally: umbrella smoothing of
    the folded triangles' neighbourhood + reprojection, until none is left
    (:func:`~ssm_addon.relaxation.untangle`).
@@ -277,7 +279,9 @@ def coat_from_start(
     projected = dm.project(moved, params.projection_iterations)
     folded_before = folds(projected)
     e = mesh_edges(faces)
-    if params.rest_lengths == "warped":
+    if params.rest_lengths == "projected":
+        d0 = np.linalg.norm(projected[e[:, 1]] - projected[e[:, 0]], axis=1)
+    elif params.rest_lengths == "warped":
         d0 = np.linalg.norm(moved[e[:, 1]] - moved[e[:, 0]], axis=1)
         # the warp lands near, not on, the surface: scale to the projected mesh's size
         d0 = d0 * math.sqrt(mesh_area(projected, faces) / max(mesh_area(moved, faces), 1e-12))

@@ -470,7 +470,7 @@ class TemplateParams:
 
 
 KERNELS = ("biharmonic", "thin-plate", "hardy")
-REST_LENGTHS = ("warped", "template-scaled")
+REST_LENGTHS = ("projected", "warped", "template-scaled")
 
 
 @dataclass(frozen=True)
@@ -505,23 +505,26 @@ class CoatingParams:
                       help="integration time step")
     velocity_tol_mm: float = param(0.005, unit="mm", minimum=0.0, maximum=100.0, label="Velocity tolerance",
                                    advanced=True, help="the relaxation stops when the largest speed is below this")
-    max_iterations: int = param(25, minimum=0, maximum=100000, label="Max iterations",
-                                help="most relaxation steps in all; it stops earlier, converged, when the largest "
-                                     "speed falls below the velocity tolerance (a settled relaxation: "
-                                     "springs = 'tension' and 2000)")
+    max_iterations: int = param(2000, minimum=0, maximum=100000, label="Max iterations",
+                                help="most relaxation steps in all, a safety limit: it stops earlier, converged, "
+                                     "when the largest speed falls below the velocity tolerance (25 and "
+                                     "springs = 'linear', rest lengths = 'warped': the previous 25-step pass)")
     fold_iterations: int = param(25, minimum=0, maximum=100000, label="Fold steps", advanced=True,
                                  help="first steps with the paper's fold handling (vertices of folded triangles lose "
                                       "the surface force); then every vertex is held to the surface and the mesh "
                                       "settles")
-    springs: str = param("linear", choices=("linear", "tension"), label="Springs",
+    springs: str = param("tension", choices=("tension", "linear"), label="Springs",
                          help="'linear': eq. (3) as printed; 'tension': an edge spring pulls when stretched and never "
                               "pushes, so a compressed mesh cannot buckle into folds when it settles")
     fold_angle_deg: float = param(90.0, unit="deg", minimum=0.0, exclusive_minimum=True, maximum=180.0,
                                   label="Fold angle", advanced=True,
                                   help="a triangle is folded when its normal and the surface normal differ by more")
-    rest_lengths: str = param("warped", choices=REST_LENGTHS, label="Rest lengths",
-                              help="spring rest lengths: of the warped template ('warped') or the template's "
-                                   "scaled to the instance's size ('template-scaled', the paper)")
+    rest_lengths: str = param("projected", choices=REST_LENGTHS, label="Rest lengths",
+                              help="spring rest lengths: of the registered template projected onto the surface "
+                                   "('projected': the springs keep the registration's spacing and act where the "
+                                   "fold handling moved vertices), of the registered template before projection "
+                                   "scaled to the surface's area ('warped'), or the template's own scaled to the "
+                                   "instance's size ('template-scaled', the paper's d0)")
     tangential_springs: bool = param(False, label="Tangential springs", advanced=True,
                                      help="apply only the tangential part of the edge forces")
     k3: float = param(0.0, minimum=0.0, maximum=100.0, label="k3 (smoothing)", advanced=True,
@@ -746,7 +749,7 @@ class QualityParams:
     max_surface_distance_vox: float = param(1.0, minimum=0.0, maximum=1000.0, label="Max surface distance (voxels)",
                                             help="largest distance of a coated vertex from the surface, in voxels "
                                                  "of the study's spacing")
-    require_convergence: bool = param(False, label="Require convergence", advanced=True,
+    require_convergence: bool = param(True, label="Require convergence", advanced=True,
                                       help="flag a relaxation that stopped at its iteration limit")
     outlier_probability: float = param(0.99, minimum=0.5, maximum=1.0, exclusive_minimum=True,
                                        label="Outlier quantile", advanced=True,

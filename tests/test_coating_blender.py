@@ -110,7 +110,7 @@ def test_panel_registered(bpy_clean):
     bpy = bpy_clean
     assert hasattr(bpy.types, "SSM_PT_coating")
     settings = bpy.context.scene.ssm_coating
-    assert settings.rest_lengths == "warped"
+    assert settings.rest_lengths == "projected"
     # the sidebar's defaults are the core's defaults (the same coating headless and in Blender)
     import dataclasses
 
