@@ -405,10 +405,18 @@ class MeshLocator:
         self.faces = np.asarray(faces, np.int64)
         self.tree = cKDTree(face_centroids(self.vertices, self.faces))
 
-    def query(self, points: np.ndarray, k: int = 6, chunk: int = 16384):
-        """Closest mesh points: (closest (M,3), distance (M,), triangle (M,), bary (M,3))."""
+    def query(self, points: np.ndarray, k: int = 6, chunk: int = 16384, normals: np.ndarray | None = None):
+        """Closest mesh points: (closest (M,3), distance (M,), triangle (M,), bary (M,3)).
+
+        ``normals`` (M, 3), optional: each point's outward normal; of its k candidate
+        triangles those facing the other way (a thin process's far side) are passed over
+        unless none faces the same way.
+        """
         p = np.asarray(points, float).reshape(-1, 3)
         k = int(min(k, len(self.faces)))
+        if normals is not None:
+            fn = face_normals(self.vertices, self.faces)
+            nq = np.asarray(normals, float).reshape(-1, 3)
         m = len(p)
         out_c = np.empty((m, 3))
         out_d = np.empty(m)
@@ -422,6 +430,9 @@ class MeshLocator:
             qq = np.repeat(q, k, axis=0)
             cl, bary = closest_points_on_triangles(qq, self.vertices[f[:, 0]], self.vertices[f[:, 1]], self.vertices[f[:, 2]])
             d2 = ((cl - qq) ** 2).sum(1).reshape(len(q), k)
+            if normals is not None:
+                away = (np.einsum("ij,ij->i", fn[tri], np.repeat(nq[s : s + chunk], k, axis=0)) < 0).reshape(len(q), k)
+                d2 = np.where(away & ~away.all(axis=1, keepdims=True), np.inf, d2)
             pick = np.arange(len(q)) * k + np.argmin(d2, axis=1)
             out_c[s : s + len(q)] = cl[pick]
             out_d[s : s + len(q)] = np.sqrt(d2.ravel()[pick])

@@ -380,6 +380,39 @@ def test_untangle_removes_a_fold_and_leaves_the_rest(ellipsoid_pair):
     assert np.array_equal(fixed[far], bad[far])
 
 
+def test_untangle_puts_back_a_region_whose_folds_it_cannot_remove(ellipsoid_pair):
+    """With a fold test no mesh can pass (every triangle counts as folded at a 1° angle),
+    every region fails: the points come back exactly as they went in."""
+    from dataclasses import replace as dc_replace
+
+    from ssm_addon.params import CoatingParams
+
+    a, _, ova, _, template = ellipsoid_pair
+    pts, faces = np.asarray(template.points_object, float), np.asarray(template.faces)
+    dm = DM.DistanceMap.from_object_volume(ova)
+    on = dm.project(pts, 3)
+    strict = dc_replace(CoatingParams(), fold_angle_deg=1.0, untangle_iterations=30)
+    assert RX.folded_triangles(on, faces, dm, strict.fold_angle_deg).sum() > 0.9 * len(faces)
+    back, rounds = RX.untangle(on, faces, dm, params=strict)
+    assert rounds == 30 and np.array_equal(back, on)
+
+
+def test_projection_along_the_normal_stays_on_its_side_of_a_thin_plate():
+    """A point just past the middle of a 3 mm plate, normal towards the far face: the
+    gradient projection takes it to the near face, the projection along the normal to
+    the face the normal points at (the mask's faces lie half a voxel beyond its centres)."""
+    from ssm_addon.volume import ObjectFrame, ObjectVolume
+
+    mask = np.zeros((24, 24, 12), bool)
+    mask[2:-2, 2:-2, 4:7] = True  # voxel centres z = 4, 5, 6 mm: faces at 3.5 and 6.5 mm
+    ov = ObjectVolume(mask, 1.0, np.zeros(3), ObjectFrame(np.zeros(3), np.eye(3)))
+    dm = DM.DistanceMap.from_object_volume(ov)
+    p = np.array([[12.0, 12.0, 5.3]])
+    assert abs(dm.project(p, 3)[0, 2] - 6.5) < 0.1
+    down = dm.project_along(p, np.array([[0.0, 0.0, -1.0]]))
+    assert abs(down[0, 2] - 3.5) < 0.1 and np.allclose(down[0, :2], 12.0)
+
+
 def test_fold_free_warp_smooths_inconsistent_landmarks_until_no_fold(ellipsoid_pair):
     """An extremal landmark that jumps across the shape makes the exact warp fold space."""
     a, _, _, _, template = ellipsoid_pair

@@ -149,3 +149,25 @@ def test_a_diverging_refinement_is_refused_and_writes_nothing(population, tmp_pa
     with pytest.raises(InputError, match=r"model-guided correspondence diverged in round 1"):
         build(read_project(proj), out, log=None)
     assert not out.exists()
+
+
+def test_model_method_keeps_the_template_points_on_the_template_instance(population):
+    """The mean shape's coating slides the template's points along the surfaces; the
+    re-sampling puts them back: on the template instance point i ends at template point i."""
+    from scipy.spatial import cKDTree
+
+    from ssm_addon.study import Study, run
+
+    proj = _variant(population, "keep.toml", correspondence='[correspondence]\nmethod = "model"\niterations = 2')
+    study = Study.from_project(read_project(proj))
+    run(study, stages=("import", "template"), jobs=2)
+    template_points = study.template.points_object.copy()
+    run(study, stages=("coating",), jobs=2)
+    slide = study.correspondence_rounds[-1].sampling_slide_mm
+    final = study.coatings[study.template_instance].points_object
+    off = np.linalg.norm(final - template_points, axis=1)
+    print(f"slide {slide:.3f} mm; template instance vs the template's points: mean {off.mean():.3f}, "
+          f"max {off.max():.3f} mm")
+    assert slide > 0.05 and off.mean() < 0.5 * slide
+    assert np.array_equal(cKDTree(template_points).query(final)[1], np.arange(len(final)))
+    assert study.template.params.get("mean_shape_template")
