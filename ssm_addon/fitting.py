@@ -322,8 +322,9 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
         qa = q[rows_v]  # (P, 3, K)
         if nrm is not None:
             qn = np.einsum("pd,pdk->pk", nrm, qa)  # (P, K): n·Q
-            a = np.einsum("p,pk,pl->kl", w, qn, qn)
-            rhs = np.einsum("p,pk,p->k", w, qn, np.einsum("pd,pd->p", nrm, yl))
+            wq = qn * w[:, None]
+            a = wq.T @ qn
+            rhs = wq.T @ np.einsum("pd,pd->p", nrm, yl)
         else:
             a = np.einsum("p,pdk,pdl->kl", w, qa, qa)
             rhs = np.einsum("p,pdk,pd->k", w, qa, yl)

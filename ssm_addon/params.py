@@ -708,8 +708,9 @@ class CorrespondenceParams:
                              "model-driven refinement, landmarks optional but on the template instance")
     iterations: int = param(3, minimum=1, maximum=100, label="Rounds",
                             help="most refinement rounds of the 'model' method")
-    tolerance_mm: float = param(0.05, unit="mm", minimum=0.0, maximum=100.0, label="Stop below",
-                                help="stop the refinement when the mean shape moves less than this (RMS)")
+    tolerance_mm: float = param(0.1, unit="mm", minimum=0.0, maximum=100.0, label="Stop below",
+                                help="stop the refinement when the mean shape moves less than this (RMS; a "
+                                     "tenth of the default 1 mm voxel)")
     landmark_weight: float = param(10.0, minimum=0.0, maximum=1e9, label="Landmark weight",
                                    help="weight of a given landmark in the model fit (0: landmarks ignored)")
     fit_noise_mm: float = param(1.0, unit="mm", minimum=0.0, exclusive_minimum=True, maximum=1000.0,
