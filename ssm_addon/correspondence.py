@@ -20,9 +20,11 @@ does both (``[correspondence] method = "model"``):
 3. **Re-sampling** (:func:`resample_instance`): the mean shape's points are not the
    template's; the rounds' coatings are read off at the template's points (located on
    the template instance's final coating), so the template's curvature-guided sampling
-   and point numbering stay. Measured on the deformed population (14 landmarks), the
-   template's points landed 0.84 mm (95th percentile 2.00 mm) from their true places
-   with it, 1.04 mm (2.55 mm) without, against 0.95 mm (2.98 mm) for the single pass.
+   and point numbering stay. On the deformed population (14 landmarks) the mean shape
+   slid the template instance's points 0.84–0.91 mm per round; re-sampled, the template's
+   points landed 0.78 mm (95th percentile 1.74 mm) from their true places, the single
+   pass's 0.80 mm (1.87 mm). Before the re-sampling (and the untangling's current rule)
+   the model method measured 1.04 mm (2.55 mm) against the single pass's 0.95 mm.
 
 Why the fit supplies landmarks rather than the start itself: on a deformed-verse004
 population with known correspondence (``tools/eval_correspondence.py``), relaxing the
