@@ -70,7 +70,7 @@ import numpy as np
 from .compute import Executor, run_one_thread
 from .distance_map import DistanceMap
 from .errors import Cancelled, InputError, check_cancelled
-from .meshutil import Mesh, MeshLocation, locate_on_mesh, mesh_area
+from .meshutil import Mesh, MeshLocation, edge_lengths, locate_on_mesh, mesh_area
 from .meshutil import edges as mesh_edges
 from .params import CoatingParams
 from .progress import CancelledFn, ProgressFn, report, sub_progress
@@ -280,22 +280,17 @@ def coat_from_start(
     folded_before = folds(projected)
     e = mesh_edges(faces)
     if params.rest_lengths == "projected":
-        d0 = np.linalg.norm(projected[e[:, 1]] - projected[e[:, 0]], axis=1)
+        d0 = edge_lengths(projected, e)
     elif params.rest_lengths == "warped":
-        d0 = np.linalg.norm(moved[e[:, 1]] - moved[e[:, 0]], axis=1)
         # the warp lands near, not on, the surface: scale to the projected mesh's size
-        d0 = d0 * math.sqrt(mesh_area(projected, faces) / max(mesh_area(moved, faces), 1e-12))
+        d0 = edge_lengths(moved, e) * math.sqrt(mesh_area(projected, faces) / max(mesh_area(moved, faces), 1e-12))
     else:
         scale = math.sqrt(mesh_area(projected, faces) / max(mesh_area(points, faces), 1e-12))
-        d0 = np.linalg.norm(points[e[:, 1]] - points[e[:, 0]], axis=1) * scale
+        d0 = edge_lengths(points, e) * scale
     check_cancelled(cancelled)
-    coated, iterations, converged = relax(projected, faces, d0, dm, params=params, edges=e, cancelled=cancelled,
-                                          progress=sub_progress(progress, 0.25, 0.95, "coating: "))
-    if params.final_projection:
-        coated = dm.project(coated, params.projection_iterations)
-    rounds = 0
-    if params.untangle_iterations > 0:
-        coated, rounds = untangle(coated, faces, dm, params=params, edges=e, cancelled=cancelled)
+    coated, iterations, converged, rounds = settle_on_surface(
+        projected, faces, d0, dm, params=params, edges=e, cancelled=cancelled,
+        progress=sub_progress(progress, 0.25, 0.95, "coating: "))
     folded_after = folds(coated)
     located.result()
     dist = dm.surface_distance(coated)
@@ -318,6 +313,28 @@ def coat_from_start(
     )
     report(progress, 1.0, "coated")
     return CoatingResult(coated, warped, fit, name)
+
+
+def settle_on_surface(points: np.ndarray, faces: np.ndarray, rest_lengths: np.ndarray, dm: DistanceMap, *,
+                      params: CoatingParams, edges: np.ndarray | None = None, cancelled: CancelledFn = None,
+                      progress: ProgressFn = None):
+    """The coating's last steps on a mesh already near the surface (object frame, mm):
+    the relaxation, eq. (3), with ``rest_lengths`` (mm, per edge of ``edges``), the final
+    projection and the local untangling.
+
+    Returns
+    -------
+    points : (N, 3) mm; relaxation steps : int; converged : bool; untangling rounds : int
+    """
+    e = mesh_edges(faces) if edges is None else edges
+    p, iterations, converged = relax(points, faces, rest_lengths, dm, params=params, edges=e, cancelled=cancelled,
+                                     progress=progress)
+    if params.final_projection:
+        p = dm.project(p, params.projection_iterations)
+    rounds = 0
+    if params.untangle_iterations > 0:
+        p, rounds = untangle(p, faces, dm, params=params, edges=e, cancelled=cancelled)
+    return p, int(iterations), bool(converged), int(rounds)
 
 
 def _check_landmarks(lm, name):

@@ -46,7 +46,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .coating import CoatingResult, coat
+from .coating import CoatingResult, coat, settle_on_surface
 from .compute import Executor
 from .errors import InputError, check_cancelled
 from .fitting import Pose, Target, fit_model
@@ -175,27 +175,22 @@ def resample_instance(coating: CoatingResult, faces: np.ndarray, triangles: np.n
     from dataclasses import replace
 
     from .distance_map import DistanceMap
+    from .meshutil import edge_lengths
     from .meshutil import edges as mesh_edges
-    from .relaxation import folded_triangles, relax, untangle
+    from .relaxation import folded_triangles
 
     dm = DistanceMap.from_object_volume(target)
     f = np.asarray(faces, np.int64)
     p = np.einsum("nk,nkd->nd", np.asarray(bary, float), coating.points_object[f[np.asarray(triangles, np.int64)]])
     p = dm.project_along(p, vertex_normals(p, f))
-    # finished like any coating: relaxation at the re-sampled spacing, projection, untangling
+    # finished like any coating, with the re-sampled spacing as rest lengths
     e = mesh_edges(f)
-    p, iterations, converged = relax(p, f, np.linalg.norm(p[e[:, 1]] - p[e[:, 0]], axis=1), dm, params=params,
-                                     edges=e)
-    if params.final_projection:
-        p = dm.project(p, params.projection_iterations)
-    rounds = 0
-    if params.untangle_iterations > 0:
-        p, rounds = untangle(p, f, dm, params=params, edges=e)
+    p, iterations, converged, rounds = settle_on_surface(p, f, edge_lengths(p, e), dm, params=params, edges=e)
     dist = dm.surface_distance(p)
     folds = int(folded_triangles(p, f, dm, params.fold_angle_deg, params.fold_normal_sigma_mm).sum())
     fit = replace(coating.fit, mean_distance_mm=float(dist.mean()), max_distance_mm=float(dist.max()),
-                  folded_after=folds, iterations=coating.fit.iterations + int(iterations),
-                  converged=bool(converged), untangle_rounds=coating.fit.untangle_rounds + int(rounds))
+                  folded_after=folds, iterations=coating.fit.iterations + iterations, converged=converged,
+                  untangle_rounds=coating.fit.untangle_rounds + rounds)
     return CoatingResult(p, coating.warped_points_object, fit, name or coating.name)
 
 
@@ -285,7 +280,7 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
     return rounds
 
 
-def _finish_round(study, names, points, results, prev_mean, faces, size, r, t0, rounds, say, mean, slide=0.0):
+def _finish_round(study, names, points, results, prev_mean, faces, size, r, t0, rounds, say, mean, slide):
     """Check a round, record its figures, and make its coatings and mean shape the study's."""
     new_points = np.stack([c.points_object for c, _ in results])
     new_mean = new_points.mean(axis=0)

@@ -224,8 +224,9 @@ class DistanceMap:
         k = np.argmin(np.abs(t_cross), axis=1)
         t = t_cross[np.arange(len(p)), k]
         ok = np.isfinite(t)
-        out = self.project(p, 3)
-        out[ok] = p[ok] + t[ok, None] * n[ok]
+        out = p + np.where(ok, t, 0.0)[:, None] * n
+        if not ok.all():
+            out[~ok] = self.project(p[~ok], 3)
         return out
 
     def surface_distance(self, points: np.ndarray) -> np.ndarray:

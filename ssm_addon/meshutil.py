@@ -318,6 +318,12 @@ def vertex_normals(vertices, faces) -> np.ndarray:
 
 
 # ------------------------------------------------------------ points on meshes
+def edge_lengths(points: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """(E,) lengths (mm) of the (E, 2) vertex-index ``edges`` of ``points``."""
+    p = np.asarray(points, float)
+    return np.linalg.norm(p[edges[:, 1]] - p[edges[:, 0]], axis=1)
+
+
 def mesh_area(points: np.ndarray, faces: np.ndarray) -> float:
     v = points[faces]
     return 0.5 * float(np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1).sum())

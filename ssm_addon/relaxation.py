@@ -135,14 +135,11 @@ def _keep_improved(start, p, faces, e, distance_map, params):
     g = coo_matrix((np.ones(int(both.sum())), (e[both, 0], e[both, 1])), shape=(n, n))
     _k, comp = connected_components(g, directed=False)
     comp = np.where(moved, comp, -1)
-    f_after = folded_triangles(p, faces, distance_map, params.fold_angle_deg, params.fold_normal_sigma_mm)
-    out = start.copy()
-    for c in np.unique(comp[moved]):
-        verts = comp == c
-        tri = verts[faces].any(axis=1)
-        if not f_after[tri].any():
-            out[verts] = p[verts]
-    return out
+    face_comp = comp[faces].max(axis=1)  # the one region a triangle touches, or -1
+    folded = folded_triangles(p, faces, distance_map, params.fold_angle_deg, params.fold_normal_sigma_mm)
+    failed = np.unique(face_comp[folded & (face_comp >= 0)])
+    keep = moved & ~np.isin(comp, failed)
+    return np.where(keep[:, None], p, start)
 
 
 def relax(
