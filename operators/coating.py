@@ -288,8 +288,9 @@ class SSM_PT_coating(bpy.types.Panel):
         box.operator(SSM_OT_refine_correspondence.bl_idname, icon="FILE_REFRESH")
         for r in correspondence_rounds(context)[-6:]:
             moved = max(r["instance_change_mm"].values(), default=0.0)
+            shift = max(r.get("landmark_shift_mm", {}).values(), default=0.0)
             box.label(text=f"round {r['round']}: mean {r['mean_change_mm']:.3f} mm, instances ≤ {moved:.2f} mm, "
-                      f"folds {sum(r['folds'].values())}, {r['seconds']:.0f} s")
+                      f"landmarks ≤ {shift:.2f} mm, folds {sum(r['folds'].values())}, {r['seconds']:.0f} s")
         layout.prop(context.scene.ssm_display, "colouring")
         coated = coated_objects(context)
         if coated:

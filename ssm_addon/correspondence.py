@@ -78,6 +78,9 @@ class RoundFigures:
         Mean surface distance of each instance's model fit (before its relaxation).
     folds : dict name -> int
         Folded triangles left after the relaxation and the re-sampling.
+    landmark_shift_mm : dict name -> mm
+        RMS distance between each instance's given landmarks and the places the round
+        warped them to (the fit's estimate); 0 with ``exact_landmarks`` or none given.
     sampling_slide_mm : float
         RMS distance by which the mean-shape coating moved the template instance's
         points along its surface; the re-sampling puts them back (:func:`resample_instance`).
@@ -89,19 +92,22 @@ class RoundFigures:
     instance_change_mm: dict = field(default_factory=dict)
     fit_distance_mm: dict = field(default_factory=dict)
     folds: dict = field(default_factory=dict)
+    landmark_shift_mm: dict = field(default_factory=dict)
     sampling_slide_mm: float = 0.0
     seconds: float = 0.0
 
     def to_dict(self) -> dict:
         return {"round": self.round, "mean_change_mm": self.mean_change_mm,
                 "instance_change_mm": self.instance_change_mm, "fit_distance_mm": self.fit_distance_mm,
-                "folds": self.folds, "sampling_slide_mm": self.sampling_slide_mm, "seconds": self.seconds}
+                "folds": self.folds, "landmark_shift_mm": self.landmark_shift_mm, "sampling_slide_mm": self.sampling_slide_mm, "seconds": self.seconds}
 
 
 def refine_instance(others: np.ndarray, faces: np.ndarray, template_points: np.ndarray, target,
                     landmark_locations: dict, landmarks_object: dict, *, fit: FitParams,
-                    coating: CoatingParams, name: str = "") -> tuple[CoatingResult, float]:
-    """One instance in one round: fit the model of ``others`` to it, relax the fit onto it.
+                    coating: CoatingParams, exact_landmarks: bool = False,
+                    name: str = "") -> tuple[CoatingResult, float, float]:
+    """One instance in one round: fit the model of ``others`` to it, coat the mean shape onto it
+    with the landmarks the fit gives.
 
     Parameters
     ----------
@@ -116,10 +122,17 @@ def refine_instance(others: np.ndarray, faces: np.ndarray, template_points: np.n
         The template's landmarks as points of the mesh.
     landmarks_object : dict name -> (3,) mm
         The instance's landmarks in its object frame (soft constraints; may be empty).
+    exact_landmarks : bool
+        False: the warp uses the fit's estimate of every landmark (its posterior: the given
+        place pulled by the population, for clicked or extremal-point landmarks). True: the
+        given landmarks are warped to exactly where given and only absent ones come from
+        the fit (``[correspondence] exact_landmarks``).
 
     Returns
     -------
-    (CoatingResult, mean surface distance of the model fit in mm)
+    (CoatingResult, mean surface distance of the model fit in mm, RMS distance in mm
+    between the given landmarks and where the warp put them: 0 for exact landmarks or
+    none given)
     """
     from .landmarks import LandmarkSet
 
@@ -138,9 +151,15 @@ def refine_instance(others: np.ndarray, faces: np.ndarray, template_points: np.n
     ba = np.asarray(landmark_locations["bary"], float)
     fitted = np.einsum("lk,lkd->ld", ba, result.points[faces[tr]])
     on_template = np.einsum("lk,lkd->ld", ba, np.asarray(template_points, float)[faces[tr]])
+    all_names = list(landmark_locations.get("names", ()))
+    given = [i for i, n in enumerate(all_names) if n in landmarks_object]
+    if exact_landmarks and given:
+        fitted[given] = [landmarks_object[all_names[i]] for i in given]
+    shift = (float(np.sqrt(np.mean([np.sum((fitted[i] - landmarks_object[all_names[i]]) ** 2) for i in given])))
+             if given else 0.0)
     # then the paper's coating from the mean shape: landmark warp, projection, relaxation
     coated = coat(Mesh(template_points, faces), on_template, target, fitted, params=coating, name=name)
-    return coated, float(result.mean_distance_mm)
+    return coated, float(result.mean_distance_mm), shift
 
 
 def resample_instance(coating: CoatingResult, faces: np.ndarray, triangles: np.ndarray, bary: np.ndarray, target,
@@ -199,7 +218,7 @@ def _resample_job(args):
 
 
 def _refine_job(args):
-    return refine_instance(*args[:6], fit=args[6], coating=args[7], name=args[8])
+    return refine_instance(*args[:6], fit=args[6], coating=args[7], exact_landmarks=args[8], name=args[9])
 
 
 def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progress: ProgressFn = None,
@@ -251,7 +270,7 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
             points = np.stack([study.coatings[n].points_object for n in names])
             mean = points.mean(axis=0)  # the mean shape: the new template (paper 3.3)
             args = [(np.delete(points, i, axis=0), faces, mean, study.volume(n), locations, lm_object[n], fit,
-                     study.coating_params, n) for i, n in enumerate(names)]
+                     study.coating_params, params.exact_landmarks, n) for i, n in enumerate(names)]
             span = (r - 1) / params.iterations, r / params.iterations
             results = executor.map(_refine_job, args, labels=names, verb=f"round {r}: refined",
                                    progress=sub_progress(progress, 0.95 * span[0], 0.95 * span[1]),
@@ -282,7 +301,7 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
 
 def _finish_round(study, names, points, results, prev_mean, faces, size, r, t0, rounds, say, mean, slide):
     """Check a round, record its figures, and make its coatings and mean shape the study's."""
-    new_points = np.stack([c.points_object for c, _ in results])
+    new_points = np.stack([c.points_object for c, _d, _s in results])
     new_mean = new_points.mean(axis=0)
     change = float(np.sqrt(((new_mean - prev_mean) ** 2).sum(axis=1).mean()))
     if not math.isfinite(change) or change > size:
@@ -292,15 +311,17 @@ def _finish_round(study, names, points, results, prev_mean, faces, size, r, t0, 
         round=r, mean_change_mm=change,
         instance_change_mm={n: float(np.sqrt(((new_points[i] - points[i]) ** 2).sum(axis=1).mean()))
                             for i, n in enumerate(names)},
-        fit_distance_mm={n: d for n, (_, d) in zip(names, results)},
-        folds={n: int(c.fit.folded_after) for n, (c, _) in zip(names, results)},
+        fit_distance_mm={n: d for n, (_, d, _s) in zip(names, results)},
+        folds={n: int(c.fit.folded_after) for n, (c, _d, _s) in zip(names, results)},
+        landmark_shift_mm={n: s for n, (_c, _d, s) in zip(names, results)},
         sampling_slide_mm=slide, seconds=time.perf_counter() - t0)
     rounds.append(fig)
-    for n, (c, _) in zip(names, results):
+    for n, (c, _d, _s) in zip(names, results):
         study.coatings[n] = c
     study.template = _mean_template(study, mean, faces)
     say(f"correspondence round {r}: mean shape moved {change:.3f} mm; instances moved up to "
-        f"{max(fig.instance_change_mm.values()):.2f} mm; the template's points slid {slide:.2f} mm; folds left "
+        f"{max(fig.instance_change_mm.values()):.2f} mm; given landmarks moved up to "
+        f"{max(fig.landmark_shift_mm.values(), default=0.0):.2f} mm; the template's points slid {slide:.2f} mm; folds left "
         f"{sum(fig.folds.values())} "
         f"({fig.seconds:.1f} s)")
     return new_mean

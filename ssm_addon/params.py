@@ -712,9 +712,13 @@ class CorrespondenceParams:
                                 help="stop the refinement when the mean shape moves less than this (RMS; a "
                                      "tenth of the default 1 mm voxel)")
     landmark_weight: float = param(10.0, minimum=0.0, maximum=1e9, label="Landmark weight",
-                                   help="weight of a given landmark in the model fit (0: landmarks ignored; "
-                                        "about 30 for exact anatomical landmarks, 10 for clicked or "
-                                        "extremal-point ones)")
+                                   help="weight of a given landmark in the model fit, against one surface "
+                                        "point (0: landmarks ignored)")
+    exact_landmarks: bool = param(False, label="Exact landmarks",
+                                  help="the given landmarks are exact (anatomical points placed precisely): "
+                                       "each round warps them to exactly where given; off: clicked or "
+                                       "extremal-point landmarks, which each round replaces by the model "
+                                       "fit's estimate")
     fit_noise_mm: float = param(1.0, unit="mm", minimum=0.0, exclusive_minimum=True, maximum=1000.0,
                                 label="Fit noise", advanced=True,
                                 help="noise σ of the model fit to each instance's surface")

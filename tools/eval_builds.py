@@ -34,10 +34,11 @@ DATA = ROOT.parent / "shared" / "data"
 VERSE = {"T9": 16, "T10": 17, "T11": 18, "T12": 19, "L1": 20, "L2": 21, "L3": 22, "L4": 23, "L5": 24}
 
 
-def verse_project(folder: Path, landmarks_on, method: str, iterations: int) -> Path:
+def verse_project(folder: Path, landmarks_on, method: str, iterations: int, exact: bool = False) -> Path:
     src = DATA / "verse004"
     lines = ["[template]", 'instance = "L1"', "spacing = 1.0", "", "[correspondence]", f'method = "{method}"',
-             f"iterations = {iterations}", "", "[model]", 'alignment = "none"', ""]
+             f"iterations = {iterations}", f"exact_landmarks = {str(exact).lower()}", "", "[model]",
+             'alignment = "none"', ""]
     for name, label in VERSE.items():
         lines += ["[[instances]]", f'name = "{name}"', f'volume = "{src / "sub-verse004_seg-vert_msk.nii.gz"}"',
                   f"label = {label}"]
@@ -49,13 +50,14 @@ def verse_project(folder: Path, landmarks_on, method: str, iterations: int) -> P
     return path
 
 
-def demo_project(folder: Path, n: int, method: str, iterations: int) -> Path:
+def demo_project(folder: Path, n: int, method: str, iterations: int, exact: bool = False) -> Path:
     path = folder / "population" / "project.toml"
     if not path.exists():
         demo.make_demo_population(folder / "population", n=n, seed=0)
     text = path.read_text()
     text = re.sub(r"\n\[correspondence\][^\[]*", "\n", text)
-    text = text.replace("[coating]", f'[correspondence]\nmethod = "{method}"\niterations = {iterations}\n\n[coating]')
+    text = text.replace("[coating]", f'[correspondence]\nmethod = "{method}"\niterations = {iterations}\n'
+                        f'exact_landmarks = {str(exact).lower()}\n\n[coating]')
     out = path.with_name(f"project-{method}.toml")
     out.write_text(text)
     return out
@@ -84,6 +86,7 @@ def main(argv=None):
     ap.add_argument("--iterations", type=int, default=3)
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--methods", default="landmarks,model")
+    ap.add_argument("--exact-landmarks", action="store_true", help="[correspondence] exact_landmarks = true")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
@@ -91,9 +94,9 @@ def main(argv=None):
             for on in ([None] if method == "landmarks" or args.population == "demo" else
                        [None, set(args.landmarks_on.split(","))]):
                 if args.population == "verse":
-                    proj = verse_project(folder, on, method, args.iterations)
+                    proj = verse_project(folder, on, method, args.iterations, args.exact_landmarks)
                 else:
-                    proj = demo_project(folder, args.n, method, args.iterations)
+                    proj = demo_project(folder, args.n, method, args.iterations, args.exact_landmarks)
                 t0 = time.perf_counter()
                 out = folder / f"out-{method}-{'all' if on is None else 'few'}"
                 result = build(read_project(proj), out, jobs=args.jobs, log=None)

@@ -16,7 +16,7 @@ distance, in world mm, from that true place: not a surface distance.
 Usage::
 
     python tools/eval_correspondence.py femur10 [--landmarks 15] [--on 10] [--jitter 0]
-        [--method landmarks|model] [--iterations 3] [--jobs 2]
+        [--method landmarks|model] [--exact-landmarks] [--iterations 3] [--jobs 2]
     python tools/eval_correspondence.py deformed [--n 20] ...
 """
 
@@ -148,6 +148,7 @@ def deformed_population(n: int, label: int, seed: int, workdir: Path):
 
 
 LANDMARK_WEIGHT = [None]
+EXACT_LANDMARKS = [False]
 
 
 def run_study(specs, template_name: str, method: str, iterations: int, jobs: int, spacing: float | None = None):
@@ -155,6 +156,7 @@ def run_study(specs, template_name: str, method: str, iterations: int, jobs: int
     if spacing:
         study.template_params = replace(study.template_params, spacing_mm=spacing)
     extra = {} if LANDMARK_WEIGHT[0] is None else {"landmark_weight": LANDMARK_WEIGHT[0]}
+    extra["exact_landmarks"] = EXACT_LANDMARKS[0]
     study.correspondence_params = CorrespondenceParams(method=method, iterations=iterations, **extra)
     t0 = time.perf_counter()
     say = lambda m: print("  " + m, flush=True)  # noqa: E731
@@ -166,7 +168,7 @@ def run_study(specs, template_name: str, method: str, iterations: int, jobs: int
 
 def summarise(errors: dict, label: str):
     allv = np.concatenate(list(errors.values()))
-    print(f"{label}: mean {allv.mean():.2f} mm, 95th {np.percentile(allv, 95):.2f} mm, worst {allv.max():.1f} mm "
+    print(f"{label}: mean {allv.mean():.3f} mm, 95th {np.percentile(allv, 95):.2f} mm, worst {allv.max():.1f} mm "
           f"(points {allv.size})", flush=True)
     return allv
 
@@ -271,8 +273,11 @@ def main(argv=None):
     ap.add_argument("--label", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--landmark-weight", type=float, default=None)
+    ap.add_argument("--exact-landmarks", action="store_true",
+                    help="[correspondence] exact_landmarks = true (the model method keeps given landmarks)")
     args = ap.parse_args(argv)
     LANDMARK_WEIGHT[0] = args.landmark_weight
+    EXACT_LANDMARKS[0] = args.exact_landmarks
     if args.population == "femur10":
         eval_femur(args)
     else:
