@@ -13,8 +13,8 @@ does both (``[correspondence] method = "model"``):
    model's prior, against its surface, its landmarks as soft constraints of weight
    ``landmark_weight``. The fit read off at the template's landmark points gives each
    instance's landmark posterior (its given landmarks denoised by the population, the
-   missing ones supplied by it), and the mean shape is coated onto the instance with
-   them by the paper's pipeline (landmark warp eq. 2 from the mean shape, registration,
+   missing ones supplied by it; with ``exact_landmarks`` the given ones are kept where
+   given), and the mean shape is coated onto the instance with them by the paper's pipeline (landmark warp eq. 2 from the mean shape, registration,
    projection, relaxation eq. 3). The rounds stop when the mean shape moves less than
    ``tolerance_mm`` (RMS) or after ``iterations``.
 3. **Re-sampling** (:func:`resample_instance`): the mean shape's points are not the

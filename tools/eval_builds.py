@@ -63,19 +63,29 @@ def demo_project(folder: Path, n: int, method: str, iterations: int, exact: bool
     return out
 
 
-def summary(result, label: str, seconds: float) -> None:
+def summary(result, label: str, seconds: float, baseline=None) -> np.ndarray:
+    """Print a build's figures; returns its per-instance leave-one-out errors (n x k) so a
+    later build can be compared instance by instance (paired) against ``baseline``."""
     doc = result.report
     g, s = doc["metrics"]["generalization"], doc["metrics"]["specificity"]
     fits = [c.fit for c in result.study.coatings.values()]
     print(f"{label}: build {seconds:.1f} s, coating {doc['timings_s'].get('coating', 0):.1f} s; "
           f"generalization (LOO) k=1..3 " + ", ".join(f"{x:.3f}" for x in g["mean_mm"][:3]) + " mm, last "
-          f"{g['mean_mm'][-1]:.3f} mm; specificity k=1..3 " + ", ".join(f"{x:.3f}" for x in s["mean_mm"][:3])
+          f"{g['mean_mm'][-1]:.3f} mm; specificity k=1..3 "
+          + ", ".join(f"{x:.3f} ± {sd / np.sqrt(s['n_samples']):.3f}" for x, sd in zip(s["mean_mm"][:3], s["std_mm"]))
           + f" mm; folds left {sum(f.folded_after for f in fits)}; converged {sum(f.converged for f in fits)}"
           f"/{len(fits)}", flush=True)
     rounds = doc.get("correspondence", {}).get("rounds", [])
     for r in rounds:
         print(f"  round {r['round']}: mean shape moved {r['mean_change_mm']:.3f} mm, {r['seconds']:.1f} s "
               f"({r['seconds'] / max(len(r['instance_change_mm']), 1):.2f} s per instance)")
+    per = np.asarray(g["per_instance_mm"], float)
+    if baseline is not None and baseline.shape == per.shape:
+        d = per[:, :3] - baseline[:, :3]
+        se = d.std(axis=0, ddof=1) / np.sqrt(len(d))
+        print("  generalization against the single pass, instance by instance (k=1..3): "
+              + ", ".join(f"{m:+.3f} ± {e:.3f}" for m, e in zip(d.mean(axis=0), se)) + " mm (mean difference ± SE)")
+    return per
 
 
 def main(argv=None):
@@ -88,6 +98,7 @@ def main(argv=None):
     ap.add_argument("--methods", default="landmarks,model")
     ap.add_argument("--exact-landmarks", action="store_true", help="[correspondence] exact_landmarks = true")
     args = ap.parse_args(argv)
+    baseline = None
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         for method in args.methods.split(","):
@@ -101,7 +112,9 @@ def main(argv=None):
                 out = folder / f"out-{method}-{'all' if on is None else 'few'}"
                 result = build(read_project(proj), out, jobs=args.jobs, log=None)
                 label = f"{args.population} {method}" + ("" if on is None else f" landmarks on {','.join(sorted(on))}")
-                summary(result, label, time.perf_counter() - t0)
+                per = summary(result, label, time.perf_counter() - t0, baseline)
+                if method == "landmarks":
+                    baseline = per
                 if on is not None:
                     per_landmark: dict = {}
                     for name in VERSE:
