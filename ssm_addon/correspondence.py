@@ -290,7 +290,7 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
         resampled = executor.map(_resample_job, args, labels=names, verb="re-sampled at the template's points",
                                  progress=sub_progress(progress, 0.95, 1.0), cancelled=cancelled)
         for n, c in zip(names, resampled):
-            study.coatings[n] = c
+            study.coatings[n] = _given_landmark_residuals(c, faces, locations, lm_object[n])
         say(f"correspondence: re-sampled at the template's points (the mean shape had slid them "
             f"{rounds[-1].sampling_slide_mm:.2f} mm on {names[anchor]})")
     finally:
@@ -325,6 +325,25 @@ def _finish_round(study, names, points, results, prev_mean, faces, size, r, t0, 
         f"{sum(fig.folds.values())} "
         f"({fig.seconds:.1f} s)")
     return new_mean
+
+
+def _given_landmark_residuals(coating: CoatingResult, faces: np.ndarray, locations: dict,
+                              given: dict) -> CoatingResult:
+    """The coating with its landmark residuals measured against the instance's *given*
+    landmarks (object frame, mm), not against the round's warp targets (the fit's
+    estimate): a given landmark the population moves far is then named by the
+    ``landmark_residual`` gate; an instance without landmarks has none."""
+    from dataclasses import replace
+
+    idx = [i for i, n in enumerate(locations.get("names", ())) if n in given]
+    residuals = ()
+    if idx:
+        tri = np.asarray(locations["triangles"], np.int64)[idx]
+        bary = np.asarray(locations["bary"], float)[idx]
+        at = np.einsum("lk,lkd->ld", bary, coating.points_object[np.asarray(faces, np.int64)[tri]])
+        want = np.array([given[locations["names"][i]] for i in idx])
+        residuals = tuple(float(x) for x in np.linalg.norm(at - want, axis=1))
+    return replace(coating, fit=replace(coating.fit, landmark_residuals_mm=residuals))
 
 
 def _mean_template(study, mean_points: np.ndarray, faces: np.ndarray):

@@ -203,3 +203,35 @@ def test_exact_landmarks_are_warped_to_where_given(population):
     assert np.mean(off[True]) < 0.15 and np.mean(off[True]) < 0.3 * np.mean(off[False]), off
     assert all(v == 0.0 for v in shifts[True].values()), shifts[True]
     assert min(shifts[False].values()) > 0.05, shifts[False]
+
+
+def test_a_swapped_landmark_is_named_although_the_model_corrects_it(population, tmp_path):
+    """The model method warps with the fit's estimate of the landmarks, so a landmark the
+    user swapped with another is corrected; but the coating then lies far from the given
+    landmark, and the landmark-residual gate names the instance (against the given
+    landmarks, not the estimate)."""
+    from ssm_addon.landmarks import LandmarkSet, write_landmarks
+
+    tpl = _template(population)
+    victim = "demo_00" if tpl != "demo_00" else "demo_01"
+    project = read_project(population)
+    spec = next(i for i in project.instances if i.name == victim)
+    lm = read_landmarks(spec.landmarks)
+    pts = lm.points_world.copy()
+    far = int(np.argmax(np.linalg.norm(pts - pts[0], axis=1)))
+    pts[[0, far]] = pts[[far, 0]]
+    swapped = population.parent / f"swapped_{victim}.fcsv"
+    write_landmarks(swapped, LandmarkSet(lm.names, pts, victim))
+    text = population.read_text().replace(f'landmarks = "{spec.landmarks.name}"', f'landmarks = "{swapped.name}"')
+    proj = population.with_name("swapped.toml")
+    proj.write_text(text.replace("[coating]", '[correspondence]\nmethod = "model"\niterations = 2\n\n[coating]'))
+    result = build(read_project(proj), tmp_path / "out", log=None)
+    gap = float(np.linalg.norm(pts[0] - pts[far]))
+    named = [f for f in result.study.findings if f.gate == "landmark_residual"]
+    assert [f.instance for f in named] == [victim], (gap, [str(f) for f in result.study.findings])
+    # the swapped pair is where the coating is far from the given landmarks
+    res = result.study.coatings[victim].fit.landmark_residuals_mm
+    dist = result.report["correspondence"]["carried_landmark_distance_mm"][victim]
+    print(f"swapped {gap:.1f} mm apart; coating to the given landmarks: {np.round(sorted(dist.values()), 1)}")
+    assert max(res) == pytest.approx(max(dist.values())) and max(res) > 0.5 * gap, (gap, dist)
+    assert set(sorted(dist, key=dist.get)[-2:]) == {lm.names[0], lm.names[far]}, (gap, dist)
