@@ -107,6 +107,7 @@ class FitFigures:
     warp_regularization: float = 0.0
     untangle_rounds: int = 0
     start: str = "landmark warp"
+    landmark_names: tuple = ()  # of landmark_residuals_mm, where known
 
     @property
     def max_landmark_residual_mm(self) -> float:
@@ -120,6 +121,7 @@ class FitFigures:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["landmark_residuals_mm"] = [float(x) for x in self.landmark_residuals_mm]
+        d["landmark_names"] = [str(x) for x in self.landmark_names]
         return d
 
     def to_json(self) -> str:
@@ -129,6 +131,7 @@ class FitFigures:
     def from_json(cls, text: str) -> FitFigures:
         d = json.loads(text)
         d["landmark_residuals_mm"] = tuple(d.get("landmark_residuals_mm", ()))
+        d["landmark_names"] = tuple(d.get("landmark_names", ()))
         return cls(**d)
 
 

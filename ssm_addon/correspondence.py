@@ -343,7 +343,8 @@ def _given_landmark_residuals(coating: CoatingResult, faces: np.ndarray, locatio
         at = np.einsum("lk,lkd->ld", bary, coating.points_object[np.asarray(faces, np.int64)[tri]])
         want = np.array([given[locations["names"][i]] for i in idx])
         residuals = tuple(float(x) for x in np.linalg.norm(at - want, axis=1))
-    return replace(coating, fit=replace(coating.fit, landmark_residuals_mm=residuals))
+    return replace(coating, fit=replace(coating.fit, landmark_residuals_mm=residuals,
+                                        landmark_names=tuple(locations["names"][i] for i in idx)))
 
 
 def _mean_template(study, mean_points: np.ndarray, faces: np.ndarray):

@@ -208,9 +208,12 @@ def check_landmarks_on_surface(name: str, object_volume, landmarks, params: Qual
 def check_coating(name: str, fit, params: QualityParams) -> list[Finding]:
     """Gates on one coated instance (:class:`~ssm_addon.coating.FitFigures`)."""
     out = []
-    res = max(tuple(fit.landmark_residuals_mm), default=0.0)
+    residuals = tuple(fit.landmark_residuals_mm)
+    res = max(residuals, default=0.0)
     if res > params.max_landmark_residual_mm:
-        out.append(Finding(name, "landmark_residual", f"the coating is {res:.1f} mm from a given landmark (allowed "
+        names = tuple(getattr(fit, "landmark_names", ()))
+        which = f"given landmark {names[residuals.index(res)]!r}" if len(names) == len(residuals) else "a given landmark"
+        out.append(Finding(name, "landmark_residual", f"the coating is {res:.1f} mm from {which} (allowed "
                            f"{params.max_landmark_residual_mm:g} mm): landmarks inconsistent with the template's?",
                            res, params.max_landmark_residual_mm))
     if fit.folded_after > params.max_folded_triangles:

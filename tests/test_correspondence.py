@@ -235,3 +235,4 @@ def test_a_swapped_landmark_is_named_although_the_model_corrects_it(population, 
     print(f"swapped {gap:.1f} mm apart; coating to the given landmarks: {np.round(sorted(dist.values()), 1)}")
     assert max(res) == pytest.approx(max(dist.values())) and max(res) > 0.5 * gap, (gap, dist)
     assert set(sorted(dist, key=dist.get)[-2:]) == {lm.names[0], lm.names[far]}, (gap, dist)
+    assert re.search(rf"from given landmark '({lm.names[0]}|{lm.names[far]})'", named[0].message), named[0].message
