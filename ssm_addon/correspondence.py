@@ -26,6 +26,15 @@ does both (``[correspondence] method = "model"``):
    pass's 0.80 mm (1.87 mm). Before the re-sampling (and the untangling's current rule)
    the model method measured 1.04 mm (2.55 mm) against the single pass's 0.95 mm.
 
+Which landmarks warp the mean shape (``exact_landmarks``), measured on the deformed
+population (mean / 95th percentile mm; single pass in brackets): with exact landmarks,
+keeping them gave 0.73 / 1.62 with 14 (0.80 / 1.87) and 0.82 / 1.91 with 6 (0.85 / 1.94),
+the fit's estimate 0.78 / 1.74 and 0.89 / 2.12; with landmarks jittered by 1.5 mm per
+axis the estimate gave 0.81 / 1.79, kept 0.91 / 2.05 (0.92 / 2.13). On VerSe, whose
+landmarks are extremal points, keeping them left 11 folded triangles, the estimate none:
+the estimate is the default. Starting the coating from the fit itself measured
+1.11-1.35 mm (6 landmarks), so the fit only supplies landmarks.
+
 Why the fit supplies landmarks rather than the start itself: on a deformed-verse004
 population with known correspondence (``tools/eval_correspondence.py``), relaxing the
 fitted shape directly put points 1.07 mm (95th percentile 2.73 mm) from their true
