@@ -354,6 +354,7 @@ def coat(
     target_landmarks_object: np.ndarray,
     *,
     params: CoatingParams | None = None,
+    distance_map: DistanceMap | None = None,
     progress: ProgressFn = None,
     cancelled: CancelledFn = None,
     name: str = "",
@@ -370,6 +371,8 @@ def coat(
         The instance to coat.
     target_landmarks_object : (L, 3) mm
         The same landmarks on the target, in the target's object frame.
+    distance_map : DistanceMap, optional
+        The target's, if already built.
 
     Returns
     -------
@@ -399,7 +402,8 @@ def coat(
     warped = tps(pts)
     location = locate_on_mesh(pts, faces, src)
     result = coat_from_start(pts_mesh, target, start=warped, params=params, template_location=location,
-                             target_landmarks_object=dst, progress=sub_progress(progress, 0.05, 1.0),
+                             target_landmarks_object=dst, distance_map=distance_map,
+                             progress=sub_progress(progress, 0.05, 1.0),
                              cancelled=cancelled, name=name)
     fit = FitFigures(**{**asdict(result.fit), "time_s": time.perf_counter() - t0, "warp_regularization": float(lam)})
     return CoatingResult(result.points_object, warped, fit, name)

@@ -59,7 +59,7 @@ from .coating import CoatingResult, coat, settle_on_surface
 from .compute import Executor
 from .errors import InputError, check_cancelled
 from .fitting import Pose, Target, fit_model
-from .meshutil import Mesh, MeshLocator, marching_cubes, vertex_normals
+from .meshutil import Mesh, MeshLocator, vertex_normals
 from .model import build_model
 from .params import CoatingParams, CorrespondenceParams, FitParams
 from .progress import CancelledFn, ProgressFn, sub_progress
@@ -143,15 +143,17 @@ def refine_instance(others: np.ndarray, faces: np.ndarray, template_points: np.n
     between the given landmarks and where the warp put them: 0 for exact landmarks or
     none given)
     """
+    from .distance_map import DistanceMap
     from .landmarks import LandmarkSet
 
     model = build_model(others, faces, [str(i) for i in range(len(others))],
                         params={"landmark_locations": landmark_locations})
-    verts, tris = marching_cubes(target.mask)
+    # one distance map for the fit's surface (its marching-cubes mesh) and the coating
+    dm = DistanceMap.from_object_volume(target)
     names = [n for n in landmark_locations.get("names", ()) if n in landmarks_object]
     lms = LandmarkSet(tuple(names), np.array([landmarks_object[n] for n in names]).reshape(-1, 3), name) \
         if names and fit.landmark_weight > 0 else None
-    result = fit_model(model, Target.from_mesh(target.voxel_to_object(verts), tris, landmarks=lms,
+    result = fit_model(model, Target.from_mesh(dm.surface_vertices, dm.surface_faces, landmarks=lms,
                                         max_samples=REFINE_FIT_SAMPLES), params=fit,
                        pose=Pose())
     # the landmarks' posterior places: the fit read off at the template's landmark points
@@ -167,7 +169,8 @@ def refine_instance(others: np.ndarray, faces: np.ndarray, template_points: np.n
     shift = (float(np.sqrt(np.mean([np.sum((fitted[i] - landmarks_object[all_names[i]]) ** 2) for i in given])))
              if given else 0.0)
     # then the paper's coating from the mean shape: landmark warp, projection, relaxation
-    coated = coat(Mesh(template_points, faces), on_template, target, fitted, params=coating, name=name)
+    coated = coat(Mesh(template_points, faces), on_template, target, fitted, params=coating, distance_map=dm,
+                  name=name)
     return coated, float(result.mean_distance_mm), shift
 
 
