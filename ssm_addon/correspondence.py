@@ -14,8 +14,9 @@ does both (``[correspondence] method = "model"``):
    ``landmark_weight``. The fit read off at the template's landmark points gives each
    instance's landmark posterior (its given landmarks denoised by the population, the
    missing ones supplied by it; with ``exact_landmarks`` the given ones are kept where
-   given), and the mean shape is coated onto the instance with them by the paper's pipeline (landmark warp eq. 2 from the mean shape, registration,
-   projection, relaxation eq. 3). The rounds stop when the mean shape moves less than
+   given), and the mean shape is coated onto the instance with them by the paper's
+   pipeline (landmark warp eq. 2 from the mean shape, registration, projection,
+   relaxation eq. 3). The rounds stop when the mean shape moves less than
    ``tolerance_mm`` (RMS) or after ``iterations``.
 3. **Re-sampling** (:func:`resample_instance`): the mean shape's points are not the
    template's; the rounds' coatings are read off at the template's points (located on
@@ -51,18 +52,22 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
 from .coating import CoatingResult, coat, settle_on_surface
 from .compute import Executor
+from .distance_map import DistanceMap
 from .errors import InputError, check_cancelled
 from .fitting import Pose, Target, fit_model
-from .meshutil import Mesh, MeshLocator, vertex_normals
+from .landmarks import LandmarkSet
+from .meshutil import Mesh, MeshLocation, MeshLocator, edge_lengths, vertex_normals
+from .meshutil import edges as mesh_edges
 from .model import build_model
 from .params import CoatingParams, CorrespondenceParams, FitParams
 from .progress import CancelledFn, ProgressFn, sub_progress
+from .relaxation import folded_triangles
 
 # the fit only supplies the landmarks' posterior places and the coating does the rest:
 # a coarser surface sample and a looser stop than ``ssm fit`` (20,000 samples, 0.001 mm)
@@ -106,9 +111,7 @@ class RoundFigures:
     seconds: float = 0.0
 
     def to_dict(self) -> dict:
-        return {"round": self.round, "mean_change_mm": self.mean_change_mm,
-                "instance_change_mm": self.instance_change_mm, "fit_distance_mm": self.fit_distance_mm,
-                "folds": self.folds, "landmark_shift_mm": self.landmark_shift_mm, "sampling_slide_mm": self.sampling_slide_mm, "seconds": self.seconds}
+        return asdict(self)
 
 
 def refine_instance(others: np.ndarray, faces: np.ndarray, template_points: np.ndarray, target,
@@ -143,31 +146,26 @@ def refine_instance(others: np.ndarray, faces: np.ndarray, template_points: np.n
     between the given landmarks and where the warp put them: 0 for exact landmarks or
     none given)
     """
-    from .distance_map import DistanceMap
-    from .landmarks import LandmarkSet
-
     model = build_model(others, faces, [str(i) for i in range(len(others))],
                         params={"landmark_locations": landmark_locations})
     # one distance map for the fit's surface (its marching-cubes mesh) and the coating
     dm = DistanceMap.from_object_volume(target)
-    names = [n for n in landmark_locations.get("names", ()) if n in landmarks_object]
-    lms = LandmarkSet(tuple(names), np.array([landmarks_object[n] for n in names]).reshape(-1, 3), name) \
-        if names and fit.landmark_weight > 0 else None
+    all_names = list(landmark_locations.get("names", ()))
+    given = [i for i, n in enumerate(all_names) if n in landmarks_object]
+    given_points = np.array([landmarks_object[all_names[i]] for i in given], float).reshape(-1, 3)
+    lms = LandmarkSet(tuple(all_names[i] for i in given), given_points, name) \
+        if given and fit.landmark_weight > 0 else None
     result = fit_model(model, Target.from_mesh(dm.surface_vertices, dm.surface_faces, landmarks=lms,
                                         max_samples=REFINE_FIT_SAMPLES), params=fit,
                        pose=Pose())
     # the landmarks' posterior places: the fit read off at the template's landmark points
     # (given landmarks pull it as soft constraints; absent ones come from the model)
-    tr = np.asarray(landmark_locations["triangles"], int)
-    ba = np.asarray(landmark_locations["bary"], float)
-    fitted = np.einsum("lk,lkd->ld", ba, result.points[faces[tr]])
-    on_template = np.einsum("lk,lkd->ld", ba, np.asarray(template_points, float)[faces[tr]])
-    all_names = list(landmark_locations.get("names", ()))
-    given = [i for i, n in enumerate(all_names) if n in landmarks_object]
+    loc = MeshLocation(np.asarray(landmark_locations["triangles"], int), np.asarray(landmark_locations["bary"], float))
+    fitted = loc.evaluate(result.points, faces)
+    on_template = loc.evaluate(template_points, faces)
     if exact_landmarks and given:
-        fitted[given] = [landmarks_object[all_names[i]] for i in given]
-    shift = (float(np.sqrt(np.mean([np.sum((fitted[i] - landmarks_object[all_names[i]]) ** 2) for i in given])))
-             if given else 0.0)
+        fitted[given] = given_points
+    shift = float(np.sqrt(((fitted[given] - given_points) ** 2).sum(axis=1).mean())) if given else 0.0
     # then the paper's coating from the mean shape: landmark warp, projection, relaxation
     coated = coat(Mesh(template_points, faces), on_template, target, fitted, params=coating, distance_map=dm,
                   name=name)
@@ -203,16 +201,9 @@ def resample_instance(coating: CoatingResult, faces: np.ndarray, triangles: np.n
     -------
     CoatingResult with the re-sampled points and their fit figures.
     """
-    from dataclasses import replace
-
-    from .distance_map import DistanceMap
-    from .meshutil import edge_lengths
-    from .meshutil import edges as mesh_edges
-    from .relaxation import folded_triangles
-
     dm = DistanceMap.from_object_volume(target)
     f = np.asarray(faces, np.int64)
-    p = np.einsum("nk,nkd->nd", np.asarray(bary, float), coating.points_object[f[np.asarray(triangles, np.int64)]])
+    p = MeshLocation(np.asarray(triangles, np.int64), np.asarray(bary, float)).evaluate(coating.points_object, f)
     p = dm.project_along(p, vertex_normals(p, f))
     # finished like any coating, with the re-sampled spacing as rest lengths
     e = mesh_edges(f)
@@ -345,14 +336,11 @@ def _given_landmark_residuals(coating: CoatingResult, faces: np.ndarray, locatio
     landmarks (object frame, mm), not against the round's warp targets (the fit's
     estimate): a given landmark the population moves far is then named by the
     ``landmark_residual`` gate; an instance without landmarks has none."""
-    from dataclasses import replace
-
     idx = [i for i, n in enumerate(locations.get("names", ())) if n in given]
     residuals = ()
     if idx:
-        tri = np.asarray(locations["triangles"], np.int64)[idx]
-        bary = np.asarray(locations["bary"], float)[idx]
-        at = np.einsum("lk,lkd->ld", bary, coating.points_object[np.asarray(faces, np.int64)[tri]])
+        at = MeshLocation(np.asarray(locations["triangles"], np.int64)[idx],
+                          np.asarray(locations["bary"], float)[idx]).evaluate(coating.points_object, faces)
         want = np.array([given[locations["names"][i]] for i in idx])
         residuals = tuple(float(x) for x in np.linalg.norm(at - want, axis=1))
     return replace(coating, fit=replace(coating.fit, landmark_residuals_mm=residuals,
@@ -361,8 +349,6 @@ def _given_landmark_residuals(coating: CoatingResult, faces: np.ndarray, locatio
 
 def _mean_template(study, mean_points: np.ndarray, faces: np.ndarray):
     """The mean shape as the study's template (model frame; curvature and frame kept)."""
-    from dataclasses import replace
-
     t = study.template
     return replace(t, points_object=np.asarray(mean_points, float), faces=faces,
                    params={**t.params, "mean_shape_template": True})

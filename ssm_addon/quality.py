@@ -211,7 +211,7 @@ def check_coating(name: str, fit, params: QualityParams) -> list[Finding]:
     residuals = tuple(fit.landmark_residuals_mm)
     res = max(residuals, default=0.0)
     if res > params.max_landmark_residual_mm:
-        names = tuple(getattr(fit, "landmark_names", ()))
+        names = tuple(fit.landmark_names)
         which = f"given landmark {names[residuals.index(res)]!r}" if len(names) == len(residuals) else "a given landmark"
         out.append(Finding(name, "landmark_residual", f"the coating is {res:.1f} mm from {which} (allowed "
                            f"{params.max_landmark_residual_mm:g} mm): landmarks inconsistent with the template's?",

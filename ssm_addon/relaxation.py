@@ -48,6 +48,16 @@ def folded_triangles(
 UNTANGLE_PATIENCE = 10  # rounds without fewer folds before the untangling widens by one ring
 
 
+def _neighbour_sum(p: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """(N, 3) sum of each vertex's edge neighbours (mm): the umbrella operator's numerator."""
+    n = len(p)
+    out = np.empty_like(p)
+    for k in range(3):
+        out[:, k] = (np.bincount(edges[:, 0], p[edges[:, 1], k], minlength=n)
+                     + np.bincount(edges[:, 1], p[edges[:, 0], k], minlength=n))
+    return out
+
+
 def _grow(vertices: np.ndarray, edges: np.ndarray, rings: int) -> np.ndarray:
     """Boolean vertex set grown by ``rings`` edge rings."""
     sel = vertices.copy()
@@ -112,9 +122,7 @@ def untangle(
         seed = np.zeros(n, dtype=bool)
         seed[faces[folded].ravel()] = True
         sel = _grow(seed, e, rings)
-        nsum = np.empty_like(p)
-        for k in range(3):
-            nsum[:, k] = np.bincount(e[:, 0], p[e[:, 1], k], minlength=n) + np.bincount(e[:, 1], p[e[:, 0], k], minlength=n)
+        nsum = _neighbour_sum(p, e)
         p[sel] += 0.5 * (nsum[sel] / deg[sel] - p[sel])
         p[sel] = distance_map.project(p[sel], 2)
     return _keep_improved(start, p, faces, e, distance_map, params), params.untangle_iterations
@@ -240,10 +248,7 @@ def relax(
                 surface_on[faces[folded].ravel()] = False
         k_smooth = params.k3 + params.fold_smoothing * ~surface_on
         if np.any(k_smooth > 0):
-            nsum = np.empty_like(p)
-            for k in range(3):
-                nsum[:, k] = np.bincount(i0, p[i1, k], minlength=n) + np.bincount(i1, p[i0, k], minlength=n)
-            force += k_smooth[:, None] * (nsum / deg[:, None] - p)
+            force += k_smooth[:, None] * (_neighbour_sum(p, e) / deg[:, None] - p)
         if params.tangential_springs:
             force -= np.einsum("ij,ij->i", force, nrm)[:, None] * nrm * surface_on[:, None]
         force += (params.k2 * -d * surface_on)[:, None] * nrm
