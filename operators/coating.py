@@ -1,6 +1,6 @@
 """Coating in Blender (paper section 4): coat the template onto the instances.
 
-``ssm.coat_template`` runs the core's :func:`~ssm_addon.study.coat_instances` on the
+``ssm.coat_template`` runs the core's :func:`~ssm_addon.pipeline.study.coat_instances` on the
 scene's study (the float64 template, each instance's landmarks in its file world and its
 volume reloaded from source) and writes one mesh ``"<instance> coated"`` per instance:
 the template's topology and correspondence colours, placed so it overlays the instance,
@@ -12,16 +12,16 @@ again replaces its coated mesh (found by the instance pointer, so renaming is sa
 from __future__ import annotations
 
 import json
+import time
 
 import bpy
 from bpy.props import BoolProperty, IntProperty
 
-from ssm_addon import coating as core
-from ssm_addon.errors import InputError
-from ssm_addon.params import CoatingParams, CorrespondenceParams
-from ssm_addon.progress import sub_progress
-from ssm_addon.quality import check_coating
-from ssm_addon.study import coat_instances, refine_correspondence
+from ssm_addon.coating import coating as core
+from ssm_addon.pipeline.errors import InputError
+from ssm_addon.pipeline.params import CoatingParams, CorrespondenceParams
+from ssm_addon.pipeline.progress import sub_progress
+from ssm_addon.pipeline.study import apply_stage, coating_result, coating_stage, import_result, refine_correspondence
 
 from . import bridge
 from .jobs import BackgroundJob
@@ -34,7 +34,10 @@ from .scene import (
     coated_object_of,
     coated_objects,
     find_template,
+    instance_findings,
     object_to_blender_matrix,
+    record_findings,
+    report_stage,
     scene_instances,
     study_from_scene,
 )
@@ -122,12 +125,16 @@ class SSM_OT_coat_template(BackgroundJob, bpy.types.Operator):
             def stop():
                 return bool(cancelled and cancelled()) or (cancel_after >= 0 and done[0] >= cancel_after)
 
-            study.volumes.update(loader.load(None, stop))
+            t0 = time.perf_counter()
+            imported = import_result(study, loader.load(None, stop), time.perf_counter() - t0)
+            apply_stage(study, imported)
+            t0 = time.perf_counter()
             try:
-                results = coat_instances(study, names=names, progress=counting(progress), cancelled=stop)
+                return imported, coating_stage(study, names=names, progress=counting(progress), cancelled=stop), False
             except core.CoatingCancelled as err:  # Esc: keep the finished instances
-                return dict(zip(names, err.results)), True
-            return results, False
+                kept = {n: r for n, r in zip(names, err.results) if r is not None}
+                return imported, coating_result(study, kept, {n: "landmarks" for n in kept},
+                                                time.perf_counter() - t0), True
 
         return work
 
@@ -144,17 +151,13 @@ class SSM_OT_coat_template(BackgroundJob, bpy.types.Operator):
         if self._model_method:
             return finish_refinement(self, context, outcome)
         self._loader.keep()
-        results, was_cancelled = outcome
-        written = self._write(context, results)
-        gates = scene_params(context, "ssm_quality")
-        findings = [f for o in written for f in check_coating(o.ssm.instance.name, fit_of(o), gates)]
+        imported, result, was_cancelled = outcome
+        written = self._write(context, result.product["coatings"])
+        found = record_findings(context, imported) + record_findings(context, result)
         msg = f"coated {len(written)} instance(s)"
         if was_cancelled:
-            msg = f"cancelled: kept {len(written)} of {len(results)} coated instance(s)"
-        if findings:
-            self.report({"WARNING"}, f"{msg}; quality gates failed: " + "; ".join(str(f) for f in findings))
-        else:
-            self.report({"INFO"}, msg)
+            msg = f"cancelled: kept {len(written)} of {len(self._names)} coated instance(s)"
+        report_stage(self, msg, found)
         return {"FINISHED"}
 
     def partial(self, context, state):
@@ -219,9 +222,10 @@ def prepare_refinement(op, context, *, fresh: bool):
         def stop():
             return bool(cancelled and cancelled()) or 0 <= cancel_after <= refined[0]
 
-        study.volumes.update(loader.load(sub_progress(progress, 0.0, 0.1), stop))
-        coatings = refine_correspondence(study, progress=sub_progress(counting, 0.1, 1.0), cancelled=stop)
-        return coatings, study.correspondence_rounds, study.coating_start, study.template.points_object
+        t0 = time.perf_counter()
+        imported = import_result(study, loader.load(sub_progress(progress, 0.0, 0.1), stop), time.perf_counter() - t0)
+        apply_stage(study, imported)
+        return imported, refine_correspondence(study, progress=sub_progress(counting, 0.1, 1.0), cancelled=stop)
 
     return work
 
@@ -229,7 +233,10 @@ def prepare_refinement(op, context, *, fresh: bool):
 def finish_refinement(op, context, outcome):
     """Write the refined coatings and the rounds' figures into the scene."""
     op._loader.keep()
-    coatings, rounds, starts, mean_points = outcome
+    imported, result = outcome
+    coatings, starts = result.product["coatings"], result.product["coating_start"]
+    rounds = list(result.product.get("correspondence_rounds", ()))
+    mean_points = result.product["template"].points_object
     written = []
     for name, result in coatings.items():
         inst = bpy.data.objects.get(name)
@@ -243,13 +250,8 @@ def finish_refinement(op, context, outcome):
     last = rounds[-1] if rounds else None
     msg = (f"refined {len(written)} instance(s) in {len(rounds)} round(s)"
            + (f"; mean shape moved {last.mean_change_mm:.3f} mm in the last" if last else ""))
-    gates = scene_params(context, "ssm_quality")
-    findings = [f for o in written for f in check_coating(o.ssm.instance.name, fit_of(o), gates)]
-    if folds or findings:
-        op.report({"WARNING"}, f"{msg}; {folds} folded triangle(s) left"
-                  + ("; quality gates failed: " + "; ".join(str(f) for f in findings) if findings else ""))
-    else:
-        op.report({"INFO"}, msg)
+    found = record_findings(context, imported) + record_findings(context, result)
+    report_stage(op, f"{msg}; {folds} folded triangle(s) left" if folds else msg, found)
     return {"FINISHED"}
 
 
@@ -296,12 +298,11 @@ class SSM_PT_coating(bpy.types.Panel):
         if coated:
             box = layout.box()
             box.label(text="Fit (mean / max mm, folds, start)")
-            gates = scene_params(context, "ssm_quality")
             for obj in coated:
                 fit = fit_of(obj)
                 if fit is None:
                     continue
-                findings = check_coating(obj.ssm.instance.name, fit, gates)
+                findings = instance_findings(context, obj.ssm.instance.name, "coating")
                 row = box.row()
                 row.label(
                     text=f"{obj.ssm.instance.name}: {fit.mean_distance_mm:.2f} / {fit.max_distance_mm:.2f}, "
@@ -309,7 +310,7 @@ class SSM_PT_coating(bpy.types.Panel):
                     icon="ERROR" if findings else "CHECKMARK",
                 )
                 for f in findings:
-                    box.label(text=f"    {f.gate}: {f.message}", icon="BLANK1")
+                    box.label(text=f"    {f['gate']}: {f['message']}", icon="BLANK1")
 
 
 class SSM_PT_coating_advanced(bpy.types.Panel):

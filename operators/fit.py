@@ -5,7 +5,7 @@ slider positions) and a mesh ``"<target> fitted"`` shows the fitted shape at the
 with its posterior standard deviation per vertex as the colour attribute
 ``posterior_sd`` (and the float attribute ``posterior_sd_mm``). In Edit Mode only the
 selected vertices are the target: the rest of the shape is completed, its uncertainty in
-the colours. Runs the core's :func:`~ssm_addon.fitting.fit_model`; an error leaves the
+the colours. Runs the core's :func:`~ssm_addon.fitting.fit.fit_model`; an error leaves the
 scene as it was.
 """
 
@@ -17,16 +17,15 @@ import bpy
 import numpy as np
 from bpy.props import BoolProperty
 
-from ssm_addon.apply import pose_of_points
-from ssm_addon.errors import InputError
-from ssm_addon.fitting import Pose, Target, fit_best
-from ssm_addon.params import FitParams
+from ssm_addon.fitting.batch import pose_of_points
+from ssm_addon.fitting.fit import Pose, Target, fit_best
+from ssm_addon.pipeline.errors import InputError
+from ssm_addon.pipeline.params import FitParams
 
 from . import bridge
 from .jobs import BackgroundJob
-from .model import find_model_object, mode_keys, model_from_object
 from .properties import draw_params, scene_params
-from .scene import is_instance, object_to_blender_matrix
+from .scene import find_model_object, is_instance, mode_keys, model_from_object, object_to_blender_matrix
 
 FIT_COLLECTION = "SSM Fits"
 

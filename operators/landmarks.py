@@ -28,10 +28,10 @@ from bpy.props import (
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 from mathutils import Vector
 
-from ssm_addon import landmarks as core
-from ssm_addon import proposal
-from ssm_addon.errors import InputError, SSMError
-from ssm_addon.progress import sub_progress
+from ssm_addon.coating import proposal
+from ssm_addon.formats import landmarks as core
+from ssm_addon.pipeline.errors import InputError, SSMError
+from ssm_addon.pipeline.progress import sub_progress
 
 from . import bridge
 from .jobs import BackgroundJob
@@ -590,7 +590,7 @@ class SSM_OT_propose_landmarks(BackgroundJob, bpy.types.Operator):
         """The scene's model if it carries landmarks (``method`` auto or model), else None."""
         if self.method not in ("auto", "model"):
             return None
-        from .model import find_model_object, model_from_object
+        from .scene import find_model_object, model_from_object
 
         obj = find_model_object(context)
         model = model_from_object(obj) if obj is not None else None

@@ -6,7 +6,7 @@ plus one standard deviation along the mode (key = p̄ + √λ_k q_k, slider -3..
 slider value v is b_k = v √λ_k and the evaluated mesh is p̄ + Σ v_k √λ_k q_k, eq. 7),
 and a POINT attribute ``variance`` (per-point variance, mm², for a heat map).
 
-Storage: the full :class:`~ssm_addon.model.ShapeModel` (float64 mean, modes, variances,
+Storage: the full :class:`~ssm_addon.model.pca.ShapeModel` (float64 mean, modes, variances,
 instance points in the model and world frames, names and parameters) is kept in the
 object's ID property group ``obj["ssm_model"]`` as binary float64/int32 arrays (numpy
 buffers, no lists), so it survives save/reopen exactly and "Save Model" writes the same
@@ -22,91 +22,31 @@ import bpy
 import numpy as np
 from bpy.props import BoolProperty, FloatProperty, IntProperty, StringProperty
 
-from ssm_addon import metrics as core_metrics
-from ssm_addon.errors import InputError
-from ssm_addon.model import ShapeModel, model_from_arrays
-from ssm_addon.params import ModelParams
-from ssm_addon.report import write_report_html
-from ssm_addon.study import make_model
+from ssm_addon.cli.report import write_outputs, write_report_html
+from ssm_addon.model import metrics as core_metrics
+from ssm_addon.model.pca import ShapeModel
+from ssm_addon.pipeline.errors import InputError
+from ssm_addon.pipeline.params import ModelParams
+from ssm_addon.pipeline.study import model_stage
 
 from . import bridge
 from .jobs import BackgroundJob
 from .properties import draw_params
-from .scene import coated_objects, scene_instances, study_from_scene
-
-MODEL_KEY = "ssm_model"
-MODEL_COLLECTION = "SSM Model"
-MODEL_NAME = "SSM Model"
-
-
-# ---------------------------------------------------------------------------------------
-# the model kept with its object
-# ---------------------------------------------------------------------------------------
-def store_model(obj: bpy.types.Object, model: ShapeModel) -> None:
-    """Keep ``model`` in ``obj["ssm_model"]`` (binary arrays; survives save/reopen)."""
-    n, npts, k = model.n_instances, model.n_points, model.n_modes
-    obj[MODEL_KEY] = {
-        "shape_json": json.dumps({"n": n, "N": npts, "K": k, "F": int(len(model.faces))}),
-        "mean": np.ascontiguousarray(model.mean, dtype=np.float64).ravel(),
-        "faces": np.ascontiguousarray(model.faces, dtype=np.int32).ravel(),
-        "modes": np.ascontiguousarray(model.modes, dtype=np.float64).ravel(),
-        "variances": np.ascontiguousarray(model.variances, dtype=np.float64),
-        "fractions": np.asarray(model.variances / max(model.total_variance, 1e-300), dtype=np.float64),
-        "instance_points": np.ascontiguousarray(model.instance_points, dtype=np.float64).ravel(),
-        "instance_points_world": np.ascontiguousarray(model.instance_points_world, dtype=np.float64).ravel(),
-        "names_json": json.dumps([str(s) for s in model.instance_names]),
-        "params_json": json.dumps(model.params),
-    }
-
-
-def has_model(obj) -> bool:
-    return obj is not None and obj.get(MODEL_KEY) is not None
-
-
-def model_from_object(obj: bpy.types.Object) -> ShapeModel:
-    """The ShapeModel stored on a model object (raises InputError naming the object)."""
-    if not has_model(obj):
-        raise InputError(f"object '{getattr(obj, 'name', obj)}': no SSM model stored (build the model first)")
-    g = obj[MODEL_KEY]
-    try:
-        shp = json.loads(g["shape_json"])
-        n, npts, k, nf = shp["n"], shp["N"], shp["K"], shp["F"]
-
-        def arr(key, shape, dtype=np.float64):
-            return np.array(np.asarray(g[key]), dtype=dtype).reshape(shape)
-
-        arrays = {
-            "mean": arr("mean", (npts, 3)),
-            "faces": arr("faces", (nf, 3), np.int64),
-            "modes": arr("modes", (k, npts, 3)),
-            "variances": arr("variances", (k,)),
-            "instance_points": arr("instance_points", (n, npts, 3)),
-            "instance_points_world": arr("instance_points_world", (n, npts, 3)),
-            "instance_names": np.asarray(json.loads(g["names_json"]), dtype=str).reshape(n),
-            "params": json.loads(g["params_json"]),
-        }
-    except (KeyError, ValueError, TypeError) as err:
-        raise InputError(f"object '{obj.name}': the stored SSM model is damaged ({err})") from err
-    return model_from_arrays(arrays, f"object '{obj.name}'")
-
-
-def mode_keys(obj) -> list:
-    """The mode shape keys ("Mode 1", ...) of a model object, in order."""
-    keys = obj.data.shape_keys if obj is not None and obj.type == "MESH" else None
-    if keys is None:
-        return []
-    return [kb for kb in keys.key_blocks if kb.name.startswith("Mode ")]
-
-
-def find_model_object(context) -> bpy.types.Object | None:
-    """The active object if it is a model, else the first model object in the scene."""
-    obj = context.active_object
-    if obj is not None and obj.ssm.role == "MODEL" and has_model(obj):
-        return obj
-    for ob in context.scene.objects:
-        if ob.ssm.role == "MODEL" and has_model(ob):
-            return ob
-    return None
+from .scene import (
+    MODEL_COLLECTION,
+    MODEL_KEY,
+    MODEL_NAME,
+    coated_objects,
+    find_model_object,
+    mode_keys,
+    model_from_object,
+    record_findings,
+    report_stage,
+    scene_findings,
+    scene_instances,
+    store_model,
+    study_from_scene,
+)
 
 
 def _poll_model(cls, context) -> bool:
@@ -211,19 +151,21 @@ class SSM_OT_build_model(BackgroundJob, bpy.types.Operator):
         self._template_points = study.template.points_object if study.template is not None else None
 
         def work(progress, cancelled):
-            return make_model(study, progress=progress, cancelled=cancelled)
+            return model_stage(study, progress=progress, cancelled=cancelled)
 
         return work
 
-    def finish(self, context, model):
+    def finish(self, context, result):
+        model = result.product["model"]
         obj = create_model_object(context, model, template_points=self._template_points)
+        found = record_findings(context, result)
         conc = model.variability_concentration()
         k3 = min(3, model.n_modes)
         share = conc[k3 - 1] * 100 if k3 else 0.0
         loc = np.array(obj.matrix_world.translation)
-        self.report({"INFO"}, f"{obj.name}: {model.n_modes} modes from {model.n_instances} instances; first {k3}: "
-                              f"{share:.1f} %; placed at ({loc[0]:.0f}, {loc[1]:.0f}, {loc[2]:.0f}) mm, right of "
-                              "the instances")
+        report_stage(self, f"{obj.name}: {model.n_modes} modes from {model.n_instances} instances; first {k3}: "
+                           f"{share:.1f} %; placed at ({loc[0]:.0f}, {loc[1]:.0f}, {loc[2]:.0f}) mm, right of "
+                           "the instances", found)
         return {"FINISHED"}
 
 
@@ -450,9 +392,9 @@ class SSM_OT_save_model(BackgroundJob, bpy.types.Operator):
                                              progress=progress, cancelled=cancelled)
             else:
                 mets = {"compactness": core_metrics.compactness(model)}
-            written = core_metrics.write_outputs(model, out_dir, metrics=mets, per_instance=per_instance, extra=extra,
-                                                 plots=plots)
-            written["html"] = str(write_report_html(out_dir, model, title=f"SSM Builder: {extra['model_object']}"))
+            written = write_outputs(model, out_dir, metrics=mets, per_instance=per_instance, extra=extra, plots=plots)
+            written["html"] = str(write_report_html(out_dir, model, doc=written.pop("document"),
+                                                    title=f"SSM Builder: {extra['model_object']}"))
             return written
 
         return work
@@ -523,6 +465,12 @@ class SSM_PT_model(bpy.types.Panel):
         row.prop(settings, "sample_seed")
         row.operator("ssm.random_shape", icon="MOD_NOISE")
         layout.operator("ssm.save_model", icon="EXPORT")
+        findings = scene_findings(context)
+        box = layout.box()
+        box.label(text=f"Quality: {len(findings)} finding(s)" if findings else "Quality: every gate passed",
+                  icon="ERROR" if findings else "CHECKMARK")
+        for f in findings:
+            box.label(text=f"{f['instance'] or 'study'} [{f['gate']}]: {f['message']}")
 
 
 class SSM_PT_model_advanced(bpy.types.Panel):

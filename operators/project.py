@@ -1,7 +1,7 @@
 """Project files in Blender (Save / Open Project) and the Blender part of a headless build.
 
 * ``ssm.save_project`` writes the scene's study as a ``project.toml`` (the format of
-  :mod:`ssm_addon.project`): every instance with its source, the landmarks as
+  :mod:`ssm_addon.cli.project_build`): every instance with its source, the landmarks as
   ``landmarks/<instance>.fcsv`` (full precision, so the headless build reads the same
   float64 numbers), Blender-mesh instances as ``meshes/<instance>.ply``, and every
   parameter of the scene (the same numbers the operators use). Saving, opening and
@@ -22,12 +22,12 @@ import numpy as np
 from bpy.props import StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
-from ssm_addon import landmarks as core_landmarks
-from ssm_addon import project as core
-from ssm_addon.errors import InputError, SSMError
-from ssm_addon.instances import InstanceSpec, file_names, import_instance
+from ssm_addon.formats import landmarks as core_landmarks
+from ssm_addon.formats import project_file as core
+from ssm_addon.instances.importing import InstanceSpec, file_names, import_instance
 from ssm_addon.meshutil import write_ply
-from ssm_addon.params import OutputParams
+from ssm_addon.pipeline.errors import InputError, SSMError
+from ssm_addon.pipeline.params import OutputParams
 
 from . import bridge
 from .properties import scene_params, set_group
@@ -50,7 +50,7 @@ def show_study(context, study, *, output: OutputParams | None = None) -> dict:
     The same writers the operators use; instances show the display surface of their
     resampled volume.
     """
-    from ssm_addon.volume import display_surface
+    from ssm_addon.instances.volume import display_surface
 
     from .coating import write_coated
     from .instances import write_instance
@@ -301,7 +301,7 @@ class SSM_PT_project_quality(bpy.types.Panel):
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context):
-        from ssm_addon.params import QualityParams
+        from ssm_addon.pipeline.params import QualityParams
 
         from .properties import draw_params
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from ssm_addon.metrics import label_grid_picture, modes_figure_labels
+from ssm_addon.model.metrics import label_grid_picture, modes_figure_labels
 
 from . import bridge
 

@@ -1,4 +1,4 @@
-"""The study in the scene: where the core's :class:`~ssm_addon.study.Study` lives in a .blend.
+"""The study in the scene: where the core's :class:`~ssm_addon.pipeline.study.Study` lives in a .blend.
 
 Every operator builds a study from the scene (:func:`study_from_scene`), calls one
 core stage function on it, and writes the product back. What is stored where:
@@ -9,7 +9,7 @@ core stage function on it, and writes the product back. What is stored where:
   import matrix are float64 ID properties (``obj["ssm_frame"]``). The mesh is a display
   surface only.
 * **volumes**: never stored. They are recomputed from the source by the core's
-  :func:`~ssm_addon.instances.import_instance` (the same call as the command line) and
+  :func:`~ssm_addon.instances.importing.import_instance` (the same call as the command line) and
   kept in memory for the session (:data:`_VOLUMES`).
 * **landmarks**: sphere empties parented to their instance; each keeps its position
   in the instance's file world mm as float64 (``emp["ssm_point_mm"]``). The empty's
@@ -19,7 +19,7 @@ core stage function on it, and writes the product back. What is stored where:
   with their float64 points in ``obj["ssm_template"]`` / ``obj["ssm_coating"]``; their
   meshes are float32 views.
 * **model**: the model object's ``obj["ssm_model"]`` (see ``operators/model.py``).
-* **parameters**: the scene's property groups derived from :mod:`ssm_addon.params`.
+* **parameters**: the scene's property groups derived from :mod:`ssm_addon.pipeline.params`.
 
 So a saved and re-opened .blend continues exactly where it was, as long as the source
 files are where the instances say.
@@ -35,16 +35,18 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from ssm_addon import instances as core_instances
-from ssm_addon.coating import CoatingResult, FitFigures
-from ssm_addon.errors import InputError
-from ssm_addon.instances import InstanceSpec
-from ssm_addon.landmarks import LandmarkSet
-from ssm_addon.params import CoatingParams, ModelParams, TemplateParams
-from ssm_addon.progress import report, sub_progress
-from ssm_addon.study import Study
-from ssm_addon.template import Template
-from ssm_addon.volume import ObjectFrame, ObjectVolume
+from ssm_addon.coating.coating import CoatingResult, FitFigures
+from ssm_addon.formats.landmarks import LandmarkSet
+from ssm_addon.instances import importing as core_instances
+from ssm_addon.instances.importing import InstanceSpec
+from ssm_addon.instances.volume import ObjectFrame, ObjectVolume
+from ssm_addon.model.files import model_from_arrays
+from ssm_addon.model.pca import ShapeModel
+from ssm_addon.pipeline.errors import InputError
+from ssm_addon.pipeline.params import CoatingParams, ModelParams, TemplateParams
+from ssm_addon.pipeline.progress import report, sub_progress
+from ssm_addon.pipeline.study import Study, merge_findings
+from ssm_addon.template.template import Template
 
 from . import bridge
 from .properties import scene_params
@@ -383,6 +385,120 @@ def coating_from_object(obj) -> CoatingResult:
 
 
 # --------------------------------------------------------------------------------- study
+# ---------------------------------------------------------------------------------------
+# the model kept with its object
+# ---------------------------------------------------------------------------------------
+MODEL_KEY = "ssm_model"
+MODEL_COLLECTION = "SSM Model"
+MODEL_NAME = "SSM Model"
+
+
+def store_model(obj: bpy.types.Object, model: ShapeModel) -> None:
+    """Keep ``model`` in ``obj["ssm_model"]`` (binary arrays; survives save/reopen)."""
+    n, npts, k = model.n_instances, model.n_points, model.n_modes
+    obj[MODEL_KEY] = {
+        "shape_json": json.dumps({"n": n, "N": npts, "K": k, "F": int(len(model.faces))}),
+        "mean": np.ascontiguousarray(model.mean, dtype=np.float64).ravel(),
+        "faces": np.ascontiguousarray(model.faces, dtype=np.int32).ravel(),
+        "modes": np.ascontiguousarray(model.modes, dtype=np.float64).ravel(),
+        "variances": np.ascontiguousarray(model.variances, dtype=np.float64),
+        "fractions": np.asarray(model.variances / max(model.total_variance, 1e-300), dtype=np.float64),
+        "instance_points": np.ascontiguousarray(model.instance_points, dtype=np.float64).ravel(),
+        "instance_points_world": np.ascontiguousarray(model.instance_points_world, dtype=np.float64).ravel(),
+        "names_json": json.dumps([str(s) for s in model.instance_names]),
+        "params_json": json.dumps(model.params),
+    }
+
+
+def has_model(obj) -> bool:
+    return obj is not None and obj.get(MODEL_KEY) is not None
+
+
+def model_from_object(obj: bpy.types.Object) -> ShapeModel:
+    """The ShapeModel stored on a model object (raises InputError naming the object)."""
+    if not has_model(obj):
+        raise InputError(f"object '{getattr(obj, 'name', obj)}': no SSM model stored (build the model first)")
+    g = obj[MODEL_KEY]
+    try:
+        shp = json.loads(g["shape_json"])
+        n, npts, k, nf = shp["n"], shp["N"], shp["K"], shp["F"]
+
+        def arr(key, shape, dtype=np.float64):
+            return np.array(np.asarray(g[key]), dtype=dtype).reshape(shape)
+
+        arrays = {
+            "mean": arr("mean", (npts, 3)),
+            "faces": arr("faces", (nf, 3), np.int64),
+            "modes": arr("modes", (k, npts, 3)),
+            "variances": arr("variances", (k,)),
+            "instance_points": arr("instance_points", (n, npts, 3)),
+            "instance_points_world": arr("instance_points_world", (n, npts, 3)),
+            "instance_names": np.asarray(json.loads(g["names_json"]), dtype=str).reshape(n),
+            "params": json.loads(g["params_json"]),
+        }
+    except (KeyError, ValueError, TypeError) as err:
+        raise InputError(f"object '{obj.name}': the stored SSM model is damaged ({err})") from err
+    return model_from_arrays(arrays, f"object '{obj.name}'")
+
+
+def mode_keys(obj) -> list:
+    """The mode shape keys ("Mode 1", ...) of a model object, in order."""
+    keys = obj.data.shape_keys if obj is not None and obj.type == "MESH" else None
+    if keys is None:
+        return []
+    return [kb for kb in keys.key_blocks if kb.name.startswith("Mode ")]
+
+
+def find_model_object(context) -> bpy.types.Object | None:
+    """The active object if it is a model, else the first model object in the scene."""
+    obj = context.active_object
+    if obj is not None and obj.ssm.role == "MODEL" and has_model(obj):
+        return obj
+    for ob in context.scene.objects:
+        if ob.ssm.role == "MODEL" and has_model(ob):
+            return ob
+    return None
+
+
+# ---------------------------------------------------------------------------------------
+# the quality findings of the stages run in this scene
+# ---------------------------------------------------------------------------------------
+FINDINGS_KEY = "ssm_findings"
+
+
+def scene_findings(context) -> list[dict]:
+    """The findings of the stages run in this scene (``Scene["ssm_findings"]``), in stage order.
+
+    Each is ``Finding.to_dict()`` with its ``stage``: the same findings (gate, instance,
+    figure) a headless build of the scene's project writes into ``report.json``.
+    """
+    try:
+        return list(json.loads(context.scene.get(FINDINGS_KEY, "[]")))
+    except ValueError:
+        return []
+
+
+def record_findings(context, result) -> list[dict]:
+    """Keep a stage result's findings in the scene (:func:`ssm_addon.pipeline.study.merge_findings`)."""
+    merged = merge_findings(scene_findings(context), result)
+    context.scene[FINDINGS_KEY] = json.dumps(merged)
+    return [f for f in merged if f["stage"] == result.stage]
+
+
+def report_stage(op, message: str, findings: list[dict]) -> None:
+    """Report a stage's outcome on ``op``: a WARNING naming every failed gate, else INFO."""
+    if findings:
+        op.report({"WARNING"}, f"{message}; quality gates failed: " + "; ".join(
+            f"{f['instance']}: {f['message']}" if f["instance"] else f["message"] for f in findings))
+    else:
+        op.report({"INFO"}, message)
+
+
+def instance_findings(context, name: str, stage: str | None = None) -> list[dict]:
+    """The recorded findings of instance ``name`` (of ``stage`` only, when given)."""
+    return [f for f in scene_findings(context) if f["instance"] == name and stage in (None, f["stage"])]
+
+
 def study_from_scene(context, *, template_instance: str | None = None, template: bool = True,
                      coatings: bool = True) -> Study:
     """The scene's study: instances (study order), parameters, frames, template, coatings.

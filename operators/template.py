@@ -1,10 +1,10 @@
 """Template in Blender (paper section 3): build the template from the active instance.
 
-* ``Scene.ssm_template``: the :class:`~ssm_addon.params.TemplateParams` (derived
+* ``Scene.ssm_template``: the :class:`~ssm_addon.pipeline.params.TemplateParams` (derived
   properties; spacing and frame apply to every instance of the study);
 * ``ssm.build_template``: a background job (status-bar progress, Esc cancels;
   synchronous from scripts) that runs the core's
-  :func:`~ssm_addon.study.make_template` on the scene's study with the active instance
+  :func:`~ssm_addon.pipeline.study.make_template` on the scene's study with the active instance
   as template instance, and creates or replaces the mesh object ``"SSM Template"``
   (collection "SSM Template"): its mesh is a view of the float64 template kept in
   ``obj["ssm_template"]`` (points in the instance's object frame, faces, curvature),
@@ -16,13 +16,14 @@
 from __future__ import annotations
 
 import json
+import time
 
 import bpy
 import numpy as np
 
-from ssm_addon.errors import InputError
-from ssm_addon.params import TemplateParams
-from ssm_addon.study import make_template
+from ssm_addon.pipeline.errors import InputError
+from ssm_addon.pipeline.params import TemplateParams
+from ssm_addon.pipeline.study import apply_stage, import_result, template_stage
 
 from . import bridge
 from .jobs import BackgroundJob
@@ -35,6 +36,8 @@ from .scene import (
     find_template,
     is_instance,
     object_to_blender_matrix,
+    record_findings,
+    report_stage,
     study_from_scene,
 )
 
@@ -92,20 +95,26 @@ class SSM_OT_build_template(BackgroundJob, bpy.types.Operator):
         self._instance_name, self._loader = instance.name, loader
 
         def work(progress, cancelled):
-            study.volumes.update(loader.load(progress, cancelled))
-            return make_template(study, progress=progress, cancelled=cancelled)
+            t0 = time.perf_counter()
+            imported = import_result(study, loader.load(progress, cancelled), time.perf_counter() - t0)
+            apply_stage(study, imported)
+            return imported, template_stage(study, progress=progress, cancelled=cancelled)
 
         return work
 
-    def finish(self, context, template):
+    def finish(self, context, outcome):
         self._loader.keep()
+        imported, result = outcome
         instance = bpy.data.objects.get(self._instance_name)
         if instance is None:
             self.report({"ERROR"}, f"build template: instance {self._instance_name!r} was removed")
             return {"CANCELLED"}
+        template = result.product["template"]
         obj = write_template_object(context, instance, template)
-        self.report({"INFO"}, f"template: {len(template.points_object)} points, {len(template.faces)} triangles, "
-                              f"genus {template.params.get('genus')} from {instance.name}")
+        found = record_findings(context, imported) + record_findings(context, result)
+        msg = (f"template: {len(template.points_object)} points, {len(template.faces)} triangles, "
+               f"genus {template.params.get('genus')} from {instance.name}")
+        report_stage(self, msg, found)
         for o in context.view_layer.objects:
             o.select_set(False)
         obj.select_set(True)

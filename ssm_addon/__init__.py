@@ -1,4 +1,83 @@
-"""SSM Builder core: statistical shape models from segmented volumes, without Blender."""
+"""SSM Builder core: statistical shape models from segmented volumes, without Blender.
+
+The subpackages follow the method (Lorenz & Krahnstöver):
+
+==============  =====================================================================
+``instances``   label maps and meshes as binary objects, object frame, resampling (2)
+``template``    surface voxels, curvature, point reduction, triangulation (3)
+``coating``     landmark warp, distance map, registration, relaxation (4)
+``model``       PCA, model files, metrics, quality gates (5)
+``fitting``     fitting a model to new data; model-guided correspondence rounds
+``formats``     label maps, landmark files, the project file, the Blender hand-over
+``pipeline``    the study and its stages, parameters, executors, cache, errors
+``cli``         ``ssm …``: the build with owned outputs, the report, the demo
+==============  =====================================================================
+
+The names a notebook needs are re-exported here (imported on first use):
+
+>>> import ssm_addon
+>>> ssm_addon.Study.__name__, ssm_addon.InputError.__module__
+('Study', 'ssm_addon.pipeline.errors')
+"""
+
+import importlib
+import importlib.abc
+import importlib.util
+import sys
+import warnings
+
+from ._lazy import lazy_exports
 
 __version__ = "0.1.0"
 
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "pipeline.study": ("Study", "run"),
+    "pipeline.errors": ("Cancelled", "InputError", "SSMError"),
+    "formats.project_file": ("Project", "read_project", "write_project"),
+    "formats.landmarks": ("LandmarkSet", "read_landmarks", "write_landmarks"),
+    "cli.project_build": ("BuildResult", "build"),
+    "instances.importing": ("InstanceSpec", "import_instance"),
+    "template.template": ("Template", "build_template"),
+    "coating.coating": ("CoatingResult", "coat"),
+    "model.pca": ("ShapeModel", "build_model"),
+    "model.files": ("load_npz", "save_npz"),
+    "fitting.batch": ("load_model",),
+    "fitting.fit": ("fit_model",),
+})
+
+#: Module paths of the flat layout (before the stage subpackages) -> where they live now.
+#: Kept for one release so scripts written against the old paths keep working.
+MOVED_MODULES = {
+    "apply": "fitting.batch", "blender_layer": "cli.blender_layer", "cache": "pipeline.cache",
+    "compute": "pipeline.compute", "correspondence": "fitting.correspondence", "demo": "cli.demo",
+    "distance_map": "coating.distance_map", "errors": "pipeline.errors", "frame": "instances.frame",
+    "imageio": "formats.label_maps", "landmarks": "formats.landmarks", "metrics": "model.metrics",
+    "params": "pipeline.params", "progress": "pipeline.progress", "project": "cli.project_build",
+    "proposal": "coating.proposal", "quality": "model.quality", "registration": "coating.registration",
+    "relaxation": "coating.relaxation", "report": "cli.report", "resample": "instances.resampling",
+    "resources": "pipeline.resources", "store": "formats.blender_store", "study": "pipeline.study",
+    "surface": "template.surface", "volume": "instances.volume", "voxelize": "instances.voxelize",
+    "warp": "coating.warp",
+}
+
+
+class _MovedModuleFinder(importlib.abc.MetaPathFinder, importlib.abc.Loader):
+    """``import ssm_addon.study`` gives ``ssm_addon.pipeline.study`` (with a DeprecationWarning)."""
+
+    def find_spec(self, fullname, path=None, target=None):
+        head, _, tail = fullname.partition(".")
+        if head == __name__ and tail in MOVED_MODULES:
+            return importlib.util.spec_from_loader(fullname, self)
+        return None
+
+    def create_module(self, spec):
+        new = f"{__name__}.{MOVED_MODULES[spec.name.partition('.')[2]]}"
+        warnings.warn(f"{spec.name} moved to {new}", DeprecationWarning, stacklevel=2)
+        return importlib.import_module(new)
+
+    def exec_module(self, module):
+        pass
+
+
+if not any(isinstance(f, _MovedModuleFinder) for f in sys.meta_path):
+    sys.meta_path.append(_MovedModuleFinder())

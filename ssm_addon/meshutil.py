@@ -19,9 +19,10 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components as _cc
 from scipy.spatial import cKDTree
 
-from .errors import InputError
+from .pipeline.errors import InputError
 
 __all__ = [
+    "unique_rows",
     "ManifoldReport",
     "Mesh",
     "MeshLocation",
@@ -70,10 +71,10 @@ def edges(faces) -> np.ndarray:
     """
     f = _faces(faces)
     e = np.sort(f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    return _unique_rows(e) if len(e) else np.zeros((0, 2), dtype=np.int64)
+    return unique_rows(e) if len(e) else np.zeros((0, 2), dtype=np.int64)
 
 
-def _unique_rows(a: np.ndarray, return_inverse: bool = False, return_counts: bool = False):
+def unique_rows(a: np.ndarray, return_inverse: bool = False, return_counts: bool = False):
     """``np.unique(a, axis=0)`` for small non-negative int rows via a scalar key (much faster)."""
     a = np.asarray(a, dtype=np.int64)
     k = a.shape[1]
@@ -237,11 +238,11 @@ def is_closed_manifold(faces) -> ManifoldReport:
     if len(f) == 0:
         return ManifoldReport(empty, empty, np.zeros(0, np.int64), empty, 0, 0)
     degenerate = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
-    _, counts_f = _unique_rows(np.sort(f, axis=1), return_counts=True)
+    _, counts_f = unique_rows(np.sort(f, axis=1), return_counts=True)
     duplicates = int((counts_f[counts_f > 1]).sum())
     directed = f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
     und = np.sort(directed, axis=1)
-    uniq, inv, cnt = _unique_rows(und, return_inverse=True, return_counts=True)
+    uniq, inv, cnt = unique_rows(und, return_inverse=True, return_counts=True)
     inv = inv.ravel()
     boundary = uniq[cnt == 1]
     nonmanifold = uniq[cnt >= 3]

@@ -13,8 +13,8 @@ import sys
 import numpy as np
 import pytest
 
-from ssm_addon import demo
-from ssm_addon.project import build, read_project
+from ssm_addon.cli import demo
+from ssm_addon.cli.project_build import build, read_project
 
 pytestmark = pytest.mark.blender
 

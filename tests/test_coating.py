@@ -5,19 +5,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ssm_addon import coating as C
-from ssm_addon import distance_map as DM
-from ssm_addon import instances as INS
 from ssm_addon import meshutil as mu
-from ssm_addon import params as P
-from ssm_addon import proposal as PR
-from ssm_addon import relaxation as RX
-from ssm_addon import warp as W
-from ssm_addon.errors import InputError
-from ssm_addon.volume import ObjectFrame, ObjectVolume
+from ssm_addon.coating import coating as C
+from ssm_addon.coating import distance_map as DM
+from ssm_addon.coating import proposal as PR
+from ssm_addon.coating import relaxation as RX
+from ssm_addon.coating import warp as W
+from ssm_addon.instances import importing as INS
+from ssm_addon.instances.volume import ObjectFrame, ObjectVolume
+from ssm_addon.pipeline import params as P
+from ssm_addon.pipeline.errors import InputError
 
 try:  # the template stage (paper 3); the tests fall back to an icosphere until it exists
-    from ssm_addon.template import TemplateParams, build_template
+    from ssm_addon.template.template import TemplateParams, build_template
 except ImportError:  # pragma: no cover - only while template.py is being written
     build_template = None
 
@@ -281,7 +281,7 @@ def test_cancelling_keeps_finished_instances(batch, jobs):
     results = info.value.results
     done = [r for r in results if r is not None]
     assert 1 <= len(done) < len(targets)
-    from ssm_addon.compute import run_one_thread  # batches run each instance with one BLAS thread
+    from ssm_addon.pipeline.compute import run_one_thread  # batches run each instance with one BLAS thread
 
     reference = run_one_thread(lambda _: C.coat(template, ellipsoid_landmarks(a), targets[0], lms[0]), None)
     assert results[0] is not None and np.array_equal(results[0].points_object, reference.points_object)
@@ -316,7 +316,7 @@ def test_verse_l1_template_coated_onto_l2_to_l5_and_t12(verse_dir):
     """Real data: every coated vertex within one voxel of the raw surface, no fold left."""
     from conftest import VERSE_FILE, VERSE_LABELS
 
-    from ssm_addon import landmarks as L
+    from ssm_addon.formats import landmarks as L
 
     names = ["L1", "L2", "L3", "L4", "L5", "T12"]
     obs = {k: INS.load_object(VERSE_FILE, label=VERSE_LABELS[k], spacing_mm=1.0) for k in names}
@@ -385,7 +385,7 @@ def test_untangle_puts_back_a_region_whose_folds_it_cannot_remove(ellipsoid_pair
     every region fails: the points come back exactly as they went in."""
     from dataclasses import replace as dc_replace
 
-    from ssm_addon.params import CoatingParams
+    from ssm_addon.pipeline.params import CoatingParams
 
     a, _, ova, _, template = ellipsoid_pair
     pts, faces = np.asarray(template.points_object, float), np.asarray(template.faces)
@@ -401,7 +401,7 @@ def test_projection_along_the_normal_stays_on_its_side_of_a_thin_plate():
     """A point just past the middle of a 3 mm plate, normal towards the far face: the
     gradient projection takes it to the near face, the projection along the normal to
     the face the normal points at (the mask's faces lie half a voxel beyond its centres)."""
-    from ssm_addon.volume import ObjectFrame, ObjectVolume
+    from ssm_addon.instances.volume import ObjectFrame, ObjectVolume
 
     mask = np.zeros((24, 24, 12), bool)
     mask[2:-2, 2:-2, 4:7] = True  # voxel centres z = 4, 5, 6 mm: faces at 3.5 and 6.5 mm
@@ -435,8 +435,8 @@ def test_default_relaxation_converges_on_every_verse_vertebra_without_folds(vers
     previous 25-step pass (linear springs, warped rest lengths) converged on none."""
     from conftest import VERSE_FILE, VERSE_LABELS
 
-    from ssm_addon import landmarks as L
-    from ssm_addon.params import CoatingParams
+    from ssm_addon.formats import landmarks as L
+    from ssm_addon.pipeline.params import CoatingParams
 
     obs = {k: INS.load_object(VERSE_FILE, label=v, spacing_mm=1.0) for k, v in VERSE_LABELS.items()}
     lms = {k: obs[k].frame.to_object(L.read_landmarks(verse_dir / "landmarks" / f"{k}.fcsv").points_world)
@@ -459,9 +459,9 @@ def test_default_relaxation_converges_on_every_verse_vertebra_without_folds(vers
 def test_default_relaxation_converges_without_folds_on_the_demo(tmp_path):
     """The 24-instance demo population (the README's build): every instance converges by
     tolerance and no triangle is left folded."""
-    from ssm_addon import demo
-    from ssm_addon.project import read_project
-    from ssm_addon.study import Study, run
+    from ssm_addon.cli import demo
+    from ssm_addon.cli.project_build import read_project
+    from ssm_addon.pipeline.study import Study, run
 
     study = Study.from_project(read_project(demo.make_demo_population(tmp_path / "demo", n=24, seed=0)))
     run(study, stages=("import", "template", "coating"), jobs=2)

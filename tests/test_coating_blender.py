@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from test_coating import ellipsoid_landmarks, icosphere
 
-from ssm_addon import distance_map as DM
-from ssm_addon import imageio as IO
+from ssm_addon.coating import distance_map as DM
+from ssm_addon.formats import label_maps as IO
 
 pytestmark = pytest.mark.blender
 
@@ -32,7 +32,7 @@ def _scene(bpy, tmp_path):
     from ssm.operators.scene import set_landmark, stored_frame
     from ssm.operators.template import write_template_object
 
-    from ssm_addon.template import Template
+    from ssm_addon.template.template import Template
 
     path = _label_map(tmp_path)
     assert bpy.ops.ssm.import_segmentation(filepath=str(path), split_labels=True, spacing_mm=1.0) == {"FINISHED"}
@@ -116,7 +116,7 @@ def test_panel_registered(bpy_clean):
 
     from ssm.operators.properties import params_from_group
 
-    from ssm_addon.coating import CoatingParams
+    from ssm_addon.coating.coating import CoatingParams
 
     ui, core = params_from_group(CoatingParams, settings), CoatingParams()
     for field in ("kernel", "k1", "k2", "k3", "mass", "damping", "dt", "max_iterations", "velocity_tol_mm",

@@ -1,4 +1,4 @@
-"""Executors (serial, processes, Dask) and the resumable build cache (ssm_addon.compute, ssm_addon.cache)."""
+"""Executors (serial, processes, Dask) and the resumable build cache (ssm_addon.pipeline.compute, ssm_addon.pipeline.cache)."""
 
 from __future__ import annotations
 
@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ssm_addon import demo
-from ssm_addon.cache import BuildCache
-from ssm_addon.compute import Executor, check_scheduler, time_left_text
-from ssm_addon.errors import InputError
-from ssm_addon.project import build, read_project
+from ssm_addon.cli import demo
+from ssm_addon.cli.project_build import build, read_project
+from ssm_addon.pipeline.cache import BuildCache
+from ssm_addon.pipeline.compute import Executor, check_scheduler, time_left_text
+from ssm_addon.pipeline.errors import InputError
 
 ROOT = Path(__file__).resolve().parents[1]
 ARRAYS = ("mean", "modes", "variances", "instance_points", "instance_points_world")
@@ -160,7 +160,7 @@ def test_project_compute_table(population, tmp_path):
     bad = _project(population, tmp_path, 3, extra='[compute]\nscheduler = "slurm"\n')
     with pytest.raises(InputError, match="unknown scheduler 'slurm'"):
         read_project(bad)
-    from ssm_addon.project import project_text
+    from ssm_addon.cli.project_build import project_text
 
     text = project_text(p, tmp_path)
     assert "[compute]" in text and 'cache = "mycache"' in text

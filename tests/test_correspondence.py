@@ -10,11 +10,11 @@ import re
 import numpy as np
 import pytest
 
-from ssm_addon import demo
-from ssm_addon.correspondence import refine_instance
-from ssm_addon.errors import InputError
-from ssm_addon.landmarks import read_landmarks
-from ssm_addon.project import build, read_project
+from ssm_addon.cli import demo
+from ssm_addon.cli.project_build import build, read_project
+from ssm_addon.fitting.correspondence import refine_instance
+from ssm_addon.formats.landmarks import read_landmarks
+from ssm_addon.pipeline.errors import InputError
 
 QUICK = {"spacing = 1.0": "spacing = 1.0\nr_min_mm = 4.0\nr_max_mm = 8.0",
          "[model]": "[model]\nspecificity_samples = 50"}
@@ -138,7 +138,7 @@ def test_landmarks_method_still_needs_landmarks_everywhere(population):
 
 def test_a_diverging_refinement_is_refused_and_writes_nothing(population, tmp_path, monkeypatch):
     """A round whose mean shape jumps by more than the shapes' size stops the build by name."""
-    import ssm_addon.correspondence as corr
+    import ssm_addon.fitting.correspondence as corr
 
     def runaway(*args, **kwargs):
         coated, d, shift = refine_instance(*args, **kwargs)
@@ -159,7 +159,7 @@ def test_model_method_keeps_the_template_points_on_the_template_instance(populat
     re-sampling puts them back: on the template instance point i ends at template point i."""
     from scipy.spatial import cKDTree
 
-    from ssm_addon.study import Study, run
+    from ssm_addon.pipeline.study import Study, run
 
     proj = _variant(population, "keep.toml", correspondence='[correspondence]\nmethod = "model"\niterations = 2')
     study = Study.from_project(read_project(proj))
@@ -179,7 +179,7 @@ def test_model_method_keeps_the_template_points_on_the_template_instance(populat
 def test_exact_landmarks_are_warped_to_where_given(population):
     """``exact_landmarks = true``: each round warps the mean shape's landmarks exactly onto the
     given ones; by default the fit's estimate replaces them (and the round says how far)."""
-    from ssm_addon.study import Study, run
+    from ssm_addon.pipeline.study import Study, run
 
     shifts, off = {}, {}
     for exact in (False, True):
@@ -213,7 +213,7 @@ def test_a_swapped_landmark_is_named_although_the_model_corrects_it(population, 
     user swapped with another is corrected; but the coating then lies far from the given
     landmark, and the landmark-residual gate names the instance (against the given
     landmarks, not the estimate)."""
-    from ssm_addon.landmarks import LandmarkSet, write_landmarks
+    from ssm_addon.formats.landmarks import LandmarkSet, write_landmarks
 
     tpl = _template(population)
     victim = "demo_00" if tpl != "demo_00" else "demo_01"

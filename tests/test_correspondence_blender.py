@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from test_correspondence import _template, _variant
 
-from ssm_addon import demo
-from ssm_addon.landmarks import read_landmarks
-from ssm_addon.project import build, read_project
+from ssm_addon.cli import demo
+from ssm_addon.cli.project_build import build, read_project
+from ssm_addon.formats.landmarks import read_landmarks
 
 pytestmark = pytest.mark.blender
 

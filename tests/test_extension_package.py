@@ -241,7 +241,7 @@ INSTALL_SCRIPT = textwrap.dedent(
         out["core_file"] = core.__file__
         out["core_copies"] = sorted(k for k in sys.modules if k.endswith(".ssm_addon") or ".ssm_addon." in k)
         ops_scene = sys.modules["bl_ext.user_default.ssm.operators.scene"]
-        out["one_study_class"] = ops_scene.Study is sys.modules["ssm_addon.study"].Study
+        out["one_study_class"] = ops_scene.Study is sys.modules["ssm_addon.pipeline.study"].Study
         # the workflow: a second instance, landmarks, template, coating, model
         bpy.ops.ssm.import_segmentation(filepath=nifti, label=3)
         insts = sorted((o for o in bpy.data.objects if o.ssm.role == "INSTANCE"), key=lambda o: o.ssm.label)

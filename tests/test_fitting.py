@@ -11,13 +11,15 @@ import pytest
 from scipy.spatial import ConvexHull
 from test_model import random_rotation, synthetic_population
 
-from ssm_addon import apply, meshutil
+from ssm_addon import meshutil
 from ssm_addon.__main__ import main
-from ssm_addon.errors import InputError
-from ssm_addon.fitting import Pose, Target, fit_model
-from ssm_addon.landmarks import LandmarkSet, write_landmarks
-from ssm_addon.model import build_model, load_statismo, save_npz, save_statismo
-from ssm_addon.params import FitParams
+from ssm_addon.fitting import batch as apply
+from ssm_addon.fitting.fit import Pose, Target, fit_model
+from ssm_addon.formats.landmarks import LandmarkSet, write_landmarks
+from ssm_addon.model.files import load_statismo, save_npz, save_statismo
+from ssm_addon.model.pca import build_model
+from ssm_addon.pipeline.errors import InputError
+from ssm_addon.pipeline.params import FitParams
 
 
 @pytest.fixture(scope="module")
@@ -136,7 +138,7 @@ def verse_models(verse_dir, tmp_path_factory):
     """The nine VerSe vertebrae built into a model (landmarks known), for leave-one-out fits."""
     from test_build_verse import write_verse_project
 
-    from ssm_addon.project import build, read_project
+    from ssm_addon.cli.project_build import build, read_project
 
     folder = tmp_path_factory.mktemp("verse_fit")
     project = read_project(write_verse_project(folder, verse_dir))
@@ -145,7 +147,7 @@ def verse_models(verse_dir, tmp_path_factory):
 
 
 def test_leave_one_out_fit_of_a_real_vertebra(verse_models, tmp_path):
-    from ssm_addon.model import build_model
+    from ssm_addon.model.pca import build_model
 
     project, result = verse_models
     study = result.study
@@ -183,7 +185,7 @@ def test_fit_command_single_and_batch(model, tmp_path, capsys):
         write = tmp_path / "batch" / f"s{i}.csv"
         write.parent.mkdir(exist_ok=True)
         np.savetxt(write, far, delimiter=",")
-    from ssm_addon.apply import FitTarget, fit_batch
+    from ssm_addon.fitting.batch import FitTarget, fit_batch
 
     targets = [FitTarget(name=f"s{i}", points=tmp_path / "batch" / f"s{i}.csv") for i in range(3)]
     docs = fit_batch(npz, targets, tmp_path / "batch_out", params=FitParams(noise_mm=0.1))

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from conftest import VERSE_FILE, VERSE_LABELS
 
-from ssm_addon import frame as FR
-from ssm_addon import imageio as IO
-from ssm_addon import instances as INS
 from ssm_addon import meshutil as mu
-from ssm_addon import volume as V
+from ssm_addon.formats import label_maps as IO
+from ssm_addon.instances import frame as FR
+from ssm_addon.instances import importing as INS
+from ssm_addon.instances import volume as V
 
 pytestmark = pytest.mark.blender
 

@@ -12,10 +12,8 @@ from conftest import VERSE_FILE, VERSE_LABELS
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from ssm_addon import frame as FR
-from ssm_addon import volume as vol
-from ssm_addon.errors import InputError
-from ssm_addon.landmarks import (
+from ssm_addon.coating.proposal import propose_from_meshes, propose_landmarks, surface_points_object, transfer_landmarks
+from ssm_addon.formats.landmarks import (
     LANDMARK_PRESETS,
     LandmarkSet,
     landmark_format,
@@ -24,7 +22,9 @@ from ssm_addon.landmarks import (
     read_landmarks,
     write_landmarks,
 )
-from ssm_addon.proposal import propose_from_meshes, propose_landmarks, surface_points_object, transfer_landmarks
+from ssm_addon.instances import frame as FR
+from ssm_addon.instances import volume as vol
+from ssm_addon.pipeline.errors import InputError
 
 
 def _example_set() -> LandmarkSet:

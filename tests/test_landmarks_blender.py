@@ -7,8 +7,8 @@ import pytest
 from conftest import VERSE_FILE, VERSE_LABELS
 from test_landmarks import _frame, _ico_sphere
 
-from ssm_addon import volume as vol
-from ssm_addon.landmarks import LANDMARK_PRESETS, LandmarkSet, read_landmarks, write_landmarks
+from ssm_addon.formats.landmarks import LANDMARK_PRESETS, LandmarkSet, read_landmarks, write_landmarks
+from ssm_addon.instances import volume as vol
 
 pytestmark = pytest.mark.blender
 

@@ -9,18 +9,19 @@ import numpy as np
 import pytest
 from test_model import FACES, names, random_rotation, synthetic_population
 
-from ssm_addon.errors import InputError
-from ssm_addon.metrics import (
+from ssm_addon.cli.report import write_outputs
+from ssm_addon.model.files import load_npz, load_statismo
+from ssm_addon.model.metrics import (
     aggregate_fit,
     compactness,
     evaluate,
     generalization,
     specificity,
-    write_outputs,
     write_plots,
     write_report,
 )
-from ssm_addon.model import build_model, load_npz, load_statismo
+from ssm_addon.model.pca import build_model
+from ssm_addon.pipeline.errors import InputError
 
 NOISE_MM = 0.02
 # mean length of 3D isotropic Gaussian noise: 2 sqrt(2/pi) sigma
@@ -167,7 +168,7 @@ def test_plots_are_skipped_with_a_clear_message_without_matplotlib(tmp_path, pop
 
 def test_large_study_generalization_agrees_with_the_gram_route():
     """k-fold generalization of large studies (randomized, no n x n Gram matrix) equals the exact route."""
-    from ssm_addon import metrics as M
+    from ssm_addon.model import metrics as M
 
     rng = np.random.default_rng(8)
     n, npts = 300, 200

@@ -8,16 +8,9 @@ import h5py
 import numpy as np
 import pytest
 
-from ssm_addon.errors import InputError
-from ssm_addon.model import (
-    ShapeModel,
-    build_model,
-    generalized_procrustes,
-    load_npz,
-    load_statismo,
-    save_npz,
-    save_statismo,
-)
+from ssm_addon.model.files import load_npz, load_statismo, save_npz, save_statismo
+from ssm_addon.model.pca import ShapeModel, build_model, generalized_procrustes
+from ssm_addon.pipeline.errors import InputError
 
 
 # ---------------------------------------------------------------------------------------
@@ -227,7 +220,7 @@ def test_rigid_procrustes_removes_random_rigid_transforms():
     # aligned instances agree with those of the untransformed population up to one rigid motion
     a = model.instance_points.reshape(-1, 3)
     b = ref.instance_points.reshape(-1, 3)
-    from ssm_addon.model import procrustes_fit
+    from ssm_addon.model.pca import procrustes_fit
 
     s, rot, t = procrustes_fit(a[None], b, scale=False)
     assert np.abs(a @ rot[0].T + t[0] - b).max() < 1e-6
@@ -246,7 +239,7 @@ def test_similarity_procrustes_removes_scale():
     assert model.params["alignment_info"]["converged"]
     # equal up to one global scale: the same spectrum shape, the same aligned shapes
     np.testing.assert_allclose(model.variances / model.total_variance, ref.variances / ref.total_variance, rtol=1e-5)
-    from ssm_addon.model import procrustes_fit
+    from ssm_addon.model.pca import procrustes_fit
 
     a, b = model.instance_points.reshape(-1, 3), ref.instance_points.reshape(-1, 3)
     s, rot, t = procrustes_fit(a[None], b, scale=True)
@@ -400,7 +393,7 @@ def test_modes_stay_orthonormal_over_a_wide_eigenvalue_range():
 
 def test_randomized_solver_agrees_with_exact():
     """Above the size threshold 'auto' uses the randomized SVD; its leading modes equal the exact ones."""
-    from ssm_addon.model import RANDOMIZED_MIN_ELEMENTS
+    from ssm_addon.model.pca import RANDOMIZED_MIN_ELEMENTS
 
     rng = np.random.default_rng(4)
     n, npts, k = 400, 700, 6

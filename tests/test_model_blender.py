@@ -29,9 +29,9 @@ def add_coated(bpy, population, n=N_INST):
     from ssm.operators.coating import write_coated
     from ssm.operators.template import write_template_object
 
-    from ssm_addon.coating import CoatingResult, FitFigures
-    from ssm_addon.template import Template
-    from ssm_addon.volume import ObjectFrame
+    from ssm_addon.coating.coating import CoatingResult, FitFigures
+    from ssm_addon.instances.volume import ObjectFrame
+    from ssm_addon.template.template import Template
 
     shapes, faces, frames = population
     ctx = bpy.context
@@ -61,7 +61,7 @@ def built(bpy_clean, population):
 
 
 def test_build_model_from_coated_instances(built, population):
-    from ssm_addon.model import build_model
+    from ssm_addon.model.pca import build_model
 
     bpy, obj, model = built
     shapes, faces, frames = population
@@ -162,7 +162,7 @@ def test_random_shape_and_reset(built):
 def test_save_model_writes_files_and_blend_reopen_keeps_model(built, tmp_path):
     from ssm.operators import model as opmodel
 
-    from ssm_addon.model import load_npz, load_statismo
+    from ssm_addon.model.files import load_npz, load_statismo
 
     bpy, obj, model = built
     out = tmp_path / "out"
@@ -189,7 +189,7 @@ def test_save_model_writes_files_and_blend_reopen_keeps_model(built, tmp_path):
 def test_create_model_object_from_a_shape_model(bpy_clean, population):
     from ssm.operators import model as opmodel
 
-    from ssm_addon.model import build_model
+    from ssm_addon.model.pca import build_model
 
     bpy = bpy_clean
     shapes, faces, _ = population

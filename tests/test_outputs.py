@@ -9,10 +9,10 @@ from pathlib import Path
 
 import pytest
 
-from ssm_addon import demo
 from ssm_addon.__main__ import main
-from ssm_addon.errors import InputError
-from ssm_addon.project import MANIFEST, build, read_project
+from ssm_addon.cli import demo
+from ssm_addon.cli.project_build import MANIFEST, build, read_project
+from ssm_addon.pipeline.errors import InputError
 
 
 @pytest.fixture(scope="module")

@@ -11,14 +11,14 @@ import pytest
 from conftest import VERSE_FILE
 from test_model import synthetic_population
 
-from ssm_addon import demo
-from ssm_addon import quality as Q
 from ssm_addon.__main__ import main
-from ssm_addon.errors import InputError
-from ssm_addon.landmarks import LandmarkSet, read_landmarks, write_landmarks
-from ssm_addon.model import build_model
-from ssm_addon.params import CoatingParams, QualityParams
-from ssm_addon.project import build, read_project
+from ssm_addon.cli import demo
+from ssm_addon.cli.project_build import build, read_project
+from ssm_addon.formats.landmarks import LandmarkSet, read_landmarks, write_landmarks
+from ssm_addon.model import quality as Q
+from ssm_addon.model.pca import build_model
+from ssm_addon.pipeline.errors import InputError
+from ssm_addon.pipeline.params import CoatingParams, QualityParams
 
 
 @pytest.fixture(scope="module")
@@ -72,7 +72,7 @@ def test_another_instances_landmark_file_is_an_error(population, tmp_path):
 
 
 def test_landmarks_in_lps_declared_as_ras_get_an_error_that_says_so(tmp_path, verse_dir):
-    from ssm_addon.instances import load_object
+    from ssm_addon.instances.importing import load_object
 
     ov = load_object(VERSE_FILE, label=20, spacing_mm=1.0)
     lm = read_landmarks(verse_dir / "landmarks" / "L1.fcsv")  # correct: read as LPS -> RAS
@@ -122,7 +122,7 @@ def test_dt_beyond_the_stability_bound_is_refused_with_the_bound():
 
 
 def test_intensity_image_is_refused(tmp_path):
-    from ssm_addon.imageio import read_label_map
+    from ssm_addon.formats.label_maps import read_label_map
 
     rng = np.random.default_rng(0)
     ct = np.clip(rng.normal(40, 300, size=(40, 40, 30)), -1024, 3071).astype(np.int16)
@@ -136,7 +136,7 @@ def test_intensity_image_is_refused(tmp_path):
 
 
 def test_a_few_voxels_is_an_error():
-    from ssm_addon.volume import ObjectFrame, ObjectVolume
+    from ssm_addon.instances.volume import ObjectFrame, ObjectVolume
 
     mask = np.zeros((5, 5, 5), bool)
     mask[2, 2, 2] = True

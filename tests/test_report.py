@@ -9,8 +9,8 @@ import subprocess
 import numpy as np
 import pytest
 
-from ssm_addon import demo
-from ssm_addon.project import build, read_project
+from ssm_addon.cli import demo
+from ssm_addon.cli.project_build import build, read_project
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 from conftest import ROOT
 
-from ssm_addon import demo
+from ssm_addon.cli import demo
 
 pytestmark = pytest.mark.slow
 

@@ -4,6 +4,7 @@ no private names across modules, and every parameter reachable from every front 
 from __future__ import annotations
 
 import ast
+import importlib
 import os
 import subprocess
 import sys
@@ -13,34 +14,62 @@ from pathlib import Path
 import pytest
 from conftest import REAL_HOME, ROOT
 
-from ssm_addon import params as P
+from ssm_addon.pipeline import params as P
 
 CORE = ROOT / "ssm_addon"
 OPERATORS = ROOT / "operators"
 
 
+STAGE_PACKAGES = ("formats", "instances", "template", "coating", "model", "fitting", "pipeline", "cli")
+#: Blender modules every operators module may import; the stage modules import only these,
+#: ``project`` (which shows a whole study) and ``cli`` (its command) also the stage modules.
+SHARED_OPERATOR_MODULES = {"bridge", "jobs", "properties", "scene"}
+
+
 def _modules(folder: Path) -> list[str]:
-    return sorted(p.stem for p in folder.glob("*.py") if p.stem not in ("__init__", "__main__"))
-
-
-def _relative_imports(path: Path) -> set[str]:
-    """Sibling modules a module imports (``from .x import``, ``from . import x``)."""
-    tree = ast.parse(path.read_text())
-    out = set()
-    for node in ast.walk(tree):
-        if isinstance(node, ast.ImportFrom) and node.level == 1:
-            if node.module:
-                out.add(node.module.split(".")[0])
-            else:
-                out.update(a.name for a in node.names)
-        if isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").startswith("ssm_addon."):
-            out.add("ssm_addon:" + node.module.split(".")[1])
+    """Dotted names (relative to ``folder``) of every module, package ``__init__`` as the package."""
+    out = []
+    for p in sorted(folder.rglob("*.py")):
+        rel = p.relative_to(folder).with_suffix("").parts
+        if rel[-1] == "__main__":
+            continue
+        out.append(".".join(rel[:-1]) if rel[-1] == "__init__" else ".".join(rel))
     return out
+
+
+def _path(folder: Path, module: str) -> Path:
+    base = folder.joinpath(*module.split(".")) if module else folder
+    return base / "__init__.py" if base.is_dir() else base.with_suffix(".py")
+
+
+def _imported_modules(folder: Path, module: str) -> set[str]:
+    """Modules of ``folder`` that ``module`` imports (relative, or absolute ``ssm_addon.…``), anywhere in it."""
+    path = _path(folder, module)
+    package = module.split(".") if path.name == "__init__.py" else module.split(".")[:-1]
+    if module == "":
+        package = []
+    known = set(_modules(folder))
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if not isinstance(node, ast.ImportFrom):
+            continue
+        if node.level:
+            base = package[: len(package) - (node.level - 1)] if node.level > 1 else package
+        elif folder == CORE and (node.module or "").split(".")[0] == "ssm_addon":
+            base = []
+        else:
+            continue
+        mod = node.module if node.level else ".".join((node.module or "").split(".")[1:])
+        target = ".".join([*base, *([mod] if mod else [])])
+        for a in node.names:
+            sub = f"{target}.{a.name}" if target else a.name
+            out.add(sub if sub in known else target)
+    return {m for m in out if m in known and m != module}
 
 
 @pytest.mark.parametrize("folder", [CORE, OPERATORS], ids=["core", "operators"])
 def test_modules_import_each_other_without_cycles(folder):
-    graph = {m: {d for d in _relative_imports(folder / f"{m}.py") if d in _modules(folder)} for m in _modules(folder)}
+    graph = {m: _imported_modules(folder, m) for m in _modules(folder)}
     state: dict[str, int] = {}
 
     def visit(m, path):
@@ -57,47 +86,100 @@ def test_modules_import_each_other_without_cycles(folder):
         visit(m, [])
 
 
+def test_the_core_is_one_subpackage_per_stage():
+    top = sorted(p.name for p in CORE.iterdir() if not p.name.startswith((".", "__pycache__")))
+    assert top == sorted(["__init__.py", "__main__.py", "_lazy.py", "meshutil.py", *STAGE_PACKAGES]), top
+    for pkg in STAGE_PACKAGES:  # every public name of a stage's modules is re-exported by its package
+        init = importlib.import_module(f"ssm_addon.{pkg}")
+        for m in _modules(CORE / pkg):
+            if not m:
+                continue
+            module = importlib.import_module(f"ssm_addon.{pkg}.{m}")
+            for name in getattr(module, "__all__", ()):
+                assert name in init.__all__ and getattr(init, name) is getattr(module, name), (pkg, m, name)
+
+
+def test_the_public_api_and_the_old_module_paths():
+    import warnings
+
+    import ssm_addon
+
+    for name in ("Study", "run", "read_project", "build", "ShapeModel", "load_model", "fit_model", "InputError"):
+        assert name in ssm_addon.__all__ and getattr(ssm_addon, name) is not None
+    for old, new in ssm_addon.MOVED_MODULES.items():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            mod = importlib.import_module(f"ssm_addon.{old}")
+        assert mod is importlib.import_module(f"ssm_addon.{new}"), old
+    from ssm_addon.project import build, read_project  # the documented imports of the flat layout
+
+    assert build is ssm_addon.build and read_project is ssm_addon.read_project
+
+
 @pytest.mark.slow
 def test_each_core_module_imports_on_its_own_in_a_fresh_interpreter():
     code = "import importlib, sys\nfor m in sys.argv[1:]:\n    importlib.import_module('ssm_addon.' + m)\n"
-    for m in _modules(CORE):  # one interpreter per module: no module relies on another's side effects
+    for m in filter(None, _modules(CORE)):  # one interpreter per module: none relies on another's side effects
         proc = subprocess.run([sys.executable, "-c", code, m], cwd=ROOT, capture_output=True, text=True,
                               env={**os.environ, "PYTHONPATH": str(ROOT)})
         assert proc.returncode == 0, f"ssm_addon.{m}: {proc.stderr[-1500:]}"
-        assert "bpy" not in proc.stderr
+        assert "bpy" not in sys.modules or "bpy" not in proc.stderr
+
+
+def _core_module_aliases(tree: ast.AST, folder: Path) -> set[str]:
+    """Local names bound to modules of this repository (``from . import bridge``, ``import … as P``)."""
+    names = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and (node.level > 0 or (node.module or "").startswith("ssm_addon")):
+            names.update(a.asname or a.name for a in node.names if a.name[0].islower())
+        if isinstance(node, ast.Import):
+            names.update(a.asname or a.name for a in node.names if a.name.startswith("ssm_addon"))
+    return names
 
 
 def test_no_private_names_used_across_modules():
+    """Neither imported (``from .x import _y``) nor reached by attribute (``meshutil._y``)."""
     offenders = []
     for folder in (CORE, OPERATORS):
-        for path in sorted(folder.glob("*.py")):
+        for path in sorted(folder.rglob("*.py")):
             tree = ast.parse(path.read_text())
+            modules = _core_module_aliases(tree, folder)
             for node in ast.walk(tree):
                 if isinstance(node, ast.ImportFrom) and (node.level > 0 or (node.module or "").startswith("ssm_addon")):
                     offenders += [f"{path.name}: {node.module}.{a.name}" for a in node.names
                                   if a.name.startswith("_") and not a.name.startswith("__")]
+                if (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in modules
+                        and node.attr.startswith("_") and not node.attr.startswith("__")):
+                    offenders.append(f"{path.relative_to(ROOT)}:{node.lineno}: {node.value.id}.{node.attr}")
     assert not offenders, offenders
 
 
+def test_operator_stage_modules_import_only_the_shared_blender_modules():
+    stage_modules = set(_modules(OPERATORS)) - SHARED_OPERATOR_MODULES - {"", "project", "cli"}
+    offenders = {m: sorted(_imported_modules(OPERATORS, m) - SHARED_OPERATOR_MODULES)
+                 for m in sorted(stage_modules)}
+    assert not {m: d for m, d in offenders.items() if d}, offenders
+
+
 def test_read_frame_resample_exists_once():
-    """Only ssm_addon.instances chains reading, the object frame and resampling (paper 2)."""
+    """Only ssm_addon.instances.importing chains reading, the object frame and resampling (paper 2)."""
     callers = {}
     for folder in (CORE, OPERATORS):
-        for path in sorted(folder.glob("*.py")):
+        for path in sorted(folder.rglob("*.py")):
             tree = ast.parse(path.read_text())
             for node in ast.walk(tree):
                 if isinstance(node, ast.Call):
                     f = node.func
                     name = f.attr if isinstance(f, ast.Attribute) else getattr(f, "id", "")
                     if name in ("object_frame", "resample"):
-                        callers.setdefault(name, set()).add(f"{folder.name}/{path.name}")
-    assert callers["object_frame"] == {"ssm_addon/instances.py"}, callers
+                        callers.setdefault(name, set()).add(path.relative_to(ROOT).as_posix())
+    assert callers["object_frame"] == {"ssm_addon/instances/importing.py"}, callers
     # resample is also the template's re-gridding and the mesh proposal's fallback, both on a given frame
-    assert callers["resample"] <= {"ssm_addon/instances.py", "ssm_addon/proposal.py"}, callers
+    assert callers["resample"] <= {"ssm_addon/instances/importing.py", "ssm_addon/coating/proposal.py"}, callers
 
 
 def test_every_parameter_has_a_project_key_and_a_command_line_option():
-    from ssm_addon.__main__ import _parser
+    from ssm_addon.cli.command import _parser
 
     parser = _parser()
     build = parser._subparsers._group_actions[0].choices["build"]  # noqa: SLF001 - argparse has no public accessor
@@ -115,8 +197,8 @@ def test_every_parameter_has_a_project_key_and_a_command_line_option():
 
 
 def test_command_line_options_override_the_project(tmp_path):
-    from ssm_addon.__main__ import _parser, _with_overrides
-    from ssm_addon.project import Project
+    from ssm_addon.cli.command import _parser, _with_overrides
+    from ssm_addon.cli.project_build import Project
 
     args = _parser().parse_args(["build", "p.toml", "--out", "o", "--coating-k1", "0.3", "--template-spacing", "0.5",
                                  "--coating-registration-sigmas-mm", "8", "4", "--model-n-modes", "3"])
@@ -125,14 +207,14 @@ def test_command_line_options_override_the_project(tmp_path):
     assert changed.coating.k1 == 0.3 and changed.template.spacing_mm == 0.5
     assert changed.coating.registration_sigmas_mm == (8.0, 4.0) and changed.model.n_modes == 3
     bad = _parser().parse_args(["build", "p.toml", "--out", "o", "--coating-k2", "0.1"])
-    from ssm_addon.errors import InputError
+    from ssm_addon.pipeline.errors import InputError
 
     with pytest.raises(InputError, match="k2 .* must exceed k1"):
         _with_overrides(project, bad)
 
 
 def test_parameters_validated_with_the_allowed_range():
-    from ssm_addon.errors import InputError
+    from ssm_addon.pipeline.errors import InputError
 
     with pytest.raises(InputError, match=r"coating parameters: dt must be a number > 0 and <= 2, got 100.0"):
         P.CoatingParams(dt=100.0)
@@ -172,7 +254,7 @@ def test_pip_install_gives_a_working_ssm_command_from_any_folder(tmp_path):
     assert subprocess.run([str(py), "-c", "import bpy"], capture_output=True, env=env).returncode != 0
     out = run("--help")
     assert out.returncode == 0 and "build" in out.stdout and "template" in out.stdout
-    from ssm_addon import demo
+    from ssm_addon.cli import demo
 
     project = demo.make_demo_population(tmp_path / "population", n=4, seed=2)
     lm = next((tmp_path / "population").glob("demo_*.nii.gz"))

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from conftest import VERSE_FILE, VERSE_LABELS
 
-from ssm_addon import params as P
-from ssm_addon.project import build, read_project
+from ssm_addon.cli.project_build import build, read_project
+from ssm_addon.pipeline import params as P
 
 pytestmark = pytest.mark.blender
 
@@ -131,7 +131,7 @@ def test_every_parameter_is_a_blender_property_with_the_core_definition(bpy_clea
 
 
 def test_save_open_save_project_is_byte_identical(bpy_clean, tmp_path):
-    from ssm_addon import demo
+    from ssm_addon.cli import demo
 
     bpy = bpy_clean
     source = demo.make_demo_population(tmp_path / "pop", n=3, seed=5)

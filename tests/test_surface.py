@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from ssm_addon import instances as INS
-from ssm_addon import surface
-from ssm_addon.errors import InputError
+from ssm_addon.instances import importing as INS
+from ssm_addon.pipeline.errors import InputError
+from ssm_addon.template import surface
 
 # --------------------------------------------------------------------------- shapes
 

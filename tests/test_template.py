@@ -8,14 +8,14 @@ import pytest
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
-from ssm_addon import frame as FR
-from ssm_addon import imageio as IO
 from ssm_addon import meshutil as mu
-from ssm_addon import resample as RS
-from ssm_addon import surface
-from ssm_addon import template as T
-from ssm_addon.errors import Cancelled, InputError
-from ssm_addon.volume import ObjectFrame, ObjectVolume
+from ssm_addon.formats import label_maps as IO
+from ssm_addon.instances import frame as FR
+from ssm_addon.instances import resampling as RS
+from ssm_addon.instances.volume import ObjectFrame, ObjectVolume
+from ssm_addon.pipeline.errors import Cancelled, InputError
+from ssm_addon.template import surface
+from ssm_addon.template import template as T
 
 # --------------------------------------------------------------------------- shapes
 

@@ -9,8 +9,8 @@ import pytest
 from conftest import VERSE_FILE, VERSE_LABELS
 from scipy.spatial import cKDTree
 
-from ssm_addon import imageio as IO
 from ssm_addon import meshutil as mu
+from ssm_addon.formats import label_maps as IO
 
 pytestmark = pytest.mark.blender
 

@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 from conftest import ROOT, VERSE_FILE, VERSE_LABELS
 
-from ssm_addon import frame as FR
-from ssm_addon import imageio as IO
-from ssm_addon import instances as INS
 from ssm_addon import meshutil as mu
-from ssm_addon import resample as RS
-from ssm_addon import volume as V
-from ssm_addon import voxelize as VX
-from ssm_addon.errors import InputError
+from ssm_addon.formats import label_maps as IO
+from ssm_addon.instances import frame as FR
+from ssm_addon.instances import importing as INS
+from ssm_addon.instances import resampling as RS
+from ssm_addon.instances import volume as V
+from ssm_addon.instances import voxelize as VX
+from ssm_addon.pipeline.errors import InputError
 
 # ----------------------------------------------------------------------------- fixtures
 
@@ -147,7 +147,7 @@ def write_obj_quads_negative(path, v, f):
 
 
 def test_core_imports_without_bpy():
-    code = "import sys; sys.modules['bpy'] = None; import ssm_addon, ssm_addon.volume; print('ok')"
+    code = "import sys; sys.modules['bpy'] = None; import ssm_addon, ssm_addon.instances.volume; print('ok')"
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "ok"

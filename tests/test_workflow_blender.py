@@ -31,7 +31,7 @@ def _draw_all_panels(bpy, layout_recorder):
 
 @pytest.fixture(scope="module")
 def population(tmp_path_factory):
-    from ssm_addon.demo import make_demo_population
+    from ssm_addon.cli.demo import make_demo_population
 
     folder = tmp_path_factory.mktemp("population")
     make_demo_population(folder, n=4, seed=3)
@@ -74,7 +74,7 @@ def test_workflow_from_import_to_model_through_bpy_ops(bpy_clean, population, la
     assert bpy.ops.ssm.coat_template() == {"FINISHED"}
     coated = [o for o in bpy.data.objects if o.ssm.role == "COATED"]
     assert {o.ssm.instance for o in coated} == set(instances)
-    from ssm_addon.coating import FitFigures
+    from ssm_addon.coating.coating import FitFigures
 
     for obj in coated:
         fit = FitFigures.from_json(obj.ssm.fit_json)

@@ -75,7 +75,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     from conftest import VERSE_DIR, VERSE_FILE
 
-    from ssm_addon.demo import make_demo_population
+    from ssm_addon.cli.demo import make_demo_population
 
     with tempfile.TemporaryDirectory(prefix="ssm-bench-build-") as tmp:
         tmp = Path(tmp)

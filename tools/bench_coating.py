@@ -34,14 +34,14 @@ from test_coating import (  # noqa: E402
     object_volume,
 )
 
-from ssm_addon import coating as C  # noqa: E402
-from ssm_addon import distance_map as DM  # noqa: E402
-from ssm_addon import instances as INS  # noqa: E402
 from ssm_addon import meshutil as mu  # noqa: E402
-from ssm_addon import registration as RG  # noqa: E402
-from ssm_addon import relaxation as RX  # noqa: E402
-from ssm_addon import warp as W  # noqa: E402
-from ssm_addon.template import Template  # noqa: E402
+from ssm_addon.coating import coating as C  # noqa: E402
+from ssm_addon.coating import distance_map as DM  # noqa: E402
+from ssm_addon.coating import registration as RG  # noqa: E402
+from ssm_addon.coating import relaxation as RX  # noqa: E402
+from ssm_addon.coating import warp as W  # noqa: E402
+from ssm_addon.instances import importing as INS  # noqa: E402
+from ssm_addon.template.template import Template  # noqa: E402
 
 
 def geodesic_sphere(frequency: int):
@@ -164,8 +164,8 @@ def bench_batch():
 def bench_verse():
     from conftest import VERSE_DIR, VERSE_FILE, VERSE_LABELS
 
-    from ssm_addon import landmarks as L
-    from ssm_addon.template import TemplateParams, build_template
+    from ssm_addon.formats import landmarks as L
+    from ssm_addon.template.template import TemplateParams, build_template
 
     print("VerSe: L1 template onto L2..L5, T12")
     names = ["L1", "L2", "L3", "L4", "L5", "T12"]

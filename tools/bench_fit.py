@@ -5,7 +5,7 @@ Usage: ``.venv/bin/python tools/bench_fit.py [--batch 100]``
 * a synthetic model (40 shapes with 3 known modes, 6 modes kept) at N = 600 and 5,000
   points: the fit to a full surface (mesh target), to 60 % of it (completion), and to
   the points alone, one core, median of 5;
-* a batch of ``--batch`` point-cloud targets through :func:`ssm_addon.apply.fit_batch`
+* a batch of ``--batch`` point-cloud targets through :func:`ssm_addon.fitting.batch.fit_batch`
   (files written) with 1 and 2 processes.
 """
 
@@ -27,10 +27,11 @@ from scipy.spatial import ConvexHull  # noqa: E402
 from test_model import synthetic_population  # noqa: E402
 
 from ssm_addon import meshutil  # noqa: E402
-from ssm_addon.apply import FitTarget, fit_batch  # noqa: E402
-from ssm_addon.fitting import Pose, Target, fit_model  # noqa: E402
-from ssm_addon.model import build_model, save_npz  # noqa: E402
-from ssm_addon.params import FitParams  # noqa: E402
+from ssm_addon.fitting.batch import FitTarget, fit_batch  # noqa: E402
+from ssm_addon.fitting.fit import Pose, Target, fit_model  # noqa: E402
+from ssm_addon.model.files import save_npz  # noqa: E402
+from ssm_addon.model.pca import build_model  # noqa: E402
+from ssm_addon.pipeline.params import FitParams  # noqa: E402
 
 
 def synthetic_model(n_points: int):

@@ -88,8 +88,9 @@ def main(argv=None):
     # matplotlib first, so its font cache lives in the real home (conftest moves HOME)
     import matplotlib.font_manager  # noqa: F401
 
-    from ssm_addon import metrics
-    from ssm_addon.model import build_model, load_npz, save_npz, save_statismo
+    from ssm_addon.model import metrics
+    from ssm_addon.model.files import load_npz, save_npz, save_statismo
+    from ssm_addon.model.pca import build_model
 
     bpy = None
     if not args.no_blender:

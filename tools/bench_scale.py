@@ -34,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from ssm_addon import demo  # noqa: E402
-from ssm_addon.project import build, read_project  # noqa: E402
+from ssm_addon.cli.project_build import build, read_project  # noqa: E402
 
 
 class MemorySampler:
@@ -139,8 +139,8 @@ def cmd_resume(args) -> None:
 
 
 def cmd_pca(args) -> None:
-    from ssm_addon.metrics import evaluate
-    from ssm_addon.model import build_model
+    from ssm_addon.model.metrics import evaluate
+    from ssm_addon.model.pca import build_model
 
     n, npts, k = int(args.n), int(args.points), 40
     rng = np.random.default_rng(0)

@@ -3,7 +3,7 @@
 Usage: ``.venv/bin/python tools/bench_surface.py [--repeat N]``
 
 Cases: a voxel sphere of radius 30, and VerSe L1 (label 20) resampled into its
-object frame at 1 mm and 0.5 mm (``ssm_addon.volume.load_object``; skipped when the
+object frame at 1 mm and 0.5 mm (``ssm_addon.instances.volume.load_object``; skipped when the
 data in ``../shared/data/verse004`` or ``$SSM_SHARED_DATA/verse004`` is absent).
 Radii follow the defaults in mm (normal sphere 5 mm, patch 7 mm) divided by the
 spacing. Peak memory is the ``tracemalloc`` peak of the step (numpy arrays included).
@@ -24,8 +24,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ssm_addon import instances as INS  # noqa: E402
 from ssm_addon import surface  # noqa: E402
+from ssm_addon.instances import importing as INS  # noqa: E402
 
 NORMAL_RADIUS_MM = 5.0
 PATCH_RADIUS_MM = 7.0

@@ -23,13 +23,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ssm_addon import frame as FR  # noqa: E402
-from ssm_addon import imageio as IO  # noqa: E402
 from ssm_addon import meshutil as mu  # noqa: E402
-from ssm_addon import resample as RS  # noqa: E402
 from ssm_addon import surface  # noqa: E402
-from ssm_addon import template as T  # noqa: E402
-from ssm_addon import volume as V  # noqa: E402
+from ssm_addon.formats import label_maps as IO  # noqa: E402
+from ssm_addon.instances import frame as FR  # noqa: E402
+from ssm_addon.instances import resampling as RS  # noqa: E402
+from ssm_addon.instances import volume as V  # noqa: E402
+from ssm_addon.template import template as T  # noqa: E402
 
 
 def step(name: str, fn, note=lambda r: ""):

@@ -34,11 +34,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ssm_addon.instances import InstanceSpec  # noqa: E402
-from ssm_addon.landmarks import LandmarkSet, read_landmarks, write_landmarks  # noqa: E402
+from ssm_addon.formats.landmarks import LandmarkSet, read_landmarks, write_landmarks  # noqa: E402
+from ssm_addon.instances.importing import InstanceSpec  # noqa: E402
 from ssm_addon.meshutil import locate_on_mesh, read_mesh  # noqa: E402
-from ssm_addon.params import CorrespondenceParams  # noqa: E402
-from ssm_addon.study import Study, run  # noqa: E402
+from ssm_addon.pipeline.params import CorrespondenceParams  # noqa: E402
+from ssm_addon.pipeline.study import Study, run  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 

@@ -23,13 +23,13 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 from ssm_addon import demo  # noqa: E402
-from ssm_addon.coating import coat_from_start  # noqa: E402
-from ssm_addon.distance_map import DistanceMap  # noqa: E402
-from ssm_addon.fitting import Pose, Target, fit_model  # noqa: E402
+from ssm_addon.cli.project_build import build, read_project  # noqa: E402
+from ssm_addon.coating.coating import coat_from_start  # noqa: E402
+from ssm_addon.coating.distance_map import DistanceMap  # noqa: E402
+from ssm_addon.fitting.fit import Pose, Target, fit_model  # noqa: E402
 from ssm_addon.meshutil import Mesh, marching_cubes  # noqa: E402
-from ssm_addon.model import build_model  # noqa: E402
-from ssm_addon.params import FitParams  # noqa: E402
-from ssm_addon.project import build, read_project  # noqa: E402
+from ssm_addon.model.pca import build_model  # noqa: E402
+from ssm_addon.pipeline.params import FitParams  # noqa: E402
 
 
 def evaluate(label: str, project_path: Path, out: Path) -> None:

@@ -1,0 +1,42 @@
+"""Lazy re-exports for the stage subpackages (PEP 562).
+
+A subpackage's ``__init__`` names its public API and the module that defines each name;
+the module is imported on first access. So importing one module of a stage never runs
+its siblings (the stages depend on each other only where their modules do, and the
+import graph of the modules is the one that must have no cycles), and ``import
+ssm_addon`` stays cheap for ``ssm --help`` and for worker processes.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+from collections.abc import Callable, Mapping
+
+__all__ = ["lazy_exports"]
+
+
+def lazy_exports(package: str, modules: Mapping[str, tuple[str, ...]]) -> tuple[Callable, Callable, list[str]]:
+    """``(__getattr__, __dir__, __all__)`` for ``package`` re-exporting ``modules``' names.
+
+    Parameters
+    ----------
+    package : str
+        The package's ``__name__``.
+    modules : mapping module name -> names
+        Submodule (relative to ``package``) and the public names it defines.
+    """
+    where = {name: module for module, names in modules.items() for name in names}
+
+    def __getattr__(name: str):
+        module = where.get(name)
+        if module is None:
+            raise AttributeError(f"module {package!r} has no attribute {name!r}")
+        value = getattr(importlib.import_module(f"{package}.{module}"), name)
+        setattr(sys.modules[package], name, value)  # later look-ups skip this function
+        return value
+
+    def __dir__() -> list[str]:
+        return sorted(set(where) | set(vars(sys.modules[package])))
+
+    return __getattr__, __dir__, sorted(where)

@@ -1,0 +1,134 @@
+"""Reach the Blender layer from the command line without importing ``bpy`` in the core.
+
+``ssm build`` writes ``model.blend`` and the mode pictures when the ``bpy`` module is
+importable and the Blender layer (the extension's ``operators`` package) can be found:
+inside Blender the extension passes its writer itself (``operators/cli.py``); from a
+source checkout the extension root next to this package is loaded as the package
+``ssm``. The operators import the core as ``ssm_addon``, so the core exists once.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import os
+import sys
+from pathlib import Path
+
+PACKAGE_NAME = "ssm"
+
+
+def bpy_available() -> bool:
+    """True when the ``bpy`` module can be imported (Blender or ``pip install bpy``)."""
+    return "bpy" in sys.modules or importlib.util.find_spec("bpy") is not None
+
+
+def extension_root() -> Path | None:
+    """The extension folder of a source checkout (holding this core), or None."""
+    root = Path(__file__).resolve().parents[2]
+    if (root / "blender_manifest.toml").is_file() and (root / "operators" / "__init__.py").is_file():
+        return root
+    return None
+
+
+def extension_package():
+    """The extension package (the checkout's root imported as ``ssm``), or None."""
+    root = extension_root()
+    if root is None:
+        return None
+    module = sys.modules.get(PACKAGE_NAME)
+    if module is not None and Path(getattr(module, "__file__", "") or "").resolve() == root / "__init__.py":
+        return module
+    spec = importlib.util.spec_from_file_location(PACKAGE_NAME, root / "__init__.py",
+                                                  submodule_search_locations=[str(root)])
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[PACKAGE_NAME] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def blend_writer():
+    """``write_build_outputs(result, out_dir, log)`` of the Blender layer, or None."""
+    if not bpy_available():
+        return None
+    pkg = extension_package()
+    if pkg is None:
+        return None
+    return importlib.import_module(f"{pkg.__name__}.operators.project").write_build_outputs
+
+
+def blend_writer_in_child():
+    """Like :func:`blend_writer`, but the Blender step runs in its own process and session.
+
+    The study is handed over on disk (:mod:`ssm_addon.formats.blender_store`: arrays and JSON, no
+    pickles). A signal (Ctrl-C, SIGTERM, SIGHUP) reaches only this process, which stops
+    the child and cleans up: it cannot interrupt Blender's C code half-way (that
+    segfaulted). Returns None when the Blender layer is not available.
+    """
+    if not bpy_available() or extension_root() is None:
+        return None
+
+    def write(result, out_dir, log=print):
+        import dataclasses
+        import shutil
+        import subprocess
+        import tempfile
+
+        from ..formats.blender_store import save_study
+        from ..pipeline.errors import SSMError
+
+        out_dir = Path(out_dir)
+        handover = Path(tempfile.mkdtemp(prefix="ssm-blender-step-"))
+        try:
+            save_study(result.study, handover, extra={"output": dataclasses.asdict(result.project.output)})
+            cmd = [sys.executable, "-m", "ssm_addon.cli.blender_layer", str(handover), str(out_dir)]
+            if log is None:
+                cmd.append("--quiet")
+            env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+                filter(None, [str(Path(__file__).resolve().parents[2]), os.environ.get("PYTHONPATH")]))}
+            child = subprocess.Popen(cmd, start_new_session=True, env=env)
+            try:
+                while child.poll() is None:
+                    try:
+                        child.wait(0.1)
+                    except subprocess.TimeoutExpired:
+                        pass
+            except BaseException:
+                child.terminate()
+                try:
+                    child.wait(1.0)
+                except subprocess.TimeoutExpired:
+                    child.kill()
+                    child.wait()
+                raise
+        finally:
+            shutil.rmtree(handover, ignore_errors=True)
+        if child.returncode != 0:
+            raise SSMError(f"the Blender step (model.blend, modes.png) failed in its process (exit "
+                           f"{child.returncode}); rerun with --no-blend to build without it")
+        return {key: name for key, name in (("picture", "modes.png"), ("blend", "model.blend"))
+                if (out_dir / name).is_file()}
+
+    return write
+
+
+def _child_main(argv) -> int:
+    """``python -m ssm_addon.cli.blender_layer STUDY_DIR OUT_DIR [--quiet]``: the Blender step."""
+    from types import SimpleNamespace
+
+    from ..formats.blender_store import load_study
+    from ..pipeline import params as P
+
+    study, extra = load_study(argv[0])
+    output = P.from_table(P.OutputParams, extra.get("output", {}))
+    result = SimpleNamespace(study=study, model=study.model, project=SimpleNamespace(output=output))
+    writer = blend_writer()
+    if writer is None:
+        print("the Blender layer is not available", file=sys.stderr)
+        return 2
+    writer(result, Path(argv[1]), log=None if "--quiet" in argv else (lambda m: print(m, flush=True)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_child_main(sys.argv[1:]))

@@ -1,0 +1,368 @@
+"""``ssm`` / ``python -m ssm_addon``: the headless command line (also ``blender -b --command ssm …``).
+
+Subcommands
+-----------
+``info VOLUME``
+    Labels with voxel counts, spacing, shape and affine of a label map.
+``template VOLUME [--label L] [--spacing MM] [template options] --out TEMPLATE.ply``
+    Build a template (paper 3) and write it as PLY in world mm; prints vertices, faces,
+    Euler characteristic and genus.
+``build PROJECT.toml --out DIR [--jobs N] [--no-blend]``
+    The whole pipeline from a project file (see :mod:`ssm_addon.cli.project_build`).
+``demo --out DIR [--n N] [--jobs N] [--seed S] [--no-blend]``
+    Generate the synthetic demo population (:mod:`ssm_addon.cli.demo`) and build it.
+
+Errors in the input print one message (no traceback) and exit with status 2; a strict
+build whose quality gates fail exits with 3; an interrupted one with 130 (SIGINT), 143
+(SIGTERM) or 129 (SIGHUP).
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import time
+from pathlib import Path
+
+from ..pipeline.errors import Cancelled, InputError, SSMError
+
+EXIT_INPUT = 2
+EXIT_QUALITY = 3
+EXIT_CANCELLED = 130
+
+
+class Interrupted(BaseException):
+    """SIGTERM or SIGHUP arrived: unwinds like KeyboardInterrupt (workers stopped, temporary
+    folders removed, the output folder as it was)."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+        self.name = signal.Signals(signum).name
+
+
+def _catch_signals() -> dict:
+    """SIGTERM and SIGHUP raise :class:`Interrupted` in the main thread (SIGINT raises
+    KeyboardInterrupt already); returns the previous handlers."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+
+    def handler(signum, _frame):
+        raise Interrupted(signum)
+
+    previous = {}
+    for name in ("SIGTERM", "SIGHUP"):
+        signum = getattr(signal, name, None)
+        if signum is not None:
+            previous[signum] = signal.signal(signum, handler)
+    return previous
+
+
+def _print_progress():
+    state = {"last": None}
+
+    def progress(fraction: float, message: str) -> None:
+        if message != state["last"]:
+            state["last"] = message
+            print(f"[{fraction * 100:5.1f} %] {message}", flush=True)
+
+    return progress
+
+
+def _parser() -> argparse.ArgumentParser:
+    from ..pipeline import params as P
+
+    parser = argparse.ArgumentParser(
+        prog="ssm",
+        description="SSM Builder: point-based 3D statistical shape models from segmented volumes (headless). "
+                    "Also runs as `python -m ssm_addon` and `blender -b --command ssm`.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{info,template,build,fit,demo,params}")
+
+    p = sub.add_parser("info", help="labels, voxel counts, spacing and affine of a label map")
+    p.add_argument("volume", help="label map (NIfTI, NRRD, MetaImage, .npz)")
+
+    p = sub.add_parser("template", help="build a template from one object (paper 3) and write it as PLY")
+    p.add_argument("volume", help="label map or closed mesh (STL/PLY/OBJ)")
+    p.add_argument("--label", type=int, default=None, help="label to use (default: all non-zero voxels)")
+    p.add_argument("--out", required=True, help="output PLY (vertices in world mm)")
+    P.add_arguments(p.add_argument_group("template parameters ([template] of a project; lengths in mm)"),
+                    P.TemplateParams)
+
+    p = sub.add_parser("build", help="build a shape model from a project file")
+    p.add_argument("project", help="project file (TOML)")
+    p.add_argument("--out", required=True, help="output folder (written atomically)")
+    p.add_argument("--jobs", type=int, default=1, help="parallel workers for the per-instance work (default 1)")
+    p.add_argument("--no-blend", action="store_true", help="do not write model.blend / modes.png even if bpy is available")
+    p.add_argument("--force", action="store_true",
+                   help="write into an existing folder that holds files an SSM build did not write (they are kept)")
+    p.add_argument("--strict", action="store_true",
+                   help="fail (exit 3, the output folder untouched) when a quality gate fails ([quality] strict)")
+    for section, cls in P.TABLES.items():
+        P.add_arguments(p.add_argument_group(f"[{section}] overrides (the project file's values otherwise)"), cls,
+                        prefix=section)
+    p.add_argument("--scheduler", dest="compute__scheduler", default=None,
+                   help="where per-instance work runs: processes (default), dask-local, serial, or a Dask scheduler "
+                        "address tcp://host:8786 (same as --compute-scheduler)")
+    p.add_argument("--cache", dest="compute__cache", default=None, metavar="PATH",
+                   help="per-instance cache folder for resuming ('auto': DIR.cache beside --out; 'off')")
+
+    sub.add_parser("params", help="print the parameter reference (every table, key, default and range) as Markdown")
+
+    p = sub.add_parser("fit", help="fit a built model to new data: coefficients, pose, completion, outlier score")
+    p.add_argument("model", help="model.npz (ssm build) or a statismo .h5 file")
+    p.add_argument("--volume", help="label map of the target")
+    p.add_argument("--label", type=int, default=None, help="label of the target in --volume")
+    p.add_argument("--mesh", help="closed surface mesh of the target (STL/PLY/OBJ, world mm)")
+    p.add_argument("--points", help="point cloud of the target (CSV x,y,z or PLY, world mm)")
+    p.add_argument("--landmarks", help="landmarks of the target (matched by name to the model's)")
+    p.add_argument("--partial", action="store_true",
+                   help="the target covers part of the shape: predict the rest with its uncertainty")
+    p.add_argument("--free", action="store_true", help="also relax the fit freely onto the target (fitted_free.ply)")
+    p.add_argument("--project", help="fit every instance of a project file (a batch)")
+    p.add_argument("--glob", help="fit every file of a glob pattern (a batch; --label applies)")
+    p.add_argument("--jobs", type=int, default=1, help="parallel workers of a batch")
+    p.add_argument("--scheduler", default="processes",
+                   help="where a batch runs: processes (default), dask-local, serial, or a Dask scheduler address")
+    p.add_argument("--outlier-probability", type=float, default=0.99,
+                   help="chi-square quantile of the Mahalanobis distance above which a target is an outlier")
+    p.add_argument("--out", required=True, help="output folder")
+    P.add_arguments(p.add_argument_group("fit parameters"), P.FitParams)
+
+    p = sub.add_parser("demo", help="generate the synthetic demo population and build its model")
+    p.add_argument("--out", required=True, help="output folder: population in OUT/population, model in OUT/model")
+    p.add_argument("--n", type=int, default=24, help="number of instances (default 24)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the population (default 0)")
+    p.add_argument("--jobs", type=int, default=2, help="parallel workers (default 2)")
+    p.add_argument("--no-blend", action="store_true", help="do not write model.blend / modes.png")
+    return parser
+
+
+def cmd_info(args) -> int:
+    import numpy as np
+    from nibabel.affines import voxel_sizes
+
+    from ..formats import label_maps as imageio
+
+    lm = imageio.read_label_map(args.volume)
+    spacing = voxel_sizes(lm.affine)
+    print(f"file:    {lm.path}")
+    print(f"shape:   {' x '.join(str(s) for s in lm.labels.shape)} voxels")
+    print(f"spacing: {' x '.join(f'{s:g}' for s in spacing)} mm")
+    print("affine (voxel -> world RAS mm):")
+    for row in lm.affine:
+        print("   " + " ".join(f"{v:10.4f}" for v in row))
+    counts = imageio.label_counts(lm)
+    voxel_mm3 = float(abs(np.linalg.det(lm.affine[:3, :3])))
+    print(f"labels:  {len(counts)} (background 0 not listed)")
+    for label, count in counts.items():
+        print(f"  {label:6d}: {count:9d} voxels  {count * voxel_mm3 / 1000:9.2f} cm³")
+    return 0
+
+
+def cmd_template(args) -> int:
+    from ..instances.importing import load_object
+    from ..meshutil import euler_characteristic, genus, write_ply
+    from ..pipeline import params as P
+    from ..template.template import build_template
+
+    params = P.from_arguments(args, P.TemplateParams)
+    progress = _print_progress()
+    t0 = time.perf_counter()
+    ov = load_object(args.volume, label=args.label, spacing_mm=params.spacing_mm, frame_method=params.frame,
+                     progress=progress)
+    template = build_template(ov, params, progress=progress)
+    n_v, faces = len(template.points_object), template.faces
+    out = Path(args.out)
+    if out.is_dir():
+        raise InputError(f"{out}: --out is a folder; give the PLY file to write, e.g. {out / 'template.ply'}")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_ply(out, template.points_world, faces)
+    print(f"vertices: {n_v}")
+    print(f"faces:    {len(faces)}")
+    print(f"Euler characteristic: {euler_characteristic(n_v, faces)}")
+    print(f"genus:    {genus(n_v, faces)}")
+    print(f"written:  {out} (world mm) in {time.perf_counter() - t0:.2f} s")
+    return 0
+
+
+def _with_overrides(project, args):
+    """The project with the parameters given on the command line (``--coating-k1 0.3``)."""
+    import dataclasses
+
+    from ..pipeline import params as P
+
+    if args is None:
+        return project
+    changes = {}
+    cache = getattr(args, "compute__cache", None)
+    if cache not in (None, "auto", "off"):  # a folder given on the command line is relative to the working folder
+        args.compute__cache = str(Path(cache).expanduser().resolve())
+    for section, cls in P.TABLES.items():
+        current = getattr(project, section)
+        updated = P.from_arguments(args, cls, prefix=section, base=current)
+        if updated != current:
+            changes[section] = updated
+    return dataclasses.replace(project, **changes) if changes else project
+
+
+def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> int:
+    from ..cli import blender_layer
+    from ..cli.project_build import build, read_project
+
+    project = _with_overrides(read_project(project_path), args)
+    hook = None
+    if blend and project.output.blend:
+        hook = writer or blender_layer.blend_writer_in_child()
+        if hook is None:
+            why = ("bpy is not importable (pip install bpy==5.0.1)" if not blender_layer.bpy_available() else
+                   "the Blender layer is not installed with this core (run `blender -b --command ssm build ...` "
+                   "with the extension, or from a source checkout)")
+            print(f"skipping model.blend and modes.png: {why}", flush=True)
+    print(f"project: {project.path} ({len(project.instances)} instances, {len(project.landmark_names)} landmarks)",
+          flush=True)
+    if args is not None and getattr(args, "strict", False) and not project.quality.strict:
+        import dataclasses
+
+        project = dataclasses.replace(project, quality=dataclasses.replace(project.quality, strict=True))
+    result = build(project, out, jobs=jobs, progress=_print_progress(), log=lambda m: print(m, flush=True),
+                   blender_hook=hook, force=bool(getattr(args, "force", False)))
+    t = result.timings_s
+    print("timings: " + ", ".join(f"{k} {v:.2f} s" for k, v in t.items()), flush=True)
+    print(f"outputs in {result.out_dir}:")
+    for key in ("npz", "statismo", "report", "html", "blend", "picture"):
+        if key in result.files:
+            print(f"  {key:9s} {result.files[key]}")
+    for f in result.files.get("plots", []):
+        print(f"  {'plot':9s} {f}")
+    if "coated" in result.files:
+        print(f"  {'coated':9s} {result.files['coated']}/<name>.ply")
+    from ..model.quality import warnings_text
+
+    if result.study.findings:  # said last, where a reader looks
+        print("\n" + warnings_text(result.study.findings), flush=True)
+    return 0
+
+
+def cmd_fit(args) -> int:
+    from ..fitting import batch as apply
+    from ..pipeline import params as P
+
+    params = P.from_arguments(args, P.FitParams)
+    if not 0.5 < args.outlier_probability < 1.0:
+        raise InputError(f"--outlier-probability must be between 0.5 and 1, got {args.outlier_probability}")
+    out = Path(args.out)
+    if args.project or args.glob:
+        targets = apply.targets_from_project(args.project) if args.project else \
+            apply.targets_from_glob(args.glob, args.label)
+        docs = apply.fit_batch(args.model, targets, out, params=params, partial=args.partial, free=args.free,
+                               outlier_probability=args.outlier_probability, jobs=args.jobs,
+                               progress=_print_progress(), scheduler=args.scheduler)
+        for d in docs:
+            flag = "  OUTLIER" if d["outlier"] else ""
+            print(f"{d['name']}: Mahalanobis {d['mahalanobis']:.2f} (p = {d['p_value']:.3g}), mean distance "
+                  f"{d['mean_distance_mm']:.2f} mm{flag}")
+        print(f"coefficients: {out / 'coefficients.csv'}")
+        return 0
+    model = apply.load_model(args.model)
+    name = Path(args.volume or args.mesh or args.points or args.landmarks or "target").name
+    t = apply.FitTarget(name=name, volume=Path(args.volume) if args.volume else None, label=args.label,
+                        mesh=Path(args.mesh) if args.mesh else None, points=Path(args.points) if args.points else None,
+                        landmarks=Path(args.landmarks) if args.landmarks else None)
+    doc = apply.fit_to_folder(model, t, out, params=params, partial=args.partial, free=args.free,
+                              outlier_probability=args.outlier_probability, model_path=str(args.model),
+                              progress=_print_progress())
+    print(f"Mahalanobis distance {doc['mahalanobis']:.2f} on {doc['n_modes']} modes (p = {doc['p_value']:.3g})"
+          f"{': an OUTLIER' if doc['outlier'] else ''}; mean distance {doc['mean_distance_mm']:.2f} mm, largest "
+          f"{doc['max_distance_mm']:.2f} mm")
+    print(f"written: {out / 'fitted.ply'}, {out / 'fit.json'}, {out / 'fit.npz'}, {out / 'fit.png'}")
+    return 0
+
+
+def cmd_build(args, writer) -> int:
+    return _run_build(args.project, args.out, args.jobs, not args.no_blend, writer, args)
+
+
+def cmd_demo(args, writer) -> int:
+    from ..cli.demo import make_demo_population
+
+    out = Path(args.out)
+    t0 = time.perf_counter()
+    project = make_demo_population(out / "population", n=args.n, seed=args.seed)
+    print(f"demo population: {args.n} synthetic vertebrae in {out / 'population'} ({time.perf_counter() - t0:.1f} s)",
+          flush=True)
+    return _run_build(project, out / "model", args.jobs, not args.no_blend, writer)
+
+
+def main(argv=None, in_blender: bool = False, blend_writer=None) -> int:
+    """Run a subcommand; returns the exit status (0 ok, 2 bad input, 130 cancelled).
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        Arguments after ``python -m ssm_addon`` (default ``sys.argv[1:]``).
+    in_blender : bool
+        True when called by ``blender -b --command ssm …`` (operators/cli.py).
+    blend_writer : callable, optional
+        The Blender layer's ``write_build_outputs`` (the extension passes its own);
+        None: found from a source checkout when ``bpy`` is importable.
+    """
+    try:
+        args = _parser().parse_args(sys.argv[1:] if argv is None else list(argv))
+    except SystemExit as exc:  # argparse: --help (0) or a usage error (2); never exit Blender
+        return exc.code if isinstance(exc.code, int) else EXIT_INPUT
+    restore = {} if in_blender else _catch_signals()
+    try:
+        if args.command == "info":
+            return cmd_info(args)
+        if args.command == "template":
+            return cmd_template(args)
+        if args.command == "build":
+            return cmd_build(args, blend_writer)
+        if args.command == "demo":
+            return cmd_demo(args, blend_writer)
+        if args.command == "fit":
+            return cmd_fit(args)
+        if args.command == "params":
+            from ..pipeline.params import markdown_tables
+
+            print(markdown_tables())
+            return 0
+    except Interrupted as sig:
+        print(f"interrupted by {sig.name}: stopped; the output folder is as it was", file=sys.stderr)
+        return 128 + sig.signum
+    except KeyboardInterrupt:
+        print("interrupted by SIGINT: stopped; the output folder is as it was", file=sys.stderr)
+        return EXIT_CANCELLED
+    except Cancelled as err:
+        print(f"cancelled: {err}", file=sys.stderr)
+        return EXIT_CANCELLED
+    except SSMError as err:
+        from ..model.quality import QualityError
+
+        print(f"error: {err}", file=sys.stderr)
+        return EXIT_QUALITY if isinstance(err, QualityError) else EXIT_INPUT
+    finally:
+        for signum, handler in restore.items():
+            signal.signal(signum, handler)
+    return EXIT_INPUT  # pragma: no cover - argparse requires a command
+
+
+def run() -> None:
+    """The ``ssm`` command (``pip install .``): :func:`main` with the process's arguments."""
+    try:
+        code = main()
+        sys.stdout.flush()
+    except BrokenPipeError:  # e.g. `ssm info FILE | head`: the reader left, that is fine
+        import os
+
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        code = 0
+    sys.exit(code)
+
+
+if __name__ == "__main__":
+    run()

@@ -1,0 +1,299 @@
+"""``report.html``: one self-contained page a person reads (images embedded, works offline).
+
+The page shows what ``report.json`` holds, for a reader: the warnings first, then the
+project and its parameters, the model (variance per mode, paper fig. 9), the mode picture
+(fig. 10) when the Blender step drew it, compactness / generalization / specificity, and
+a quality table with a small picture of every coated instance (coloured by its place on
+the template, so corresponding regions share a colour) and its fit figures, failed gates
+highlighted. A short script checks that every picture decodes and says so on the page.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..model.files import write_model_files
+from ..model.metrics import report_document, write_plots
+
+__all__ = ["write_outputs", "write_report_html", "instance_thumbnails", "write_html_report"]
+
+THUMB_PX = 128
+
+
+def _shade(points: np.ndarray, faces: np.ndarray, colours: np.ndarray, view: np.ndarray):
+    """Triangles seen along ``view`` (3 × 3 rows: screen x, screen y, depth), back to front,
+    Lambert-shaded: (polygons (F, 3, 2), RGBA (F, 4))."""
+    p = points @ view.T
+    tri = p[faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    ln = np.linalg.norm(n, axis=1)
+    facing = n[:, 2] / np.maximum(ln, 1e-12)
+    order = np.argsort(tri[:, :, 2].mean(axis=1))
+    light = 0.35 + 0.65 * np.abs(facing)
+    rgba = np.ones((len(faces), 4))
+    rgba[:, :3] = colours[faces].mean(axis=1)[:, :3] * light[:, None]
+    return tri[order, :, :2], rgba[order]
+
+
+def instance_thumbnails(points: np.ndarray, faces: np.ndarray, names, *, size_px: int = THUMB_PX) -> dict[str, bytes]:
+    """A small PNG of every shape: ``{name: png bytes}`` (Pillow, painter's algorithm).
+
+    Parameters
+    ----------
+    points : (n, N, 3) float, mm
+        The coated instances in the model frame; all seen along the axis in which the
+        mean shape is thinnest (its largest silhouette), at one scale, coloured by their
+        place on the mean shape (corresponding regions share a colour), Lambert-shaded.
+    faces : (F, 3) int
+    names : n names
+    """
+    from PIL import Image, ImageDraw
+
+    pts = np.asarray(points, float)
+    faces = np.asarray(faces)
+    if len(pts) == 0 or not len(faces):
+        return {}
+    mean = pts.mean(axis=0)
+    depth = int(np.argmin(np.ptp(mean, axis=0)))
+    sx, sy = [a for a in range(3) if a != depth]
+    view = np.eye(3)[[sx, sy, depth]]
+    lo, hi = mean.min(axis=0), mean.max(axis=0)
+    colours = np.ones((len(mean), 4))
+    colours[:, :3] = 0.15 + 0.8 * (mean - lo) / np.where(hi > lo, hi - lo, 1.0)
+    half = 0.55 * float(np.max(np.ptp(pts.reshape(-1, 3)[:, [sx, sy]], axis=0)))
+    ss = 2  # supersampling, for smooth edges
+    size = size_px * ss
+    out = {}
+    for i, name in enumerate(names):
+        polys, rgba = _shade(pts[i] - pts[i].mean(axis=0), faces, colours, view)
+        xy = (polys / (2 * half) + 0.5) * size
+        xy[:, :, 1] = size - xy[:, :, 1]  # screen y runs down
+        img = Image.new("RGB", (size, size), (255, 255, 255))
+        draw = ImageDraw.Draw(img)
+        fill = (np.clip(rgba[:, :3], 0, 1) * 255).astype(np.uint8)
+        for tri, col in zip(xy.tolist(), fill.tolist()):
+            draw.polygon([tuple(v) for v in tri], fill=tuple(col))
+        buf = io.BytesIO()
+        img.resize((size_px, size_px), Image.LANCZOS).save(buf, format="PNG")
+        out[str(name)] = buf.getvalue()
+    return out
+
+
+def _img(data: bytes, alt: str, width: int | None = None) -> str:
+    w = f' width="{width}"' if width else ""
+    return (f'<img alt="{html.escape(alt)}"{w} src="data:image/png;base64,'
+            f'{base64.b64encode(data).decode("ascii")}">')
+
+
+def _num(v, digits=2) -> str:
+    if v is None:
+        return "–"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, int):
+        return f"{v:,}"
+    if isinstance(v, float):
+        return f"{v:.{digits}g}" if abs(v) < 1e-3 and v != 0 else f"{v:,.{digits}f}"
+    return html.escape(str(v))
+
+
+def _table(rows, header) -> str:
+    out = ["<table>", "<tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in header) + "</tr>"]
+    for row in rows:
+        cls = row.get("_class", "") if isinstance(row, dict) else ""
+        cells = row["cells"] if isinstance(row, dict) else row
+        out.append(f'<tr class="{cls}">' + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
+    out.append("</table>")
+    return "\n".join(out)
+
+
+CSS = """
+body{font:15px/1.45 system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:2em auto;max-width:1100px;color:#222;
+padding:0 1em}
+h1{font-size:1.6em;margin-bottom:.2em}h2{font-size:1.25em;margin-top:1.8em;border-bottom:1px solid #ddd}
+table{border-collapse:collapse;margin:.6em 0;font-size:.92em}td,th{border:1px solid #ddd;padding:.25em .55em;
+text-align:right;vertical-align:middle}th{background:#f3f3f3}td:first-child,th:first-child{text-align:left}
+tr.warn td{background:#fff1e6}.warnings{background:#fff1e6;border:1px solid #f0a060;padding:.6em 1em;border-radius:4px}
+.ok{background:#eef8ee;border:1px solid #8c8;padding:.6em 1em;border-radius:4px}
+.figs img{max-width:100%;border:1px solid #eee;margin:.3em}.muted{color:#777}code{background:#f6f6f6;padding:0 .2em}
+#broken{display:none;background:#fdd;border:1px solid #c44;padding:.6em 1em}
+"""
+
+SCRIPT = """
+window.addEventListener('load', function () {
+  var imgs = document.images, ok = 0;
+  for (var i = 0; i < imgs.length; i++) { if (imgs[i].complete && imgs[i].naturalWidth > 0) ok++; }
+  document.body.setAttribute('data-images', imgs.length);
+  document.body.setAttribute('data-images-decoded', ok);
+  if (ok < imgs.length) {
+    var b = document.getElementById('broken');
+    b.textContent = (imgs.length - ok) + ' of ' + imgs.length + ' pictures could not be shown.';
+    b.style.display = 'block';
+  }
+});
+"""
+
+
+def write_html_report(path, doc: dict, *, images: dict[str, bytes] | None = None,
+                      thumbnails: dict[str, bytes] | None = None, title: str = "SSM Builder model report") -> Path:
+    """Write ``report.html`` from a ``report.json`` document and the pictures (PNG bytes).
+
+    Parameters
+    ----------
+    doc : dict
+        The content of ``report.json``.
+    images : dict caption -> PNG bytes
+        Figures shown in order (fig. 9 plots, metrics, fig. 10).
+    thumbnails : dict instance -> PNG bytes
+    """
+    images = images or {}
+    thumbnails = thumbnails or {}
+    quality = doc.get("quality", {})
+    findings = quality.get("findings", [])
+    outliers = quality.get("outlier_scores", {})
+    model = doc.get("model", {})
+    by_instance: dict[str, list] = {}
+    for f in findings:
+        by_instance.setdefault(f.get("instance", ""), []).append(f)
+    parts = [f"<h1>{html.escape(title)}</h1>"]
+    project = doc.get("project") or ""
+    if project:
+        parts.append(f'<p class="muted">Project <code>{html.escape(str(project))}</code></p>')
+    parts.append('<div id="broken"></div>')
+    if findings:
+        items = "".join(f"<li><b>{html.escape(f.get('instance') or 'study')}</b> [{html.escape(f['gate'])}]: "
+                        f"{html.escape(f['message'])}</li>" for f in findings)
+        parts.append(f'<div class="warnings"><b>Warnings ({len(findings)})</b> — thresholds in the '
+                     f"<code>[quality]</code> table<ul>{items}</ul></div>")
+    else:
+        parts.append('<div class="ok">Every quality gate passed.</div>')
+
+    # model
+    n, npts, k = model.get("n_instances"), model.get("n_points"), model.get("n_modes")
+    parts.append("<h2>Model</h2>")
+    parts.append(f"<p>{_num(n)} instances, {_num(npts)} points, {_num(model.get('n_faces'))} triangles, {_num(k)} "
+                 f"modes; total variance {_num(model.get('total_variance_mm2'))} mm².</p>")
+    var = model.get("variances_mm2", [])[:12]
+    conc = model.get("concentration_eigen", [])[:12]
+    parts.append(_table([[str(i + 1), _num(float(v), 3), _num(float(np.sqrt(max(v, 0))), 3),
+                          f"{100 * float(c):.1f} %"] for i, (v, c) in enumerate(zip(var, conc))],
+                        ["mode", "variance λ (mm²)", "σ (mm)", "cumulative (eq. 8)"]))
+    if images:
+        parts.append('<h2>Figures</h2><div class="figs">')
+        for caption, data in images.items():
+            parts.append(f"<figure>{_img(data, caption)}<figcaption>{html.escape(caption)}</figcaption></figure>")
+        parts.append("</div>")
+
+    # metrics
+    metrics = doc.get("metrics") or {}
+    if metrics:
+        parts.append("<h2>Compactness, generalization, specificity</h2>")
+        comp = metrics.get("compactness", {})
+        gen = metrics.get("generalization", {})
+        spe = metrics.get("specificity", {})
+        ks = list(gen.get("k", []) or spe.get("k", []))[:10]
+        rows = []
+        for j, kk in enumerate(ks):
+            c = comp.get("cumulative", [])
+            rows.append([str(kk), f"{100 * c[kk - 1]:.1f} %" if len(c) >= kk else "–",
+                         _num(gen.get("mean_mm", [None] * len(ks))[j], 3) if j < len(gen.get("mean_mm", [])) else "–",
+                         _num(spe.get("mean_mm", [None] * len(ks))[j], 3) if j < len(spe.get("mean_mm", [])) else "–"])
+        parts.append(_table(rows, ["modes k", "compactness", "generalization (mm)", "specificity (mm)"]))
+        if gen.get("method"):
+            parts.append(f'<p class="muted">Generalization by {html.escape(str(gen["method"]))}.</p>')
+
+    # instances
+    inst = doc.get("instances", {})
+    if inst:
+        parts.append("<h2>Instances</h2>")
+        rows = []
+        for name, fit in inst.items():
+            res = fit.get("landmark_residuals_mm") or []
+            o = outliers.get(name, {})
+            flags = by_instance.get(name, [])
+            thumb = _img(thumbnails[name], name, THUMB_PX // 2 * 2) if name in thumbnails else ""
+            rows.append({"_class": "warn" if flags else "", "cells": [
+                f"<b>{html.escape(name)}</b>", thumb, _num(fit.get("mean_distance_mm"), 3),
+                _num(fit.get("max_distance_mm"), 3), _num(fit.get("folded_after")),
+                _num(max(res) if res else None, 1), _num(fit.get("converged")), html.escape(str(fit.get("start", ""))),
+                _num(o.get("mahalanobis"), 2), _num(o.get("p_value"), 2), _num(o.get("loo_error_mm"), 2),
+                "<br>".join(html.escape(f"[{f['gate']}] {f['message']}") for f in flags)]})
+        parts.append(_table(rows, ["instance", "coated", "mean dist. (mm)", "max dist. (mm)", "folds",
+                                   "max landmark residual (mm)", "converged", "start", "Mahalanobis (LOO)", "p",
+                                   "LOO error (mm)", "warnings"]))
+
+    # parameters and timings
+    params = (doc.get("parameters") or {})
+    if params:
+        parts.append("<h2>Parameters</h2>")
+        for section in ("template", "coating", "model"):
+            table = params.get(section)
+            if isinstance(table, dict):
+                parts.append(f"<h3>[{section}]</h3>")
+                parts.append(_table([[html.escape(str(k)), html.escape(json.dumps(v))] for k, v in table.items()],
+                                    ["key", "value"]))
+    timings = doc.get("timings_s") or {}
+    if timings:
+        parts.append("<h2>Timings</h2>")
+        parts.append(_table([[html.escape(k), f"{float(v):.2f} s"] for k, v in timings.items()], ["stage", "time"]))
+    page = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+            f"<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\"><title>{html.escape(title)}</title>"
+            f"<style>{CSS}</style></head><body>\n" + "\n".join(parts) + f"\n<script>{SCRIPT}</script>\n</body></html>\n")
+    path = Path(path)
+    path.write_text(page, encoding="utf-8")
+    return path
+
+
+FIGURES = (("variability.png", "Eigenvalue spectrum and concentration of variability (paper fig. 9)"),
+           ("modes.png", "Mean shape and the first modes (paper fig. 10)"),
+           ("metrics.png", "Compactness, generalization and specificity by number of modes"))
+
+
+def write_report_html(out_dir, model, *, doc: dict | None = None, title: str = "SSM Builder model report") -> Path:
+    """``report.html`` in ``out_dir`` from the report (``doc``, default ``out_dir/report.json``), the figures
+    in ``out_dir`` and the model's shapes."""
+    out_dir = Path(out_dir)
+    if doc is None:
+        doc = json.loads((out_dir / "report.json").read_text(encoding="utf-8"))
+    images = {caption: (out_dir / name).read_bytes() for name, caption in FIGURES if (out_dir / name).is_file()}
+    thumbs = instance_thumbnails(model.instance_points, model.faces, model.instance_names)
+    return write_html_report(out_dir / "report.html", doc, images=images, thumbnails=thumbs, title=title)
+
+
+def write_outputs(
+    model,
+    out_dir,
+    *, metrics: dict | None = None,
+    per_instance: dict | None = None,
+    extra: dict | None = None,
+    plots: bool = True,
+    statismo: bool = True,
+    statismo_name: str = "model.h5",
+    report: bool = True,
+) -> dict:
+    """Write a model's outputs into ``out_dir``: its files, the plots and (``report``) ``report.json``.
+
+    ``model.npz`` and statismo (:func:`ssm_addon.model.files.write_model_files`), the fig. 9
+    plots and ``report.json`` (:func:`ssm_addon.model.metrics.report_document`, with the
+    written files listed). Returns the written paths (``plots_skipped`` when matplotlib is
+    missing) and the report under ``"document"`` (a build adds its timings and writes it once).
+    """
+    out_dir = Path(out_dir)
+    written = write_model_files(model, out_dir, statismo=statismo, statismo_name=statismo_name)
+    plot_info = write_plots(model, out_dir, metrics) if plots else {"files": []}
+    written["plots"] = plot_info["files"]
+    if "skipped" in plot_info:
+        written["plots_skipped"] = plot_info["skipped"]
+    doc = report_document(model, metrics=metrics, per_instance=per_instance,
+                          extra={**(extra or {}), "files": dict(written)})
+    if report:
+        (out_dir / "report.json").write_text(json.dumps(doc, indent=1))
+        written["report"] = str(out_dir / "report.json")
+    written["document"] = doc
+    return written

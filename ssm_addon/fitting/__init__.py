@@ -1,0 +1,12 @@
+"""Using a model: fitting it to new data, and the model-guided correspondence rounds.
+
+Every public name of the subpackage's modules, imported on first use (:mod:`ssm_addon._lazy`).
+"""
+
+from .._lazy import lazy_exports
+
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "batch": ("FitTarget", "fit_batch", "fit_to_folder", "load_model", "load_target"),
+    "correspondence": ("RoundFigures", "refine_instance", "refine_rounds", "resample_instance"),
+    "fit": ("FitResult", "Pose", "Target", "fit_best", "fit_model", "model_landmarks"),
+})

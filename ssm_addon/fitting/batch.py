@@ -1,0 +1,301 @@
+"""Using a built model: ``ssm fit`` — projection, completion with uncertainty, outlier scores.
+
+Loads a model (``model.npz`` or a statismo HDF5 file), turns files into a fitting
+:class:`~ssm_addon.fitting.fit.Target` in their world frame (label map, closed mesh, point
+cloud, landmarks), fits (:func:`ssm_addon.fitting.fit.fit_model`) and writes
+
+* ``fitted.ply`` — the model-constrained fit (world mm, the template's triangles, the
+  posterior standard deviation per vertex as the ``posterior_sd_mm`` property);
+* ``fitted_free.ply`` — with ``free``: that fit relaxed freely onto the target (paper 4.2);
+* ``fit.json`` — coefficients (standard deviations), pose, Mahalanobis distance and its
+  chi-square p-value, outlier flag, distances, landmark residuals, files;
+* ``fit.npz`` — ``posterior_mean`` (N, 3) and ``posterior_sd_mm`` (N,);
+* ``fit.png`` — the fit over the target, two views.
+
+A batch (a project's instances or a glob of files) writes one folder per target and a
+``coefficients.csv`` for group statistics.
+"""
+
+from __future__ import annotations
+
+import csv
+import glob
+import io
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..fitting.fit import FitResult, Pose, Target, fit_model
+from ..formats.landmarks import read_landmarks
+from ..meshutil import write_ply
+from ..pipeline.errors import InputError
+from ..pipeline.params import FitParams
+from ..pipeline.progress import CancelledFn, ProgressFn, report
+
+__all__ = ["FitTarget", "fit_batch", "fit_to_folder", "load_model", "load_target"]
+
+
+def load_model(path):
+    """A model from ``model.npz`` or a statismo HDF5 file (ours or another tool's)."""
+    from ..model.files import load_npz, load_statismo
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: model file not found")
+    head = path.read_bytes()[:8]
+    if head.startswith(b"PK"):
+        return load_npz(path)
+    if head.startswith(b"\x89HDF"):
+        return load_statismo(path)
+    raise InputError(f"{path}: not a model (expected model.npz from `ssm build` or a statismo .h5 file)")
+
+
+@dataclass(frozen=True)
+class FitTarget:
+    """What to fit, as files (serialisable: workers read them themselves)."""
+
+    name: str
+    volume: Path | None = None
+    label: int | None = None
+    mesh: Path | None = None
+    points: Path | None = None
+    landmarks: Path | None = None
+
+
+def _read_points(path: Path) -> np.ndarray:
+    from ..meshutil import read_ply
+
+    if path.suffix.lower() == ".ply":
+        v, _, _ = read_ply(path)
+        return v
+    try:
+        rows = []
+        with open(path, encoding="utf-8") as fh:
+            for line in fh:
+                parts = [p for p in line.replace(";", ",").replace("\t", ",").split(",") if p.strip()]
+                if not parts:
+                    continue
+                try:
+                    rows.append([float(x) for x in parts[-3:]])
+                except ValueError:
+                    if rows:
+                        raise
+        pts = np.asarray(rows, float).reshape(-1, 3)
+    except (OSError, ValueError) as err:
+        raise InputError(f"{path}: cannot read points (CSV x,y,z per line, or PLY): {err}") from None
+    if not len(pts):
+        raise InputError(f"{path}: no points")
+    return pts
+
+
+def pose_of_points(points: np.ndarray) -> Pose:
+    """A start pose from a point set alone: its centroid and principal axes paired with the
+    patient axes (R, A, S), as the object frame of an image (paper 2)."""
+    from ..instances.frame import frame_axes_patient
+
+    pts = np.asarray(points, float)
+    centre = pts.mean(axis=0)
+    _, vecs = np.linalg.eigh(np.cov((pts - centre).T))
+    axes, _ = frame_axes_patient(vecs)
+    return Pose(axes, centre)
+
+
+def load_target(t: FitTarget, model, *, spacing_mm: float | None = None) -> tuple[Target, Pose | None]:
+    """The fitting target of some files (world mm) and a start pose from its object frame.
+
+    A label map or mesh gets the start pose of the training (its object frame, paper 2,
+    the model's frame method); a point cloud the frame of its points; landmarks alone none.
+    """
+    from ..formats.label_maps import load_volume
+    from ..instances.importing import instance_frame
+    from ..instances.volume import display_surface
+    from ..instances.voxelize import voxelize_mesh
+    from ..meshutil import read_mesh
+
+    params = model.params or {}
+    method = params.get("frame_method", "auto")
+    spacing = spacing_mm or float(params.get("spacing_mm", 1.0))
+    landmarks = read_landmarks(t.landmarks) if t.landmarks is not None else None
+    given = [x for x in (t.volume, t.mesh, t.points) if x is not None]
+    if len(given) > 1:
+        raise InputError(f"{t.name}: give one of a volume, a mesh or points (and optionally landmarks)")
+    if t.volume is not None:
+        vol = load_volume(t.volume, t.label)
+        verts, faces = display_surface(vol)
+        frame = instance_frame(vol, method)
+        return Target.from_mesh(verts, faces, source=str(t.volume), landmarks=landmarks), \
+            Pose(frame.axes_world, frame.origin_world)
+    if t.mesh is not None:
+        verts, faces = read_mesh(t.mesh)
+        frame = instance_frame(voxelize_mesh(verts, faces, spacing, source=str(t.mesh)), method)
+        return Target.from_mesh(verts, faces, source=str(t.mesh), landmarks=landmarks), \
+            Pose(frame.axes_world, frame.origin_world)
+    if t.points is not None:
+        pts = _read_points(t.points)
+        return Target.from_points(pts, source=str(t.points), landmarks=landmarks), pose_of_points(pts)
+    if landmarks is not None:
+        return Target.from_landmarks(landmarks, source=str(t.landmarks)), None
+    raise InputError(f"{t.name}: nothing to fit to: give --volume, --mesh, --points and/or --landmarks")
+
+
+def fit_picture(result: FitResult, faces: np.ndarray, target: Target, size_px: int = 360) -> bytes:
+    """Two views (along the model frame's z and x axes) of the fit over the target's points (PNG)."""
+    from PIL import Image, ImageDraw
+
+    pts = result.pose.inverse(result.points)  # model frame: a stable view
+    tgt = result.pose.inverse(target.samples[:: max(1, len(target.samples) // 4000)]) if target.has_surface else None
+    sd = result.posterior_sd_mm
+    rel = (sd - sd.min()) / max(float(np.ptp(sd)), 1e-9)
+    colours = np.stack([0.35 + 0.6 * rel, 0.55 - 0.2 * rel, 0.85 - 0.6 * rel], axis=1)
+    canvas = Image.new("RGB", (2 * size_px, size_px), (255, 255, 255))
+    centre = pts.mean(axis=0)
+    half = 0.6 * float(np.max(np.ptp(pts, axis=0)))
+    for j, view in enumerate((np.eye(3), np.eye(3)[[1, 2, 0]])):
+        p = (pts - centre) @ view.T
+        tri = p[faces]
+        order = np.argsort(tri[:, :, 2].mean(axis=1))
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        light = 0.35 + 0.65 * np.abs(n[:, 2]) / np.maximum(np.linalg.norm(n, axis=1), 1e-12)
+        fill = (np.clip(colours[faces].mean(axis=1) * light[:, None], 0, 1) * 255).astype(int)
+        img = Image.new("RGB", (size_px, size_px), (255, 255, 255))
+        draw = ImageDraw.Draw(img)
+        xy = (tri[:, :, :2] / (2 * half) + 0.5) * size_px
+        xy[:, :, 1] = size_px - xy[:, :, 1]
+        for f in order:
+            draw.polygon([tuple(v) for v in xy[f].tolist()], fill=tuple(fill[f].tolist()))
+        if tgt is not None:
+            q = ((tgt - centre) @ view.T)[:, :2] / (2 * half) + 0.5
+            for x, y in (q * size_px).tolist():
+                draw.point((x, size_px - y), fill=(20, 20, 20))
+        canvas.paste(img, (j * size_px, 0))
+    buf = io.BytesIO()
+    canvas.save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = None, partial: bool = False,
+                  free: bool = False, outlier_probability: float = 0.99, model_path: str = "",
+                  progress: ProgressFn = None, cancelled: CancelledFn = None) -> dict:
+    """Fit ``model`` to one target and write its files into ``out_dir``; returns ``fit.json``'s content."""
+    from scipy.special import chdtri
+
+    from ..model.files import write_npz
+
+    params = FitParams() if params is None else params
+    target, start = load_target(t, model)
+    if partial and t.landmarks is not None:
+        start = None  # from the landmarks
+    result = fit_model(model, target, params=params, pose=start, partial=partial, progress=progress,
+                       cancelled=cancelled)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    faces = np.asarray(model.faces)
+    write_ply(out_dir / "fitted.ply", result.points, faces, vertex_scalars={"posterior_sd_mm": result.posterior_sd_mm})
+    write_npz(out_dir / "fit.npz", {"posterior_mean": result.points, "posterior_sd_mm": result.posterior_sd_mm,
+                                    "coefficients": result.coefficients})
+    doc = result.to_dict()
+    limit = float(chdtri(result.n_modes, 1.0 - outlier_probability)) if result.n_modes else math.inf
+    doc.update({"name": t.name, "model": model_path, "partial": bool(partial),
+                "target": {k: (str(v) if v is not None else None) for k, v in
+                           (("volume", t.volume), ("label", t.label), ("mesh", t.mesh), ("points", t.points),
+                            ("landmarks", t.landmarks))},
+                "outlier": bool(result.mahalanobis ** 2 > limit),
+                "outlier_limit": {"probability": outlier_probability, "mahalanobis": math.sqrt(limit)},
+                "files": {"fitted": "fitted.ply", "npz": "fit.npz", "picture": "fit.png"}})
+    if free and target.locator is not None:
+        from ..coating.coating import coat_from_start
+        from ..instances.volume import ObjectFrame
+
+        doc["files"]["free"] = "fitted_free.ply"
+        doc["free"] = _free_fit(result, faces, t, model, out_dir / "fitted_free.ply", coat_from_start, ObjectFrame)
+    (out_dir / "fit.png").write_bytes(fit_picture(result, faces, target))
+    (out_dir / "fit.json").write_text(json.dumps(doc, indent=1), encoding="utf-8")
+    report(progress, 1.0, f"fitted {t.name}: Mahalanobis {result.mahalanobis:.2f}, mean distance "
+                           f"{result.mean_distance_mm:.2f} mm")
+    return doc
+
+
+def _free_fit(result, faces, t, model, path, coat_from_start, ObjectFrame) -> dict:
+    """The model fit relaxed freely onto the target's surface (the coating's projection and
+    relaxation, paper 4.2), in the target's own object frame."""
+    from ..instances.importing import InstanceSpec, import_instance
+
+    spacing = float((model.params or {}).get("spacing_mm", 1.0))
+    spec = InstanceSpec(name=t.name, volume=t.volume, label=t.label, mesh=t.mesh)
+    ov = import_instance(spec, spacing_mm=spacing, frame_method=(model.params or {}).get("frame_method", "auto"))
+    start = ov.frame.to_object(result.points)
+    from ..meshutil import Mesh
+
+    coated = coat_from_start(Mesh(start, faces), ov, start=start, start_label="model fit", name=t.name)
+    write_ply(path, ov.frame.to_world(coated.points_object), faces)
+    return {"mean_distance_mm": coated.fit.mean_distance_mm, "max_distance_mm": coated.fit.max_distance_mm,
+            "folded": coated.fit.folded_after}
+
+
+def _fit_job(args):
+    model_path, t, out_dir, params, partial, free, p = args
+    model = load_model(model_path)
+    return fit_to_folder(model, t, out_dir, params=params, partial=partial, free=free, outlier_probability=p,
+                         model_path=str(model_path))
+
+
+def fit_batch(model_path, targets: list[FitTarget], out_dir, *, params: FitParams | None = None,
+              partial: bool = False, free: bool = False, outlier_probability: float = 0.99, jobs: int = 1,
+              progress: ProgressFn = None, scheduler: str = "processes") -> list[dict]:
+    """Fit a model to many targets (one folder each) and write ``coefficients.csv``.
+
+    Each target is fitted by one call on ``scheduler`` (:class:`~ssm_addon.pipeline.compute.Executor`:
+    ``jobs`` local processes, a Dask LocalCluster or a Dask scheduler address); the worker
+    reads the model and the target from their paths and writes the target's folder (on a
+    remote cluster ``out_dir`` must be on a shared file system).
+    """
+    from ..pipeline.compute import Executor
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    names = [t.name for t in targets]
+    from ..instances.importing import file_names
+
+    folders = file_names(names)
+    args = [(str(model_path), t, out_dir / folders[t.name], params, partial, free, outlier_probability)
+            for t in targets]
+    with Executor(scheduler, jobs) as executor:
+        docs = executor.map(_fit_job, args, progress=progress, labels=names, verb="fitted")
+    k = max((len(d["coefficients"]) for d in docs), default=0)
+    with open(out_dir / "coefficients.csv", "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(["name", *[f"z{i + 1}" for i in range(k)], "mahalanobis", "p_value", "outlier",
+                    "mean_distance_mm", "max_distance_mm"])
+        for d in docs:
+            z = d["coefficients"] + [""] * (k - len(d["coefficients"]))
+            w.writerow([d["name"], *[f"{v:.6g}" if v != "" else "" for v in z], f"{d['mahalanobis']:.6g}",
+                        f"{d['p_value']:.6g}", int(d["outlier"]), f"{d['mean_distance_mm']:.6g}",
+                        f"{d['max_distance_mm']:.6g}"])
+    return docs
+
+
+def targets_from_glob(pattern: str, label: int | None = None) -> list[FitTarget]:
+    """One target per file of a glob (label maps or meshes by extension)."""
+    from ..formats.label_maps import file_stem, is_mesh_file
+
+    files = sorted(glob.glob(pattern))
+    if not files:
+        raise InputError(f"{pattern}: no file matches")
+    out = []
+    for f in files:
+        p = Path(f)
+        out.append(FitTarget(name=file_stem(p), mesh=p) if is_mesh_file(p) else
+                   FitTarget(name=file_stem(p), volume=p, label=label))
+    return out
+
+
+def targets_from_project(path) -> list[FitTarget]:
+    """The instances of a project file as targets (with their landmarks)."""
+    from ..formats.project_file import read_project
+
+    proj = read_project(path)
+    return [FitTarget(name=i.name, volume=i.volume, label=i.label, mesh=i.mesh, landmarks=i.landmarks)
+            for i in proj.instances]

@@ -1,0 +1,388 @@
+"""Fitting a shape model to new data: pose and mode coefficients under the model's prior.
+
+The model (paper 5, eq. 7) says a shape is p = p̄ + Q b with b ~ N(0, Λ). Fitting it to a
+target (a surface, a point cloud, landmarks, or a part of any of these) alternates
+
+1. correspondences: each model point to its closest target point, and each target point
+   to its closest model point (only the latter for a partial target, so the unobserved
+   part of the model is not pulled onto the observed part), each observing the distance
+   along the shape's normal (point to plane); model landmarks (points of the mean mesh,
+   barycentric) to the target's landmarks of the same name (point to point);
+2. the pose T (rigid, or with scale) that best maps the current shape onto those points
+   (weighted Procrustes);
+3. the coefficients b: the posterior mean of the linear Gaussian model
+   T⁻¹(y) = p̄ + Q b + ε, ε ~ N(0, σ²), b ~ N(0, Λ/η):
+   (QᵀWQ/σ² + η Λ⁻¹) b = QᵀW (T⁻¹y − p̄)/σ²,
+
+until the points stop moving. The posterior covariance of b, (QᵀWQ/σ² + ηΛ⁻¹)⁻¹, gives
+each point's posterior standard deviation: where the target says nothing (completion of
+a partial shape) it grows to the model's own variability. The same engine serves
+``ssm fit`` and the model-driven coating of model-guided correspondence.
+
+Frames: the model in its model frame (object mm, paper 5); the target, its landmarks and
+every result in the target's frame (world mm for files); ``pose`` maps model → target.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..formats.landmarks import LandmarkSet
+from ..meshutil import MeshLocator, vertex_normals
+from ..pipeline.errors import InputError, check_cancelled
+from ..pipeline.params import FitParams
+from ..pipeline.progress import CancelledFn, ProgressFn, report
+
+__all__ = ["FitResult", "Pose", "Target", "fit_best", "fit_model", "model_landmarks"]
+
+
+@dataclass(frozen=True)
+class Pose:
+    """x_target = scale · rotation @ x_model + translation (mm)."""
+
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+    translation: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    scale: float = 1.0
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        return self.scale * np.asarray(points, float) @ self.rotation.T + self.translation
+
+    def inverse(self, points: np.ndarray) -> np.ndarray:
+        return (np.asarray(points, float) - self.translation) @ self.rotation / self.scale
+
+    @property
+    def matrix(self) -> np.ndarray:
+        m = np.eye(4)
+        m[:3, :3] = self.scale * self.rotation
+        m[:3, 3] = self.translation
+        return m
+
+    def to_dict(self) -> dict:
+        return {"rotation": self.rotation.tolist(), "translation_mm": self.translation.tolist(),
+                "scale": float(self.scale), "matrix": self.matrix.tolist()}
+
+
+@dataclass
+class Target:
+    """What a model is fitted to, in one frame (mm): a surface, points, landmarks, or a mix.
+
+    Build with :meth:`from_mesh`, :meth:`from_points` or :meth:`from_landmarks`.
+    """
+
+    samples: np.ndarray  # (M, 3) points on the target (target → model correspondences)
+    source: str = ""
+    locator: MeshLocator | None = None  # exact closest points on triangles
+    tree: cKDTree | None = None  # closest sample points
+    landmarks: LandmarkSet | None = None
+
+    @classmethod
+    def from_mesh(cls, vertices, faces, *, source: str = "", landmarks=None, max_samples: int = 20000) -> Target:
+        v = np.asarray(vertices, float)
+        step = max(1, len(v) // max_samples)
+        return cls(samples=v[::step], source=source, locator=MeshLocator(v, faces), landmarks=landmarks)
+
+    @classmethod
+    def from_points(cls, points, *, source: str = "", landmarks=None) -> Target:
+        p = np.asarray(points, float).reshape(-1, 3)
+        if len(p) == 0 and landmarks is None:
+            raise InputError(f"{source or 'target'}: no points to fit to")
+        return cls(samples=p, source=source, tree=cKDTree(p) if len(p) else None, landmarks=landmarks)
+
+    @classmethod
+    def from_landmarks(cls, landmarks: LandmarkSet, *, source: str = "") -> Target:
+        return cls(samples=np.zeros((0, 3)), source=source or landmarks.source, landmarks=landmarks)
+
+    @property
+    def has_surface(self) -> bool:
+        return len(self.samples) > 0
+
+    def closest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Closest target points (M, 3) and distances (M,) of query points."""
+        if self.locator is not None:
+            c, d, _, _ = self.locator.query(points, k=8)
+            return c, d
+        d, j = self.tree.query(points)
+        return self.samples[j], d
+
+
+@dataclass(frozen=True)
+class FitResult:
+    """A model fitted to a target.
+
+    Attributes
+    ----------
+    points : (N, 3) mm
+        The fitted shape (posterior mean), target frame.
+    coefficients : (K,) float
+        b_k / √λ_k, in standard deviations.
+    b : (K,) mm
+        The mode weights of eq. 7.
+    pose : Pose
+        Model frame → target frame.
+    posterior_sd_mm : (N,) mm
+        Per point, √(trace of its posterior covariance): small where the target pins the
+        shape, up to the model's variability where it says nothing.
+    mahalanobis : float
+        √(Σ b_k²/λ_k) over the K modes used.
+    p_value : float
+        Chi-square (K degrees of freedom) tail of the squared Mahalanobis distance.
+    mean_distance_mm, max_distance_mm : float
+        Distances between the fitted shape and the target (over the target's points for
+        a partial target, over the shape's points otherwise).
+    landmark_residuals_mm : dict name -> mm
+    iterations : int
+    converged : bool
+    """
+
+    points: np.ndarray
+    coefficients: np.ndarray
+    b: np.ndarray
+    pose: Pose
+    posterior_sd_mm: np.ndarray
+    mahalanobis: float
+    p_value: float
+    mean_distance_mm: float
+    max_distance_mm: float
+    landmark_residuals_mm: dict
+    iterations: int
+    converged: bool
+    n_modes: int
+    b_covariance: np.ndarray | None = None
+
+    def to_dict(self) -> dict:
+        return {"coefficients": [float(x) for x in self.coefficients], "b_mm": [float(x) for x in self.b],
+                "pose": self.pose.to_dict(), "mahalanobis": float(self.mahalanobis), "p_value": float(self.p_value),
+                "n_modes": int(self.n_modes), "mean_distance_mm": float(self.mean_distance_mm),
+                "max_distance_mm": float(self.max_distance_mm),
+                "landmark_residuals_mm": {k: float(v) for k, v in self.landmark_residuals_mm.items()},
+                "iterations": int(self.iterations), "converged": bool(self.converged),
+                "posterior_sd_mm": {"mean": float(self.posterior_sd_mm.mean()),
+                                    "max": float(self.posterior_sd_mm.max())}}
+
+
+def model_landmarks(model) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
+    """The landmarks stored with a model: names, triangles (L,) and barycentric weights (L, 3).
+
+    They are points of the mean mesh (the template's landmarks located on the template's
+    triangles, ``params["landmark_locations"]``); empty when the model has none.
+    """
+    loc = (model.params or {}).get("landmark_locations") or {}
+    names = tuple(loc.get("names", ()))
+    if not names:
+        return (), np.zeros(0, int), np.zeros((0, 3))
+    return names, np.asarray(loc["triangles"], int), np.asarray(loc["bary"], float)
+
+
+def _procrustes(src: np.ndarray, dst: np.ndarray, w: np.ndarray, scale: bool) -> Pose:
+    """Weighted least-squares similarity (or rigid) transform src → dst (Umeyama)."""
+    w = w / w.sum()
+    ms, md = w @ src, w @ dst
+    a, b = src - ms, dst - md
+    cov = (b * w[:, None]).T @ a
+    u, sv, vt = np.linalg.svd(cov)
+    d = np.sign(np.linalg.det(u @ vt)) or 1.0
+    corr = np.diag([1.0, 1.0, d])
+    rot = u @ corr @ vt
+    s = float((sv * np.diag(corr)).sum() / max((w * (a * a).sum(axis=1)).sum(), 1e-300)) if scale else 1.0
+    return Pose(rot, md - s * rot @ ms, s)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(M, 3, 3) cross-product matrices [v]× of (M, 3) vectors."""
+    z = np.zeros(len(v))
+    return np.stack([np.stack([z, -v[:, 2], v[:, 1]], 1), np.stack([v[:, 2], z, -v[:, 0]], 1),
+                     np.stack([-v[:, 1], v[:, 0], z], 1)], 1)
+
+
+def _posterior(q, shape, faces, rows_v, w, pose, lm_pairs, w_lm, sigma2, params, lam, k):
+    """Posterior covariance of b and per-point shape variance (mm², model frame), pose included.
+
+    Linearised at the fit: the parameters are b and a small rotation ω and translation τ
+    of the model frame (x_i ≈ s_i + Q_i b − [s_i]× ω + τ); the pose has a flat prior. Its
+    uncertainty matters most for a partial target, whose pose the data pins least.
+    """
+    n = len(shape)
+    jac = np.concatenate([q, -_skew(shape), np.broadcast_to(np.eye(3), (n, 3, 3))], axis=2)  # (N, 3, K+6)
+    s2 = sigma2 / pose.scale ** 2
+    m = jac.shape[2]
+    if len(rows_v):
+        ja = jac[rows_v]
+        if len(faces):
+            nrm = vertex_normals(shape, faces)[rows_v]
+            jn = np.einsum("pd,pdm->pm", nrm, ja)
+            info = np.einsum("p,pm,pl->ml", w, jn, jn)
+        else:
+            info = np.einsum("p,pdm,pdl->ml", w, ja, ja)
+    else:
+        info = np.zeros((m, m))
+    if lm_pairs is not None:
+        jl = np.einsum("lk,lkdm->ldm", lm_pairs[2], jac[lm_pairs[1]])
+        info = info + w_lm * np.einsum("idm,idl->ml", jl, jl)
+    prior = np.zeros((m, m))
+    prior[:k, :k] = params.prior_weight * np.diag(1.0 / lam)
+    prior[k:, k:] = 1e-9 * np.eye(6)  # (almost) flat: the pose is what the data says
+    cov = np.linalg.inv(info / s2 + prior)
+    per_point = np.einsum("ndm,ml,ndl->n", jac, cov, jac)
+    return cov[:k, :k], per_point
+
+
+def fit_model(model, target: Target, *, params: FitParams | None = None, pose: Pose | None = None,
+              partial: bool = False, progress: ProgressFn = None, cancelled: CancelledFn = None) -> FitResult:
+    """Fit ``model`` to ``target``: pose and coefficients under the model's prior.
+
+    Parameters
+    ----------
+    model : ShapeModel
+    target : Target
+    params : FitParams
+        Noise σ (mm), prior weight η, modes used, iterations, landmark weight, scale.
+    pose : Pose, optional
+        Start pose (model → target). Default: from the landmarks when at least 3 match,
+        else the identity (the target is in the model's frame, e.g. an instance in its
+        object frame).
+    partial : bool
+        The target covers only part of the shape: only target → model correspondences,
+        and the distances are measured over the target's points.
+
+    Returns
+    -------
+    FitResult
+    """
+    from scipy.special import chdtrc
+
+    params = FitParams() if params is None else params
+    k = model.n_modes if params.n_modes is None else min(int(params.n_modes), model.n_modes)
+    mean = np.asarray(model.mean, float)
+    npts = len(mean)
+    q = np.asarray(model.modes[:k], float).reshape(k, npts, 3).transpose(1, 2, 0)  # (N, 3, K)
+    lam = np.maximum(np.asarray(model.variances[:k], float), 1e-12)
+    names, tris, bary = model_landmarks(model)
+    lm_pairs = None
+    if target.landmarks is not None and len(target.landmarks):
+        common = [n for n in names if n in target.landmarks.names]
+        unknown = [n for n in target.landmarks.names if n not in names]
+        if not common:
+            known = ", ".join(names) if names else "none"
+            raise InputError(f"{target.landmarks.source or 'landmarks'}: none of the landmark names "
+                             f"({', '.join(target.landmarks.names[:5])}{'…' if len(target.landmarks) > 5 else ''}) is "
+                             f"one the model knows ({known})")
+        idx = [names.index(n) for n in common]
+        verts = np.asarray(model.faces)[tris[idx]]  # (L, 3) vertex ids
+        lm_pairs = (common, verts, bary[idx], target.landmarks.subset(common).points_world, unknown)
+    if not target.has_surface and lm_pairs is None:
+        raise InputError(f"{target.source or 'target'}: nothing to fit to (no surface, points or known landmarks)")
+    if pose is None:
+        pose = Pose()
+        if lm_pairs is not None and len(lm_pairs[0]) >= 3:
+            m_lm = np.einsum("lk,lkj->lj", lm_pairs[2], mean[lm_pairs[1]])
+            pose = _procrustes(m_lm, lm_pairs[3], np.ones(len(m_lm)), params.scale)
+    sigma2 = params.noise_mm ** 2
+    b = np.zeros(k)
+    shape = mean.copy()
+    it, converged, last = 0, False, pose.apply(shape)
+    w_lm = params.landmark_weight
+    tree_model = None
+    for it in range(1, params.iterations + 1):
+        check_cancelled(cancelled)
+        x = pose.apply(shape)
+        rows, ys, ws = [], [], []
+        if target.has_surface:
+            tree_model = cKDTree(x)
+            _, nearest = tree_model.query(target.samples)  # target → model
+            rows.append(nearest)
+            ys.append(target.samples)
+            ws.append(np.full(len(nearest), 1.0 if partial else 0.5 * npts / max(len(nearest), 1)))
+            if not partial:  # model → target
+                c, _ = target.closest(x)
+                rows.append(np.arange(npts))
+                ys.append(c)
+                ws.append(np.full(npts, 0.5))
+        rows_v = np.concatenate(rows) if rows else np.zeros(0, int)
+        y = np.concatenate(ys) if ys else np.zeros((0, 3))
+        w = np.concatenate(ws) if ws else np.zeros(0)
+        # pose from the current shape's corresponding points (and landmarks)
+        src, dst, wp = shape[rows_v], y, w
+        if lm_pairs is not None:
+            lm_shape = np.einsum("lk,lkj->lj", lm_pairs[2], shape[lm_pairs[1]])
+            src = np.concatenate([src, lm_shape])
+            dst = np.concatenate([dst, lm_pairs[3]])
+            wp = np.concatenate([wp, np.full(len(lm_shape), w_lm)])
+        if len(src) >= 3:
+            pose = _procrustes(src, dst, wp, params.scale)
+        # coefficients: the posterior of the linear model in the model frame. A surface
+        # correspondence observes the distance along the shape's normal only (point to
+        # plane): where it lies along the surface is not observed, so sliding is neither
+        # penalised nor mistaken for information (calibrated posterior, no tangential bias)
+        yl = pose.inverse(y) - mean[rows_v]  # (P, 3)
+        nrm = vertex_normals(shape, model.faces)[rows_v] if len(model.faces) else None
+        qa = q[rows_v]  # (P, 3, K)
+        if nrm is not None:
+            qn = np.einsum("pd,pdk->pk", nrm, qa)  # (P, K): n·Q
+            wq = qn * w[:, None]
+            a = wq.T @ qn
+            rhs = wq.T @ np.einsum("pd,pd->p", nrm, yl)
+        else:
+            a = np.einsum("p,pdk,pdl->kl", w, qa, qa)
+            rhs = np.einsum("p,pdk,pd->k", w, qa, yl)
+        if lm_pairs is not None:
+            qlm = np.einsum("lk,lkdm->ldm", lm_pairs[2], q[lm_pairs[1]])
+            mlm = np.einsum("lk,lkj->lj", lm_pairs[2], mean[lm_pairs[1]])
+            rlm = pose.inverse(lm_pairs[3]) - mlm
+            a += w_lm * np.einsum("idk,idm->km", qlm, qlm)
+            rhs += w_lm * np.einsum("idk,id->k", qlm, rlm)
+        s2 = sigma2 / pose.scale ** 2
+        precision = a / s2 + params.prior_weight * np.diag(1.0 / lam)
+        b = np.linalg.solve(precision + 1e-12 * np.eye(k) * max(1.0, float(np.abs(precision).max())), rhs / s2)
+        shape = mean + q @ b
+        x_new = pose.apply(shape)
+        move = float(np.sqrt(((x_new - last) ** 2).sum(axis=1).mean()))
+        last = x_new
+        report(progress, it / params.iterations, f"fit step {it}: {move:.4f} mm")
+        if move < params.tolerance_mm:
+            converged = True
+            break
+    cov_b, per_point = _posterior(q, shape, model.faces, rows_v, w, pose, lm_pairs, w_lm, sigma2, params, lam, k)
+    sd = pose.scale * np.sqrt(np.maximum(per_point, 0.0))
+    x = pose.apply(shape)
+    if target.has_surface:
+        if partial:
+            dist = cKDTree(x).query(target.samples)[0]
+        else:
+            dist = target.closest(x)[1]
+        mean_d, max_d = float(dist.mean()), float(dist.max())
+    else:
+        mean_d = max_d = float("nan")
+    residuals = {}
+    if lm_pairs is not None:
+        lm_fit = np.einsum("lk,lkj->lj", lm_pairs[2], x[lm_pairs[1]])
+        residuals = {n: float(r) for n, r in zip(lm_pairs[0], np.linalg.norm(lm_fit - lm_pairs[3], axis=1))}
+        if not target.has_surface:
+            mean_d = float(np.mean(list(residuals.values())))
+            max_d = float(np.max(list(residuals.values())))
+    z = b / np.sqrt(lam)
+    d2 = float(np.sum(z * z))
+    return FitResult(points=x, coefficients=z, b=b, pose=pose, posterior_sd_mm=sd, mahalanobis=math.sqrt(d2),
+                     p_value=float(chdtrc(k, d2)) if k else 1.0, mean_distance_mm=mean_d, max_distance_mm=max_d,
+                     landmark_residuals_mm=residuals, iterations=it, converged=converged, n_modes=k,
+                     b_covariance=cov_b)
+
+
+def fit_best(model, target: Target, poses, *, params: FitParams | None = None, partial: bool = False,
+             progress: ProgressFn = None, cancelled: CancelledFn = None) -> FitResult:
+    """:func:`fit_model` from several start poses; the fit closest to the target wins.
+
+    For targets whose pose is not known (a mesh drawn anywhere): e.g. the target's
+    centroid with the model's axes, and its principal axes paired with the patient axes.
+    """
+    best = None
+    poses = list(poses)
+    for i, pose in enumerate(poses):
+        res = fit_model(model, target, params=params, pose=pose, partial=partial, cancelled=cancelled)
+        report(progress, (i + 1) / len(poses), f"start {i + 1} of {len(poses)}: {res.mean_distance_mm:.3f} mm")
+        if best is None or res.mean_distance_mm < best.mean_distance_mm:
+            best = res
+    return best

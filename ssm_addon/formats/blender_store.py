@@ -1,0 +1,157 @@
+"""A study on disk: every product as arrays (``.npz``, read with ``allow_pickle=False``) and JSON.
+
+Used to hand a finished study to another process (the Blender step of a headless build
+runs in its own process) without pickling. Layout of the folder:
+
+* ``study.json`` — the instances (sources, labels, landmark names), the parameters of
+  every table, the template instance, metrics, findings, outlier scores;
+* ``arrays.npz`` — landmarks (world mm), volumes (mask, spacing, origin, frame), frames,
+  the template, the coatings and the model, keyed ``<kind>/<instance>/<field>``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..coating.coating import CoatingResult, FitFigures
+from ..formats.landmarks import LandmarkSet
+from ..instances.importing import InstanceSpec
+from ..instances.volume import ObjectVolume, frame_from_arrays, frame_to_arrays
+from ..model.files import model_from_arrays, write_npz
+from ..model.quality import Finding
+from ..pipeline import params as P
+from ..pipeline.errors import InputError
+from ..pipeline.study import Study
+from ..template.template import Template
+
+__all__ = ["load_study", "save_study"]
+
+
+def _clean(obj):
+    if isinstance(obj, dict):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def save_study(study: Study, folder, *, extra: dict | None = None) -> Path:
+    """Write ``study`` into ``folder`` (created); returns the folder."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    arrays: dict[str, np.ndarray] = {}
+    insts = []
+    for i, spec in enumerate(study.instances):
+        lm = spec.landmark_set
+        insts.append({"name": spec.name, "landmarks": spec.landmarks, "volume": spec.volume, "label": spec.label,
+                      "mesh": spec.mesh, "mesh_spacing": spec.mesh_spacing,
+                      "landmark_names": list(lm.names) if lm is not None else None,
+                      "landmark_source": lm.source if lm is not None else ""})
+        if lm is not None:
+            arrays[f"landmarks/{i}"] = np.asarray(lm.points_world, float)
+    index = {n: i for i, n in enumerate(study.names)}
+    for name, ov in study.volumes.items():
+        k = index[name]
+        arrays[f"volume/{k}/mask"] = np.asarray(ov.mask, bool)
+        arrays[f"volume/{k}/spacing_mm"] = np.asarray(ov.spacing_mm, float)
+        arrays[f"volume/{k}/origin_object"] = np.asarray(ov.origin_object, float)
+        arrays[f"volume/{k}/source"] = np.asarray(ov.source)
+        frame_to_arrays(f"volume/{k}/frame", ov.frame, arrays)
+    for name, frame in study.frames.items():
+        frame_to_arrays(f"frame/{index[name]}", frame, arrays)
+    t = study.template
+    if t is not None:
+        arrays["template/points_object"] = np.asarray(t.points_object, float)
+        arrays["template/faces"] = np.asarray(t.faces, np.int64)
+        arrays["template/curvature"] = np.asarray(t.curvature, float)
+        arrays["template/params_json"] = np.asarray(json.dumps(_clean(t.params)))
+        frame_to_arrays("template/frame", t.frame, arrays)
+    for name, c in study.coatings.items():
+        k = index[name]
+        arrays[f"coating/{k}/points_object"] = np.asarray(c.points_object, float)
+        arrays[f"coating/{k}/warped_points_object"] = np.asarray(c.warped_points_object, float)
+        arrays[f"coating/{k}/fit_json"] = np.asarray(c.fit.to_json())
+    m = study.model
+    if m is not None:
+        for key in ("mean", "faces", "modes", "variances", "instance_points", "instance_points_world"):
+            arrays[f"model/{key}"] = np.asarray(getattr(m, key))
+        arrays["model/instance_names"] = np.asarray([str(s) for s in m.instance_names])
+        arrays["model/params_json"] = np.asarray(json.dumps(_clean(m.params)))
+    doc = {
+        "instances": insts,
+        "template_instance": study.template_instance,
+        "parameters": {section: P.to_table(getattr(study, f"{section}_params"))
+                       for section in ("template", "coating", "model", "quality")},
+        "metrics": study.metrics,
+        "findings": [f.to_dict() for f in study.findings],
+        "outlier_scores": study.outlier_scores,
+        "timings_s": study.timings_s,
+        "extra": extra or {},
+    }
+    (folder / "study.json").write_text(json.dumps(_clean(doc)), encoding="utf-8")
+    write_npz(folder / "arrays.npz", arrays)
+    return folder
+
+
+def load_study(folder) -> tuple[Study, dict]:
+    """Read a study written by :func:`save_study`; returns (study, extra)."""
+    folder = Path(folder)
+    try:
+        doc = json.loads((folder / "study.json").read_text(encoding="utf-8"))
+        npz = np.load(folder / "arrays.npz", allow_pickle=False)
+    except (OSError, ValueError) as err:
+        raise InputError(f"{folder}: not a stored study ({err})") from None
+    a = {k: npz[k] for k in npz.files}
+    specs = []
+    for i, d in enumerate(doc["instances"]):
+        lm = None
+        if d["landmark_names"] is not None:
+            lm = LandmarkSet(tuple(d["landmark_names"]), a[f"landmarks/{i}"], d.get("landmark_source", ""))
+        specs.append(InstanceSpec(name=d["name"], landmarks=Path(d["landmarks"]) if d["landmarks"] else None,
+                                  volume=Path(d["volume"]) if d["volume"] else None, label=d["label"],
+                                  mesh=Path(d["mesh"]) if d["mesh"] else None, mesh_spacing=d["mesh_spacing"],
+                                  landmark_set=lm))
+    par = doc["parameters"]
+    study = Study(instances=tuple(specs), template_instance=doc["template_instance"],
+                  template_params=P.from_table(P.TemplateParams, par["template"]),
+                  coating_params=P.from_table(P.CoatingParams, par["coating"]),
+                  model_params=P.from_table(P.ModelParams, par["model"]),
+                  quality_params=P.from_table(P.QualityParams, par["quality"]))
+    for k, spec in enumerate(specs):
+        if f"volume/{k}/mask" in a:
+            study.volumes[spec.name] = ObjectVolume(
+                mask=a[f"volume/{k}/mask"], spacing_mm=float(a[f"volume/{k}/spacing_mm"]),
+                origin_object=a[f"volume/{k}/origin_object"], frame=frame_from_arrays(f"volume/{k}/frame", a),
+                source=str(a[f"volume/{k}/source"]))
+        if f"frame/{k}/origin_world" in a:
+            study.frames[spec.name] = frame_from_arrays(f"frame/{k}", a)
+        if f"coating/{k}/points_object" in a:
+            study.coatings[spec.name] = CoatingResult(
+                points_object=a[f"coating/{k}/points_object"], warped_points_object=a[f"coating/{k}/warped_points_object"],
+                fit=FitFigures.from_json(str(a[f"coating/{k}/fit_json"])), name=spec.name)
+    if "template/points_object" in a:
+        study.template = Template(points_object=a["template/points_object"], faces=a["template/faces"],
+                                  curvature=a["template/curvature"], frame=frame_from_arrays("template/frame", a),
+                                  params=json.loads(str(a["template/params_json"])))
+    if "model/mean" in a:
+        study.model = model_from_arrays({**{k: a[f"model/{k}"] for k in (
+            "mean", "faces", "modes", "variances", "instance_names", "instance_points", "instance_points_world")},
+            "params": json.loads(str(a["model/params_json"]))}, str(folder))
+    study.metrics = doc["metrics"]
+    study.findings = [Finding(**{k: (float("nan") if v is None and k in ("value", "threshold") else v)
+                                 for k, v in f.items()}) for f in doc["findings"]]
+    study.outlier_scores = doc["outlier_scores"]
+    study.timings_s = doc["timings_s"]
+    return study, doc.get("extra", {})

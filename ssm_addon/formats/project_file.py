@@ -1,0 +1,451 @@
+"""The project file: the instances of a shape population and every stage's parameters.
+
+A project file (TOML) lists the instances of a shape population and the parameters of
+every stage; :func:`read_project` parses and validates it (every problem is an
+:class:`~ssm_addon.pipeline.errors.InputError` naming the file, line, key or instance and the
+allowed values) and :func:`build` runs the study's stages (:mod:`ssm_addon.pipeline.study`) and
+writes the outputs atomically: everything goes into a temporary folder next to the
+output folder and is moved into place only when the whole build succeeded.
+
+The tables ``[template]``, ``[coating]``, ``[model]`` and ``[output]`` hold the fields of
+:class:`~ssm_addon.pipeline.params.TemplateParams`, :class:`~ssm_addon.pipeline.params.CoatingParams`,
+:class:`~ssm_addon.pipeline.params.ModelParams` and :class:`~ssm_addon.pipeline.params.OutputParams`
+(their one definition); ``[template]`` also takes ``instance``. Example::
+
+    [template]
+    instance = "L1"        # the instance that gives the template (default: the first)
+    spacing = 1.0          # mm, isotropic resampling along the object axes
+
+    [coating]
+    kernel = "biharmonic"
+
+    [model]
+    alignment = "none"     # none | rigid | similarity
+
+    [[instances]]
+    name = "L1"
+    volume = "seg.nii.gz"  # or mesh = "L1.stl" (+ mesh_spacing in mm)
+    label = 20
+    landmarks = "landmarks/L1.fcsv"
+
+Relative paths resolve against the project file's folder.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import json
+import os
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..formats.landmarks import LandmarkSet, match_landmarks, read_landmarks
+from ..instances.importing import InstanceSpec, file_names
+from ..pipeline import params as P
+from ..pipeline.errors import InputError
+from ..pipeline.params import (
+    CoatingParams,
+    ComputeParams,
+    CorrespondenceParams,
+    ModelParams,
+    OutputParams,
+    QualityParams,
+    TemplateParams,
+)
+
+__all__ = ["Project", "project_text", "read_project", "toml_value", "write_project"]
+
+INSTANCE_KEYS = {
+    "name": "a string",
+    "volume": "a file path (string)",
+    "label": "an integer",
+    "mesh": "a file path (string)",
+    "mesh_spacing": "a number",
+    "landmarks": "a file path (string)",
+}
+#: [template] keys besides the TemplateParams fields.
+STUDY_TEMPLATE_KEYS = ("instance",)
+SECTIONS = ("instances", *P.TABLES)
+
+
+@dataclass(frozen=True)
+class Project:
+    """A parsed and validated project file.
+
+    Attributes
+    ----------
+    path : Path
+        The project file (absolute).
+    instances : tuple of InstanceSpec
+        With absolute paths and the landmarks read (world mm, common name order).
+    template_instance : str
+        Name of the instance that gives the template.
+    template, coating, model, output : parameter objects
+        The tables (defaults for what the file leaves out).
+    landmark_names : tuple of str
+        The common landmark names, in the order of the first instance's file.
+    """
+
+    path: Path
+    instances: tuple[InstanceSpec, ...]
+    template_instance: str
+    template: TemplateParams = field(default_factory=TemplateParams)
+    coating: CoatingParams = field(default_factory=CoatingParams)
+    model: ModelParams = field(default_factory=ModelParams)
+    output: OutputParams = field(default_factory=OutputParams)
+    quality: QualityParams = field(default_factory=QualityParams)
+    correspondence: CorrespondenceParams = field(default_factory=CorrespondenceParams)
+    compute: ComputeParams = field(default_factory=ComputeParams)
+    landmark_names: tuple[str, ...] = ()
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(i.name for i in self.instances)
+
+    @property
+    def spacing_mm(self) -> float:
+        """Isotropic resampling spacing (mm) of every instance (paper 2)."""
+        return self.template.spacing_mm
+
+    @property
+    def frame_method(self) -> str:
+        return self.template.frame
+
+    @property
+    def template_params(self) -> TemplateParams:
+        return self.template
+
+    @property
+    def coating_params(self) -> CoatingParams:
+        return self.coating
+
+    @property
+    def model_options(self) -> dict:
+        return dataclasses.asdict(self.model)
+
+    @property
+    def output_options(self) -> dict:
+        return dataclasses.asdict(self.output)
+
+
+# --------------------------------------------------------------------------------------
+# reading
+
+
+class _Lines:
+    """Line numbers of tables and keys in a TOML text (for messages; tomllib has none)."""
+
+    _header = re.compile(r"^\s*(\[\[?)\s*([A-Za-z0-9_.\"' -]+?)\s*\]\]?\s*(#.*)?$")
+    _key = re.compile(r"^\s*(\"[^\"]*\"|'[^']*'|[A-Za-z0-9_-]+)\s*=")
+
+    def __init__(self, text: str):
+        self.keys: dict[tuple, int] = {}
+        self.tables: dict[tuple, int] = {}
+        counts: dict[str, int] = {}
+        current: tuple = ("",)
+        for lineno, line in enumerate(text.splitlines(), start=1):
+            m = self._header.match(line)
+            if m:
+                name = m.group(2).strip().strip("\"'")
+                if m.group(1) == "[[":
+                    idx = counts.get(name, 0)
+                    counts[name] = idx + 1
+                    current = (name, idx)
+                else:
+                    current = (name,)
+                self.tables.setdefault(current, lineno)
+                continue
+            m = self._key.match(line)
+            if m:
+                self.keys.setdefault((*current, m.group(1).strip("\"'")), lineno)
+
+    def key(self, *where) -> int | None:
+        return self.keys.get(tuple(where))
+
+    def table(self, *where) -> int | None:
+        return self.tables.get(tuple(where))
+
+
+class _Context:
+    def __init__(self, path: Path, text: str):
+        self.path = path
+        self.lines = _Lines(text)
+
+    def at(self, line: int | None) -> str:
+        return f"{self.path}:{line}" if line else f"{self.path}"
+
+    def error(self, message: str, line: int | None = None) -> InputError:
+        return InputError(f"{self.at(line)}: {message}")
+
+
+def _suggest(key: str, allowed) -> str:
+    close = difflib.get_close_matches(key, list(allowed), n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else f" (allowed: {', '.join(sorted(allowed))})"
+
+
+def _check_keys(table: dict, allowed, section: str, ctx: _Context, where: tuple) -> None:
+    for key in table:
+        if key not in allowed:
+            raise ctx.error(f"{section}: unknown key {key!r}{_suggest(key, allowed)}", ctx.lines.key(*where, key))
+
+
+def _resolve(value: str, base: Path) -> Path:
+    p = Path(os.path.expanduser(value))
+    return p if p.is_absolute() else (base / p).resolve()
+
+
+def _kind_error(ctx, what, expected, value, line):
+    return ctx.error(f"{what} must be {expected}, got {P.type_name(value)} {value!r}", line)
+
+
+def _existing_file(value, key, what, ctx, where, base) -> Path:
+    line = ctx.lines.key(*where, key)
+    if not isinstance(value, str):
+        raise _kind_error(ctx, f"{what}: {key}", INSTANCE_KEYS[key], value, line)
+    path = _resolve(value, base)
+    if not path.is_file():
+        raise ctx.error(f"{what}: {key} file not found: {path}", line)
+    return path
+
+
+def _params(cls, doc: dict, section: str, ctx: _Context, extra=()):
+    table = doc.get(section, {})
+    if not isinstance(table, dict):
+        raise ctx.error(f"[{section}] must be a table, got {P.type_name(table)}", ctx.lines.key(section))
+    allowed = {*P.keys(cls), *extra}
+    _check_keys(table, allowed, f"[{section}]", ctx, (section,))
+    values = {k: v for k, v in table.items() if k not in extra}
+    lines = {k: f"{ctx.at(ctx.lines.key(section, k))}: [{section}]" for k in values}
+    return P.from_table(cls, values, where=f"{ctx.at(ctx.lines.table(section))}: [{section}]", lines=lines)
+
+
+def _instances(doc: dict, ctx: _Context, base: Path, landmarks_required: bool = True) -> list[InstanceSpec]:
+    raw = doc.get("instances")
+    if raw is None or (isinstance(raw, list) and not raw):
+        raise ctx.error("no [[instances]]: a project needs at least two instances, each with name, volume (or mesh) "
+                        "and landmarks")
+    if not isinstance(raw, list) or not all(isinstance(t, dict) for t in raw):
+        raise ctx.error("instances must be an array of tables ([[instances]])", ctx.lines.key("instances"))
+    out: list[InstanceSpec] = []
+    seen: dict[str, int] = {}
+    for i, table in enumerate(raw):
+        where = ("instances", i)
+        head = ctx.lines.table(*where)
+        label_txt = f"[[instances]] #{i + 1}"
+        _check_keys(table, INSTANCE_KEYS, label_txt, ctx, where)
+        if "name" not in table:
+            raise ctx.error(f"{label_txt}: missing key 'name'", head)
+        name = table["name"]
+        if not isinstance(name, str):
+            raise _kind_error(ctx, f"{label_txt} name", INSTANCE_KEYS["name"], name, ctx.lines.key(*where, "name"))
+        if not name.strip():
+            raise ctx.error(f"{label_txt}: empty name", ctx.lines.key(*where, "name"))
+        what = f"instance {name!r}"
+        if name in seen:
+            raise ctx.error(f"duplicate instance name {name!r} (instances #{seen[name] + 1} and #{i + 1})",
+                            ctx.lines.key(*where, "name"))
+        seen[name] = i
+        if "label" in table and (isinstance(table["label"], bool) or not isinstance(table["label"], int)):
+            raise _kind_error(ctx, f"{what}: label", INSTANCE_KEYS["label"], table["label"],
+                              ctx.lines.key(*where, "label"))
+        if "mesh_spacing" in table and (isinstance(table["mesh_spacing"], bool)
+                                        or not isinstance(table["mesh_spacing"], int | float)):
+            raise _kind_error(ctx, f"{what}: mesh_spacing", INSTANCE_KEYS["mesh_spacing"], table["mesh_spacing"],
+                              ctx.lines.key(*where, "mesh_spacing"))
+        has_volume, has_mesh = "volume" in table, "mesh" in table
+        if has_volume == has_mesh:
+            problem = "both volume and mesh" if has_volume else "neither volume nor mesh"
+            raise ctx.error(f"{what}: give exactly one of 'volume' (label map) or 'mesh', got {problem}", head)
+        if "landmarks" not in table and landmarks_required:
+            raise ctx.error(f"{what}: missing key 'landmarks' (a .fcsv, .mrk.json, .csv or .json file; optional "
+                            "with [correspondence] method = \"model\")", head)
+        if has_mesh and "label" in table:
+            raise ctx.error(f"{what}: 'label' applies to volumes, not meshes", ctx.lines.key(*where, "label"))
+        if has_volume and "mesh_spacing" in table:
+            raise ctx.error(f"{what}: 'mesh_spacing' applies to meshes, not volumes",
+                            ctx.lines.key(*where, "mesh_spacing"))
+        mesh_spacing = float(table["mesh_spacing"]) if "mesh_spacing" in table else None
+        if mesh_spacing is not None and not (np.isfinite(mesh_spacing) and 0 < mesh_spacing <= 50):
+            raise ctx.error(f"{what}: mesh_spacing must be a number > 0 mm and <= 50 mm, got {mesh_spacing!r}",
+                            ctx.lines.key(*where, "mesh_spacing"))
+        volume = _existing_file(table["volume"], "volume", what, ctx, where, base) if has_volume else None
+        mesh = _existing_file(table["mesh"], "mesh", what, ctx, where, base) if has_mesh else None
+        lm_path, lms = None, None
+        if "landmarks" in table:
+            lm_path = _existing_file(table["landmarks"], "landmarks", what, ctx, where, base)
+            try:
+                lms = read_landmarks(lm_path)
+            except InputError as err:
+                raise ctx.error(f"{what}: {err}", ctx.lines.key(*where, "landmarks")) from None
+            lms = LandmarkSet(lms.names, lms.points_world, source=f"instance {name!r} ({lm_path.name})")
+        out.append(InstanceSpec(name=name, landmarks=lm_path, volume=volume, label=table.get("label"), mesh=mesh,
+                                mesh_spacing=mesh_spacing, landmark_set=lms))
+    return out
+
+
+def read_project(path) -> Project:
+    """Parse and validate a project file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The TOML project file.
+
+    Returns
+    -------
+    Project
+        With absolute paths (relative ones resolve against the file's folder), the
+        landmark files read (world mm) and their names checked to match across
+        instances.
+
+    Raises
+    ------
+    InputError
+        For a missing/unreadable file, TOML syntax errors (with line and column), unknown
+        tables or keys (with the closest allowed key), wrong value types (expected vs
+        got), values out of range (with the allowed range), missing files, duplicate
+        instance names, no instances, an unknown template instance and landmark names
+        that do not match across instances. The message starts with ``<file>:<line>:``
+        where a line is known.
+    """
+    path = Path(path).expanduser().resolve()
+    if not path.is_file():
+        raise InputError(f"{path}: project file not found")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError(f"{path}: cannot read project file ({err})") from None
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise InputError(f"{path}: TOML syntax error: {err}") from None
+    ctx = _Context(path, text)
+
+    for key in doc:
+        if key not in SECTIONS:
+            line = ctx.lines.table(key) or ctx.lines.table(key, 0) or ctx.lines.key(key)
+            raise ctx.error(f"unknown table or key {key!r}{_suggest(key, SECTIONS)}", line)
+
+    template = _params(TemplateParams, doc, "template", ctx, extra=STUDY_TEMPLATE_KEYS)
+    coating = _params(CoatingParams, doc, "coating", ctx)
+    model = _params(ModelParams, doc, "model", ctx)
+    output = _params(OutputParams, doc, "output", ctx)
+    quality = _params(QualityParams, doc, "quality", ctx)
+    correspondence = _params(CorrespondenceParams, doc, "correspondence", ctx)
+    compute = _params(ComputeParams, doc, "compute", ctx)
+    if compute.cache not in ("auto", "off") and not Path(compute.cache).is_absolute():
+        compute = dataclasses.replace(compute, cache=str((path.parent / compute.cache).resolve()))
+
+    instances = _instances(doc, ctx, path.parent, landmarks_required=correspondence.method == "landmarks")
+    if len(instances) < 2:
+        raise ctx.error(f"only one instance ({instances[0].name!r}): a shape model needs at least two",
+                        ctx.lines.table("instances", 0))
+    marked = [inst for inst in instances if inst.landmark_set is not None]
+    if not marked:
+        raise ctx.error("no instance has landmarks: the template instance needs them (they name the places "
+                        "written for every instance)")
+    try:
+        matched = match_landmarks([inst.landmark_set for inst in marked])
+    except InputError as err:
+        raise ctx.error(f"landmark names differ between instances (reference: instance {marked[0].name!r}): "
+                        f"{err}") from None
+    if len(matched[0]) < 4:
+        raise ctx.error(f"{len(matched[0])} landmarks: the landmark warp (eq. 2) needs at least 4 per instance")
+    by_name = {inst.name: lm for inst, lm in zip(marked, matched)}
+    instances = [dataclasses.replace(inst, landmark_set=by_name.get(inst.name)) for inst in instances]
+
+    names = [i.name for i in instances]
+    try:
+        file_names(names)
+    except InputError as err:
+        raise ctx.error(str(err), ctx.lines.table("instances", 0)) from None
+    template_instance = doc.get("template", {}).get("instance", names[0])
+    line = ctx.lines.key("template", "instance")
+    if not isinstance(template_instance, str):
+        raise _kind_error(ctx, "[template] instance", "a string", template_instance, line)
+    if template_instance not in names:
+        close = difflib.get_close_matches(template_instance, names, n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise ctx.error(f"[template] instance {template_instance!r} is not an instance name{hint}", line)
+    if by_name.get(template_instance) is None:
+        raise ctx.error(f"[template] instance {template_instance!r} has no landmarks; the template instance needs "
+                        "them", line)
+
+    return Project(path=path, instances=tuple(instances), template_instance=template_instance, template=template,
+                   coating=coating, model=model, output=output, quality=quality, correspondence=correspondence,
+                   compute=compute, landmark_names=matched[0].names)
+
+
+# --------------------------------------------------------------------------------------
+# writing
+
+
+def toml_value(value) -> str:
+    """A TOML literal for a parameter value (floats as their shortest repr)."""
+    if isinstance(value, bool | np.bool_):
+        return "true" if value else "false"
+    if isinstance(value, int | np.integer):
+        return str(int(value))
+    if isinstance(value, float | np.floating):
+        return repr(float(value))
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
+    if isinstance(value, Path):
+        value = value.as_posix()
+    return json.dumps(str(value), ensure_ascii=False)
+
+
+def _relative(path: Path, base: Path) -> str:
+    try:
+        return Path(os.path.relpath(Path(path).resolve(), base.resolve())).as_posix()
+    except ValueError:  # another drive on Windows
+        return Path(path).resolve().as_posix()
+
+
+def project_text(project: Project, base: Path) -> str:
+    """The TOML text of ``project`` with paths relative to ``base``: every parameter
+    written explicitly, in definition order (Save -> Open -> Save gives the same bytes)."""
+    lines = ["# SSM Builder project (paths relative to this file)", "", "[template]",
+             f"instance = {toml_value(project.template_instance)}"]
+    for section, params in (("template", project.template), ("coating", project.coating),
+                            ("correspondence", project.correspondence), ("model", project.model),
+                            ("output", project.output), ("quality", project.quality)):
+        if section != "template":
+            lines += ["", f"[{section}]"]
+        lines += [f"{k} = {toml_value(v)}" for k, v in P.to_table(params).items()]
+    compute = P.to_table(project.compute, only_changed=True)  # written only when set (Blender has no such panel)
+    if compute:
+        if compute.get("cache") not in (None, "auto", "off"):
+            compute["cache"] = _relative(Path(compute["cache"]), base)
+        lines += ["", "[compute]"] + [f"{k} = {toml_value(v)}" for k, v in compute.items()]
+    for inst in project.instances:
+        lines += ["", "[[instances]]", f"name = {toml_value(inst.name)}"]
+        if inst.volume is not None:
+            lines.append(f"volume = {toml_value(_relative(inst.volume, base))}")
+            if inst.label is not None:
+                lines.append(f"label = {int(inst.label)}")
+        else:
+            lines.append(f"mesh = {toml_value(_relative(inst.mesh, base))}")
+            if inst.mesh_spacing is not None:
+                lines.append(f"mesh_spacing = {toml_value(float(inst.mesh_spacing))}")
+        if inst.landmarks is not None:
+            lines.append(f"landmarks = {toml_value(_relative(inst.landmarks, base))}")
+    return "\n".join(lines) + "\n"
+
+
+def write_project(path, project: Project) -> Path:
+    """Write ``project`` as a TOML project file at ``path`` (paths relative to it)."""
+    path = Path(path).expanduser().resolve()
+    text = project_text(project, path.parent)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
+    return path
+
+

@@ -1,0 +1,14 @@
+"""Instances (paper 2): label maps and meshes as binary objects, the object frame, isotropic resampling.
+
+Every public name of the subpackage's modules, imported on first use (:mod:`ssm_addon._lazy`).
+"""
+
+from .._lazy import lazy_exports
+
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "frame": ("FRAME_METHODS", "SKEW_TIE", "frame_axes_moments", "frame_axes_patient", "object_frame"),
+    "importing": ("InstanceSpec", "file_names", "import_instance", "instance_frame", "load_object", "object_from_mesh", "object_from_volume", "read_instance", "safe_file_name"),
+    "resampling": ("resample",),
+    "volume": ("LabelMap", "ObjectFrame", "ObjectVolume", "Volume", "bounding_box", "display_surface", "frame_from_arrays", "frame_to_arrays", "summary"),
+    "voxelize": ("load_mesh_volume", "mesh_edge_defects", "voxelize_mesh"),
+})

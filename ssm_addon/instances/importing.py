@@ -1,0 +1,220 @@
+"""Instances: where each object of a study comes from, and its import (paper section 2).
+
+An instance is one segmented object of the training set: a label of a label map, or a
+closed surface mesh. Its import is always the same three steps, here and only here:
+read (:mod:`ssm_addon.formats.label_maps` or :mod:`ssm_addon.instances.voxelize`), object frame
+(:func:`ssm_addon.instances.frame.object_frame`) and isotropic resampling along the object axes
+(:func:`ssm_addon.instances.resampling.resample`). The command line and Blender both call
+:func:`import_instance` (or :func:`load_object` for a bare file), so the same source
+gives the same :class:`~ssm_addon.instances.volume.ObjectVolume` in both, bit for bit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..formats.label_maps import is_mesh_file, load_volume, select_label
+from ..instances.frame import object_frame
+from ..instances.resampling import resample
+from ..instances.volume import LabelMap, ObjectFrame, ObjectVolume, Volume
+from ..instances.voxelize import load_mesh_volume, voxelize_mesh
+from ..pipeline.errors import InputError, check_cancelled
+from ..pipeline.progress import CancelledFn, ProgressFn, report, sub_progress
+
+__all__ = ["InstanceSpec", "file_names", "import_instance", "instance_frame", "load_object", "object_from_mesh", "object_from_volume",
+           "read_instance", "safe_file_name"]
+
+
+@dataclass(frozen=True)
+class InstanceSpec:
+    """Where one instance comes from (a project's ``[[instances]]`` entry; paths absolute).
+
+    Attributes
+    ----------
+    name : str
+    landmarks : Path or None
+        Landmark file (world mm); None when the instance has no landmarks.
+    volume : Path or None
+        Label map file (NIfTI/NRRD/MetaImage/NumPy), or None for a mesh instance.
+    label : int or None
+        Label picked from the label map (None: all non-zero voxels).
+    mesh : Path or None
+        Closed surface mesh (STL/PLY/OBJ) in world mm.
+    mesh_spacing : float or None
+        Voxelization step of a mesh in mm (None: the study's spacing).
+    landmark_set : LandmarkSet or None
+        The landmarks as read (world mm), in the study's common name order.
+    """
+
+    name: str
+    landmarks: Path | None = None
+    volume: Path | None = None
+    label: int | None = None
+    mesh: Path | None = None
+    mesh_spacing: float | None = None
+    landmark_set: Any = None
+
+    @property
+    def source(self) -> Path:
+        """The label map or mesh file."""
+        return self.volume if self.volume is not None else self.mesh
+
+
+def safe_file_name(name: str) -> str:
+    """An instance name as a file name: letters, digits and ``._-`` kept, the rest ``_``.
+
+    Output files of an instance (``coated/<file name>.ply``, ``landmarks/<file name>.fcsv``)
+    use this, so a name like ``../../x`` or ``L1/L2`` cannot leave the output folder.
+
+    >>> safe_file_name("../../escaped"), safe_file_name("L1 (left)")
+    ('escaped', 'L1_left')
+    """
+    cleaned = "".join(c if c.isascii() and (c.isalnum() or c in "._-") else "_" for c in name)
+    return "_".join(part for part in cleaned.split("_") if part).strip("._") or "instance"
+
+
+def file_names(names) -> dict[str, str]:
+    """``{instance name: safe file name}``; an error when two names give the same file name."""
+    out = {n: safe_file_name(n) for n in names}
+    seen: dict[str, str] = {}
+    for n, f in out.items():
+        key = f.lower()  # case-insensitive file systems
+        if key in seen:
+            raise InputError(f"instances {seen[key]!r} and {n!r} would write the same files ({f}.*); rename one")
+        seen[key] = n
+    return out
+
+
+def instance_frame(volume: Volume, frame_method: str = "auto") -> ObjectFrame:
+    """The object frame (paper section 2) of an object as read (world mm).
+
+    The one place a frame is computed: the import below, and a fitting target's start
+    pose (:mod:`ssm_addon.fitting.batch`), so a new shape starts in the frame its training had.
+    """
+    return object_frame(volume, frame_method)
+
+
+def object_from_volume(volume: Volume, *, spacing_mm: float, frame_method: str = "auto",
+                       frame: ObjectFrame | None = None, progress: ProgressFn = None,
+                       cancelled: CancelledFn = None) -> ObjectVolume:
+    """Object frame and isotropic resampling of a binary object (paper section 2).
+
+    Parameters
+    ----------
+    volume : Volume
+        The object in its input grid (world mm).
+    spacing_mm : float
+        Isotropic voxel edge of the result (mm).
+    frame_method : {"auto", "patient", "moments"}
+    frame : ObjectFrame, optional
+        Use this frame instead of computing one.
+
+    Returns
+    -------
+    ObjectVolume
+    """
+    check_cancelled(cancelled)
+    report(progress, 0.0, "object frame")
+    frame = instance_frame(volume, frame_method) if frame is None else frame
+    check_cancelled(cancelled)
+    return resample(volume, frame, spacing_mm, progress=sub_progress(progress, 0.2, 1.0), cancelled=cancelled)
+
+
+def load_object(
+    path,
+    *,
+    label: int | None = None,
+    spacing_mm: float = 1.0,
+    frame_method: str = "auto",
+    mesh: bool | None = None,
+    mesh_spacing_mm: float | None = None,
+    patient_oriented: bool | None = None,
+    label_map: LabelMap | None = None,
+    progress: ProgressFn = None,
+    cancelled: CancelledFn = None,
+) -> ObjectVolume:
+    """Read a label map (pick ``label``) or a closed mesh, compute its frame and resample.
+
+    Parameters
+    ----------
+    path : str or Path
+        Label map or mesh file.
+    label : int, optional
+        Label of a label map (None: all non-zero voxels).
+    spacing_mm : float
+        Isotropic resampling step (mm).
+    frame_method : {"auto", "patient", "moments"}
+    mesh : bool, optional
+        None decides by extension (STL/PLY/OBJ are meshes).
+    mesh_spacing_mm : float, optional
+        Voxelization step of a mesh (None: ``spacing_mm``).
+    patient_oriented : bool, optional
+        Overrides the default (True for images, False for meshes), which drives
+        ``frame_method="auto"``.
+    label_map : LabelMap, optional
+        ``path`` already read (several instances share one file).
+
+    Returns
+    -------
+    ObjectVolume
+    """
+    report(progress, 0.0, f"reading {Path(path).name}")
+    if mesh is None:
+        mesh = is_mesh_file(path)
+    if mesh:
+        vol = load_mesh_volume(path, mesh_spacing_mm or spacing_mm, patient_oriented=bool(patient_oriented),
+                               cancelled=cancelled)
+    else:
+        vol = select_label(label_map, label) if label_map is not None else load_volume(path, label)
+        if patient_oriented is not None:
+            vol = replace(vol, patient_oriented=bool(patient_oriented))
+    return object_from_volume(vol, spacing_mm=spacing_mm, frame_method=frame_method,
+                              progress=sub_progress(progress, 0.4, 1.0), cancelled=cancelled)
+
+
+def object_from_mesh(vertices_world: np.ndarray, faces: np.ndarray, *, spacing_mm: float,
+                     mesh_spacing_mm: float | None = None, frame_method: str = "moments", source: str = "",
+                     patient_oriented: bool = False, cancelled: CancelledFn = None) -> ObjectVolume:
+    """A closed mesh given as arrays (world mm): voxelized, object frame, resampled."""
+    vol = voxelize_mesh(vertices_world, faces, mesh_spacing_mm or spacing_mm, source=source,
+                        patient_oriented=patient_oriented, cancelled=cancelled)
+    return object_from_volume(vol, spacing_mm=spacing_mm, frame_method=frame_method, cancelled=cancelled)
+
+
+def read_instance(spec: InstanceSpec, *, spacing_mm: float, label_map: LabelMap | None = None,
+                  cancelled: CancelledFn = None) -> Volume:
+    """The read step of :func:`import_instance`: the instance's binary object in its input grid.
+
+    A mesh is voxelized at ``spec.mesh_spacing`` (or ``spacing_mm``).
+    """
+    try:
+        if spec.mesh is not None:
+            return load_mesh_volume(spec.mesh, spec.mesh_spacing or spacing_mm, cancelled=cancelled)
+        if spec.volume is None:
+            raise InputError("no source file (volume or mesh)")
+        return select_label(label_map, spec.label) if label_map is not None else load_volume(spec.volume, spec.label)
+    except InputError as err:
+        raise InputError(f"instance {spec.name!r}: {err}") from None
+
+
+def import_instance(spec: InstanceSpec, *, spacing_mm: float, frame_method: str = "auto",
+                    label_map: LabelMap | None = None, progress: ProgressFn = None,
+                    cancelled: CancelledFn = None) -> ObjectVolume:
+    """Import one instance of a study: read, object frame, resample (paper section 2).
+
+    Raises
+    ------
+    InputError
+        Naming the instance and the file.
+    """
+    report(progress, 0.0, f"reading {spec.name}")
+    vol = read_instance(spec, spacing_mm=spacing_mm, label_map=label_map, cancelled=cancelled)
+    try:
+        return object_from_volume(vol, spacing_mm=spacing_mm, frame_method=frame_method,
+                                  progress=sub_progress(progress, 0.4, 1.0), cancelled=cancelled)
+    except InputError as err:
+        raise InputError(f"instance {spec.name!r}: {err}") from None

@@ -1,0 +1,269 @@
+"""The data of paper section 2: label maps, binary objects, object frames and resampled objects.
+
+Reading files is :mod:`ssm_addon.formats.label_maps` (images) and :mod:`ssm_addon.meshutil`
+(meshes), voxelizing meshes :mod:`ssm_addon.instances.voxelize`, the object frame
+:mod:`ssm_addon.instances.frame` and the isotropic resampling :mod:`ssm_addon.instances.resampling`; the
+one step that chains them for an instance is :func:`ssm_addon.instances.importing.load_object`.
+
+Frames and units
+----------------
+* *voxel* coordinates are array indices (i, j, k) of a mask;
+* *world* coordinates are the input file's scanner/patient coordinates in mm (RAS for
+  NIfTI; NRRD/MetaImage LPS spaces are converted to RAS on load);
+* *object* coordinates are mm in the object frame of paper section 2: origin at the
+  centre of mass, axes along the principal axes of the second-moment matrix.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from nibabel.affines import apply_affine, voxel_sizes
+
+from ..meshutil import marching_cubes
+from ..pipeline.errors import InputError
+
+
+@dataclass(frozen=True)
+class LabelMap:
+    """A label map as read from disk.
+
+    Attributes
+    ----------
+    labels : (I, J, K) integer ndarray
+        Label per voxel (0 = background).
+    affine : (4, 4) float ndarray
+        Voxel index (i, j, k, 1) -> world (x, y, z, 1) in mm (RAS).
+    path : str
+        The file it came from (for messages).
+    """
+
+    labels: np.ndarray
+    affine: np.ndarray
+    path: str = ""
+
+
+@dataclass(frozen=True)
+class Volume:
+    """A binary object in its input grid.
+
+    Attributes
+    ----------
+    mask : (I, J, K) bool ndarray
+        True inside the object.
+    affine : (4, 4) float ndarray
+        Voxel index -> world mm.
+    source : str
+        File or object the mask came from.
+    label : int or None
+        The label picked from a label map (None: all non-zero, or a mesh).
+    patient_oriented : bool
+        True when world axes are patient axes (R, A, S), i.e. the input was an image
+        with an orientation; False for meshes in arbitrary coordinates.
+    """
+
+    mask: np.ndarray
+    affine: np.ndarray
+    source: str = ""
+    label: int | None = None
+    patient_oriented: bool = True
+
+    @property
+    def spacing_mm(self) -> np.ndarray:
+        """(3,) voxel edge lengths in mm (column norms of the affine)."""
+        return voxel_sizes(self.affine)
+
+    @property
+    def voxel_volume_mm3(self) -> float:
+        """Volume of one voxel in mm³ (|det| of the affine's linear part)."""
+        return float(abs(np.linalg.det(self.affine[:3, :3])))
+
+    @property
+    def volume_mm3(self) -> float:
+        """Object volume in mm³: voxel count × voxel volume."""
+        return float(np.count_nonzero(self.mask)) * self.voxel_volume_mm3
+
+    def voxel_to_world(self, ijk: np.ndarray) -> np.ndarray:
+        """(M, 3) voxel coordinates -> (M, 3) world mm."""
+        return apply_affine(self.affine, np.asarray(ijk, dtype=float))
+
+
+@dataclass(frozen=True)
+class ObjectFrame:
+    """The object-related coordinate system of paper section 2.
+
+    Attributes
+    ----------
+    origin_world : (3,) float ndarray
+        Centre of mass in world mm.
+    axes_world : (3, 3) float ndarray
+        Columns are the object x, y, z axes as unit vectors in world coordinates;
+        orthonormal and right-handed (det = +1).
+    second_moments_mm2 : (3,) float ndarray
+        Second moments (variances, mm²) of the object along the three axes.
+    method : str
+        How axis order and signs were fixed: ``"patient"`` (paired with the nearest
+        patient axes R, A, S) or ``"moments"`` (eigenvalue order + third-moment signs).
+    """
+
+    origin_world: np.ndarray
+    axes_world: np.ndarray
+    second_moments_mm2: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    method: str = "moments"
+
+    def to_world(self, points_object: np.ndarray) -> np.ndarray:
+        """(M, 3) object mm -> (M, 3) world mm."""
+        return np.asarray(points_object, float) @ self.axes_world.T + self.origin_world
+
+    def to_object(self, points_world: np.ndarray) -> np.ndarray:
+        """(M, 3) world mm -> (M, 3) object mm."""
+        return (np.asarray(points_world, float) - self.origin_world) @ self.axes_world
+
+    @property
+    def matrix_world(self) -> np.ndarray:
+        """(4, 4) object mm -> world mm."""
+        m = np.eye(4)
+        m[:3, :3] = self.axes_world
+        m[:3, 3] = self.origin_world
+        return m
+
+
+def frame_to_arrays(prefix: str, frame: ObjectFrame, out: dict) -> None:
+    """Store ``frame`` in ``out`` as plain arrays under ``<prefix>/<field>`` (no pickles)."""
+    out[f"{prefix}/origin_world"] = np.asarray(frame.origin_world, float)
+    out[f"{prefix}/axes_world"] = np.asarray(frame.axes_world, float)
+    out[f"{prefix}/second_moments_mm2"] = np.asarray(frame.second_moments_mm2, float)
+    out[f"{prefix}/method"] = np.asarray(frame.method)
+
+
+def frame_from_arrays(prefix: str, arrays) -> ObjectFrame:
+    """The frame stored by :func:`frame_to_arrays` (``arrays``: a mapping or an npz)."""
+    return ObjectFrame(origin_world=arrays[f"{prefix}/origin_world"], axes_world=arrays[f"{prefix}/axes_world"],
+                       second_moments_mm2=arrays[f"{prefix}/second_moments_mm2"],
+                       method=str(arrays[f"{prefix}/method"]))
+
+
+@dataclass(frozen=True)
+class ObjectVolume:
+    """An isotropic binary image resampled along the object axes (paper section 2).
+
+    The basis of all further processing: template generation and coating work on it.
+
+    Attributes
+    ----------
+    mask : (I, J, K) bool ndarray
+        Object voxels on an isotropic grid aligned with the object axes, with at least
+        one background voxel on every side.
+    spacing_mm : float
+        Isotropic voxel edge in mm.
+    origin_object : (3,) float ndarray
+        Object coordinates (mm) of voxel (0, 0, 0)'s centre.
+    frame : ObjectFrame
+        The frame that maps object coordinates to world.
+    source : str
+        Where the object came from (for messages).
+    """
+
+    mask: np.ndarray
+    spacing_mm: float
+    origin_object: np.ndarray
+    frame: ObjectFrame
+    source: str = ""
+
+    def voxel_to_object(self, ijk: np.ndarray) -> np.ndarray:
+        """(M, 3) voxel coordinates -> (M, 3) object mm."""
+        return np.asarray(ijk, float) * self.spacing_mm + self.origin_object
+
+    def object_to_voxel(self, points_object: np.ndarray) -> np.ndarray:
+        """(M, 3) object mm -> (M, 3) continuous voxel coordinates."""
+        return (np.asarray(points_object, float) - self.origin_object) / self.spacing_mm
+
+    @property
+    def affine_object(self) -> np.ndarray:
+        """(4, 4) voxel index -> object mm."""
+        m = np.eye(4) * self.spacing_mm
+        m[3, 3] = 1.0
+        m[:3, 3] = self.origin_object
+        return m
+
+    @property
+    def volume_mm3(self) -> float:
+        """Object volume in mm³ of the resampled mask."""
+        return float(np.count_nonzero(self.mask)) * self.spacing_mm**3
+
+
+def bounding_box(mask: np.ndarray) -> tuple[slice, slice, slice]:
+    """Index slices of the smallest box holding every True voxel (InputError if none)."""
+    slices = []
+    for axis in range(3):
+        other = tuple(a for a in range(3) if a != axis)
+        hit = np.nonzero(np.any(mask, axis=other))[0]
+        if hit.size == 0:
+            raise InputError("empty mask: no object voxels")
+        slices.append(slice(int(hit[0]), int(hit[-1]) + 1))
+    return tuple(slices)
+
+
+
+# ---------------------------------------------------------------------------------------
+# Display and summaries
+# ---------------------------------------------------------------------------------------
+
+
+def display_surface(volume, to_world: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Marching-cubes surface of a mask at level 0.5 with outward faces.
+
+    Parameters
+    ----------
+    volume : Volume or ObjectVolume
+        For a :class:`Volume` the vertices are in world mm. For an :class:`ObjectVolume`
+        they are in object mm, or in world mm with ``to_world=True``.
+
+    Returns
+    -------
+    vertices : (V, 3) float ndarray, mm
+    faces : (F, 3) int ndarray, outward (positive signed volume)
+    """
+    if not np.any(volume.mask):
+        raise InputError(f"{volume.source or 'volume'}: empty mask: nothing to display")
+    ijk, faces = marching_cubes(volume.mask)
+    if isinstance(volume, ObjectVolume):
+        pts = volume.voxel_to_object(ijk)
+        if to_world:
+            pts = volume.frame.to_world(pts)
+    else:
+        pts = volume.voxel_to_world(ijk)
+    if np.linalg.det(volume.affine[:3, :3] if isinstance(volume, Volume) else np.eye(3)) < 0:
+        faces = faces[:, ::-1].copy()  # a mirroring affine turns outward faces inward
+    return pts, faces
+
+
+def summary(volume) -> dict:
+    """Figures for printing: voxel count, volume (mm³), spacing (mm), bounding box.
+
+    ``bbox_min``/``bbox_max`` are the extreme object voxel centres in world mm for a
+    :class:`Volume` and in object mm for an :class:`ObjectVolume`.
+    """
+    if isinstance(volume, ObjectVolume):
+        ijk = np.argwhere(volume.mask).astype(float)
+        pts = volume.voxel_to_object(ijk) if len(ijk) else np.zeros((1, 3))
+        spacing = [volume.spacing_mm] * 3
+        vox_vol = volume.spacing_mm**3
+        frame = "object"
+    else:
+        pts = volume.voxel_to_world(np.argwhere(volume.mask)) if volume.mask.any() else np.zeros((1, 3))
+        spacing = volume.spacing_mm.tolist()
+        vox_vol = volume.voxel_volume_mm3
+        frame = "world"
+    n = int(np.count_nonzero(volume.mask))
+    return {
+        "source": volume.source,
+        "voxels": n,
+        "volume_mm3": n * vox_vol,
+        "spacing_mm": [float(s) for s in spacing],
+        "shape": list(volume.mask.shape),
+        "bbox_frame": frame,
+        "bbox_min": pts.min(axis=0).tolist(),
+        "bbox_max": pts.max(axis=0).tolist(),
+    }

@@ -1,0 +1,287 @@
+"""The model's files: ``model.npz`` (the contract) and statismo HDF5."""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..model.pca import ShapeModel
+from ..pipeline.errors import InputError
+from ..pipeline.records import jsonable
+
+NPZ_KEYS = (
+    "mean",
+    "faces",
+    "modes",
+    "variances",
+    "instance_names",
+    "instance_points",
+    "instance_points_world",
+    "params_json",
+)
+"""The arrays of ``model.npz`` (the file contract; ``allow_pickle=False``)."""
+
+
+# ---------------------------------------------------------------------------------------
+# Files: model.npz (contract) and statismo HDF5
+# ---------------------------------------------------------------------------------------
+def save_npz(model: ShapeModel, path) -> Path:
+    """Write ``model.npz`` per the contract (no pickled objects; names as fixed-width unicode).
+
+    Keys: mean (N,3), faces (F,3), modes (K,N,3), variances (K,), instance_names (n,),
+    instance_points (n,N,3), instance_points_world (n,N,3), params_json (0-d str).
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    names = np.asarray([str(s) for s in model.instance_names])
+    if names.size == 0:
+        names = np.zeros(0, dtype="<U1")
+    write_npz(path, {
+        "mean": np.asarray(model.mean, dtype=float),
+        "faces": np.asarray(model.faces, dtype=np.int64),
+        "modes": np.asarray(model.modes, dtype=float),
+        "variances": np.asarray(model.variances, dtype=float),
+        "instance_names": names,
+        "instance_points": np.asarray(model.instance_points, dtype=float),
+        "instance_points_world": np.asarray(model.instance_points_world, dtype=float),
+        "params_json": np.asarray(json.dumps(jsonable(model.params), sort_keys=True)),
+    })
+    return path
+
+
+def write_npz(path, arrays: dict) -> Path:
+    """``np.savez`` with fixed member dates: the same arrays give the same bytes.
+
+    ``np.savez`` stamps every member with the current time, so two identical builds
+    would differ; here each ``<key>.npy`` member has the zip epoch (1980-01-01). The file
+    reads with ``np.load(path, allow_pickle=False)``.
+    """
+    import io
+    import zipfile
+
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
+        for key, value in arrays.items():
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, np.asanyarray(value), allow_pickle=False)
+            info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.external_attr = 0o644 << 16
+            zf.writestr(info, buf.getvalue())
+    os.replace(tmp, path)
+    return path
+
+
+def model_from_arrays(arrays: dict, where: str = "model") -> ShapeModel:
+    """Check shapes of the model arrays and make a ShapeModel (errors name ``where``)."""
+    mean = np.asarray(arrays["mean"], dtype=float)
+    if mean.ndim != 2 or mean.shape[1] != 3:
+        raise InputError(f"{where}: 'mean' has shape {mean.shape}; expected (N, 3)")
+    npts = mean.shape[0]
+    faces = np.asarray(arrays["faces"])
+    if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
+        raise InputError(f"{where}: 'faces' has shape {faces.shape} dtype {faces.dtype}; expected (F, 3) integers")
+    if faces.size and (faces.min() < 0 or faces.max() >= npts):
+        raise InputError(f"{where}: 'faces' index points outside 0..{npts - 1}")
+    modes = np.asarray(arrays["modes"], dtype=float)
+    if modes.ndim != 3 or modes.shape[1:] != (npts, 3):
+        raise InputError(f"{where}: 'modes' has shape {modes.shape}; expected (K, {npts}, 3)")
+    variances = np.asarray(arrays["variances"], dtype=float)
+    if variances.shape != (modes.shape[0],):
+        raise InputError(f"{where}: 'variances' has shape {variances.shape}; expected ({modes.shape[0]},)")
+    if np.any(variances < 0) or np.any(np.diff(variances) > 1e-12 * max(variances.max(initial=0), 1.0)):
+        raise InputError(f"{where}: 'variances' must be non-negative and descending")
+    names = np.asarray(arrays["instance_names"]).astype(str)
+    if names.ndim != 1:
+        raise InputError(f"{where}: 'instance_names' has shape {names.shape}; expected (n,)")
+    n = names.shape[0]
+    pts = np.asarray(arrays["instance_points"], dtype=float)
+    world = np.asarray(arrays["instance_points_world"], dtype=float)
+    for key, arr in (("instance_points", pts), ("instance_points_world", world)):
+        if arr.shape != (n, npts, 3):
+            raise InputError(f"{where}: '{key}' has shape {arr.shape}; expected ({n}, {npts}, 3)")
+    params = arrays.get("params", {})
+    return ShapeModel(
+        mean=mean,
+        faces=faces.astype(np.int64),
+        modes=modes,
+        variances=variances,
+        instance_names=names,
+        instance_points=pts,
+        instance_points_world=world,
+        params=params,
+    )
+
+
+def load_npz(path) -> ShapeModel:
+    """Read a ``model.npz`` written by :func:`save_npz` (``allow_pickle=False``).
+
+    Raises
+    ------
+    InputError
+        The file is missing, not an npz, lacks a key or has arrays of the wrong shape.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: model file not found")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            missing = [k for k in NPZ_KEYS if k not in data.files]
+            if missing:
+                raise InputError(f"{path}: not a model.npz, missing keys {missing}")
+            arrays = {k: data[k] for k in NPZ_KEYS}
+    except InputError:
+        raise
+    except (OSError, ValueError) as err:
+        raise InputError(f"{path}: cannot read as a model .npz ({err})") from err
+    try:
+        params = json.loads(str(arrays.pop("params_json")))
+    except json.JSONDecodeError as err:
+        raise InputError(f"{path}: 'params_json' is not valid JSON ({err})") from err
+    if not isinstance(params, dict):
+        raise InputError(f"{path}: 'params_json' is not a JSON object")
+    arrays["params"] = params
+    return model_from_arrays(arrays, str(path))
+
+
+def save_statismo(model: ShapeModel, path, noise_variance: float = 0.0) -> Path:
+    """Write the model as a statismo 0.9 HDF5 file (readable by statismo and Scalismo).
+
+    Layout (statismo 0.9 / Scalismo ``StatismoIO``): ``/version/majorVersion`` = 0,
+    ``/version/minorVersion`` = 9; ``/model/mean`` (3N,) float32 (point positions);
+    ``/model/pcaBasis`` (3N, K) float32 with the *orthonormal* eigenvectors as columns
+    (version 0.9; 0.8 stored them scaled by √λ); ``/model/pcaVariance`` (K,) the
+    eigenvalues (mm²); ``/model/noiseVariance`` scalar; ``/representer`` with attributes
+    ``name`` = "itkStandardMeshRepresenter", ``datasetType`` = "POLYGON_MESH" and datasets
+    ``points`` (3, N) float32 (the mean as reference) and ``cells`` (3, F) int32;
+    ``/modelinfo`` with ``build-time``, ``scores`` (K, n) and ``modelBuilder-0`` (builder
+    name, build time, ``parameters`` and ``dataInfo``). SSM Builder's extras (instance names
+    and points, the JSON parameters) go into ``/ssm``, which other readers ignore.
+    """
+    import h5py
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    k = model.n_modes
+    build_time = str(model.params.get("created", datetime.datetime.now().isoformat()))
+    with h5py.File(path, "w") as f:
+        ver = f.create_group("version")
+        ver.create_dataset("majorVersion", data=np.int32(0))
+        ver.create_dataset("minorVersion", data=np.int32(9))
+        g = f.create_group("model")
+        g.create_dataset("mean", data=model.mean.reshape(-1).astype(np.float32))
+        g.create_dataset("pcaBasis", data=model.modes.reshape(k, -1).T.astype(np.float32))
+        g.create_dataset("pcaVariance", data=model.variances.astype(np.float32))
+        g.create_dataset("noiseVariance", data=np.float32(noise_variance))
+        rep = f.create_group("representer")
+        rep.attrs["name"] = "itkStandardMeshRepresenter"
+        rep.attrs["datasetType"] = "POLYGON_MESH"
+        rep.attrs["version/majorVersion"] = "0"
+        rep.attrs["version/minorVersion"] = "9"
+        rep.create_dataset("points", data=model.mean.T.astype(np.float32))
+        rep.create_dataset("cells", data=np.asarray(model.faces, dtype=np.int32).T)
+        info = f.create_group("modelinfo")
+        info.create_dataset("build-time", data=build_time)
+        info.create_dataset("scores", data=model.scores().T.astype(np.float32))
+        mb = info.create_group("modelBuilder-0")
+        mb.create_dataset("builderName", data=f"SSM Builder {__version__} (PCA via Gram matrix, paper eq. 4-6)")
+        mb.create_dataset("buildTime", data=build_time)
+        par = mb.create_group("parameters")
+        for key in ("alignment", "ddof", "n_modes", "total_variance_mm2", "eigensolver"):
+            if key in model.params and model.params[key] is not None:
+                par.create_dataset(key, data=model.params[key])
+        par.create_dataset("NoiseVariance", data=np.float32(noise_variance))
+        dinfo = mb.create_group("dataInfo")
+        for i, name in enumerate(model.instance_names):
+            dinfo.create_dataset(f"URI_{i}", data=str(name))
+        extra = f.create_group("ssm")
+        extra.create_dataset("instance_names", data=np.asarray(model.instance_names, dtype=object), dtype=h5py.string_dtype())
+        extra.create_dataset("instance_points", data=np.asarray(model.instance_points, dtype=float))
+        extra.create_dataset("instance_points_world", data=np.asarray(model.instance_points_world, dtype=float))
+        extra.create_dataset("params_json", data=json.dumps(jsonable(model.params)))
+    return path
+
+
+def load_statismo(path) -> ShapeModel:
+    """Read a statismo HDF5 shape model (0.9 orthonormal basis, or 0.8 scaled basis).
+
+    Mean, basis and variances are float32 in the format. Instance data come from the
+    ``/ssm`` group when the file was written by SSM Builder (else they are empty).
+    """
+    import h5py
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: statismo file not found")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as err:
+        raise InputError(f"{path}: not an HDF5 file ({err})") from err
+    with f:
+        for key in ("model/mean", "model/pcaBasis", "model/pcaVariance", "representer/points"):
+            if key not in f:
+                raise InputError(f"{path}: not a statismo model, missing '/{key}'")
+        major = int(f["version/majorVersion"][()]) if "version/majorVersion" in f else 0
+        minor = int(f["version/minorVersion"][()]) if "version/minorVersion" in f else 8
+        mean = np.asarray(f["model/mean"][()], dtype=float).reshape(-1, 3)
+        basis = np.asarray(f["model/pcaBasis"][()], dtype=float)
+        variances = np.asarray(f["model/pcaVariance"][()], dtype=float).reshape(-1)
+        if basis.shape != (mean.size, variances.size):
+            raise InputError(f"{path}: '/model/pcaBasis' has shape {basis.shape}; expected ({mean.size}, {variances.size})")
+        if (major, minor) == (0, 8):
+            sd = np.sqrt(variances)
+            basis = basis / np.where(sd > 1e-8, sd, np.inf)[None]
+        elif (major, minor) not in ((0, 9),) and major != 1:
+            raise InputError(f"{path}: unsupported statismo version {major}.{minor}")
+        cells = np.asarray(f["representer/cells"][()]) if "representer/cells" in f else np.zeros((3, 0), int)
+        if cells.ndim != 2 or cells.shape[0] != 3:
+            raise InputError(f"{path}: '/representer/cells' has shape {cells.shape}; expected (3, F) triangles")
+        if "ssm" in f:
+            names = np.asarray([s.decode() if isinstance(s, bytes) else str(s) for s in f["ssm/instance_names"][()]])
+            pts = np.asarray(f["ssm/instance_points"][()], dtype=float)
+            world = np.asarray(f["ssm/instance_points_world"][()], dtype=float)
+            pj = f["ssm/params_json"][()]
+            params = json.loads(pj.decode() if isinstance(pj, bytes) else str(pj))
+        else:
+            npts = mean.shape[0]
+            names = np.zeros(0, dtype="<U1")
+            pts = np.zeros((0, npts, 3))
+            world = np.zeros((0, npts, 3))
+            params = {"source": str(path), "total_variance_mm2": float(variances.sum())}
+    k = variances.size
+    return model_from_arrays(
+        {
+            "mean": mean,
+            "faces": cells.T.astype(np.int64),
+            "modes": basis.T.reshape(k, -1, 3),
+            "variances": variances,
+            "instance_names": names,
+            "instance_points": pts,
+            "instance_points_world": world,
+            "params": params,
+        },
+        str(path),
+    )
+
+
+def file_size_mb(path) -> float:
+    """Size of a file in MB (for reports)."""
+    return os.path.getsize(path) / 1e6
+
+
+def write_model_files(model: ShapeModel, out_dir, *, statismo: bool = True, statismo_name: str = "model.h5") -> dict:
+    """Write ``model.npz`` and (``statismo``) the statismo file into ``out_dir``.
+
+    Returns ``{"npz": path, "statismo": path}`` (only what was written).
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = {"npz": str(save_npz(model, out_dir / "model.npz"))}
+    if statismo:
+        written["statismo"] = str(save_statismo(model, out_dir / statismo_name))
+    return written

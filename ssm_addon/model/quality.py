@@ -1,0 +1,395 @@
+"""Quality gates: results that are probably wrong, named with the reason.
+
+A shape model that is silently wrong is worse than none. Every gate compares one figure
+with a threshold of :class:`~ssm_addon.pipeline.params.QualityParams` (the project's
+``[quality]`` table) and returns :class:`Finding` objects that name the instance, the
+gate, the figure and the threshold:
+
+============================  ==============================================  ==========
+gate                          figure                                          stage
+============================  ==============================================  ==========
+``components``                share of the second-largest connected part      import
+``volume``                    volume / median volume of the study             import
+``landmark_distance``         landmark to surface distance (mm; an error)     import
+``landmark_residual``         coated landmark to given landmark (mm)          coating
+``folds``                     folded triangles left                           coating
+``surface_distance``          largest vertex distance to the surface (voxels) coating
+``convergence``               relaxation stopped by its iteration limit       coating
+``outlier``                   leave-one-out Mahalanobis distance (F test)     model
+``reconstruction``            leave-one-out reconstruction error / median     model
+============================  ==============================================  ==========
+
+Input problems that make a build meaningless (a mask of a few voxels, landmarks far
+from their instance's surface) are :class:`~ssm_addon.pipeline.errors.InputError` at once; the
+rest are findings. :func:`warnings_text` is the summary the command line prints last;
+with ``strict`` a build with findings fails (:class:`QualityError`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from ..pipeline.errors import InputError, SSMError
+from ..pipeline.params import QualityParams
+
+__all__ = [
+    "Finding",
+    "QualityError",
+    "check_coating",
+    "check_landmarks_on_surface",
+    "check_model",
+    "check_volume",
+    "check_volumes_together",
+    "loo_outlier_scores",
+    "warnings_text",
+]
+
+
+class QualityError(SSMError):
+    """A strict build stopped because quality gates failed (the message lists them)."""
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One failed quality gate.
+
+    Attributes
+    ----------
+    instance : str
+        The instance's name ("" for the study as a whole).
+    gate : str
+        The gate's name (see the module docstring).
+    message : str
+        What was found, with the figure and the threshold, in words.
+    value, threshold : float
+    stage : str
+        The pipeline stage that found it (``import``, ``coating``, ``model``; set by the
+        stage's result, :class:`ssm_addon.pipeline.study.StageResult`).
+    """
+
+    instance: str
+    gate: str
+    message: str
+    value: float = float("nan")
+    threshold: float = float("nan")
+    stage: str = ""
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        for k in ("value", "threshold"):
+            d[k] = None if not math.isfinite(d[k]) else float(d[k])
+        return d
+
+    def __str__(self) -> str:
+        return f"{self.instance}: {self.message}" if self.instance else self.message
+
+
+# ------------------------------------------------------------------------------- import
+def check_volume(name: str, object_volume, params: QualityParams) -> list[Finding]:
+    """Gates on one imported instance: enough voxels (else an error), one main component.
+
+    Raises
+    ------
+    InputError
+        The mask has fewer than ``params.min_voxels`` voxels (a wrong label or a stray
+        fragment: nothing to model).
+    """
+    from scipy import ndimage
+
+    mask = np.asarray(object_volume.mask, dtype=bool)
+    n = int(np.count_nonzero(mask))
+    if n < params.min_voxels:
+        raise InputError(f"instance {name!r} ({object_volume.source or 'mask'}): only {n} voxel(s) at "
+                         f"{object_volume.spacing_mm:g} mm; at least {params.min_voxels} are needed (wrong label?)")
+    labels, count = ndimage.label(mask)
+    if count < 2:
+        return []
+    sizes = np.sort(np.bincount(labels.ravel())[1:])[::-1]
+    share = float(sizes[1] / n)
+    if share > params.max_second_component:
+        return [Finding(name, "components", f"{count} separate parts; the second-largest holds {100 * share:.0f} % of "
+                        f"the voxels (threshold {100 * params.max_second_component:.0f} %): two objects under one label?",
+                        share, params.max_second_component)]
+    return []
+
+
+def check_volumes_together(volumes_mm3: dict[str, float], params: QualityParams) -> list[Finding]:
+    """Instances whose volume is far from the study's median (a wrong label, another structure)."""
+    if len(volumes_mm3) < 3:
+        return []
+    median = float(np.median(list(volumes_mm3.values())))
+    out = []
+    for name, v in volumes_mm3.items():
+        ratio = v / median if median > 0 else float("inf")
+        if ratio > params.max_volume_ratio or ratio < 1.0 / params.max_volume_ratio:
+            out.append(Finding(name, "volume", f"volume {v / 1000:.1f} cm³ is {ratio:.2f}× the study's median "
+                               f"{median / 1000:.1f} cm³ (allowed {1 / params.max_volume_ratio:.2f}–"
+                               f"{params.max_volume_ratio:g}×): another structure or a wrong label?",
+                               ratio, params.max_volume_ratio))
+    return out
+
+
+def _surface_points_world(object_volume) -> np.ndarray:
+    from ..meshutil import marching_cubes
+
+    verts, _ = marching_cubes(object_volume.mask)
+    return object_volume.frame.to_world(object_volume.voxel_to_object(verts))
+
+
+def _near_surface_distances(object_volume, points_world: np.ndarray, limit_mm: float) -> np.ndarray:
+    """Distances (mm) of points to the mask's surface, looked up in a window of ``limit_mm``.
+
+    The surface is taken at the boundary voxels' centres less half a voxel (within a
+    voxel of the marching-cubes surface); a point with no boundary voxel within
+    ``limit_mm`` gets ``inf``. A few hundred voxels per point: milliseconds per instance.
+    """
+    ov = object_volume
+    mask = np.asarray(ov.mask, dtype=bool)
+    h = float(ov.spacing_mm)
+    ijk = ov.object_to_voxel(ov.frame.to_object(points_world))
+    w = int(np.ceil(limit_mm / h)) + 2
+    out = np.full(len(ijk), np.inf)
+    shape = np.array(mask.shape)
+    for k, c in enumerate(ijk):
+        lo = np.maximum(np.floor(c).astype(int) - w, 0)
+        hi = np.minimum(np.floor(c).astype(int) + w + 2, shape)
+        if np.any(hi <= lo):
+            continue
+        sub = mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+        pad = np.pad(sub, 1, mode="edge")
+        boundary = sub & ~(pad[:-2, 1:-1, 1:-1] & pad[2:, 1:-1, 1:-1] & pad[1:-1, :-2, 1:-1] & pad[1:-1, 2:, 1:-1]
+                           & pad[1:-1, 1:-1, :-2] & pad[1:-1, 1:-1, 2:])
+        idx = np.argwhere(boundary)
+        if len(idx):
+            out[k] = max(float(np.sqrt(((idx + lo - c) ** 2).sum(axis=1).min())) * h - 0.5 * h, 0.0)
+    return out
+
+
+def check_landmarks_on_surface(name: str, object_volume, landmarks, params: QualityParams,
+                               source: str = "") -> np.ndarray:
+    """Every landmark must lie within ``params.max_landmark_distance_mm`` of its instance's surface.
+
+    Returns the distances (mm). A landmark file whose points fit the surface far better
+    with x and y negated gets an error saying the file's coordinate system (LPS vs RAS)
+    is probably declared wrongly.
+
+    Raises
+    ------
+    InputError
+        Naming the instance, the landmark file, the farthest landmark and its distance.
+    """
+    from scipy.spatial import cKDTree
+
+    if landmarks is None or not len(landmarks):
+        return np.zeros(0)
+    pts = np.asarray(landmarks.points_world, dtype=float)
+    limit = params.max_landmark_distance_mm
+    d = _near_surface_distances(object_volume, pts, limit)
+    if float(d.max()) <= limit:
+        return d
+    tree = cKDTree(_surface_points_world(object_volume))  # the exact figures, for the message
+    d = tree.query(pts)[0]
+    if float(d.max()) <= limit:
+        return d
+    worst = int(np.argmax(d))
+    where = source or landmarks.source or "its landmark file"
+    flipped = tree.query(pts * np.array([-1.0, -1.0, 1.0]))[0]
+    hint = ""
+    if float(np.median(flipped)) <= limit and float(np.median(flipped)) < 0.2 * float(np.median(d)):
+        hint = (f"; with x and y negated they lie {np.median(flipped):.1f} mm from it (median): the file's "
+                f"coordinates look like LPS declared as RAS (or the reverse); fix its coordinate system")
+    elif float(np.median(d)) > limit:
+        hint = (f"; all {len(d)} landmarks are far (median {np.median(d):.0f} mm): the landmarks of another "
+                f"instance, or of another image?")
+    raise InputError(f"instance {name!r}: landmark {landmarks.names[worst]!r} of {where} is {d[worst]:.1f} mm from "
+                     f"the instance's surface (allowed {limit:g} mm, [quality] max_landmark_distance_mm){hint}")
+
+
+# ------------------------------------------------------------------------------ coating
+def check_coating(name: str, fit, params: QualityParams) -> list[Finding]:
+    """Gates on one coated instance (:class:`~ssm_addon.coating.coating.FitFigures`)."""
+    out = []
+    residuals = tuple(fit.landmark_residuals_mm)
+    res = max(residuals, default=0.0)
+    if res > params.max_landmark_residual_mm:
+        names = tuple(fit.landmark_names)
+        which = f"given landmark {names[residuals.index(res)]!r}" if len(names) == len(residuals) else "a given landmark"
+        out.append(Finding(name, "landmark_residual", f"the coating is {res:.1f} mm from {which} (allowed "
+                           f"{params.max_landmark_residual_mm:g} mm): landmarks inconsistent with the template's?",
+                           res, params.max_landmark_residual_mm))
+    if fit.folded_after > params.max_folded_triangles:
+        out.append(Finding(name, "folds", f"{fit.folded_after} folded triangle(s) left (allowed "
+                           f"{params.max_folded_triangles})", fit.folded_after, params.max_folded_triangles))
+    vox = fit.max_distance_mm / max(fit.spacing_mm, 1e-12)
+    if not math.isfinite(vox) or vox > params.max_surface_distance_vox:
+        out.append(Finding(name, "surface_distance", f"a vertex is {fit.max_distance_mm:.2f} mm "
+                           f"({vox:.2f} voxels) from the surface (allowed {params.max_surface_distance_vox:g} voxel)",
+                           vox, params.max_surface_distance_vox))
+    if params.require_convergence and not fit.converged:
+        out.append(Finding(name, "convergence", f"the relaxation stopped at its limit of {fit.iterations} steps "
+                           "before reaching its velocity tolerance", fit.iterations))
+    return out
+
+
+# -------------------------------------------------------------------------------- model
+EXACT_LOO_MAX = 300
+SUBSPACE_MODES = 300
+"""Above this many instances the leave-one-out scores use the model's leading subspace (see
+:func:`_loo_scores_in_subspace`); below it, one n × n eigenproblem per instance."""
+
+
+def _descending_eig(mat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenpairs of a symmetric matrix, largest first, without the numerically zero ones."""
+    w, v = np.linalg.eigh(mat)
+    order = np.argsort(w)[::-1]
+    w, v = w[order], v[:, order]
+    keep = w > 1e-10 * max(w[0], 1e-300)
+    return w[keep], v[:, keep]
+
+
+def _row_scores(lam: np.ndarray, b: np.ndarray, total: float, tt: float, npts: int, m: int,
+                variance_fraction: float) -> tuple[float, int, float, float]:
+    """(D², K, reconstruction RMS in mm, largest t) of one held-out shape, from its LOO model's
+    variances ``lam`` (descending), its coefficients ``b``, the total variance and |y|² = ``tt``."""
+    k = int(min(np.searchsorted(np.cumsum(lam) / total, variance_fraction - 1e-12) + 1, len(lam)))
+    d2 = float(np.sum(b[:k] ** 2 / lam[:k]))
+    rms = math.sqrt(max(tt - float(np.sum(b[:k] ** 2)), 0.0) / npts)
+    t = float(np.max(np.abs(b[:k]) / np.sqrt(lam[:k] * (m + 1) / max(m - 1, 1))))
+    return d2, k, rms, t
+
+
+def _loo_scores_in_subspace(gram: np.ndarray, npts: int, variance_fraction: float) -> dict:
+    """Leave-one-out scores from one eigendecomposition plus an r × r one per instance.
+
+    With the full model's modes as basis (coefficients c_i, Σ c_i = 0, Σ c_i c_iᵀ = W
+    diagonal), the model without i has mean −c_i/(n−1) and covariance
+    S₋ᵢ = (W − n/(n−1) c_i c_iᵀ)/(n−1): a rank-one downdate, solved in the leading
+    r = min(n − 1, :data:`SUBSPACE_MODES`) modes. Exact up to 301 instances; above, the
+    total variance and the held-out shape's squared distance stay exact and what is lost
+    is the part of the leave-one-out modes outside the full model's leading 300.
+    O(n³ + n r³) instead of O(n⁴).
+    """
+    n = len(gram)
+    w, v = np.linalg.eigh(gram)
+    order = np.argsort(w)[::-1]
+    w, v = np.maximum(w[order], 0.0), v[:, order]
+    total = float(w.sum())
+    r = int(min(n - 1, SUBSPACE_MODES))
+    c = v[:, :r] * np.sqrt(w[:r])  # (n, r) coordinates of the centred shapes
+    sq = np.diag(gram)  # |p_i − p̄|²
+    m = n - 1
+    m2, ks, err, tmax = np.full(n, np.nan), np.zeros(n, dtype=int), np.full(n, np.nan), np.full(n, np.nan)
+    for i in range(n):
+        ci = c[i]
+        lam, u = _descending_eig((np.diag(w[:r]) - (n / m) * np.outer(ci, ci)) / m)
+        if not len(lam):
+            continue
+        total_i = (total - sq[i] * n / m) / m  # exact variance of the model without i
+        m2[i], ks[i], err[i], tmax[i] = _row_scores(lam, u.T @ (ci * (n / m)), total_i, sq[i] * (n / m) ** 2, npts,
+                                                     m, variance_fraction)
+    return {"mahalanobis2": m2, "modes": ks, "loo_error_mm": err, "max_t": tmax}
+
+
+def loo_outlier_scores(instance_points: np.ndarray, *, variance_fraction: float = 0.95) -> dict:
+    """Leave-one-out outlier scores of every training shape (paper 5's model without it).
+
+    For each instance i the model of the others (eqs. 4–6, 1/n normalisation) gives its
+    coefficients b_k = q_k·(p_i − p̄) on the first K modes that hold
+    ``variance_fraction`` of that model's variance, the squared Mahalanobis distance
+    D² = Σ b_k²/λ_k and the reconstruction error (RMS over points, mm). Computed
+    through the n × n Gram matrix (no 3N × 3N matrix).
+
+    Returns
+    -------
+    dict with ``mahalanobis2`` (n,), ``modes`` (n,) K per instance, ``loo_error_mm`` (n,),
+    and ``max_t`` (n,): the largest |b_k| / √(λ_k (m+1)/(m−1)) over the K modes, which for a
+    new Gaussian shape follows Student's t with m − 1 degrees of freedom (m = n − 1).
+    """
+    x = np.asarray(instance_points, dtype=float)
+    n = x.shape[0]
+    flat = x.reshape(n, -1)
+    xc = flat - flat.mean(axis=0)
+    gram = xc @ xc.T
+    m2, ks, err, tmax = np.full(n, np.nan), np.zeros(n, dtype=int), np.full(n, np.nan), np.full(n, np.nan)
+    if n < 3:
+        return {"mahalanobis2": m2, "modes": ks, "loo_error_mm": err, "max_t": tmax}
+    npts = x.shape[1]
+    if n > EXACT_LOO_MAX:
+        return _loo_scores_in_subspace(gram, npts, variance_fraction)
+    for i in range(n):
+        rest = np.delete(np.arange(n), i)
+        a = 1.0 / (n - 1)
+        g_ii = gram[i, i]
+        col = gram[rest, i]
+        g = gram[np.ix_(rest, rest)] + a * (col[:, None] + col[None, :]) + a * a * g_ii
+        yt = (col + a * g_ii) * (n / (n - 1))
+        tt = g_ii * (n / (n - 1)) ** 2
+        w, v = _descending_eig(g)
+        if not len(w):
+            continue
+        lam = w / (n - 1)
+        m2[i], ks[i], err[i], tmax[i] = _row_scores(lam, (v.T @ yt) / np.sqrt(w), float(lam.sum()), tt, npts, n - 1,
+                                                     variance_fraction)
+    return {"mahalanobis2": m2, "modes": ks, "loo_error_mm": err, "max_t": tmax}
+
+
+def check_model(model, params: QualityParams) -> tuple[list[Finding], dict]:
+    """Outlier gates on the training shapes of a model; returns (findings, scores per instance).
+
+    An instance is an outlier when its coefficients in the model of the others are
+    unlikely for a new shape of that Gaussian population. Two tests, the smaller p-value
+    counts:
+
+    * all k modes at once: with m = n − 1 training shapes, F = D² (m − k) / (k (m + 1))
+      follows F(k, m − k) (Hotelling's prediction region; D² with the paper's 1/m
+      variances), exact for small studies where a chi-square test flags ordinary shapes;
+    * one mode far out: the largest |t| over the k modes, Student's t with m − 1 degrees
+      of freedom, Bonferroni-corrected (× k): the F test has little power when many modes
+      are kept and few shapes estimate them.
+    """
+    from scipy.special import fdtrc, stdtr  # F and t tails (scipy.stats costs 0.5 s to import)
+
+    names = [str(s) for s in model.instance_names]
+    if len(names) > params.max_outlier_instances:
+        return [], {}
+    scores = loo_outlier_scores(model.instance_points, variance_fraction=params.outlier_variance_fraction)
+    out, per = [], {}
+    errors = scores["loo_error_mm"]
+    median_err = float(np.nanmedian(errors)) if np.isfinite(errors).any() else float("nan")
+    m = len(names) - 1
+    for i, name in enumerate(names):
+        d2, k, e = scores["mahalanobis2"][i], int(scores["modes"][i]), errors[i]
+        if not math.isfinite(d2) or k < 1 or m - k < 1:
+            continue
+        scale = (m - k) / (k * (m + 1))
+        p_all = float(fdtrc(k, m - k, d2 * scale))
+        t_max = float(scores["max_t"][i])
+        p_one = min(1.0, k * 2.0 * float(stdtr(max(m - 1, 1), -t_max)))
+        p = min(p_all, p_one)
+        per[name] = {"mahalanobis": math.sqrt(d2), "modes": k, "p_value": p, "p_value_all_modes": p_all,
+                     "largest_t": t_max, "p_value_one_mode": p_one, "loo_error_mm": float(e),
+                     "loo_error_ratio": float(e / median_err) if median_err > 0 else None}
+        if p < 1.0 - params.outlier_probability:
+            why = (f"{t_max:.1f} standard deviations out along one mode" if p_one <= p_all
+                   else f"Mahalanobis distance {math.sqrt(d2):.2f} over {k} modes")
+            out.append(Finding(name, "outlier", f"unlike the other instances: {why} of the model without it "
+                               f"(p = {p:.2g}, below {1 - params.outlier_probability:.2g})", p,
+                               1.0 - params.outlier_probability))
+        if median_err > 0 and e / median_err > params.max_loo_error_ratio:
+            out.append(Finding(name, "reconstruction", f"the model without it reconstructs it with {e:.2f} mm RMS, "
+                               f"{e / median_err:.1f}× the median of the instances (allowed "
+                               f"{params.max_loo_error_ratio:g}×)", e / median_err, params.max_loo_error_ratio))
+    return out, per
+
+
+def warnings_text(findings: list[Finding]) -> str:
+    """The WARNINGS summary: one line per finding, grouped by instance."""
+    if not findings:
+        return ""
+    lines = [f"WARNINGS ({len(findings)} in {len({f.instance for f in findings})} instance(s); "
+             "thresholds in [quality]):"]
+    lines += [f"  {f.instance or 'study'} [{f.gate}]: {f.message}" for f in findings]
+    return "\n".join(lines)

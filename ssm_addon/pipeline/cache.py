@@ -1,0 +1,246 @@
+"""The build cache: every finished instance's product on disk, keyed by what made it.
+
+A build writes each instance's coating (with its object frame and import figures) to
+the cache the moment it arrives, and the template once built. An entry's key is a
+SHA-256 of everything that determines it:
+
+* an instance (import + coating, paper 2 and 4): the content of its label map or mesh,
+  its label and voxelization step, its landmarks (names and world mm), the import
+  parameters (spacing, frame method), the template (points, faces, landmark points),
+  the coating parameters and the quality thresholds that can stop an import;
+* the template (paper 3): its instance's inputs, the template and import parameters.
+
+So a rerun of a killed build recomputes only what is missing, a new instance costs
+only its own coating, and a changed coating parameter invalidates exactly the
+coatings (the template stays). Entries are ``.npz`` (read with ``allow_pickle=False``)
+written atomically; the folder holds a ``.ssm-cache`` marker and nothing else of
+anyone's is ever touched. Deleting the folder is always safe.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..coating.coating import CoatingResult, FitFigures
+from ..instances.volume import ObjectFrame, frame_from_arrays, frame_to_arrays
+from ..model.pca import jsonable
+from ..model.quality import Finding
+from ..pipeline.errors import InputError
+from ..template.template import Template
+
+__all__ = ["BuildCache", "InstanceProduct", "file_digest", "digest"]
+
+FORMAT = 1
+"""Cache layout version; part of every key, so a new layout never reads an old entry."""
+
+MARKER = ".ssm-cache"
+
+_FILE_DIGESTS: dict = {}
+
+
+def file_digest(path) -> str:
+    """SHA-256 of a file's content (remembered per path, size and modification time)."""
+    path = Path(path)
+    try:
+        st = path.stat()
+    except OSError as err:
+        raise InputError(f"{path}: cannot read ({err.strerror})") from None
+    memo = (str(path.resolve()), st.st_size, st.st_mtime_ns)
+    if memo not in _FILE_DIGESTS:
+        h = hashlib.sha256()
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 22), b""):
+                h.update(block)
+        _FILE_DIGESTS[memo] = h.hexdigest()
+    return _FILE_DIGESTS[memo]
+
+
+def _feed(h, value) -> None:
+    if isinstance(value, np.ndarray):
+        a = np.ascontiguousarray(value)
+        h.update(f"array{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+    elif isinstance(value, dict):
+        h.update(b"{")
+        for k in sorted(value):
+            _feed(h, str(k))
+            _feed(h, value[k])
+        h.update(b"}")
+    elif isinstance(value, list | tuple):
+        h.update(b"[")
+        for v in value:
+            _feed(h, v)
+        h.update(b"]")
+    else:
+        h.update(json.dumps(value, default=str).encode())
+        h.update(b";")
+
+
+def digest(*parts) -> str:
+    """SHA-256 (hex) of nested dicts, lists, arrays and JSON scalars, in a canonical order.
+
+    >>> digest({"b": 1, "a": 2}) == digest({"a": 2, "b": 1})
+    True
+    """
+    h = hashlib.sha256()
+    _feed(h, ["ssm-cache", FORMAT, __version__])
+    for p in parts:
+        _feed(h, p)
+    return h.hexdigest()
+
+
+@dataclass
+class InstanceProduct:
+    """What a worker returns for one instance: import figures and the coating.
+
+    Attributes
+    ----------
+    name : str
+    frame : ObjectFrame
+        The instance's object frame (paper 2).
+    volume_mm3 : float
+        Volume of the resampled mask, mm³.
+    voxels : int
+    findings : list of Finding
+        The import gates that failed (components).
+    coating : CoatingResult
+        Object mm of the instance.
+    from_cache : bool
+        Read from the cache, not computed.
+    """
+
+    name: str
+    frame: ObjectFrame
+    volume_mm3: float
+    voxels: int
+    coating: CoatingResult
+    findings: list = field(default_factory=list)
+    from_cache: bool = False
+
+
+class BuildCache:
+    """Per-instance and template entries in ``folder`` (created at the first write).
+
+    Raises
+    ------
+    InputError
+        ``folder`` exists, is not empty and is not a cache (no ``.ssm-cache`` marker):
+        it is someone's folder, and the cache never writes into it.
+    """
+
+    def __init__(self, folder):
+        self.folder = Path(folder).expanduser().resolve()
+        self.hits = 0
+        self.writes = 0
+        if self.folder.exists():
+            if not self.folder.is_dir():
+                raise InputError(f"--cache {self.folder}: is a file, not a folder")
+            if not (self.folder / MARKER).exists() and any(self.folder.iterdir()):
+                raise InputError(f"--cache {self.folder}: the folder holds files and is not an SSM build cache (no "
+                                 f"{MARKER}); choose another --cache folder")
+        self._ready = False
+
+    def _make(self) -> None:
+        """Create the folder and its marker at the first write (a build that fails first leaves nothing)."""
+        if self._ready:
+            return
+        try:
+            (self.folder / "instances").mkdir(parents=True, exist_ok=True)
+            (self.folder / "templates").mkdir(exist_ok=True)
+            marker = self.folder / MARKER
+            if not marker.exists():
+                marker.write_text(json.dumps({"format": FORMAT, "ssm_builder": __version__}) + "\n")
+        except OSError as err:
+            raise InputError(f"--cache {self.folder}: cannot create the cache ({err.strerror})") from None
+        self._ready = True
+
+    # ------------------------------------------------------------------ files
+    def _write(self, path: Path, arrays: dict) -> None:
+        self._make()
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        try:
+            with open(tmp, "wb") as f:
+                np.savez(f, **arrays)
+            os.replace(tmp, path)
+        except OSError as err:
+            tmp.unlink(missing_ok=True)
+            raise InputError(f"--cache {self.folder}: cannot write {path.name} ({err.strerror})") from None
+        self.writes += 1
+
+    @staticmethod
+    def _read(path: Path) -> dict | None:
+        if not path.exists():
+            return None
+        try:
+            with np.load(path, allow_pickle=False) as npz:
+                return {k: npz[k] for k in npz.files}
+        except (OSError, ValueError, KeyError, EOFError):
+            return None  # a damaged entry is recomputed (and rewritten)
+
+    # ------------------------------------------------------------------ instances
+    def instance_path(self, key: str) -> Path:
+        return self.folder / "instances" / f"{key}.npz"
+
+    def get_instance(self, key: str, name: str) -> InstanceProduct | None:
+        """The product stored under ``key`` (renamed to ``name``), or None."""
+        a = self._read(self.instance_path(key))
+        if a is None:
+            return None
+        try:
+            findings = [Finding(**{k: (float("nan") if v is None and k in ("value", "threshold") else v)
+                                   for k, v in {**f, "instance": name}.items()})
+                        for f in json.loads(str(a["findings_json"]))]
+            coating = CoatingResult(points_object=a["points_object"], warped_points_object=a["warped_points_object"],
+                                    fit=FitFigures.from_json(str(a["fit_json"])), name=name)
+            product = InstanceProduct(name=name, frame=frame_from_arrays("frame", a),
+                                      volume_mm3=float(a["volume_mm3"]), voxels=int(a["voxels"]), coating=coating,
+                                      findings=findings, from_cache=True)
+        except (KeyError, ValueError, TypeError):
+            return None
+        self.hits += 1
+        return product
+
+    def put_instance(self, key: str, product: InstanceProduct) -> None:
+        arrays = {"points_object": np.asarray(product.coating.points_object, float),
+                  "warped_points_object": np.asarray(product.coating.warped_points_object, float),
+                  "fit_json": np.asarray(product.coating.fit.to_json()),
+                  "volume_mm3": np.asarray(float(product.volume_mm3)), "voxels": np.asarray(int(product.voxels)),
+                  "findings_json": np.asarray(json.dumps([_finding_dict(f) for f in product.findings]))}
+        frame_to_arrays("frame", product.frame, arrays)
+        self._write(self.instance_path(key), arrays)
+
+    # ------------------------------------------------------------------ template
+    def template_path(self, key: str) -> Path:
+        return self.folder / "templates" / f"{key}.npz"
+
+    def get_template(self, key: str) -> Template | None:
+        a = self._read(self.template_path(key))
+        if a is None:
+            return None
+        try:
+            t = Template(points_object=a["points_object"], faces=a["faces"], curvature=a["curvature"],
+                         frame=frame_from_arrays("frame", a), params=json.loads(str(a["params_json"])))
+        except (KeyError, ValueError, TypeError):
+            return None
+        self.hits += 1
+        return t
+
+    def put_template(self, key: str, template: Template) -> None:
+        arrays = {"points_object": np.asarray(template.points_object, float),
+                  "faces": np.asarray(template.faces, np.int64),
+                  "curvature": np.asarray(template.curvature, float),
+                  "params_json": np.asarray(json.dumps(jsonable(template.params)))}
+        frame_to_arrays("frame", template.frame, arrays)
+        self._write(self.template_path(key), arrays)
+
+
+def _finding_dict(f: Finding) -> dict:
+    d = f.to_dict()
+    return {k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in d.items()}

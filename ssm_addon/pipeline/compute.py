@@ -1,0 +1,301 @@
+"""Where the per-instance work runs: serial, local processes or Dask.
+
+The per-instance steps of a build (read + object frame + resample, coating; paper 2 and
+4) are pure functions over small, serialisable inputs (paths, landmarks, the template
+mesh, parameters) that return small results (point arrays, figures). An
+:class:`Executor` maps such a function over the instances:
+
+==================  ==========================================================
+scheduler           runs on
+==================  ==========================================================
+``serial``          this process, one instance after the other
+``processes``       ``jobs`` local processes (spawn; the default)
+``dask-local``      a ``dask.distributed`` LocalCluster of ``jobs`` workers
+``tcp://host:port`` an existing Dask scheduler (dask-jobqueue, Kubernetes, …)
+==================  ==========================================================
+
+Every scheduler runs the same function on the same inputs, so results are identical
+bit for bit. Dask is optional (``pip install "ssm-builder[dask]"``); remote workers
+need ``ssm_addon`` installed and the input paths readable under the same names.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+
+from ..pipeline.errors import Cancelled, InputError
+from ..pipeline.progress import CancelledFn, ProgressFn, report
+
+__all__ = ["SCHEDULERS", "Executor", "check_scheduler", "ignore_sigint", "run_one_thread", "stop_children",
+           "time_left_text"]
+
+SCHEDULERS = ("serial", "processes", "dask-local")
+"""Scheduler names; anything else must be a Dask scheduler address (``tcp://``, ``tls://``, ``ucx://``)."""
+
+CONNECT_TIMEOUT_S = 5.0
+"""How long to wait for a Dask scheduler address to answer."""
+
+_ADDRESS_PREFIXES = ("tcp://", "tls://", "ucx://", "inproc://", "ws://", "wss://")
+
+
+def check_scheduler(value: str, where: str = "--scheduler") -> str:
+    """Validate a scheduler name or address and return it.
+
+    >>> check_scheduler("dask-local")
+    'dask-local'
+    >>> check_scheduler("tcp://10.0.0.5:8786")
+    'tcp://10.0.0.5:8786'
+    """
+    value = str(value).strip()
+    if value in SCHEDULERS or value.startswith(_ADDRESS_PREFIXES):
+        return value
+    raise InputError(f"{where}: unknown scheduler {value!r}; use {', '.join(SCHEDULERS)} or a Dask scheduler address "
+                     "such as tcp://host:8786")
+
+
+def time_left_text(done: int, total: int, elapsed_s: float) -> str:
+    """'about 3 min left' from the rate so far (empty before the first result).
+
+    >>> time_left_text(10, 40, 20.0)
+    'about 1 min left'
+    """
+    if done <= 0 or done >= total:
+        return ""
+    left = elapsed_s / done * (total - done)
+    if left < 1:
+        return "less than 1 s left"
+    if left < 60:
+        return f"about {left:.0f} s left"
+    if left < 3600:
+        return f"about {left / 60:.0f} min left"
+    return f"about {left / 3600:.1f} h left"
+
+
+def run_one_thread(fn: Callable, item):
+    """``fn(item)`` with the BLAS limited to one thread.
+
+    Summation order in BLAS depends on its thread count, so the same instance computed
+    with 1 or 8 BLAS threads differs in the last bits. Every executor runs each item
+    through here, which makes serial, processes and Dask results identical bit for bit
+    (and process-level parallelism does not oversubscribe the cores).
+    """
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        return fn(item)
+
+
+def ignore_sigint() -> None:
+    """Worker initializer: Ctrl-C is for the main process, which stops the workers."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def stop_children(before: set) -> None:
+    """Terminate the worker processes started since ``before`` (pids), killing those that linger."""
+    import multiprocessing
+
+    children = [c for c in multiprocessing.active_children() if c.pid not in before]
+    for child in children:
+        child.terminate()
+    for child in children:
+        child.join(1.0)
+        if child.is_alive():
+            child.kill()
+
+
+class Executor:
+    """Maps a per-instance function over inputs on the chosen scheduler.
+
+    Parameters
+    ----------
+    scheduler : str
+        ``"serial"``, ``"processes"``, ``"dask-local"`` or a Dask scheduler address.
+    jobs : int
+        Local processes (``processes``) or LocalCluster workers (``dask-local``); an
+        existing scheduler brings its own workers.
+
+    Use as a context manager; the cluster (or pool) lives until it is closed, so several
+    maps (the refinement rounds, say) share it. Inside Blender ``processes`` runs
+    serially (``sys.executable`` is Blender itself).
+
+    Raises
+    ------
+    InputError
+        Dask is not installed, or no scheduler answers at the address within
+        :data:`CONNECT_TIMEOUT_S`.
+    """
+
+    def __init__(self, scheduler: str = "processes", jobs: int = 1, *, start_method: str = "spawn"):
+        self.scheduler = check_scheduler(scheduler)
+        self.jobs = max(1, int(jobs or 1))
+        if start_method not in ("spawn", "forkserver"):  # fork is avoided: the caller may hold threads
+            raise InputError(f"start_method must be 'spawn' or 'forkserver', got {start_method!r}")
+        self.start_method = start_method
+        self._client = None
+        self._cluster = None
+        self._pool = None
+        if self.scheduler == "processes" and ("bpy" in sys.modules or self.jobs == 1):
+            self.scheduler = "serial"
+        if self.scheduler not in ("serial", "processes"):
+            self._start_dask()
+
+    # ------------------------------------------------------------------ set-up
+    def _start_dask(self) -> None:
+        try:
+            import logging
+
+            from distributed import Client, LocalCluster
+        except ImportError:
+            raise InputError(f"--scheduler {self.scheduler}: Dask is not installed; install it with "
+                             "pip install \"ssm-builder[dask]\" (or use --scheduler processes)") from None
+        if self.scheduler == "dask-local":
+            self._cluster = LocalCluster(n_workers=self.jobs, threads_per_worker=1, processes=True,
+                                         dashboard_address=None, silence_logs=logging.ERROR)
+            self._client = Client(self._cluster)
+            return
+        try:
+            self._client = Client(self.scheduler, timeout=f"{CONNECT_TIMEOUT_S:g}s")
+        except (OSError, TimeoutError) as err:
+            raise InputError(f"--scheduler {self.scheduler}: no Dask scheduler answered within {CONNECT_TIMEOUT_S:g} s "
+                             f"({type(err).__name__}: {err}); start one with `dask scheduler` or check the "
+                             "address") from None
+
+    @property
+    def workers(self) -> int:
+        """Number of workers that run instances at once."""
+        if self._client is not None:
+            return max(1, len(self._client.scheduler_info().get("workers", {})))
+        return 1 if self.scheduler == "serial" else self.jobs
+
+    def describe(self) -> str:
+        """One line for the log: scheduler and workers."""
+        if self._client is not None:
+            return f"Dask scheduler {self._client.scheduler.address}, {self.workers} worker(s)"
+        return "serial" if self.scheduler == "serial" else f"{self.jobs} local processes"
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+        if self._cluster is not None:
+            self._cluster.close()
+            self._cluster = None
+
+    def __enter__(self) -> Executor:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ map
+    def map(self, fn: Callable, items: Sequence, *, on_result: Callable | None = None,
+            progress: ProgressFn = None, cancelled: CancelledFn = None, labels: Sequence[str] | None = None,
+            verb: str = "done") -> list:
+        """``[fn(x) for x in items]``, computed on the scheduler, in the order of ``items``.
+
+        ``on_result(i, result)`` is called in this process as each result arrives (to
+        write it to the cache at once). ``progress`` gets ``"<verb> <label> (k/n), about
+        … left"`` per result. Cancelling stops submitting, lets running items finish
+        (their ``on_result`` is still called) and raises :class:`~ssm_addon.pipeline.errors.Cancelled`.
+        An error in one item stops the map and is raised here unchanged.
+        """
+        items = list(items)
+        n = len(items)
+        labels = list(labels) if labels is not None else [str(i) for i in range(n)]
+        results: list = [None] * n
+        if n == 0:
+            return results
+        t0 = time.perf_counter()
+        count = [0]
+
+        def arrived(i, value):
+            results[i] = value
+            count[0] += 1
+            if on_result is not None:
+                on_result(i, value)
+            left = time_left_text(count[0], n, time.perf_counter() - t0)
+            report(progress, count[0] / n, f"{verb} {labels[i]} ({count[0]}/{n})" + (f", {left}" if left else ""))
+
+        if self.scheduler == "serial" or n == 1 and self._client is None:
+            for i, item in enumerate(items):
+                if cancelled is not None and cancelled():
+                    raise Cancelled(f"cancelled after {count[0]} of {n}")
+                arrived(i, run_one_thread(fn, item))
+            return results
+        if self._client is not None:
+            self._map_dask(fn, items, arrived, cancelled)
+        else:
+            self._map_processes(fn, items, arrived, cancelled)
+        return results
+
+    def _map_processes(self, fn, items, arrived, cancelled) -> None:
+        import multiprocessing
+        from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+        before = {c.pid for c in multiprocessing.active_children()}
+        if self._pool is None:
+            context = multiprocessing.get_context(self.start_method)
+            self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=context, initializer=ignore_sigint)
+        pool = self._pool
+        queue = list(range(len(items)))
+        pending: dict = {}
+        ahead = self.jobs  # one in flight per worker: cancellation stops after the running ones
+
+        try:
+            while queue or pending:
+                while queue and len(pending) < ahead:
+                    i = queue.pop(0)
+                    pending[pool.submit(run_one_thread, fn, items[i])] = i
+                finished, _ = wait(list(pending), timeout=0.2, return_when=FIRST_COMPLETED)
+                for fut in finished:
+                    arrived(pending.pop(fut), fut.result())
+                if cancelled is not None and cancelled():
+                    for fut in pending:
+                        fut.cancel()
+                    for fut, i in list(pending.items()):
+                        if not fut.cancelled():
+                            try:
+                                arrived(i, fut.result())
+                            except Exception:  # noqa: BLE001 - cancelled: keep what finished cleanly
+                                pass
+                    raise Cancelled("cancelled by the user")
+        except BaseException:
+            self._pool = None
+            pool.shutdown(wait=False, cancel_futures=True)
+            stop_children(before)  # an interrupt or error: no worker outlives the map
+            raise
+
+    def _map_dask(self, fn, items, arrived, cancelled) -> None:
+        from distributed import as_completed
+
+        client = self._client
+        queue = list(range(len(items)))
+        live: dict = {}  # key -> (future, index)
+
+        def submit(i):
+            fut = client.submit(run_one_thread, fn, items[i], pure=False, key=f"ssm-{os.getpid()}-{id(items)}-{i}")
+            live[fut.key] = (fut, i)
+            return fut
+
+        stream = as_completed([submit(queue.pop(0)) for _ in range(min(2 * self.workers, len(queue)))])
+        try:
+            for fut in stream:
+                _, i = live.pop(fut.key)
+                arrived(i, fut.result())
+                if cancelled is not None and cancelled():
+                    raise Cancelled("cancelled by the user")
+                if queue:
+                    stream.add(submit(queue.pop(0)))
+        except BaseException:
+            client.cancel([f for f, _ in live.values()])
+            raise
+
+

@@ -1,0 +1,834 @@
+"""The parameters of every stage, each defined once.
+
+Each stage's parameters are a frozen dataclass whose fields carry their description
+(:func:`param`): unit, default, range, choices and help text. Everything else is derived
+from these definitions, so it cannot drift:
+
+* the project file's tables and their validation (:func:`from_table`, :func:`to_table`,
+  used by :mod:`ssm_addon.cli.project_build`);
+* the command line's options (:func:`add_arguments`, :func:`from_arguments`);
+* the Blender properties and panels (``operators/properties.py`` builds one property
+  group per class from :func:`specs`).
+
+Every length is in mm, every angle in degrees. ``None`` is a valid value only where a
+field says what it means (``none_means``); Blender shows such a field with an "Auto"
+toggle.
+
+Examples
+--------
+>>> p = CoatingParams(k1=0.3)
+>>> to_table(p)["k1"]
+0.3
+>>> from_table(CoatingParams, {"k2": 2.0}, where="[coating]").k2
+2.0
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..pipeline.compute import check_scheduler
+from ..pipeline.errors import InputError
+
+__all__ = [
+    "type_name",
+    "CoatingParams",
+    "ComputeParams",
+    "CorrespondenceParams",
+    "FitParams",
+    "ModelParams",
+    "OutputParams",
+    "Spec",
+    "TemplateParams",
+    "add_arguments",
+    "check",
+    "from_arguments",
+    "from_table",
+    "param",
+    "shortest_float32",
+    "specs",
+    "to_table",
+]
+
+KINDS = ("float", "int", "bool", "choice", "str", "floats")
+
+
+@dataclass(frozen=True)
+class Spec:
+    """The description of one parameter field.
+
+    Attributes
+    ----------
+    name : str
+        The dataclass field (and Blender property) name.
+    key : str
+        Its key in the project file (usually ``name``).
+    kind : {"float", "int", "bool", "choice", "str", "floats"}
+        ``floats`` is a tuple of floats (``size`` fixed, or any length when None).
+    default : object
+    label : str
+        Short name for panels.
+    help : str
+        One sentence: what it does, with unit.
+    unit : str
+        "mm", "deg", "" ...
+    minimum, maximum : float or None
+        Allowed range (inclusive unless ``exclusive_minimum``).
+    exclusive_minimum : bool
+        True: the value must be strictly greater than ``minimum``.
+    choices : tuple of str
+        Allowed values of a ``choice``.
+    none_means : str or None
+        When set, ``None`` is allowed and means this (e.g. "r_min_mm").
+    size : int or None
+        Length of a fixed ``floats`` tuple.
+    advanced : bool
+        Shown in the panel's "Advanced" sub-panel.
+    aliases : tuple of str
+        Other accepted project keys.
+    """
+
+    name: str
+    key: str
+    kind: str
+    default: Any
+    label: str
+    help: str
+    unit: str = ""
+    minimum: float | None = None
+    maximum: float | None = None
+    exclusive_minimum: bool = False
+    choices: tuple = ()
+    none_means: str | None = None
+    size: int | None = None
+    advanced: bool = False
+    aliases: tuple = ()
+
+    @property
+    def optional(self) -> bool:
+        return self.none_means is not None
+
+    def range_text(self) -> str:
+        """The allowed values in words, for messages and help."""
+        if self.kind == "choice":
+            return "one of " + ", ".join(repr(c) for c in self.choices)
+        if self.kind == "bool":
+            return "true or false"
+        lo, hi = self.minimum, self.maximum
+        unit = f" {self.unit}" if self.unit and self.unit != "deg" else ("°" if self.unit == "deg" else "")
+        parts = []
+        if lo is not None:
+            parts.append(f"{'>' if self.exclusive_minimum else '>='} {_num(lo)}{unit}")
+        if hi is not None:
+            parts.append(f"<= {_num(hi)}{unit}")
+        what = {"int": "an integer", "float": "a number", "floats": "numbers", "str": "a string"}[self.kind]
+        if self.kind == "floats" and self.size:
+            what = f"{self.size} numbers"
+        text = what + (" " + " and ".join(parts) if parts else "")
+        if self.optional:
+            text += f" (or omitted: {self.none_means})"
+        return text
+
+
+def _num(x) -> str:
+    x = float(x)
+    return str(int(x)) if x.is_integer() and abs(x) < 1e12 else f"{x:g}"
+
+
+def param(default, *, help: str, label: str | None = None, unit: str = "", minimum=None, maximum=None,
+          exclusive_minimum: bool = False, choices=(), none_means: str | None = None, size: int | None = None,
+          advanced: bool = False, key: str | None = None, aliases=(), kind: str | None = None):
+    """A dataclass field with its parameter description (see :class:`Spec`)."""
+    meta = {"ssm": {"label": label, "help": help, "unit": unit, "minimum": minimum, "maximum": maximum,
+                    "exclusive_minimum": exclusive_minimum, "choices": tuple(choices), "none_means": none_means,
+                    "size": size, "advanced": advanced, "key": key, "aliases": tuple(aliases), "kind": kind}}
+    return field(default=default, metadata=meta)
+
+
+def _kind(default, meta) -> str:
+    if meta["kind"]:
+        return meta["kind"]
+    if meta["choices"]:
+        return "choice"
+    for kind, types in (("bool", bool), ("int", int), ("float", float), ("str", str), ("floats", tuple)):
+        if isinstance(default, types):
+            return kind
+    raise TypeError(f"parameter kind of default {default!r} unknown; give kind=")
+
+
+def specs(cls) -> tuple[Spec, ...]:
+    """The :class:`Spec` of every parameter field of a parameter class, in definition order."""
+    cache = cls.__dict__.get("_specs_cache")
+    if cache is not None:
+        return cache
+    out = []
+    for f in dataclasses.fields(cls):
+        meta = f.metadata.get("ssm")
+        if meta is None:
+            continue
+        label = meta["label"] or f.name.removesuffix("_mm").removesuffix("_deg").replace("_", " ").capitalize()
+        out.append(Spec(name=f.name, key=meta["key"] or f.name, kind=_kind(f.default, meta), default=f.default,
+                        label=label, help=meta["help"], unit=meta["unit"], minimum=meta["minimum"],
+                        maximum=meta["maximum"], exclusive_minimum=meta["exclusive_minimum"],
+                        choices=meta["choices"], none_means=meta["none_means"], size=meta["size"],
+                        advanced=meta["advanced"], aliases=meta["aliases"]))
+    out = tuple(out)
+    setattr(cls, "_specs_cache", out)  # noqa: B010 - a class attribute, not a field
+    return out
+
+
+def spec(cls, name: str) -> Spec:
+    """The :class:`Spec` of one field."""
+    for s in specs(cls):
+        if s.name == name:
+            return s
+    raise KeyError(name)
+
+
+# ------------------------------------------------------------------------------ checks
+def type_name(value) -> str:
+    """The TOML name of ``value``'s type, for messages (``integer``, ``table``, ...)."""
+    return {bool: "boolean", int: "integer", float: "float", str: "string", list: "array", tuple: "array",
+            dict: "table"}.get(type(value), type(value).__name__)
+
+
+def convert(s: Spec, value, where: str = ""):
+    """``value`` as the field's Python type, or InputError naming ``where`` and the field.
+
+    Accepts what TOML, JSON and the command line give (int for float, list for tuple).
+    """
+    what = f"{where} {s.key}".strip()
+    if value is None:
+        if s.optional:
+            return None
+        raise InputError(f"{what} must be {s.range_text()}, got nothing")
+    bad = InputError(f"{what} must be {s.range_text()}, got {type_name(value)} {value!r}")
+    if s.kind == "bool":
+        if not isinstance(value, bool | np.bool_):
+            raise bad
+        return bool(value)
+    if s.kind == "int":
+        if isinstance(value, bool) or not isinstance(value, int | np.integer):
+            if isinstance(value, float) and value.is_integer():
+                return int(value)
+            raise bad
+        return int(value)
+    if s.kind == "float":
+        if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+            raise bad
+        return float(value)
+    if s.kind in ("choice", "str"):
+        if not isinstance(value, str):
+            raise bad
+        return value
+    if s.kind == "floats":
+        if isinstance(value, str) or not isinstance(value, list | tuple | np.ndarray):
+            raise bad
+        out = []
+        for v in value:
+            if isinstance(v, bool) or not isinstance(v, int | float | np.integer | np.floating):
+                raise bad
+            out.append(float(v))
+        return tuple(out)
+    raise AssertionError(s.kind)  # pragma: no cover
+
+
+def _check_number(s: Spec, value, what: str) -> None:
+    v = float(value)
+    if not math.isfinite(v):
+        raise InputError(f"{what} must be {s.range_text()}, got {value!r}")
+    lo, hi = s.minimum, s.maximum
+    if lo is not None and (v <= lo if s.exclusive_minimum else v < lo):
+        raise InputError(f"{what} must be {s.range_text()}, got {value!r}")
+    if hi is not None and v > hi:
+        raise InputError(f"{what} must be {s.range_text()}, got {value!r}")
+
+
+def check_value(s: Spec, value, where: str = "") -> None:
+    """Raise InputError when ``value`` (already converted) is outside the field's range."""
+    what = f"{where} {s.key}".strip()
+    if value is None:
+        if not s.optional:
+            raise InputError(f"{what} must be {s.range_text()}, got nothing")
+        return
+    if s.kind == "choice" and value not in s.choices:
+        raise InputError(f"{what} must be {s.range_text()}, got {value!r}")
+    if s.kind in ("float", "int"):
+        _check_number(s, value, what)
+    if s.kind == "floats":
+        if s.size is not None and len(value) != s.size:
+            raise InputError(f"{what} must be {s.range_text()}, got {len(value)}: {list(value)!r}")
+        for v in value:
+            _check_number(s, v, what)
+
+
+def check(params, where: str = "") -> None:
+    """Validate every field of a parameter object and its cross-field rules.
+
+    Raises
+    ------
+    InputError
+        Naming ``where`` (e.g. ``"[coating]"``), the key, the allowed range and the value.
+    """
+    for s in specs(type(params)):
+        check_value(s, getattr(params, s.name), where)
+    rules = getattr(params, "consistency", None)
+    if rules is not None:
+        problem = rules()
+        if problem:
+            raise InputError(f"{where} {problem}".strip())
+
+
+# ----------------------------------------------------------------------- project tables
+def keys(cls) -> dict[str, Spec]:
+    """Project key (and alias) -> Spec."""
+    out = {}
+    for s in specs(cls):
+        out[s.key] = s
+        for a in s.aliases:
+            out[a] = s
+    return out
+
+
+def from_table(cls, table: Mapping, *, where: str = "", lines: Mapping | None = None):
+    """Parameters from a project table (keys as in the file), validated.
+
+    Parameters
+    ----------
+    cls : parameter class
+    table : mapping
+        Only known keys (see :func:`keys`); unknown keys are the caller's to report.
+    where : str
+        Prefix of messages, e.g. ``"project.toml: [coating]"``.
+    lines : mapping, optional
+        key -> "file:line" prefix used instead of ``where`` for that key.
+    """
+    by_key = keys(cls)
+    values: dict[str, Any] = {}
+    seen: dict[str, str] = {}
+    for key, value in table.items():
+        s = by_key[key]
+        at = (lines or {}).get(key) or where
+        if s.name in values and seen[s.name] != key:
+            raise InputError(f"{at} {key} and {seen[s.name]} are the same setting; give one")
+        converted = convert(s, value, at)
+        check_value(s, converted, at)
+        values[s.name], seen[s.name] = converted, key
+    try:
+        params = cls(**values)
+    except InputError as err:
+        raise InputError(f"{where} {str(err).removeprefix(cls._where).strip()}".strip()) from None
+    return params
+
+
+def to_table(params, *, only_changed: bool = False) -> dict[str, Any]:
+    """``{project key: value}`` of every field (TOML-ready: tuples as lists; None left out)."""
+    out = {}
+    for s in specs(type(params)):
+        v = getattr(params, s.name)
+        if v is None or (only_changed and v == s.default):
+            continue
+        out[s.key] = list(v) if isinstance(v, tuple) else v
+    return out
+
+
+def shortest_float32(value: float) -> float:
+    """The shortest decimal that reads back as the same float32 (what the user typed).
+
+    Blender stores float properties in single precision: 0.2 is kept as
+    0.20000000298023224. This returns 0.2 again, so a value typed in Blender and the same
+    value typed in a project file are the same float64.
+
+    >>> shortest_float32(0.20000000298023224)
+    0.2
+    """
+    v = np.float32(value)
+    if not np.isfinite(v):
+        return float(v)
+    return float(np.format_float_positional(v, unique=True, trim="-")) if abs(v) < 1e16 else float(repr(v))
+
+
+# -------------------------------------------------------------------------- command line
+def _flag(prefix: str, s: Spec) -> str:
+    return "--" + (f"{prefix}-" if prefix else "") + s.key.replace("_", "-")
+
+
+def add_arguments(parser: argparse.ArgumentParser | argparse._ArgumentGroup, cls, *, prefix: str = "",
+                  skip=()) -> None:
+    """One command-line option per field of ``cls`` (``--<prefix>-<key>``), default: unset.
+
+    Values are checked by :func:`from_arguments` with the same messages as the project file.
+    """
+    for s in specs(cls):
+        if s.name in skip:
+            continue
+        dest = f"{prefix}__{s.name}"
+        unit = f" ({s.unit})" if s.unit else ""
+        text = f"{s.help}{unit}; default {s.default!r}".replace("%", "%%")
+        if s.kind == "bool":
+            parser.add_argument(_flag(prefix, s), dest=dest, action=argparse.BooleanOptionalAction, default=None,
+                                help=text)
+        elif s.kind == "floats":
+            parser.add_argument(_flag(prefix, s), dest=dest, type=float, nargs=s.size or "+", default=None,
+                                metavar="MM" if s.unit == "mm" else "X", help=text)
+        elif s.kind == "choice":
+            parser.add_argument(_flag(prefix, s), dest=dest, choices=s.choices, default=None, help=text)
+        else:
+            typ = {"int": int, "float": float, "str": str}[s.kind]
+            parser.add_argument(_flag(prefix, s), dest=dest, type=typ, default=None, help=text)
+
+
+def from_arguments(args: argparse.Namespace, cls, *, prefix: str = "", base=None):
+    """Parameters of ``cls``: ``base`` (or defaults) with the options given on the command line."""
+    values = {}
+    for s in specs(cls):
+        v = getattr(args, f"{prefix}__{s.name}", None)
+        if v is not None:
+            values[s.key] = v
+    merged = {**(to_table(base) if base is not None else {}), **values}
+    return from_table(cls, merged, where=f"command line {'--' + prefix + '-*' if prefix else ''}".strip())
+
+
+# ------------------------------------------------------------------------- the classes
+FRAME_METHODS = ("auto", "patient", "moments")
+
+
+@dataclass(frozen=True)
+class TemplateParams:
+    """Import and template parameters (paper 2 and 3); the project's ``[template]`` table.
+
+    The defaults give about the paper's scale on a lumbar vertebra at 1 mm (VerSe L1:
+    roughly 600 points and 1,200 triangles). All lengths in mm.
+    """
+
+    spacing_mm: float = param(1.0, key="spacing", aliases=("spacing_mm",), unit="mm", minimum=0.0,
+                              exclusive_minimum=True, maximum=50.0, label="Spacing",
+                              help="isotropic resampling step of every instance along its object axes (paper 2)")
+    frame: str = param("auto", choices=FRAME_METHODS, label="Frame",
+                       help="object frame: 'patient' pairs the principal axes with R, A, S; 'moments' uses "
+                            "eigenvalue order and third-moment signs; 'auto' picks patient for images, moments "
+                            "for meshes")
+    normal_radius_mm: float = param(5.0, unit="mm", minimum=0.0, exclusive_minimum=True, maximum=100.0,
+                                    label="Normal radius", advanced=True,
+                                    help="sphere radius of the normal estimate (paper 3.2)")
+    patch_radius_mm: float = param(7.0, unit="mm", minimum=0.0, exclusive_minimum=True, maximum=100.0,
+                                   label="Patch radius", advanced=True,
+                                   help="patch radius of the curvature fit (paper 3.2)")
+    curvature_form: str = param("quadric", choices=("quadric", "paper"), label="Curvature fit", advanced=True,
+                                help="'quadric': z = ax² + 2bxy + cy² + dx + ey + f with bias corrections; "
+                                     "'paper': z = ax² + 2bxy + cy² (noisier on voxel surfaces)")
+    selection: str = param("curvature", choices=("curvature", "random"), label="Selection",
+                           help="candidate order of the point density reduction: highest curvature first, "
+                                "or seeded random (paper 3.1)")
+    radius: str = param("curvature", choices=("curvature", "constant"), label="Radius",
+                        help="reduction radius from the curvature by eq. (1), or constant r_max")
+    r_min_mm: float = param(4.0, unit="mm", minimum=0.0, exclusive_minimum=True, maximum=1000.0, label="r min",
+                            help="smallest reduction radius, surface distance (eq. 1)")
+    r_max_mm: float = param(10.0, unit="mm", minimum=0.0, exclusive_minimum=True, maximum=1000.0, label="r max",
+                            help="largest reduction radius, surface distance (eq. 1)")
+    p: float = param(2.0, minimum=0.0, exclusive_minimum=True, maximum=100.0, label="p",
+                     help="non-linearity of eq. (1): p > 1 gives more small radii")
+    curvature_percentiles: tuple = param((2.0, 98.0), size=2, minimum=0.0, maximum=100.0,
+                                         label="c percentiles", advanced=True,
+                                         help="percentiles of the curvature used as c_min and c_max in eq. (1)")
+    seed: int = param(0, minimum=0, maximum=2**32 - 1, label="Seed",
+                      help="seed of the random selection and of tie-breaking")
+    topology_radius_mm: float | None = param(None, kind="float", unit="mm", minimum=0.0, maximum=1000.0,
+                                             none_means="r_min", label="Topology radius", advanced=True,
+                                             help="closing radius of the topology cleaning (tunnels and cavities "
+                                                  "below the point spacing are closed; opening at a third of it)")
+    max_refinements: int = param(30, minimum=0, maximum=1000, label="Max refinements", advanced=True,
+                                 help="rounds of seed insertion where the geodesic Voronoi regions are not disks")
+
+    _where = "template parameters:"
+
+    def __post_init__(self):
+        check(self, self._where)
+
+    def consistency(self) -> str:
+        if self.r_min_mm > self.r_max_mm:
+            return f"r_min_mm ({self.r_min_mm:g}) must not exceed r_max_mm ({self.r_max_mm:g})"
+        lo, hi = self.curvature_percentiles
+        if not lo < hi:
+            return f"curvature_percentiles must be increasing (lo < hi), got {list(self.curvature_percentiles)}"
+        return ""
+
+    @property
+    def closing_radius_mm(self) -> float:
+        """The closing radius of the topology cleaning in mm."""
+        return self.r_min_mm if self.topology_radius_mm is None else float(self.topology_radius_mm)
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["curvature_percentiles"] = [float(x) for x in self.curvature_percentiles]
+        return d
+
+
+KERNELS = ("biharmonic", "thin-plate", "hardy")
+REST_LENGTHS = ("projected", "warped", "template-scaled")
+
+
+@dataclass(frozen=True)
+class CoatingParams:
+    """Parameters of the coating (paper 4); the project's ``[coating]`` table.
+
+    Lengths in mm, time in steps of ``dt``. The relaxation integrates m a + g v = F of
+    eq. (3) by semi-implicit Euler.
+    """
+
+    kernel: str = param("biharmonic", choices=KERNELS, label="Kernel",
+                        help="radial basis U(r) of the landmark warp, eq. (2): 'biharmonic' r (3D), "
+                             "'thin-plate' r² ln r, 'hardy' (r² + s²)^a")
+    hardy_a: float = param(0.5, minimum=0.0, exclusive_minimum=True, maximum=5.0, label="Hardy a", advanced=True,
+                           help="exponent a of the Hardy kernel")
+    hardy_s_mm: float | None = param(None, kind="float", unit="mm", minimum=0.0, exclusive_minimum=True,
+                                     maximum=10000.0, none_means="median landmark distance", label="Hardy s",
+                                     advanced=True, help="stiffness radius s of the Hardy kernel")
+    regularization: float = param(0.0, minimum=0.0, maximum=1e9, label="Warp smoothing",
+                                  help="λ added to the warp's kernel matrix (0: exact at the landmarks)")
+    projection_iterations: int = param(3, minimum=0, maximum=100, label="Projection steps", advanced=True,
+                                       help="Newton-like projection steps on the distance map")
+    k1: float = param(0.2, minimum=0.0, maximum=100.0, label="k1 (edges)",
+                      help="spring constant of the triangle edges, eq. (3)")
+    k2: float = param(1.0, minimum=0.0, exclusive_minimum=True, maximum=100.0, label="k2 (surface)",
+                      help="zero-length spring pulling each vertex onto the surface, eq. (3); must exceed k1")
+    mass: float = param(1.0, minimum=0.0, exclusive_minimum=True, maximum=1e6, label="Mass", advanced=True,
+                        help="vertex mass m")
+    damping: float = param(1.0, minimum=0.0, maximum=1e6, label="Damping", advanced=True,
+                           help="damping coefficient g of m a + g v = F")
+    dt: float = param(0.4, minimum=0.0, exclusive_minimum=True, maximum=2.0, label="Step", advanced=True,
+                      help="integration time step")
+    velocity_tol_mm: float = param(0.005, unit="mm", minimum=0.0, maximum=100.0, label="Velocity tolerance",
+                                   advanced=True, help="the relaxation stops when the largest speed is below this")
+    max_iterations: int = param(2000, minimum=0, maximum=100000, label="Max iterations",
+                                help="most relaxation steps in all, a safety limit: it stops earlier, converged, "
+                                     "when the largest speed falls below the velocity tolerance (25 and "
+                                     "springs = 'linear', rest lengths = 'warped': the previous 25-step pass)")
+    fold_iterations: int = param(25, minimum=0, maximum=100000, label="Fold steps", advanced=True,
+                                 help="first steps with the paper's fold handling (vertices of folded triangles lose "
+                                      "the surface force); then every vertex is held to the surface and the mesh "
+                                      "settles")
+    springs: str = param("tension", choices=("tension", "linear"), label="Springs",
+                         help="'linear': eq. (3) as printed; 'tension': an edge spring pulls when stretched and never "
+                              "pushes, so a compressed mesh cannot buckle into folds when it settles")
+    fold_angle_deg: float = param(90.0, unit="deg", minimum=0.0, exclusive_minimum=True, maximum=180.0,
+                                  label="Fold angle", advanced=True,
+                                  help="a triangle is folded when its normal and the surface normal differ by more")
+    rest_lengths: str = param("projected", choices=REST_LENGTHS, label="Rest lengths",
+                              help="spring rest lengths: of the registered template projected onto the surface "
+                                   "('projected': the springs keep the registration's spacing and act where the "
+                                   "fold handling moved vertices), of the registered template before projection "
+                                   "scaled to the surface's area ('warped'), or the template's own scaled to the "
+                                   "instance's size ('template-scaled', the paper's d0)")
+    tangential_springs: bool = param(False, label="Tangential springs", advanced=True,
+                                     help="apply only the tangential part of the edge forces")
+    k3: float = param(0.0, minimum=0.0, maximum=100.0, label="k3 (smoothing)", advanced=True,
+                      help="umbrella (Laplacian) smoothing force of the relaxation")
+    registration_sigmas_mm: tuple = param((16.0, 8.0, 4.0, 2.0), unit="mm", minimum=0.0, exclusive_minimum=True,
+                                          maximum=1000.0, label="Registration widths",
+                                          help="Gaussian widths of the coarse-to-fine surface registration between "
+                                               "warp and projection (empty: the paper's scheme)")
+    registration_iterations: int = param(5, minimum=0, maximum=1000, label="Registration steps", advanced=True,
+                                         help="iterations per registration width")
+    final_projection: bool = param(True, label="Final projection", advanced=True,
+                                   help="project every vertex onto the surface after the relaxation")
+    fold_free_warp: bool = param(True, label="Fold-free warp",
+                                 help="smooth the warp just enough that inconsistent landmarks do not fold "
+                                      "the template")
+    fold_smoothing: float = param(1.0, minimum=0.0, maximum=100.0, label="Fold smoothing", advanced=True,
+                                  help="Laplacian force on vertices of folded triangles (their surface force is off)")
+    fold_normal_sigma_mm: float = param(3.0, unit="mm", minimum=0.0, maximum=100.0, label="Fold normal width",
+                                        advanced=True,
+                                        help="smoothing of the surface normal the fold test compares with "
+                                             "(0: raw gradient)")
+    fold_check_interval: int = param(5, minimum=1, maximum=10000, label="Fold check interval", advanced=True,
+                                     help="the relaxation re-detects folds every this many steps")
+    untangle_iterations: int = param(60, minimum=0, maximum=100000, label="Untangle rounds", advanced=True,
+                                     help="rounds of local unfolding after the relaxation (0: off)")
+    untangle_rings: int = param(1, minimum=0, maximum=100, label="Untangle rings", advanced=True,
+                                help="neighbour rings around folded triangles that the unfolding moves")
+    frame_start_fold_fraction: float = param(0.05, minimum=0.0, maximum=1.01, label="Frame start threshold",
+                                             advanced=True,
+                                             help="fraction of folded triangles after the coarse registration "
+                                                  "above which the object-frame start is tried too (> 1: never)")
+
+    _where = "coating parameters:"
+
+    def __post_init__(self):
+        check(self, self._where)
+
+    def consistency(self) -> str:
+        if not self.k2 > self.k1:
+            return f"k2 ({self.k2:g}) must exceed k1 ({self.k1:g}) so that vertices settle on the surface (paper 4.2)"
+        limit = self.stable_dt()
+        if self.dt >= limit:
+            return (f"dt ({self.dt:g}) is beyond the relaxation's stability bound: with k1 = {self.k1:g}, k2 = "
+                    f"{self.k2:g}, k3 = {self.k3:g}, fold_smoothing = {self.fold_smoothing:g}, mass = {self.mass:g} and "
+                    f"damping = {self.damping:g} the integrator needs dt < {limit:.3g}")
+        return ""
+
+    def stable_dt(self) -> float:
+        """The largest stable time step of the relaxation's semi-implicit Euler integrator.
+
+        The stiffest mode of a vertex is bounded by k2 + k3 + fold_smoothing + 2·k1·d with
+        d = 10 neighbours (the graph Laplacian's largest eigenvalue is at most twice the
+        degree); the update of m x'' + g x' + k x = 0 is stable while the spectral radius
+        of its 2 × 2 step matrix is below 1.
+        """
+        k = self.k2 + self.k3 + self.fold_smoothing + 2.0 * self.k1 * 10.0
+        m, g = self.mass, self.damping
+
+        def radius(dt):
+            a = np.array([[1 - dt * dt * k / m, dt * (1 - dt * g / m)], [-dt * k / m, 1 - dt * g / m]])
+            return float(np.abs(np.linalg.eigvals(a)).max())
+
+        lo, hi = 0.0, 1.0
+        while radius(hi) < 1.0 - 1e-12 and hi < 1e6:
+            lo, hi = hi, hi * 2.0
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if radius(mid) < 1.0 - 1e-12 else (lo, mid)
+        return lo
+
+    def validate(self) -> None:
+        """Raise InputError for values that cannot work (checked on construction too)."""
+        check(self, self._where)
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["registration_sigmas_mm"] = list(self.registration_sigmas_mm)
+        return d
+
+
+ALIGNMENTS = ("none", "rigid", "similarity")
+
+
+@dataclass(frozen=True)
+class ModelParams:
+    """Parameters of the model and its metrics (paper 5); the project's ``[model]`` table."""
+
+    alignment: str = param("none", choices=ALIGNMENTS, label="Alignment",
+                           help="'none': object frame only, as the paper; 'rigid' or 'similarity': generalized "
+                                "Procrustes")
+    n_modes: int | None = param(None, kind="int", minimum=1, maximum=100000, none_means="every non-zero mode",
+                                label="Modes", help="number of modes kept")
+    variance_fraction: float | None = param(None, kind="float", minimum=0.0, exclusive_minimum=True, maximum=1.0,
+                                            none_means="no limit", label="Variance kept",
+                                            help="keep the fewest leading modes explaining this fraction of the "
+                                                 "total variance (with n_modes, the smaller)")
+    solver: str = param("auto", choices=("auto", "exact", "randomized"), label="Solver", advanced=True,
+                        help="'exact': Gram eigenproblem (eq. 6); 'randomized': randomized SVD for the leading modes "
+                             "(needs n_modes or variance_fraction); 'auto': randomized for large studies with a mode "
+                             "limit")
+    precision: str = param("float64", choices=("float64", "float32"), label="Precision", advanced=True,
+                           help="'float32' halves the memory of the instance points for very large studies")
+    specificity_samples: int = param(500, minimum=1, maximum=1_000_000, label="Specificity samples", advanced=True,
+                                     help="random shapes drawn for the specificity metric")
+    max_loo: int = param(100, minimum=1, maximum=1_000_000, label="Max leave-one-out", advanced=True,
+                         help="leave-one-out generalization up to this many instances, 10-fold beyond")
+    seed: int = param(0, minimum=0, maximum=2**32 - 1, label="Seed", advanced=True,
+                      help="seed of the specificity samples")
+
+    _where = "model parameters:"
+
+    def __post_init__(self):
+        check(self, self._where)
+
+
+@dataclass(frozen=True)
+class OutputParams:
+    """What a build writes besides ``model.npz`` and ``report.json``; the ``[output]`` table."""
+
+    coated_meshes: bool = param(True, label="Coated meshes", help="write coated/<name>.ply per instance")
+    landmarks: bool = param(True, label="Carried landmarks",
+                            help="write landmarks/<name>.<ext> per instance: the template instance's landmarks "
+                                 "where the coating carried them (for review and correction)")
+    statismo: bool = param(True, label="Statismo file", help="write model.h5 (statismo 0.9 layout)")
+    blend: bool = param(True, label="Blender file", help="write model.blend when bpy is available")
+    picture: bool = param(True, label="Mode picture", help="write modes.png (paper fig. 10) when bpy is available")
+    picture_modes: int = param(2, minimum=1, maximum=10, label="Picture modes",
+                               help="modes shown in modes.png")
+
+    _where = "output parameters:"
+
+    def __post_init__(self):
+        check(self, self._where)
+
+
+@dataclass(frozen=True)
+class FitParams:
+    """Fitting a model to new data (``ssm fit``, and the model-driven coating).
+
+    The fit minimises Σ w |T(p̄ + Q b) − y|²/σ² + η Σ b_k²/λ_k over the pose T and the
+    mode weights b (paper eq. 7 with the model's Gaussian prior).
+    """
+
+    noise_mm: float = param(1.0, unit="mm", minimum=0.0, exclusive_minimum=True, maximum=1000.0,
+                            label="Noise", help="standard deviation of the target's points around the shape: "
+                                                "larger trusts the prior more")
+    prior_weight: float = param(1.0, minimum=0.0, maximum=1e9, label="Prior weight",
+                                help="weight η of the model's Gaussian prior (1: as the model says; 0: none)")
+    n_modes: int | None = param(None, kind="int", minimum=1, maximum=100000, none_means="every mode of the model",
+                                label="Modes", help="modes used by the fit")
+    scale: bool = param(False, label="Scale", help="fit a similarity pose (with scale), not only a rigid one")
+    iterations: int = param(60, minimum=1, maximum=10000, label="Iterations", advanced=True,
+                            help="most correspondence and solve steps")
+    tolerance_mm: float = param(0.001, unit="mm", minimum=0.0, maximum=100.0, label="Tolerance", advanced=True,
+                                help="stop when the shape's points move less than this (RMS)")
+    landmark_weight: float = param(10.0, minimum=0.0, maximum=1e9, label="Landmark weight",
+                                   help="weight of one landmark against one surface correspondence")
+
+    _where = "fit parameters:"
+
+    def __post_init__(self):
+        check(self, self._where)
+
+
+CORRESPONDENCE_METHODS = ("landmarks", "model")
+
+
+@dataclass(frozen=True)
+class CorrespondenceParams:
+    """How correspondence is found; the project's ``[correspondence]`` table.
+
+    ``"landmarks"`` is the paper's single pass: the template coated onto every instance
+    by its landmarks. ``"model"`` continues with the mean shape as template (paper 3.3)
+    and refines every instance with a model built without it, fitted to its surface with
+    its landmarks as soft constraints (paper 7's bootstrap); instances without landmarks
+    start from the object frames.
+    """
+
+    method: str = param("landmarks", choices=CORRESPONDENCE_METHODS, label="Method",
+                        help="'landmarks': the paper's single pass; 'model': mean-shape template and "
+                             "model-driven refinement, landmarks optional but on the template instance")
+    iterations: int = param(3, minimum=1, maximum=100, label="Rounds",
+                            help="most refinement rounds of the 'model' method")
+    tolerance_mm: float = param(0.1, unit="mm", minimum=0.0, maximum=100.0, label="Stop below",
+                                help="stop the refinement when the mean shape moves less than this (RMS; a "
+                                     "tenth of the default 1 mm voxel)")
+    landmark_weight: float = param(10.0, minimum=0.0, maximum=1e9, label="Landmark weight",
+                                   help="weight of a given landmark in the model fit, against one surface "
+                                        "point (0: landmarks ignored)")
+    exact_landmarks: bool = param(False, label="Exact landmarks",
+                                  help="the given landmarks are exact (anatomical points placed precisely): "
+                                       "each round warps them to exactly where given; off: clicked or "
+                                       "extremal-point landmarks, which each round replaces by the model "
+                                       "fit's estimate")
+    fit_noise_mm: float = param(1.0, unit="mm", minimum=0.0, exclusive_minimum=True, maximum=1000.0,
+                                label="Fit noise", advanced=True,
+                                help="noise σ of the model fit to each instance's surface")
+
+    _where = "correspondence parameters:"
+
+    def __post_init__(self):
+        check(self, self._where)
+
+
+@dataclass(frozen=True)
+class QualityParams:
+    """Thresholds of the quality gates (``ssm_addon.model.quality``); the project's ``[quality]`` table.
+
+    An instance that fails a gate is named with the reason: last in the command's
+    output (WARNINGS), in ``report.json`` and ``report.html``, and in the Blender panel.
+    """
+
+    strict: bool = param(False, label="Strict",
+                         help="fail the build (non-zero exit, the output folder untouched) when any gate fails")
+    min_voxels: int = param(64, minimum=1, maximum=10**9, label="Min voxels", advanced=True,
+                            help="an instance with fewer voxels at the study's spacing is an error")
+    max_second_component: float = param(0.05, minimum=0.0, maximum=1.0, label="Max second part", advanced=True,
+                                        help="largest share of the voxels a second connected part may hold")
+    max_volume_ratio: float = param(3.0, minimum=1.0, maximum=1000.0, label="Max volume ratio", advanced=True,
+                                    help="largest factor between an instance's volume and the study's median")
+    max_landmark_distance_mm: float = param(10.0, unit="mm", minimum=0.0, exclusive_minimum=True, maximum=10000.0,
+                                            label="Max landmark distance",
+                                            help="a landmark farther from its instance's surface is an error")
+    max_landmark_residual_mm: float = param(20.0, unit="mm", minimum=0.0, maximum=10000.0,
+                                            label="Max landmark residual",
+                                            help="largest distance between a coated landmark and the given one")
+    max_folded_triangles: int = param(0, minimum=0, maximum=10**9, label="Max folds",
+                                      help="folded triangles allowed on a coated instance")
+    max_surface_distance_vox: float = param(1.0, minimum=0.0, maximum=1000.0, label="Max surface distance (voxels)",
+                                            help="largest distance of a coated vertex from the surface, in voxels "
+                                                 "of the study's spacing")
+    require_convergence: bool = param(True, label="Require convergence", advanced=True,
+                                      help="flag a relaxation that stopped at its iteration limit")
+    outlier_probability: float = param(0.99, minimum=0.5, maximum=1.0, exclusive_minimum=True,
+                                       label="Outlier quantile", advanced=True,
+                                       help="probability of the prediction region (F test of the leave-one-out "
+                                            "Mahalanobis distance) outside which an instance is an outlier")
+    outlier_variance_fraction: float = param(0.95, minimum=0.0, maximum=1.0, exclusive_minimum=True,
+                                             label="Outlier modes (variance)", advanced=True,
+                                             help="the outlier score uses the modes that hold this share of the "
+                                                  "variance")
+    max_loo_error_ratio: float = param(3.0, minimum=1.0, maximum=1000.0, label="Max reconstruction ratio",
+                                       advanced=True,
+                                       help="largest leave-one-out reconstruction error relative to the median")
+    max_outlier_instances: int = param(1000, minimum=3, maximum=10**7, label="Outlier scores up to", advanced=True,
+                                       help="leave-one-out outlier scores are computed up to this many instances")
+
+    _where = "quality parameters:"
+
+    def __post_init__(self):
+        check(self, self._where)
+
+
+#: The parameter classes by project table.
+@dataclass(frozen=True)
+class ComputeParams:
+    """Where a build's per-instance work runs and where it keeps its cache; the ``[compute]`` table.
+
+    Not shown in Blender, which keeps local processes. See :mod:`ssm_addon.pipeline.compute` and
+    :mod:`ssm_addon.pipeline.cache`.
+    """
+
+    scheduler: str = param("processes", kind="str", label="Scheduler",
+                           help="'processes' (local, --jobs of them), 'dask-local' (a Dask LocalCluster of --jobs "
+                                "workers), 'serial', or a Dask scheduler address such as tcp://host:8786")
+    cache: str = param("auto", kind="str", label="Cache",
+                       help="per-instance cache folder for resuming: 'auto' (DIR.cache beside the output folder), "
+                            "'off', or a folder (relative to the project file)")
+
+    _where = "compute parameters:"
+
+    def __post_init__(self):
+        check(self, self._where)
+        check_scheduler(self.scheduler, f"{self._where} scheduler")
+        if not str(self.cache).strip():
+            raise InputError(f"{self._where} cache: empty; use 'auto', 'off' or a folder")
+
+
+TABLES = {"template": TemplateParams, "coating": CoatingParams, "correspondence": CorrespondenceParams,
+          "model": ModelParams, "output": OutputParams, "quality": QualityParams,
+          "compute": ComputeParams}
+
+
+def markdown_tables() -> str:
+    """The parameter reference (``docs/parameters.md``), generated from the definitions."""
+    out = ["# Parameters", "",
+           "Generated from `ssm_addon/params.py` (`python -m ssm_addon params`); the same names are the",
+           "project file's keys, the `ssm build --<table>-<key>` options and the SSM sidebar's fields.", ""]
+    for section, cls in TABLES.items():
+        out += [f"## [{section}]", "", (cls.__doc__ or "").strip().splitlines()[0], "",
+                "| key | default | allowed | meaning |", "|---|---|---|---|"]
+        if section == "template":
+            out.append("| `instance` | first instance | an instance name | the instance the template is built from |")
+        for s in specs(cls):
+            unit = f" {s.unit}" if s.unit and s.unit != "deg" else ("°" if s.unit == "deg" else "")
+            if s.default is None:
+                default = f"auto ({s.none_means})"
+            else:
+                value = list(s.default) if isinstance(s.default, tuple) else s.default
+                default = f"`{value!r}`".replace("'", '"') + unit
+            allowed = s.range_text().replace("|", "\\|")
+            adv = " *(advanced)*" if s.advanced else ""
+            out.append(f"| `{s.key}` | {default} | {allowed} | {s.help}{adv} |")
+        out.append("")
+    return "\n".join(out)

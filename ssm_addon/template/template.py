@@ -1,0 +1,712 @@
+"""The template: point density reduction and triangulation (paper sections 3.1 and 3.3).
+
+Pipeline of :func:`build_template` on an :class:`~ssm_addon.instances.volume.ObjectVolume`
+(isotropic mask in the object frame):
+
+1. **Topology at the template's scale** (:func:`clean_topology`). Real masks carry
+   tiny tunnels and cavities (VerSe vertebrae: marching-cubes genus 3–8, an internal
+   cavity) that a template of ~600 points cannot represent. Cavities are filled; then a
+   morphological *closing* with a ball of radius ``topology_radius_mm`` (default
+   r_min = 4 mm) fills tunnels and holes narrower than about the point spacing, an
+   *opening* with a ball of a third of that radius removes thin bridges (handles)
+   and spurs the closing may have left, the largest 6-connected component is kept and
+   cavities are filled again. Ball morphology is exact: the dilation by a ball of
+   radius r is the set where the squared distance to the mask is <= r², computed by
+   separable truncated minimisation.
+2. **Surface geometry** of the cleaned mask (:mod:`ssm_addon.template.surface`, paper 3.1–3.2):
+   surface voxels, the 26-neighbour graph with Manhattan step lengths, normals and the
+   curvature c = sqrt(k1² + k2²).
+3. **Point density reduction** (:func:`reduce_points`, paper 3.1): candidates picked by
+   curvature (highest c first) or at random (seeded); each pick eliminates every
+   candidate within surface distance r of it; r constant or from eq. (1)
+   (:func:`reduction_radii`).
+4. **Triangulation** (:func:`triangulate`, paper 3.3): the dual of the discrete geodesic
+   Voronoi diagram of the selected points, computed on the marching-cubes surface of the
+   cleaned mask (see the function for why, and for the closed-ball check that makes the
+   dual a valid closed 2-manifold).
+
+Frames and units: the core of this module works in *voxel* coordinates of the object
+volume (lengths in voxels, curvature in 1/voxel); :func:`build_template` converts to
+*object* mm (``ObjectVolume.voxel_to_object``) and 1/mm. ``TemplateParams`` lengths are
+in mm.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import scipy.ndimage as ndi
+import scipy.sparse as sp
+from scipy.sparse.csgraph import dijkstra
+from scipy.spatial import cKDTree
+
+from .. import meshutil
+from ..instances.volume import ObjectFrame, ObjectVolume
+from ..pipeline.errors import InputError, SSMError, check_cancelled
+from ..pipeline.params import TemplateParams
+from ..pipeline.progress import report, sub_progress
+
+__all__ = [
+    "Template",
+    "TemplateParams",
+    "Triangulation",
+    "build_template",
+    "clean_topology",
+    "load_template",
+    "object_volume_at_spacing",
+    "reduce_points",
+    "reduction_radii",
+    "save_template",
+    "triangulate",
+]
+
+
+# --------------------------------------------------------------------------- the template
+@dataclass(frozen=True)
+class Template:
+    """The triangulated point distribution of paper 3 (shared by all instances).
+
+    Attributes
+    ----------
+    points_object : (N, 3) float ndarray
+        Vertices in object mm of the template instance.
+    faces : (F, 3) int ndarray
+        Triangles, counter-clockwise seen from outside.
+    curvature : (N,) float ndarray
+        c = sqrt(k1² + k2²) at each vertex, 1/mm (paper 3.2).
+    frame : ObjectFrame
+        The template instance's object frame (object mm -> world mm).
+    params : dict
+        Parameters and figures of the build (JSON-serialisable).
+    """
+
+    points_object: np.ndarray
+    faces: np.ndarray
+    curvature: np.ndarray
+    frame: ObjectFrame
+    params: dict = field(default_factory=dict)
+
+    @property
+    def points_world(self) -> np.ndarray:
+        """(N, 3) vertices in world mm."""
+        return self.frame.to_world(self.points_object)
+
+
+# --------------------------------------------------------------------------- topology
+def _ball_dilate(mask: np.ndarray, r: float) -> np.ndarray:
+    """Dilation by the ball {|d| <= r} (voxels), exact.
+
+    The squared Euclidean distance to the mask, truncated above r², computed separably:
+    min over (dx, dy, dz) of dx² + dy² + dz² is three nested 1D minimisations over offsets
+    |d| <= r (2 r shifted minima per axis, uint16). Much faster than a full distance
+    transform for the small radii used here.
+    """
+    rr = int(np.floor(r))
+    if rr <= 0:
+        return mask.copy()
+    inf = 3 * rr * rr + 1
+    if inf + rr * rr >= 2**16:
+        return ndi.distance_transform_edt(~mask) <= r
+    g = np.where(mask, 0, inf).astype(np.uint16)
+    for axis in range(3):
+        src = np.moveaxis(g, axis, 0)
+        out = src.copy()
+        for d in range(1, rr + 1):
+            d2 = np.uint16(d * d)
+            np.minimum(out[d:], src[:-d] + d2, out=out[d:])
+            np.minimum(out[:-d], src[d:] + d2, out=out[:-d])
+        np.minimum(out, np.uint16(inf), out=out)
+        g = np.moveaxis(out, 0, axis)
+    return g <= r * r
+
+
+def _ball_erode(mask: np.ndarray, r: float) -> np.ndarray:
+    """Erosion by the ball {|d| <= r} (voxels): voxels whose ball lies inside the mask."""
+    return ~_ball_dilate(~mask, r)
+
+
+def _fill_cavities(mask: np.ndarray) -> np.ndarray:
+    """Fill background components (6-connected) that do not touch the array border."""
+    lab, n = ndi.label(~mask)
+    if n <= 1:
+        return mask
+    border = np.zeros(n + 1, bool)
+    for axis in range(3):
+        for idx in (0, -1):
+            border[np.unique(np.take(lab, idx, axis=axis))] = True
+    return ~border[lab]
+
+
+def _largest_component(mask: np.ndarray) -> np.ndarray:
+    lab, n = ndi.label(mask)
+    if n <= 1:
+        return mask
+    counts = np.bincount(lab.ravel())
+    counts[0] = 0
+    return lab == int(np.argmax(counts))
+
+
+def clean_topology(mask: np.ndarray, radius_vox: float, opening_radius_vox: float | None = None) -> np.ndarray:
+    """Remove cavities, tunnels and handles smaller than the template's point spacing.
+
+    Steps (all on a copy padded by the radius, cropped back to the input grid):
+
+    1. fill internal cavities (background components not connected to the border,
+       ``binary_fill_holes``);
+    2. closing by a ball of radius ``radius_vox`` (exact ball morphology): fills tunnels and perforations narrower than about 2 r;
+    3. opening by a ball of radius ``opening_radius_vox`` (default r / 3): removes
+       bridges and spurs thinner than about 2 r / 3 (e.g. handles the closing made
+       between close parts) without perforating plates thicker than that;
+    4. keep the largest 6-connected component and fill cavities again.
+
+    Parameters
+    ----------
+    mask : (I, J, K) bool ndarray
+        Isotropic object mask (voxel frame).
+    radius_vox : float
+        Closing radius in voxels (``TemplateParams.closing_radius_mm / spacing``); 0
+        skips steps 2–3.
+    opening_radius_vox : float, optional
+        Opening radius in voxels (default ``radius_vox / 3``).
+
+    Returns
+    -------
+    (I, J, K) bool ndarray
+        The cleaned mask, same shape. Check its genus with a marching-cubes surface
+        (:func:`surface_mesh` and :func:`ssm_addon.meshutil.genus`).
+    """
+    mask = np.asarray(mask, dtype=bool)
+    if mask.ndim != 3 or not mask.any():
+        raise InputError(f"clean_topology: expected a non-empty 3D mask, got shape {mask.shape}")
+    r = float(radius_vox)
+    ro = r / 3.0 if opening_radius_vox is None else float(opening_radius_vox)
+    pad = int(np.ceil(max(r, ro))) + 2
+    m = np.pad(mask, pad)
+    m = _fill_cavities(m)
+    if r > 0:
+        m = _ball_erode(_ball_dilate(m, r), r)
+    if ro > 0:
+        opened = _ball_dilate(_ball_erode(m, ro), ro)
+        if opened.any():
+            m = opened
+    m = _largest_component(m)
+    m = _fill_cavities(m)
+    return m[pad:-pad, pad:-pad, pad:-pad]
+
+
+def surface_mesh(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Marching-cubes surface of a binary mask at level 0.5, faces oriented outward.
+
+    Returns
+    -------
+    vertices : (V, 3) float ndarray
+        Voxel coordinates of ``mask``.
+    faces : (F, 3) int ndarray
+    """
+    return meshutil.marching_cubes(mask)
+
+
+# --------------------------------------------------------------------------- reduction
+def reduction_radii(c: np.ndarray, r_min: float, r_max: float, p: float, percentiles=(0.0, 100.0)) -> np.ndarray:
+    """Reduction radius per surface voxel from the curvature, paper eq. (1).
+
+    r = ((c − c_min) / (c_max − c_min))^(1/p) · (r_min − r_max) + r_max
+
+    Parameters
+    ----------
+    c : (M,) float ndarray
+        Curvature sqrt(k1² + k2²) (any unit; only ratios matter).
+    r_min, r_max : float
+        Radii (same unit as the returned radii, e.g. voxels).
+    p : float
+        Non-linearity (p = 1 linear; p -> inf gives r_min everywhere).
+    percentiles : (float, float)
+        c_min and c_max are these percentiles of c (the paper: 0 and 100); c is clipped.
+    """
+    c = np.asarray(c, dtype=float)
+    cmin, cmax = np.percentile(c, percentiles) if len(c) else (0.0, 0.0)
+    if not cmax > cmin:
+        return np.full(len(c), float(r_max))
+    t = (np.clip(c, cmin, cmax) - cmin) / (cmax - cmin)
+    return t ** (1.0 / p) * (r_min - r_max) + r_max
+
+
+def reduce_points(
+    graph: sp.csr_matrix,
+    radius_vox,
+    *, order: np.ndarray | None = None,
+    curvature: np.ndarray | None = None,
+    selection: str = "curvature",
+    seed: int = 0,
+    cancelled=None,
+) -> np.ndarray:
+    """Point density reduction of surface voxels (paper 3.1).
+
+    All surface voxels start as candidates. The next candidate in order is selected
+    and every candidate whose surface distance d to it satisfies ``d < r`` — ``r``
+    the *selected* voxel's radius — is eliminated; repeat until no candidates are
+    left. Surface distance is the shortest path on the 26-neighbour surface graph with
+    Manhattan step lengths (``graph``). Hence:
+
+    * for two selected voxels a (selected first) and b: d(a, b) >= r(a);
+    * every surface voxel v has a selected voxel s with d(s, v) < r(s) (or is one).
+
+    Implementation: one bounded Dijkstra (``limit = r``) per selection; candidates are
+    taken in batches whose distances are computed in one call, which keeps the exact
+    sequential result.
+
+    Parameters
+    ----------
+    graph : (M, M) scipy.sparse.csr_matrix
+        Surface graph (:func:`ssm_addon.template.surface.surface_graph`), lengths in voxels.
+    radius_vox : float or (M,) float ndarray
+        Reduction radius per voxel (constant or :func:`reduction_radii`), in voxels.
+    order : (M,) int ndarray, optional
+        Explicit candidate order; overrides ``selection``.
+    curvature : (M,) float ndarray, optional
+        c per voxel; needed for ``selection="curvature"`` (highest first; ties broken
+        by a seeded random permutation).
+    selection : {"curvature", "random"}
+    seed : int
+        Seed of the random order / tie-breaking.
+
+    Returns
+    -------
+    (K,) int64 ndarray
+        Indices of the selected voxels, in selection order.
+    """
+    graph = sp.csr_matrix(graph, dtype=np.float64)
+    m = graph.shape[0]
+    r = np.broadcast_to(np.asarray(radius_vox, dtype=float), (m,)).copy()
+    if m == 0:
+        return np.zeros(0, np.int64)
+    rng = np.random.default_rng(seed)
+    perm = rng.permutation(m)
+    if order is None:
+        if selection == "random":
+            order = perm
+        elif selection == "curvature":
+            if curvature is None or len(curvature) != m:
+                raise InputError("reduce_points: selection='curvature' needs one curvature value per surface voxel")
+            order = perm[np.argsort(-np.asarray(curvature, float)[perm], kind="stable")]
+        else:
+            raise InputError(f"reduce_points: selection must be 'curvature' or 'random', got {selection!r}")
+    order = np.asarray(order, dtype=np.int64)
+    alive = np.ones(m, dtype=bool)
+    selected: list[int] = []
+    batch = 8
+    while True:
+        remaining = order[alive[order]]
+        if len(remaining) == 0:
+            break
+        order = remaining
+        cand = order[:batch]
+        dist = dijkstra(graph, directed=True, indices=cand, limit=float(r[cand].max()))
+        used = 0
+        for k, i in enumerate(cand):
+            if not alive[i]:
+                continue
+            used += 1
+            selected.append(int(i))
+            alive[dist[k] < r[i]] = False
+            alive[i] = False
+        batch = int(np.clip(batch * 2 if used == len(cand) else batch // 2, 1, 64))
+        check_cancelled(cancelled)
+    return np.asarray(selected, dtype=np.int64)
+
+
+# --------------------------------------------------------------------------- triangulation
+@dataclass(frozen=True)
+class Triangulation:
+    """Result of :func:`triangulate` (voxel frame).
+
+    Attributes
+    ----------
+    vertices : (N, 3) float ndarray
+        Template vertices: marching-cubes vertices of the seeds (voxel coordinates).
+    faces : (F, 3) int ndarray
+        Dual triangles, outward.
+    seeds : (N,) int ndarray
+        Index of each vertex's marching-cubes vertex.
+    n_given : int
+        The first ``n_given`` vertices are the given points (in their order, minus
+        duplicates, see ``given_index``); the rest were inserted by the closed-ball
+        refinement.
+    given_index : (n_given,) int ndarray
+        Index into the given points of each of the first ``n_given`` vertices.
+    labels : (V,) int ndarray
+        Voronoi region (template vertex index) of each marching-cubes vertex.
+    mesh_vertices, mesh_faces : ndarray
+        The marching-cubes surface the Voronoi diagram lives on.
+    refinements : int
+        Rounds of seed insertion needed.
+    genus : int
+        Genus of the marching-cubes surface (= the template's).
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    seeds: np.ndarray
+    n_given: int
+    given_index: np.ndarray
+    labels: np.ndarray
+    mesh_vertices: np.ndarray
+    mesh_faces: np.ndarray
+    refinements: int
+    genus: int
+
+
+def _mesh_graph(verts: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
+    e = meshutil.edges(faces)
+    w = np.linalg.norm(verts[e[:, 0]] - verts[e[:, 1]], axis=1)
+    n = len(verts)
+    g = sp.coo_matrix((np.concatenate([w, w]), (np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]]))),
+                      shape=(n, n)).tocsr()
+    return g
+
+
+def _voronoi(graph, seeds):
+    dist, _, src = dijkstra(graph, directed=True, indices=seeds, min_only=True, return_predecessors=True)
+    lookup = np.full(graph.shape[0], -1, np.int64)
+    lookup[seeds] = np.arange(len(seeds))
+    labels = lookup[src]
+    return dist, labels
+
+
+def _dual(labels, mesh_faces):
+    """Dual triangles of faces whose three vertices carry three distinct labels."""
+    lf = labels[mesh_faces]
+    three = (lf[:, 0] != lf[:, 1]) & (lf[:, 1] != lf[:, 2]) & (lf[:, 2] != lf[:, 0])
+    return lf[three], np.flatnonzero(three)
+
+
+def _cancel_pillows(tris: np.ndarray) -> np.ndarray:
+    """Drop pairs of dual triangles with the same vertices and opposite orientation.
+
+    Such a pair comes from two regions that touch at a single mesh edge with a third
+    region on both sides: they do not share a Voronoi edge and the pair is a
+    zero-volume pillow. Same-orientation duplicates are left for the closed-ball check.
+    """
+    if len(tris) == 0:
+        return tris
+    key = np.sort(tris, axis=1)
+    # orientation parity: rotate so that the smallest label comes first, compare order
+    rot = np.argmin(tris, axis=1)
+    canon = np.stack([tris[np.arange(len(tris)), (rot + k) % 3] for k in range(3)], axis=1)
+    positive = canon[:, 1] < canon[:, 2]
+    _, inv, cnt = meshutil.unique_rows(key, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    keep = np.ones(len(tris), bool)
+    for g in np.flatnonzero(cnt > 1):
+        idx = np.flatnonzero(inv == g)
+        pos = idx[positive[idx]]
+        neg = idx[~positive[idx]]
+        k = min(len(pos), len(neg))
+        keep[pos[:k]] = False
+        keep[neg[:k]] = False
+    return tris[keep]
+
+
+def _bad_labels(labels, n_regions, mesh_faces, mesh_edges, tris) -> np.ndarray:
+    """Labels where the closed-ball property or the dual's manifoldness fails."""
+    bad = np.zeros(n_regions, bool)
+    # (1) every region a disk: Euler characteristic V - E + F of the region's own
+    # (vertex-induced) subcomplex must be 1.
+    le = labels[mesh_edges]
+    lf = labels[mesh_faces]
+    v_l = np.bincount(labels, minlength=n_regions)
+    same_e = le[:, 0] == le[:, 1]
+    e_l = np.bincount(le[same_e, 0], minlength=n_regions)
+    same_f = (lf[:, 0] == lf[:, 1]) & (lf[:, 1] == lf[:, 2])
+    f_l = np.bincount(lf[same_f, 0], minlength=n_regions)
+    bad |= (v_l - e_l + f_l) != 1
+    # every region must have a dual triangle (three or more neighbours)
+    present = np.zeros(n_regions, bool)
+    present[tris.ravel()] = True
+    bad |= ~present
+    if len(tris) == 0:
+        return np.flatnonzero(bad)
+    # (2) two regions meet along one arc: each dual edge in exactly two triangles,
+    # traversed once in each direction; (3) each region's ring one fan.
+    rep = meshutil.is_closed_manifold(tris)
+    for arr in (rep.boundary_edges, rep.nonmanifold_edges, rep.inconsistent_edges):
+        bad[np.asarray(arr, np.int64).ravel()] = True
+    bad[rep.nonmanifold_vertices] = True
+    if rep.duplicate_faces:
+        key = np.sort(tris, axis=1)
+        _, inv, cnt = meshutil.unique_rows(key, return_inverse=True, return_counts=True)
+        bad[tris[cnt[inv.ravel()] > 1].ravel()] = True
+    return np.flatnonzero(bad)
+
+
+def triangulate(
+    mask: np.ndarray,
+    points_vox: np.ndarray,
+    *, max_refinements: int = 30,
+    mesh: tuple[np.ndarray, np.ndarray] | None = None,
+    progress=None,
+    cancelled=None,
+) -> Triangulation:
+    """Triangulate selected surface points as the dual of their geodesic Voronoi diagram (paper 3.3).
+
+    Method. The paper grows regions around the selected points by a multi-source
+    shortest-path search over the surface voxels; nodes where three regions meet are the
+    triangles. On the voxel graph the surface layer is thick and thin plates share
+    voxels between both faces, which gives many non-manifold triangles (design.md), so
+    the regions are grown on the marching-cubes surface of ``mask`` instead (a 2-manifold
+    with the mask's topology):
+
+    1. each point is mapped to its nearest marching-cubes vertex (its *seed*);
+    2. geodesic Voronoi regions by multi-source Dijkstra on the mesh edges (Euclidean
+       edge lengths);
+    3. one dual triangle per mesh face whose three vertices carry three distinct regions,
+       oriented like that face (hence outward); opposite-oriented duplicate pairs
+       (two regions touching at a single edge, a third on both sides) cancel;
+    4. **closed-ball check**: the dual is a valid triangulation of the surface when each
+       region is a topological disk (its vertex-induced subcomplex is connected with
+       Euler characteristic 1), two regions meet along at most one arc (each dual edge
+       in exactly two triangles, once in each direction) and each region's ring of
+       neighbours is one cycle (vertex-manifold dual). Where this fails, a new seed is
+       inserted at the vertex of each failing region farthest from its seed, and steps
+       2–4 repeat (at most ``max_refinements`` rounds);
+    5. the result is verified: one component, closed, edge- and vertex-manifold,
+       consistently oriented, the genus of the marching-cubes surface; otherwise
+       :class:`SSMError`.
+
+    Vertices are placed at the seeds' marching-cubes vertices (on the 0.5 iso-surface,
+    half a voxel outside the surface voxel centres), which fits the object's volume
+    better than voxel centres.
+
+    Parameters
+    ----------
+    mask : (I, J, K) bool ndarray
+        Isotropic mask (already topologically cleaned, see :func:`clean_topology`).
+    points_vox : (K, 3) float ndarray
+        Selected surface points in voxel coordinates (e.g. surface voxels from
+        :func:`reduce_points`).
+    max_refinements : int
+        Maximum rounds of seed insertion.
+    mesh : (vertices, faces), optional
+        A precomputed :func:`surface_mesh` of ``mask``.
+
+    Returns
+    -------
+    Triangulation
+    """
+    pts = np.asarray(points_vox, dtype=float).reshape(-1, 3)
+    if len(pts) < 4:
+        raise InputError(f"triangulate: need at least 4 points, got {len(pts)}")
+    verts, mfaces = surface_mesh(mask) if mesh is None else mesh
+    ncomp, comp = meshutil.connected_components(mfaces, len(verts))
+    if ncomp != 1:
+        raise InputError(f"triangulate: the mask's surface has {ncomp} components; clean the topology first")
+    target_genus = int(meshutil.genus(len(verts), mfaces))
+    medges = meshutil.edges(mfaces)
+    graph = _mesh_graph(verts, mfaces)
+    _, nearest = cKDTree(verts).query(pts)
+    seeds_list, first = np.unique(nearest, return_index=True)
+    keep = np.sort(first)  # keep the given order, drop later duplicates
+    seeds = nearest[keep].astype(np.int64)
+    given_index = keep.astype(np.int64)
+    n_given = len(seeds)
+    refinements = 0
+    while True:
+        check_cancelled(cancelled)
+        dist, labels = _voronoi(graph, seeds)
+        tris, _ = _dual(labels, mfaces)
+        tris = _cancel_pillows(tris)
+        bad = _bad_labels(labels, len(seeds), mfaces, medges, tris)
+        report(progress, min(0.9, 0.1 + 0.8 * refinements / max(max_refinements, 1)),
+               f"triangulation: {len(seeds)} regions, {len(bad)} failing the closed-ball check")
+        if len(bad) == 0:
+            ok = meshutil.is_closed_manifold(tris)
+            n_c, _ = meshutil.connected_components(tris, len(seeds))
+            g = meshutil.genus(len(seeds), tris) if n_c == 1 else None
+            if ok and n_c == 1 and g == target_genus:
+                break
+            # valid-looking regions but a wrong result: refine everywhere a little
+            bad = np.arange(len(seeds))
+        if refinements >= max_refinements:
+            rep = meshutil.is_closed_manifold(tris)
+            raise SSMError(
+                f"triangulation: the closed-ball property still fails for {len(bad)} of {len(seeds)} regions "
+                f"after {refinements} refinements ({rep.summary()}); try a smaller r_max_mm or a larger topology radius"
+            )
+        # insert one seed per failing region: its vertex farthest from its seed
+        order = np.lexsort((-dist, labels))
+        last = np.r_[np.flatnonzero(np.diff(labels[order])), len(order) - 1]
+        far = np.full(len(seeds), -1, np.int64)
+        far[labels[order[last]]] = order[np.r_[0, last[:-1] + 1]]
+        new = np.unique(far[bad])
+        new = new[(new >= 0) & (dist[new] > 0)]
+        if len(new) == 0:
+            raise SSMError("triangulation: cannot refine further (failing regions have no free vertex)")
+        seeds = np.concatenate([seeds, new])
+        refinements += 1
+    return Triangulation(
+        vertices=verts[seeds], faces=tris.astype(np.int64), seeds=seeds, n_given=n_given, given_index=given_index,
+        labels=labels, mesh_vertices=verts, mesh_faces=mfaces, refinements=refinements, genus=target_genus,
+    )
+
+
+# --------------------------------------------------------------------------- build
+def object_volume_at_spacing(object_volume: ObjectVolume, spacing_mm: float) -> ObjectVolume:
+    """The object volume on another isotropic grid of the same object frame.
+
+    Linear interpolation of the mask and threshold 0.5 (as in paper 2's resampling),
+    one background voxel padded on every side. Returns the input unchanged when the
+    spacing already matches (to 1e-9 mm).
+    """
+    ov = object_volume
+    h, h2 = float(ov.spacing_mm), float(spacing_mm)
+    if not h2 > 0:
+        raise InputError(f"{ov.source or 'object volume'}: spacing must be > 0 mm, got {spacing_mm!r}")
+    if abs(h - h2) < 1e-9:
+        return ov
+    shape = np.asarray(ov.mask.shape)
+    n2 = np.floor((shape - 1) * h / h2).astype(int) + 1
+    axes = [np.arange(n) * h2 / h for n in n2]
+    coords = np.meshgrid(*axes, indexing="ij", sparse=False)
+    m = ndi.map_coordinates(ov.mask.astype(np.float32), coords, order=1, mode="constant", cval=0.0) > 0.5
+    m = np.pad(m, 1)
+    return ObjectVolume(m, h2, np.asarray(ov.origin_object, float) - h2, ov.frame, ov.source)
+
+
+def build_template(object_volume: ObjectVolume, params: TemplateParams | None = None, *, progress=None,
+                   cancelled=None) -> Template:
+    """Build the template of paper 3 from one object volume.
+
+    Stages (progress messages per stage, cancellation checked between them): topology
+    cleaning, surface geometry (normals, curvature), point density reduction (eq. 1),
+    triangulation (dual of the geodesic Voronoi diagram). See the module docstring.
+
+    Parameters
+    ----------
+    object_volume : ObjectVolume
+        The template instance, resampled isotropically in its object frame.
+    params : TemplateParams
+    progress, cancelled : callables, optional
+
+    Returns
+    -------
+    Template
+        Vertices in object mm, curvature in 1/mm; ``params`` holds the parameters and
+        figures (points selected and inserted, genus, timings in s).
+    """
+    import time
+
+    from ..template import surface
+
+    params = TemplateParams() if params is None else params
+    ov = object_volume
+    h = float(ov.spacing_mm)
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    report(progress, 0.0, "template: topology")
+    mask = clean_topology(ov.mask, params.closing_radius_mm / h)
+    timings["topology"] = time.perf_counter() - t0
+    check_cancelled(cancelled)
+
+    t = time.perf_counter()
+    report(progress, 0.1, "template: surface normals and curvature")
+    geo = surface.surface_geometry(mask, params.normal_radius_mm / h, params.patch_radius_mm / h, params.curvature_form)
+    timings["surface"] = time.perf_counter() - t
+    check_cancelled(cancelled)
+
+    t = time.perf_counter()
+    report(progress, 0.45, "template: point density reduction")
+    if params.radius == "curvature":
+        r = reduction_radii(geo.c, params.r_min_mm / h, params.r_max_mm / h, params.p, params.curvature_percentiles)
+    else:
+        r = np.full(len(geo.voxels), params.r_max_mm / h)
+    sel = reduce_points(geo.graph, r, curvature=geo.c, selection=params.selection, seed=params.seed,
+                        cancelled=cancelled)
+    timings["reduction"] = time.perf_counter() - t
+    check_cancelled(cancelled)
+
+    t = time.perf_counter()
+    report(progress, 0.55, f"template: triangulating {len(sel)} points")
+    tri = triangulate(mask, geo.voxels[sel], max_refinements=params.max_refinements,
+                      progress=sub_progress(progress, 0.55, 0.98), cancelled=cancelled)
+    timings["triangulation"] = time.perf_counter() - t
+
+    # curvature per vertex: the selected voxel's, or (inserted seeds) the nearest surface voxel's
+    curv = np.empty(len(tri.seeds))
+    curv[: tri.n_given] = geo.c[sel[tri.given_index]]
+    if len(tri.seeds) > tri.n_given:
+        _, nn = cKDTree(geo.voxels).query(tri.vertices[tri.n_given:])
+        curv[tri.n_given:] = geo.c[nn]
+    points_object = ov.voxel_to_object(tri.vertices)
+    info = {
+        **params.to_dict(),
+        "object_spacing_mm": h,
+        "source": ov.source,
+        "surface_voxels": int(len(geo.voxels)),
+        "selected_points": int(len(sel)),
+        "inserted_points": int(len(tri.seeds) - tri.n_given),
+        "refinements": int(tri.refinements),
+        "genus": int(tri.genus),
+        "mask_volume_mm3": float(ov.volume_mm3),
+        "cleaned_volume_mm3": float(np.count_nonzero(mask)) * h**3,
+        "timings_s": {k: round(v, 4) for k, v in timings.items()},
+    }
+    report(progress, 1.0, f"template: {len(points_object)} points, {len(tri.faces)} triangles, genus {tri.genus}")
+    return Template(points_object=points_object, faces=tri.faces, curvature=curv / h, frame=ov.frame, params=info)
+
+
+# --------------------------------------------------------------------------- files
+def save_template(path, template: Template) -> Path:
+    """Write a template as ``.npz`` (loadable with ``allow_pickle=False``).
+
+    Keys: ``points_object`` (N, 3) mm, ``faces`` (F, 3), ``curvature`` (N,) 1/mm,
+    ``frame_origin_world`` (3,), ``frame_axes_world`` (3, 3), ``frame_second_moments_mm2``
+    (3,), ``frame_method`` (str), ``params_json`` (str).
+    """
+    path = Path(path)
+    fr = template.frame
+    np.savez(
+        path,
+        points_object=np.asarray(template.points_object, float),
+        faces=np.asarray(template.faces, np.int64),
+        curvature=np.asarray(template.curvature, float),
+        frame_origin_world=np.asarray(fr.origin_world, float),
+        frame_axes_world=np.asarray(fr.axes_world, float),
+        frame_second_moments_mm2=np.asarray(fr.second_moments_mm2, float),
+        frame_method=np.array(str(fr.method)),
+        params_json=np.array(json.dumps(template.params, default=_json_default)),
+    )
+    return path if path.suffix == ".npz" else path.with_name(path.name + ".npz")
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
+
+
+def load_template(path) -> Template:
+    """Read a template written by :func:`save_template`."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            d = {k: z[k] for k in z.files}
+    except (OSError, ValueError) as err:
+        raise InputError(f"{path}: cannot read template ({err})") from err
+    need = ("points_object", "faces", "curvature", "frame_origin_world", "frame_axes_world")
+    missing = [k for k in need if k not in d]
+    if missing:
+        raise InputError(f"{path}: not a template file (missing {', '.join(missing)})")
+    frame = ObjectFrame(
+        origin_world=d["frame_origin_world"],
+        axes_world=d["frame_axes_world"],
+        second_moments_mm2=d.get("frame_second_moments_mm2", np.zeros(3)),
+        method=str(d["frame_method"]) if "frame_method" in d else "moments",
+    )
+    params = json.loads(str(d["params_json"])) if "params_json" in d else {}
+    return Template(points_object=d["points_object"], faces=d["faces"].astype(np.int64), curvature=d["curvature"],
+                    frame=frame, params=params)

@@ -1,0 +1,79 @@
+"""The pipeline's stages return their products: one coating route, results applied once, reports written once."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ssm_addon.cli import demo
+from ssm_addon.cli.project_build import build
+from ssm_addon.formats.project_file import read_project
+from ssm_addon.pipeline.cache import BuildCache
+from ssm_addon.pipeline.compute import Executor
+from ssm_addon.pipeline.study import Study, apply_stage, import_stage, refine_correspondence, run, template_stage
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def project(tmp_path_factory):
+    path = demo.make_demo_population(tmp_path_factory.mktemp("pipeline") / "population", n=5, seed=13)
+    path.write_text(path.read_text().replace("spacing = 1.0", "spacing = 1.0\nr_min_mm = 4.0\nr_max_mm = 8.0")
+                    .replace("[model]", "[model]\nspecificity_samples = 50"))
+    return path
+
+
+def _arrays(study: Study) -> dict:
+    m = study.model
+    return {"mean": m.mean, "modes": m.modes, "variances": m.variances, "points": m.instance_points,
+            "world": m.instance_points_world, "faces": m.faces}
+
+
+def test_streamed_cached_and_in_memory_builds_give_identical_arrays(project, tmp_path):
+    stages = ("import", "template", "coating", "model")
+    in_memory = run(Study.from_project(read_project(project)), stages=stages)
+    cache = BuildCache(tmp_path / "cache")
+    with Executor("serial", 1) as executor:
+        streamed = run(Study.from_project(read_project(project)), stages=stages, executor=executor, cache=cache)
+        cached = run(Study.from_project(read_project(project)), stages=stages, executor=executor, cache=cache)
+    assert streamed.streamed == {"cached": 0, "computed": 5} and cached.streamed == {"cached": 5, "computed": 0}
+    for other in (streamed, cached):
+        for key, value in _arrays(in_memory).items():
+            assert np.array_equal(value, _arrays(other)[key]), key
+        assert [(f.stage, f.gate, f.instance) for f in other.findings] == [
+            (f.stage, f.gate, f.instance) for f in in_memory.findings]
+
+
+def test_model_method_rounds_leave_the_given_study_unchanged(project):
+    text = project.read_text().replace("[coating]", '[correspondence]\nmethod = "model"\niterations = 1\n\n[coating]')
+    variant = project.with_name("model_method.toml")
+    variant.write_text(text)
+    study = Study.from_project(read_project(variant))
+    apply_stage(study, import_stage(study))
+    apply_stage(study, template_stage(study))
+    template = study.template
+    result = refine_correspondence(study)
+    assert study.coatings == {} and study.coating_start == {} and study.correspondence_rounds == []
+    assert study.template is template
+    assert set(result.product["coatings"]) == set(study.names) and result.product["correspondence_rounds"]
+    assert result.product["template"] is not template  # the mean shape
+    apply_stage(study, result)
+    assert set(study.coatings) == set(study.names) and len(study.correspondence_rounds) == 1
+
+
+def test_a_build_writes_report_json_once_from_its_in_memory_report(project, tmp_path, monkeypatch):
+    writes = []
+    original = Path.write_text
+
+    def counting(self, *args, **kwargs):
+        if self.name == "report.json":
+            writes.append(self)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "write_text", counting)
+    result = build(read_project(project), tmp_path / "out", log=None)
+    assert len(writes) == 1
+    assert json.loads((tmp_path / "out" / "report.json").read_text()) == result.report
