@@ -238,11 +238,11 @@ def finish_refinement(op, context, outcome):
     rounds = list(result.product.get("correspondence_rounds", ()))
     mean_points = result.product["template"].points_object
     written = []
-    for name, result in coatings.items():
+    for name, coating in coatings.items():
         inst = bpy.data.objects.get(name)
         if inst is not None:
-            obj = write_coated(context, inst, result, op._faces, mean_points)
-            obj["ssm_coating_start"] = starts.get(name, result.fit.start)
+            obj = write_coated(context, inst, coating, op._faces, mean_points)
+            obj["ssm_coating_start"] = starts.get(name, coating.fit.start)
             written.append(obj)
     previous = [] if op._fresh else correspondence_rounds(context)
     context.scene[ROUNDS_KEY] = json.dumps(previous + [r.to_dict() for r in rounds])

@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -31,7 +32,7 @@ from ssm_addon.pipeline.params import OutputParams
 
 from . import bridge
 from .properties import scene_params, set_group
-from .scene import mesh_file_world, scene_instances, set_landmark, study_from_scene
+from .scene import FINDINGS_KEY, mesh_file_world, scene_instances, set_landmark, study_from_scene
 
 # ------------------------------------------------------------------ scene construction
 
@@ -96,6 +97,7 @@ def show_study(context, study, *, output: OutputParams | None = None) -> dict:
     if study.model is not None:
         out["model"] = create_model_object(context, study.model,
                                            template_points=study.template.points_object if study.template else None)
+    scene[FINDINGS_KEY] = json.dumps([f.to_dict() for f in study.findings])  # what the panels show
     return out
 
 

@@ -43,7 +43,6 @@ from ssm_addon.instances.volume import ObjectFrame, ObjectVolume
 from ssm_addon.model.files import model_from_arrays
 from ssm_addon.model.pca import ShapeModel
 from ssm_addon.pipeline.errors import InputError
-from ssm_addon.pipeline.params import CoatingParams, ModelParams, TemplateParams
 from ssm_addon.pipeline.progress import report, sub_progress
 from ssm_addon.pipeline.study import Study, merge_findings
 from ssm_addon.template.template import Template
@@ -535,8 +534,3 @@ def study_from_scene(context, *, template_instance: str | None = None, template:
             if COATING_KEY in obj:
                 study.coatings[obj.ssm.instance.name] = coating_from_object(obj)
     return study
-
-
-def param_classes():
-    """The parameter classes the scene holds (for tests and panels)."""
-    return TemplateParams, CoatingParams, ModelParams

@@ -52,6 +52,7 @@ def verse_build(verse_dir, tmp_path_factory):
     return out, proc.stdout
 
 
+@pytest.mark.slow
 def test_build_prints_a_line_per_step_and_instance(verse_build):
     _, stdout = verse_build
     for step in ("import:", "template:", "coating:", "model:", "metrics"):

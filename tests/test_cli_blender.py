@@ -30,6 +30,7 @@ def small_demo(tmp_path_factory):
     return path
 
 
+@pytest.mark.slow
 def test_blender_command_build_equals_python_build(bpy_clean, small_demo, tmp_path):
     bpy = bpy_clean
     cli = sys.modules["ssm.operators.cli"]

@@ -312,6 +312,7 @@ def test_warped_rest_lengths_keep_correspondence_better_than_template_scaled(ell
     assert errors["warped"] < errors["template-scaled"]
 
 
+@pytest.mark.slow
 def test_verse_l1_template_coated_onto_l2_to_l5_and_t12(verse_dir):
     """Real data: every coated vertex within one voxel of the raw surface, no fold left."""
     from conftest import VERSE_FILE, VERSE_LABELS
@@ -429,6 +430,7 @@ def test_fold_free_warp_smooths_inconsistent_landmarks_until_no_fold(ellipsoid_p
     assert lam == 0 and np.abs(tps(src) - src * 1.1).max() < 1e-6
 
 
+@pytest.mark.slow
 def test_default_relaxation_converges_on_every_verse_vertebra_without_folds(verse_dir):
     """With the default parameters the relaxation settles by its velocity tolerance (not by
     its step limit) and leaves no folded triangle on T9..L5 from the L1 template; the
@@ -456,6 +458,7 @@ def test_default_relaxation_converges_on_every_verse_vertebra_without_folds(vers
     assert not previous.fit.converged and previous.fit.iterations == 25
 
 
+@pytest.mark.slow
 def test_default_relaxation_converges_without_folds_on_the_demo(tmp_path):
     """The 24-instance demo population (the README's build): every instance converges by
     tolerance and no triangle is left folded."""

@@ -53,6 +53,7 @@ def _build(project, out, lines=None, **kw):
     return build(read_project(project), out, log=log, blend=False, **kw)
 
 
+@pytest.mark.slow
 def test_schedulers_give_identical_models(population, tmp_path):
     """serial, processes and dask-local compute the same model bit for bit."""
     proj = _project(population, tmp_path, 5)
@@ -73,6 +74,7 @@ def test_schedulers_give_identical_models(population, tmp_path):
     assert "dask-local" in schedulers, "dask is in requirements-dev.txt: the Dask scheduler must be tested"
 
 
+@pytest.mark.slow
 def test_cache_resumes_and_invalidates_exactly(population, tmp_path):
     proj5 = _project(population, tmp_path, 5)
     cache = tmp_path / "cache"
@@ -115,6 +117,7 @@ def test_cache_resumes_and_invalidates_exactly(population, tmp_path):
     assert '"computed": 5' in report
 
 
+@pytest.mark.slow
 def test_killed_build_resumes_with_only_the_missing_instances(population, tmp_path):
     """SIGKILL mid-coating; the rerun coats only what the cache lacks and equals a fresh build."""
     proj = _project(population, tmp_path, 6)
@@ -167,6 +170,7 @@ def test_project_compute_table(population, tmp_path):
     assert "[compute]" not in project_text(dataclasses.replace(p, compute=type(p.compute)()), tmp_path)
 
 
+@pytest.mark.slow
 def test_unreachable_scheduler_fails_fast_and_clearly():
     pytest.importorskip("distributed", reason="Dask is optional (pip install .[dask])")
     t0 = time.perf_counter()

@@ -63,6 +63,7 @@ def _sha(path):
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
+@pytest.mark.slow
 def test_landmarks_method_is_the_single_pass(population, tmp_path):
     """method = "landmarks" (the default) builds exactly what a project without the table builds."""
     build(read_project(population), tmp_path / "a", log=None)
@@ -81,6 +82,7 @@ def test_landmarks_method_is_the_single_pass(population, tmp_path):
     assert max(d.values()) < 1.0, d
 
 
+@pytest.mark.slow
 def test_model_method_with_landmarks_on_the_template_only(population, tmp_path):
     """Only the template instance is landmarked: every other instance starts from the object
     frames, is refined with the model, and gets landmarks near its true (unused) ones."""
@@ -136,6 +138,7 @@ def test_landmarks_method_still_needs_landmarks_everywhere(population):
         read_project(proj)
 
 
+@pytest.mark.slow
 def test_a_diverging_refinement_is_refused_and_writes_nothing(population, tmp_path, monkeypatch):
     """A round whose mean shape jumps by more than the shapes' size stops the build by name."""
     import ssm_addon.fitting.correspondence as corr
@@ -154,6 +157,7 @@ def test_a_diverging_refinement_is_refused_and_writes_nothing(population, tmp_pa
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_model_method_keeps_the_template_points_on_the_template_instance(population):
     """The mean shape's coating slides the template's points along the surfaces; the
     re-sampling puts them back: on the template instance point i ends at template point i."""
@@ -176,6 +180,7 @@ def test_model_method_keeps_the_template_points_on_the_template_instance(populat
     assert study.template.params.get("mean_shape_template")
 
 
+@pytest.mark.slow
 def test_exact_landmarks_are_warped_to_where_given(population):
     """``exact_landmarks = true``: each round warps the mean shape's landmarks exactly onto the
     given ones; by default the fit's estimate replaces them (and the round says how far)."""
@@ -208,6 +213,7 @@ def test_exact_landmarks_are_warped_to_where_given(population):
     assert min(shifts[False].values()) > 0.05, shifts[False]
 
 
+@pytest.mark.slow
 def test_a_swapped_landmark_is_named_although_the_model_corrects_it(population, tmp_path):
     """The model method warps with the fit's estimate of the landmarks, so a landmark the
     user swapped with another is corrected; but the coating then lies far from the given

@@ -40,6 +40,7 @@ def _select(bpy, obj):
     bpy.context.view_layer.objects.active = obj
 
 
+@pytest.mark.slow
 def test_model_method_in_blender_equals_the_headless_build(bpy_clean, light_project, tmp_path):
     bpy = bpy_clean
     from ssm.operators.coating import correspondence_rounds
@@ -75,6 +76,7 @@ def test_model_method_in_blender_equals_the_headless_build(bpy_clean, light_proj
     assert max(moved) > 0.0
 
 
+@pytest.mark.slow
 def test_propose_landmarks_fits_the_scene_model(bpy_clean, light_project):
     bpy = bpy_clean
     from ssm.operators.scene import landmark_empties, scene_instances

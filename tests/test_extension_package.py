@@ -171,6 +171,7 @@ def test_cli_rejects_unknown_platform(tmp_path, capsys):
     assert not list(tmp_path.glob("*.zip"))
 
 
+@pytest.mark.slow
 @needs_bpy
 def test_build_without_wheels_excludes_dev_files_and_validates(tmp_path):
     zips = bx.build(out_dir=tmp_path, cache=tmp_path / "cache", with_wheels=False, log=lambda *a: None)

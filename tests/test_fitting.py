@@ -146,6 +146,7 @@ def verse_models(verse_dir, tmp_path_factory):
     return project, result
 
 
+@pytest.mark.slow
 def test_leave_one_out_fit_of_a_real_vertebra(verse_models, tmp_path):
     from ssm_addon.model.pca import build_model
 

@@ -30,6 +30,7 @@ def _digest(folder: Path) -> dict[str, str]:
             for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
+@pytest.mark.slow
 def test_existing_folder_with_a_foreign_file_is_refused_then_kept_with_force(quick_project, tmp_path):
     out = tmp_path / "out"
     (out / "coated").mkdir(parents=True)
@@ -43,6 +44,7 @@ def test_existing_folder_with_a_foreign_file_is_refused_then_kept_with_force(qui
     assert (out / "model.npz").is_file() and (out / MANIFEST).is_file()
 
 
+@pytest.mark.slow
 def test_rebuild_leaves_exactly_its_own_outputs_and_identical_model_bytes(quick_project, tmp_path):
     out = tmp_path / "out"
     build(read_project(quick_project), out, log=None)
@@ -67,6 +69,7 @@ def test_output_folder_may_not_hold_an_input(quick_project):
         build(read_project(quick_project), folder.parent, log=None, force=True)
 
 
+@pytest.mark.slow
 def test_failed_build_leaves_an_earlier_output_byte_identical(quick_project, tmp_path):
     out = tmp_path / "out"
     build(read_project(quick_project), out, log=None)
@@ -79,6 +82,7 @@ def test_failed_build_leaves_an_earlier_output_byte_identical(quick_project, tmp
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "out.cache"]  # no temporary folder left
 
 
+@pytest.mark.slow
 def test_instance_names_cannot_escape_the_output_folder(quick_project, tmp_path):
     text = quick_project.read_text()
     first = read_project(quick_project).names[0]
@@ -90,6 +94,7 @@ def test_instance_names_cannot_escape_the_output_folder(quick_project, tmp_path)
     assert not list(tmp_path.rglob("escaped.ply"))[1:] and not (tmp_path / "escaped.ply").exists()
 
 
+@pytest.mark.slow
 def test_output_permissions_follow_the_umask(quick_project, tmp_path):
     old = os.umask(0o022)
     try:
@@ -100,6 +105,7 @@ def test_output_permissions_follow_the_umask(quick_project, tmp_path):
     assert (tmp_path / "out" / "model.npz").stat().st_mode & 0o777 == 0o644
 
 
+@pytest.mark.slow
 def test_command_line_force_and_foreign_file_message(quick_project, tmp_path, capsys):
     out = tmp_path / "out"
     out.mkdir()

@@ -261,6 +261,7 @@ def _euler(mask: np.ndarray) -> int:
     return len(verts) - len(e) + len(faces)
 
 
+@pytest.mark.slow
 def test_demo_shapes_are_closed_genus_one_solids(demo_population, demo_surfaces):
     """The implicit shapes are genus 1 (sampled finely); the label maps are one oblique, anisotropic solid each."""
     from scipy import ndimage
@@ -342,6 +343,7 @@ def test_cancelled_build_writes_nothing(demo_population, tmp_path):
     assert any(m.startswith("template") for m in messages)
 
 
+@pytest.mark.slow
 def test_parallel_build_equals_serial(demo_population, tmp_path):
     quick = demo_population.with_name("quick.toml")  # a coarser, shorter build: equality is the point here
     quick.write_text(demo_population.read_text().replace("spacing = 1.0", "spacing = 1.0\nr_min_mm = 4.0\nr_max_mm = 8.0")

@@ -82,6 +82,7 @@ def test_landmarks_in_lps_declared_as_ras_get_an_error_that_says_so(tmp_path, ve
         Q.check_landmarks_on_surface("L1", ov, flipped, QualityParams(), source="L1.csv")
 
 
+@pytest.mark.slow
 def test_a_two_component_target_and_an_odd_volume_are_flagged(population, tmp_path):
     def edit(path, proj):
         inst = proj.instances[2]
@@ -100,6 +101,7 @@ def test_a_two_component_target_and_an_odd_volume_are_flagged(population, tmp_pa
     assert any(f["instance"] == name and f["gate"] == "components" for f in report["quality"]["findings"])
 
 
+@pytest.mark.slow
 def test_strict_build_with_a_failing_gate_exits_3_and_writes_nothing(population, tmp_path, capsys):
     project = population.with_name("strict.toml")
     project.write_text(population.read_text() + "\n[quality]\nmax_surface_distance_vox = 0.0001\n")
@@ -187,6 +189,7 @@ def test_bad_input_table_in_the_docs_lists_the_messages():
         assert needle in text, needle
 
 
+@pytest.mark.slow
 def test_large_study_outlier_scores_agree_with_the_exact_ones():
     """Above EXACT_LOO_MAX instances the scores come from a rank-one downdate in the leading modes."""
     rng = np.random.default_rng(11)

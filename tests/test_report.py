@@ -28,6 +28,7 @@ def built(tmp_path_factory):
     return folder / "out", result
 
 
+@pytest.mark.slow
 def test_report_is_one_self_contained_file(built):
     out, result = built
     page = (out / "report.html").read_text()

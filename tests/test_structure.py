@@ -273,3 +273,16 @@ def test_pip_install_gives_a_working_ssm_command_from_any_folder(tmp_path):
 def test_parameter_reference_in_docs_is_generated_from_the_definitions():
     assert (ROOT / "docs" / "parameters.md").read_text() == P.markdown_tables() + "\n", (
         "docs/parameters.md is stale: run `python -m ssm_addon params > docs/parameters.md`")
+
+
+def test_the_core_doctests_pass():
+    """Every docstring example in the core runs and gives what it shows."""
+    import doctest
+
+    attempted = 0
+    for m in _modules(CORE):
+        module = importlib.import_module(f"ssm_addon.{m}" if m else "ssm_addon")
+        result = doctest.testmod(module, optionflags=doctest.NORMALIZE_WHITESPACE | doctest.ELLIPSIS, verbose=False)
+        assert result.failed == 0, f"ssm_addon.{m}: {result.failed} doctest(s) failed"
+        attempted += result.attempted
+    assert attempted >= 20, attempted

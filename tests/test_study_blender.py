@@ -44,6 +44,7 @@ def _verse_workflow(bpy, verse_dir, names=("L1", "L2", "L3")):
     return insts
 
 
+@pytest.mark.slow
 def test_blender_workflow_and_headless_build_of_its_project_give_the_same_model(bpy_clean, verse_dir, tmp_path):
     from ssm.operators import model as opmodel
 
@@ -64,6 +65,7 @@ def test_blender_workflow_and_headless_build_of_its_project_give_the_same_model(
         assert diff <= 1e-6, key
 
 
+@pytest.mark.slow
 def test_saved_and_reopened_blend_continues_exactly(bpy_clean, verse_dir, tmp_path):
     from ssm.operators import model as opmodel
     from ssm.operators import scene
@@ -87,6 +89,7 @@ def test_saved_and_reopened_blend_continues_exactly(bpy_clean, verse_dir, tmp_pa
         np.testing.assert_array_equal(getattr(after, key), getattr(before, key), err_msg=key)
 
 
+@pytest.mark.slow
 def test_renaming_and_coating_again_replaces_the_coated_instance(bpy_clean, verse_dir):
     bpy = bpy_clean
     insts = _verse_workflow(bpy, verse_dir, names=("L2", "L3"))
@@ -130,6 +133,7 @@ def test_every_parameter_is_a_blender_property_with_the_core_definition(bpy_clea
         params_from_group(P.CoatingParams, group)
 
 
+@pytest.mark.slow
 def test_save_open_save_project_is_byte_identical(bpy_clean, tmp_path):
     from ssm_addon.cli import demo
 

@@ -38,6 +38,7 @@ def population(tmp_path_factory):
     return folder
 
 
+@pytest.mark.slow
 def test_workflow_from_import_to_model_through_bpy_ops(bpy_clean, population, layout_recorder):
     from ssm_addon import meshutil
 

@@ -81,20 +81,6 @@ class BuildResult:
     def timings_s(self) -> dict:
         return self.study.timings_s
 
-    @property
-    def objects(self) -> tuple:
-        """Every instance's ObjectVolume, in project order."""
-        return tuple(self.study.volumes[n] for n in self.study.names)
-
-    @property
-    def coatings(self) -> tuple:
-        """Every instance's CoatingResult, in project order."""
-        return tuple(self.study.coatings[n] for n in self.study.names)
-
-    @property
-    def landmarks_world(self) -> tuple:
-        return tuple(i.landmark_set for i in self.study.instances)
-
 
 def peak_memory_mb() -> dict:
     """Peak resident memory (MB) of this process and of its finished child processes."""

@@ -26,21 +26,11 @@ A triangle is folded when its normal is more than 90° from the surface normal a
 centroid (paper 4.2); the surface normal is taken from the distance field smoothed at
 3 mm (:func:`~ssm_addon.coating.relaxation.folded_triangles`), because with the raw gradient the template's
 triangles that span a thin process (centroid inside, near the medial surface) count
-as folded even on the template's own instance (3 of 1,262 on VerSe L1; 0 smoothed).
+as folded even on the template's own instance.
 
-Steps 2, 5 and the fold handling were added after measuring the paper's scheme on
-VerSe (L1 template, 631 vertices, onto L2..L5, T12 with the extremal-point landmarks):
-12-38 % of the triangles folded after warp + projection, and the relaxation did not
-unfold them. L5's and T12's extremal-point landmarks (L5 ~40° tilted against L1,
-T12 with short thoracic transverse processes) mis-map whole parts of L1 (13 % and 8 %
-of the triangles folded after registration from the landmark warp), so when more than
-5 % are folded after the coarse widths (16, 8 mm) the registration also starts from the
-object frames alone and the start with fewer folds goes on to the fine widths
-(``FitFigures.start``). With the defaults all five end
-without folds and every vertex within 0.2 mm of the raw (uncleaned) surface, in
-0.5-0.7 s per instance (was 2.3 s). On synthetic shapes
-with known correspondence every step keeps or improves it (tests/test_coating.py,
-tools/bench_coating.py).
+Steps 2, 5 and the fold handling exist because the paper's scheme alone left folds on
+real vertebrae, and the object-frame start because extremal-point landmarks can mis-map
+whole parts of a template; the measurements are in ``docs/measurements.md``.
 
 Frames and units
 ----------------

@@ -21,26 +21,11 @@ does both (``[correspondence] method = "model"``):
 3. **Re-sampling** (:func:`resample_instance`): the mean shape's points are not the
    template's; the rounds' coatings are read off at the template's points (located on
    the template instance's final coating), so the template's curvature-guided sampling
-   and point numbering stay. On the deformed population (14 landmarks) the mean shape
-   slid the template instance's points 0.84–0.91 mm per round; re-sampled, the template's
-   points landed 0.78 mm (95th percentile 1.74 mm) from their true places, the single
-   pass's 0.80 mm (1.87 mm). Before the re-sampling (and the untangling's current rule)
-   the model method measured 1.04 mm (2.55 mm) against the single pass's 0.95 mm.
+   and point numbering stay.
 
-Which landmarks warp the mean shape (``exact_landmarks``), measured on the deformed
-population (mean / 95th percentile mm; single pass in brackets): with exact landmarks,
-keeping them gave 0.73 / 1.62 with 14 (0.80 / 1.87) and 0.82 / 1.91 with 6 (0.85 / 1.94),
-the fit's estimate 0.78 / 1.74 and 0.89 / 2.12; with landmarks jittered by 1.5 mm per
-axis the estimate gave 0.81 / 1.79, kept 0.91 / 2.05 (0.92 / 2.13). On VerSe, whose
-landmarks are extremal points, keeping them left 11 folded triangles, the estimate none:
-the estimate is the default. Starting the coating from the fit itself measured
-1.11-1.35 mm (6 landmarks), so the fit only supplies landmarks.
-
-Why the fit supplies landmarks rather than the start itself: on a deformed-verse004
-population with known correspondence (``tools/eval_correspondence.py``), relaxing the
-fitted shape directly put points 1.07 mm (95th percentile 2.73 mm) from their true
-places, the single pass 0.95 mm; warping the mean shape with the fitted landmarks
-0.99 mm (2.56 mm) in one round, and consistency across instances improved by rounds.
+The fit supplies the landmarks of the warp, not the start of the coating, and the given
+landmarks are kept where given only with ``exact_landmarks``: the figures behind both
+choices are in ``docs/measurements.md``.
 
 The per-instance step (:func:`refine_instance`) is a pure function of arrays, so rounds
 run in processes. Frames: each instance's object frame (paper 2), which the model frame

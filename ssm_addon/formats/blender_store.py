@@ -12,7 +12,6 @@ runs in its own process) without pickling. Layout of the folder:
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import numpy as np
@@ -25,26 +24,11 @@ from ..model.files import model_from_arrays, write_npz
 from ..model.quality import Finding
 from ..pipeline import params as P
 from ..pipeline.errors import InputError
+from ..pipeline.records import jsonable
 from ..pipeline.study import Study
 from ..template.template import Template
 
 __all__ = ["load_study", "save_study"]
-
-
-def _clean(obj):
-    if isinstance(obj, dict):
-        return {str(k): _clean(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_clean(v) for v in obj]
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    if isinstance(obj, Path):
-        return str(obj)
-    return obj
 
 
 def save_study(study: Study, folder, *, extra: dict | None = None) -> Path:
@@ -76,7 +60,7 @@ def save_study(study: Study, folder, *, extra: dict | None = None) -> Path:
         arrays["template/points_object"] = np.asarray(t.points_object, float)
         arrays["template/faces"] = np.asarray(t.faces, np.int64)
         arrays["template/curvature"] = np.asarray(t.curvature, float)
-        arrays["template/params_json"] = np.asarray(json.dumps(_clean(t.params)))
+        arrays["template/params_json"] = np.asarray(json.dumps(jsonable(t.params)))
         frame_to_arrays("template/frame", t.frame, arrays)
     for name, c in study.coatings.items():
         k = index[name]
@@ -88,7 +72,7 @@ def save_study(study: Study, folder, *, extra: dict | None = None) -> Path:
         for key in ("mean", "faces", "modes", "variances", "instance_points", "instance_points_world"):
             arrays[f"model/{key}"] = np.asarray(getattr(m, key))
         arrays["model/instance_names"] = np.asarray([str(s) for s in m.instance_names])
-        arrays["model/params_json"] = np.asarray(json.dumps(_clean(m.params)))
+        arrays["model/params_json"] = np.asarray(json.dumps(jsonable(m.params)))
     doc = {
         "instances": insts,
         "template_instance": study.template_instance,
@@ -100,7 +84,7 @@ def save_study(study: Study, folder, *, extra: dict | None = None) -> Path:
         "timings_s": study.timings_s,
         "extra": extra or {},
     }
-    (folder / "study.json").write_text(json.dumps(_clean(doc)), encoding="utf-8")
+    (folder / "study.json").write_text(json.dumps(jsonable(doc)), encoding="utf-8")
     write_npz(folder / "arrays.npz", arrays)
     return folder
 

@@ -269,11 +269,6 @@ def load_statismo(path) -> ShapeModel:
     )
 
 
-def file_size_mb(path) -> float:
-    """Size of a file in MB (for reports)."""
-    return os.path.getsize(path) / 1e6
-
-
 def write_model_files(model: ShapeModel, out_dir, *, statismo: bool = True, statismo_name: str = "model.h5") -> dict:
     """Write ``model.npz`` and (``statismo``) the statismo file into ``out_dir``.
 

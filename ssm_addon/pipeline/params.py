@@ -34,6 +34,8 @@ from typing import Any
 
 import numpy as np
 
+from ..instances.frame import FRAME_METHODS
+from ..model.pca import ALIGNMENTS
 from ..pipeline.compute import check_scheduler
 from ..pipeline.errors import InputError
 
@@ -57,7 +59,6 @@ __all__ = [
     "to_table",
 ]
 
-KINDS = ("float", "int", "bool", "choice", "str", "floats")
 
 
 @dataclass(frozen=True)
@@ -397,7 +398,6 @@ def from_arguments(args: argparse.Namespace, cls, *, prefix: str = "", base=None
 
 
 # ------------------------------------------------------------------------- the classes
-FRAME_METHODS = ("auto", "patient", "moments")
 
 
 @dataclass(frozen=True)
@@ -607,7 +607,6 @@ class CoatingParams:
         return d
 
 
-ALIGNMENTS = ("none", "rigid", "similarity")
 
 
 @dataclass(frozen=True)
@@ -813,7 +812,7 @@ TABLES = {"template": TemplateParams, "coating": CoatingParams, "correspondence"
 def markdown_tables() -> str:
     """The parameter reference (``docs/parameters.md``), generated from the definitions."""
     out = ["# Parameters", "",
-           "Generated from `ssm_addon/params.py` (`python -m ssm_addon params`); the same names are the",
+           "Generated from `ssm_addon/pipeline/params.py` (`python -m ssm_addon params`); the same names are the",
            "project file's keys, the `ssm build --<table>-<key>` options and the SSM sidebar's fields.", ""]
     for section, cls in TABLES.items():
         out += [f"## [{section}]", "", (cls.__doc__ or "").strip().splitlines()[0], "",
