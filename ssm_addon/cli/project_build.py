@@ -187,8 +187,9 @@ def write_study_files(study: Study, folder: Path, *, output: OutputParams, proje
                       extra: dict | None = None) -> tuple[dict, dict]:
     """Write the study's products into ``folder``; returns ({output name: file name}, the report).
 
-    ``model.npz``, ``model.h5`` (statismo), ``report.json``, the plots, ``template.ply``
-    and ``coated/<name>.ply`` (world mm).
+    ``model.npz``, ``model.h5`` (statismo), the plots, ``template.ply``
+    and ``coated/<name>.ply`` (world mm); the report comes back in memory and the build writes
+    ``report.json`` once, with its final timings.
     """
     files: dict = {}
     tpl = study.template

@@ -585,8 +585,7 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
     findings += check_volumes_together({n: products[n].volume_mm3 for n in names}, study.quality_params)
     findings = [dataclasses.replace(f, stage="import") for f in findings]
     frames.update({n: products[n].frame for n in names})
-    coated = dataclasses.replace(study, coatings={}, frames={**study.frames, **frames})
-    result = coating_result(coated, {n: products[n].coating for n in names}, {n: "landmarks" for n in names},
+    result = coating_result(study, {n: products[n].coating for n in names}, {n: "landmarks" for n in names},
                             time.perf_counter() - t0, counts=f"{len(todo)} coated, {cached} from the cache; ")
     counts = {"cached": cached, "computed": len(todo)}
     return dataclasses.replace(
