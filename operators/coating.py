@@ -155,6 +155,10 @@ class SSM_OT_coat_template(BackgroundJob, bpy.types.Operator):
         written = self._write(context, result.product["coatings"])
         found = record_findings(context, imported) + record_findings(context, result)
         msg = f"coated {len(written)} instance(s)"
+        check = result.product.get("correspondence_check")
+        if check is not None:
+            context.scene[CHECK_KEY] = json.dumps(check.to_dict())
+            msg += f"; landmark transfer error {check.study_mm:.2f} mm"
         if was_cancelled:
             msg = f"cancelled: kept {len(written)} of {len(self._names)} coated instance(s)"
         report_stage(self, msg, found)
@@ -172,6 +176,7 @@ class SSM_OT_coat_template(BackgroundJob, bpy.types.Operator):
 
 
 ROUNDS_KEY = "ssm_correspondence_rounds"
+CHECK_KEY = "ssm_correspondence_check"
 
 
 class SSM_OT_refine_correspondence(BackgroundJob, bpy.types.Operator):
@@ -246,13 +251,27 @@ def finish_refinement(op, context, outcome):
             written.append(obj)
     previous = [] if op._fresh else correspondence_rounds(context)
     context.scene[ROUNDS_KEY] = json.dumps(previous + [r.to_dict() for r in rounds])
+    check = result.product.get("correspondence_check")
+    if check is not None:
+        context.scene[CHECK_KEY] = json.dumps(check.to_dict())
     folds = sum(c.fit.folded_after for c in coatings.values())
     last = rounds[-1] if rounds else None
     msg = (f"refined {len(written)} instance(s) in {len(rounds)} round(s)"
            + (f"; mean shape moved {last.mean_change_mm:.3f} mm in the last" if last else ""))
+    if check is not None:
+        kept = f"round {check.kept_round}'s coatings" if check.kept_round else "the start's coatings"
+        msg += f"; {check.stop}: kept {kept}, landmark transfer error {check.study_mm:.2f} mm"
     found = record_findings(context, imported) + record_findings(context, result)
     report_stage(op, f"{msg}; {folds} folded triangle(s) left" if folds else msg, found)
     return {"FINISHED"}
+
+
+def correspondence_check(context) -> dict:
+    """The last correspondence self-check in this scene (``Scene["ssm_correspondence_check"]``)."""
+    try:
+        return json.loads(context.scene.get(CHECK_KEY, "{}"))
+    except ValueError:
+        return {}
 
 
 def correspondence_rounds(context) -> list[dict]:
@@ -291,8 +310,20 @@ class SSM_PT_coating(bpy.types.Panel):
         for r in correspondence_rounds(context)[-6:]:
             moved = max(r["instance_change_mm"].values(), default=0.0)
             shift = max(r.get("landmark_shift_mm", {}).values(), default=0.0)
-            box.label(text=f"round {r['round']}: mean {r['mean_change_mm']:.3f} mm, instances ≤ {moved:.2f} mm, "
-                      f"landmarks ≤ {shift:.2f} mm, folds {sum(r['folds'].values())}, {r['seconds']:.0f} s")
+            kept = "kept" if r.get("kept", True) else "dropped"
+            transfer = r.get("transfer_after_mm")
+            judged = f", transfer {transfer:.2f} mm" if isinstance(transfer, float) and transfer == transfer else ""
+            box.label(text=f"round {r['round']} {kept}: mean {r['mean_change_mm']:.3f} mm, instances ≤ {moved:.2f} "
+                      f"mm, landmarks ≤ {shift:.2f} mm, folds {sum(r['folds'].values())}{judged}, "
+                      f"{r['seconds']:.0f} s")
+        check = correspondence_check(context)
+        if check.get("instance_mm"):
+            worst = max(check["instance_mm"], key=check["instance_mm"].get)
+            stop = {"converged": "rounds converged", "criterion": "stopped by the self-check",
+                    "limit": "round limit reached"}.get(check.get("stop", ""), "single pass")
+            box.label(text=f"self-check: landmark transfer {check['study_mm']:.2f} mm (largest {worst} "
+                      f"{check['instance_mm'][worst]:.2f} mm); {stop}",
+                      icon="ERROR" if check.get("stop") == "limit" else "CHECKMARK")
         layout.prop(context.scene.ssm_display, "colouring")
         coated = coated_objects(context)
         if coated:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import re
 
 import numpy as np
@@ -99,9 +100,12 @@ def test_model_method_with_landmarks_on_the_template_only(population, tmp_path):
     last = corr["rounds"][-1]
     assert set(last["instance_change_mm"]) == {f"demo_{i:02d}" for i in range(6)}
     assert sum(last["folds"].values()) == 0
-    # only the template instance has landmarks to move: the fit's estimate moved them a little
-    shift = last["landmark_shift_mm"]
-    assert {n for n, v in shift.items() if v > 0} == {tpl} and shift[tpl] < 3.0, shift
+    # exact landmarks (the default): the template instance's stay where given
+    assert all(v == 0.0 for v in last["landmark_shift_mm"].values()), last["landmark_shift_mm"]
+    # the self-check judges the rounds by the only landmarked instance
+    check = corr["self_check"]
+    assert set(check["instance_mm"]) == {tpl} and corr["stop"] in ("converged", "criterion", "limit")
+    assert all(math.isfinite(r["transfer_before_mm"]) for r in corr["rounds"])
     assert any(line.startswith("correspondence round 1") for line in lines)
     # landmarks carried to the instances that had none, against the demo's true landmark files
     folder = population.parent
@@ -144,10 +148,10 @@ def test_a_diverging_refinement_is_refused_and_writes_nothing(population, tmp_pa
     import ssm_addon.fitting.correspondence as corr
 
     def runaway(*args, **kwargs):
-        coated, d, shift = refine_instance(*args, **kwargs)
+        coated, d, shift, transfer = refine_instance(*args, **kwargs)
         from dataclasses import replace
 
-        return replace(coated, points_object=coated.points_object * 50.0), d, shift
+        return replace(coated, points_object=coated.points_object * 50.0), d, shift, transfer
 
     monkeypatch.setattr(corr, "refine_instance", runaway)
     proj = _variant(population, "diverge.toml", correspondence='[correspondence]\nmethod = "model"')
@@ -158,12 +162,16 @@ def test_a_diverging_refinement_is_refused_and_writes_nothing(population, tmp_pa
 
 
 @pytest.mark.slow
-def test_model_method_keeps_the_template_points_on_the_template_instance(population):
+def test_model_method_keeps_the_template_points_on_the_template_instance(population, monkeypatch):
     """The mean shape's coating slides the template's points along the surfaces; the
-    re-sampling puts them back: on the template instance point i ends at template point i."""
+    re-sampling puts them back: on the template instance point i ends at template point i.
+    (Every round kept here, whatever the self-check says: the re-sampling is under test.)"""
     from scipy.spatial import cKDTree
 
+    import ssm_addon.fitting.correspondence as corr
     from ssm_addon.pipeline.study import Study, run
+
+    monkeypatch.setattr(corr, "_improves", lambda after, before: True)
 
     proj = _variant(population, "keep.toml", correspondence='[correspondence]\nmethod = "model"\niterations = 2')
     study = Study.from_project(read_project(proj))
@@ -182,43 +190,78 @@ def test_model_method_keeps_the_template_points_on_the_template_instance(populat
 
 @pytest.mark.slow
 def test_exact_landmarks_are_warped_to_where_given(population):
-    """``exact_landmarks = true``: each round warps the mean shape's landmarks exactly onto the
-    given ones; by default the fit's estimate replaces them (and the round says how far)."""
+    """``exact_landmarks = true`` (the default): a round warps the mean shape's landmarks
+    exactly onto the given ones; with ``false`` the fit's estimate replaces them (and the
+    round says how far). One round of :func:`refine_instance` on the single pass's coatings."""
+    from ssm_addon.pipeline.params import CorrespondenceParams, FitParams
     from ssm_addon.pipeline.study import Study, run
 
-    shifts, off = {}, {}
-    for exact in (False, True):
-        proj = _variant(population, f"exact-{exact}.toml",
-                        correspondence=f'[correspondence]\nmethod = "model"\niterations = 1\n'
-                                       f'exact_landmarks = {str(exact).lower()}')
-        study = Study.from_project(read_project(proj))
-        assert study.correspondence_params.exact_landmarks is exact
-        run(study, stages=("import", "template", "coating"), jobs=2)
-        shifts[exact] = study.correspondence_rounds[0].landmark_shift_mm
-        # the warped mean shape at its landmark points (barycentric on 4-8 mm triangles)
-        loc = study.template.params["landmark_locations"]
-        faces = np.asarray(study.template.faces)
-        tri, bary = np.asarray(loc["triangles"], int), np.asarray(loc["bary"], float)
-        off[exact] = []
-        for name in study.names:
-            lm = study.landmarks(name)
-            given = dict(zip(lm.names, study.frame(name).to_object(lm.points_world)))
-            warped = np.einsum("lk,lkd->ld", bary, study.coatings[name].warped_points_object[faces[tri]])
+    assert CorrespondenceParams().exact_landmarks is True
+    study = Study.from_project(read_project(population))
+    run(study, stages=("import", "template", "coating"), jobs=2)
+    loc = study.template.params["landmark_locations"]
+    faces = np.asarray(study.template.faces)
+    tri, bary = np.asarray(loc["triangles"], int), np.asarray(loc["bary"], float)
+    names = list(study.names)
+    points = np.stack([study.coatings[n].points_object for n in names])
+    mean = points.mean(axis=0)
+    off, shifts = {True: [], False: []}, {True: [], False: []}
+    for i, name in enumerate(names):
+        lm = study.landmarks(name)
+        given = dict(zip(lm.names, study.frame(name).to_object(lm.points_world)))
+        for exact in (False, True):
+            coated, _d, shift, transfer = refine_instance(
+                np.delete(points, i, axis=0), faces, mean, study.volume(name), loc, given,
+                fit=FitParams(tolerance_mm=0.01), coating=study.coating_params, exact_landmarks=exact,
+                current=points[i], name=name)
+            warped = np.einsum("lk,lkd->ld", bary, coated.warped_points_object[faces[tri]])
             off[exact] += [np.linalg.norm(w - given[n]) for n, w in zip(loc["names"], warped)]
-        if exact:
-            assert {study.coatings[n].fit.warp_regularization for n in study.names} == {0.0}
+            shifts[exact].append(shift)
+            if exact:
+                assert coated.fit.warp_regularization == 0.0
+            assert set(transfer) == set(lm.names) and all(math.isfinite(v) for v in transfer.values())
     # measured: exact 0.089 mm mean (max 0.36, the barycentric reading), fit's estimate 0.49 (1.81)
     assert np.mean(off[True]) < 0.15 and np.mean(off[True]) < 0.3 * np.mean(off[False]), off
-    assert all(v == 0.0 for v in shifts[True].values()), shifts[True]
-    assert min(shifts[False].values()) > 0.05, shifts[False]
+    assert all(v == 0.0 for v in shifts[True]) and min(shifts[False]) > 0.0, shifts
 
 
 @pytest.mark.slow
+def test_a_swapped_landmark_is_named_by_the_self_check(population, tmp_path):
+    """Exact landmarks (the default) keep a swapped pair where given: the landmark transfer
+    self-check (the other instances' model predicts them elsewhere) names the instance and
+    one of the two landmarks, in the single pass and in the model method."""
+    from ssm_addon.formats.landmarks import LandmarkSet, write_landmarks
+
+    tpl = _template(population)
+    victim = "demo_00" if tpl != "demo_00" else "demo_01"
+    project = read_project(population)
+    spec = next(i for i in project.instances if i.name == victim)
+    lm = read_landmarks(spec.landmarks)
+    pts = lm.points_world.copy()
+    far = int(np.argmax(np.linalg.norm(pts - pts[0], axis=1)))
+    pts[[0, far]] = pts[[far, 0]]
+    swapped = population.parent / f"swapped2_{victim}.fcsv"
+    write_landmarks(swapped, LandmarkSet(lm.names, pts, victim))
+    text = population.read_text().replace(f'landmarks = "{spec.landmarks.name}"', f'landmarks = "{swapped.name}"')
+    for method in ("landmarks", "model"):
+        proj = population.with_name(f"swapped-{method}.toml")
+        proj.write_text(text.replace("[coating]", f'[correspondence]\nmethod = "{method}"\niterations = 2\n\n'
+                                                  '[coating]'))
+        lines = []
+        result = build(read_project(proj), tmp_path / method, log=lines.append)
+        named = [f for f in result.study.findings if f.gate == "landmark_transfer"]
+        assert [f.instance for f in named] == [victim], [str(f) for f in result.study.findings]
+        assert re.search(rf"given landmark '({lm.names[0]}|{lm.names[far]})'", named[0].message), named[0].message
+        check = result.report["correspondence"]["self_check"]
+        assert max(check["instance_mm"], key=check["instance_mm"].get) == victim
+        assert any(victim in line and "landmark_transfer" in line for line in lines), lines[-5:]
+
+
 def test_a_swapped_landmark_is_named_although_the_model_corrects_it(population, tmp_path):
-    """The model method warps with the fit's estimate of the landmarks, so a landmark the
-    user swapped with another is corrected; but the coating then lies far from the given
-    landmark, and the landmark-residual gate names the instance (against the given
-    landmarks, not the estimate)."""
+    """With ``exact_landmarks = false`` the model method warps with the fit's estimate of
+    the landmarks, so a landmark the user swapped with another may be corrected; kept or
+    not, the coating lies far from the given landmark, and the landmark-residual gate names
+    the instance (against the given landmarks, not the estimate) and the landmark."""
     from ssm_addon.formats.landmarks import LandmarkSet, write_landmarks
 
     tpl = _template(population)
@@ -233,7 +276,8 @@ def test_a_swapped_landmark_is_named_although_the_model_corrects_it(population, 
     write_landmarks(swapped, LandmarkSet(lm.names, pts, victim))
     text = population.read_text().replace(f'landmarks = "{spec.landmarks.name}"', f'landmarks = "{swapped.name}"')
     proj = population.with_name("swapped.toml")
-    proj.write_text(text.replace("[coating]", '[correspondence]\nmethod = "model"\niterations = 2\n\n[coating]'))
+    proj.write_text(text.replace("[coating]", '[correspondence]\nmethod = "model"\niterations = 2\n'
+                                              'exact_landmarks = false\n\n[coating]'))
     result = build(read_project(proj), tmp_path / "out", log=None)
     gap = float(np.linalg.norm(pts[0] - pts[far]))
     named = [f for f in result.study.findings if f.gate == "landmark_residual"]

@@ -2,21 +2,36 @@
 
 Populations with known dense correspondence:
 
-* ``femur10``: ten real femurs sharing one connectivity (``../shared/data/femur10``).
+* a folder of closed meshes sharing one connectivity (every file has the same vertex
+  count and the identical face list, so vertex i is the same place on every instance):
+  ``femur10`` (ten real femurs, ``../shared/data/femur10``), ``knee30-femur``,
+  ``knee30-tibia``, ``knee30-patella`` (``../shared/data/knee30``), or any
+  ``folder:PATH[:GLOB]``;
 * ``deformed``: the verse004 vertebra L1 (or ``--label``) deformed by known smooth,
   invertible deformations (sums of Gaussian displacement bumps at several spatial
   scales, each kept below the fold limit), so every surface point's true place on
   every instance is known.
 
 The template's points lie on its instance's surface; their true place on instance k is
-the same surface point mapped by the known correspondence (the shared triangles of
-femur10; the deformation of the deformed population). The error of a point is its
-distance, in world mm, from that true place: not a surface distance.
+the same surface point mapped by the known correspondence (the shared triangles; the
+deformation). The error of a point is its distance, in world mm, from that true place:
+not a surface distance. Landmarks are farthest-point samples of the template instance's
+vertices at their true places on every instance (``--jitter`` adds Gaussian noise per
+axis, not on the template instance); ``--on K`` puts them on the first K instances only.
+
+Each run prints mean, 95th percentile and max (mm), the seconds, and the build's own
+correspondence self-check (the landmark transfer error, ``ssm_addon.fitting``) with its
+rank correlation against the true error across instances. ``--suite`` runs the issue's
+matrix (single pass and model method at 15 and 6 landmarks, 15 jittered by 1.5 mm, and
+the model method with landmarks on 3 instances) and prints one table; ``--json FILE``
+appends every run's figures as JSON lines.
 
 Usage::
 
     python tools/eval_correspondence.py femur10 [--landmarks 15] [--on 10] [--jitter 0]
         [--method landmarks|model] [--exact-landmarks] [--iterations 3] [--jobs 2]
+    python tools/eval_correspondence.py knee30-tibia --suite --json runs.jsonl
+    python tools/eval_correspondence.py folder:/data/femurs:*.ply --landmarks 6
     python tools/eval_correspondence.py deformed [--n 20] ...
 """
 
@@ -36,11 +51,13 @@ sys.path.insert(0, str(ROOT))
 
 from ssm_addon.formats.landmarks import LandmarkSet, read_landmarks, write_landmarks  # noqa: E402
 from ssm_addon.instances.importing import InstanceSpec  # noqa: E402
-from ssm_addon.meshutil import locate_on_mesh, read_mesh  # noqa: E402
+from ssm_addon.meshutil import read_mesh  # noqa: E402
 from ssm_addon.pipeline.params import CorrespondenceParams  # noqa: E402
 from ssm_addon.pipeline.study import Study, run  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
+MESH_SETS = {"femur10": ("femur10", "femur*.ply"), "knee30-femur": ("knee30", "*_Femur.ply"),
+             "knee30-tibia": ("knee30", "*_Tibia.ply"), "knee30-patella": ("knee30", "*_Patella.ply")}
 
 
 def farthest_points(points: np.ndarray, k: int, start: int) -> np.ndarray:
@@ -54,13 +71,94 @@ def farthest_points(points: np.ndarray, k: int, start: int) -> np.ndarray:
     return np.array(chosen)
 
 
-def femur_population():
-    """(names, [(vertices, faces)], correspondence) of femur10; truth by shared vertices."""
-    files = sorted((DATA / "femur10").glob("femur*.ply"))
-    if not files:
-        raise SystemExit(f"no femur10 data under {DATA / 'femur10'}")
+def mesh_population(population: str):
+    """(files, [(vertices, faces)]) of a folder of meshes sharing one connectivity."""
+    if population.startswith("folder:"):
+        _, folder, *pattern = population.split(":")
+        folder, pattern = Path(folder), (pattern[0] if pattern else "*.ply")
+    else:
+        sub, pattern = MESH_SETS[population]
+        folder = DATA / sub
+    files = sorted(folder.glob(pattern))
+    if len(files) < 3:
+        raise SystemExit(f"{population}: fewer than 3 meshes {pattern} under {folder}")
     meshes = [read_mesh(f) for f in files]
-    return [f.stem for f in files], meshes
+    f0 = meshes[0][1]
+    for f, (v, faces) in zip(files, meshes):
+        if len(v) != len(meshes[0][0]) or faces.shape != f0.shape or not np.array_equal(faces, f0):
+            raise SystemExit(f"{f}: not the connectivity of {files[0].name} (the truth needs shared vertices)")
+    return files, meshes
+
+
+def self_check(study) -> dict:
+    """The build's own correspondence check per instance (mm), if it made one."""
+    check = getattr(study, "correspondence_check", None)
+    return dict(check.instance_mm) if check is not None else {}
+
+
+def rank_correlation(true: dict, check: dict, skip: str) -> float:
+    from scipy.stats import spearmanr
+
+    names = [n for n in true if n in check and n != skip]
+    if len(names) < 3:
+        return float("nan")
+    return float(spearmanr([true[n] for n in names], [check[n] for n in names])[0])
+
+
+def report_run(label: str, errors: dict, study, seconds: float, args) -> dict:
+    allv = np.concatenate(list(errors.values()))
+    per = {n: float(e.mean()) for n, e in errors.items()}
+    check = self_check(study)
+    rho = rank_correlation(per, check, study.template_instance)
+    for name, e in errors.items():
+        c = f", self-check {check[name]:.2f}" if name in check else ""
+        print(f"  {name}: mean {e.mean():.2f}, 95th {np.percentile(e, 95):.2f}, worst {e.max():.1f} mm, "
+              f"folds {study.coatings[name].fit.folded_after}{c}")
+    rounds = [(r.round, r.kept) for r in getattr(study, "correspondence_rounds", ()) if hasattr(r, "kept")]
+    stop = getattr(getattr(study, "correspondence_check", None), "stop", "")
+    row = {"population": args.population, "method": args.method, "landmarks": args.landmarks, "on": args.on,
+           "jitter": args.jitter, "exact_landmarks": args.exact_landmarks, "mean_mm": float(allv.mean()),
+           "p95_mm": float(np.percentile(allv, 95)), "max_mm": float(allv.max()), "seconds": seconds,
+           "self_check_mm": float(np.mean(list(check.values()))) if check else None, "rank_correlation": rho,
+           "rounds": rounds, "stop": stop}
+    print(f"{label}: mean {row['mean_mm']:.3f} mm, 95th {row['p95_mm']:.2f} mm, worst {row['max_mm']:.1f} mm "
+          f"({seconds:.0f} s; self-check {row['self_check_mm'] or float('nan'):.2f} mm, rank correlation "
+          f"{rho:.2f}; {stop})", flush=True)
+    if args.json:
+        import json
+
+        with open(args.json, "a") as fh:
+            fh.write(json.dumps(row) + "\n")
+    return row
+
+
+def eval_meshes(args) -> dict:
+    from ssm_addon.meshutil import MeshLocation, MeshLocator
+
+    files, meshes = mesh_population(args.population)
+    names = [f.stem for f in files]
+    v0, f0 = meshes[0]
+    lm_idx = farthest_points(v0, args.landmarks, int(np.argmax(v0[:, 2])))
+    rng = np.random.default_rng(args.seed)
+    with tempfile.TemporaryDirectory() as tmp:
+        specs = []
+        for i, (name, f, (v, _f)) in enumerate(zip(names, files, meshes)):
+            lm = None
+            if i < args.on:
+                pts = v[lm_idx] + rng.normal(scale=args.jitter, size=(len(lm_idx), 3)) * (i > 0 or args.jitter_template)
+                lm = Path(tmp) / f"{name}.csv"
+                write_landmarks(lm, LandmarkSet(tuple(f"L{j:02d}" for j in range(len(lm_idx))), pts, name))
+            specs.append(InstanceSpec(name=name, mesh=f, landmarks=lm, landmark_set=read_landmarks(lm) if lm else None))
+        study, template_points, seconds = run_study(specs, names[0], args.method, args.iterations, args.jobs)
+    # point i of every coating is template point i, which lies on the template instance's
+    # surface: its true place on instance k is the same place of k's mesh (shared faces)
+    _c, _d, tri, bary = MeshLocator(v0, f0).query(study.frame(names[0]).to_world(template_points), k=12)
+    loc = MeshLocation(tri, bary)
+    errors = {n: np.linalg.norm(study.frame(n).to_world(study.coatings[n].points_object) - loc.evaluate(v, f0), axis=1)
+              for n, (v, _f) in zip(names, meshes)}
+    label = (f"{args.population} {args.method} landmarks={args.landmarks} on={min(args.on, len(names))} "
+             f"jitter={args.jitter}")
+    return report_run(label, errors, study, seconds, args)
 
 
 def deformation_field(rng, centre: np.ndarray, size: float, scales=(0.6, 0.3, 0.15), amplitude=0.35):
@@ -148,7 +246,7 @@ def deformed_population(n: int, label: int, seed: int, workdir: Path):
 
 
 LANDMARK_WEIGHT = [None]
-EXACT_LANDMARKS = [False]
+EXACT_LANDMARKS = [None]
 
 
 def run_study(specs, template_name: str, method: str, iterations: int, jobs: int, spacing: float | None = None):
@@ -156,7 +254,8 @@ def run_study(specs, template_name: str, method: str, iterations: int, jobs: int
     if spacing:
         study.template_params = replace(study.template_params, spacing_mm=spacing)
     extra = {} if LANDMARK_WEIGHT[0] is None else {"landmark_weight": LANDMARK_WEIGHT[0]}
-    extra["exact_landmarks"] = EXACT_LANDMARKS[0]
+    if EXACT_LANDMARKS[0] is not None:
+        extra["exact_landmarks"] = EXACT_LANDMARKS[0]
     study.correspondence_params = CorrespondenceParams(method=method, iterations=iterations, **extra)
     t0 = time.perf_counter()
     say = lambda m: print("  " + m, flush=True)  # noqa: E731
@@ -164,49 +263,6 @@ def run_study(specs, template_name: str, method: str, iterations: int, jobs: int
     template_points = study.template.points_object.copy()
     run(study, stages=("coating",), jobs=jobs, log=say)
     return study, template_points, time.perf_counter() - t0
-
-
-def summarise(errors: dict, label: str):
-    allv = np.concatenate(list(errors.values()))
-    print(f"{label}: mean {allv.mean():.3f} mm, 95th {np.percentile(allv, 95):.2f} mm, worst {allv.max():.1f} mm "
-          f"(points {allv.size})", flush=True)
-    return allv
-
-
-def eval_femur(args):
-    names, meshes = femur_population()
-    v0, f0 = meshes[0]
-    lm_idx = farthest_points(v0, args.landmarks, int(np.argmax(v0[:, 2])))
-    rng = np.random.default_rng(args.seed)
-    with tempfile.TemporaryDirectory() as tmp:
-        specs = []
-        for i, (name, (v, _f)) in enumerate(zip(names, meshes)):
-            lm = None
-            if i < args.on:
-                pts = v[lm_idx] + rng.normal(scale=args.jitter, size=(len(lm_idx), 3)) * (i > 0 or args.jitter_template)
-                lm = Path(tmp) / f"{name}.csv"
-                write_landmarks(lm, LandmarkSet(tuple(f"L{j:02d}" for j in range(len(lm_idx))), pts, name))
-            specs.append(InstanceSpec(name=name, mesh=DATA / "femur10" / f"{name}.ply", landmarks=lm,
-                                      landmark_set=read_landmarks(lm) if lm else None))
-        study, template_points, seconds = run_study(specs, names[0], args.method, args.iterations, args.jobs)
-    # point i of every coating is template point i, which lies on femur00's surface
-    loc = locate_on_mesh(v0, f0, study.frame(names[0]).to_world(template_points))
-    errors = {}
-    got = {n: study.frame(n).to_world(study.coatings[n].points_object) for n in names}
-    for name, (v, _f) in zip(names, meshes):
-        errors[name] = np.linalg.norm(got[name] - loc.evaluate(v, f0), axis=1)
-    # consensus: every coating pulled back to femur00 through the known correspondence;
-    # their mean is the consensus place of each point, pushed forward to every femur
-    pulled = np.mean([locate_on_mesh(v, f0, got[n]).evaluate(v0, f0) for n, (v, _f) in zip(names, meshes)], axis=0)
-    cons = locate_on_mesh(v0, f0, pulled)
-    consensus = {n: np.linalg.norm(got[n] - cons.evaluate(v, f0), axis=1) for n, (v, _f) in zip(names, meshes)}
-    for name in names:
-        e = errors[name]
-        print(f"  {name}: mean {e.mean():.2f}, 95th {np.percentile(e, 95):.2f}, worst {e.max():.1f} mm, "
-              f"folds {study.coatings[name].fit.folded_after}")
-    label = f"femur10 {args.method} landmarks={args.landmarks} on={args.on} jitter={args.jitter} ({seconds:.0f} s)"
-    summarise(errors, label + " against the template's points")
-    summarise(consensus, label + " against the consensus")
 
 
 def jacobian_min(u, pts: np.ndarray, h: float = 0.5) -> float:
@@ -246,22 +302,43 @@ def eval_deformed(args):
     p0 = study.frame(names[0]).to_world(template_points)
     got = {n: study.frame(n).to_world(study.coatings[n].points_object) for n in names}
     errors = {n: np.linalg.norm(got[n] - (p0 + u(p0)), axis=1) for n, u in zip(names, maps)}
-    # consensus: every coating pulled back through its inverse deformation, averaged
-    pulled = np.mean([invert(u, got[n]) for n, u in zip(names, maps)], axis=0)
-    consensus = {n: np.linalg.norm(got[n] - (pulled + u(pulled)), axis=1) for n, u in zip(names, maps)}
-    for name in names:
-        e = errors[name]
-        print(f"  {name}: mean {e.mean():.2f}, 95th {np.percentile(e, 95):.2f}, worst {e.max():.1f} mm, "
-              f"folds {study.coatings[name].fit.folded_after}")
     label = (f"deformed-{label_names[args.label]} n={args.n} {args.method} landmarks={len(given)} "
-             f"on={min(args.on, args.n)} jitter={args.jitter} ({seconds:.0f} s)")
-    summarise(errors, label + " against the template's points")
-    summarise(consensus, label + " against the consensus")
+             f"on={min(args.on, args.n)} jitter={args.jitter}")
+    return report_run(label, errors, study, seconds, args)
+
+
+SUITE = (("landmarks", 15, 1000, 0.0), ("model", 15, 1000, 0.0), ("landmarks", 6, 1000, 0.0), ("model", 6, 1000, 0.0),
+         ("landmarks", 15, 1000, 1.5), ("model", 15, 1000, 1.5), ("model", 15, 3, 0.0))
+
+
+def evaluate(args) -> dict:
+    return eval_deformed(args) if args.population == "deformed" else eval_meshes(args)
+
+
+def suite(args) -> None:
+    """The issue's matrix on one population, one table at the end."""
+    rows = []
+    for method, landmarks, on, jitter in SUITE:
+        rows.append(evaluate(replace_args(args, method=method, landmarks=landmarks, on=on, jitter=jitter)))
+    print(f"\n{args.population}: method, landmarks, on, jitter -> mean / p95 / max mm, seconds, self-check, rho")
+    for r in rows:
+        on = "all" if r["on"] >= 1000 else r["on"]
+        print(f"  {r['method']:9s} {r['landmarks']:3d} on {on:>3} jitter {r['jitter']:.1f}: {r['mean_mm']:.3f} / "
+              f"{r['p95_mm']:.2f} / {r['max_mm']:.1f}  {r['seconds']:5.0f} s  check {r['self_check_mm'] or float('nan'):.2f}"
+              f"  rho {r['rank_correlation']:.2f}  {r['stop']}")
+
+
+def replace_args(args, **changes):
+    out = argparse.Namespace(**vars(args))
+    for k, v in changes.items():
+        setattr(out, k, v)
+    return out
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("population", choices=("femur10", "deformed"))
+    ap.add_argument("population", help="femur10, knee30-femur, knee30-tibia, knee30-patella, deformed or "
+                                       "folder:PATH[:GLOB]")
     ap.add_argument("--landmarks", type=int, default=15)
     ap.add_argument("--on", type=int, default=1000, help="landmarks on the first ON instances only")
     ap.add_argument("--jitter", type=float, default=0.0, help="landmark jitter per axis, mm (not the template's)")
@@ -273,15 +350,19 @@ def main(argv=None):
     ap.add_argument("--label", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--landmark-weight", type=float, default=None)
-    ap.add_argument("--exact-landmarks", action="store_true",
-                    help="[correspondence] exact_landmarks = true (the model method keeps given landmarks)")
+    ap.add_argument("--exact-landmarks", choices=("default", "true", "false"), default="default",
+                    help="[correspondence] exact_landmarks (default: the method's default)")
+    ap.add_argument("--suite", action="store_true", help="the issue's matrix of settings, one table")
+    ap.add_argument("--json", default=None, help="append each run's figures to this JSON-lines file")
     args = ap.parse_args(argv)
+    if args.population not in MESH_SETS and args.population != "deformed" and not args.population.startswith("folder:"):
+        ap.error(f"unknown population {args.population!r}")
     LANDMARK_WEIGHT[0] = args.landmark_weight
-    EXACT_LANDMARKS[0] = args.exact_landmarks
-    if args.population == "femur10":
-        eval_femur(args)
+    EXACT_LANDMARKS[0] = {"default": None, "true": True, "false": False}[args.exact_landmarks]
+    if args.suite:
+        suite(args)
     else:
-        eval_deformed(args)
+        evaluate(args)
 
 
 if __name__ == "__main__":

@@ -217,6 +217,8 @@ def write_study_files(study: Study, folder: Path, *, output: OutputParams, proje
         "method": cp.method,
         "start": {n: study.coating_start.get(n, study.coatings[n].fit.start) for n in names},
         "rounds": [r.to_dict() for r in study.correspondence_rounds],
+        "stop": study.correspondence_check.stop if study.correspondence_check is not None else "",
+        "self_check": study.correspondence_check.to_dict() if study.correspondence_check is not None else None,
         "carried_landmark_distance_mm": landmark_distances(study, carried),
     }
     info = {

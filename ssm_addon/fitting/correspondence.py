@@ -14,18 +14,28 @@ does both (``[correspondence] method = "model"``):
    ``landmark_weight``. The fit read off at the template's landmark points gives each
    instance's landmark posterior (its given landmarks denoised by the population, the
    missing ones supplied by it; with ``exact_landmarks`` the given ones are kept where
-   given), and the mean shape is coated onto the instance with them by the paper's
+   given: the default, ``exact_landmarks = true``), and the mean shape is coated onto
+   the instance with them by the paper's
    pipeline (landmark warp eq. 2 from the mean shape, registration, projection,
    relaxation eq. 3). The rounds stop when the mean shape moves less than
-   ``tolerance_mm`` (RMS) or after ``iterations``.
+   ``tolerance_mm`` (RMS), when a round does not lower the landmark transfer error
+   (below), or after ``iterations`` (a finding: the rounds did not settle).
+   A round is **kept only when it helps**, judged without truth by
+   :func:`check_correspondence`: each instance's given landmarks are predicted by the
+   model of the *other* instances fitted to its surface alone, and the mean distance of
+   the predictions from the given landmarks (mm) must fall. A round that does not lower
+   it is dropped with every later one, and the previous coatings are kept (when that is
+   the start, the model method's result is the single pass).
 3. **Re-sampling** (:func:`resample_instance`): the mean shape's points are not the
    template's; the rounds' coatings are read off at the template's points (located on
    the template instance's final coating), so the template's curvature-guided sampling
    and point numbering stay.
 
-The fit supplies the landmarks of the warp, not the start of the coating, and the given
-landmarks are kept where given only with ``exact_landmarks``: the figures behind both
-choices are in ``docs/measurements.md``.
+The fit supplies the landmarks of the warp, not the start of the coating; the given
+landmarks are kept where given unless ``exact_landmarks = false`` (extremal-point
+landmarks, VerSe); instances without landmarks start from the model of the landmarked
+ones (:func:`start_from_model`). The figures behind these choices are in
+``docs/measurements.md``.
 
 The per-instance step (:func:`refine_instance`) is a pure function of arrays, so rounds
 run in processes. Frames: each instance's object frame (paper 2), which the model frame
@@ -59,7 +69,8 @@ from ..pipeline.progress import CancelledFn, ProgressFn, sub_progress
 REFINE_FIT_SAMPLES = 5000
 REFINE_FIT_TOLERANCE_MM = 0.01
 
-__all__ = ["RoundFigures", "refine_instance", "refine_rounds", "resample_instance"]
+__all__ = ["CorrespondenceCheck", "RoundFigures", "check_correspondence", "landmark_transfer", "refine_instance",
+           "refine_rounds", "resample_instance", "start_from_model", "starts_from_model"]
 
 
 @dataclass(frozen=True)
@@ -83,6 +94,12 @@ class RoundFigures:
     sampling_slide_mm : float
         RMS distance by which the mean-shape coating moved the template instance's
         points along its surface; the re-sampling puts them back (:func:`resample_instance`).
+    transfer_before_mm, transfer_after_mm : float
+        The landmark transfer error (:func:`check_correspondence`, mean over the
+        landmarked instances, mm) of the coatings the round started from and of those it
+        made (NaN when not measured: the round was the last one and the build stopped).
+    kept : bool
+        The round's coatings were kept (it lowered the landmark transfer error).
     seconds : float
     """
 
@@ -93,16 +110,189 @@ class RoundFigures:
     folds: dict = field(default_factory=dict)
     landmark_shift_mm: dict = field(default_factory=dict)
     sampling_slide_mm: float = 0.0
+    transfer_before_mm: float = float("nan")
+    transfer_after_mm: float = float("nan")
+    kept: bool = True
     seconds: float = 0.0
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
+@dataclass(frozen=True)
+class CorrespondenceCheck:
+    """The correspondence self-check: the landmark transfer error, which needs no truth.
+
+    For every instance with given landmarks, the model of the *other* instances'
+    coatings is fitted to the instance's coated surface alone (its own landmarks unused)
+    and read off at the template's landmark points: the distance of each prediction from
+    the given landmark, in mm. Where the coatings put the same anatomy at the same point
+    numbers, the others' model carries their landmarks onto this instance; tangential
+    drift of the coatings moves the predictions off. The figure includes what a model of
+    the others cannot represent, so it is compared between builds of one population (a
+    round against the coatings it started from), not read as the correspondence error.
+
+    Attributes
+    ----------
+    landmark_mm : dict instance -> {landmark: mm}
+    instance_mm : dict instance -> mm
+        Mean over the instance's given landmarks.
+    study_mm : float
+        Mean of ``instance_mm`` (NaN without landmarked instances).
+    stop : str
+        How the model method's rounds ended: ``"converged"`` (the mean shape moved less than
+        ``tolerance_mm``), ``"criterion"`` (a round did not lower ``study_mm``: it was
+        dropped), ``"limit"`` (``iterations`` rounds without settling) or ``""`` (the
+        single pass: no rounds).
+    kept_round : int
+        The last round whose coatings were kept (0: the start coatings).
+    """
+
+    landmark_mm: dict = field(default_factory=dict)
+    instance_mm: dict = field(default_factory=dict)
+    study_mm: float = float("nan")
+    stop: str = ""
+    kept_round: int = 0
+
+    @classmethod
+    def from_landmarks(cls, landmark_mm: dict, **kw) -> CorrespondenceCheck:
+        per = {n: float(np.mean(list(d.values()))) for n, d in landmark_mm.items() if d}
+        return cls({n: dict(d) for n, d in landmark_mm.items() if d}, per,
+                   float(np.mean(list(per.values()))) if per else float("nan"), **kw)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["study_mm"] = None if not math.isfinite(self.study_mm) else self.study_mm
+        return d
+
+
+def landmark_transfer(others: np.ndarray, faces: np.ndarray, surface_points: np.ndarray, landmark_locations: dict,
+                      landmarks_object: dict, *, fit: FitParams, surface_faces: np.ndarray | None = None):
+    """Fit the model of ``others`` to one surface alone; predict the landmarks there.
+
+    Parameters
+    ----------
+    others : (m, N, 3) mm
+        The other instances' coated points (their object frames: the model frame).
+    faces : (F, 3) int
+        The template's triangles.
+    surface_points : (V, 3) mm
+        The instance's surface (object frame): its coating's points, or the vertices of
+        ``surface_faces``.
+    landmark_locations : {"names", "triangles", "bary"}
+        The template's landmarks as points of the mesh.
+    landmarks_object : dict name -> (3,) mm
+        The instance's given landmarks (object frame).
+    fit : FitParams
+        Noise and prior of the fit (its landmark weight is not used: no landmarks).
+    surface_faces : (F', 3) int, optional
+        The surface's triangles (default ``faces``: ``surface_points`` is a coating).
+
+    Returns
+    -------
+    (FitResult, (L, 3) predicted landmarks in mm, dict given landmark -> distance in mm)
+    """
+    model = build_model(others, faces, [str(i) for i in range(len(others))])
+    sf = faces if surface_faces is None else surface_faces
+    result = fit_model(model, Target.from_mesh(surface_points, sf, max_samples=REFINE_FIT_SAMPLES), params=fit,
+                       pose=Pose())
+    loc = MeshLocation(np.asarray(landmark_locations["triangles"], int), np.asarray(landmark_locations["bary"], float))
+    predicted = loc.evaluate(result.points, faces)
+    names = list(landmark_locations.get("names", ()))
+    distances = {n: float(np.linalg.norm(predicted[i] - np.asarray(landmarks_object[n], float)))
+                 for i, n in enumerate(names) if n in landmarks_object}
+    return result, predicted, distances
+
+
+def _transfer_job(args):
+    others, faces, surface, locations, given, fit = args
+    return landmark_transfer(others, faces, surface, locations, given, fit=fit)[2]
+
+
+def check_correspondence(points: dict, faces: np.ndarray, landmark_locations: dict, landmarks_object: dict, *,
+                         fit: FitParams, executor=None, jobs: int = 1, cancelled: CancelledFn = None,
+                         **kw) -> CorrespondenceCheck:
+    """The landmark transfer error of a coated study (:class:`CorrespondenceCheck`).
+
+    Parameters
+    ----------
+    points : dict instance -> (N, 3) mm
+        Every instance's coated points (object frame), at least 3 instances.
+    faces : (F, 3) int
+    landmark_locations : {"names", "triangles", "bary"}
+        The template's landmarks as points of the mesh.
+    landmarks_object : dict instance -> {landmark: (3,) mm}
+        Given landmarks; instances without any are not checked.
+    executor : Executor, optional
+        Where the fits run (default: ``jobs`` local processes).
+    """
+    names = list(points)
+    checked = [n for n in names if landmarks_object.get(n)]
+    if len(names) < 3 or not checked or not len(landmark_locations.get("names", ())):
+        return CorrespondenceCheck(**kw)
+    stack = np.stack([np.asarray(points[n], float) for n in names])
+    f = np.asarray(faces, np.int64)
+    args = [(np.delete(stack, names.index(n), axis=0), f, stack[names.index(n)], landmark_locations,
+             landmarks_object[n], fit) for n in checked]
+    own = executor is None
+    executor = Executor("processes", max(1, min(int(jobs or 1), len(args), os.cpu_count() or 1))) if own else executor
+    try:
+        found = executor.map(_transfer_job, args, labels=checked, verb="checked", cancelled=cancelled)
+    finally:
+        if own:
+            executor.close()
+    return CorrespondenceCheck.from_landmarks(dict(zip(checked, found)), **kw)
+
+
+def start_from_model(coated: np.ndarray, faces: np.ndarray, template_points: np.ndarray, landmark_locations: dict,
+                     target, *, fit: FitParams, coating: CoatingParams, name: str = "") -> CoatingResult:
+    """The start of an instance without landmarks: the model of the landmarked instances'
+    coatings, fitted to its surface, supplies its landmarks; the template is coated with
+    them (paper 4: landmark warp eq. 2, projection, relaxation eq. 3).
+
+    Parameters
+    ----------
+    coated : (m, N, 3) mm
+        The landmarked instances' coatings (object frames; m >= 2).
+    faces : (F, 3) int
+    template_points : (N, 3) mm
+        The template (its instance's object frame).
+    landmark_locations : {"names", "triangles", "bary"}
+        The template's landmarks as points of the mesh.
+    target : ObjectVolume
+
+    Returns
+    -------
+    CoatingResult (object frame of ``target``) with ``fit.start = "model fit"``.
+    """
+    dm = DistanceMap.from_object_volume(target)
+    _result, predicted, _d = landmark_transfer(coated, faces, dm.surface_vertices, landmark_locations, {}, fit=fit,
+                                               surface_faces=dm.surface_faces)
+    loc = MeshLocation(np.asarray(landmark_locations["triangles"], int), np.asarray(landmark_locations["bary"], float))
+    result = coat(Mesh(template_points, faces), loc.evaluate(template_points, faces), target, predicted,
+                  params=coating, distance_map=dm, name=name)
+    return replace(result, fit=replace(result.fit, start="model fit"))
+
+
+def _start_job(args):
+    return start_from_model(*args[:5], fit=args[5], coating=args[6], name=args[7])
+
+
+def starts_from_model(coated: np.ndarray, faces: np.ndarray, template_points: np.ndarray, landmark_locations: dict,
+                      targets: dict, *, fit: FitParams, coating: CoatingParams, jobs: int = 1,
+                      cancelled: CancelledFn = None) -> dict[str, CoatingResult]:
+    """:func:`start_from_model` for every instance of ``targets`` (name -> ObjectVolume), ``jobs`` processes."""
+    names = list(targets)
+    args = [(coated, faces, template_points, landmark_locations, targets[n], fit, coating, n) for n in names]
+    with Executor("processes", max(1, min(int(jobs or 1), len(args), os.cpu_count() or 1))) as executor:
+        found = executor.map(_start_job, args, labels=names, verb="coated", cancelled=cancelled)
+    return dict(zip(names, found))
+
+
 def refine_instance(others: np.ndarray, faces: np.ndarray, template_points: np.ndarray, target,
                     landmark_locations: dict, landmarks_object: dict, *, fit: FitParams,
-                    coating: CoatingParams, exact_landmarks: bool = False,
-                    name: str = "") -> tuple[CoatingResult, float, float]:
+                    coating: CoatingParams, exact_landmarks: bool = True, current: np.ndarray | None = None,
+                    name: str = "") -> tuple[CoatingResult, float, float, dict]:
     """One instance in one round: fit the model of ``others`` to it, coat the mean shape onto it
     with the landmarks the fit gives.
 
@@ -118,35 +308,47 @@ def refine_instance(others: np.ndarray, faces: np.ndarray, template_points: np.n
     landmark_locations : {"names", "triangles", "bary"}
         The template's landmarks as points of the mesh.
     landmarks_object : dict name -> (3,) mm
-        The instance's landmarks in its object frame (soft constraints; may be empty).
+        The instance's landmarks in its object frame (may be empty).
     exact_landmarks : bool
-        False: the warp uses the fit's estimate of every landmark (its posterior: the given
-        place pulled by the population, for clicked or extremal-point landmarks). True: the
-        given landmarks are warped to exactly where given and only absent ones come from
-        the fit (``[correspondence] exact_landmarks``).
+        True (default): the given landmarks are warped to exactly where given and only
+        absent ones come from the fit. False: the warp uses the fit's estimate of every
+        landmark, the given ones as soft constraints (its posterior: the given place
+        pulled by the population, for clicked or extremal-point landmarks).
+    current : (N, 3) mm, optional
+        The instance's coating the round starts from: the surface of the landmark
+        transfer check (:func:`landmark_transfer`); default its marching-cubes surface.
 
     Returns
     -------
     (CoatingResult, mean surface distance of the model fit in mm, RMS distance in mm
     between the given landmarks and where the warp put them: 0 for exact landmarks or
-    none given)
+    none given, dict given landmark -> transfer distance in mm of the coatings the round
+    started from)
     """
-    model = build_model(others, faces, [str(i) for i in range(len(others))],
-                        params={"landmark_locations": landmark_locations})
     # one distance map for the fit's surface (its marching-cubes mesh) and the coating
     dm = DistanceMap.from_object_volume(target)
+    if current is None:
+        surface, surface_faces = dm.surface_vertices, dm.surface_faces
+    else:
+        surface, surface_faces = current, None
+    result, fitted, transfer = landmark_transfer(others, faces, surface, landmark_locations, landmarks_object,
+                                                 fit=fit, surface_faces=surface_faces)
     all_names = list(landmark_locations.get("names", ()))
     given = [i for i, n in enumerate(all_names) if n in landmarks_object]
     given_points = np.array([landmarks_object[all_names[i]] for i in given], float).reshape(-1, 3)
-    lms = LandmarkSet(tuple(all_names[i] for i in given), given_points, name) \
-        if given and fit.landmark_weight > 0 else None
-    result = fit_model(model, Target.from_mesh(dm.surface_vertices, dm.surface_faces, landmarks=lms,
-                                        max_samples=REFINE_FIT_SAMPLES), params=fit,
-                       pose=Pose())
-    # the landmarks' posterior places: the fit read off at the template's landmark points
-    # (given landmarks pull it as soft constraints; absent ones come from the model)
+    absent = len(given) < len(all_names)
+    if given and fit.landmark_weight > 0 and (absent or not exact_landmarks):
+        # the landmarks' posterior places: the fit with the given landmarks as soft
+        # constraints, read off at the template's landmark points
+        model = build_model(others, faces, [str(i) for i in range(len(others))],
+                            params={"landmark_locations": landmark_locations})
+        lms = LandmarkSet(tuple(all_names[i] for i in given), given_points, name)
+        result = fit_model(model, Target.from_mesh(dm.surface_vertices, dm.surface_faces, landmarks=lms,
+                                                   max_samples=REFINE_FIT_SAMPLES), params=fit, pose=Pose())
+        loc = MeshLocation(np.asarray(landmark_locations["triangles"], int),
+                           np.asarray(landmark_locations["bary"], float))
+        fitted = loc.evaluate(result.points, faces)
     loc = MeshLocation(np.asarray(landmark_locations["triangles"], int), np.asarray(landmark_locations["bary"], float))
-    fitted = loc.evaluate(result.points, faces)
     on_template = loc.evaluate(template_points, faces)
     if exact_landmarks and given:
         fitted[given] = given_points
@@ -154,7 +356,7 @@ def refine_instance(others: np.ndarray, faces: np.ndarray, template_points: np.n
     # then the paper's coating from the mean shape: landmark warp, projection, relaxation
     coated = coat(Mesh(template_points, faces), on_template, target, fitted, params=coating, distance_map=dm,
                   name=name)
-    return coated, float(result.mean_distance_mm), shift
+    return coated, float(result.mean_distance_mm), shift, transfer
 
 
 def resample_instance(coating: CoatingResult, faces: np.ndarray, triangles: np.ndarray, bary: np.ndarray, target,
@@ -206,17 +408,36 @@ def _resample_job(args):
 
 
 def _refine_job(args):
-    return refine_instance(*args[:6], fit=args[6], coating=args[7], exact_landmarks=args[8], name=args[9])
+    return refine_instance(*args[:6], fit=args[6], coating=args[7], exact_landmarks=args[8], current=args[9],
+                           name=args[10])
+
+
+def _transfer_mean(transfer: dict) -> float:
+    """The study's landmark transfer error: mean over the landmarked instances of their mean."""
+    per = [float(np.mean(list(d.values()))) for d in transfer.values() if d]
+    return float(np.mean(per)) if per else float("nan")
+
+
+def _improves(after: float, before: float) -> bool:
+    """A round helps when it lowers the transfer error (no landmarks to judge by: it is kept)."""
+    return not (math.isfinite(after) and math.isfinite(before)) or after < before
 
 
 def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progress: ProgressFn = None,
-                  cancelled: CancelledFn = None, log=None, executor=None) -> list[RoundFigures]:
+                  cancelled: CancelledFn = None, log=None, executor=None) -> tuple[list[RoundFigures],
+                                                                                   CorrespondenceCheck]:
     """Refinement rounds on a coated study (every instance coated): updates ``study.template``
-    (the mean shape, in the model frame) and ``study.coatings``; returns each round's figures.
+    (the mean shape, in the model frame) and ``study.coatings``; returns each round's
+    figures and the self-check of the coatings kept.
 
     Each round maps :func:`refine_instance` over the instances on ``executor``
     (:class:`~ssm_addon.pipeline.compute.Executor`; default ``jobs`` local processes). Its inputs
-    include the instance's resampled volume, which travels to the worker.
+    include the instance's resampled volume, which travels to the worker. A round also
+    measures the landmark transfer error of the coatings it starts from (the fits it
+    makes anyway); a round whose coatings do not lower it is dropped and the rounds stop
+    (``stop = "criterion"``); the re-sampled result is checked once more against the start.
+    When the start is kept, ``study`` is left as it was (the single pass's coatings and
+    template).
 
     Raises
     ------
@@ -247,10 +468,13 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
     mean_template = (study.template.params or {}).get("mean_shape_template")
     sampling = np.array(study.coatings[names[anchor]].points_object if mean_template else study.template.points_object,
                         dtype=float)
+    start = (dict(study.coatings), study.template)
     prev_mean = np.mean([study.coatings[n].points_object for n in names], axis=0)
     size = float(np.linalg.norm(np.ptp(prev_mean, axis=0)))
     own = executor is None
     executor = Executor("processes", max(1, min(int(jobs or 1), len(names), os.cpu_count() or 1))) if own else executor
+    stop, kept_round, before = "limit", 0, float("nan")
+    kept_state = start
     try:
         for r in range(1, params.iterations + 1):
             check_cancelled(cancelled)
@@ -258,38 +482,76 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
             points = np.stack([study.coatings[n].points_object for n in names])
             mean = points.mean(axis=0)  # the mean shape: the new template (paper 3.3)
             args = [(np.delete(points, i, axis=0), faces, mean, study.volume(n), locations, lm_object[n], fit,
-                     study.coating_params, params.exact_landmarks, n) for i, n in enumerate(names)]
+                     study.coating_params, params.exact_landmarks, points[i], n) for i, n in enumerate(names)]
             span = (r - 1) / params.iterations, r / params.iterations
             results = executor.map(_refine_job, args, labels=names, verb=f"round {r}: refined",
-                                   progress=sub_progress(progress, 0.95 * span[0], 0.95 * span[1]),
+                                   progress=sub_progress(progress, 0.9 * span[0], 0.9 * span[1]),
                                    cancelled=cancelled)
+            # the coatings this round started from, judged by the fits it made of them
+            now = _transfer_mean({n: t for n, (_c, _d, _s, t) in zip(names, results)})
+            if rounds:
+                rounds[-1] = replace(rounds[-1], transfer_after_mm=now, kept=_improves(now, before))
+                if not rounds[-1].kept:
+                    say(f"correspondence round {r - 1} dropped: the landmark transfer error rose from {before:.3f} "
+                        f"to {now:.3f} mm; keeping round {kept_round}'s coatings")
+                    stop = "criterion"
+                    break
+                kept_round, kept_state = r - 1, (dict(study.coatings), study.template)
+            before = now
             # how far the mean shape's coating slid the template's points on their own instance
             slide = float(np.sqrt(((results[anchor][0].points_object - sampling) ** 2).sum(axis=1).mean()))
             prev_mean = _finish_round(study, names, points, results, prev_mean, faces, size, r, t0, rounds, say,
-                                      mean, slide)
+                                      mean, slide, before)
             if rounds[-1].mean_change_mm < params.tolerance_mm:
+                stop = "converged"
                 break
+        if stop != "criterion":
+            kept_round, kept_state = len(rounds), (dict(study.coatings), study.template)
+        study.coatings, study.template = dict(kept_state[0]), kept_state[1]
+        check_cancelled(cancelled)
+        if kept_round == 0:
+            for n in names:
+                study.coatings[n] = _given_landmark_residuals(study.coatings[n], faces, locations, lm_object[n])
+            check = _final_check(study, names, faces, locations, lm_object, fit, executor, cancelled, stop, 0)
+            say(f"correspondence: the start's coatings kept (landmark transfer error {check.study_mm:.3f} mm)")
+            return rounds, check
         # the template's sampling back: its points located on the template instance's
         # final coating, read off every instance's final coating
-        check_cancelled(cancelled)
         _c, _d, tri, bary = MeshLocator(study.coatings[names[anchor]].points_object, faces).query(
             sampling, k=12, normals=vertex_normals(sampling, faces))
         args = [(study.coatings[n], faces, tri, bary, study.volume(n), study.coating_params, n) for n in names]
         resampled = executor.map(_resample_job, args, labels=names, verb="re-sampled at the template's points",
-                                 progress=sub_progress(progress, 0.95, 1.0), cancelled=cancelled)
+                                 progress=sub_progress(progress, 0.9, 0.95), cancelled=cancelled)
         for n, c in zip(names, resampled):
             study.coatings[n] = _given_landmark_residuals(c, faces, locations, lm_object[n])
         say(f"correspondence: re-sampled at the template's points (the mean shape had slid them "
-            f"{rounds[-1].sampling_slide_mm:.2f} mm on {names[anchor]})")
+            f"{rounds[kept_round - 1].sampling_slide_mm:.2f} mm on {names[anchor]})")
+        check = _final_check(study, names, faces, locations, lm_object, fit, executor, cancelled, stop, kept_round)
+        if kept_round == len(rounds):  # the last round, judged after its re-sampling
+            rounds[-1] = replace(rounds[-1], transfer_after_mm=check.study_mm)
+        first = rounds[0].transfer_before_mm
+        if not _improves(check.study_mm, first):
+            say(f"correspondence: the re-sampled rounds' landmark transfer error {check.study_mm:.3f} mm is not "
+                f"below the start's {first:.3f} mm; keeping the start's coatings")
+            rounds = [replace(f, kept=False) for f in rounds]
+            study.coatings, study.template = dict(start[0]), start[1]
+            for n in names:
+                study.coatings[n] = _given_landmark_residuals(study.coatings[n], faces, locations, lm_object[n])
+            check = _final_check(study, names, faces, locations, lm_object, fit, executor, cancelled, "criterion", 0)
     finally:
         if own:
             executor.close()
-    return rounds
+    return rounds, check
 
 
-def _finish_round(study, names, points, results, prev_mean, faces, size, r, t0, rounds, say, mean, slide):
+def _final_check(study, names, faces, locations, lm_object, fit, executor, cancelled, stop, kept_round):
+    return check_correspondence({n: study.coatings[n].points_object for n in names}, faces, locations, lm_object,
+                                fit=fit, executor=executor, cancelled=cancelled, stop=stop, kept_round=kept_round)
+
+
+def _finish_round(study, names, points, results, prev_mean, faces, size, r, t0, rounds, say, mean, slide, before):
     """Check a round, record its figures, and make its coatings and mean shape the study's."""
-    new_points = np.stack([c.points_object for c, _d, _s in results])
+    new_points = np.stack([c.points_object for c, _d, _s, _t in results])
     new_mean = new_points.mean(axis=0)
     change = float(np.sqrt(((new_mean - prev_mean) ** 2).sum(axis=1).mean()))
     if not math.isfinite(change) or change > size:
@@ -299,18 +561,18 @@ def _finish_round(study, names, points, results, prev_mean, faces, size, r, t0, 
         round=r, mean_change_mm=change,
         instance_change_mm={n: float(np.sqrt(((new_points[i] - points[i]) ** 2).sum(axis=1).mean()))
                             for i, n in enumerate(names)},
-        fit_distance_mm={n: d for n, (_, d, _s) in zip(names, results)},
-        folds={n: int(c.fit.folded_after) for n, (c, _d, _s) in zip(names, results)},
-        landmark_shift_mm={n: s for n, (_c, _d, s) in zip(names, results)},
-        sampling_slide_mm=slide, seconds=time.perf_counter() - t0)
+        fit_distance_mm={n: d for n, (_, d, _s, _t) in zip(names, results)},
+        folds={n: int(c.fit.folded_after) for n, (c, _d, _s, _t) in zip(names, results)},
+        landmark_shift_mm={n: s for n, (_c, _d, s, _t) in zip(names, results)},
+        sampling_slide_mm=slide, transfer_before_mm=before, seconds=time.perf_counter() - t0)
     rounds.append(fig)
-    for n, (c, _d, _s) in zip(names, results):
+    for n, (c, _d, _s, _t) in zip(names, results):
         study.coatings[n] = c
     study.template = _mean_template(study, mean, faces)
     say(f"correspondence round {r}: mean shape moved {change:.3f} mm; instances moved up to "
         f"{max(fig.instance_change_mm.values()):.2f} mm; given landmarks moved up to "
         f"{max(fig.landmark_shift_mm.values(), default=0.0):.2f} mm; the template's points slid {slide:.2f} mm; folds left "
-        f"{sum(fig.folds.values())} "
+        f"{sum(fig.folds.values())}; landmark transfer error before the round {before:.3f} mm "
         f"({fig.seconds:.1f} s)")
     return new_mean
 

@@ -12,6 +12,9 @@ gate                          figure                                          st
 ``volume``                    volume / median volume of the study             import
 ``landmark_distance``         landmark to surface distance (mm; an error)     import
 ``landmark_residual``         coated landmark to given landmark (mm)          coating
+``landmark_transfer``         given landmark to the others' model's           coating
+                              prediction (mm; the correspondence self-check)
+``rounds``                    model method's rounds stopped at their limit    coating
 ``folds``                     folded triangles left                           coating
 ``surface_distance``          largest vertex distance to the surface (voxels) coating
 ``convergence``               relaxation stopped by its iteration limit       coating
@@ -39,6 +42,8 @@ __all__ = [
     "Finding",
     "QualityError",
     "check_coating",
+    "check_correspondence_rounds",
+    "check_landmark_transfer",
     "check_landmarks_on_surface",
     "check_model",
     "check_volume",
@@ -232,6 +237,32 @@ def check_coating(name: str, fit, params: QualityParams) -> list[Finding]:
         out.append(Finding(name, "convergence", f"the relaxation stopped at its limit of {fit.iterations} steps "
                            "before reaching its velocity tolerance", fit.iterations))
     return out
+
+
+def check_landmark_transfer(check, params: QualityParams) -> list[Finding]:
+    """Gate on the correspondence self-check (:class:`~ssm_addon.fitting.correspondence.CorrespondenceCheck`):
+    an instance whose given landmark lies far from where the other instances' model puts
+    it (a landmark placed on the wrong feature, swapped, or a coating that slid)."""
+    out = []
+    for name, per in check.landmark_mm.items():
+        worst = max(per, key=per.get)
+        if per[worst] > params.max_landmark_transfer_mm:
+            out.append(Finding(name, "landmark_transfer", f"given landmark {worst!r} is {per[worst]:.1f} mm from "
+                               f"where the other instances' model puts it (allowed {params.max_landmark_transfer_mm:g}"
+                               " mm): a landmark on the wrong place, or correspondence that slid",
+                               per[worst], params.max_landmark_transfer_mm))
+    return out
+
+
+def check_correspondence_rounds(rounds, check, tolerance_mm: float) -> list[Finding]:
+    """Gate on the model method's rounds: stopping at the round limit means they did not settle."""
+    if check.stop != "limit" or not rounds:
+        return []
+    last = rounds[-1]
+    return [Finding("", "rounds", f"the correspondence rounds stopped at their limit of {len(rounds)} without "
+                    f"settling: the mean shape still moved {last.mean_change_mm:.3f} mm in round {last.round} "
+                    f"(tolerance {tolerance_mm:g} mm); raise [correspondence] iterations or check the landmarks",
+                    last.mean_change_mm, tolerance_mm)]
 
 
 # -------------------------------------------------------------------------------- model

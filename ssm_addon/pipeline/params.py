@@ -699,9 +699,10 @@ class CorrespondenceParams:
 
     ``"landmarks"`` is the paper's single pass: the template coated onto every instance
     by its landmarks. ``"model"`` continues with the mean shape as template (paper 3.3)
-    and refines every instance with a model built without it, fitted to its surface with
-    its landmarks as soft constraints (paper 7's bootstrap); instances without landmarks
-    start from the object frames.
+    and refines every instance with a model built without it, fitted to its surface
+    (paper 7's bootstrap); instances without landmarks start from the model of the
+    landmarked ones (from the object frames when only the template instance has them).
+    A round is kept only when it lowers the landmark transfer error (the self-check).
     """
 
     method: str = param("landmarks", choices=CORRESPONDENCE_METHODS, label="Method",
@@ -715,11 +716,13 @@ class CorrespondenceParams:
     landmark_weight: float = param(10.0, minimum=0.0, maximum=1e9, label="Landmark weight",
                                    help="weight of a given landmark in the model fit, against one surface "
                                         "point (0: landmarks ignored)")
-    exact_landmarks: bool = param(False, label="Exact landmarks",
-                                  help="the given landmarks are exact (anatomical points placed precisely): "
-                                       "each round warps them to exactly where given; off: clicked or "
-                                       "extremal-point landmarks, which each round replaces by the model "
-                                       "fit's estimate")
+    exact_landmarks: bool = param(True, label="Exact landmarks",
+                                  help="the given landmarks are where the anatomy is: each round warps them to "
+                                       "exactly where given; off: rough or extremal-point landmarks, which each "
+                                       "round replaces by the model fit's estimate")
+    self_check: bool = param(True, label="Self-check",
+                             help="measure the landmark transfer error (each instance's given landmarks predicted "
+                                  "by the other instances' model) after the coating; the model method always does")
     fit_noise_mm: float = param(1.0, unit="mm", minimum=0.0, exclusive_minimum=True, maximum=1000.0,
                                 label="Fit noise", advanced=True,
                                 help="noise σ of the model fit to each instance's surface")
@@ -752,6 +755,10 @@ class QualityParams:
     max_landmark_residual_mm: float = param(20.0, unit="mm", minimum=0.0, maximum=10000.0,
                                             label="Max landmark residual",
                                             help="largest distance between a coated landmark and the given one")
+    max_landmark_transfer_mm: float = param(15.0, unit="mm", minimum=0.0, exclusive_minimum=True, maximum=10000.0,
+                                            label="Max landmark transfer",
+                                            help="largest distance between a given landmark and its prediction by "
+                                                 "the other instances' model (the correspondence self-check)")
     max_folded_triangles: int = param(0, minimum=0, maximum=10**9, label="Max folds",
                                       help="folded triangles allowed on a coated instance")
     max_surface_distance_vox: float = param(1.0, minimum=0.0, maximum=1000.0, label="Max surface distance (voxels)",

@@ -41,9 +41,17 @@ from ..instances.importing import InstanceSpec, import_instance
 from ..instances.volume import ObjectFrame, ObjectVolume
 from ..meshutil import genus, locate_on_mesh
 from ..model.pca import ShapeModel, build_model
-from ..model.quality import check_coating, check_landmarks_on_surface, check_model, check_volume, check_volumes_together
+from ..model.quality import (
+    check_coating,
+    check_correspondence_rounds,
+    check_landmark_transfer,
+    check_landmarks_on_surface,
+    check_model,
+    check_volume,
+    check_volumes_together,
+)
 from ..pipeline.errors import InputError, check_cancelled
-from ..pipeline.params import CoatingParams, CorrespondenceParams, ModelParams, QualityParams, TemplateParams
+from ..pipeline.params import CoatingParams, CorrespondenceParams, FitParams, ModelParams, QualityParams, TemplateParams
 from ..pipeline.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..pipeline.records import versions
 from ..template.template import Template, build_template
@@ -115,6 +123,12 @@ class Study:
     streamed : dict
         After a streamed build (:func:`stream_instances`): instances taken from the cache
         (``cached``) and coated (``computed``).
+    coating_start : dict name -> str
+        How each coating started: ``"landmarks"``, ``"model fit"``, ``"object frames"``.
+    correspondence_rounds : list of RoundFigures
+        The model method's refinement rounds.
+    correspondence_check : CorrespondenceCheck or None
+        The correspondence self-check (landmark transfer error) of the coatings.
     """
 
     instances: tuple[InstanceSpec, ...]
@@ -134,6 +148,7 @@ class Study:
     outlier_scores: dict = field(default_factory=dict)
     coating_start: dict = field(default_factory=dict)
     correspondence_rounds: list = field(default_factory=list)
+    correspondence_check: object | None = None
     timings_s: dict[str, float] = field(default_factory=dict)
     streamed: dict = field(default_factory=dict)
 
@@ -345,11 +360,15 @@ def coat_from_frames(study: Study, names: Sequence[str], *, jobs: int = 1, cance
 
 def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: int = 1,
                    cancelled: CancelledFn = None) -> dict[str, CoatingResult]:
-    """The first coatings of the model method: by landmarks where given, else from the frames.
+    """The first coatings of the model method: by landmarks where given, else from the
+    model of the landmarked instances, else from the frames.
 
     Instances with landmarks are coated by them (paper 4) when at least two instances have
-    landmarks (the template instance and another); the rest start from the object frames
-    (paper 2). ``study.coating_start`` records which start each instance had.
+    landmarks (the template instance and another). The others start from the model of
+    those coatings fitted to their surface, which supplies their landmarks
+    (:func:`ssm_addon.fitting.correspondence.start_from_model`); when only the template
+    instance has landmarks, from the object frames (paper 2). ``study.coating_start``
+    records which start each instance had.
 
     Raises
     ------
@@ -357,15 +376,30 @@ def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: in
         The template instance has no landmarks (they name the places carried to every
         instance).
     """
+    from ..fitting.correspondence import starts_from_model
+
     names = list(study.names if names is None else names)
     with_lm = [n for n in study.names if study.landmarks(n) is not None]
     if study.template_instance not in with_lm:
         raise InputError(f"[correspondence] method = \"model\": the template instance {study.template_instance!r} "
                          "needs landmarks (they name the places carried to every other instance)")
-    by_landmarks = [n for n in names if n in with_lm] if len(with_lm) > 1 else []
-    coated = coat_instances(study, names=by_landmarks, jobs=jobs, cancelled=cancelled) if by_landmarks else {}
-    coated.update(coat_from_frames(study, [n for n in names if n not in coated], jobs=jobs, cancelled=cancelled))
-    study.coating_start.update({n: "landmarks" if n in by_landmarks else "object frames" for n in coated})
+    landmarked = with_lm if len(with_lm) > 1 else []
+    # the model of the landmarked instances needs their coatings, asked for or not
+    need = [n for n in landmarked if n in names or n not in study.coatings]
+    coated = coat_instances(study, names=need, jobs=jobs, cancelled=cancelled) if need else {}
+    rest = [n for n in names if n not in landmarked]
+    if rest and landmarked:
+        cp = study.correspondence_params
+        stack = np.stack([(coated.get(n) or study.coatings[n]).points_object for n in landmarked])
+        coated.update(starts_from_model(stack, study.template.faces, study.template.points_object,
+                                        template_landmark_locations(study), {n: study.volume(n) for n in rest},
+                                        fit=FitParams(noise_mm=cp.fit_noise_mm, tolerance_mm=0.01),
+                                        coating=study.coating_params, jobs=jobs, cancelled=cancelled))
+        start = "model fit"
+    else:
+        coated.update(coat_from_frames(study, rest, jobs=jobs, cancelled=cancelled))
+        start = "object frames"
+    study.coating_start.update({n: "landmarks" if n in landmarked else start for n in names})
     return {n: coated[n] for n in names}
 
 
@@ -391,13 +425,19 @@ def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn =
         started = start_coatings(work, missing, jobs=jobs, cancelled=cancelled)
         work.coatings.update(started)
         starts = [work.coating_start[n] for n in missing]
-        say(f"coating: {starts.count('landmarks')} by landmarks, {starts.count('object frames')} from the object "
-            "frames; refining with the model")
-    rounds = refine_rounds(work, study.correspondence_params, jobs=jobs, progress=progress, cancelled=cancelled,
-                           log=say, executor=executor)
+        say(f"coating: {starts.count('landmarks')} by landmarks, {starts.count('model fit')} from the landmarked "
+            f"instances' model, {starts.count('object frames')} from the object frames; refining with the model")
+    rounds, check = refine_rounds(work, study.correspondence_params, jobs=jobs, progress=progress,
+                                  cancelled=cancelled, log=say, executor=executor)
     coated = {n: work.coatings[n] for n in study.names}
+    kept = "" if check.kept_round == 0 else f"round {check.kept_round}'s "
+    say(f"correspondence: {check.stop or 'no rounds'}; kept {kept or 'the start'}"
+        f"{' coatings' if kept else ''}; landmark transfer error {check.study_mm:.3f} mm")
+    findings = (check_landmark_transfer(check, study.quality_params)
+                + check_correspondence_rounds(rounds, check, study.correspondence_params.tolerance_mm))
     return coating_result(study, coated, {n: work.coating_start.get(n, coated[n].fit.start) for n in coated},
-                          time.perf_counter() - t0, template=work.template, rounds=tuple(rounds))
+                          time.perf_counter() - t0, template=work.template, rounds=tuple(rounds), check=check,
+                          extra_findings=tuple(findings))
 
 
 # ----------------------------------------------------------------------------- streamed build
@@ -585,8 +625,11 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
     findings += check_volumes_together({n: products[n].volume_mm3 for n in names}, study.quality_params)
     findings = [dataclasses.replace(f, stage="import") for f in findings]
     frames.update({n: products[n].frame for n in names})
-    result = coating_result(study, {n: products[n].coating for n in names}, {n: "landmarks" for n in names},
-                            time.perf_counter() - t0, counts=f"{len(todo)} coated, {cached} from the cache; ")
+    coatings = {n: products[n].coating for n in names}
+    check, found = self_check(study, coatings, template=template, frames=frames, executor=executor,
+                              cancelled=cancelled)
+    result = coating_result(study, coatings, {n: "landmarks" for n in names}, time.perf_counter() - t0,
+                            counts=f"{len(todo)} coated, {cached} from the cache; ", check=check, extra_findings=found)
     counts = {"cached": cached, "computed": len(todo)}
     return dataclasses.replace(
         result, product={**result.product, "template": template, "volumes": volumes, "frames": frames,
@@ -804,23 +847,62 @@ def template_stage(study: Study, *, progress: ProgressFn = None, cancelled: Canc
 
 
 def coating_result(study: Study, coated: dict[str, CoatingResult], starts: dict[str, str], seconds: float, *,
-                   template: Template | None = None, rounds: tuple = (), counts: str = "") -> StageResult:
+                   template: Template | None = None, rounds: tuple = (), counts: str = "", check=None,
+                   extra_findings: tuple = ()) -> StageResult:
     """The coating stage's result for ``coated`` instances: the coating gates and the summary.
 
-    ``template`` (the mean shape of the model method) and ``rounds`` (its refinement
-    rounds) join the product when given.
+    ``template`` (the mean shape of the model method), ``rounds`` (its refinement rounds)
+    and ``check`` (the correspondence self-check, :func:`self_check`) join the product
+    when given; ``extra_findings`` (the self-check's and the rounds' gates) the findings.
     """
     findings = tuple(f for n, c in coated.items() for f in check_coating(n, c.fit, study.quality_params))
+    findings += tuple(extra_findings)
     product = {"coatings": dict(coated), "coating_start": dict(starts)}
     if template is not None:
         product["template"] = template
     if rounds:
         product["correspondence_rounds"] = tuple(rounds)
+    if check is not None:
+        product["correspondence_check"] = check
     every = {**study.coatings, **coated}
     worst = max((c.fit.max_distance_mm for c in every.values()), default=float("nan"))
-    return StageResult("coating", product, findings, {"coating": seconds},
-                       (f"coating: {len(coated)} instances in {seconds:.2f} s ({counts}largest surface distance "
-                        f"{worst:.2f} mm)",))
+    lines = [f"coating: {len(coated)} instances in {seconds:.2f} s ({counts}largest surface distance {worst:.2f} mm)"]
+    if check is not None and check.instance_mm:
+        worst_n = max(check.instance_mm, key=check.instance_mm.get)
+        lines.append(f"correspondence self-check: landmark transfer error {check.study_mm:.2f} mm (mean over "
+                     f"{len(check.instance_mm)} landmarked instances; largest {worst_n} "
+                     f"{check.instance_mm[worst_n]:.2f} mm)")
+    return StageResult("coating", product, findings, {"coating": seconds}, tuple(lines))
+
+
+def self_check(study: Study, coatings: dict[str, CoatingResult], *, template: Template | None = None,
+               frames: dict | None = None, jobs: int = 1, executor=None, cancelled: CancelledFn = None):
+    """The correspondence self-check of the single pass (``[correspondence] self_check``):
+    :func:`ssm_addon.fitting.correspondence.check_correspondence` on every instance's coating.
+
+    Returns ``(CorrespondenceCheck, findings)``, or ``(None, ())`` when it does not apply
+    (switched off, fewer than 3 instances or instances not all coated, no landmarks).
+    """
+    from ..fitting.correspondence import check_correspondence
+    from ..model.quality import check_landmark_transfer
+
+    template = template or study.template
+    names = list(study.names)
+    if (not study.correspondence_params.self_check or len(names) < 3 or template is None
+            or any(n not in coatings for n in names)):
+        return None, ()
+    locations = (template.params or {}).get("landmark_locations") or {}
+    frames = {**study.frames, **(frames or {})}
+    given = {}
+    for n in names:
+        lm = study.landmarks(n)
+        frame = frames.get(n) or study.frame(n)
+        given[n] = {} if lm is None else dict(zip(lm.names, frame.to_object(lm.points_world)))
+    cp = study.correspondence_params
+    fit = FitParams(noise_mm=cp.fit_noise_mm, tolerance_mm=0.01)
+    check = check_correspondence({n: coatings[n].points_object for n in names}, template.faces, locations, given,
+                                 fit=fit, executor=executor, jobs=jobs, cancelled=cancelled)
+    return check, tuple(check_landmark_transfer(check, study.quality_params))
 
 
 def coating_stage(study: Study, *, names: Sequence[str] | None = None, jobs: int = 1, progress: ProgressFn = None,
@@ -835,7 +917,9 @@ def coating_stage(study: Study, *, names: Sequence[str] | None = None, jobs: int
                                      executor=executor)
     t0 = time.perf_counter()
     coated = coat_instances(study, names=names, jobs=jobs, progress=progress, cancelled=cancelled)
-    return coating_result(study, coated, {n: "landmarks" for n in coated}, time.perf_counter() - t0)
+    check, found = self_check(study, {**study.coatings, **coated}, jobs=jobs, executor=executor, cancelled=cancelled)
+    return coating_result(study, coated, {n: "landmarks" for n in coated}, time.perf_counter() - t0, check=check,
+                          extra_findings=found)
 
 
 def model_stage(study: Study, *, progress: ProgressFn = None, cancelled: CancelledFn = None) -> StageResult:
