@@ -418,9 +418,15 @@ def _transfer_mean(transfer: dict) -> float:
     return float(np.mean(per)) if per else float("nan")
 
 
-def _improves(after: float, before: float) -> bool:
+# the re-sampled rounds replace the start only when they lower its landmark transfer error
+# by this share: a change within it is the fits' noise, and the start (the single pass) is
+# the simpler result
+KEEP_MARGIN = 0.01
+
+
+def _improves(after: float, before: float, margin: float = 0.0) -> bool:
     """A round helps when it lowers the transfer error (no landmarks to judge by: it is kept)."""
-    return not (math.isfinite(after) and math.isfinite(before)) or after < before
+    return not (math.isfinite(after) and math.isfinite(before)) or after < before * (1.0 - margin)
 
 
 def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progress: ProgressFn = None,
@@ -489,13 +495,19 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
                                    cancelled=cancelled)
             # the coatings this round started from, judged by the fits it made of them
             now = _transfer_mean({n: t for n, (_c, _d, _s, t) in zip(names, results)})
-            if rounds:
+            # a round's coatings sit at the mean shape's sampling, the start's at the template's:
+            # round 1 is judged after its re-sampling (against the start), later rounds against
+            # the round before
+            if len(rounds) >= 2:
                 rounds[-1] = replace(rounds[-1], transfer_after_mm=now, kept=_improves(now, before))
                 if not rounds[-1].kept:
-                    say(f"correspondence round {r - 1} dropped: the landmark transfer error rose from {before:.3f} "
+                    say(f"correspondence round {r - 1} dropped: the landmark transfer error went from {before:.3f} "
                         f"to {now:.3f} mm; keeping round {kept_round}'s coatings")
                     stop = "criterion"
                     break
+            elif rounds:
+                rounds[-1] = replace(rounds[-1], transfer_after_mm=now)
+            if rounds:
                 kept_round, kept_state = r - 1, (dict(study.coatings), study.template)
             before = now
             # how far the mean shape's coating slid the template's points on their own instance
@@ -530,9 +542,9 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
         if kept_round == len(rounds):  # the last round, judged after its re-sampling
             rounds[-1] = replace(rounds[-1], transfer_after_mm=check.study_mm)
         first = rounds[0].transfer_before_mm
-        if not _improves(check.study_mm, first):
+        if not _improves(check.study_mm, first, KEEP_MARGIN):
             say(f"correspondence: the re-sampled rounds' landmark transfer error {check.study_mm:.3f} mm is not "
-                f"below the start's {first:.3f} mm; keeping the start's coatings")
+                f"{100 * KEEP_MARGIN:g} % below the start's {first:.3f} mm; keeping the start's coatings")
             rounds = [replace(f, kept=False) for f in rounds]
             study.coatings, study.template = dict(start[0]), start[1]
             for n in names:
