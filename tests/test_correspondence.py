@@ -143,6 +143,38 @@ def test_landmarks_method_still_needs_landmarks_everywhere(population):
 
 
 @pytest.mark.slow
+def test_landmarks_on_a_few_instances_start_the_rest_from_their_model(population, tmp_path):
+    """Landmarks on the template instance and one other: the other four start from the
+    model of those two coatings fitted to their surface (``start = "model fit"``), and
+    their landmarks are carried near the true (unused) ones."""
+    tpl = _template(population)
+    other = "demo_00" if tpl != "demo_00" else "demo_01"
+    proj = _variant(population, "few.toml", correspondence='[correspondence]\nmethod = "model"\niterations = 2',
+                    keep_landmarks={tpl, other})
+    lines = []
+    result = build(read_project(proj), tmp_path / "out", log=lines.append)
+    corr = result.report["correspondence"]
+    assert {n: s for n, s in corr["start"].items() if s == "landmarks"} == {tpl: "landmarks", other: "landmarks"}
+    assert {s for n, s in corr["start"].items() if n not in (tpl, other)} == {"model fit"}, corr["start"]
+    assert any("2 by landmarks, 4 from the landmarked instances' model" in line for line in lines), lines
+    assert corr["stop"] in ("converged", "criterion", "limit") and set(corr["self_check"]["instance_mm"]) == {tpl, other}
+    if corr["stop"] == "limit":
+        assert any(f.gate == "rounds" for f in result.study.findings)
+    folder = population.parent
+    errors = []
+    for i in range(6):
+        name = f"demo_{i:02d}"
+        if name in (tpl, other):
+            continue
+        truth_file = next(p for p in folder.iterdir() if p.stem.split(".")[0] == name and p.suffix != ".gz")
+        truth = read_landmarks(truth_file).as_dict()
+        carried = read_landmarks(tmp_path / "out" / "landmarks" / f"{name}.{_landmark_ext(population)}")
+        errors += [np.linalg.norm(p - truth[n]) for n, p in zip(carried.names, carried.points_world)]
+    print(f"carried landmarks: median {np.median(errors):.2f} mm, max {np.max(errors):.2f} mm")
+    assert np.median(errors) < 2.5 and np.max(errors) < 8.0, np.round(errors, 2)
+
+
+@pytest.mark.slow
 def test_a_diverging_refinement_is_refused_and_writes_nothing(population, tmp_path, monkeypatch):
     """A round whose mean shape jumps by more than the shapes' size stops the build by name."""
     import ssm_addon.fitting.correspondence as corr

@@ -1,0 +1,103 @@
+"""The correspondence self-check (landmark transfer error) and its gates, on analytic shapes.
+
+Ellipsoids in exact correspondence (vertex i of the unit icosphere scaled by each
+instance's axes) form a linear population: the model of the others represents any of
+them, so each instance's landmarks are predicted where they are. Sliding one instance's
+points along its own surface (the same surface, a wrong correspondence) corrupts the
+others' model, and the study's transfer error rises.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from test_coating import icosphere
+
+from ssm_addon.fitting.correspondence import CorrespondenceCheck, RoundFigures, check_correspondence
+from ssm_addon.meshutil import MeshLocation
+from ssm_addon.model.quality import check_correspondence_rounds, check_landmark_transfer
+from ssm_addon.pipeline.params import FitParams, QualityParams
+
+LANDMARKS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11)  # the icosahedron's corners
+
+
+def _population(n=7, seed=3):
+    v, f = icosphere(3)
+    rng = np.random.default_rng(seed)
+    axes = np.array([40.0, 25.0, 15.0]) * (1 + 0.15 * rng.standard_normal((n, 3)))
+    points = {f"e{k}": v * axes[k] for k in range(n)}
+    # the template's landmarks: mesh points at the corners (first vertex of a triangle using it)
+    tri = np.array([int(np.flatnonzero((f == i).any(axis=1))[0]) for i in LANDMARKS])
+    bary = np.array([(f[t] == i).astype(float) for t, i in zip(tri, LANDMARKS)])
+    locations = {"names": [f"L{i}" for i in LANDMARKS], "triangles": tri.tolist(), "bary": bary.tolist()}
+    given = {n: {f"L{i}": p[i] for i in LANDMARKS} for n, p in points.items()}
+    return v, f, axes, points, locations, given
+
+
+def _slid(v, axes, degrees):
+    """The same ellipsoid, its points rotated about z on the unit sphere first: a wrong
+    correspondence on the right surface."""
+    c, s = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
+    return (v @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T) * axes
+
+
+def test_exact_correspondence_transfers_landmarks_within_the_fit_noise():
+    v, f, _axes, points, locations, given = _population()
+    check = check_correspondence(points, f, locations, given, fit=FitParams(noise_mm=0.5, tolerance_mm=0.001))
+    assert set(check.instance_mm) == set(points)
+    assert set(check.landmark_mm["e0"]) == {f"L{i}" for i in LANDMARKS}
+    # a linear population: the model of the others reaches every instance's landmarks
+    assert check.study_mm < 0.5, check.instance_mm
+    assert check.study_mm == np.mean(list(check.instance_mm.values()))
+
+
+@pytest.mark.slow
+def test_a_slid_correspondence_raises_the_transfer_error():
+    v, f, axes, points, locations, given = _population()
+    fit = FitParams(noise_mm=0.5, tolerance_mm=0.001)
+    exact = check_correspondence(points, f, locations, given, fit=fit)
+    slid = dict(points, e3=_slid(v, axes[3], 25.0))
+    # the slid instance's landmarks are still its given ones (the landmark warp pins them in
+    # a coating); here they are simply where the rotated points put the corners
+    worse = check_correspondence(slid, f, locations, given, fit=fit)
+    print(f"exact {exact.study_mm:.3f} mm, slid 25 deg {worse.study_mm:.3f} mm")
+    assert worse.study_mm > 0.5 and worse.study_mm > 50 * exact.study_mm, (exact.study_mm, worse.study_mm)
+    # ... and the more it slides, the larger the error
+    more = check_correspondence(dict(points, e3=_slid(v, axes[3], 50.0)), f, locations, given, fit=fit)
+    assert more.study_mm > worse.study_mm
+
+
+def test_instances_without_landmarks_are_not_checked():
+    v, f, _axes, points, locations, given = _population()
+    given = {n: (d if n in ("e0", "e1") else {}) for n, d in given.items()}
+    check = check_correspondence(points, f, locations, given, fit=FitParams(noise_mm=0.5))
+    assert set(check.instance_mm) == {"e0", "e1"}
+    none = check_correspondence(points, f, locations, {n: {} for n in points}, fit=FitParams())
+    assert none.instance_mm == {} and not np.isfinite(none.study_mm)
+    assert json.loads(json.dumps(none.to_dict()))["study_mm"] is None
+
+
+def test_the_transfer_gate_names_the_instance_and_the_landmark():
+    check = CorrespondenceCheck.from_landmarks({"a": {"tip": 3.0, "base": 1.0}, "b": {"tip": 22.5, "base": 2.0}})
+    assert check.instance_mm == {"a": 2.0, "b": 12.25} and check.study_mm == 7.125
+    found = check_landmark_transfer(check, QualityParams(max_landmark_transfer_mm=15.0))
+    assert [(f.instance, f.gate) for f in found] == [("b", "landmark_transfer")]
+    assert "'tip' is 22.5 mm" in found[0].message and found[0].threshold == 15.0
+    assert check_landmark_transfer(check, QualityParams(max_landmark_transfer_mm=25.0)) == []
+
+
+def test_rounds_at_their_limit_are_a_finding_converged_ones_are_not():
+    rounds = [RoundFigures(round=1, mean_change_mm=0.4), RoundFigures(round=2, mean_change_mm=0.25)]
+    found = check_correspondence_rounds(rounds, CorrespondenceCheck(stop="limit", kept_round=2), 0.1)
+    assert [(f.instance, f.gate) for f in found] == [("", "rounds")]
+    assert "limit of 2" in found[0].message and "0.250 mm" in found[0].message
+    for stop in ("converged", "criterion", ""):
+        assert check_correspondence_rounds(rounds, CorrespondenceCheck(stop=stop), 0.1) == []
+
+
+def test_landmark_locations_read_the_corners():
+    v, f, _axes, points, locations, _given = _population(n=3)
+    loc = MeshLocation(np.asarray(locations["triangles"]), np.asarray(locations["bary"]))
+    assert np.allclose(loc.evaluate(points["e1"], f), points["e1"][list(LANDMARKS)])
