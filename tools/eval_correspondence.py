@@ -96,6 +96,22 @@ def self_check(study) -> dict:
     return dict(check.instance_mm) if check is not None else {}
 
 
+def loo_reconstruction(study) -> dict:
+    """Each instance's coated points against the model of the others (every mode), mean mm:
+    the leave-one-out reconstruction error (paper 6's generalization, per instance)."""
+    names = list(study.names)
+    P = np.stack([study.coatings[n].points_object for n in names]).reshape(len(names), -1)
+    out = {}
+    for k, n in enumerate(names):
+        others = np.delete(P, k, axis=0)
+        mu = others.mean(axis=0)
+        _u, _s, vt = np.linalg.svd(others - mu, full_matrices=False)
+        r = P[k] - mu
+        r = r - vt.T @ (vt @ r)
+        out[n] = float(np.linalg.norm(r.reshape(-1, 3), axis=1).mean())
+    return out
+
+
 def rank_correlation(true: dict, check: dict, skip: str) -> float:
     from scipy.stats import spearmanr
 
@@ -110,8 +126,10 @@ def report_run(label: str, errors: dict, study, seconds: float, args) -> dict:
     per = {n: float(e.mean()) for n, e in errors.items()}
     check = self_check(study)
     rho = rank_correlation(per, check, study.template_instance)
+    recon = loo_reconstruction(study)
+    rho_recon = rank_correlation(per, recon, study.template_instance)
     for name, e in errors.items():
-        c = f", self-check {check[name]:.2f}" if name in check else ""
+        c = (f", self-check {check[name]:.2f}" if name in check else "") + f", reconstruction {recon[name]:.2f}"
         print(f"  {name}: mean {e.mean():.2f}, 95th {np.percentile(e, 95):.2f}, worst {e.max():.1f} mm, "
               f"folds {study.coatings[name].fit.folded_after}{c}")
     rounds = [(r.round, r.kept) for r in getattr(study, "correspondence_rounds", ()) if hasattr(r, "kept")]
@@ -120,10 +138,12 @@ def report_run(label: str, errors: dict, study, seconds: float, args) -> dict:
            "jitter": args.jitter, "exact_landmarks": args.exact_landmarks, "mean_mm": float(allv.mean()),
            "p95_mm": float(np.percentile(allv, 95)), "max_mm": float(allv.max()), "seconds": seconds,
            "self_check_mm": float(np.mean(list(check.values()))) if check else None, "rank_correlation": rho,
-           "rounds": rounds, "stop": stop}
+           "rounds": rounds, "stop": stop, "reconstruction_mm": float(np.mean(list(recon.values()))),
+           "rank_correlation_reconstruction": rho_recon}
     print(f"{label}: mean {row['mean_mm']:.3f} mm, 95th {row['p95_mm']:.2f} mm, worst {row['max_mm']:.1f} mm "
           f"({seconds:.0f} s; self-check {row['self_check_mm'] or float('nan'):.2f} mm, rank correlation "
-          f"{rho:.2f}; {stop})", flush=True)
+          f"{rho:.2f}; leave-one-out reconstruction {row['reconstruction_mm']:.2f} mm, rank correlation "
+          f"{rho_recon:.2f}; {stop or 'single pass'})", flush=True)
     if args.json:
         import json
 
@@ -325,7 +345,8 @@ def suite(args) -> None:
         on = "all" if r["on"] >= 1000 else r["on"]
         print(f"  {r['method']:9s} {r['landmarks']:3d} on {on:>3} jitter {r['jitter']:.1f}: {r['mean_mm']:.3f} / "
               f"{r['p95_mm']:.2f} / {r['max_mm']:.1f}  {r['seconds']:5.0f} s  check {r['self_check_mm'] or float('nan'):.2f}"
-              f"  rho {r['rank_correlation']:.2f}  {r['stop']}")
+              f"  rho {r['rank_correlation']:.2f}  recon {r['reconstruction_mm']:.2f} rho {r['rank_correlation_reconstruction']:.2f}"
+              f"  {r['stop']}")
 
 
 def replace_args(args, **changes):

@@ -6,39 +6,36 @@ section 7 a bootstrap in which a preliminary model replaces the landmarks. This 
 does both (``[correspondence] method = "model"``):
 
 1. **Start**: instances with landmarks are coated by them (paper 4); instances without
-   start from the object frames alone (paper 2 aligns them roughly).
-2. **Rounds**, each: the model of the current coatings; the **mean shape becomes the
-   template** (same triangles); every instance is **fitted by the model built without it**
-   (leave-one-out, so an instance never fits itself) — pose and coefficients under the
-   model's prior, against its surface, its landmarks as soft constraints of weight
-   ``landmark_weight``. The fit read off at the template's landmark points gives each
-   instance's landmark posterior (its given landmarks denoised by the population, the
-   missing ones supplied by it; with ``exact_landmarks`` the given ones are kept where
-   given: the default, ``exact_landmarks = true``), and the mean shape is coated onto
-   the instance with them by the paper's
-   pipeline (landmark warp eq. 2 from the mean shape, registration, projection,
-   relaxation eq. 3). The rounds stop when the mean shape moves less than
-   ``tolerance_mm`` (RMS), when a round does not lower the landmark transfer error
-   (below), or after ``iterations`` (a finding: the rounds did not settle).
-   A round is **kept only when it helps**, judged without truth by
-   :func:`check_correspondence`: each instance's given landmarks are predicted by the
-   model of the *other* instances fitted to its surface alone, and the mean distance of
-   the predictions from the given landmarks (mm) must fall. A round that does not lower
-   it is dropped with every later one, and the previous coatings are kept (when that is
-   the start, the model method's result is the single pass).
-3. **Re-sampling** (:func:`resample_instance`): the mean shape's points are not the
-   template's; the rounds' coatings are read off at the template's points (located on
-   the template instance's final coating), so the template's curvature-guided sampling
-   and point numbering stay.
+   start from the model of the landmarked ones fitted to their surface
+   (:func:`start_from_model`), or from the object frames alone when only the template
+   instance has landmarks (paper 2 aligns them roughly).
+2. **Rounds**, each: the **mean shape becomes the template** (same triangles); every
+   instance is **fitted by the model built without it** (leave-one-out, so an instance
+   never fits itself) — pose and coefficients under the model's prior, against its
+   surface (:func:`round_landmarks`). The fit read off at the template's landmark points
+   supplies the landmarks an instance lacks; the given ones are kept where given
+   (``exact_landmarks = true``, the default) or replaced by the fit's posterior with the
+   given ones as soft constraints of weight ``landmark_weight`` (``false``: rough or
+   extremal-point landmarks, VerSe's). The mean shape is then coated onto the instance
+   by the paper's pipeline (:func:`coat_mean_shape`: landmark warp eq. 2, registration,
+   projection, relaxation eq. 3).
+   A round is **kept only when it helps**, judged without truth by the landmark transfer
+   error (:class:`CorrespondenceCheck`): each instance's given landmarks predicted by the
+   model of the *other* instances fitted to its surface alone; the next round's fits
+   measure it. A round that does not lower it by ``KEEP_MARGIN`` is dropped, the rounds
+   stop and the coatings before it are kept (when that is the start, the model method's
+   result is the single pass). Otherwise the rounds stop when the mean shape moves less
+   than ``tolerance_mm`` (RMS) or after ``iterations`` (a finding: they did not settle).
+3. **Re-sampling** (:func:`resample_instance`), every round: the mean shape's points are
+   not the template's; each round's coatings are read off at the template's points
+   (located on the template instance's coating of that round), so the template's
+   curvature-guided sampling and point numbering stay, and every round is judged at the
+   sampling of the start.
 
-The fit supplies the landmarks of the warp, not the start of the coating; the given
-landmarks are kept where given unless ``exact_landmarks = false`` (extremal-point
-landmarks, VerSe); instances without landmarks start from the model of the landmarked
-ones (:func:`start_from_model`). The figures behind these choices are in
-``docs/measurements.md``.
+The fit supplies the landmarks of the warp, not the start of the coating. The figures
+behind these choices are in ``docs/measurements.md``.
 
-The per-instance step (:func:`refine_instance`) is a pure function of arrays, so rounds
-run in processes. Frames: each instance's object frame (paper 2), which the model frame
+The per-instance steps are pure functions of arrays, so rounds run in processes. Frames: each instance's object frame (paper 2), which the model frame
 (paper 5, alignment none) shares; the fits start at the identity pose.
 """
 
@@ -289,20 +286,18 @@ def starts_from_model(coated: np.ndarray, faces: np.ndarray, template_points: np
     return dict(zip(names, found))
 
 
-def refine_instance(others: np.ndarray, faces: np.ndarray, template_points: np.ndarray, target,
-                    landmark_locations: dict, landmarks_object: dict, *, fit: FitParams,
-                    coating: CoatingParams, exact_landmarks: bool = True, current: np.ndarray | None = None,
-                    name: str = "") -> tuple[CoatingResult, float, float, dict]:
-    """One instance in one round: fit the model of ``others`` to it, coat the mean shape onto it
-    with the landmarks the fit gives.
+def round_landmarks(others: np.ndarray, faces: np.ndarray, target, landmark_locations: dict,
+                    landmarks_object: dict, *, fit: FitParams, exact_landmarks: bool = True,
+                    current: np.ndarray | None = None, name: str = "") -> tuple[np.ndarray, float, float, dict]:
+    """The model half of a round for one instance: the model of ``others`` fitted to its
+    surface alone, its landmark transfer (:func:`landmark_transfer`) and the landmarks the
+    round's warp takes (eq. 2).
 
     Parameters
     ----------
     others : (n-1, N, 3) mm
         The other instances' coated points (their object frames = the model frame).
     faces : (F, 3)
-    template_points : (N, 3) mm
-        The current template (the mean shape), for the relaxation's rest shape.
     target : ObjectVolume
         The instance.
     landmark_locations : {"names", "triangles", "bary"}
@@ -313,19 +308,17 @@ def refine_instance(others: np.ndarray, faces: np.ndarray, template_points: np.n
         True (default): the given landmarks are warped to exactly where given and only
         absent ones come from the fit. False: the warp uses the fit's estimate of every
         landmark, the given ones as soft constraints (its posterior: the given place
-        pulled by the population, for clicked or extremal-point landmarks).
+        pulled by the population, for rough or extremal-point landmarks).
     current : (N, 3) mm, optional
         The instance's coating the round starts from: the surface of the landmark
-        transfer check (:func:`landmark_transfer`); default its marching-cubes surface.
+        transfer check; default its marching-cubes surface.
 
     Returns
     -------
-    (CoatingResult, mean surface distance of the model fit in mm, RMS distance in mm
-    between the given landmarks and where the warp put them: 0 for exact landmarks or
-    none given, dict given landmark -> transfer distance in mm of the coatings the round
-    started from)
+    ((L, 3) warp landmarks in mm, mean surface distance of the fit in mm, RMS distance in
+    mm between the given landmarks and the warp's: 0 for exact landmarks or none given,
+    dict given landmark -> transfer distance in mm of the coating the round started from)
     """
-    # one distance map for the fit's surface (its marching-cubes mesh) and the coating
     dm = DistanceMap.from_object_volume(target)
     if current is None:
         surface, surface_faces = dm.surface_vertices, dm.surface_faces
@@ -348,15 +341,40 @@ def refine_instance(others: np.ndarray, faces: np.ndarray, template_points: np.n
         loc = MeshLocation(np.asarray(landmark_locations["triangles"], int),
                            np.asarray(landmark_locations["bary"], float))
         fitted = loc.evaluate(result.points, faces)
-    loc = MeshLocation(np.asarray(landmark_locations["triangles"], int), np.asarray(landmark_locations["bary"], float))
-    on_template = loc.evaluate(template_points, faces)
     if exact_landmarks and given:
         fitted[given] = given_points
     shift = float(np.sqrt(((fitted[given] - given_points) ** 2).sum(axis=1).mean())) if given else 0.0
-    # then the paper's coating from the mean shape: landmark warp, projection, relaxation
-    coated = coat(Mesh(template_points, faces), on_template, target, fitted, params=coating, distance_map=dm,
-                  name=name)
-    return coated, float(result.mean_distance_mm), shift, transfer
+    return fitted, float(result.mean_distance_mm), shift, transfer
+
+
+def coat_mean_shape(template_points: np.ndarray, faces: np.ndarray, target, landmark_locations: dict,
+                    warp_landmarks: np.ndarray, *, coating: CoatingParams, name: str = "") -> CoatingResult:
+    """The coating half of a round: the mean shape coated onto one instance by the paper's
+    pipeline (landmark warp eq. 2 to ``warp_landmarks`` (L, 3) mm, projection, relaxation
+    eq. 3), in the instance's object frame."""
+    loc = MeshLocation(np.asarray(landmark_locations["triangles"], int), np.asarray(landmark_locations["bary"], float))
+    return coat(Mesh(template_points, faces), loc.evaluate(template_points, faces), target, warp_landmarks,
+                params=coating, name=name)
+
+
+def refine_instance(others: np.ndarray, faces: np.ndarray, template_points: np.ndarray, target,
+                    landmark_locations: dict, landmarks_object: dict, *, fit: FitParams,
+                    coating: CoatingParams, exact_landmarks: bool = True, current: np.ndarray | None = None,
+                    name: str = "") -> tuple[CoatingResult, float, float, dict]:
+    """One instance in one round: :func:`round_landmarks` (the model of ``others`` fitted to
+    it) then :func:`coat_mean_shape` (``template_points``, the mean shape, coated onto it
+    with the landmarks the fit gives).
+
+    Returns
+    -------
+    (CoatingResult, mean surface distance of the fit in mm, RMS shift of the given
+    landmarks in mm, dict given landmark -> transfer distance in mm)
+    """
+    warp, distance, shift, transfer = round_landmarks(others, faces, target, landmark_locations, landmarks_object,
+                                                      fit=fit, exact_landmarks=exact_landmarks, current=current,
+                                                      name=name)
+    coated = coat_mean_shape(template_points, faces, target, landmark_locations, warp, coating=coating, name=name)
+    return coated, distance, shift, transfer
 
 
 def resample_instance(coating: CoatingResult, faces: np.ndarray, triangles: np.ndarray, bary: np.ndarray, target,
@@ -407,24 +425,21 @@ def _resample_job(args):
     return resample_instance(*args[:5], params=args[5], name=args[6])
 
 
-def _refine_job(args):
-    return refine_instance(*args[:6], fit=args[6], coating=args[7], exact_landmarks=args[8], current=args[9],
-                           name=args[10])
+def _landmarks_job(args):
+    return round_landmarks(*args[:5], fit=args[5], exact_landmarks=args[6], current=args[7], name=args[8])
 
 
-def _transfer_mean(transfer: dict) -> float:
-    """The study's landmark transfer error: mean over the landmarked instances of their mean."""
-    per = [float(np.mean(list(d.values()))) for d in transfer.values() if d]
-    return float(np.mean(per)) if per else float("nan")
+def _coat_mean_job(args):
+    return coat_mean_shape(*args[:5], coating=args[5], name=args[6])
 
 
-# the re-sampled rounds replace the start only when they lower its landmark transfer error
-# by this share: a change within it is the fits' noise, and the start (the single pass) is
-# the simpler result
+# a round is kept only when it lowers the landmark transfer error of the coatings kept so
+# far by this share: a change within it is the fits' noise, and the start (the single
+# pass) is the simpler result
 KEEP_MARGIN = 0.01
 
 
-def _improves(after: float, before: float, margin: float = 0.0) -> bool:
+def _improves(after: float, before: float, margin: float = KEEP_MARGIN) -> bool:
     """A round helps when it lowers the transfer error (no landmarks to judge by: it is kept)."""
     return not (math.isfinite(after) and math.isfinite(before)) or after < before * (1.0 - margin)
 
@@ -436,14 +451,17 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
     (the mean shape, in the model frame) and ``study.coatings``; returns each round's
     figures and the self-check of the coatings kept.
 
-    Each round maps :func:`refine_instance` over the instances on ``executor``
-    (:class:`~ssm_addon.pipeline.compute.Executor`; default ``jobs`` local processes). Its inputs
-    include the instance's resampled volume, which travels to the worker. A round also
-    measures the landmark transfer error of the coatings it starts from (the fits it
-    makes anyway); a round whose coatings do not lower it is dropped and the rounds stop
-    (``stop = "criterion"``); the re-sampled result is checked once more against the start.
-    When the start is kept, ``study`` is left as it was (the single pass's coatings and
-    template).
+    A round: :func:`round_landmarks` on every instance (the leave-one-out fits, which
+    also measure the landmark transfer error of the coatings the round starts from),
+    :func:`coat_mean_shape` with the landmarks they give, and :func:`resample_instance`
+    (back at the template's points, so every round's coatings are judged at the same
+    sampling as the start's). The next round's fits judge it: a round that does not lower
+    the transfer error by ``KEEP_MARGIN`` is dropped and the rounds stop (``stop =
+    "criterion"``); after the last round one more pass of fits judges it. When the start
+    is kept, ``study`` keeps the single pass's coatings and template.
+
+    Jobs run on ``executor`` (:class:`~ssm_addon.pipeline.compute.Executor`; default ``jobs``
+    local processes); their inputs include the instance's resampled volume.
 
     Raises
     ------
@@ -474,119 +492,104 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
     mean_template = (study.template.params or {}).get("mean_shape_template")
     sampling = np.array(study.coatings[names[anchor]].points_object if mean_template else study.template.points_object,
                         dtype=float)
-    start = (dict(study.coatings), study.template)
-    prev_mean = np.mean([study.coatings[n].points_object for n in names], axis=0)
-    size = float(np.linalg.norm(np.ptp(prev_mean, axis=0)))
+    size = float(np.linalg.norm(np.ptp(np.mean([study.coatings[n].points_object for n in names], axis=0), axis=0)))
     own = executor is None
     executor = Executor("processes", max(1, min(int(jobs or 1), len(names), os.cpu_count() or 1))) if own else executor
-    stop, kept_round, before = "limit", 0, float("nan")
-    kept_state = start
+    best = (dict(study.coatings), study.template)
+    best_check, stop, converged, total = None, "limit", False, params.iterations
     try:
-        for r in range(1, params.iterations + 1):
+        for r in range(1, total + 2):
             check_cancelled(cancelled)
             t0 = time.perf_counter()
             points = np.stack([study.coatings[n].points_object for n in names])
             mean = points.mean(axis=0)  # the mean shape: the new template (paper 3.3)
-            args = [(np.delete(points, i, axis=0), faces, mean, study.volume(n), locations, lm_object[n], fit,
-                     study.coating_params, params.exact_landmarks, points[i], n) for i, n in enumerate(names)]
-            span = (r - 1) / params.iterations, r / params.iterations
-            results = executor.map(_refine_job, args, labels=names, verb=f"round {r}: refined",
-                                   progress=sub_progress(progress, 0.9 * span[0], 0.9 * span[1]),
-                                   cancelled=cancelled)
-            # the coatings this round started from, judged by the fits it made of them
-            now = _transfer_mean({n: t for n, (_c, _d, _s, t) in zip(names, results)})
-            # a round's coatings sit at the mean shape's sampling, the start's at the template's:
-            # round 1 is judged after its re-sampling (against the start), later rounds against
-            # the round before
-            if len(rounds) >= 2:
-                rounds[-1] = replace(rounds[-1], transfer_after_mm=now, kept=_improves(now, before))
-                if not rounds[-1].kept:
-                    say(f"correspondence round {r - 1} dropped: the landmark transfer error went from {before:.3f} "
-                        f"to {now:.3f} mm; keeping round {kept_round}'s coatings")
+            # the fits of this round judge the coatings it starts from (the last round's)
+            args = [(np.delete(points, i, axis=0), faces, study.volume(n), locations, lm_object[n], fit,
+                     params.exact_landmarks, points[i], n) for i, n in enumerate(names)]
+            span = (r - 1) / (total + 1), (r - 0.5) / (total + 1)
+            fitted = executor.map(_landmarks_job, args, labels=names, verb=f"round {r}: fitted",
+                                  progress=sub_progress(progress, span[0], span[1]), cancelled=cancelled)
+            check = CorrespondenceCheck.from_landmarks({n: t for n, (_w, _d, _s, t) in zip(names, fitted)})
+            if best_check is None:
+                best_check = check
+            else:
+                kept = _improves(check.study_mm, best_check.study_mm)
+                rounds[-1] = replace(rounds[-1], transfer_after_mm=check.study_mm, kept=kept)
+                if not kept:
+                    say(f"correspondence round {r - 1} dropped: the landmark transfer error went from "
+                        f"{best_check.study_mm:.3f} to {check.study_mm:.3f} mm; keeping "
+                        f"{'the start' if not any(f.kept for f in rounds) else 'round ' + str(max(f.round for f in rounds if f.kept))}")
                     stop = "criterion"
                     break
-            elif rounds:
-                rounds[-1] = replace(rounds[-1], transfer_after_mm=now)
-            if rounds:
-                kept_round, kept_state = r - 1, (dict(study.coatings), study.template)
-            before = now
-            # how far the mean shape's coating slid the template's points on their own instance
-            slide = float(np.sqrt(((results[anchor][0].points_object - sampling) ** 2).sum(axis=1).mean()))
-            prev_mean = _finish_round(study, names, points, results, prev_mean, faces, size, r, t0, rounds, say,
-                                      mean, slide, before)
-            if rounds[-1].mean_change_mm < params.tolerance_mm:
-                stop = "converged"
+                best, best_check = (dict(study.coatings), study.template), check
+                if converged:
+                    stop = "converged"
+                    break
+            if r > total:
                 break
-        if stop != "criterion":
-            kept_round, kept_state = len(rounds), (dict(study.coatings), study.template)
-        study.coatings, study.template = dict(kept_state[0]), kept_state[1]
-        check_cancelled(cancelled)
-        if kept_round == 0:
-            for n in names:
-                study.coatings[n] = _given_landmark_residuals(study.coatings[n], faces, locations, lm_object[n])
-            check = _final_check(study, names, faces, locations, lm_object, fit, executor, cancelled, stop, 0)
-            say(f"correspondence: the start's coatings kept (landmark transfer error {check.study_mm:.3f} mm)")
-            return rounds, check
-        # the template's sampling back: its points located on the template instance's
-        # final coating, read off every instance's final coating
-        _c, _d, tri, bary = MeshLocator(study.coatings[names[anchor]].points_object, faces).query(
-            sampling, k=12, normals=vertex_normals(sampling, faces))
-        args = [(study.coatings[n], faces, tri, bary, study.volume(n), study.coating_params, n) for n in names]
-        resampled = executor.map(_resample_job, args, labels=names, verb="re-sampled at the template's points",
-                                 progress=sub_progress(progress, 0.9, 0.95), cancelled=cancelled)
-        for n, c in zip(names, resampled):
-            study.coatings[n] = _given_landmark_residuals(c, faces, locations, lm_object[n])
-        say(f"correspondence: re-sampled at the template's points (the mean shape had slid them "
-            f"{rounds[kept_round - 1].sampling_slide_mm:.2f} mm on {names[anchor]})")
-        check = _final_check(study, names, faces, locations, lm_object, fit, executor, cancelled, stop, kept_round)
-        if kept_round == len(rounds):  # the last round, judged after its re-sampling
-            rounds[-1] = replace(rounds[-1], transfer_after_mm=check.study_mm)
-        first = rounds[0].transfer_before_mm
-        if not _improves(check.study_mm, first, KEEP_MARGIN):
-            say(f"correspondence: the re-sampled rounds' landmark transfer error {check.study_mm:.3f} mm is not "
-                f"{100 * KEEP_MARGIN:g} % below the start's {first:.3f} mm; keeping the start's coatings")
-            rounds = [replace(f, kept=False) for f in rounds]
-            study.coatings, study.template = dict(start[0]), start[1]
-            for n in names:
-                study.coatings[n] = _given_landmark_residuals(study.coatings[n], faces, locations, lm_object[n])
-            check = _final_check(study, names, faces, locations, lm_object, fit, executor, cancelled, "criterion", 0)
+            coated = executor.map(_coat_mean_job, [(mean, faces, study.volume(n), locations, w,
+                                                    study.coating_params, n)
+                                                   for n, (w, _d, _s, _t) in zip(names, fitted)],
+                                  labels=names, verb=f"round {r}: coated",
+                                  progress=sub_progress(progress, span[1], (r - 0.2) / (total + 1)),
+                                  cancelled=cancelled)
+            # how far the mean shape's coating slid the template's points on their own instance;
+            # the template's sampling back: its points located on the template instance's
+            # coating, read off every instance's coating
+            slide = float(np.sqrt(((coated[anchor].points_object - sampling) ** 2).sum(axis=1).mean()))
+            _c, _d, tri, bary = MeshLocator(coated[anchor].points_object, faces).query(
+                sampling, k=12, normals=vertex_normals(sampling, faces))
+            resampled = executor.map(_resample_job, [(c, faces, tri, bary, study.volume(n), study.coating_params, n)
+                                                     for n, c in zip(names, coated)],
+                                     labels=names, verb=f"round {r}: re-sampled at the template's points",
+                                     progress=sub_progress(progress, (r - 0.2) / (total + 1), r / (total + 1)),
+                                     cancelled=cancelled)
+            _check_diverged(np.stack([c.points_object for c in coated]).mean(axis=0), mean, size, r)
+            change = _finish_round(study, names, points, resampled, fitted, faces, size, r, t0, rounds, say, mean,
+                                   slide, check.study_mm)
+            converged = change < params.tolerance_mm
+        study.coatings, study.template = dict(best[0]), best[1]
+        for n in names:
+            study.coatings[n] = _given_landmark_residuals(study.coatings[n], faces, locations, lm_object[n])
     finally:
         if own:
             executor.close()
-    return rounds, check
+    kept_round = max((f.round for f in rounds if f.kept), default=0)
+    return rounds, replace(best_check, stop=stop, kept_round=kept_round)
 
 
-def _final_check(study, names, faces, locations, lm_object, fit, executor, cancelled, stop, kept_round):
-    return check_correspondence({n: study.coatings[n].points_object for n in names}, faces, locations, lm_object,
-                                fit=fit, executor=executor, cancelled=cancelled, stop=stop, kept_round=kept_round)
-
-
-def _finish_round(study, names, points, results, prev_mean, faces, size, r, t0, rounds, say, mean, slide, before):
-    """Check a round, record its figures, and make its coatings and mean shape the study's."""
-    new_points = np.stack([c.points_object for c, _d, _s, _t in results])
-    new_mean = new_points.mean(axis=0)
-    change = float(np.sqrt(((new_mean - prev_mean) ** 2).sum(axis=1).mean()))
+def _check_diverged(new_mean: np.ndarray, mean: np.ndarray, size: float, r: int) -> float:
+    """The RMS movement of the mean shape (mm); more than the shapes' size is an error."""
+    change = float(np.sqrt(((new_mean - mean) ** 2).sum(axis=1).mean()))
     if not math.isfinite(change) or change > size:
         raise InputError(f"model-guided correspondence diverged in round {r}: the mean shape moved {change:.1f} mm "
                          f"(the shapes are {size:.0f} mm across); check the instances' frames and landmarks")
+    return change
+
+
+def _finish_round(study, names, points, resampled, fitted, faces, size, r, t0, rounds, say, mean, slide, before):
+    """Check a round, record its figures, and make its re-sampled coatings and mean shape the
+    study's; returns the RMS movement of the mean shape (mm)."""
+    new_points = np.stack([c.points_object for c in resampled])
+    change = _check_diverged(new_points.mean(axis=0), points.mean(axis=0), size, r)
     fig = RoundFigures(
         round=r, mean_change_mm=change,
         instance_change_mm={n: float(np.sqrt(((new_points[i] - points[i]) ** 2).sum(axis=1).mean()))
                             for i, n in enumerate(names)},
-        fit_distance_mm={n: d for n, (_, d, _s, _t) in zip(names, results)},
-        folds={n: int(c.fit.folded_after) for n, (c, _d, _s, _t) in zip(names, results)},
-        landmark_shift_mm={n: s for n, (_c, _d, s, _t) in zip(names, results)},
+        fit_distance_mm={n: d for n, (_w, d, _s, _t) in zip(names, fitted)},
+        folds={n: int(c.fit.folded_after) for n, c in zip(names, resampled)},
+        landmark_shift_mm={n: s for n, (_w, _d, s, _t) in zip(names, fitted)},
         sampling_slide_mm=slide, transfer_before_mm=before, seconds=time.perf_counter() - t0)
     rounds.append(fig)
-    for n, (c, _d, _s, _t) in zip(names, results):
+    for n, c in zip(names, resampled):
         study.coatings[n] = c
     study.template = _mean_template(study, mean, faces)
     say(f"correspondence round {r}: mean shape moved {change:.3f} mm; instances moved up to "
         f"{max(fig.instance_change_mm.values()):.2f} mm; given landmarks moved up to "
-        f"{max(fig.landmark_shift_mm.values(), default=0.0):.2f} mm; the template's points slid {slide:.2f} mm; folds left "
-        f"{sum(fig.folds.values())}; landmark transfer error before the round {before:.3f} mm "
-        f"({fig.seconds:.1f} s)")
-    return new_mean
+        f"{max(fig.landmark_shift_mm.values(), default=0.0):.2f} mm; the template's points slid {slide:.2f} mm "
+        f"(re-sampled); folds left {sum(fig.folds.values())}; landmark transfer error before the round "
+        f"{before:.3f} mm ({fig.seconds:.1f} s)")
+    return change
 
 
 def _given_landmark_residuals(coating: CoatingResult, faces: np.ndarray, locations: dict,
