@@ -17,7 +17,7 @@ from test_coating import icosphere
 
 from ssm_addon.fitting.correspondence import CorrespondenceCheck, RoundFigures, check_correspondence
 from ssm_addon.meshutil import MeshLocation
-from ssm_addon.model.quality import check_correspondence_rounds, check_landmark_transfer
+from ssm_addon.model.quality import check_correspondence_rounds, check_frames, check_landmark_transfer
 from ssm_addon.pipeline.params import FitParams, QualityParams
 
 LANDMARKS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11)  # the icosahedron's corners
@@ -101,3 +101,34 @@ def test_landmark_locations_read_the_corners():
     v, f, _axes, points, locations, _given = _population(n=3)
     loc = MeshLocation(np.asarray(locations["triangles"]), np.asarray(locations["bary"]))
     assert np.allclose(loc.evaluate(points["e1"], f), points["e1"][list(LANDMARKS)])
+
+
+def test_a_coating_turned_end_for_end_is_named_by_the_frame_gate():
+    """A near-symmetric shape's moments frame can flip: its coating, in correspondence,
+    turned 180° about an axis against the template instance's."""
+    v, f, _axes, points, _locations, _given = _population(n=4)
+    turned = dict(points, e2=points["e2"] * np.array([-1.0, -1.0, 1.0]))  # 180° about z
+    names = list(turned)
+    stack = np.stack([turned[n] for n in names])
+    found = check_frames(names, stack, "e0", "none")
+    assert [(x.instance, x.gate) for x in found] == [("e2", "frame")] and round(found[0].value) == 180
+    assert 'alignment = "rigid"' in found[0].message
+    assert check_frames(names, stack, "e0", "rigid") == []
+    assert check_frames(names, np.stack([points[n] for n in names]), "e0", "none") == []
+
+
+def test_aligned_to_undoes_a_turn_and_the_transfer_sees_through_it():
+    """The self-check puts the others onto the checked coating by their correspondence:
+    an instance stored turned end for end changes nothing."""
+    from ssm_addon.fitting.correspondence import aligned_to
+
+    v, f, _axes, points, locations, given = _population()
+    flip = np.array([-1.0, 1.0, -1.0])  # 180° about y
+    back = aligned_to((points["e1"] * flip)[None], points["e1"])[0]
+    assert np.allclose(back, points["e1"], atol=1e-9)
+    turned = dict(points, e4=points["e4"] * flip)
+    given_turned = dict(given, e4={k: p * flip for k, p in given["e4"].items()})
+    fit = FitParams(noise_mm=0.5, tolerance_mm=0.001)
+    a = check_correspondence(points, f, locations, given, fit=fit)
+    b = check_correspondence(turned, f, locations, given_turned, fit=fit)
+    assert abs(a.study_mm - b.study_mm) < 0.05, (a.study_mm, b.study_mm)

@@ -51,11 +51,11 @@ import numpy as np
 from ..coating.coating import CoatingResult, coat, settle_on_surface
 from ..coating.distance_map import DistanceMap
 from ..coating.relaxation import folded_triangles
-from ..fitting.fit import Pose, Target, fit_model
+from ..fitting.fit import Pose, Target, fit_best, fit_model
 from ..formats.landmarks import LandmarkSet
 from ..meshutil import Mesh, MeshLocation, MeshLocator, edge_lengths, vertex_normals
 from ..meshutil import edges as mesh_edges
-from ..model.pca import build_model
+from ..model.pca import build_model, procrustes_fit
 from ..pipeline.compute import Executor
 from ..pipeline.errors import InputError, check_cancelled
 from ..pipeline.params import CoatingParams, CorrespondenceParams, FitParams
@@ -66,7 +66,7 @@ from ..pipeline.progress import CancelledFn, ProgressFn, sub_progress
 REFINE_FIT_SAMPLES = 5000
 REFINE_FIT_TOLERANCE_MM = 0.01
 
-__all__ = ["CorrespondenceCheck", "RoundFigures", "check_correspondence", "landmark_transfer", "refine_instance",
+__all__ = ["AXIS_TURNS", "WORLD_POSE_TOLERANCE", "CorrespondenceCheck", "RoundFigures", "aligned_to", "check_correspondence", "landmark_transfer", "refine_instance",
            "refine_rounds", "resample_instance", "start_from_model", "starts_from_model"]
 
 
@@ -163,8 +163,31 @@ class CorrespondenceCheck:
         return d
 
 
+def aligned_to(shapes: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """``shapes`` (n, N, 3) moved rigidly onto ``reference`` (N, 3) by their point
+    correspondence (Kabsch, no reflection): coatings in object frames that disagree (a
+    near-symmetric bone whose moments frame flips) brought into one frame, mm."""
+    shapes = np.asarray(shapes, float)
+    if not len(shapes):
+        return shapes
+    _s, rot, t = procrustes_fit(shapes, np.asarray(reference, float), scale=False)
+    return np.einsum("inj,ikj->ink", shapes, rot) + t[:, None, :]
+
+
+# the proper rotations that turn principal axes end for end: the start poses of a fit
+# whose target frame may disagree with the model's by such a turn (moments frames)
+AXIS_TURNS = tuple(np.diag(d).astype(float) for d in ((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1)))
+
+
+# a start pose from the instances' own coordinates wins over a better-fitting turn of the
+# axes unless that turn fits this much closer (a near-symmetric bone fits its own surface
+# almost as well turned end for end)
+WORLD_POSE_TOLERANCE = 1.25
+
+
 def landmark_transfer(others: np.ndarray, faces: np.ndarray, surface_points: np.ndarray, landmark_locations: dict,
-                      landmarks_object: dict, *, fit: FitParams, surface_faces: np.ndarray | None = None):
+                      landmarks_object: dict, *, fit: FitParams, surface_faces: np.ndarray | None = None,
+                      world_pose: Pose | None = None):
     """Fit the model of ``others`` to one surface alone; predict the landmarks there.
 
     Parameters
@@ -183,16 +206,32 @@ def landmark_transfer(others: np.ndarray, faces: np.ndarray, surface_points: np.
     fit : FitParams
         Noise and prior of the fit (its landmark weight is not used: no landmarks).
     surface_faces : (F', 3) int, optional
-        The surface's triangles (default ``faces``: ``surface_points`` is a coating).
+        The surface's triangles (default ``faces``: ``surface_points`` is a coating). A
+        surface alone is fitted from the turns of the principal axes (``AXIS_TURNS``).
+    world_pose : Pose, optional
+        The pose the instances' input coordinates give (model frame -> the surface's);
+        kept unless a turn fits ``WORLD_POSE_TOLERANCE`` times closer.
 
     Returns
     -------
     (FitResult, (L, 3) predicted landmarks in mm, dict given landmark -> distance in mm)
     """
+    if surface_faces is None:  # a coating: the others are put onto it by their correspondence
+        others = aligned_to(others, surface_points)
     model = build_model(others, faces, [str(i) for i in range(len(others))])
     sf = faces if surface_faces is None else surface_faces
-    result = fit_model(model, Target.from_mesh(surface_points, sf, max_samples=REFINE_FIT_SAMPLES), params=fit,
-                       pose=Pose())
+    target = Target.from_mesh(surface_points, sf, max_samples=REFINE_FIT_SAMPLES)
+    if surface_faces is None:
+        result = fit_model(model, target, params=fit, pose=Pose())
+    else:  # a surface alone: the frames may disagree by a turn of the principal axes
+        centre = model.mean.mean(axis=0)
+        poses = [Pose(rotation=r, translation=np.asarray(surface_points, float).mean(axis=0) - r @ centre)
+                 for r in AXIS_TURNS]
+        result = fit_best(model, target, poses, params=fit)
+        if world_pose is not None:
+            own = fit_model(model, target, params=fit, pose=world_pose)
+            if own.mean_distance_mm <= WORLD_POSE_TOLERANCE * result.mean_distance_mm:
+                result = own
     loc = MeshLocation(np.asarray(landmark_locations["triangles"], int), np.asarray(landmark_locations["bary"], float))
     predicted = loc.evaluate(result.points, faces)
     names = list(landmark_locations.get("names", ()))
@@ -242,7 +281,8 @@ def check_correspondence(points: dict, faces: np.ndarray, landmark_locations: di
 
 
 def start_from_model(coated: np.ndarray, faces: np.ndarray, template_points: np.ndarray, landmark_locations: dict,
-                     target, *, fit: FitParams, coating: CoatingParams, name: str = "") -> CoatingResult:
+                     target, *, fit: FitParams, coating: CoatingParams, template_frame=None,
+                     name: str = "") -> CoatingResult:
     """The start of an instance without landmarks: the model of the landmarked instances'
     coatings, fitted to its surface, supplies its landmarks; the template is coated with
     them (paper 4: landmark warp eq. 2, projection, relaxation eq. 3).
@@ -257,14 +297,25 @@ def start_from_model(coated: np.ndarray, faces: np.ndarray, template_points: np.
     landmark_locations : {"names", "triangles", "bary"}
         The template's landmarks as points of the mesh.
     target : ObjectVolume
+    template_frame : ObjectFrame, optional
+        The template instance's object frame: with the target's, the pose the input
+        coordinates give (one scanner, one knee frame), preferred to a turn of the axes
+        that fits only a little closer.
 
     Returns
     -------
     CoatingResult (object frame of ``target``) with ``fit.start = "model fit"``.
     """
     dm = DistanceMap.from_object_volume(target)
+    # the model in the template's frame; its fit tries the turns of the principal axes
+    coated = aligned_to(coated, template_points)
+    world = None
+    if template_frame is not None:
+        there = target.frame.to_object(template_frame.to_world(template_points))
+        _s, rot, t = procrustes_fit(np.asarray(template_points, float)[None], there, scale=False)
+        world = Pose(rotation=rot[0], translation=t[0])
     _result, predicted, _d = landmark_transfer(coated, faces, dm.surface_vertices, landmark_locations, {}, fit=fit,
-                                               surface_faces=dm.surface_faces)
+                                               surface_faces=dm.surface_faces, world_pose=world)
     loc = MeshLocation(np.asarray(landmark_locations["triangles"], int), np.asarray(landmark_locations["bary"], float))
     result = coat(Mesh(template_points, faces), loc.evaluate(template_points, faces), target, predicted,
                   params=coating, distance_map=dm, name=name)
@@ -272,15 +323,16 @@ def start_from_model(coated: np.ndarray, faces: np.ndarray, template_points: np.
 
 
 def _start_job(args):
-    return start_from_model(*args[:5], fit=args[5], coating=args[6], name=args[7])
+    return start_from_model(*args[:5], fit=args[5], coating=args[6], template_frame=args[7], name=args[8])
 
 
 def starts_from_model(coated: np.ndarray, faces: np.ndarray, template_points: np.ndarray, landmark_locations: dict,
-                      targets: dict, *, fit: FitParams, coating: CoatingParams, jobs: int = 1,
+                      targets: dict, *, fit: FitParams, coating: CoatingParams, template_frame=None, jobs: int = 1,
                       cancelled: CancelledFn = None) -> dict[str, CoatingResult]:
     """:func:`start_from_model` for every instance of ``targets`` (name -> ObjectVolume), ``jobs`` processes."""
     names = list(targets)
-    args = [(coated, faces, template_points, landmark_locations, targets[n], fit, coating, n) for n in names]
+    args = [(coated, faces, template_points, landmark_locations, targets[n], fit, coating, template_frame, n)
+            for n in names]
     with Executor("processes", max(1, min(int(jobs or 1), len(args), os.cpu_count() or 1))) as executor:
         found = executor.map(_start_job, args, labels=names, verb="coated", cancelled=cancelled)
     return dict(zip(names, found))
@@ -333,11 +385,12 @@ def round_landmarks(others: np.ndarray, faces: np.ndarray, target, landmark_loca
     if given and fit.landmark_weight > 0 and (absent or not exact_landmarks):
         # the landmarks' posterior places: the fit with the given landmarks as soft
         # constraints, read off at the template's landmark points
-        model = build_model(others, faces, [str(i) for i in range(len(others))],
-                            params={"landmark_locations": landmark_locations})
+        model = build_model(others if current is None else aligned_to(others, current), faces,
+                            [str(i) for i in range(len(others))], params={"landmark_locations": landmark_locations})
         lms = LandmarkSet(tuple(all_names[i] for i in given), given_points, name)
         result = fit_model(model, Target.from_mesh(dm.surface_vertices, dm.surface_faces, landmarks=lms,
-                                                   max_samples=REFINE_FIT_SAMPLES), params=fit, pose=Pose())
+                                                   max_samples=REFINE_FIT_SAMPLES), params=fit,
+                           pose=Pose() if current is None else result.pose)
         loc = MeshLocation(np.asarray(landmark_locations["triangles"], int),
                            np.asarray(landmark_locations["bary"], float))
         fitted = loc.evaluate(result.points, faces)
@@ -492,7 +545,7 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
     mean_template = (study.template.params or {}).get("mean_shape_template")
     sampling = np.array(study.coatings[names[anchor]].points_object if mean_template else study.template.points_object,
                         dtype=float)
-    size = float(np.linalg.norm(np.ptp(np.mean([study.coatings[n].points_object for n in names], axis=0), axis=0)))
+    size = float(np.linalg.norm(np.ptp(study.coatings[names[anchor]].points_object, axis=0)))
     own = executor is None
     executor = Executor("processes", max(1, min(int(jobs or 1), len(names), os.cpu_count() or 1))) if own else executor
     best = (dict(study.coatings), study.template)
@@ -502,7 +555,9 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
             check_cancelled(cancelled)
             t0 = time.perf_counter()
             points = np.stack([study.coatings[n].points_object for n in names])
-            mean = points.mean(axis=0)  # the mean shape: the new template (paper 3.3)
+            # the mean shape (paper 3.3), of the coatings put onto the template instance's
+            # (their object frames may disagree by a turn): the new template, in its frame
+            mean = aligned_to(points, points[anchor]).mean(axis=0)
             # the fits of this round judge the coatings it starts from (the last round's)
             args = [(np.delete(points, i, axis=0), faces, study.volume(n), locations, lm_object[n], fit,
                      params.exact_landmarks, points[i], n) for i, n in enumerate(names)]
@@ -544,7 +599,8 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
                                      labels=names, verb=f"round {r}: re-sampled at the template's points",
                                      progress=sub_progress(progress, (r - 0.2) / (total + 1), r / (total + 1)),
                                      cancelled=cancelled)
-            _check_diverged(np.stack([c.points_object for c in coated]).mean(axis=0), mean, size, r)
+            moved = np.stack([c.points_object for c in coated])
+            _check_diverged(aligned_to(moved, moved[anchor]).mean(axis=0), mean, size, r)
             change = _finish_round(study, names, points, resampled, fitted, faces, size, r, t0, rounds, say, mean,
                                    slide, check.study_mm)
             converged = change < params.tolerance_mm
@@ -571,7 +627,8 @@ def _finish_round(study, names, points, resampled, fitted, faces, size, r, t0, r
     """Check a round, record its figures, and make its re-sampled coatings and mean shape the
     study's; returns the RMS movement of the mean shape (mm)."""
     new_points = np.stack([c.points_object for c in resampled])
-    change = _check_diverged(new_points.mean(axis=0), points.mean(axis=0), size, r)
+    anchor = names.index(study.template_instance)
+    change = _check_diverged(aligned_to(new_points, new_points[anchor]).mean(axis=0), mean, size, r)
     fig = RoundFigures(
         round=r, mean_change_mm=change,
         instance_change_mm={n: float(np.sqrt(((new_points[i] - points[i]) ** 2).sum(axis=1).mean()))

@@ -15,6 +15,8 @@ gate                          figure                                          st
 ``landmark_transfer``         given landmark to the others' model's           coating
                               prediction (mm; the correspondence self-check)
 ``rounds``                    model method's rounds stopped at their limit    coating
+``frame``                     coating turned against the template instance's  model
+                              (object frames that disagree; alignment none)
 ``folds``                     folded triangles left                           coating
 ``surface_distance``          largest vertex distance to the surface (voxels) coating
 ``convergence``               relaxation stopped by its iteration limit       coating
@@ -43,6 +45,7 @@ __all__ = [
     "QualityError",
     "check_coating",
     "check_correspondence_rounds",
+    "check_frames",
     "check_landmark_transfer",
     "check_landmarks_on_surface",
     "check_model",
@@ -252,6 +255,27 @@ def check_landmark_transfer(check, params: QualityParams) -> list[Finding]:
                                " mm): a landmark on the wrong place, or correspondence that slid",
                                per[worst], params.max_landmark_transfer_mm))
     return out
+
+
+def check_frames(names, points: np.ndarray, reference: str, alignment: str,
+                 max_turn_deg: float = 45.0) -> list[Finding]:
+    """Gate on the model frame: with ``[model] alignment = "none"`` the coatings are modelled
+    in their object frames, which must agree. An instance whose coating (N, 3 mm, in
+    correspondence) is turned more than ``max_turn_deg`` against the template instance's
+    had its frame's axes resolved otherwise (a near-symmetric shape whose moments frame
+    flips): its turn would enter the model as shape variation."""
+    from ..model.pca import procrustes_fit
+
+    names = list(names)
+    if alignment != "none" or len(names) < 2 or reference not in names:
+        return []
+    pts = np.asarray(points, float)
+    _s, rot, _t = procrustes_fit(pts, pts[names.index(reference)], scale=False)
+    turn = np.degrees(np.arccos(np.clip((np.trace(rot, axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)))
+    return [Finding(n, "frame", f"its coating is turned {a:.0f}° against the template instance's {reference!r} in "
+                    f"the object frames (allowed {max_turn_deg:g}°): the frames disagree, and the turn would be "
+                    "modelled as shape; set [model] alignment = \"rigid\"", float(a), max_turn_deg)
+            for n, a in zip(names, turn) if a > max_turn_deg]
 
 
 def check_correspondence_rounds(rounds, check, tolerance_mm: float) -> list[Finding]:

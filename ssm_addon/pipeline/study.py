@@ -44,6 +44,7 @@ from ..model.pca import ShapeModel, build_model
 from ..model.quality import (
     check_coating,
     check_correspondence_rounds,
+    check_frames,
     check_landmark_transfer,
     check_landmarks_on_surface,
     check_model,
@@ -394,7 +395,8 @@ def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: in
         coated.update(starts_from_model(stack, study.template.faces, study.template.points_object,
                                         template_landmark_locations(study), {n: study.volume(n) for n in rest},
                                         fit=FitParams(noise_mm=cp.fit_noise_mm, tolerance_mm=0.01),
-                                        coating=study.coating_params, jobs=jobs, cancelled=cancelled))
+                                        coating=study.coating_params, template_frame=study.frame(study.template_instance),
+                                        jobs=jobs, cancelled=cancelled))
         start = "model fit"
     else:
         coated.update(coat_from_frames(study, rest, jobs=jobs, cancelled=cancelled))
@@ -927,6 +929,9 @@ def model_stage(study: Study, *, progress: ProgressFn = None, cancelled: Cancell
     t0 = time.perf_counter()
     model = make_model(study, progress=progress, cancelled=cancelled)
     findings, scores = check_model(model, study.quality_params)
+    names = list(model.instance_names)
+    findings = check_frames(names, np.stack([study.coatings[n].points_object for n in names]),
+                            study.template_instance, study.model_params.alignment) + list(findings)
     seconds = time.perf_counter() - t0
     return StageResult("model", {"model": model, "outlier_scores": scores}, tuple(findings), {"model": seconds},
                        (f"model: {model.n_modes} modes, {model.n_points} points in {seconds:.2f} s",))
