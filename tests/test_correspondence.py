@@ -160,6 +160,11 @@ def test_landmarks_on_a_few_instances_start_the_rest_from_their_model(population
     assert corr["stop"] in ("converged", "criterion", "limit") and set(corr["self_check"]["instance_mm"]) == {tpl, other}
     if corr["stop"] == "limit":
         assert any(f.gate == "rounds" for f in result.study.findings)
+    # the command, report.json and report.html say how the rounds ended
+    assert any(line.startswith(f"correspondence: {corr['stop']}; kept") for line in lines), lines[-8:]
+    page = (tmp_path / "out" / "report.html").read_text(encoding="utf-8")
+    assert "<h2>Correspondence</h2>" in page and "Self-check: landmark transfer error" in page
+    assert page.count("<td>kept</td>") + page.count("<td>dropped</td>") == len(corr["rounds"])
     folder = population.parent
     errors = []
     for i in range(6):

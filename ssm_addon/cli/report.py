@@ -208,6 +208,33 @@ def write_html_report(path, doc: dict, *, images: dict[str, bytes] | None = None
         if gen.get("method"):
             parts.append(f'<p class="muted">Generalization by {html.escape(str(gen["method"]))}.</p>')
 
+    # correspondence: how the coatings came about and the self-check
+    corr = doc.get("correspondence") or {}
+    check = corr.get("self_check") or {}
+    transfer = check.get("instance_mm") or {}
+    if corr:
+        parts.append("<h2>Correspondence</h2>")
+        stop = {"converged": "the rounds converged (the mean shape moved less than the tolerance)",
+                "criterion": "the rounds stopped when one did not lower the landmark transfer error (it was dropped)",
+                "limit": "the rounds stopped at their limit without settling",
+                }.get(corr.get("stop", ""), "the paper's single pass")
+        kept = check.get("kept_round", 0)
+        parts.append(f"<p>Method <code>{html.escape(str(corr.get('method', '')))}</code>: {html.escape(stop)}; "
+                     + (f"round {kept}'s coatings kept." if kept else "the start's coatings kept.")
+                     + (f" Self-check: landmark transfer error {_num(check.get('study_mm'), 2)} mm (each "
+                        "instance's given landmarks predicted by the model of the others fitted to its surface)."
+                        if transfer else "") + "</p>")
+        rounds = corr.get("rounds") or []
+        if rounds:
+            parts.append(_table([{"_class": "" if r.get("kept", True) else "warn", "cells": [
+                str(r["round"]), _num(r.get("mean_change_mm"), 3),
+                _num(max((r.get("instance_change_mm") or {}).values(), default=None), 2),
+                _num(r.get("transfer_before_mm"), 3), _num(r.get("transfer_after_mm"), 3),
+                "kept" if r.get("kept", True) else "dropped", _num(sum((r.get("folds") or {}).values())),
+                _num(r.get("seconds"), 1)]} for r in rounds],
+                ["round", "mean shape moved (mm)", "instances moved ≤ (mm)", "transfer before (mm)",
+                 "transfer after (mm)", "kept", "folds", "seconds"]))
+
     # instances
     inst = doc.get("instances", {})
     if inst:
@@ -221,11 +248,13 @@ def write_html_report(path, doc: dict, *, images: dict[str, bytes] | None = None
             rows.append({"_class": "warn" if flags else "", "cells": [
                 f"<b>{html.escape(name)}</b>", thumb, _num(fit.get("mean_distance_mm"), 3),
                 _num(fit.get("max_distance_mm"), 3), _num(fit.get("folded_after")),
-                _num(max(res) if res else None, 1), _num(fit.get("converged")), html.escape(str(fit.get("start", ""))),
+                _num(max(res) if res else None, 1), _num(transfer.get(name), 2), _num(fit.get("converged")),
+                html.escape(str((corr.get("start") or {}).get(name, fit.get("start", "")))),
                 _num(o.get("mahalanobis"), 2), _num(o.get("p_value"), 2), _num(o.get("loo_error_mm"), 2),
                 "<br>".join(html.escape(f"[{f['gate']}] {f['message']}") for f in flags)]})
         parts.append(_table(rows, ["instance", "coated", "mean dist. (mm)", "max dist. (mm)", "folds",
-                                   "max landmark residual (mm)", "converged", "start", "Mahalanobis (LOO)", "p",
+                                   "max landmark residual (mm)", "landmark transfer (mm)", "converged", "start",
+                                   "Mahalanobis (LOO)", "p",
                                    "LOO error (mm)", "warnings"]))
 
     # parameters and timings
