@@ -220,7 +220,7 @@ def prepare_refinement(op, context, *, fresh: bool):
 
     def work(progress, cancelled):
         def counting(fraction, message):
-            refined[0] += " refined " in message
+            refined[0] += ": coated " in message  # "round r: coated <instance> (i/n)"
             if progress is not None:
                 progress(fraction, message)
 

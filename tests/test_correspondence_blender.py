@@ -59,6 +59,13 @@ def test_model_method_in_blender_equals_the_headless_build(bpy_clean, light_proj
         [r["mean_change_mm"] for r in headless.report["correspondence"]["rounds"]], abs=1e-9)
     starts = {o.ssm.instance.name: o["ssm_coating_start"] for o in bpy.data.objects if o.ssm.role == "COATED"}
     assert starts == headless.report["correspondence"]["start"]
+    # the same self-check and stop in the panel's record as in report.json
+    from ssm.operators.coating import correspondence_check
+
+    check = correspondence_check(bpy.context)
+    assert check["stop"] == headless.report["correspondence"]["stop"]
+    assert check["instance_mm"] == pytest.approx(headless.report["correspondence"]["self_check"]["instance_mm"],
+                                                 abs=1e-9)
 
     # Esc during a further refinement: nothing changes
     assert bpy.ops.ssm.refine_correspondence(cancel_after=2) == {"CANCELLED"}
@@ -73,7 +80,13 @@ def test_model_method_in_blender_equals_the_headless_build(bpy_clean, light_proj
     assert len(correspondence_rounds(bpy.context)) == len(rounds) + 1
     assert len(bpy.data.objects) == n_objects
     moved = [np.linalg.norm(_coatings(bpy)[n] - coated[n], axis=1).max() for n in coated]
-    assert max(moved) > 0.0
+    # a kept round moves the coatings; one the self-check drops leaves them as they were
+    last = correspondence_rounds(bpy.context)[-1]
+    assert (max(moved) > 0.0) == last["kept"], (last, moved)
+    from ssm.operators.coating import correspondence_check
+
+    check = correspondence_check(bpy.context)
+    assert check["stop"] in ("converged", "criterion", "limit") and check["study_mm"] > 0.0
 
 
 @pytest.mark.slow
