@@ -193,7 +193,8 @@ def test_a_diverging_refinement_is_refused_and_writes_nothing(population, tmp_pa
         return replace(coated, points_object=coated.points_object * 50.0)
 
     monkeypatch.setattr(corr, "coat_mean_shape", runaway)
-    proj = _variant(population, "diverge.toml", correspondence='[correspondence]\nmethod = "model"')
+    proj = _variant(population, "diverge.toml",
+                    correspondence='[correspondence]\nmethod = "model"\nround_template = "mean"')
     out = tmp_path / "out"
     with pytest.raises(InputError, match=r"model-guided correspondence diverged in round 1"):
         build(read_project(proj), out, log=None)
@@ -212,7 +213,8 @@ def test_model_method_keeps_the_template_points_on_the_template_instance(populat
 
     monkeypatch.setattr(corr, "_improves", lambda *args: True)
 
-    proj = _variant(population, "keep.toml", correspondence='[correspondence]\nmethod = "model"\niterations = 2')
+    proj = _variant(population, "keep.toml",
+                    correspondence='[correspondence]\nmethod = "model"\niterations = 2\nround_template = "mean"')
     study = Study.from_project(read_project(proj))
     run(study, stages=("import", "template"), jobs=2)
     template_points = study.template.points_object.copy()

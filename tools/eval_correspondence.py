@@ -49,6 +49,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+import ssm_addon.fitting.correspondence as corr  # noqa: E402
 from ssm_addon.formats.landmarks import LandmarkSet, read_landmarks, write_landmarks  # noqa: E402
 from ssm_addon.instances.importing import InstanceSpec  # noqa: E402
 from ssm_addon.meshutil import read_mesh  # noqa: E402
@@ -121,8 +122,18 @@ def rank_correlation(true: dict, check: dict, skip: str) -> float:
     return float(spearmanr([true[n] for n in names], [check[n] for n in names])[0])
 
 
-def report_run(label: str, errors: dict, study, seconds: float, args) -> dict:
+def report_run(label: str, errors: dict, study, seconds: float, args, error_of=None) -> dict:
     allv = np.concatenate(list(errors.values()))
+    truth_rounds = []
+    if error_of is not None:
+        for r, state in zip(getattr(study, "correspondence_rounds", ()), ROUND_STATES):
+            e = np.concatenate(list(error_of(state).values()))
+            truth_rounds.append({"round": r.round, "kept": r.kept, "true_mean_mm": float(e.mean()),
+                                 "true_p95_mm": float(np.percentile(e, 95)),
+                                 "transfer_before_mm": r.transfer_before_mm, "transfer_after_mm": r.transfer_after_mm})
+            print(f"  round {r.round} ({'kept' if r.kept else 'dropped'}): true error {e.mean():.3f} / "
+                  f"{np.percentile(e, 95):.2f} mm (start {allv.mean() if not r.kept else float('nan'):.3f}); "
+                  f"transfer {r.transfer_before_mm:.3f} -> {r.transfer_after_mm:.3f} mm")
     per = {n: float(e.mean()) for n, e in errors.items()}
     check = self_check(study)
     rho = rank_correlation(per, check, study.template_instance)
@@ -138,7 +149,7 @@ def report_run(label: str, errors: dict, study, seconds: float, args) -> dict:
            "jitter": args.jitter, "exact_landmarks": args.exact_landmarks, "mean_mm": float(allv.mean()),
            "p95_mm": float(np.percentile(allv, 95)), "max_mm": float(allv.max()), "seconds": seconds,
            "self_check_mm": float(np.mean(list(check.values()))) if check else None, "rank_correlation": rho,
-           "rounds": rounds, "stop": stop, "reconstruction_mm": float(np.mean(list(recon.values()))),
+           "rounds": rounds, "truth_rounds": truth_rounds, "stop": stop, "reconstruction_mm": float(np.mean(list(recon.values()))),
            "rank_correlation_reconstruction": rho_recon}
     print(f"{label}: mean {row['mean_mm']:.3f} mm, 95th {row['p95_mm']:.2f} mm, worst {row['max_mm']:.1f} mm "
           f"({seconds:.0f} s; self-check {row['self_check_mm'] or float('nan'):.2f} mm, rank correlation "
@@ -174,11 +185,15 @@ def eval_meshes(args) -> dict:
     # surface: its true place on instance k is the same place of k's mesh (shared faces)
     _c, _d, tri, bary = MeshLocator(v0, f0).query(study.frame(names[0]).to_world(template_points), k=12)
     loc = MeshLocation(tri, bary)
-    errors = {n: np.linalg.norm(study.frame(n).to_world(study.coatings[n].points_object) - loc.evaluate(v, f0), axis=1)
-              for n, (v, _f) in zip(names, meshes)}
+    truth = {n: loc.evaluate(v, f0) for n, (v, _f) in zip(names, meshes)}
+
+    def error_of(points: dict) -> dict:
+        return {n: np.linalg.norm(study.frame(n).to_world(points[n]) - truth[n], axis=1) for n in names}
+
+    errors = error_of({n: study.coatings[n].points_object for n in names})
     label = (f"{args.population} {args.method} landmarks={args.landmarks} on={min(args.on, len(names))} "
              f"jitter={args.jitter}")
-    return report_run(label, errors, study, seconds, args)
+    return report_run(label, errors, study, seconds, args, error_of)
 
 
 def deformation_field(rng, centre: np.ndarray, size: float, scales=(0.6, 0.3, 0.15), amplitude=0.35):
@@ -266,6 +281,8 @@ def deformed_population(n: int, label: int, seed: int, workdir: Path):
 
 
 LANDMARK_WEIGHT = [None]
+ROUND_TEMPLATE = [None]
+ROUND_STATES: list = []  # the model method's re-sampled coatings of every round (object frames)
 EXACT_LANDMARKS = [None]
 
 
@@ -274,11 +291,21 @@ def run_study(specs, template_name: str, method: str, iterations: int, jobs: int
     if spacing:
         study.template_params = replace(study.template_params, spacing_mm=spacing)
     extra = {} if LANDMARK_WEIGHT[0] is None else {"landmark_weight": LANDMARK_WEIGHT[0]}
+    if ROUND_TEMPLATE[0] is not None:
+        extra["round_template"] = ROUND_TEMPLATE[0]
     if EXACT_LANDMARKS[0] is not None:
         extra["exact_landmarks"] = EXACT_LANDMARKS[0]
     study.correspondence_params = CorrespondenceParams(method=method, iterations=iterations, **extra)
     t0 = time.perf_counter()
     say = lambda m: print("  " + m, flush=True)  # noqa: E731
+    ROUND_STATES.clear()
+    real = corr._finish_round
+
+    def spy(study_, names, points, resampled, *args, **kwargs):  # every round's re-sampled coatings, for the truth
+        ROUND_STATES.append({n: c.points_object.copy() for n, c in zip(names, resampled)})
+        return real(study_, names, points, resampled, *args, **kwargs)
+
+    corr._finish_round = spy
     run(study, stages=("import", "template"), jobs=jobs, log=say)
     template_points = study.template.points_object.copy()
     run(study, stages=("coating",), jobs=jobs, log=say)
@@ -320,11 +347,15 @@ def eval_deformed(args):
                                       landmark_set=read_landmarks(lm) if lm else None))
         study, template_points, seconds = run_study(specs, names[0], args.method, args.iterations, args.jobs)
     p0 = study.frame(names[0]).to_world(template_points)
-    got = {n: study.frame(n).to_world(study.coatings[n].points_object) for n in names}
-    errors = {n: np.linalg.norm(got[n] - (p0 + u(p0)), axis=1) for n, u in zip(names, maps)}
+    truth = {n: p0 + u(p0) for n, u in zip(names, maps)}
+
+    def error_of(points: dict) -> dict:
+        return {n: np.linalg.norm(study.frame(n).to_world(points[n]) - truth[n], axis=1) for n in names}
+
+    errors = error_of({n: study.coatings[n].points_object for n in names})
     label = (f"deformed-{label_names[args.label]} n={args.n} {args.method} landmarks={len(given)} "
              f"on={min(args.on, args.n)} jitter={args.jitter}")
-    return report_run(label, errors, study, seconds, args)
+    return report_run(label, errors, study, seconds, args, error_of)
 
 
 SUITE = (("landmarks", 15, 1000, 0.0), ("model", 15, 1000, 0.0), ("landmarks", 6, 1000, 0.0), ("model", 6, 1000, 0.0),
@@ -373,12 +404,15 @@ def main(argv=None):
     ap.add_argument("--landmark-weight", type=float, default=None)
     ap.add_argument("--exact-landmarks", choices=("default", "true", "false"), default="default",
                     help="[correspondence] exact_landmarks (default: the method's default)")
+    ap.add_argument("--round-template", choices=("instance", "mean"), default=None,
+                    help="[correspondence] round_template (default: the method's default)")
     ap.add_argument("--suite", action="store_true", help="the issue's matrix of settings, one table")
     ap.add_argument("--json", default=None, help="append each run's figures to this JSON-lines file")
     args = ap.parse_args(argv)
     if args.population not in MESH_SETS and args.population != "deformed" and not args.population.startswith("folder:"):
         ap.error(f"unknown population {args.population!r}")
     LANDMARK_WEIGHT[0] = args.landmark_weight
+    ROUND_TEMPLATE[0] = args.round_template
     EXACT_LANDMARKS[0] = {"default": None, "true": True, "false": False}[args.exact_landmarks]
     if args.suite:
         suite(args)

@@ -549,6 +549,11 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
     own = executor is None
     executor = Executor("processes", max(1, min(int(jobs or 1), len(names), os.cpu_count() or 1))) if own else executor
     best = (dict(study.coatings), study.template)
+    start_template, template_points = study.template, np.asarray(study.template.points_object, float)
+    if params.round_template == "instance" and mean_template:
+        raise InputError("model-guided correspondence: round_template = \"instance\" needs the template instance's "
+                         "template, the study has the mean shape (refined with round_template = \"mean\")")
+    complete = {n: bool(locations.get("names")) and all(k in lm_object[n] for k in locations["names"]) for n in names}
     best_check, stop, converged, total = None, "limit", False, params.iterations
     try:
         for r in range(1, total + 2):
@@ -582,6 +587,25 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
                     break
             if r > total:
                 break
+            if params.round_template == "instance":
+                # the template itself, coated with the landmarks the fits give: instances whose
+                # every landmark is given and exact would be coated as they are, and keep theirs
+                redo = [n for n in names if not (params.exact_landmarks and complete[n])]
+                if not redo:
+                    say("correspondence: every instance has every landmark, exact: the rounds have nothing to "
+                        "refine (the single pass's coatings)")
+                    stop = "converged"
+                    break
+                found = dict(zip(redo, executor.map(
+                    _coat_mean_job, [(template_points, faces, study.volume(n), locations,
+                                      fitted[names.index(n)][0], study.coating_params, n) for n in redo],
+                    labels=redo, verb=f"round {r}: coated",
+                    progress=sub_progress(progress, span[1], r / (total + 1)), cancelled=cancelled)))
+                resampled = [found.get(n, study.coatings[n]) for n in names]
+                change = _finish_round(study, names, points, resampled, fitted, faces, size, r, t0, rounds, say,
+                                       mean, 0.0, check.study_mm, template=start_template)
+                converged = change < params.tolerance_mm
+                continue
             coated = executor.map(_coat_mean_job, [(mean, faces, study.volume(n), locations, w,
                                                     study.coating_params, n)
                                                    for n, (w, _d, _s, _t) in zip(names, fitted)],
@@ -623,7 +647,8 @@ def _check_diverged(new_mean: np.ndarray, mean: np.ndarray, size: float, r: int)
     return change
 
 
-def _finish_round(study, names, points, resampled, fitted, faces, size, r, t0, rounds, say, mean, slide, before):
+def _finish_round(study, names, points, resampled, fitted, faces, size, r, t0, rounds, say, mean, slide, before,
+                  template=None):
     """Check a round, record its figures, and make its re-sampled coatings and mean shape the
     study's; returns the RMS movement of the mean shape (mm)."""
     new_points = np.stack([c.points_object for c in resampled])
@@ -640,7 +665,7 @@ def _finish_round(study, names, points, resampled, fitted, faces, size, r, t0, r
     rounds.append(fig)
     for n, c in zip(names, resampled):
         study.coatings[n] = c
-    study.template = _mean_template(study, mean, faces)
+    study.template = _mean_template(study, mean, faces) if template is None else template
     say(f"correspondence round {r}: mean shape moved {change:.3f} mm; instances moved up to "
         f"{max(fig.instance_change_mm.values()):.2f} mm; given landmarks moved up to "
         f"{max(fig.landmark_shift_mm.values(), default=0.0):.2f} mm; the template's points slid {slide:.2f} mm "

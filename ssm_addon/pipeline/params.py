@@ -691,6 +691,7 @@ class FitParams:
 
 
 CORRESPONDENCE_METHODS = ("landmarks", "model")
+ROUND_TEMPLATES = ("instance", "mean")
 
 
 @dataclass(frozen=True)
@@ -713,6 +714,10 @@ class CorrespondenceParams:
     tolerance_mm: float = param(0.1, unit="mm", minimum=0.0, maximum=100.0, label="Stop below",
                                 help="stop the refinement when the mean shape moves less than this (RMS; a "
                                      "tenth of the default 1 mm voxel)")
+    round_template: str = param("instance", choices=ROUND_TEMPLATES, label="Round template",
+                                help="what each round coats: 'instance', the template (its instance's points) "
+                                     "with the landmarks the fit gives; 'mean', the mean shape (paper 3.3), "
+                                     "re-sampled at the template's points")
     landmark_weight: float = param(10.0, minimum=0.0, maximum=1e9, label="Landmark weight",
                                    help="weight of a given landmark in the model fit, against one surface "
                                         "point (0: landmarks ignored)")
