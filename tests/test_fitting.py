@@ -208,3 +208,47 @@ def test_landmarks_alone_are_a_target(tmp_path):
     res = fit_model(m, Target.from_landmarks(LandmarkSet(tuple(names), lm_pts, "lm")),
                     params=FitParams(noise_mm=0.05))
     assert max(res.landmark_residuals_mm.values()) < 0.2
+
+
+def test_fit_out_follows_the_build_output_rules(model, tmp_path, capsys):
+    """``fit --out`` owns its folder as ``build`` does: an input is never overwritten, a
+    folder with files no SSM command wrote is refused (``--force`` writes beside them and
+    keeps them), a rerun replaces exactly its own files, and a failed fit leaves the folder
+    as it was."""
+    npz = tmp_path / "model.npz"
+    save_npz(model, npz)
+    pts, _ = _posed(model, [0.5, -0.5], seed=9, rotate=False)
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    target = scans / "fitted.csv"
+    np.savetxt(target, pts, delimiter=",")
+    before = target.read_bytes()
+    # 1. the input's own folder: refused, the input untouched
+    assert main(["fit", str(npz), "--points", str(target), "--out", str(scans)]) == 2
+    assert "holds an input" in capsys.readouterr().err and target.read_bytes() == before
+    assert sorted(p.name for p in scans.iterdir()) == ["fitted.csv"]
+    # 2. a folder with the user's own fit.json: refused; with --force written beside, theirs kept
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "fit.json").write_text("my notes")
+    (mine / "other.txt").write_text("keep me")
+    assert main(["fit", str(npz), "--points", str(target), "--out", str(mine)]) == 2
+    assert "did not write" in capsys.readouterr().err and (mine / "fit.json").read_text() == "my notes"
+    assert main(["fit", str(npz), "--points", str(target), "--out", str(mine), "--force"]) == 2
+    assert "would replace" in capsys.readouterr().err and (mine / "fit.json").read_text() == "my notes"
+    (mine / "fit.json").unlink()
+    assert main(["fit", str(npz), "--points", str(target), "--out", str(mine), "--force"]) == 0
+    assert (mine / "other.txt").read_text() == "keep me" and json.loads((mine / "fit.json").read_text())
+    # 3. a rerun into its own folder replaces its files; a failing one changes nothing
+    out = tmp_path / "out"
+    assert main(["fit", str(npz), "--points", str(target), "--out", str(out)]) == 0
+    listing = sorted(p.name for p in out.iterdir())
+    assert {"fit.json", "fit.npz", "fit.png", "fitted.ply", ".ssm-build.json"} <= set(listing)
+    assert main(["fit", str(npz), "--points", str(target), "--out", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == listing
+    stamp = (out / "fit.json").read_bytes()
+    bad = tmp_path / "bad.csv"
+    bad.write_text("x,y\n1,2\n")
+    assert main(["fit", str(npz), "--points", str(bad), "--out", str(out)]) == 2
+    assert (out / "fit.json").read_bytes() == stamp and sorted(p.name for p in out.iterdir()) == listing
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out.fitting-")]

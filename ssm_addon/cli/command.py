@@ -129,7 +129,11 @@ def _parser() -> argparse.ArgumentParser:
                    help="where a batch runs: processes (default), dask-local, serial, or a Dask scheduler address")
     p.add_argument("--outlier-probability", type=float, default=0.99,
                    help="chi-square quantile of the Mahalanobis distance above which a target is an outlier")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", required=True,
+                   help="output folder (written whole at the end; never one holding an input or files no SSM "
+                        "command wrote)")
+    p.add_argument("--force", action="store_true",
+                   help="write into a folder holding other files (they are kept, never replaced)")
     P.add_arguments(p.add_argument_group("fit parameters"), P.FitParams)
 
     p = sub.add_parser("demo", help="generate the synthetic demo population and build its model")
@@ -254,13 +258,18 @@ def cmd_fit(args) -> int:
     params = P.from_arguments(args, P.FitParams)
     if not 0.5 < args.outlier_probability < 1.0:
         raise InputError(f"--outlier-probability must be between 0.5 and 1, got {args.outlier_probability}")
-    out = Path(args.out)
+    from .project_build import owned_output_folder
+
+    out = Path(args.out).expanduser().resolve()
+    inputs = [args.model, args.volume, args.mesh, args.points, args.landmarks, args.project]
     if args.project or args.glob:
         targets = apply.targets_from_project(args.project) if args.project else \
             apply.targets_from_glob(args.glob, args.label)
-        docs = apply.fit_batch(args.model, targets, out, params=params, partial=args.partial, free=args.free,
-                               outlier_probability=args.outlier_probability, jobs=args.jobs,
-                               progress=_print_progress(), scheduler=args.scheduler)
+        inputs += [p for t in targets for p in (t.volume, t.mesh, t.points, t.landmarks)]
+        with owned_output_folder(out, inputs, force=args.force, what="fitting") as tmp:
+            docs = apply.fit_batch(args.model, targets, tmp, params=params, partial=args.partial, free=args.free,
+                                   outlier_probability=args.outlier_probability, jobs=args.jobs,
+                                   progress=_print_progress(), scheduler=args.scheduler)
         for d in docs:
             flag = "  OUTLIER" if d["outlier"] else ""
             print(f"{d['name']}: Mahalanobis {d['mahalanobis']:.2f} (p = {d['p_value']:.3g}), mean distance "
@@ -272,9 +281,10 @@ def cmd_fit(args) -> int:
     t = apply.FitTarget(name=name, volume=Path(args.volume) if args.volume else None, label=args.label,
                         mesh=Path(args.mesh) if args.mesh else None, points=Path(args.points) if args.points else None,
                         landmarks=Path(args.landmarks) if args.landmarks else None)
-    doc = apply.fit_to_folder(model, t, out, params=params, partial=args.partial, free=args.free,
-                              outlier_probability=args.outlier_probability, model_path=str(args.model),
-                              progress=_print_progress())
+    with owned_output_folder(out, inputs, force=args.force, what="fitting") as tmp:
+        doc = apply.fit_to_folder(model, t, tmp, params=params, partial=args.partial, free=args.free,
+                                  outlier_probability=args.outlier_probability, model_path=str(args.model),
+                                  progress=_print_progress())
     print(f"Mahalanobis distance {doc['mahalanobis']:.2f} on {doc['n_modes']} modes (p = {doc['p_value']:.3g})"
           f"{': an OUTLIER' if doc['outlier'] else ''}; mean distance {doc['mean_distance_mm']:.2f} mm, largest "
           f"{doc['max_distance_mm']:.2f} mm")

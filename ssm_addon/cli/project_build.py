@@ -8,6 +8,7 @@ only when the whole build succeeded.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -177,6 +178,39 @@ def _final_move(tmp: Path, out_dir: Path) -> None:
     shutil.rmtree(tmp, ignore_errors=True)
 
 
+def check_writable(out_dir: Path) -> None:
+    """``out_dir``'s parent exists (made if need be) and the folder can be written, or a clear error."""
+    try:
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise InputError(f"{out_dir}: cannot create the output folder's parent ({err.strerror})") from None
+    if not os.access(out_dir.parent, os.W_OK) or (out_dir.exists() and not os.access(out_dir, os.W_OK)):
+        raise InputError(f"{out_dir}: not writable (check the folder's permissions)")
+
+
+@contextlib.contextmanager
+def owned_output_folder(out_dir: Path, inputs, *, force: bool = False, what: str = "building"):
+    """The output rules of every command that writes a folder, as one context manager.
+
+    Refuses ``out_dir`` before any work (:func:`check_output_folder`: it holds an input, or
+    files no SSM command wrote, unless ``force``); yields a temporary folder beside it to
+    write into; on success puts exactly those files in place (files it did not write are
+    kept, never replaced) with a manifest; on any error or cancel removes the temporary
+    folder and leaves ``out_dir`` as it was.
+    """
+    out_dir = Path(out_dir).expanduser().resolve()
+    check_output_folder(out_dir, [p for p in inputs if p], force=force)
+    check_writable(out_dir)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.{what}-", dir=out_dir.parent))
+    os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes it private; the output folder follows the umask
+    try:
+        yield tmp
+        _final_move(tmp, out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
@@ -331,12 +365,7 @@ def build(
     out_dir = Path(out_dir).expanduser().resolve()
     inputs = [project.path] + [p for i in project.instances for p in (i.volume, i.mesh, i.landmarks) if p is not None]
     check_output_folder(out_dir, inputs, force=force)
-    try:
-        out_dir.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise InputError(f"{out_dir}: cannot create the output folder's parent ({err.strerror})") from None
-    if not os.access(out_dir.parent, os.W_OK) or (out_dir.exists() and not os.access(out_dir, os.W_OK)):
-        raise InputError(f"{out_dir}: not writable (check the folder's permissions)")
+    check_writable(out_dir)
     t_total = time.perf_counter()
     if len(project.instances) < 3:
         raise InputError(f"{project.path}: {len(project.instances)} instances; a model with its metrics (leave-one-out "
@@ -346,9 +375,7 @@ def build(
     if project.correspondence.method == "model" and build_cache is not None:
         say("cache: not used by [correspondence] method = \"model\" (its rounds depend on every instance)")
         build_cache = None
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.building-", dir=out_dir.parent))
-    os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes it private; the output folder follows the umask
-    try:
+    with owned_output_folder(out_dir, inputs, force=force) as tmp:
         with Executor(scheduler or project.compute.scheduler, jobs) as executor:  # closed before the files
             run(study, jobs=jobs, progress=sub_progress(progress, 0.0, 0.95), cancelled=cancelled, log=say,
                 executor=executor, cache=build_cache)
@@ -385,10 +412,6 @@ def build(
         files["html"] = "report.html"
         study.timings_s["report_html"] = time.perf_counter() - t_html
         check_cancelled(cancelled)
-        _final_move(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     final = {k: ([str(out_dir / x) for x in v] if isinstance(v, list) else str(out_dir / v)) for k, v in files.items()}
     report(progress, 1.0, f"done: {out_dir}")
     return dataclasses.replace(result, files=final, report=doc)

@@ -9,16 +9,18 @@ does both (``[correspondence] method = "model"``):
    start from the model of the landmarked ones fitted to their surface
    (:func:`start_from_model`), or from the object frames alone when only the template
    instance has landmarks (paper 2 aligns them roughly).
-2. **Rounds**, each: the **mean shape becomes the template** (same triangles); every
-   instance is **fitted by the model built without it** (leave-one-out, so an instance
-   never fits itself) — pose and coefficients under the model's prior, against its
-   surface (:func:`round_landmarks`). The fit read off at the template's landmark points
-   supplies the landmarks an instance lacks; the given ones are kept where given
-   (``exact_landmarks = true``, the default) or replaced by the fit's posterior with the
-   given ones as soft constraints of weight ``landmark_weight`` (``false``: rough or
-   extremal-point landmarks, VerSe's). The mean shape is then coated onto the instance
-   by the paper's pipeline (:func:`coat_mean_shape`: landmark warp eq. 2, registration,
-   projection, relaxation eq. 3).
+2. **Rounds**, each: every instance is **fitted by the model built without it**
+   (leave-one-out, so an instance never fits itself) — pose and coefficients under the
+   model's prior, against its surface (:func:`round_landmarks`). The fit read off at the
+   template's landmark points supplies the landmarks an instance lacks; the given ones
+   are kept where given (``exact_landmarks = true``, the default) or replaced by the
+   fit's posterior with the given ones as soft constraints of weight ``landmark_weight``
+   (``false``: rough or extremal-point landmarks, VerSe's). The template is then coated
+   onto the instance with them by the paper's pipeline (:func:`coat_mean_shape`:
+   landmark warp eq. 2, registration, projection, relaxation eq. 3): with
+   ``round_template = "instance"`` (the default) the template itself, and instances
+   whose every landmark is given and exact keep their coating; with ``"mean"`` the
+   **mean shape** (paper 3.3), re-sampled at the template's points.
    A round is **kept only when it helps**, judged without truth by the landmark transfer
    error (:class:`CorrespondenceCheck`): each instance's given landmarks predicted by the
    model of the *other* instances fitted to its surface alone; the next round's fits
@@ -26,7 +28,7 @@ does both (``[correspondence] method = "model"``):
    stop and the coatings before it are kept (when that is the start, the model method's
    result is the single pass). Otherwise the rounds stop when the mean shape moves less
    than ``tolerance_mm`` (RMS) or after ``iterations`` (a finding: they did not settle).
-3. **Re-sampling** (:func:`resample_instance`), every round: the mean shape's points are
+3. **Re-sampling** (:func:`resample_instance`), every ``"mean"`` round: the mean shape's points are
    not the template's; each round's coatings are read off at the template's points
    (located on the template instance's coating of that round), so the template's
    curvature-guided sampling and point numbering stay, and every round is judged at the
@@ -35,8 +37,12 @@ does both (``[correspondence] method = "model"``):
 The fit supplies the landmarks of the warp, not the start of the coating. The figures
 behind these choices are in ``docs/measurements.md``.
 
-The per-instance steps are pure functions of arrays, so rounds run in processes. Frames: each instance's object frame (paper 2), which the model frame
-(paper 5, alignment none) shares; the fits start at the identity pose.
+The per-instance steps are pure functions of arrays, so rounds run in processes.
+Frames: each instance's object frame (paper 2, mm). Object frames can disagree by a turn
+of the principal axes (a near-symmetric bone's moments frame), so coatings are put onto
+one another by their correspondence before a model is built of them
+(:func:`aligned_to`), and a surface without a coating is fitted from the axis turns
+(``AXIS_TURNS``), the pose of the input coordinates preferred.
 """
 
 from __future__ import annotations

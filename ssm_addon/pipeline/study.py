@@ -871,7 +871,7 @@ def coating_result(study: Study, coated: dict[str, CoatingResult], starts: dict[
     lines = [f"coating: {len(coated)} instances in {seconds:.2f} s ({counts}largest surface distance {worst:.2f} mm)"]
     if check is not None and check.instance_mm:
         worst_n = max(check.instance_mm, key=check.instance_mm.get)
-        lines.append(f"correspondence self-check: landmark transfer error {check.study_mm:.2f} mm (mean over "
+        lines.append(f"coating: correspondence self-check, landmark transfer error {check.study_mm:.2f} mm (mean over "
                      f"{len(check.instance_mm)} landmarked instances; largest {worst_n} "
                      f"{check.instance_mm[worst_n]:.2f} mm)")
     return StageResult("coating", product, findings, {"coating": seconds}, tuple(lines))
