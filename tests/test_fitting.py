@@ -252,3 +252,48 @@ def test_fit_out_follows_the_build_output_rules(model, tmp_path, capsys):
     assert main(["fit", str(npz), "--points", str(bad), "--out", str(out)]) == 2
     assert (out / "fit.json").read_bytes() == stamp and sorted(p.name for p in out.iterdir()) == listing
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out.fitting-")]
+
+
+@pytest.fixture(scope="module")
+def demo_build(tmp_path_factory):
+    """A small demo build (6 instances) and its label maps."""
+    from ssm_addon.cli.demo import make_demo_population
+    from ssm_addon.cli.project_build import build
+    from ssm_addon.formats.project_file import read_project
+
+    folder = tmp_path_factory.mktemp("posefit")
+    proj = make_demo_population(folder / "pop", n=6, seed=3)
+    build(read_project(proj), folder / "out", log=None, blend=False)
+    return folder, read_project(proj)
+
+
+@pytest.mark.slow
+def test_a_training_instance_fits_alike_as_mesh_label_map_and_in_any_pose(demo_build):
+    """The pose search does not depend on how the model was built: a training instance as
+    a closed mesh fits as its label map does (the object frame 'auto' of a mesh is no
+    longer the start), and so it does after any rigid motion (5 random ones here)."""
+    from scipy.spatial.transform import Rotation
+
+    from ssm_addon.fitting.batch import FitTarget, fit_to_folder, load_model
+    from ssm_addon.formats.label_maps import load_volume
+    from ssm_addon.instances.volume import display_surface
+    from ssm_addon.meshutil import write_ply
+
+    folder, project = demo_build
+    model = load_model(folder / "out" / "model.npz")
+    inst = project.instances[2]
+    ref = fit_to_folder(model, FitTarget(name="label", volume=inst.volume, label=inst.label), folder / "f_label")
+    v, f = display_surface(load_volume(inst.volume, inst.label))
+    write_ply(folder / "mesh.ply", v, f)
+    mesh = fit_to_folder(model, FitTarget(name="mesh", mesh=folder / "mesh.ply"), folder / "f_mesh")
+    assert abs(mesh["mean_distance_mm"] - ref["mean_distance_mm"]) < 0.1 and not mesh["outlier"], mesh
+    assert ref["mean_distance_mm"] < 0.5
+    search = mesh["pose_search"]
+    assert search["chosen"] in [s["name"] for s in search["starts"]] and len(search["starts"]) >= 9
+    rng = np.random.default_rng(1)
+    for k in range(5):
+        rot = Rotation.random(random_state=10 + k).as_matrix()
+        write_ply(folder / f"r{k}.ply", (v - v.mean(axis=0)) @ rot.T + rng.normal(scale=200.0, size=3), f)
+        moved = fit_to_folder(model, FitTarget(name=f"r{k}", mesh=folder / f"r{k}.ply"), folder / f"f_r{k}")
+        assert abs(moved["mean_distance_mm"] - ref["mean_distance_mm"]) < 0.1, (k, moved["pose_search"])
+        assert abs(moved["mahalanobis"] - ref["mahalanobis"]) < 0.2 and not moved["outlier"]

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..fitting.fit import FitResult, Pose, Target, fit_model
+from ..fitting.fit import FitResult, Pose, Target, fit_any_pose
 from ..formats.landmarks import read_landmarks
 from ..meshutil import write_ply
 from ..pipeline.errors import InputError
@@ -188,8 +188,8 @@ def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = No
     target, start = load_target(t, model)
     if partial and t.landmarks is not None:
         start = None  # from the landmarks
-    result = fit_model(model, target, params=params, pose=start, partial=partial, progress=progress,
-                       cancelled=cancelled)
+    result, search = fit_any_pose(model, target, params=params, frame_pose=start, partial=partial,
+                                  progress=progress, cancelled=cancelled)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     faces = np.asarray(model.faces)
@@ -204,7 +204,8 @@ def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = No
                             ("landmarks", t.landmarks))},
                 "outlier": bool(result.mahalanobis ** 2 > limit),
                 "outlier_limit": {"probability": outlier_probability, "mahalanobis": math.sqrt(limit)},
-                "files": {"fitted": "fitted.ply", "npz": "fit.npz", "picture": "fit.png"}})
+                "files": {"fitted": "fitted.ply", "npz": "fit.npz", "picture": "fit.png"},
+                "pose_search": search})
     if free and target.locator is not None:
         from ..coating.coating import coat_from_start
         from ..instances.volume import ObjectFrame

@@ -37,7 +37,7 @@ from ..pipeline.errors import InputError, check_cancelled
 from ..pipeline.params import FitParams
 from ..pipeline.progress import CancelledFn, ProgressFn, report
 
-__all__ = ["FitResult", "Pose", "Target", "fit_best", "fit_model", "model_landmarks"]
+__all__ = ["FitResult", "Pose", "Target", "fit_any_pose", "fit_best", "fit_model", "model_landmarks", "start_poses"]
 
 
 @dataclass(frozen=True)
@@ -369,6 +369,116 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
                      p_value=float(chdtrc(k, d2)) if k else 1.0, mean_distance_mm=mean_d, max_distance_mm=max_d,
                      landmark_residuals_mm=residuals, iterations=it, converged=converged, n_modes=k,
                      b_covariance=cov_b)
+
+
+def _principal_axes(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centroid and principal axes (columns, by descending variance) of (M, 3) points."""
+    c = points.mean(axis=0)
+    w, v = np.linalg.eigh(np.cov((points - c).T))
+    return c, v[:, np.argsort(w)[::-1]]
+
+
+def _axis_rotation(axis: np.ndarray, degrees: float) -> np.ndarray:
+    a = axis / np.linalg.norm(axis)
+    k = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+    t = np.radians(degrees)
+    return np.eye(3) + np.sin(t) * k + (1 - np.cos(t)) * (k @ k)
+
+
+def start_poses(model, target: Target, *, frame_pose: Pose | None = None, turns: int = 4) -> list[tuple[str, Pose]]:
+    """Candidate start poses (model frame -> target frame, mm) for a target in any coordinates.
+
+    The model's mean shape put onto the target's points centroid on centroid, its principal
+    axes on theirs in each of the 4 proper sign combinations (``axes+++`` …), each also
+    turned about the target's longest axis by multiples of ``360 / turns`` degrees; first
+    the pose the target's object frame gives (``frame``), when known.
+    """
+    out = [("frame", frame_pose)] if frame_pose is not None else []
+    if len(target.samples) < 4:
+        return out
+    cm, am = _principal_axes(np.asarray(model.mean, float))
+    ct, at = _principal_axes(np.asarray(target.samples, float))
+    seen = [p.rotation for _n, p in out]
+    for signs in ((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1)):
+        d = np.diag(np.asarray(signs, float))
+        r0 = at @ d @ am.T
+        if np.linalg.det(r0) < 0:  # the eigenvector bases differ in handedness
+            r0 = at @ (d @ np.diag([1.0, 1.0, -1.0])) @ am.T
+        for j in range(turns):
+            r = _axis_rotation(at[:, 0], 360.0 * j / turns) @ r0
+            if any(np.abs(r - q).max() < 1e-6 for q in seen):
+                continue
+            seen.append(r)
+            name = "axes" + "".join("+" if x > 0 else "-" for x in signs) + (f" turned {360 * j // turns}°" if j else "")
+            out.append((name, Pose(r, ct - r @ cm)))
+    return out
+
+
+def _rigid_screen(mean: np.ndarray, target: Target, pose: Pose, *, partial: bool, iterations: int = 15,
+                  samples: int = 2000) -> tuple[Pose, float]:
+    """A few rigid ICP steps of the mean shape from ``pose``; the pose and its mean distance (mm)."""
+    tgt = np.asarray(target.samples, float)
+    tgt = tgt[:: max(1, len(tgt) // samples)]
+    src = mean[:: max(1, len(mean) // samples)]
+    for _ in range(iterations):
+        x = pose.apply(src)
+        if partial:  # each target point to its nearest model point
+            _, j = cKDTree(x).query(tgt)
+            a, b = src[j], tgt
+        else:  # both ways: model points to the target, target points to the model
+            c, _ = target.closest(x)
+            _, j = cKDTree(x).query(tgt)
+            a, b = np.vstack([src, src[j]]), np.vstack([c, tgt])
+        pose = _procrustes(a, b, np.ones(len(a)), False)
+    x = pose.apply(src)
+    d = cKDTree(x).query(tgt)[0] if partial else target.closest(x)[1]
+    return pose, float(np.mean(d))
+
+
+def fit_any_pose(model, target: Target, *, params: FitParams | None = None, frame_pose: Pose | None = None,
+                 partial: bool = False, keep: int = 3, progress: ProgressFn = None,
+                 cancelled: CancelledFn = None) -> tuple[FitResult, dict]:
+    """:func:`fit_model` for a target in any pose: the pose search, then the fit.
+
+    Every start of :func:`start_poses` (and the landmarks' pose, when at least 3 of the
+    model's landmarks are given) is refined by rigid ICP of the mean shape; the ``keep``
+    closest are fitted (pose and shape) and the fit closest to the target wins.
+
+    Returns
+    -------
+    (FitResult, dict with ``starts``: name, screened distance (mm), fitted distance (mm)
+    where fitted; and ``chosen``: the winning start's name)
+    """
+    params = FitParams() if params is None else params
+    mean = np.asarray(model.mean, float)
+    starts = start_poses(model, target, frame_pose=frame_pose)
+    names, *_ = model_landmarks(model)
+    if target.landmarks is not None and len([n for n in target.landmarks.names if n in names]) >= 3:
+        starts.insert(0, ("landmarks", None))
+    if not target.has_surface or not starts:
+        result = fit_model(model, target, params=params, pose=frame_pose, partial=partial, progress=progress,
+                           cancelled=cancelled)
+        return result, {"starts": [], "chosen": "landmarks" if frame_pose is None else "frame"}
+    screened = []
+    for name, pose in starts:
+        check_cancelled(cancelled)
+        if pose is None:  # the landmarks' pose: fit_model finds it
+            screened.append((name, None, float("-inf")))
+            continue
+        refined, dist = _rigid_screen(mean, target, pose, partial=partial)
+        screened.append((name, refined, dist))
+    order = sorted(range(len(screened)), key=lambda i: (screened[i][2], i))[:keep]
+    best, chosen, fitted = None, "", {}
+    for n, i in enumerate(order):
+        name, pose, _d = screened[i]
+        res = fit_model(model, target, params=params, pose=pose, partial=partial, cancelled=cancelled)
+        report(progress, (n + 1) / len(order), f"start {name}: {res.mean_distance_mm:.3f} mm")
+        fitted[name] = float(res.mean_distance_mm)
+        if best is None or res.mean_distance_mm < best.mean_distance_mm:
+            best, chosen = res, name
+    doc = {"starts": [{"name": n, "screened_mm": (None if not np.isfinite(d) else d), "fitted_mm": fitted.get(n)}
+                      for n, _p, d in screened], "chosen": chosen}
+    return best, doc
 
 
 def fit_best(model, target: Target, poses, *, params: FitParams | None = None, partial: bool = False,
