@@ -17,8 +17,7 @@ import bpy
 import numpy as np
 from bpy.props import BoolProperty
 
-from ssm_addon.fitting.batch import pose_of_points
-from ssm_addon.fitting.fit import Pose, Target, fit_best
+from ssm_addon.fitting.fit import Pose, Target, fit_any_pose, outlier_limit
 from ssm_addon.pipeline.errors import InputError
 from ssm_addon.pipeline.params import FitParams
 
@@ -84,18 +83,17 @@ class SSM_OT_fit_model(BackgroundJob, bpy.types.Operator):
             tgt = Target.from_points(verts[sel], source=target.name)
         else:
             tgt = Target.from_mesh(verts, bridge.mesh_triangles(target.data), source=target.name)
-        if is_instance(target):  # the training's start: the instance's object frame
+        frame = None
+        if is_instance(target):  # the training's start among the others: the instance's object frame
             m = object_to_blender_matrix(target)
-            starts = [Pose(m[:3, :3], m[:3, 3])]
-        else:  # a mesh anywhere: the model's axes at its centroid, or its principal axes
-            centre = verts.mean(axis=0) - model.mean.mean(axis=0)
-            starts = [Pose(np.eye(3), centre), pose_of_points(verts)]
+            frame = Pose(m[:3, :3], m[:3, 3])
         params = scene_params(context, "ssm_fit")
         self._names = (model_obj.name, target.name)
 
-        def work(progress, cancelled):
-            return fit_best(model, tgt, starts, params=params, partial=partial, progress=progress,
-                            cancelled=cancelled), model.faces
+        def work(progress, cancelled):  # the pose search of ``ssm fit``, then the fit
+            result, _search = fit_any_pose(model, tgt, params=params, frame_pose=frame, partial=partial,
+                                           progress=progress, cancelled=cancelled)
+            return result, model.faces
 
         return work
 
@@ -119,9 +117,12 @@ class SSM_OT_fit_model(BackgroundJob, bpy.types.Operator):
             obj.data.materials[0] = mat
         obj.ssm.role = "SAMPLE"
         obj["ssm_fit_json"] = json.dumps(result.to_dict())
-        self.report({"INFO"}, f"{target.name}: Mahalanobis {result.mahalanobis:.2f} on {result.n_modes} modes "
-                              f"(p = {result.p_value:.2g}), mean distance {result.mean_distance_mm:.2f} mm; posterior "
-                              f"SD up to {result.posterior_sd_mm.max():.2f} mm")
+        outlier = result.mahalanobis > outlier_limit(result.n_modes)
+        self.report({"WARNING" if outlier else "INFO"},
+                    f"{target.name}: Mahalanobis distance {result.mahalanobis:.2f} on {result.n_modes} modes "
+                    f"(p = {result.p_value:.3g}){': an OUTLIER' if outlier else ''}; mean distance "
+                    f"{result.mean_distance_mm:.2f} mm; posterior SD up to {result.posterior_sd_mm.max():.2f} mm"
+                    + ("" if result.converged else "; the fit did NOT converge (iteration limit)"))
         return {"FINISHED"}
 
 

@@ -285,9 +285,12 @@ def cmd_fit(args) -> int:
         doc = apply.fit_to_folder(model, t, tmp, params=params, partial=args.partial, free=args.free,
                                   outlier_probability=args.outlier_probability, model_path=str(args.model),
                                   progress=_print_progress())
-    print(f"Mahalanobis distance {doc['mahalanobis']:.2f} on {doc['n_modes']} modes (p = {doc['p_value']:.3g})"
+    print(f"{name}: Mahalanobis distance {doc['mahalanobis']:.2f} on {doc['n_modes']} modes (p = {doc['p_value']:.3g})"
           f"{': an OUTLIER' if doc['outlier'] else ''}; mean distance {doc['mean_distance_mm']:.2f} mm, largest "
-          f"{doc['max_distance_mm']:.2f} mm")
+          f"{doc['max_distance_mm']:.2f} mm (pose from the start {doc['pose_search']['chosen']!r})")
+    if not doc.get("converged", True):
+        print(f"WARNING {name}: the fit did NOT converge (stopped at {doc.get('iterations')} iterations); raise "
+              "--iterations or check the target", file=sys.stderr)
     print(f"written: {out / 'fitted.ply'}, {out / 'fit.json'}, {out / 'fit.npz'}, {out / 'fit.png'}")
     return 0
 

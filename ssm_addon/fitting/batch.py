@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..fitting.fit import FitResult, Pose, Target, fit_any_pose
+from ..fitting.fit import FitResult, Pose, Target, fit_any_pose, outlier_limit
 from ..formats.landmarks import read_landmarks
 from ..meshutil import write_ply
 from ..pipeline.errors import InputError
@@ -180,7 +180,6 @@ def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = No
                   free: bool = False, outlier_probability: float = 0.99, model_path: str = "",
                   progress: ProgressFn = None, cancelled: CancelledFn = None) -> dict:
     """Fit ``model`` to one target and write its files into ``out_dir``; returns ``fit.json``'s content."""
-    from scipy.special import chdtri
 
     from ..model.files import write_npz
 
@@ -197,7 +196,7 @@ def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = No
     write_npz(out_dir / "fit.npz", {"posterior_mean": result.points, "posterior_sd_mm": result.posterior_sd_mm,
                                     "coefficients": result.coefficients})
     doc = result.to_dict()
-    limit = float(chdtri(result.n_modes, 1.0 - outlier_probability)) if result.n_modes else math.inf
+    limit = outlier_limit(result.n_modes, outlier_probability) ** 2
     doc.update({"name": t.name, "model": model_path, "partial": bool(partial),
                 "target": {k: (str(v) if v is not None else None) for k, v in
                            (("volume", t.volume), ("label", t.label), ("mesh", t.mesh), ("points", t.points),

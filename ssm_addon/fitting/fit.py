@@ -37,7 +37,8 @@ from ..pipeline.errors import InputError, check_cancelled
 from ..pipeline.params import FitParams
 from ..pipeline.progress import CancelledFn, ProgressFn, report
 
-__all__ = ["FitResult", "Pose", "Target", "fit_any_pose", "fit_best", "fit_model", "model_landmarks", "start_poses"]
+__all__ = ["FitResult", "Pose", "Target", "fit_any_pose", "fit_best", "fit_model", "model_landmarks", "outlier_limit",
+           "start_poses"]
 
 
 @dataclass(frozen=True)
@@ -371,6 +372,14 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
                      b_covariance=cov_b)
 
 
+def outlier_limit(n_modes: int, probability: float = 0.99) -> float:
+    """The Mahalanobis distance above which a fit on ``n_modes`` modes is an outlier: the
+    square root of the chi-square quantile ``probability`` (``inf`` without modes)."""
+    from scipy.special import chdtri
+
+    return math.sqrt(float(chdtri(n_modes, 1.0 - probability))) if n_modes else math.inf
+
+
 def _principal_axes(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Centroid and principal axes (columns, by descending variance) of (M, 3) points."""
     c = points.mean(axis=0)
@@ -388,16 +397,18 @@ def _axis_rotation(axis: np.ndarray, degrees: float) -> np.ndarray:
 def start_poses(model, target: Target, *, frame_pose: Pose | None = None, turns: int = 4) -> list[tuple[str, Pose]]:
     """Candidate start poses (model frame -> target frame, mm) for a target in any coordinates.
 
-    The model's mean shape put onto the target's points centroid on centroid, its principal
-    axes on theirs in each of the 4 proper sign combinations (``axes+++`` …), each also
-    turned about the target's longest axis by multiples of ``360 / turns`` degrees; first
-    the pose the target's object frame gives (``frame``), when known.
+    First the pose the target's object frame gives (``frame``), when known, and the model's
+    axes moved onto the target's centroid (``model axes``: a target in the model's
+    coordinates); then the mean shape's principal axes put on the target's in each of the
+    4 proper sign combinations (``axes+++`` …), each also turned about the target's longest
+    axis by multiples of ``360 / turns`` degrees.
     """
     out = [("frame", frame_pose)] if frame_pose is not None else []
     if len(target.samples) < 4:
         return out
     cm, am = _principal_axes(np.asarray(model.mean, float))
     ct, at = _principal_axes(np.asarray(target.samples, float))
+    out.append(("model axes", Pose(np.eye(3), ct - cm)))  # the target in the model's axes, moved
     seen = [p.rotation for _n, p in out]
     for signs in ((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1)):
         d = np.diag(np.asarray(signs, float))
@@ -435,6 +446,9 @@ def _rigid_screen(mean: np.ndarray, target: Target, pose: Pose, *, partial: bool
     return pose, float(np.mean(d))
 
 
+PRIORITY_TOLERANCE = 1.1
+
+
 def fit_any_pose(model, target: Target, *, params: FitParams | None = None, frame_pose: Pose | None = None,
                  partial: bool = False, keep: int = 3, progress: ProgressFn = None,
                  cancelled: CancelledFn = None) -> tuple[FitResult, dict]:
@@ -459,6 +473,10 @@ def fit_any_pose(model, target: Target, *, params: FitParams | None = None, fram
         result = fit_model(model, target, params=params, pose=frame_pose, partial=partial, progress=progress,
                            cancelled=cancelled)
         return result, {"starts": [], "chosen": "landmarks" if frame_pose is None else "frame"}
+    # the starts the target's own coordinates give are fitted whatever the screening says,
+    # and kept unless a searched pose fits PRIORITY_TOLERANCE times closer (a partial or
+    # near-symmetric target fits several poses almost equally well)
+    priority = {n for n, _p in starts if n in ("landmarks", "frame", "model axes")}
     screened = []
     for name, pose in starts:
         check_cancelled(cancelled)
@@ -467,15 +485,22 @@ def fit_any_pose(model, target: Target, *, params: FitParams | None = None, fram
             continue
         refined, dist = _rigid_screen(mean, target, pose, partial=partial)
         screened.append((name, refined, dist))
-    order = sorted(range(len(screened)), key=lambda i: (screened[i][2], i))[:keep]
-    best, chosen, fitted = None, "", {}
+    first = [i for i, (n, _p, _d) in enumerate(screened) if n in priority]
+    rest = sorted((i for i in range(len(screened)) if i not in first), key=lambda i: (screened[i][2], i))[:keep]
+    order = first + rest
+    results = {}
     for n, i in enumerate(order):
         name, pose, _d = screened[i]
-        res = fit_model(model, target, params=params, pose=pose, partial=partial, cancelled=cancelled)
-        report(progress, (n + 1) / len(order), f"start {name}: {res.mean_distance_mm:.3f} mm")
-        fitted[name] = float(res.mean_distance_mm)
-        if best is None or res.mean_distance_mm < best.mean_distance_mm:
-            best, chosen = res, name
+        results[name] = fit_model(model, target, params=params, pose=pose, partial=partial, cancelled=cancelled)
+        report(progress, (n + 1) / len(order), f"start {name}: {results[name].mean_distance_mm:.3f} mm")
+    fitted = {n: float(r.mean_distance_mm) for n, r in results.items()}
+    chosen = min(fitted, key=lambda n: (fitted[n], list(fitted).index(n)))
+    own = [n for n in fitted if n in priority]
+    if own:
+        mine = min(own, key=lambda n: (fitted[n], own.index(n)))
+        if fitted[mine] <= PRIORITY_TOLERANCE * fitted[chosen] + 1e-9:
+            chosen = mine
+    best = results[chosen]
     doc = {"starts": [{"name": n, "screened_mm": (None if not np.isfinite(d) else d), "fitted_mm": fitted.get(n)}
                       for n, _p, d in screened], "chosen": chosen}
     return best, doc
