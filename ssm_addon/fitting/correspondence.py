@@ -57,7 +57,7 @@ import numpy as np
 from ..coating.coating import CoatingResult, coat, settle_on_surface
 from ..coating.distance_map import DistanceMap
 from ..coating.relaxation import folded_triangles
-from ..fitting.fit import Pose, Target, fit_best, fit_model
+from ..fitting.fit import Pose, Target, fit_model, rigid_screen
 from ..formats.landmarks import LandmarkSet
 from ..meshutil import Mesh, MeshLocation, MeshLocator, edge_lengths, vertex_normals
 from ..meshutil import edges as mesh_edges
@@ -233,7 +233,9 @@ def landmark_transfer(others: np.ndarray, faces: np.ndarray, surface_points: np.
         centre = model.mean.mean(axis=0)
         poses = [Pose(rotation=r, translation=np.asarray(surface_points, float).mean(axis=0) - r @ centre)
                  for r in AXIS_TURNS]
-        result = fit_best(model, target, poses, params=fit)
+        # the turns screened by rigid ICP of the mean shape; the closest one fitted
+        screened = [rigid_screen(model.mean, target, p, partial=False) for p in poses]
+        result = fit_model(model, target, params=fit, pose=min(screened, key=lambda x: x[1])[0])
         if world_pose is not None:
             own = fit_model(model, target, params=fit, pose=world_pose)
             if own.mean_distance_mm <= WORLD_POSE_TOLERANCE * result.mean_distance_mm:

@@ -38,7 +38,7 @@ from ..pipeline.params import FitParams
 from ..pipeline.progress import CancelledFn, ProgressFn, report
 
 __all__ = ["FitResult", "Pose", "Target", "fit_any_pose", "fit_best", "fit_model", "model_landmarks", "outlier_limit",
-           "start_poses"]
+           "rigid_screen", "start_poses"]
 
 
 @dataclass(frozen=True)
@@ -425,9 +425,10 @@ def start_poses(model, target: Target, *, frame_pose: Pose | None = None, turns:
     return out
 
 
-def _rigid_screen(mean: np.ndarray, target: Target, pose: Pose, *, partial: bool, iterations: int = 15,
+def rigid_screen(mean: np.ndarray, target: Target, pose: Pose, *, partial: bool, iterations: int = 15,
                   samples: int = 2000) -> tuple[Pose, float]:
-    """A few rigid ICP steps of the mean shape from ``pose``; the pose and its mean distance (mm)."""
+    """A few rigid ICP steps of ``mean`` (N, 3 mm, the model frame) onto ``target`` from ``pose``:
+    the refined pose and its mean distance (mm), for ranking start poses cheaply."""
     tgt = np.asarray(target.samples, float)
     tgt = tgt[:: max(1, len(tgt) // samples)]
     src = mean[:: max(1, len(mean) // samples)]
@@ -483,7 +484,7 @@ def fit_any_pose(model, target: Target, *, params: FitParams | None = None, fram
         if pose is None:  # the landmarks' pose: fit_model finds it
             screened.append((name, None, float("-inf")))
             continue
-        refined, dist = _rigid_screen(mean, target, pose, partial=partial)
+        refined, dist = rigid_screen(mean, target, pose, partial=partial)
         screened.append((name, refined, dist))
     first = [i for i, (n, _p, _d) in enumerate(screened) if n in priority]
     rest = sorted((i for i in range(len(screened)) if i not in first), key=lambda i: (screened[i][2], i))[:keep]
