@@ -297,3 +297,43 @@ def test_a_training_instance_fits_alike_as_mesh_label_map_and_in_any_pose(demo_b
         moved = fit_to_folder(model, FitTarget(name=f"r{k}", mesh=folder / f"r{k}.ply"), folder / f"f_r{k}")
         assert abs(moved["mean_distance_mm"] - ref["mean_distance_mm"]) < 0.1, (k, moved["pose_search"])
         assert abs(moved["mahalanobis"] - ref["mahalanobis"]) < 0.2 and not moved["outlier"]
+
+
+@pytest.mark.slow
+def test_partial_open_meshes_tiny_targets_and_units_are_said(demo_build, capsys):
+    """An open mesh (half a shape) is fitted with --partial and refused without it (the
+    message says --partial); 3 points are refused; a target in metres is suspected; the
+    coverage of the model's surface is reported and a small one is a warning."""
+    from ssm_addon.fitting.batch import FitTarget, fit_to_folder, load_model
+    from ssm_addon.formats.label_maps import load_volume
+    from ssm_addon.instances.volume import display_surface
+    from ssm_addon.meshutil import write_ply
+
+    folder, project = demo_build
+    npz = folder / "out" / "model.npz"
+    model = load_model(npz)
+    inst = project.instances[1]
+    v, f = display_surface(load_volume(inst.volume, inst.label))
+    keep = v[:, 2] > np.median(v[:, 2])
+    faces = f[keep[f].all(axis=1)]
+    used = np.unique(faces)
+    remap = np.full(len(v), -1)
+    remap[used] = np.arange(len(used))
+    write_ply(folder / "half.ply", v[used], remap[faces])
+    assert main(["fit", str(npz), "--mesh", str(folder / "half.ply"), "--out", str(folder / "h1")]) == 2
+    assert "--partial" in capsys.readouterr().err
+    half = fit_to_folder(model, FitTarget(name="half", mesh=folder / "half.ply"), folder / "h2", partial=True)
+    assert 0.3 < half["coverage"] < 0.8, half["coverage"]
+    whole = fit_to_folder(model, FitTarget(name="whole", volume=inst.volume, label=inst.label), folder / "h3")
+    assert whole["coverage"] > 0.95 and whole["warnings"] == []
+    # the half predicts the whole: its fit lies near the whole shape's fit (mm)
+    a = np.load(folder / "h2" / "fit.npz", allow_pickle=False)["posterior_mean"]
+    b = np.load(folder / "h3" / "fit.npz", allow_pickle=False)["posterior_mean"]
+    print(f"half against whole: {np.linalg.norm(a - b, axis=1).mean():.2f} mm mean")
+    assert np.linalg.norm(a - b, axis=1).mean() < 1.0
+    np.savetxt(folder / "three.csv", v[:3], delimiter=",")
+    assert main(["fit", str(npz), "--points", str(folder / "three.csv"), "--partial", "--out", str(folder / "h4")]) == 2
+    assert "at least 10" in capsys.readouterr().err
+    np.savetxt(folder / "metres.csv", v[::7] / 1000.0, delimiter=",")
+    assert main(["fit", str(npz), "--points", str(folder / "metres.csv"), "--out", str(folder / "h5")]) == 0
+    assert "another unit" in capsys.readouterr().err

@@ -274,6 +274,9 @@ def cmd_fit(args) -> int:
             flag = "  OUTLIER" if d["outlier"] else ""
             print(f"{d['name']}: Mahalanobis {d['mahalanobis']:.2f} (p = {d['p_value']:.3g}), mean distance "
                   f"{d['mean_distance_mm']:.2f} mm{flag}")
+        for d in docs:
+            for w in d.get("warnings", []):
+                print(f"WARNING {d['name']}: {w}", file=sys.stderr)
         print(f"coefficients: {out / 'coefficients.csv'}")
         return 0
     model = apply.load_model(args.model)
@@ -288,9 +291,8 @@ def cmd_fit(args) -> int:
     print(f"{name}: Mahalanobis distance {doc['mahalanobis']:.2f} on {doc['n_modes']} modes (p = {doc['p_value']:.3g})"
           f"{': an OUTLIER' if doc['outlier'] else ''}; mean distance {doc['mean_distance_mm']:.2f} mm, largest "
           f"{doc['max_distance_mm']:.2f} mm (pose from the start {doc['pose_search']['chosen']!r})")
-    if not doc.get("converged", True):
-        print(f"WARNING {name}: the fit did NOT converge (stopped at {doc.get('iterations')} iterations); raise "
-              "--iterations or check the target", file=sys.stderr)
+    for w in doc.get("warnings", []):
+        print(f"WARNING {name}: {w}", file=sys.stderr)
     print(f"written: {out / 'fitted.ply'}, {out / 'fit.json'}, {out / 'fit.npz'}, {out / 'fit.png'}")
     return 0
 

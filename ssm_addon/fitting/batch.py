@@ -103,11 +103,40 @@ def pose_of_points(points: np.ndarray) -> Pose:
     return Pose(axes, centre)
 
 
-def load_target(t: FitTarget, model, *, spacing_mm: float | None = None) -> tuple[Target, Pose | None]:
+MIN_TARGET_POINTS = 10
+"""A point target needs this many points (with fewer, the pose and shape rest on the prior)."""
+
+
+def _enough_points(points: np.ndarray, path, landmarks) -> None:
+    if len(points) < MIN_TARGET_POINTS and landmarks is None:
+        raise InputError(f"{path}: {len(points)} point(s); a fit needs at least {MIN_TARGET_POINTS} to fix the pose "
+                         "and the shape (or give --landmarks)")
+
+
+def coverage(result, target: Target, within_mm: float) -> float:
+    """Share of the fitted shape's points within ``within_mm`` of the target's points: how
+    much of the model's surface the target covers (1 for a whole shape)."""
+    from scipy.spatial import cKDTree
+
+    if not target.has_surface:
+        return 0.0
+    d, _ = cKDTree(np.asarray(target.samples, float)).query(np.asarray(result.points, float))
+    return float(np.mean(d <= within_mm))
+
+
+def load_target(t: FitTarget, model, *, spacing_mm: float | None = None,
+                partial: bool = False) -> tuple[Target, Pose | None]:
     """The fitting target of some files (world mm) and a start pose from its object frame.
 
-    A label map or mesh gets the start pose of the training (its object frame, paper 2,
-    the model's frame method); a point cloud the frame of its points; landmarks alone none.
+    A label map or closed mesh gets the start pose of the training (its object frame,
+    paper 2, the model's frame method); a point cloud the frame of its points; an open
+    mesh (``partial``: a partial scan) and landmarks alone none (the pose search finds it).
+
+    Raises
+    ------
+    InputError
+        An open mesh without ``partial`` (the message says to give ``--partial``); a target
+        of fewer than ``MIN_TARGET_POINTS`` points (too few to fix a pose and a shape).
     """
     from ..formats.label_maps import load_volume
     from ..instances.importing import instance_frame
@@ -130,11 +159,18 @@ def load_target(t: FitTarget, model, *, spacing_mm: float | None = None) -> tupl
             Pose(frame.axes_world, frame.origin_world)
     if t.mesh is not None:
         verts, faces = read_mesh(t.mesh)
-        frame = instance_frame(voxelize_mesh(verts, faces, spacing, source=str(t.mesh)), method)
-        return Target.from_mesh(verts, faces, source=str(t.mesh), landmarks=landmarks), \
-            Pose(frame.axes_world, frame.origin_world)
+        _enough_points(verts, t.mesh, landmarks)
+        target = Target.from_mesh(verts, faces, source=str(t.mesh), landmarks=landmarks)
+        if partial:  # a partial scan need not be closed; its pose comes from the search
+            return target, None
+        try:
+            frame = instance_frame(voxelize_mesh(verts, faces, spacing, source=str(t.mesh)), method)
+        except InputError as err:
+            raise InputError(f"{err}; if it is a partial scan, fit it with --partial") from None
+        return target, Pose(frame.axes_world, frame.origin_world)
     if t.points is not None:
         pts = _read_points(t.points)
+        _enough_points(pts, t.points, landmarks)
         return Target.from_points(pts, source=str(t.points), landmarks=landmarks), pose_of_points(pts)
     if landmarks is not None:
         return Target.from_landmarks(landmarks, source=str(t.landmarks)), None
@@ -184,7 +220,7 @@ def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = No
     from ..model.files import write_npz
 
     params = FitParams() if params is None else params
-    target, start = load_target(t, model)
+    target, start = load_target(t, model, partial=partial)
     if partial and t.landmarks is not None:
         start = None  # from the landmarks
     result, search = fit_any_pose(model, target, params=params, frame_pose=start, partial=partial,
@@ -205,6 +241,24 @@ def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = No
                 "outlier_limit": {"probability": outlier_probability, "mahalanobis": math.sqrt(limit)},
                 "files": {"fitted": "fitted.ply", "npz": "fit.npz", "picture": "fit.png"},
                 "pose_search": search})
+    # what the fit rests on, said rather than only stored
+    spacing = float((model.params or {}).get("spacing_mm", 1.0))
+    doc["coverage"] = coverage(result, target, max(2.0 * spacing, 3.0 * params.noise_mm))
+    warnings = []
+    if not result.converged:
+        warnings.append(f"the fit did not converge (stopped at {result.iterations} iterations)")
+    if doc["outlier"]:
+        warnings.append(f"Mahalanobis distance {result.mahalanobis:.2f} above the {100 * outlier_probability:g} % "
+                        f"limit {math.sqrt(limit):.2f}: an OUTLIER")
+    if partial and doc["coverage"] < 0.1:
+        warnings.append(f"the target covers {100 * doc['coverage']:.0f} % of the model's surface: the completion "
+                        "rests on the model's prior, not on the target")
+    size_t = float(np.ptp(np.asarray(target.samples, float), axis=0).max()) if target.has_surface else 0.0
+    size_m = float(np.ptp(np.asarray(model.mean, float), axis=0).max())
+    if size_t > 0 and not partial and not 0.2 < size_t / size_m < 5.0:
+        warnings.append(f"the target is {size_t / size_m:.3g} times the model's size ({size_t:.3g} against "
+                        f"{size_m:.3g} mm): another unit (m, cm)?")
+    doc["warnings"] = warnings
     if free and target.locator is not None:
         from ..coating.coating import coat_from_start
         from ..instances.volume import ObjectFrame
