@@ -69,7 +69,7 @@ from ..pipeline.progress import CancelledFn, ProgressFn, sub_progress
 
 # the fit only supplies the landmarks' posterior places and the coating does the rest:
 # a coarser surface sample and a looser stop than ``ssm fit`` (20,000 samples, 0.001 mm)
-REFINE_FIT_SAMPLES = 5000
+REFINE_FIT_SAMPLES = 2000
 REFINE_FIT_TOLERANCE_MM = 0.01
 
 __all__ = ["AXIS_TURNS", "WORLD_POSE_TOLERANCE", "CorrespondenceCheck", "RoundFigures", "aligned_to", "check_correspondence", "landmark_transfer", "refine_instance",
