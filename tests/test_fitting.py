@@ -337,3 +337,34 @@ def test_partial_open_meshes_tiny_targets_and_units_are_said(demo_build, capsys)
     np.savetxt(folder / "metres.csv", v[::7] / 1000.0, delimiter=",")
     assert main(["fit", str(npz), "--points", str(folder / "metres.csv"), "--out", str(folder / "h5")]) == 0
     assert "another unit" in capsys.readouterr().err
+
+
+def test_the_posterior_includes_the_models_own_error():
+    """``model_error`` (default): the posterior SD adds, per point, the training instances'
+    leave-one-out residual variance. A population of 3 modes plus independent noise σ per
+    axis: the residual variance is about 3σ² per point (x, y, z) where the data is
+    noise; without it the SD is what the target's points leave open."""
+    from ssm_addon.fitting.fit import model_error_variance
+
+    sigma = 0.5
+    shapes, mean, _, _ = synthetic_population(n=30, n_points=300, noise_mm=sigma, seed=5)
+    faces = ConvexHull(mean).simplices
+    m = build_model(shapes, faces, [f"s{i}" for i in range(30)], n_modes=3)
+    var = model_error_variance(m, 3)
+    assert var.shape == (m.n_points,) and np.all(var >= 0)
+    assert 0.7 * 3 * sigma**2 < var.mean() < 1.6 * 3 * sigma**2, var.mean()
+    exact = build_model(synthetic_population(n=30, n_points=300, noise_mm=0.0, seed=5)[0], faces,
+                        [f"s{i}" for i in range(30)], n_modes=3)
+    assert model_error_variance(exact, 3).max() < 1e-12
+    target = Target.from_points(m.generate(np.array([1.0, -0.5, 0.3]) * m.standard_deviations[:3]))
+    with_error = fit_model(m, target, params=FitParams(noise_mm=0.5), pose=Pose())
+    without = fit_model(m, target, params=FitParams(noise_mm=0.5, model_error=False), pose=Pose())
+    np.testing.assert_allclose(with_error.points, without.points)  # the same fit, a wider posterior
+    np.testing.assert_allclose(with_error.posterior_sd_mm ** 2, without.posterior_sd_mm ** 2 + var, rtol=1e-9)
+    # a model without training instances (another tool's statismo file) has none, and still fits
+    bare = type(m)(mean=m.mean, faces=m.faces, modes=m.modes, variances=m.variances,
+                   instance_names=np.array([], dtype=str), instance_points=np.zeros((0, m.n_points, 3)),
+                   instance_points_world=np.zeros((0, m.n_points, 3)))
+    assert model_error_variance(bare) is None
+    np.testing.assert_allclose(fit_model(bare, target, params=FitParams(noise_mm=0.5), pose=Pose()).posterior_sd_mm,
+                               without.posterior_sd_mm)

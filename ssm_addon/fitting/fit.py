@@ -26,6 +26,7 @@ every result in the target's frame (world mm for files); ``pose`` maps model →
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -37,8 +38,8 @@ from ..pipeline.errors import InputError, check_cancelled
 from ..pipeline.params import FitParams
 from ..pipeline.progress import CancelledFn, ProgressFn, report
 
-__all__ = ["FitResult", "Pose", "Target", "fit_any_pose", "fit_best", "fit_model", "model_landmarks", "outlier_limit",
-           "rigid_screen", "start_poses"]
+__all__ = ["FitResult", "Pose", "Target", "fit_any_pose", "fit_best", "fit_model", "model_error_variance", "model_landmarks",
+           "outlier_limit", "rigid_screen", "start_poses"]
 
 
 @dataclass(frozen=True)
@@ -199,6 +200,55 @@ def _skew(v: np.ndarray) -> np.ndarray:
                      np.stack([-v[:, 1], v[:, 0], z], 1)], 1)
 
 
+_MODEL_ERROR: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+MODEL_ERROR_MAX_INSTANCES = 100
+"""The model error is estimated from at most this many training instances (evenly spread)."""
+
+
+def model_error_variance(model, n_modes: int | None = None) -> np.ndarray | None:
+    """The model's own error per point: variance (mm², total over x, y, z; model frame).
+
+    Each training instance (``instance_points``) reconstructed by the model of the
+    *others* on ``n_modes`` modes (default every mode); the squared residual per point,
+    averaged over the instances. What the model cannot represent of a new shape, which a
+    fit's posterior adds to the target noise's share (a Gaussian-process augmentation
+    with the leave-one-out residuals as its per-point amplitude). None for a model
+    without at least 3 training instances (e.g. a statismo file from another tool).
+
+    References
+    ----------
+    Lüthi M, Gerig T, Jud C, Vetter T. Gaussian Process Morphable Models. IEEE TPAMI
+    40(8), 2018 (augmenting a PCA model with a kernel for what it does not span).
+    """
+    pts = np.asarray(getattr(model, "instance_points", np.zeros((0,))), float)
+    if pts.ndim != 3 or len(pts) < 3 or pts.shape[1] != len(model.mean):
+        return None
+    key = (n_modes,)
+    cached = _MODEL_ERROR.get(model, {})
+    if key in cached:
+        return cached[key]
+    idx = np.unique(np.linspace(0, len(pts) - 1, min(len(pts), MODEL_ERROR_MAX_INSTANCES)).round().astype(int))
+    flat = pts.reshape(len(pts), -1)
+    total = np.zeros(pts.shape[1])
+    for i in idx:
+        others = np.delete(flat, i, axis=0)
+        mu = others.mean(axis=0)
+        y = others - mu
+        w, u = np.linalg.eigh(y @ y.T)  # the Gram matrix: (n-1)², not (3N)²
+        order = np.argsort(w)[::-1]
+        w, u = w[order], u[:, order]
+        keep = w > 1e-9 * max(w[0], 1e-300)
+        k = int(keep.sum()) if n_modes is None else min(int(keep.sum()), int(n_modes))
+        basis = (u[:, :k].T @ y) / np.sqrt(w[:k])[:, None]  # (k, 3N) orthonormal rows
+        r = flat[i] - mu
+        r = r - basis.T @ (basis @ r)
+        total += (r.reshape(-1, 3) ** 2).sum(axis=1)
+    out = total / len(idx)
+    cached[key] = out
+    _MODEL_ERROR[model] = cached
+    return out
+
+
 def _posterior(q, shape, faces, rows_v, w, pose, lm_pairs, w_lm, sigma2, params, lam, k):
     """Posterior covariance of b and per-point shape variance (mm², model frame), pose included.
 
@@ -347,6 +397,10 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
             converged = True
             break
     cov_b, per_point = _posterior(q, shape, model.faces, rows_v, w, pose, lm_pairs, w_lm, sigma2, params, lam, k)
+    if params.model_error:  # what the model cannot represent, added to what the data leaves open
+        extra = model_error_variance(model, k)
+        if extra is not None:
+            per_point = per_point + extra
     sd = pose.scale * np.sqrt(np.maximum(per_point, 0.0))
     x = pose.apply(shape)
     if target.has_surface:

@@ -683,6 +683,9 @@ class FitParams:
                                 help="stop when the shape's points move less than this (RMS)")
     landmark_weight: float = param(10.0, minimum=0.0, maximum=1e9, label="Landmark weight",
                                    help="weight of one landmark against one surface correspondence")
+    model_error: bool = param(True, label="Model error", advanced=True,
+                              help="the posterior SD includes the model's own error (its training instances' "
+                                   "leave-one-out residuals per point), not only the target's noise")
 
     _where = "fit parameters:"
 
