@@ -4,6 +4,7 @@ statismo files from another tool, leave-one-out on real vertebrae, bad input, th
 from __future__ import annotations
 
 import json
+import re
 
 import h5py
 import numpy as np
@@ -368,3 +369,32 @@ def test_the_posterior_includes_the_models_own_error():
     assert model_error_variance(bare) is None
     np.testing.assert_allclose(fit_model(bare, target, params=FitParams(noise_mm=0.5), pose=Pose()).posterior_sd_mm,
                                without.posterior_sd_mm)
+
+
+@pytest.mark.slow
+def test_batches_say_their_landmarks_and_merged_labels_are_named(demo_build, capsys):
+    """A --project batch says it uses the project's landmarks (--no-landmarks: surfaces
+    alone, as a single fit of the same file); a multi-label map without --label is
+    fitted merged, and said."""
+    folder, project = demo_build
+    npz = folder / "out" / "model.npz"
+    blocks = project.path.read_text().split("[[instances]]")
+    proj = project.path.with_name("two.toml")  # two instances: the batch's behaviour, not its size
+    head = re.sub(r'(\[template\][^\[]*?instance = )"[^"]+"', rf'\1"{project.instances[0].name}"', blocks[0])
+    proj.write_text("[[instances]]".join([head, *blocks[1:3]]))
+    assert main(["fit", str(npz), "--project", str(proj), "--out", str(folder / "b1")]) == 0
+    assert "project landmarks as soft constraints" in capsys.readouterr().out
+    assert main(["fit", str(npz), "--project", str(proj), "--no-landmarks", "--out", str(folder / "b2")]) == 0
+    assert "project landmarks" not in capsys.readouterr().out
+    inst = project.instances[0]
+    single = folder / "b3"
+    assert main(["fit", str(npz), "--volume", str(inst.volume), "--label", str(inst.label), "--out", str(single)]) == 0
+    one = json.loads((single / "fit.json").read_text())
+    sub = next(p for p in (folder / "b2").iterdir() if p.is_dir() and p.name.startswith(inst.name))
+    batch = json.loads((sub / "fit.json").read_text())
+    assert batch["landmarks_used"] == [] and abs(batch["mean_distance_mm"] - one["mean_distance_mm"]) < 1e-6
+    from ssm_addon.formats.label_maps import read_label_map
+
+    if len(np.unique(read_label_map(inst.volume).labels)) > 2:  # the demo's label map holds several instances
+        assert main(["fit", str(npz), "--volume", str(inst.volume), "--out", str(folder / "b4")]) == 0
+        assert "fitted merged" in capsys.readouterr().err

@@ -122,7 +122,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--partial", action="store_true",
                    help="the target covers part of the shape: predict the rest with its uncertainty")
     p.add_argument("--free", action="store_true", help="also relax the fit freely onto the target (fitted_free.ply)")
-    p.add_argument("--project", help="fit every instance of a project file (a batch)")
+    p.add_argument("--project", help="fit every instance of a project file (a batch; with its landmarks)")
+    p.add_argument("--no-landmarks", action="store_true",
+                   help="a --project batch fits the surfaces alone, without the instances' landmarks")
     p.add_argument("--glob", help="fit every file of a glob pattern (a batch; --label applies)")
     p.add_argument("--jobs", type=int, default=1, help="parallel workers of a batch")
     p.add_argument("--scheduler", default="processes",
@@ -263,8 +265,12 @@ def cmd_fit(args) -> int:
     out = Path(args.out).expanduser().resolve()
     inputs = [args.model, args.volume, args.mesh, args.points, args.landmarks, args.project]
     if args.project or args.glob:
-        targets = apply.targets_from_project(args.project) if args.project else \
+        targets = apply.targets_from_project(args.project, landmarks=not args.no_landmarks) if args.project else \
             apply.targets_from_glob(args.glob, args.label)
+        with_lm = [t.name for t in targets if t.landmarks is not None]
+        if with_lm:
+            print(f"landmarks: {len(with_lm)} of {len(targets)} targets are fitted with their project landmarks as "
+                  "soft constraints (--no-landmarks: surfaces alone)")
         inputs += [p for t in targets for p in (t.volume, t.mesh, t.points, t.landmarks)]
         with owned_output_folder(out, inputs, force=args.force, what="fitting") as tmp:
             docs = apply.fit_batch(args.model, targets, tmp, params=params, partial=args.partial, free=args.free,
@@ -288,6 +294,8 @@ def cmd_fit(args) -> int:
         doc = apply.fit_to_folder(model, t, tmp, params=params, partial=args.partial, free=args.free,
                                   outlier_probability=args.outlier_probability, model_path=str(args.model),
                                   progress=_print_progress())
+    if doc.get("landmarks_used"):
+        print(f"landmarks used: {', '.join(doc['landmarks_used'])}")
     print(f"{name}: Mahalanobis distance {doc['mahalanobis']:.2f} on {doc['n_modes']} modes (p = {doc['p_value']:.3g})"
           f"{': an OUTLIER' if doc['outlier'] else ''}; mean distance {doc['mean_distance_mm']:.2f} mm, largest "
           f"{doc['max_distance_mm']:.2f} mm (pose from the start {doc['pose_search']['chosen']!r})")

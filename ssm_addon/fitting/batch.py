@@ -258,6 +258,15 @@ def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = No
     if size_t > 0 and not partial and not 0.2 < size_t / size_m < 5.0:
         warnings.append(f"the target is {size_t / size_m:.3g} times the model's size ({size_t:.3g} against "
                         f"{size_m:.3g} mm): another unit (m, cm)?")
+    if t.volume is not None and t.label is None:
+        from ..formats.label_maps import read_label_map
+
+        labels = np.unique(np.asarray(read_label_map(t.volume).labels))
+        labels = labels[labels != 0]
+        if len(labels) > 1:
+            warnings.append(f"{t.volume} holds {len(labels)} labels ({', '.join(str(int(x)) for x in labels[:6])}"
+                            f"{' …' if len(labels) > 6 else ''}) and no --label was given: they were fitted merged")
+    doc["landmarks_used"] = sorted(result.landmark_residuals_mm)
     doc["warnings"] = warnings
     if free and target.locator is not None:
         from ..coating.coating import coat_from_start
@@ -346,10 +355,12 @@ def targets_from_glob(pattern: str, label: int | None = None) -> list[FitTarget]
     return out
 
 
-def targets_from_project(path) -> list[FitTarget]:
-    """The instances of a project file as targets (with their landmarks)."""
+def targets_from_project(path, *, landmarks: bool = True) -> list[FitTarget]:
+    """The instances of a project file as targets (with their landmarks unless ``landmarks``
+    is false: ``ssm fit --no-landmarks``, so a batch fits the surfaces alone as a single
+    fit of the same file does)."""
     from ..formats.project_file import read_project
 
     proj = read_project(path)
-    return [FitTarget(name=i.name, volume=i.volume, label=i.label, mesh=i.mesh, landmarks=i.landmarks)
-            for i in proj.instances]
+    return [FitTarget(name=i.name, volume=i.volume, label=i.label, mesh=i.mesh,
+                      landmarks=i.landmarks if landmarks else None) for i in proj.instances]
