@@ -398,3 +398,22 @@ def test_batches_say_their_landmarks_and_merged_labels_are_named(demo_build, cap
     if len(np.unique(read_label_map(inst.volume).labels)) > 2:  # the demo's label map holds several instances
         assert main(["fit", str(npz), "--volume", str(inst.volume), "--out", str(folder / "b4")]) == 0
         assert "fitted merged" in capsys.readouterr().err
+
+
+def test_fit_picture_has_a_title_views_and_a_colour_bar(model, tmp_path):
+    """fit.png: a title band, two named views and a colour bar of the posterior SD (the
+    bar runs from the smallest SD's colour to the largest's)."""
+    import io
+
+    from PIL import Image
+
+    from ssm_addon.fitting.batch import fit_picture
+
+    pts, _ = _posed(model, [0.5, -0.5], seed=9, rotate=False)
+    target = Target.from_points(pts, source="target.csv")
+    result = fit_model(model, target, params=FitParams(noise_mm=0.1))
+    img = np.asarray(Image.open(io.BytesIO(fit_picture(result, model.faces, target, size_px=200, title="bone 7"))))
+    assert img.shape == (200 + 44 + 48, 400, 3)
+    assert (img[:40] < 128).any()  # the title's text
+    bar = img[200 + 44 + 8 + 6, 8:200 - 8].astype(int)
+    assert bar[0, 2] > bar[-1, 2] and bar[0, 0] < bar[-1, 0]  # blue (smallest SD) to red (largest)

@@ -177,19 +177,33 @@ def load_target(t: FitTarget, model, *, spacing_mm: float | None = None,
     raise InputError(f"{t.name}: nothing to fit to: give --volume, --mesh, --points and/or --landmarks")
 
 
-def fit_picture(result: FitResult, faces: np.ndarray, target: Target, size_px: int = 360) -> bytes:
-    """Two views (along the model frame's z and x axes) of the fit over the target's points (PNG)."""
+def fit_picture(result: FitResult, faces: np.ndarray, target: Target, size_px: int = 360, *,
+                title: str = "") -> bytes:
+    """Two views (along the model frame's z and x axes) of the fit over the target's points (PNG).
+
+    Labelled: a title (``title``, the Mahalanobis distance, the mean distance, an outlier
+    flag), the views' names, a colour bar of the posterior SD in mm, and what the surface
+    (the fitted shape) and the dots (the target's points) are.
+    """
     from PIL import Image, ImageDraw
 
     pts = result.pose.inverse(result.points)  # model frame: a stable view
     tgt = result.pose.inverse(target.samples[:: max(1, len(target.samples) // 4000)]) if target.has_surface else None
     sd = result.posterior_sd_mm
-    rel = (sd - sd.min()) / max(float(np.ptp(sd)), 1e-9)
-    colours = np.stack([0.35 + 0.6 * rel, 0.55 - 0.2 * rel, 0.85 - 0.6 * rel], axis=1)
-    canvas = Image.new("RGB", (2 * size_px, size_px), (255, 255, 255))
+    lo, hi = float(sd.min()), float(sd.max())
+
+    def colour(rel):
+        rel = np.asarray(rel, float)
+        return np.stack([0.35 + 0.6 * rel, 0.55 - 0.2 * rel, 0.85 - 0.6 * rel], axis=-1)
+
+    colours = colour((sd - lo) / max(hi - lo, 1e-9))
+    head, foot = 44, 48
+    canvas = Image.new("RGB", (2 * size_px, size_px + head + foot), (255, 255, 255))
+    draw_c = ImageDraw.Draw(canvas)
     centre = pts.mean(axis=0)
     half = 0.6 * float(np.max(np.ptp(pts, axis=0)))
-    for j, view in enumerate((np.eye(3), np.eye(3)[[1, 2, 0]])):
+    for j, (view, name) in enumerate(((np.eye(3), "view along the model's z axis"),
+                                      (np.eye(3)[[1, 2, 0]], "view along the model's x axis"))):
         p = (pts - centre) @ view.T
         tri = p[faces]
         order = np.argsort(tri[:, :, 2].mean(axis=1))
@@ -206,7 +220,22 @@ def fit_picture(result: FitResult, faces: np.ndarray, target: Target, size_px: i
             q = ((tgt - centre) @ view.T)[:, :2] / (2 * half) + 0.5
             for x, y in (q * size_px).tolist():
                 draw.point((x, size_px - y), fill=(20, 20, 20))
-        canvas.paste(img, (j * size_px, 0))
+        draw.text((6, 4), name, fill=(60, 60, 60))
+        canvas.paste(img, (j * size_px, head))
+    flag = "  OUTLIER" if not math.isfinite(result.mahalanobis) or result.mahalanobis > outlier_limit(
+        result.n_modes) else ""
+    draw_c.text((8, 6), f"{title or target.source or 'target'}: fit of the model", fill=(0, 0, 0))
+    draw_c.text((8, 24), f"Mahalanobis distance {result.mahalanobis:.2f} on {result.n_modes} modes; mean distance "
+                         f"{result.mean_distance_mm:.2f} mm, largest {result.max_distance_mm:.2f} mm{flag}",
+                fill=(160, 0, 0) if flag else (0, 0, 0))
+    # the colour bar: posterior SD (mm) from its smallest to its largest value
+    y0, x0, width = size_px + head + 8, 8, size_px - 16
+    bar = (colour(np.linspace(0.0, 1.0, width)) * 255).astype(np.uint8)
+    canvas.paste(Image.fromarray(np.repeat(bar[None], 12, axis=0), "RGB"), (x0, y0))
+    draw_c.text((x0, y0 + 15), f"posterior SD {lo:.2f} mm", fill=(0, 0, 0))
+    draw_c.text((x0 + width - 70, y0 + 15), f"{hi:.2f} mm", fill=(0, 0, 0))
+    draw_c.text((size_px + 8, y0), "surface: the fitted shape, coloured by its posterior SD", fill=(0, 0, 0))
+    draw_c.text((size_px + 8, y0 + 16), "black dots: the target's points", fill=(0, 0, 0))
     buf = io.BytesIO()
     canvas.save(buf, format="PNG")
     return buf.getvalue()
@@ -274,7 +303,7 @@ def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = No
 
         doc["files"]["free"] = "fitted_free.ply"
         doc["free"] = _free_fit(result, faces, t, model, out_dir / "fitted_free.ply", coat_from_start, ObjectFrame)
-    (out_dir / "fit.png").write_bytes(fit_picture(result, faces, target))
+    (out_dir / "fit.png").write_bytes(fit_picture(result, faces, target, title=t.name))
     (out_dir / "fit.json").write_text(json.dumps(doc, indent=1), encoding="utf-8")
     report(progress, 1.0, f"fitted {t.name}: Mahalanobis {result.mahalanobis:.2f}, mean distance "
                            f"{result.mean_distance_mm:.2f} mm")
