@@ -133,7 +133,7 @@ class SSM_OT_coat_template(BackgroundJob, bpy.types.Operator):
                 return imported, coating_stage(study, names=names, progress=counting(progress), cancelled=stop), False
             except core.CoatingCancelled as err:  # Esc: keep the finished instances
                 kept = {n: r for n, r in zip(names, err.results) if r is not None}
-                return imported, coating_result(study, kept, {n: "landmarks" for n in kept},
+                return imported, coating_result(study, kept, {n: r.fit.start for n, r in kept.items()},
                                                 time.perf_counter() - t0), True
 
         return work

@@ -73,7 +73,8 @@ def test_landmarks_method_is_the_single_pass(population, tmp_path):
     assert _sha(tmp_path / "a" / "model.npz") == _sha(tmp_path / "b" / "model.npz")
     doc = json.loads((tmp_path / "a" / "report.json").read_text())
     assert doc["correspondence"]["method"] == "landmarks" and doc["correspondence"]["rounds"] == []
-    assert set(doc["correspondence"]["start"].values()) <= {"landmark warp", "landmarks", "object frames"}
+    assert set(doc["correspondence"]["start"].values()) <= {"landmark warp", "object frames"}
+    assert {n: f["start"] for n, f in doc["instances"].items()} == doc["correspondence"]["start"]
     # carried-over landmarks: written for every instance, in the template instance's format
     written = sorted(p.name for p in (tmp_path / "a" / "landmarks").iterdir())
     ext = _landmark_ext(population)
@@ -154,8 +155,10 @@ def test_landmarks_on_a_few_instances_start_the_rest_from_their_model(population
     lines = []
     result = build(read_project(proj), tmp_path / "out", log=lines.append)
     corr = result.report["correspondence"]
-    assert {n: s for n, s in corr["start"].items() if s == "landmarks"} == {tpl: "landmarks", other: "landmarks"}
+    assert {n: s for n, s in corr["start"].items() if s != "model fit"} == {tpl: "landmark warp", other: "landmark warp"}
     assert {s for n, s in corr["start"].items() if n not in (tpl, other)} == {"model fit"}, corr["start"]
+    # one source of truth: each instance's own record says the same
+    assert {n: f["start"] for n, f in result.report["instances"].items()} == corr["start"]
     assert any("2 by landmarks, 4 from the landmarked instances' model" in line for line in lines), lines
     assert corr["stop"] in ("converged", "criterion", "limit") and set(corr["self_check"]["instance_mm"]) == {tpl, other}
     if corr["stop"] == "limit":

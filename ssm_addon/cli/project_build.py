@@ -245,7 +245,11 @@ def write_study_files(study: Study, folder: Path, *, output: OutputParams, proje
         for name in names:
             write_landmarks(folder / "landmarks" / f"{safe[name]}.{ext}", carried[name])
         files["landmarks"] = "landmarks"
-    per_instance = {n: study.coatings[n].fit for n in names}
+    # one source for how each coating started: the study's record (a round's coating says
+    # "landmark warp" of its own warp, the study how the instance's correspondence began)
+    per_instance = {n: dataclasses.replace(study.coatings[n].fit,
+                                           start=study.coating_start.get(n, study.coatings[n].fit.start))
+                    for n in names}
     cp = study.correspondence_params
     correspondence = {
         "method": cp.method,

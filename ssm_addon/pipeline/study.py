@@ -401,7 +401,9 @@ def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: in
     else:
         coated.update(coat_from_frames(study, rest, jobs=jobs, cancelled=cancelled))
         start = "object frames"
-    study.coating_start.update({n: "landmarks" if n in landmarked else start for n in names})
+    # a landmarked instance's own record (the landmark warp, or the object frames where the
+    # registration fell back from it), the others' start
+    study.coating_start.update({n: coated[n].fit.start if n in landmarked else start for n in names})
     return {n: coated[n] for n in names}
 
 
@@ -427,7 +429,7 @@ def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn =
         started = start_coatings(work, missing, jobs=jobs, cancelled=cancelled)
         work.coatings.update(started)
         starts = [work.coating_start[n] for n in missing]
-        say(f"coating: {starts.count('landmarks')} by landmarks, {starts.count('model fit')} from the landmarked "
+        say(f"coating: {starts.count('landmark warp')} by landmarks, {starts.count('model fit')} from the landmarked "
             f"instances' model, {starts.count('object frames')} from the object frames; refining with the model")
     rounds, check = refine_rounds(work, study.correspondence_params, jobs=jobs, progress=progress,
                                   cancelled=cancelled, log=say, executor=executor)
@@ -630,7 +632,7 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
     coatings = {n: products[n].coating for n in names}
     check, found = self_check(study, coatings, template=template, frames=frames, executor=executor,
                               cancelled=cancelled)
-    result = coating_result(study, coatings, {n: "landmarks" for n in names}, time.perf_counter() - t0,
+    result = coating_result(study, coatings, {n: c.fit.start for n, c in coatings.items()}, time.perf_counter() - t0,
                             counts=f"{len(todo)} coated, {cached} from the cache; ", check=check, extra_findings=found)
     counts = {"cached": cached, "computed": len(todo)}
     return dataclasses.replace(
@@ -920,7 +922,8 @@ def coating_stage(study: Study, *, names: Sequence[str] | None = None, jobs: int
     t0 = time.perf_counter()
     coated = coat_instances(study, names=names, jobs=jobs, progress=progress, cancelled=cancelled)
     check, found = self_check(study, {**study.coatings, **coated}, jobs=jobs, executor=executor, cancelled=cancelled)
-    return coating_result(study, coated, {n: "landmarks" for n in coated}, time.perf_counter() - t0, check=check,
+    return coating_result(study, coated, {n: c.fit.start for n, c in coated.items()}, time.perf_counter() - t0,
+                          check=check,
                           extra_findings=found)
 
 
