@@ -21,11 +21,13 @@ import os
 import bpy
 import numpy as np
 from bpy.props import BoolProperty, FloatProperty, IntProperty, StringProperty
+from bpy_extras.io_utils import ImportHelper
 
 from ssm_addon.cli.report import write_outputs, write_report_html
+from ssm_addon.fitting.batch import load_model
 from ssm_addon.model import metrics as core_metrics
 from ssm_addon.model.pca import ShapeModel
-from ssm_addon.pipeline.errors import InputError
+from ssm_addon.pipeline.errors import InputError, SSMError
 from ssm_addon.pipeline.params import ModelParams
 from ssm_addon.pipeline.study import model_stage
 
@@ -487,7 +489,42 @@ class SSM_PT_model_advanced(bpy.types.Panel):
         self.layout.prop(context.scene.ssm_display, "colouring")
 
 
+class SSM_OT_import_model(bpy.types.Operator, ImportHelper):
+    """Open a shape model (model.npz of SSM Builder, or a statismo .h5 of ours or another tool's):
+    the mean mesh with one shape key per mode and the Model panel, as for a built model"""
+
+    bl_idname = "ssm.import_model"
+    bl_label = "Import Shape Model"
+    bl_options = {"REGISTER", "UNDO"}
+
+    filter_glob: StringProperty(default="*.npz;*.h5;*.hdf5", options={"HIDDEN"})
+
+    def execute(self, context):
+        try:
+            model = load_model(self.filepath)  # allow_pickle=False; errors name the file
+        except SSMError as err:
+            self.report({"ERROR"}, str(err))
+            return {"CANCELLED"}
+        obj = create_model_object(context, model)
+        self.report({"INFO"}, f"{os.path.basename(self.filepath)}: {model.n_modes} modes, {model.n_points} points"
+                              f"{f', from {model.n_instances} instances' if model.n_instances else ''} as {obj.name!r}")
+        return {"FINISHED"}
+
+
+def menu_func_import(self, context):
+    self.layout.operator(SSM_OT_import_model.bl_idname, text="Shape Model (SSM: .npz, statismo .h5)")
+
+
+def register_properties():
+    bpy.types.TOPBAR_MT_file_import.append(menu_func_import)
+
+
+def unregister_properties():
+    bpy.types.TOPBAR_MT_file_import.remove(menu_func_import)
+
+
 classes = (
+    SSM_OT_import_model,
     SSM_OT_build_model,
     SSM_OT_animate_modes,
     SSM_OT_random_shape,

@@ -250,3 +250,50 @@ def test_model_panel_draws_variance_bars_and_sliders(built):
     assert [a[0].name for a in sliders] == [f"Mode {k + 1}" for k in range(shown)]
     ops = [args[0] for name, args, _ in log if name == "operator"]
     assert {"ssm.build_model", "ssm.animate_modes", "ssm.random_shape", "ssm.reset_modes", "ssm.save_model"} <= set(ops)
+
+
+def test_import_shape_model_opens_our_npz_and_a_foreign_statismo_file(bpy_clean, population, tmp_path):
+    """File › Import › Shape Model: our model.npz and a statismo 0.9 file as another tool
+    writes it give the mean mesh with one shape key per mode, whose evaluated shape at
+    mode values v is mean + Σ v_k √λ_k q_k (float32 meshes), and the Model panel's object."""
+    import h5py
+    from ssm.operators import bridge
+    from ssm.operators.scene import find_model_object, model_from_object
+
+    from ssm_addon.model.files import save_npz
+    from ssm_addon.model.pca import build_model
+
+    bpy = bpy_clean
+    shapes, faces, _frames = population
+    model = build_model(shapes, faces, [f"s{i}" for i in range(len(shapes))])
+    save_npz(model, tmp_path / "model.npz")
+    other = tmp_path / "other.h5"
+    with h5py.File(other, "w") as f:  # the statismo 0.9 layout, no SSM extras
+        f.create_group("version")
+        f["version/majorVersion"], f["version/minorVersion"] = np.int32(0), np.int32(9)
+        f["model/mean"] = model.mean.reshape(-1).astype(np.float32)
+        f["model/pcaBasis"] = model.modes.reshape(model.n_modes, -1).T.astype(np.float32)
+        f["model/pcaVariance"] = model.variances.astype(np.float32)
+        f["model/noiseVariance"] = np.float32(0.0)
+        rep = f.create_group("representer")
+        rep.attrs["name"] = "itkStandardMeshRepresenter"
+        rep["points"] = model.mean.T.astype(np.float32)
+        rep["cells"] = np.asarray(faces, np.int32).T
+    v = np.array([1.5, -2.0, 0.7])
+    for path in (tmp_path / "model.npz", other):
+        assert bpy.ops.ssm.import_model(filepath=str(path)) == {"FINISHED"}
+        obj = find_model_object(bpy.context)
+        opened = model_from_object(obj)
+        assert obj.ssm.role == "MODEL" and len(obj.data.shape_keys.key_blocks) == 1 + opened.n_modes
+        for k, val in enumerate(v):
+            obj.data.shape_keys.key_blocks[f"Mode {k + 1}"].value = val
+        got = bridge.evaluated_vertices(bpy.context, obj)
+        expected = opened.mean + np.tensordot(v * opened.standard_deviations[:3], opened.modes[:3], axes=1)
+        np.testing.assert_allclose(got, expected, atol=1e-4 * max(1.0, np.abs(expected).max() / 100))
+        np.testing.assert_allclose(opened.mean, model.mean, atol=1e-4)
+        bpy.data.objects.remove(obj)
+    (tmp_path / "bad.npz").write_bytes(b"not a model")
+    n_objects = len(bpy.data.objects)
+    with pytest.raises(RuntimeError, match="bad.npz"):
+        bpy.ops.ssm.import_model(filepath=str(tmp_path / "bad.npz"))
+    assert len(bpy.data.objects) == n_objects
