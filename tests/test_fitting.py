@@ -417,3 +417,37 @@ def test_fit_picture_has_a_title_views_and_a_colour_bar(model, tmp_path):
     assert (img[:40] < 128).any()  # the title's text
     bar = img[200 + 44 + 8 + 6, 8:200 - 8].astype(int)
     assert bar[0, 2] > bar[-1, 2] and bar[0, 0] < bar[-1, 0]  # blue (smallest SD) to red (largest)
+
+
+@pytest.mark.slow
+def test_a_foreign_statismo_model_fits_a_target_anywhere_as_in_its_own_coordinates(model, tmp_path):
+    """A statismo 0.9 file as another tool writes it (no SSM extras, no training instances):
+    a target in arbitrary coordinates (any rotation, far from the origin) fits as well as
+    the same target in the model's own coordinates, through the pose search."""
+    from scipy.spatial.transform import Rotation
+
+    from ssm_addon.fitting.fit import fit_any_pose
+
+    other = tmp_path / "other.h5"
+    with h5py.File(other, "w") as f:
+        f.create_group("version")
+        f["version/majorVersion"], f["version/minorVersion"] = np.int32(0), np.int32(9)
+        f["model/mean"] = model.mean.reshape(-1).astype(np.float32)
+        f["model/pcaBasis"] = model.modes.reshape(model.n_modes, -1).T.astype(np.float32)
+        f["model/pcaVariance"] = model.variances.astype(np.float32)
+        f["model/noiseVariance"] = np.float32(0.0)
+        rep = f.create_group("representer")
+        rep.attrs["name"] = "itkStandardMeshRepresenter"
+        rep["points"] = model.mean.T.astype(np.float32)
+        rep["cells"] = np.asarray(model.faces, np.int32).T
+    foreign = load_statismo(other)
+    shape = foreign.generate(np.array([1.0, -0.7, 0.4]) * foreign.standard_deviations[:3])
+    params = FitParams(noise_mm=0.1)
+    home, _ = fit_any_pose(foreign, Target.from_mesh(shape, foreign.faces), params=params)
+    assert home.mean_distance_mm < 0.05
+    for seed in range(3):
+        rot = Rotation.random(random_state=seed).as_matrix()
+        moved = shape @ rot.T + np.array([400.0, -1200.0, 250.0])
+        res, search = fit_any_pose(foreign, Target.from_mesh(moved, foreign.faces), params=params)
+        assert abs(res.mean_distance_mm - home.mean_distance_mm) < 0.1, search
+        np.testing.assert_allclose(res.coefficients[:3], home.coefficients[:3], atol=0.1)
