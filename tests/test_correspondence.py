@@ -60,6 +60,25 @@ def _landmark_ext(path) -> str:
     return spec.landmarks.name.split(".", 1)[1]
 
 
+def _swap_two_landmarks(population, prefix: str):
+    """The project text with one instance's first landmark swapped with its farthest one:
+    (instance, its landmarks, the swapped points, the far index, the project text)."""
+    from ssm_addon.formats.landmarks import LandmarkSet, write_landmarks
+
+    tpl = _template(population)
+    victim = "demo_00" if tpl != "demo_00" else "demo_01"
+    project = read_project(population)
+    spec = next(i for i in project.instances if i.name == victim)
+    lm = read_landmarks(spec.landmarks)
+    pts = lm.points_world.copy()
+    far = int(np.argmax(np.linalg.norm(pts - pts[0], axis=1)))
+    pts[[0, far]] = pts[[far, 0]]
+    swapped = population.parent / f"{prefix}_{victim}.fcsv"
+    write_landmarks(swapped, LandmarkSet(lm.names, pts, victim))
+    text = population.read_text().replace(f'landmarks = "{spec.landmarks.name}"', f'landmarks = "{swapped.name}"')
+    return victim, lm, pts, far, text
+
+
 def _sha(path):
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
@@ -274,19 +293,7 @@ def test_a_swapped_landmark_is_named_by_the_self_check(population, tmp_path):
     """Exact landmarks (the default) keep a swapped pair where given: the landmark transfer
     self-check (the other instances' model predicts them elsewhere) names the instance and
     one of the two landmarks, in the single pass and in the model method."""
-    from ssm_addon.formats.landmarks import LandmarkSet, write_landmarks
-
-    tpl = _template(population)
-    victim = "demo_00" if tpl != "demo_00" else "demo_01"
-    project = read_project(population)
-    spec = next(i for i in project.instances if i.name == victim)
-    lm = read_landmarks(spec.landmarks)
-    pts = lm.points_world.copy()
-    far = int(np.argmax(np.linalg.norm(pts - pts[0], axis=1)))
-    pts[[0, far]] = pts[[far, 0]]
-    swapped = population.parent / f"swapped2_{victim}.fcsv"
-    write_landmarks(swapped, LandmarkSet(lm.names, pts, victim))
-    text = population.read_text().replace(f'landmarks = "{spec.landmarks.name}"', f'landmarks = "{swapped.name}"')
+    victim, lm, pts, far, text = _swap_two_landmarks(population, "swapped2")
     for method in ("landmarks", "model"):
         proj = population.with_name(f"swapped-{method}.toml")
         proj.write_text(text.replace("[coating]", f'[correspondence]\nmethod = "{method}"\niterations = 2\n\n'
@@ -306,19 +313,7 @@ def test_a_swapped_landmark_is_named_although_the_model_corrects_it(population, 
     the landmarks, so a landmark the user swapped with another may be corrected; kept or
     not, the coating lies far from the given landmark, and the landmark-residual gate names
     the instance (against the given landmarks, not the estimate) and the landmark."""
-    from ssm_addon.formats.landmarks import LandmarkSet, write_landmarks
-
-    tpl = _template(population)
-    victim = "demo_00" if tpl != "demo_00" else "demo_01"
-    project = read_project(population)
-    spec = next(i for i in project.instances if i.name == victim)
-    lm = read_landmarks(spec.landmarks)
-    pts = lm.points_world.copy()
-    far = int(np.argmax(np.linalg.norm(pts - pts[0], axis=1)))
-    pts[[0, far]] = pts[[far, 0]]
-    swapped = population.parent / f"swapped_{victim}.fcsv"
-    write_landmarks(swapped, LandmarkSet(lm.names, pts, victim))
-    text = population.read_text().replace(f'landmarks = "{spec.landmarks.name}"', f'landmarks = "{swapped.name}"')
+    victim, lm, pts, far, text = _swap_two_landmarks(population, "swapped")
     proj = population.with_name("swapped.toml")
     proj.write_text(text.replace("[coating]", '[correspondence]\nmethod = "model"\niterations = 2\n'
                                               'exact_landmarks = false\n\n[coating]'))

@@ -94,11 +94,10 @@ def test_completion_predicts_the_missing_part_and_its_uncertainty_is_calibrated(
     assert np.mean(errors) < 0.5 * np.mean(model.standard_deviations[:2])
 
 
-def test_our_statismo_file_and_another_tools_fit_identically(model, tmp_path):
-    ours = tmp_path / "ours.h5"
-    save_statismo(model, ours)
-    other = tmp_path / "other.h5"
-    with h5py.File(other, "w") as f:  # the statismo 0.9 layout, as another tool writes it (no /ssm extras)
+def write_foreign_statismo(model, path):
+    """``model`` as another tool writes a statismo file (the 0.9 layout, float32, no SSM
+    extras and no training instances); returns ``path``."""
+    with h5py.File(path, "w") as f:
         f.create_group("version")
         f["version/majorVersion"], f["version/minorVersion"] = np.int32(0), np.int32(9)
         f["model/mean"] = model.mean.reshape(-1).astype(np.float32)
@@ -111,6 +110,13 @@ def test_our_statismo_file_and_another_tools_fit_identically(model, tmp_path):
         rep["points"] = model.mean.T.astype(np.float32)
         rep["cells"] = np.asarray(model.faces, np.int32).T
         f.create_group("modelinfo")["build-time"] = "2026-01-01"
+    return path
+
+
+def test_our_statismo_file_and_another_tools_fit_identically(model, tmp_path):
+    ours = tmp_path / "ours.h5"
+    save_statismo(model, ours)
+    other = write_foreign_statismo(model, tmp_path / "other.h5")
     a, b = load_statismo(ours), load_statismo(other)
     target, pose = _posed(a, [1.0, 0.5], seed=7)
     fits = [fit_model(m, Target.from_mesh(target, a.faces), pose=Pose(pose.rotation, pose.translation))
@@ -428,19 +434,7 @@ def test_a_foreign_statismo_model_fits_a_target_anywhere_as_in_its_own_coordinat
 
     from ssm_addon.fitting.fit import fit_any_pose
 
-    other = tmp_path / "other.h5"
-    with h5py.File(other, "w") as f:
-        f.create_group("version")
-        f["version/majorVersion"], f["version/minorVersion"] = np.int32(0), np.int32(9)
-        f["model/mean"] = model.mean.reshape(-1).astype(np.float32)
-        f["model/pcaBasis"] = model.modes.reshape(model.n_modes, -1).T.astype(np.float32)
-        f["model/pcaVariance"] = model.variances.astype(np.float32)
-        f["model/noiseVariance"] = np.float32(0.0)
-        rep = f.create_group("representer")
-        rep.attrs["name"] = "itkStandardMeshRepresenter"
-        rep["points"] = model.mean.T.astype(np.float32)
-        rep["cells"] = np.asarray(model.faces, np.int32).T
-    foreign = load_statismo(other)
+    foreign = load_statismo(write_foreign_statismo(model, tmp_path / "other.h5"))
     shape = foreign.generate(np.array([1.0, -0.7, 0.4]) * foreign.standard_deviations[:3])
     params = FitParams(noise_mm=0.1)
     home, _ = fit_any_pose(foreign, Target.from_mesh(shape, foreign.faces), params=params)

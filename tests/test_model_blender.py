@@ -256,9 +256,9 @@ def test_import_shape_model_opens_our_npz_and_a_foreign_statismo_file(bpy_clean,
     """File › Import › Shape Model: our model.npz and a statismo 0.9 file as another tool
     writes it give the mean mesh with one shape key per mode, whose evaluated shape at
     mode values v is mean + Σ v_k √λ_k q_k (float32 meshes), and the Model panel's object."""
-    import h5py
     from ssm.operators import bridge
     from ssm.operators.scene import find_model_object, model_from_object
+    from test_fitting import write_foreign_statismo
 
     from ssm_addon.model.files import save_npz
     from ssm_addon.model.pca import build_model
@@ -267,18 +267,7 @@ def test_import_shape_model_opens_our_npz_and_a_foreign_statismo_file(bpy_clean,
     shapes, faces, _frames = population
     model = build_model(shapes, faces, [f"s{i}" for i in range(len(shapes))])
     save_npz(model, tmp_path / "model.npz")
-    other = tmp_path / "other.h5"
-    with h5py.File(other, "w") as f:  # the statismo 0.9 layout, no SSM extras
-        f.create_group("version")
-        f["version/majorVersion"], f["version/minorVersion"] = np.int32(0), np.int32(9)
-        f["model/mean"] = model.mean.reshape(-1).astype(np.float32)
-        f["model/pcaBasis"] = model.modes.reshape(model.n_modes, -1).T.astype(np.float32)
-        f["model/pcaVariance"] = model.variances.astype(np.float32)
-        f["model/noiseVariance"] = np.float32(0.0)
-        rep = f.create_group("representer")
-        rep.attrs["name"] = "itkStandardMeshRepresenter"
-        rep["points"] = model.mean.T.astype(np.float32)
-        rep["cells"] = np.asarray(faces, np.int32).T
+    other = write_foreign_statismo(model, tmp_path / "other.h5")  # another tool's statismo 0.9 layout
     v = np.array([1.5, -2.0, 0.7])
     for path in (tmp_path / "model.npz", other):
         assert bpy.ops.ssm.import_model(filepath=str(path)) == {"FINISHED"}
