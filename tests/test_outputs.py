@@ -114,3 +114,36 @@ def test_command_line_force_and_foreign_file_message(quick_project, tmp_path, ca
     assert "--force" in capsys.readouterr().err
     assert main(["build", str(quick_project), "--out", str(out), "--no-blend", "--force"]) == 0
     assert (out / "keep.me").read_text() == "x"
+
+
+@pytest.mark.slow
+def test_score_tables_hold_the_models_projections(quick_project, tmp_path):
+    """scores.csv: each instance's mode weights in SD and mm, equal to model.npz's
+    projections; eigenvalues.csv: the variances with their shares; [output] scores = false
+    writes neither."""
+    import csv
+
+    import numpy as np
+
+    from ssm_addon.model.files import load_npz
+
+    result = build(read_project(quick_project), tmp_path / "out", log=None)
+    model = load_npz(tmp_path / "out" / "model.npz")
+    rows = list(csv.DictReader(open(tmp_path / "out" / "scores.csv", encoding="utf-8")))
+    assert [r["instance"] for r in rows] == list(model.instance_names)
+    k = model.n_modes
+    for r, pts in zip(rows, model.instance_points):
+        b = model.project(pts)
+        np.testing.assert_allclose([float(r[f"b{i + 1}_mm"]) for i in range(k)], b, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose([float(r[f"z{i + 1}"]) for i in range(k)], b / model.standard_deviations,
+                                   rtol=1e-5, atol=1e-6)
+    eig = list(csv.DictReader(open(tmp_path / "out" / "eigenvalues.csv", encoding="utf-8")))
+    np.testing.assert_allclose([float(e["variance_mm2"]) for e in eig], model.variances, rtol=1e-8)
+    assert abs(float(eig[-1]["cumulative"]) - 1.0) < 1e-5
+    assert {"scores", "eigenvalues"} <= set(result.files)
+    off = quick_project.with_name("noscores.toml")
+    text = quick_project.read_text()
+    off.write_text(text.replace("[model]", "[output]\nscores = false\n\n[model]") if "[output]" not in text
+                   else text.replace("[output]", "[output]\nscores = false"))
+    build(read_project(off), tmp_path / "off", log=None)
+    assert not (tmp_path / "off" / "scores.csv").exists() and not (tmp_path / "off" / "eigenvalues.csv").exists()

@@ -305,6 +305,7 @@ def write_outputs(
     statismo: bool = True,
     statismo_name: str = "model.h5",
     report: bool = True,
+    tables: bool = True,
 ) -> dict:
     """Write a model's outputs into ``out_dir``: its files, the plots and (``report``) ``report.json``.
 
@@ -314,7 +315,7 @@ def write_outputs(
     missing) and the report under ``"document"`` (a build adds its timings and writes it once).
     """
     out_dir = Path(out_dir)
-    written = write_model_files(model, out_dir, statismo=statismo, statismo_name=statismo_name)
+    written = write_model_files(model, out_dir, statismo=statismo, statismo_name=statismo_name, tables=tables)
     plot_info = write_plots(model, out_dir, metrics) if plots else {"files": []}
     written["plots"] = plot_info["files"]
     if "skipped" in plot_info:

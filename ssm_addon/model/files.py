@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import datetime
 import json
 import os
@@ -269,14 +270,48 @@ def load_statismo(path) -> ShapeModel:
     )
 
 
-def write_model_files(model: ShapeModel, out_dir, *, statismo: bool = True, statismo_name: str = "model.h5") -> dict:
-    """Write ``model.npz`` and (``statismo``) the statismo file into ``out_dir``.
+def write_score_tables(model: ShapeModel, out_dir) -> dict:
+    """``scores.csv`` and ``eigenvalues.csv`` in ``out_dir``: the tables the next tool reads.
 
-    Returns ``{"npz": path, "statismo": path}`` (only what was written).
+    ``scores.csv``: one row per training instance, its mode weights b_k = q_kᵀ (p − p̄)
+    (paper eq. 7) in standard deviations (``z1`` …, b_k / √λ_k) and in mm (``b1_mm`` …).
+    ``eigenvalues.csv``: per mode its variance λ_k (mm²), σ_k = √λ_k (mm), its share of
+    the total variance and the cumulative share (eq. 8).
+
+    Returns ``{"scores": path, "eigenvalues": path}``.
+    """
+    out_dir = Path(out_dir)
+    k = model.n_modes
+    sd = np.sqrt(np.maximum(np.asarray(model.variances, float), 1e-300))
+    b = np.array([model.project(p) for p in np.asarray(model.instance_points, float)]).reshape(-1, k)
+    with open(out_dir / "scores.csv", "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(["instance"] + [f"z{i + 1}" for i in range(k)] + [f"b{i + 1}_mm" for i in range(k)])
+        for name, row in zip(model.instance_names, b):
+            w.writerow([str(name)] + [f"{x:.6g}" for x in row / sd] + [f"{x:.6g}" for x in row])
+    share = np.asarray(model.variances, float) / max(float(model.total_variance), 1e-300)
+    with open(out_dir / "eigenvalues.csv", "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(["mode", "variance_mm2", "sd_mm", "fraction", "cumulative"])
+        for i in range(k):
+            w.writerow([i + 1, f"{model.variances[i]:.9g}", f"{sd[i]:.9g}", f"{share[i]:.6g}",
+                        f"{share[: i + 1].sum():.6g}"])
+    return {"scores": str(out_dir / "scores.csv"), "eigenvalues": str(out_dir / "eigenvalues.csv")}
+
+
+def write_model_files(model: ShapeModel, out_dir, *, statismo: bool = True, statismo_name: str = "model.h5",
+                      tables: bool = True) -> dict:
+    """Write ``model.npz``, (``statismo``) the statismo file and (``tables``) the score tables
+    (:func:`write_score_tables`) into ``out_dir``.
+
+    Returns ``{"npz": path, "statismo": path, "scores": path, "eigenvalues": path}`` (only
+    what was written).
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = {"npz": str(save_npz(model, out_dir / "model.npz"))}
     if statismo:
         written["statismo"] = str(save_statismo(model, out_dir / statismo_name))
+    if tables and model.n_instances:
+        written.update(write_score_tables(model, out_dir))
     return written

@@ -650,6 +650,8 @@ class OutputParams:
                             help="write landmarks/<name>.<ext> per instance: the template instance's landmarks "
                                  "where the coating carried them (for review and correction)")
     statismo: bool = param(True, label="Statismo file", help="write model.h5 (statismo 0.9 layout)")
+    scores: bool = param(True, label="Score tables",
+                         help="write scores.csv (each instance's mode weights in SD and mm) and eigenvalues.csv")
     blend: bool = param(True, label="Blender file", help="write model.blend when bpy is available")
     picture: bool = param(True, label="Mode picture", help="write modes.png (paper fig. 10) when bpy is available")
     picture_modes: int = param(2, minimum=1, maximum=10, label="Picture modes",
