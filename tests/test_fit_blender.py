@@ -77,3 +77,16 @@ def test_a_failed_fit_leaves_the_scene_as_it_was(scene_with_model):
     with pytest.raises(RuntimeError, match="select at least 10 vertices"):
         bpy.ops.ssm.fit_model(partial=True)
     assert sorted(o.name for o in bpy.data.objects) == names
+
+
+def test_a_fitted_value_beyond_three_sd_is_shown_not_clamped(scene_with_model):
+    """A target 4.5 SD along mode 1: the slider shows 4.5 (its range widened past ±3, not
+    set to ±10), and the others keep ±3."""
+    bpy, model_obj, model = scene_with_model
+    _target(bpy, model, [4.5, 0.0, 0.0])
+    assert bpy.ops.ssm.fit_model() == {"FINISHED"}
+    from ssm.operators.model import mode_keys
+
+    keys = mode_keys(model_obj)
+    assert abs(keys[0].value - 4.5) < 0.2 and keys[0].slider_max >= keys[0].value and keys[0].slider_max < 10
+    assert all(kb.slider_min == -3.0 and kb.slider_max == 3.0 for kb in keys[1:] if abs(kb.value) < 2.5)
