@@ -122,6 +122,15 @@ def rank_correlation(true: dict, check: dict, skip: str) -> float:
     return float(spearmanr([true[n] for n in names], [check[n] for n in names])[0])
 
 
+def truth_errors(study, truth: dict):
+    """A function of coated points (object frames, by instance) -> their distances (mm, world)
+    from ``truth`` (the template points' true places on each instance, world mm)."""
+    def error_of(points: dict) -> dict:
+        return {n: np.linalg.norm(study.frame(n).to_world(points[n]) - truth[n], axis=1) for n in truth}
+
+    return error_of
+
+
 def report_run(label: str, errors: dict, study, seconds: float, args, error_of=None) -> dict:
     allv = np.concatenate(list(errors.values()))
     truth_rounds = []
@@ -185,11 +194,7 @@ def eval_meshes(args) -> dict:
     # surface: its true place on instance k is the same place of k's mesh (shared faces)
     _c, _d, tri, bary = MeshLocator(v0, f0).query(study.frame(names[0]).to_world(template_points), k=12)
     loc = MeshLocation(tri, bary)
-    truth = {n: loc.evaluate(v, f0) for n, (v, _f) in zip(names, meshes)}
-
-    def error_of(points: dict) -> dict:
-        return {n: np.linalg.norm(study.frame(n).to_world(points[n]) - truth[n], axis=1) for n in names}
-
+    error_of = truth_errors(study, {n: loc.evaluate(v, f0) for n, (v, _f) in zip(names, meshes)})
     errors = error_of({n: study.coatings[n].points_object for n in names})
     label = (f"{args.population} {args.method} landmarks={args.landmarks} on={min(args.on, len(names))} "
              f"jitter={args.jitter}")
@@ -347,11 +352,7 @@ def eval_deformed(args):
                                       landmark_set=read_landmarks(lm) if lm else None))
         study, template_points, seconds = run_study(specs, names[0], args.method, args.iterations, args.jobs)
     p0 = study.frame(names[0]).to_world(template_points)
-    truth = {n: p0 + u(p0) for n, u in zip(names, maps)}
-
-    def error_of(points: dict) -> dict:
-        return {n: np.linalg.norm(study.frame(n).to_world(points[n]) - truth[n], axis=1) for n in names}
-
+    error_of = truth_errors(study, {n: p0 + u(p0) for n, u in zip(names, maps)})
     errors = error_of({n: study.coatings[n].points_object for n in names})
     label = (f"deformed-{label_names[args.label]} n={args.n} {args.method} landmarks={len(given)} "
              f"on={min(args.on, args.n)} jitter={args.jitter}")

@@ -138,7 +138,7 @@ def load_target(t: FitTarget, model, *, spacing_mm: float | None = None,
         An open mesh without ``partial`` (the message says to give ``--partial``); a target
         of fewer than ``MIN_TARGET_POINTS`` points (too few to fix a pose and a shape).
     """
-    from ..formats.label_maps import load_volume
+    from ..formats.label_maps import read_label_map, select_label
     from ..instances.importing import instance_frame
     from ..instances.volume import display_surface
     from ..instances.voxelize import voxelize_mesh
@@ -152,11 +152,15 @@ def load_target(t: FitTarget, model, *, spacing_mm: float | None = None,
     if len(given) > 1:
         raise InputError(f"{t.name}: give one of a volume, a mesh or points (and optionally landmarks)")
     if t.volume is not None:
-        vol = load_volume(t.volume, t.label)
+        label_map = read_label_map(t.volume)  # read once: the object, and the labels merged without --label
+        vol = select_label(label_map, t.label)
         verts, faces = display_surface(vol)
         frame = instance_frame(vol, method)
-        return Target.from_mesh(verts, faces, source=str(t.volume), landmarks=landmarks), \
-            Pose(frame.axes_world, frame.origin_world)
+        target = Target.from_mesh(verts, faces, source=str(t.volume), landmarks=landmarks)
+        if t.label is None:
+            labels = np.unique(np.asarray(label_map.labels))
+            target.merged_labels = tuple(int(x) for x in labels[labels != 0])
+        return target, Pose(frame.axes_world, frame.origin_world)
     if t.mesh is not None:
         verts, faces = read_mesh(t.mesh)
         _enough_points(verts, t.mesh, landmarks)
@@ -178,12 +182,13 @@ def load_target(t: FitTarget, model, *, spacing_mm: float | None = None,
 
 
 def fit_picture(result: FitResult, faces: np.ndarray, target: Target, size_px: int = 360, *,
-                title: str = "") -> bytes:
+                title: str = "", outlier: bool | None = None) -> bytes:
     """Two views (along the model frame's z and x axes) of the fit over the target's points (PNG).
 
     Labelled: a title (``title``, the Mahalanobis distance, the mean distance, an outlier
     flag), the views' names, a colour bar of the posterior SD in mm, and what the surface
-    (the fitted shape) and the dots (the target's points) are.
+    (the fitted shape) and the dots (the target's points) are. ``outlier``: the caller's
+    decision (default: the 99 % limit of :func:`~ssm_addon.fitting.fit.outlier_limit`).
     """
     from PIL import Image, ImageDraw
 
@@ -222,8 +227,9 @@ def fit_picture(result: FitResult, faces: np.ndarray, target: Target, size_px: i
                 draw.point((x, size_px - y), fill=(20, 20, 20))
         draw.text((6, 4), name, fill=(60, 60, 60))
         canvas.paste(img, (j * size_px, head))
-    flag = "  OUTLIER" if not math.isfinite(result.mahalanobis) or result.mahalanobis > outlier_limit(
-        result.n_modes) else ""
+    if outlier is None:
+        outlier = not math.isfinite(result.mahalanobis) or result.mahalanobis > outlier_limit(result.n_modes)
+    flag = "  OUTLIER" if outlier else ""
     draw_c.text((8, 6), f"{title or target.source or 'target'}: fit of the model", fill=(0, 0, 0))
     draw_c.text((8, 24), f"Mahalanobis distance {result.mahalanobis:.2f} on {result.n_modes} modes; mean distance "
                          f"{result.mean_distance_mm:.2f} mm, largest {result.max_distance_mm:.2f} mm{flag}",
@@ -287,14 +293,10 @@ def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = No
     if size_t > 0 and not partial and not 0.2 < size_t / size_m < 5.0:
         warnings.append(f"the target is {size_t / size_m:.3g} times the model's size ({size_t:.3g} against "
                         f"{size_m:.3g} mm): another unit (m, cm)?")
-    if t.volume is not None and t.label is None:
-        from ..formats.label_maps import read_label_map
-
-        labels = np.unique(np.asarray(read_label_map(t.volume).labels))
-        labels = labels[labels != 0]
-        if len(labels) > 1:
-            warnings.append(f"{t.volume} holds {len(labels)} labels ({', '.join(str(int(x)) for x in labels[:6])}"
-                            f"{' …' if len(labels) > 6 else ''}) and no --label was given: they were fitted merged")
+    labels = target.merged_labels
+    if len(labels) > 1:
+        warnings.append(f"{t.volume} holds {len(labels)} labels ({', '.join(str(x) for x in labels[:6])}"
+                        f"{' …' if len(labels) > 6 else ''}) and no --label was given: they were fitted merged")
     doc["landmarks_used"] = sorted(result.landmark_residuals_mm)
     doc["warnings"] = warnings
     if free and target.locator is not None:
@@ -303,7 +305,7 @@ def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = No
 
         doc["files"]["free"] = "fitted_free.ply"
         doc["free"] = _free_fit(result, faces, t, model, out_dir / "fitted_free.ply", coat_from_start, ObjectFrame)
-    (out_dir / "fit.png").write_bytes(fit_picture(result, faces, target, title=t.name))
+    (out_dir / "fit.png").write_bytes(fit_picture(result, faces, target, title=t.name, outlier=doc["outlier"]))
     (out_dir / "fit.json").write_text(json.dumps(doc, indent=1), encoding="utf-8")
     report(progress, 1.0, f"fitted {t.name}: Mahalanobis {result.mahalanobis:.2f}, mean distance "
                            f"{result.mean_distance_mm:.2f} mm")

@@ -72,8 +72,17 @@ from ..pipeline.progress import CancelledFn, ProgressFn, sub_progress
 REFINE_FIT_SAMPLES = 2000
 REFINE_FIT_TOLERANCE_MM = 0.01
 
-__all__ = ["AXIS_TURNS", "WORLD_POSE_TOLERANCE", "CorrespondenceCheck", "RoundFigures", "aligned_to", "check_correspondence", "landmark_transfer", "refine_instance",
+__all__ = ["AXIS_TURNS", "WORLD_POSE_TOLERANCE", "CorrespondenceCheck", "RoundFigures", "aligned_to",
+           "correspondence_fit_params", "check_correspondence", "landmark_transfer", "refine_instance",
            "refine_rounds", "resample_instance", "start_from_model", "starts_from_model"]
+
+
+def correspondence_fit_params(params: CorrespondenceParams) -> FitParams:
+    """The fits of the model method and of the self-check: the ``[correspondence]`` noise
+    and landmark weight, the looser stop, and no model error in the posterior (these fits
+    use the fitted shape, never its posterior SD)."""
+    return FitParams(noise_mm=params.fit_noise_mm, landmark_weight=params.landmark_weight,
+                     tolerance_mm=REFINE_FIT_TOLERANCE_MM, model_error=False)
 
 
 @dataclass(frozen=True)
@@ -540,8 +549,7 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
     faces = np.asarray(study.template.faces)
     # the template's landmarks as mesh points, located at make_template (study.py)
     locations = (study.template.params or {}).get("landmark_locations") or {"names": [], "triangles": [], "bary": []}
-    fit = FitParams(noise_mm=params.fit_noise_mm, landmark_weight=params.landmark_weight,
-                    tolerance_mm=REFINE_FIT_TOLERANCE_MM)
+    fit = correspondence_fit_params(params)
     lm_object = {}
     for n in names:
         lm = study.landmarks(n)

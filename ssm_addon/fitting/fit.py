@@ -38,7 +38,7 @@ from ..pipeline.errors import InputError, check_cancelled
 from ..pipeline.params import FitParams
 from ..pipeline.progress import CancelledFn, ProgressFn, report
 
-__all__ = ["FitResult", "Pose", "Target", "fit_any_pose", "fit_best", "fit_model", "model_error_variance", "model_landmarks",
+__all__ = ["FitResult", "Pose", "Target", "fit_any_pose", "fit_model", "model_error_variance", "model_landmarks",
            "outlier_limit", "rigid_screen", "start_poses"]
 
 
@@ -80,6 +80,7 @@ class Target:
     locator: MeshLocator | None = None  # exact closest points on triangles
     tree: cKDTree | None = None  # closest sample points
     landmarks: LandmarkSet | None = None
+    merged_labels: tuple = ()  # a label map read without a label: the labels fitted together
 
     @classmethod
     def from_mesh(cls, vertices, faces, *, source: str = "", landmarks=None, max_samples: int = 20000) -> Target:
@@ -559,20 +560,3 @@ def fit_any_pose(model, target: Target, *, params: FitParams | None = None, fram
     doc = {"starts": [{"name": n, "screened_mm": (None if not np.isfinite(d) else d), "fitted_mm": fitted.get(n)}
                       for n, _p, d in screened], "chosen": chosen}
     return best, doc
-
-
-def fit_best(model, target: Target, poses, *, params: FitParams | None = None, partial: bool = False,
-             progress: ProgressFn = None, cancelled: CancelledFn = None) -> FitResult:
-    """:func:`fit_model` from several start poses; the fit closest to the target wins.
-
-    For targets whose pose is not known (a mesh drawn anywhere): e.g. the target's
-    centroid with the model's axes, and its principal axes paired with the patient axes.
-    """
-    best = None
-    poses = list(poses)
-    for i, pose in enumerate(poses):
-        res = fit_model(model, target, params=params, pose=pose, partial=partial, cancelled=cancelled)
-        report(progress, (i + 1) / len(poses), f"start {i + 1} of {len(poses)}: {res.mean_distance_mm:.3f} mm")
-        if best is None or res.mean_distance_mm < best.mean_distance_mm:
-            best = res
-    return best

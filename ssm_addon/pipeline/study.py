@@ -52,7 +52,7 @@ from ..model.quality import (
     check_volumes_together,
 )
 from ..pipeline.errors import InputError, check_cancelled
-from ..pipeline.params import CoatingParams, CorrespondenceParams, FitParams, ModelParams, QualityParams, TemplateParams
+from ..pipeline.params import CoatingParams, CorrespondenceParams, ModelParams, QualityParams, TemplateParams
 from ..pipeline.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..pipeline.records import versions
 from ..template.template import Template, build_template
@@ -377,7 +377,7 @@ def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: in
         The template instance has no landmarks (they name the places carried to every
         instance).
     """
-    from ..fitting.correspondence import starts_from_model
+    from ..fitting.correspondence import correspondence_fit_params, starts_from_model
 
     names = list(study.names if names is None else names)
     with_lm = [n for n in study.names if study.landmarks(n) is not None]
@@ -394,7 +394,7 @@ def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: in
         stack = np.stack([(coated.get(n) or study.coatings[n]).points_object for n in landmarked])
         coated.update(starts_from_model(stack, study.template.faces, study.template.points_object,
                                         template_landmark_locations(study), {n: study.volume(n) for n in rest},
-                                        fit=FitParams(noise_mm=cp.fit_noise_mm, tolerance_mm=0.01),
+                                        fit=correspondence_fit_params(cp),
                                         coating=study.coating_params, template_frame=study.frame(study.template_instance),
                                         jobs=jobs, cancelled=cancelled))
         start = "model fit"
@@ -887,7 +887,7 @@ def self_check(study: Study, coatings: dict[str, CoatingResult], *, template: Te
     Returns ``(CorrespondenceCheck, findings)``, or ``(None, ())`` when it does not apply
     (switched off, fewer than 3 instances or instances not all coated, no landmarks).
     """
-    from ..fitting.correspondence import check_correspondence
+    from ..fitting.correspondence import check_correspondence, correspondence_fit_params
     from ..model.quality import check_landmark_transfer
 
     template = template or study.template
@@ -902,8 +902,7 @@ def self_check(study: Study, coatings: dict[str, CoatingResult], *, template: Te
         lm = study.landmarks(n)
         frame = frames.get(n) or study.frame(n)
         given[n] = {} if lm is None else dict(zip(lm.names, frame.to_object(lm.points_world)))
-    cp = study.correspondence_params
-    fit = FitParams(noise_mm=cp.fit_noise_mm, tolerance_mm=0.01)
+    fit = correspondence_fit_params(study.correspondence_params)
     check = check_correspondence({n: coatings[n].points_object for n in names}, template.faces, locations, given,
                                  fit=fit, executor=executor, jobs=jobs, cancelled=cancelled)
     return check, tuple(check_landmark_transfer(check, study.quality_params))
