@@ -1,0 +1,277 @@
+"""The analysis's files: ``analysis.json``, ``analysis.npz``, ``analysis_scores.csv``, VTK meshes, pictures.
+
+``analysis.json``
+    The tests (``group_test.p_value`` is the global group test), effect sizes, groups and
+    counts, exclusions and warnings.
+``analysis.npz`` (``allow_pickle=False``)
+    ``mean`` (N,3), ``faces``; ``effect_names`` (E,), ``effects`` (E,N,3) mm per unit,
+    ``effects_normal`` (E,N); ``group_levels`` (G,), ``group_means`` (G,N,3);
+    ``displacement`` (N,3) and ``displacement_normal`` (N,): the first group effect (level
+    2 − reference); ``t2`` (N,) Hotelling's T², ``pillai``, ``p_point``, ``p_fdr``,
+    ``p_fwer`` (N,) of the group term; ``term_names`` (T,) and ``term_pillai``,
+    ``term_p_fdr`` (T,N) of every term; ``discriminant`` (N,3) when there are groups.
+``analysis_scores.csv``
+    One row per analysed instance: its attributes, centroid size and mode scores (SD).
+``effects/<effect>.vtp``
+    The mean surface with each effect's displacement, normal component, and the term's
+    statistic and p-values as point fields.
+``analysis_map.png``, ``analysis_scores.png``
+    The group displacement's normal component on the mean surface (diverging scale in mm,
+    points not significant at FDR 5 % greyed) and score scatter plots coloured by group.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ..formats.vtk import write_vtp
+from ..model.files import write_npz
+from ..pipeline.records import jsonable
+from .shape_analysis import Analysis
+
+__all__ = ["FDR_LEVEL", "analysis_arrays", "analysis_document", "analysis_map_picture", "scores_picture", "write_analysis"]
+
+#: The FDR level of the maps' significance masks and the counts in analysis.json.
+FDR_LEVEL = 0.05
+
+
+def _term_doc(test, adjusted_for) -> dict:
+    doc = {"p_value": test.p_value, "f": test.f, "r_squared": test.r_squared, "df": test.df,
+           "residual_df": test.residual_df, "permutations": test.permutations, "adjusted_for": list(adjusted_for)}
+    if test.p_fdr.size:
+        doc.update({"points_significant_fdr": int(np.sum(test.p_fdr <= FDR_LEVEL)),
+                    "points_significant_fwer": int(np.sum(test.p_fwer <= FDR_LEVEL)),
+                    "points": int(test.p_fdr.size), "fdr_level": FDR_LEVEL,
+                    "smallest_p_point": float(test.p_point.min())})
+    return doc
+
+
+def analysis_document(result: Analysis, *, model_path: str | None = None) -> dict:
+    """``analysis.json``'s content."""
+    terms = list(result.tests)
+    effects = []
+    for e in result.effects:
+        size = np.linalg.norm(e.displacement, axis=1)
+        effects.append({"name": e.name, "term": e.term, "unit": e.unit, "max_mm": float(size.max()),
+                        "rms_mm": float(np.sqrt(np.mean(size**2))), "normal_min_mm": float(e.normal.min()),
+                        "normal_max_mm": float(e.normal.max()), "largest_at_point": int(np.argmax(size))})
+    doc = {
+        "model": model_path,
+        "instances": list(result.names),
+        "excluded": result.excluded,
+        "n": len(result.names),
+        "group": None if not result.group else {
+            "column": result.group, "levels": list(result.levels), "reference": result.levels[0],
+            "counts": result.counts},
+        "covariates": list(result.covariates),
+        "size_removed": result.size_removed,
+        "permutations": result.permutations,
+        "seed": result.seed,
+        "r_squared": result.r_squared,
+        "tests": {t: _term_doc(result.tests[t], [o for o in terms if o != t]) for t in terms},
+        "pairwise": {k: _term_doc(v, list(result.covariates)) for k, v in result.pairwise.items()},
+        "effects": effects,
+        "centroid_size_mm": {"mean": float(result.centroid_sizes.mean()), "sd": float(result.centroid_sizes.std())},
+        "warnings": list(result.warnings),
+        "method": {
+            "global": "pseudo-F on all coordinates, Freedman-Lane permutation of the reduced model's residuals",
+            "per_point": "Pillai's trace of the term on the point's 3-D residual scatter (two groups: Hotelling "
+                         "T^2); permutation p-values, Benjamini-Hochberg FDR and max-statistic FWER across points",
+        },
+    }
+    if result.group:
+        doc["group_test"] = doc["tests"][result.group]
+    if result.discriminant:
+        d = result.discriminant
+        doc["discriminant"] = {"modes": d["modes"], "group_scores_sd": d["group_scores"],
+                               "loo_accuracy": d["loo_accuracy"],
+                               "max_mm_per_sd": float(np.linalg.norm(d["displacement"], axis=1).max())}
+    return jsonable(doc)
+
+
+def _safe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.+-]+", "_", name).strip("_") or "effect"
+
+
+def analysis_arrays(result: Analysis) -> dict:
+    """``analysis.npz``'s arrays."""
+    n_points = result.mean.shape[0]
+    terms = list(result.tests)
+    arrays = {
+        "mean": result.mean, "faces": np.asarray(result.faces, np.int64),
+        "effect_names": np.asarray([e.name for e in result.effects] or [""])[: len(result.effects)],
+        "effects": np.stack([e.displacement for e in result.effects]) if result.effects else np.zeros((0, n_points, 3)),
+        "effects_normal": np.stack([e.normal for e in result.effects]) if result.effects else np.zeros((0, n_points)),
+        "term_names": np.asarray(terms),
+        "term_pillai": np.stack([result.tests[t].pillai for t in terms]),
+        "term_p_fdr": np.stack([result.tests[t].p_fdr for t in terms]),
+        "term_p_fwer": np.stack([result.tests[t].p_fwer for t in terms]),
+    }
+    if result.group:
+        test = result.tests[result.group]
+        first = next(e for e in result.effects if e.term == result.group)
+        arrays.update({
+            "group_levels": np.asarray(result.levels),
+            "group_means": np.stack([result.group_means[lv] for lv in result.levels]),
+            "displacement": first.displacement, "displacement_normal": first.normal,
+            "t2": test.hotelling_t2, "pillai": test.pillai, "p_point": test.p_point, "p_fdr": test.p_fdr,
+            "p_fwer": test.p_fwer,
+        })
+        if result.discriminant:
+            arrays["discriminant"] = result.discriminant["displacement"]
+    return arrays
+
+
+def _mesh_view(points: np.ndarray):
+    """Two views of the mean (screen x, y, depth rows): along its thinnest axis and across."""
+    depth = int(np.argmin(np.ptp(points, axis=0)))
+    rest = [a for a in range(3) if a != depth]
+    return [np.eye(3)[[rest[0], rest[1], depth]], np.eye(3)[[rest[0], depth, rest[1]]]]
+
+
+def analysis_map_picture(result: Analysis, path, *, effect: str | None = None) -> Path:
+    """The normal component of an effect on the mean surface (mm, diverging blue–red scale with
+    its legend); points not significant at FDR 5 % of the effect's term are grey."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.collections import PolyCollection
+    from matplotlib.colors import TwoSlopeNorm
+    from matplotlib.figure import Figure
+
+    e = result.effect(effect) if effect else result.effects[0]
+    test = result.tests[e.term]
+    value = e.normal
+    lim = max(float(np.max(np.abs(value))), 1e-6)
+    norm = TwoSlopeNorm(vcenter=0.0, vmin=-lim, vmax=lim)
+    fig = Figure(figsize=(9.0, 4.4), dpi=100)
+    FigureCanvasAgg(fig)
+    import matplotlib
+
+    cmap = matplotlib.colormaps["RdBu_r"]
+    faces = np.asarray(result.faces)
+    pts = result.mean - result.mean.mean(axis=0)
+    significant = test.p_fdr <= FDR_LEVEL
+    for j, view in enumerate(_mesh_view(pts)):
+        ax = fig.add_axes([0.02 + 0.42 * j, 0.12, 0.4, 0.78])
+        p = pts @ view.T
+        tri = p[faces]
+        order = np.argsort(tri[:, :, 2].mean(axis=1))
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        light = 0.45 + 0.55 * np.abs(n[:, 2]) / np.maximum(np.linalg.norm(n, axis=1), 1e-12)
+        rgba = cmap(norm(value[faces].mean(axis=1)))
+        grey = significant[faces].sum(axis=1) < 2
+        rgba[grey, :3] = 0.78
+        rgba[:, :3] *= light[:, None]
+        ax.add_collection(PolyCollection(tri[order, :, :2], facecolors=rgba[order], edgecolors="none"))
+        half = 0.55 * float(np.max(np.ptp(p[:, :2], axis=0)))
+        ax.set_xlim(-half, half)
+        ax.set_ylim(-half, half)
+        ax.set_aspect("equal")
+        ax.set_xticks([])
+        ax.set_yticks([])
+        ax.set_title(["view along the mean's thinnest axis", "view across it"][j], fontsize=9)
+        ax.plot([-0.9 * half, -0.9 * half + 10.0], [-0.92 * half] * 2, color="k", lw=2)
+        ax.text(-0.9 * half, -0.88 * half, "10 mm", fontsize=8)
+    cax = fig.add_axes([0.88, 0.15, 0.025, 0.7])
+    from matplotlib.cm import ScalarMappable
+
+    fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), cax=cax, label=f"normal displacement, {e.unit} (mm)")
+    t = test
+    fig.suptitle(f"{e.name} ({e.unit}): global p = {t.p_value:.3g}, {int(significant.sum())} of {len(significant)} "
+                 f"points significant at FDR {FDR_LEVEL:g} (grey: not)", fontsize=10)
+    path = Path(path)
+    fig.savefig(path)
+    return path
+
+
+def scores_picture(result: Analysis, model, path, *, modes: int = 3) -> Path:
+    """Score scatter plots of the first modes (SD), coloured by group."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    index = [list(map(str, model.instance_names)).index(n) for n in result.names]
+    flat = np.asarray(model.instance_points, float)[index].reshape(len(index), -1) - model.mean.reshape(-1)
+    k = min(modes, model.n_modes)
+    z = flat @ model.modes[:k].reshape(k, -1).T / model.standard_deviations[:k]
+    pairs = [(0, 1), (0, 2), (1, 2)][: max(1, k * (k - 1) // 2)] if k >= 2 else []
+    fig = Figure(figsize=(4.0 * max(1, len(pairs)), 3.8), dpi=100)
+    FigureCanvasAgg(fig)
+    labels = np.asarray(result.attributes[result.group], dtype=object) if result.group else np.array(["all"] * len(
+        index), dtype=object)
+    levels = list(result.levels) if result.group else ["all"]
+    colours = ["#4477aa", "#ee6677", "#228833", "#ccbb44", "#66ccee", "#aa3377", "#bbbbbb"]
+    for j, (a, b) in enumerate(pairs):
+        ax = fig.add_subplot(1, len(pairs), j + 1)
+        for c, lv in enumerate(levels):
+            sel = labels == lv
+            ax.scatter(z[sel, a], z[sel, b], s=18, color=colours[c % len(colours)], label=f"{lv} ({int(sel.sum())})")
+        ax.set_xlabel(f"mode {a + 1} (SD)")
+        ax.set_ylabel(f"mode {b + 1} (SD)")
+        ax.axhline(0, color="#cccccc", lw=0.5)
+        ax.axvline(0, color="#cccccc", lw=0.5)
+        if j == 0:
+            ax.legend(fontsize="small", title=result.group or None)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path)
+    return path
+
+
+def write_analysis(result: Analysis, out_dir, *, model=None, model_path: str | None = None,
+                   pictures: bool = True) -> dict:
+    """Write the analysis's files into ``out_dir`` (created); returns ``{file: path}``.
+
+    ``model`` (the analysed ShapeModel) adds the score table and plot.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written = {}
+    doc = analysis_document(result, model_path=model_path)
+    written["analysis.json"] = out / "analysis.json"
+    written["analysis.json"].write_text(json.dumps(doc, indent=1, sort_keys=False))
+    written["analysis.npz"] = write_npz(out / "analysis.npz", analysis_arrays(result))
+    effects_dir = out / "effects"
+    effects_dir.mkdir(exist_ok=True)
+    for e in result.effects:
+        t = result.tests[e.term]
+        fields = {"displacement_mm": e.displacement, "normal_mm": e.normal, "pillai": t.pillai,
+                  "p_point": t.p_point, "p_fdr": t.p_fdr, "p_fwer": t.p_fwer}
+        path = effects_dir / f"{_safe(e.name)}.vtp"
+        written[f"effects/{path.name}"] = write_vtp(path, result.mean, result.faces, fields)
+    if result.group:
+        for lv in result.levels:
+            path = effects_dir / f"mean_{_safe(lv)}.vtp"
+            written[f"effects/{path.name}"] = write_vtp(path, result.group_means[lv], result.faces)
+        if result.discriminant:
+            d = result.discriminant
+            path = effects_dir / "discriminant.vtp"
+            written["effects/discriminant.vtp"] = write_vtp(path, result.mean, result.faces,
+                                                            {"displacement_mm": d["displacement"],
+                                                             "normal_mm": d["normal"]})
+    if model is not None:
+        index = [list(map(str, model.instance_names)).index(n) for n in result.names]
+        flat = np.asarray(model.instance_points, float)[index].reshape(len(index), -1) - model.mean.reshape(-1)
+        z = flat @ model.modes.reshape(model.n_modes, -1).T / model.standard_deviations
+        cols = list(result.attributes)
+        path = out / "analysis_scores.csv"
+        with path.open("w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(["name", *cols, *([] if "centroid_size" in cols else ["centroid_size"]),
+                        *[f"mode_{k + 1}_sd" for k in range(model.n_modes)]])
+            for i, name in enumerate(result.names):
+                vals = ["" if v is None else v for v in (result.attributes[c][i] for c in cols)]
+                extra = [] if "centroid_size" in cols else [f"{result.centroid_sizes[i]:.6g}"]
+                w.writerow([name, *vals, *extra, *[f"{v:.6g}" for v in z[i]]])
+        written["analysis_scores.csv"] = path
+    if pictures:
+        try:
+            written["analysis_map.png"] = analysis_map_picture(result, out / "analysis_map.png")
+            if model is not None:
+                written["analysis_scores.png"] = scores_picture(result, model, out / "analysis_scores.png")
+        except ImportError:  # pragma: no cover - matplotlib is a dependency
+            pass
+    return written
