@@ -20,7 +20,7 @@ CORE = ROOT / "ssm_addon"
 OPERATORS = ROOT / "operators"
 
 
-STAGE_PACKAGES = ("formats", "instances", "template", "coating", "model", "fitting", "pipeline", "cli")
+STAGE_PACKAGES = ("formats", "instances", "template", "coating", "model", "fitting", "analysis", "pipeline", "cli")
 #: Blender modules every operators module may import; the stage modules import only these,
 #: ``project`` (which shows a whole study) and ``cli`` (its command) also the stage modules.
 SHARED_OPERATOR_MODULES = {"bridge", "jobs", "properties", "scene"}

@@ -6,10 +6,12 @@ Every public name of the subpackage's modules, imported on first use (:mod:`ssm_
 from .._lazy import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, {
-    "attributes": ("Attributes", "attributes_from_tables", "read_attributes"),
+    "attributes": ("MISSING_TOKENS", "NAME_COLUMNS", "Attributes", "attributes_from_tables", "read_attributes",
+                   "write_attributes"),
     "statistics": ("TermTest", "benjamini_hochberg", "centroid_size", "orthonormal_basis", "permutation_orders",
                    "term_test"),
-    "files": ("FDR_LEVEL", "analysis_arrays", "analysis_document", "analysis_map_picture", "scores_picture",
-              "write_analysis"),
-    "shape_analysis": ("CENTROID_SIZE", "Analysis", "Effect", "analyze", "design_matrix"),
+    "files": ("FDR_LEVEL", "analysis_arrays", "analysis_document", "analysis_map_picture", "analysis_summary",
+              "run_analysis", "scores_picture", "write_analysis"),
+    "shape_analysis": ("CENTROID_SIZE", "MIN_GROUP_SIZE", "Analysis", "Effect", "analyze", "check_analysis",
+                       "design_matrix"),
 })

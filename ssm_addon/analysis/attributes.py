@@ -25,7 +25,8 @@ import numpy as np
 
 from ..pipeline.errors import InputError
 
-__all__ = ["MISSING_TOKENS", "NAME_COLUMNS", "Attributes", "attributes_from_tables", "read_attributes"]
+__all__ = ["MISSING_TOKENS", "NAME_COLUMNS", "Attributes", "attributes_from_tables", "read_attributes",
+           "write_attributes"]
 
 #: Cell texts read as a missing value (case-insensitive).
 MISSING_TOKENS = frozenset({"", "na", "n/a", "nan", "null", "none", "."})
@@ -211,3 +212,19 @@ def read_attributes(path) -> Attributes:
     if not tables:
         raise InputError(f"{path}: the attribute table has a header and no rows")
     return attributes_from_tables(tables, source=str(path))
+
+
+def write_attributes(table: Attributes, path) -> Path:
+    """Write an attribute table as CSV (``name`` first; missing values empty), readable by
+    :func:`read_attributes`."""
+    path = Path(path)
+    with path.open("w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(["name", *table.columns])
+        for i, name in enumerate(table.names):
+            row = []
+            for col in table.columns:
+                v = table.values[col][i]
+                row.append("" if _is_missing(v) else (f"{v:.10g}" if isinstance(v, float) else v))
+            w.writerow([name, *row])
+    return path

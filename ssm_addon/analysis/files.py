@@ -34,14 +34,16 @@ from ..model.files import write_npz
 from ..pipeline.records import jsonable
 from .shape_analysis import Analysis
 
-__all__ = ["FDR_LEVEL", "analysis_arrays", "analysis_document", "analysis_map_picture", "scores_picture", "write_analysis"]
+__all__ = ["FDR_LEVEL", "analysis_arrays", "analysis_document", "analysis_map_picture", "analysis_summary",
+           "run_analysis", "scores_picture", "write_analysis"]
 
 #: The FDR level of the maps' significance masks and the counts in analysis.json.
 FDR_LEVEL = 0.05
 
 
 def _term_doc(test, adjusted_for) -> dict:
-    doc = {"p_value": test.p_value, "f": test.f, "r_squared": test.r_squared, "df": test.df,
+    doc = {"p_value": test.p_value, "pillai": test.global_pillai, "modes": test.global_modes,
+           "p_value_f": test.p_value_f, "f": test.f, "r_squared": test.r_squared, "df": test.df,
            "residual_df": test.residual_df, "permutations": test.permutations, "adjusted_for": list(adjusted_for)}
     if test.p_fdr.size:
         doc.update({"points_significant_fdr": int(np.sum(test.p_fdr <= FDR_LEVEL)),
@@ -79,7 +81,8 @@ def analysis_document(result: Analysis, *, model_path: str | None = None) -> dic
         "centroid_size_mm": {"mean": float(result.centroid_sizes.mean()), "sd": float(result.centroid_sizes.std())},
         "warnings": list(result.warnings),
         "method": {
-            "global": "pseudo-F on all coordinates, Freedman-Lane permutation of the reduced model's residuals",
+            "global": "Pillai's trace on the leading residual modes (p_value) and Goodall's pseudo-F on all "
+                      "coordinates (p_value_f); Freedman-Lane permutation of the reduced model's residuals",
             "per_point": "Pillai's trace of the term on the point's 3-D residual scatter (two groups: Hotelling "
                          "T^2); permutation p-values, Benjamini-Hochberg FDR and max-statistic FWER across points",
         },
@@ -275,3 +278,36 @@ def write_analysis(result: Analysis, out_dir, *, model=None, model_path: str | N
         except ImportError:  # pragma: no cover - matplotlib is a dependency
             pass
     return written
+
+
+def run_analysis(model, attributes, params, out_dir, *, model_path: str | None = None, progress=None,
+                 cancelled=None, pictures: bool = True) -> tuple[Analysis, dict, dict]:
+    """:func:`~ssm_addon.analysis.shape_analysis.analyze` with an ``[analysis]`` parameter object,
+    its files written into ``out_dir``: returns (the analysis, ``analysis.json``'s content, the
+    files written). The one route of ``ssm analyze``, the build's ``[analysis]`` and Blender."""
+    from .shape_analysis import analyze
+
+    result = analyze(model, attributes, group=params.group or None, covariates=params.covariates,
+                     permutations=params.permutations, seed=params.seed, size_removed=params.size_removed,
+                     reference=params.reference or None, lda_modes=params.lda_modes, progress=progress,
+                     cancelled=cancelled)
+    written = write_analysis(result, out_dir, model=model, model_path=model_path, pictures=pictures)
+    return result, json.loads(Path(written["analysis.json"]).read_text()), written
+
+
+def analysis_summary(result: Analysis) -> list[str]:
+    """One line per test and the warnings, for the command line and the Blender status."""
+    lines = []
+    for term, t in result.tests.items():
+        where = (f"; {int(np.sum(t.p_fdr <= FDR_LEVEL))} of {t.p_fdr.size} points significant at FDR {FDR_LEVEL:g}"
+                 if t.p_fdr.size else "")
+        adj = [o for o in result.tests if o != term]
+        lines.append(f"{term}: p = {t.p_value:.3g} (Pillai {t.global_pillai:.3f} on {t.global_modes} modes; "
+                     f"Goodall F = {t.f:.3g}, p = {t.p_value_f:.3g}; partial R² = {t.r_squared:.3f}; "
+                     f"{t.permutations} permutations{', adjusted for ' + ', '.join(adj) if adj else ''}){where}")
+    for pair, t in result.pairwise.items():
+        lines.append(f"  {pair}: p = {t.p_value:.3g}")
+    for e in result.effects:
+        lines.append(f"  effect {e.name} ({e.unit}): largest {np.linalg.norm(e.displacement, axis=1).max():.3g} mm, "
+                     f"normal {e.normal.min():.3g} to {e.normal.max():.3g} mm")
+    return lines

@@ -5,9 +5,12 @@ covariate) is tested against a *reduced model* (intercept and the other terms) b
 Freedman–Lane permutation of the reduced model's residuals [1]_, globally and at every
 point:
 
-- **global**: the pseudo-F of the term on all 3N coordinates (Goodall's F / Procrustes
-  ANOVA as in geometric morphometrics [2]_): the term's sum of squares per degree of
-  freedom over the full model's residual sum of squares per degree of freedom;
+- **global**: Pillai's trace of the term on the reduced model's leading residual modes
+  (those that hold :data:`GLOBAL_VARIANCE` of the residual variance, at most
+  n − p − 1 of them), so a difference confined to a small mode counts as much as one along
+  the largest (``p_value``); and the pseudo-F of the term on all 3N coordinates (Goodall's
+  F / Procrustes ANOVA as in geometric morphometrics [2]_), which large modes dominate
+  (``p_value_f``);
 - **per point**: the term's share of the point's residual scatter, ``V = tr(H E⁻¹)`` with
   ``H`` the term's 3×3 sum of squares and ``E`` the reduced model's residual scatter at that
   point (Pillai's trace; for two groups without covariates the two-sample Hotelling
@@ -42,6 +45,9 @@ from ..pipeline.errors import InputError
 
 __all__ = ["TermTest", "benjamini_hochberg", "centroid_size", "orthonormal_basis", "permutation_orders",
            "term_test"]
+
+#: Share of the residual variance the global test's modes hold.
+GLOBAL_VARIANCE = 0.95
 
 #: Memory (bytes) one block of permuted products may take.
 BLOCK_BYTES = 64 * 2**20
@@ -117,11 +123,14 @@ class TermTest:
     residual_df : int
         n − (columns of the full model).
     f : float
-        Pseudo-F on all coordinates (global test).
+        Pseudo-F on all coordinates (Goodall's F); ``p_value_f`` its permutation p-value.
+    global_pillai : float
+        Pillai's trace of the term on ``global_modes`` leading residual modes.
     r_squared : float
         The term's sum of squares over the total sum of squares about the mean (partial R²).
     p_value : float
-        Global permutation p-value, ``(1 + #{F* >= F}) / (1 + permutations)``.
+        The global test's permutation p-value (Pillai's trace on the leading modes),
+        ``(1 + #{V* >= V}) / (1 + permutations)``.
     pillai : (N,) ndarray
         Per-point statistic V in [0, min(df, 3)].
     p_point : (N,) ndarray
@@ -138,6 +147,9 @@ class TermTest:
     f: float
     r_squared: float
     p_value: float
+    p_value_f: float
+    global_pillai: float
+    global_modes: int
     pillai: np.ndarray
     p_point: np.ndarray
     p_fdr: np.ndarray
@@ -210,6 +222,11 @@ def term_test(points, reduced, term, *, permutations: int = 1000, seed: int = 0,
     keep = w > 1e-12 * max(float(w[-1]), 1e-300)
     z = v[:, keep] * np.sqrt(w[keep])
     total_r0 = float(np.sum(w[keep]))
+    # the leading residual modes, whitened (the Gram matrix's eigenvectors, largest first)
+    share = np.cumsum(w[keep][::-1]) / max(total_r0, 1e-300)
+    k_modes = int(min(np.searchsorted(share, GLOBAL_VARIANCE) + 1, max(residual_df - 1, 1), share.size))
+    modes_w = v[:, keep][:, ::-1][:, :k_modes]
+    g_obs = float(np.sum((uq.T @ modes_w) ** 2))
     centred = x.reshape(n, -1) - x.reshape(n, -1).mean(axis=0)
     total = float(np.einsum("ij,ij->", centred, centred))
     a_obs = float(np.sum((uq.T @ z) ** 2))
@@ -219,7 +236,7 @@ def term_test(points, reduced, term, *, permutations: int = 1000, seed: int = 0,
     # Permuting the residuals' rows equals gathering the bases' rows by the inverse order.
     inverse = np.argsort(orders, axis=1, kind="stable")
     ub = np.concatenate([u0, uq], axis=1)
-    count_global = 0
+    count_global = count_f = 0
     tol = 1e-9
     if per_point:
         rw = np.einsum("inj,njk->ink", r0, _whitening(r0)).reshape(n, -1)
@@ -237,13 +254,16 @@ def term_test(points, reduced, term, *, permutations: int = 1000, seed: int = 0,
         a = np.sum(np.einsum("cia,ir->car", gq, z) ** 2, axis=(1, 2))
         b = np.sum(np.einsum("cia,ir->car", g0, z) ** 2, axis=(1, 2))
         f = (a / q) / np.maximum((total_r0 - a - b) / residual_df, 1e-300)
-        count_global += int(np.sum(f >= f_obs * (1 - tol)))
+        count_f += int(np.sum(f >= f_obs * (1 - tol)))
+        gm = np.sum(np.einsum("cia,ir->car", gq, modes_w) ** 2, axis=(1, 2))
+        count_global += int(np.sum(gm >= g_obs * (1 - tol)))
         if per_point:
             prod = (gq.transpose(0, 2, 1).reshape(c * q, n) @ rw).reshape(c, q, n_points, 3)
             vp = np.sum(prod**2, axis=(1, 3))  # (c, N)
             counts += np.sum(vp >= v_obs * (1 - tol), axis=0)
             max_stats[start:start + c] = vp.max(axis=1)
     p_value = (1 + count_global) / (1 + permutations)
+    p_value_f = (1 + count_f) / (1 + permutations)
     if per_point:
         p_point = (1 + counts) / (1 + permutations)
         sorted_max = np.sort(max_stats)
@@ -253,5 +273,6 @@ def term_test(points, reduced, term, *, permutations: int = 1000, seed: int = 0,
     else:
         v_obs = p_point = p_fdr = p_fwer = np.zeros(0)
     return TermTest(df=q, residual_df=residual_df, f=float(f_obs), r_squared=a_obs / max(total, 1e-300),
-                    p_value=float(p_value), pillai=v_obs, p_point=p_point, p_fdr=p_fdr, p_fwer=p_fwer,
+                    p_value=float(p_value), p_value_f=float(p_value_f), global_pillai=g_obs,
+                    global_modes=k_modes, pillai=v_obs, p_point=p_point, p_fdr=p_fdr, p_fwer=p_fwer,
                     permutations=int(permutations))

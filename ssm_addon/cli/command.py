@@ -9,6 +9,8 @@ Subcommands
     Euler characteristic and genus.
 ``build PROJECT.toml --out DIR [--jobs N] [--no-blend]``
     The whole pipeline from a project file (see :mod:`ssm_addon.cli.project_build`).
+``analyze MODEL_DIR [--attributes CSV] --group COLUMN [--covariate COLUMN …] --out DIR``
+    Group differences and covariate effects of a built model (:mod:`ssm_addon.analysis`).
 ``demo --out DIR [--n N] [--jobs N] [--seed S] [--no-blend]``
     Generate the synthetic demo population (:mod:`ssm_addon.cli.demo`) and build it.
 
@@ -80,7 +82,7 @@ def _parser() -> argparse.ArgumentParser:
         description="SSM Builder: point-based 3D statistical shape models from segmented volumes (headless). "
                     "Also runs as `python -m ssm_addon` and `blender -b --command ssm`.",
     )
-    sub = parser.add_subparsers(dest="command", required=True, metavar="{info,template,build,fit,demo,params}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{info,template,build,fit,analyze,demo,params}")
 
     p = sub.add_parser("info", help="labels, voxel counts, spacing and affine of a label map")
     p.add_argument("volume", help="label map (NIfTI, NRRD, MetaImage, .npz)")
@@ -137,6 +139,24 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true",
                    help="write into a folder holding other files (they are kept, never replaced)")
     P.add_arguments(p.add_argument_group("fit parameters"), P.FitParams)
+
+    p = sub.add_parser("analyze", help="group differences and covariate effects of a built model: where on the "
+                                       "surface, by how many mm, with permutation p-values")
+    p.add_argument("model", help="a build's output folder (model.npz inside) or a model.npz / statismo file")
+    p.add_argument("--attributes", metavar="CSV",
+                   help="per-instance attributes joined by instance name (default: the build folder's "
+                        "attributes.csv, written from the project's attributes)")
+    p.add_argument("--group", help="attribute column whose groups are compared")
+    p.add_argument("--covariate", dest="covariates", action="append", default=None, metavar="COLUMN",
+                   help="a covariate modelled with the group (repeat for several; 'centroid_size' in mm is always "
+                        "available)")
+    p.add_argument("--reference", help="the group the others are compared to (default: first in sorted order)")
+    p.add_argument("--permutations", type=int, default=None, help="random permutations of every test (default 1000)")
+    p.add_argument("--seed", type=int, default=None, help="seed of the permutations (default 0)")
+    p.add_argument("--size-removed", action="store_true", default=None,
+                   help="scale every shape to the mean centroid size first (shape without size)")
+    p.add_argument("--out", required=True, help="output folder (written whole at the end)")
+    p.add_argument("--force", action="store_true", help="write into a folder holding other files (they are kept)")
 
     p = sub.add_parser("demo", help="generate the synthetic demo population and build its model")
     p.add_argument("--out", required=True, help="output folder: population in OUT/population, model in OUT/model")
@@ -305,6 +325,43 @@ def cmd_fit(args) -> int:
     return 0
 
 
+def cmd_analyze(args) -> int:
+    from ..analysis.attributes import read_attributes
+    from ..analysis.files import analysis_summary, run_analysis
+    from ..fitting.batch import load_model
+    from ..pipeline import params as P
+    from .project_build import owned_output_folder
+
+    source = Path(args.model).expanduser()
+    model_path = source / "model.npz" if source.is_dir() else source
+    if source.is_dir() and not model_path.is_file():
+        raise InputError(f"{source}: no model.npz in this folder (give a build's output folder or a model file)")
+    model = load_model(model_path)
+    attributes_path = Path(args.attributes).expanduser() if args.attributes else model_path.parent / "attributes.csv"
+    if not args.attributes and not attributes_path.is_file():
+        raise InputError(f"{model_path.parent}: no attributes.csv (the build's project had no attributes); give "
+                         "--attributes FILE")
+    table = {k: v for k, v in (("group", args.group), ("covariates", args.covariates),
+                               ("reference", args.reference), ("permutations", args.permutations),
+                               ("seed", args.seed), ("size_removed", args.size_removed)) if v is not None}
+    params = P.from_table(P.AnalysisParams, table, where="command line:")
+    if not params.requested:
+        raise InputError("analyze: give --group COLUMN, --covariate COLUMN, or both")
+    attributes = read_attributes(attributes_path)
+    out = Path(args.out).expanduser().resolve()
+    with owned_output_folder(out, [model_path, attributes_path], force=args.force, what="analysis") as tmp:
+        result, _, written = run_analysis(model, attributes, params, tmp, model_path=str(model_path),
+                                          progress=_print_progress())
+    print(f"analysis of {len(result.names)} instances ({', '.join(f'{k} {v}' for k, v in result.counts.items())})"
+          if result.group else f"analysis of {len(result.names)} instances")
+    for line in analysis_summary(result):
+        print(line)
+    for w in result.warnings:
+        print(f"WARNING: {w}", file=sys.stderr)
+    print(f"written: {', '.join(str(out / k) for k in written if '/' not in k)} and {out / 'effects'}/")
+    return 0
+
+
 def cmd_build(args, writer) -> int:
     return _run_build(args.project, args.out, args.jobs, not args.no_blend, writer, args)
 
@@ -349,6 +406,8 @@ def main(argv=None, in_blender: bool = False, blend_writer=None) -> int:
             return cmd_demo(args, blend_writer)
         if args.command == "fit":
             return cmd_fit(args)
+        if args.command == "analyze":
+            return cmd_analyze(args)
         if args.command == "params":
             from ..pipeline.params import markdown_tables
 

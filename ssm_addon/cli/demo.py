@@ -13,6 +13,12 @@ the vertebra, 21 for a piece of the neighbouring vertebra's body) plus a landmar
 13 analytic extremal points (exact correspondences). The landmark formats rotate through
 Slicer ``.fcsv`` (LPS), Slicer ``.mrk.json`` (LPS), ``.csv`` (world RAS) and a
 Scalismo-style ``.json`` (world RAS), so the demo exercises every reader.
+
+Each instance also has attributes with a known relation to its shape, for the analysis
+(``[analysis]`` in the project): ``group`` is "long" where the spinous process is longer
+than the mean and "short" otherwise, and ``age`` (years) is 60 + 10 × the transverse
+process's standardised length + noise of 3 years, so transverse process length follows
+age by about 0.3 mm per year. ``truth.json`` holds the values and the effects.
 """
 
 from __future__ import annotations
@@ -280,6 +286,32 @@ def make_demo_population(
             f'landmarks = "{name}{fmt}"',
             "",
         ]
+    # attributes with a known effect on shape (their own random stream: the shapes are unchanged)
+    age = 60.0 + 10.0 * b[:, 3] + np.random.default_rng(seed + 2000).normal(scale=3.0, size=n)
+    group = np.where(b[:, 2] > 0, "long", "short")
+    if len(set(group)) < 2 or min(np.sum(group == "long"), np.sum(group == "short")) < 2:
+        group = np.where(b[:, 2] > np.median(b[:, 2]), "long", "short")
+    tl = np.array([s.transverse_length for s in shapes])
+    sl = np.array([s.spinous_length for s in shapes])
+    truth["attributes"] = {
+        "group": "long where the spinous process is longer than the mean, short otherwise",
+        "age": "60 + 10 b_transverse + N(0, 3^2) years",
+        "spinous_length_difference_mm": float(sl[group == "long"].mean() - sl[group == "short"].mean()),
+        "transverse_length_per_year_mm": float(np.polyfit(age, tl, 1)[0]),
+    }
+    for i, rec in enumerate(truth["instances"]):
+        rec["attributes"] = {"group": str(group[i]), "age": round(float(age[i]), 1)}
+    lines[lines.index("[[instances]]"):lines.index("[[instances]]")] = [
+        "[analysis]", 'group = "group"', 'covariates = ["age"]', ""]
+    out_lines = []
+    k = 0
+    for line in lines:
+        out_lines.append(line)
+        if line.startswith("landmarks = "):
+            a = truth["instances"][k]["attributes"]
+            out_lines.append(f'attributes = {{ group = "{a["group"]}", age = {a["age"]} }}')
+            k += 1
+    lines = out_lines
     (out / "truth.json").write_text(json.dumps(truth, indent=1))
     project = out / "project.toml"
     project.write_text("\n".join(lines))

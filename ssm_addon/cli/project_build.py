@@ -281,6 +281,42 @@ def write_study_files(study: Study, folder: Path, *, output: OutputParams, proje
     return files, doc
 
 
+def write_analysis_files(project: Project, study: Study, folder: Path, doc: dict, *, log=None, progress=None,
+                         cancelled=None) -> dict:
+    """The project's attributes (``attributes.csv``) and, with an ``[analysis]`` group or
+    covariates, the analysis of the built model (``analysis/``); its summary goes into ``doc``
+    (``report.json``'s ``analysis``). An analysis that fails is a loud warning: the model stays."""
+    say = log or (lambda _msg: None)
+    if project.attributes is None:
+        return {}
+    from ..analysis.attributes import write_attributes
+    from ..analysis.files import analysis_summary, run_analysis
+
+    names = [str(n) for n in study.model.instance_names]
+    aligned, _ = project.attributes.aligned(names)
+    write_attributes(aligned, folder / "attributes.csv")
+    files = {"attributes": "attributes.csv"}
+    if not project.analysis.requested:
+        return files
+    t0 = time.perf_counter()
+    report(progress, 0.97, "analysis: groups and covariates")
+    try:
+        result, adoc, _ = run_analysis(study.model, project.attributes, project.analysis, folder / "analysis",
+                                       model_path="model.npz", cancelled=cancelled)
+    except InputError as err:
+        say(f"WARNING analysis: not run: {err}")
+        doc["analysis"] = {"error": str(err)}
+        return files
+    for line in analysis_summary(result):
+        say(f"analysis: {line}")
+    for w in result.warnings:
+        say(f"WARNING analysis: {w}")
+    doc["analysis"] = adoc
+    files["analysis"] = "analysis"
+    study.timings_s["analysis"] = time.perf_counter() - t0
+    return files
+
+
 def open_cache(project: Project, out_dir: Path, cache=None):
     """The build's :class:`~ssm_addon.pipeline.cache.BuildCache`, or None when it is off.
 
@@ -368,6 +404,8 @@ def build(
     say = log or (lambda _msg: None)
     out_dir = Path(out_dir).expanduser().resolve()
     inputs = [project.path] + [p for i in project.instances for p in (i.volume, i.mesh, i.landmarks) if p is not None]
+    if project.analysis.attributes:
+        inputs.append(Path(project.analysis.attributes))
     check_output_folder(out_dir, inputs, force=force)
     check_writable(out_dir)
     t_total = time.perf_counter()
@@ -405,6 +443,7 @@ def build(
                              "computed": study.streamed.get("computed", len(study.names))}}
         written, doc = write_study_files(study, tmp, output=project.output, project_path=project.path, extra=extra)
         files.update(written)
+        files.update(write_analysis_files(project, study, tmp, doc, log=say, progress=progress, cancelled=cancelled))
         study.timings_s["write"] = time.perf_counter() - t0 - study.timings_s.get("blender", 0.0)
         study.timings_s["total"] = time.perf_counter() - t_total
         t_html = time.perf_counter()

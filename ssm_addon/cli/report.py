@@ -140,8 +140,57 @@ window.addEventListener('load', function () {
 """
 
 
+def _analysis_section(a: dict, images: dict[str, bytes]) -> list[str]:
+    """The Analysis section: groups, the tests, the effects, the maps and the score plots."""
+    if not a:
+        return []
+    parts = ["<h2>Analysis: groups and covariates</h2>"]
+    if a.get("error"):
+        return parts + [f'<div class="warnings"><b>The analysis did not run:</b> {html.escape(a["error"])}</div>']
+    g = a.get("group") or {}
+    counts = ", ".join(f"{html.escape(str(k))} {v}" for k, v in (g.get("counts") or {}).items())
+    parts.append(f"<p>{_num(a.get('n'))} instances"
+                 + (f"; groups by <code>{html.escape(g['column'])}</code>: {counts} (reference "
+                    f"{html.escape(str(g['reference']))})" if g else "")
+                 + (f"; covariates {', '.join(html.escape(c) for c in a.get('covariates', []))}"
+                    if a.get("covariates") else "")
+                 + ("; shapes scaled to the mean centroid size" if a.get("size_removed") else "")
+                 + f"; {_num(a.get('permutations'))} permutations. Model R² {_num(a.get('r_squared'), 3)}.</p>")
+    if a.get("warnings"):
+        items = "".join(f"<li>{html.escape(w)}</li>" for w in a["warnings"])
+        parts.append(f'<div class="warnings"><b>Analysis warnings</b><ul>{items}</ul></div>')
+    rows = []
+    for term, t in (a.get("tests") or {}).items():
+        sig = t.get("points_significant_fdr")
+        rows.append({"_class": "warn" if t["p_value"] <= 0.05 else "", "cells": [
+            f"<b>{html.escape(term)}</b>", html.escape(", ".join(t.get("adjusted_for") or []) or "–"), _num(t["df"]),
+            _num(t["p_value"], 3), f"{_num(t['f'], 3)} (p {_num(t['p_value_f'], 3)})", _num(t["r_squared"], 3),
+            f"{sig} of {t.get('points')}" if sig is not None else "–"]})
+    for pair, t in (a.get("pairwise") or {}).items():
+        rows.append([html.escape(pair), html.escape(", ".join(t.get("adjusted_for") or []) or "–"), _num(t["df"]),
+                     _num(t["p_value"], 3), f"{_num(t['f'], 3)} (p {_num(t['p_value_f'], 3)})",
+                     _num(t["r_squared"], 3), "–"])
+    parts.append(_table(rows, ["term", "adjusted for", "df", "p (Pillai, leading modes)", "Goodall F (p)",
+                               "partial R²", "points significant (FDR 5 %)"]))
+    parts.append(_table([[html.escape(e["name"]), html.escape(e["unit"]), _num(e["max_mm"], 3), _num(e["rms_mm"], 3),
+                          _num(e["normal_min_mm"], 3), _num(e["normal_max_mm"], 3)] for e in a.get("effects", [])],
+                        ["effect", "per", "largest (mm)", "RMS (mm)", "normal min (mm)", "normal max (mm)"]))
+    d = a.get("discriminant")
+    if d:
+        scores = ", ".join(f"{html.escape(str(k))} {v:+.2f}" for k, v in d["group_scores_sd"].items())
+        parts.append(f"<p>Discriminant (LDA on {d['modes']} modes): group means at {scores} within-group SD; "
+                     f"leave-one-out classification {100 * d['loo_accuracy']:.0f} %.</p>")
+    if images:
+        parts.append('<div class="figs">')
+        for caption, data in images.items():
+            parts.append(f"<figure>{_img(data, caption)}<figcaption>{html.escape(caption)}</figcaption></figure>")
+        parts.append("</div>")
+    return parts
+
+
 def write_html_report(path, doc: dict, *, images: dict[str, bytes] | None = None,
-                      thumbnails: dict[str, bytes] | None = None, title: str = "SSM Builder model report") -> Path:
+                      thumbnails: dict[str, bytes] | None = None, title: str = "SSM Builder model report",
+                      analysis_images: dict[str, bytes] | None = None) -> Path:
     """Write ``report.html`` from a ``report.json`` document and the pictures (PNG bytes).
 
     Parameters
@@ -257,6 +306,8 @@ def write_html_report(path, doc: dict, *, images: dict[str, bytes] | None = None
                                    "Mahalanobis (LOO)", "p",
                                    "LOO error (mm)", "warnings"]))
 
+    parts += _analysis_section(doc.get("analysis") or {}, analysis_images or {})
+
     # parameters and timings
     params = (doc.get("parameters") or {})
     if params:
@@ -284,6 +335,11 @@ FIGURES = (("variability.png", "Eigenvalue spectrum and concentration of variabi
            ("metrics.png", "Compactness, generalization and specificity by number of modes"))
 
 
+ANALYSIS_FIGURES = (("analysis_map.png", "Group difference along the surface normal on the mean shape (mm); grey: "
+                                          "not significant at FDR 5 %"),
+                    ("analysis_scores.png", "Mode scores of the instances by group (SD)"))
+
+
 def write_report_html(out_dir, model, *, doc: dict | None = None, title: str = "SSM Builder model report") -> Path:
     """``report.html`` in ``out_dir`` from the report (``doc``, default ``out_dir/report.json``), the figures
     in ``out_dir`` and the model's shapes."""
@@ -292,7 +348,10 @@ def write_report_html(out_dir, model, *, doc: dict | None = None, title: str = "
         doc = json.loads((out_dir / "report.json").read_text(encoding="utf-8"))
     images = {caption: (out_dir / name).read_bytes() for name, caption in FIGURES if (out_dir / name).is_file()}
     thumbs = instance_thumbnails(model.instance_points, model.faces, model.instance_names)
-    return write_html_report(out_dir / "report.html", doc, images=images, thumbnails=thumbs, title=title)
+    analysis = {caption: (out_dir / "analysis" / name).read_bytes() for name, caption in ANALYSIS_FIGURES
+                if (out_dir / "analysis" / name).is_file()}
+    return write_html_report(out_dir / "report.html", doc, images=images, thumbnails=thumbs, title=title,
+                             analysis_images=analysis)
 
 
 def write_outputs(

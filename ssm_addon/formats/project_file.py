@@ -41,6 +41,7 @@ import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -49,6 +50,7 @@ from ..instances.importing import InstanceSpec, file_names
 from ..pipeline import params as P
 from ..pipeline.errors import InputError
 from ..pipeline.params import (
+    AnalysisParams,
     CoatingParams,
     ComputeParams,
     CorrespondenceParams,
@@ -67,10 +69,13 @@ INSTANCE_KEYS = {
     "mesh": "a file path (string)",
     "mesh_spacing": "a number",
     "landmarks": "a file path (string)",
+    "attributes": "a table of attributes, e.g. { group = \"patient\", age = 63 }",
 }
 #: [template] keys besides the TemplateParams fields.
 STUDY_TEMPLATE_KEYS = ("instance",)
-SECTIONS = ("instances", *P.TABLES)
+SECTIONS = ("instances", *P.TABLES, "analysis", "study")
+#: [study] keys: the attribute table may also be given there (the same as [analysis] attributes).
+STUDY_KEYS = ("attributes",)
 
 
 @dataclass(frozen=True)
@@ -89,6 +94,13 @@ class Project:
         The tables (defaults for what the file leaves out).
     landmark_names : tuple of str
         The common landmark names, in the order of the first instance's file.
+    analysis : AnalysisParams
+        The ``[analysis]`` table (its ``attributes`` path absolute).
+    instance_attributes : dict name -> dict
+        Each instance's own ``attributes`` table, as written.
+    attributes : Attributes or None
+        The instances' attributes: their own tables, filled from the CSV file of
+        ``[analysis]`` (or ``[study]``) ``attributes``; None when there are none.
     """
 
     path: Path
@@ -102,6 +114,9 @@ class Project:
     correspondence: CorrespondenceParams = field(default_factory=CorrespondenceParams)
     compute: ComputeParams = field(default_factory=ComputeParams)
     landmark_names: tuple[str, ...] = ()
+    analysis: AnalysisParams = field(default_factory=AnalysisParams)
+    instance_attributes: dict = field(default_factory=dict)
+    attributes: Any = None
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -283,9 +298,66 @@ def _instances(doc: dict, ctx: _Context, base: Path, landmarks_required: bool = 
             except InputError as err:
                 raise ctx.error(f"{what}: {err}", ctx.lines.key(*where, "landmarks")) from None
             lms = LandmarkSet(lms.names, lms.points_world, source=f"instance {name!r} ({lm_path.name})")
+        if "attributes" in table:
+            attrs = table["attributes"]
+            line = ctx.lines.key(*where, "attributes")
+            if not isinstance(attrs, dict):
+                raise _kind_error(ctx, f"{what}: attributes", INSTANCE_KEYS["attributes"], attrs, line)
+            for k, v in attrs.items():
+                if isinstance(v, dict | list) or not isinstance(v, str | int | float | bool):
+                    raise ctx.error(f"{what}: attribute {k!r} must be a number or a string, got {P.type_name(v)} "
+                                    f"{v!r}", line)
         out.append(InstanceSpec(name=name, landmarks=lm_path, volume=volume, label=table.get("label"), mesh=mesh,
                                 mesh_spacing=mesh_spacing, landmark_set=lms))
     return out
+
+
+def _attributes(doc: dict, ctx: _Context, base: Path, names) -> tuple[AnalysisParams, dict, Any]:
+    """The [analysis] table (attributes path absolute), the instances' own attribute tables and
+    the merged attribute table (None when there is none)."""
+    from ..analysis.attributes import attributes_from_tables, read_attributes
+
+    study = doc.get("study", {})
+    if not isinstance(study, dict):
+        raise ctx.error(f"[study] must be a table, got {P.type_name(study)}", ctx.lines.key("study"))
+    _check_keys(study, STUDY_KEYS, "[study]", ctx, ("study",))
+    analysis = _params(AnalysisParams, doc, "analysis", ctx)
+    csv_path, line = analysis.attributes, ctx.lines.key("analysis", "attributes")
+    if "attributes" in study:
+        if csv_path:
+            raise ctx.error("attributes given in both [study] and [analysis]; give one",
+                            ctx.lines.key("study", "attributes"))
+        csv_path, line = study["attributes"], ctx.lines.key("study", "attributes")
+        if not isinstance(csv_path, str):
+            raise _kind_error(ctx, "[study] attributes", "a file path (string)", csv_path, line)
+    inline = {inst["name"]: dict(inst["attributes"]) for inst in doc.get("instances", []) if "attributes" in inst}
+    table = attributes_from_tables(inline, source=f"{ctx.path}: instance attributes") if inline else None
+    if csv_path:
+        path = _resolve(csv_path, base)
+        if not path.is_file():
+            raise ctx.error(f"attributes file not found: {path}", line)
+        try:
+            from_csv = read_attributes(path)
+        except InputError as err:
+            raise ctx.error(str(err), line) from None
+        unknown = [n for n in from_csv.names if n not in set(names)]
+        if len(unknown) == len(from_csv.names):
+            raise ctx.error(f"{path}: no row of the attribute table names an instance of the project (rows: "
+                            f"{', '.join(map(repr, from_csv.names[:4]))}…)", line)
+        table = from_csv if table is None else table.merged(from_csv)
+        analysis = dataclasses.replace(analysis, attributes=str(path))
+    if analysis.requested and table is None:
+        raise ctx.error("[analysis] needs attributes: give each instance an attributes table or [analysis] "
+                        "attributes = \"subjects.csv\"", ctx.lines.table("analysis"))
+    if table is not None and analysis.requested:
+        from ..analysis.shape_analysis import check_analysis
+
+        try:
+            check_analysis(table, names, group=analysis.group or None, covariates=analysis.covariates,
+                           reference=analysis.reference or None)
+        except InputError as err:
+            raise ctx.error(f"[analysis]: {err}", ctx.lines.table("analysis")) from None
+    return analysis, inline, table
 
 
 def read_project(path) -> Project:
@@ -364,6 +436,7 @@ def read_project(path) -> Project:
         file_names(names)
     except InputError as err:
         raise ctx.error(str(err), ctx.lines.table("instances", 0)) from None
+    analysis, inline_attributes, attributes = _attributes(doc, ctx, path.parent, names)
     template_instance = doc.get("template", {}).get("instance", names[0])
     line = ctx.lines.key("template", "instance")
     if not isinstance(template_instance, str):
@@ -378,7 +451,8 @@ def read_project(path) -> Project:
 
     return Project(path=path, instances=tuple(instances), template_instance=template_instance, template=template,
                    coating=coating, model=model, output=output, quality=quality, correspondence=correspondence,
-                   compute=compute, landmark_names=matched[0].names)
+                   compute=compute, landmark_names=matched[0].names, analysis=analysis,
+                   instance_attributes=inline_attributes, attributes=attributes)
 
 
 # --------------------------------------------------------------------------------------
@@ -423,6 +497,11 @@ def project_text(project: Project, base: Path) -> str:
         if compute.get("cache") not in (None, "auto", "off"):
             compute["cache"] = _relative(Path(compute["cache"]), base)
         lines += ["", "[compute]"] + [f"{k} = {toml_value(v)}" for k, v in compute.items()]
+    analysis = P.to_table(project.analysis, only_changed=True)
+    if analysis:
+        if analysis.get("attributes"):
+            analysis["attributes"] = _relative(Path(analysis["attributes"]), base)
+        lines += ["", "[analysis]"] + [f"{k} = {toml_value(v)}" for k, v in analysis.items()]
     for inst in project.instances:
         lines += ["", "[[instances]]", f"name = {toml_value(inst.name)}"]
         if inst.volume is not None:
@@ -435,7 +514,15 @@ def project_text(project: Project, base: Path) -> str:
                 lines.append(f"mesh_spacing = {toml_value(float(inst.mesh_spacing))}")
         if inst.landmarks is not None:
             lines.append(f"landmarks = {toml_value(_relative(inst.landmarks, base))}")
+        own = project.instance_attributes.get(inst.name)
+        if own:
+            lines.append("attributes = { " + ", ".join(f"{_key(k)} = {toml_value(v)}" for k, v in own.items()) + " }")
     return "\n".join(lines) + "\n"
+
+
+def _key(name: str) -> str:
+    """A TOML key: bare when it can be, quoted otherwise."""
+    return name if re.fullmatch(r"[A-Za-z0-9_-]+", name) else json.dumps(name, ensure_ascii=False)
 
 
 def write_project(path, project: Project) -> Path:

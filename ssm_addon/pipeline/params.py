@@ -71,8 +71,9 @@ class Spec:
         The dataclass field (and Blender property) name.
     key : str
         Its key in the project file (usually ``name``).
-    kind : {"float", "int", "bool", "choice", "str", "floats"}
-        ``floats`` is a tuple of floats (``size`` fixed, or any length when None).
+    kind : {"float", "int", "bool", "choice", "str", "floats", "strs"}
+        ``floats`` is a tuple of floats (``size`` fixed, or any length when None); ``strs``
+        a tuple of strings (e.g. column names).
     default : object
     label : str
         Short name for panels.
@@ -129,7 +130,8 @@ class Spec:
             parts.append(f"{'>' if self.exclusive_minimum else '>='} {_num(lo)}{unit}")
         if hi is not None:
             parts.append(f"<= {_num(hi)}{unit}")
-        what = {"int": "an integer", "float": "a number", "floats": "numbers", "str": "a string"}[self.kind]
+        what = {"int": "an integer", "float": "a number", "floats": "numbers", "str": "a string",
+                "strs": "a list of strings"}[self.kind]
         if self.kind == "floats" and self.size:
             what = f"{self.size} numbers"
         text = what + (" " + " and ".join(parts) if parts else "")
@@ -229,6 +231,12 @@ def convert(s: Spec, value, where: str = ""):
         if not isinstance(value, str):
             raise bad
         return value
+    if s.kind == "strs":
+        if isinstance(value, str):
+            value = [v.strip() for v in value.split(",") if v.strip()]
+        if not isinstance(value, list | tuple) or not all(isinstance(v, str) for v in value):
+            raise bad
+        return tuple(value)
     if s.kind == "floats":
         if isinstance(value, str) or not isinstance(value, list | tuple | np.ndarray):
             raise bad
@@ -379,6 +387,8 @@ def add_arguments(parser: argparse.ArgumentParser | argparse._ArgumentGroup, cls
         elif s.kind == "floats":
             parser.add_argument(_flag(prefix, s), dest=dest, type=float, nargs=s.size or "+", default=None,
                                 metavar="MM" if s.unit == "mm" else "X", help=text)
+        elif s.kind == "strs":
+            parser.add_argument(_flag(prefix, s), dest=dest, nargs="+", default=None, metavar="NAME", help=text)
         elif s.kind == "choice":
             parser.add_argument(_flag(prefix, s), dest=dest, choices=s.choices, default=None, help=text)
         else:
@@ -821,6 +831,43 @@ class ComputeParams:
             raise InputError(f"{self._where} cache: empty; use 'auto', 'off' or a folder")
 
 
+@dataclass(frozen=True)
+class AnalysisParams:
+    """Shape analysis of the built model by groups and covariates; the ``[analysis]`` table.
+
+    Runs after the model when ``group`` or ``covariates`` is given (``ssm analyze`` runs it on a
+    built model). See :mod:`ssm_addon.analysis`.
+    """
+
+    attributes: str = param("", kind="str", label="Attributes",
+                            help="CSV of per-instance attributes joined by instance name (relative to the project "
+                                 "file); fills what the instances' own 'attributes' tables leave out")
+    group: str = param("", kind="str", label="Group", help="attribute column whose groups are compared ('' none)")
+    covariates: tuple = param((), kind="strs", label="Covariates",
+                              help="attribute columns modelled with the group (numbers; 'centroid_size' in mm is "
+                                   "always available)")
+    reference: str = param("", kind="str", label="Reference group",
+                           help="the group the others are compared to ('' the first in sorted order)")
+    permutations: int = param(1000, minimum=99, maximum=1_000_000, label="Permutations",
+                              help="random permutations of every test (p-values resolve 1/(permutations+1))")
+    seed: int = param(0, minimum=0, maximum=2**31 - 1, label="Seed", advanced=True,
+                      help="seed of the permutations (the same seed gives the same p-values)")
+    size_removed: bool = param(False, label="Remove size",
+                               help="scale every shape to the mean centroid size before the analysis")
+    lda_modes: int = param(10, minimum=1, maximum=1000, label="Discriminant modes", advanced=True,
+                           help="leading modes the linear discriminant of the groups uses")
+
+    _where = "analysis parameters:"
+
+    def __post_init__(self):
+        check(self, self._where)
+
+    @property
+    def requested(self) -> bool:
+        """True when the table asks for an analysis (a group or covariates)."""
+        return bool(self.group or self.covariates)
+
+
 TABLES = {"template": TemplateParams, "coating": CoatingParams, "correspondence": CorrespondenceParams,
           "model": ModelParams, "output": OutputParams, "quality": QualityParams,
           "compute": ComputeParams}
@@ -831,7 +878,7 @@ def markdown_tables() -> str:
     out = ["# Parameters", "",
            "Generated from `ssm_addon/pipeline/params.py` (`python -m ssm_addon params`); the same names are the",
            "project file's keys, the `ssm build --<table>-<key>` options and the SSM sidebar's fields.", ""]
-    for section, cls in TABLES.items():
+    for section, cls in {**TABLES, "analysis": AnalysisParams}.items():
         out += [f"## [{section}]", "", (cls.__doc__ or "").strip().splitlines()[0], "",
                 "| key | default | allowed | meaning |", "|---|---|---|---|"]
         if section == "template":
