@@ -17,6 +17,7 @@ MODULES = (
     "coating",
     "model",
     "fit",
+    "analysis",
     "project",
 )
 

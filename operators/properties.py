@@ -107,6 +107,8 @@ def _blender_property(s: P.Spec):
     if s.kind == "floats":  # any length: typed as a list
         return StringProperty(name=name, description=desc + " (comma-separated)",
                               default=", ".join(f"{v:g}" for v in s.default))
+    if s.kind == "strs":
+        return StringProperty(name=name, description=desc + " (comma-separated)", default=", ".join(s.default))
     return StringProperty(name=name, description=desc, default=str(s.default or ""))
 
 
@@ -170,6 +172,8 @@ def set_group(group, params) -> None:
                 continue
         if s.kind == "floats" and not s.size:
             setattr(group, s.name, ", ".join(repr(float(v)) for v in value))
+        elif s.kind == "strs":
+            setattr(group, s.name, ", ".join(value))
         elif s.kind == "floats":
             setattr(group, s.name, tuple(float(v) for v in value))
         else:
@@ -212,6 +216,7 @@ SSMOutputSettings = param_group(P.OutputParams, "SSMOutputSettings")
 SSMQualitySettings = param_group(P.QualityParams, "SSMQualitySettings")
 SSMFitSettings = param_group(P.FitParams, "SSMFitSettings")
 SSMCorrespondenceSettings = param_group(P.CorrespondenceParams, "SSMCorrespondenceSettings")
+SSMAnalysisSettings = param_group(P.AnalysisParams, "SSMAnalysisSettings")
 
 
 def _recolour(self, context):
@@ -241,6 +246,7 @@ SCENE_GROUPS = {
     "ssm_quality": (SSMQualitySettings, P.QualityParams),
     "ssm_fit": (SSMFitSettings, P.FitParams),
     "ssm_correspondence": (SSMCorrespondenceSettings, P.CorrespondenceParams),
+    "ssm_analysis": (SSMAnalysisSettings, P.AnalysisParams),
 }
 
 
@@ -251,7 +257,7 @@ def scene_params(context, key: str):
 
 
 classes = (SSMObjectProperties, SSMTemplateSettings, SSMCoatingSettings, SSMModelSettings, SSMOutputSettings,
-           SSMQualitySettings, SSMFitSettings, SSMCorrespondenceSettings, SSMStudySettings)
+           SSMQualitySettings, SSMFitSettings, SSMCorrespondenceSettings, SSMAnalysisSettings, SSMStudySettings)
 
 
 def register_properties():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 import subprocess
@@ -44,6 +45,12 @@ def test_report_is_one_self_contained_file(built):
     assert page.count('<tr class="warn">') == len({f.instance for f in result.study.findings if f.instance})
     for fig in ("paper fig. 9", "Compactness, generalization and specificity by number of modes"):
         assert fig in page
+    # the demo's [analysis]: its section with the tests of both terms and the map
+    analysis = json.loads((out / "analysis" / "analysis.json").read_text())
+    assert "Analysis: groups and covariates" in page and "Group difference along the surface normal" in page
+    for term in ("group", "age"):
+        assert f"<b>{term}</b>" in page and term in analysis["tests"]
+    assert result.report["analysis"]["group_test"]["p_value"] == analysis["group_test"]["p_value"]
 
 
 def _chromium(*args, timeout=120):
@@ -61,7 +68,8 @@ def test_report_opens_in_a_headless_browser_without_errors(built, tmp_path):
     assert console == [], console  # the page logs nothing, and raises nothing
     total = int(re.search(r'data-images="(\d+)"', dom.stdout).group(1))
     decoded = int(re.search(r'data-images-decoded="(\d+)"', dom.stdout).group(1))
-    assert total == len(result.study.names) + 2 and decoded == total  # every picture decodes
+    # every picture decodes: the instances', fig. 9, metrics and (the demo has [analysis]) the analysis map and scores
+    assert total == len(result.study.names) + 2 + 2 and decoded == total
     shot = tmp_path / "report.png"
     cap = _chromium(f"--user-data-dir={tmp_path / 'profile2'}", "--window-size=1200,1600",
                     f"--screenshot={shot}", url)

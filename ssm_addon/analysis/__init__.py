@@ -10,8 +10,8 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
                    "write_attributes"),
     "statistics": ("TermTest", "benjamini_hochberg", "centroid_size", "orthonormal_basis", "permutation_orders",
                    "term_test"),
-    "files": ("FDR_LEVEL", "analysis_arrays", "analysis_document", "analysis_map_picture", "analysis_summary",
-              "run_analysis", "scores_picture", "write_analysis"),
-    "shape_analysis": ("CENTROID_SIZE", "MIN_GROUP_SIZE", "Analysis", "Effect", "analyze", "check_analysis",
-                       "design_matrix"),
+    "files": ("FDR_LEVEL", "SHAPE_KEY_PREFIXES", "analysis_arrays", "analysis_document", "analysis_map_picture",
+              "analysis_shape_keys", "analysis_summary", "diverging_colours", "run_analysis", "scores_picture",
+              "write_analysis"),
+    "shape_analysis": ("CENTROID_SIZE", "MIN_GROUP_SIZE", "Analysis", "Effect", "analyze", "design_matrix"),
 })

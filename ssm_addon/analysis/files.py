@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import re
 from pathlib import Path
 
@@ -34,8 +35,9 @@ from ..model.files import write_npz
 from ..pipeline.records import jsonable
 from .shape_analysis import Analysis
 
-__all__ = ["FDR_LEVEL", "analysis_arrays", "analysis_document", "analysis_map_picture", "analysis_summary",
-           "run_analysis", "scores_picture", "write_analysis"]
+__all__ = ["FDR_LEVEL", "SHAPE_KEY_PREFIXES", "analysis_arrays", "analysis_document", "analysis_map_picture",
+           "analysis_shape_keys", "analysis_summary", "diverging_colours", "run_analysis", "scores_picture",
+           "write_analysis"]
 
 #: The FDR level of the maps' significance masks and the counts in analysis.json.
 FDR_LEVEL = 0.05
@@ -311,3 +313,48 @@ def analysis_summary(result: Analysis) -> list[str]:
         lines.append(f"  effect {e.name} ({e.unit}): largest {np.linalg.norm(e.displacement, axis=1).max():.3g} mm, "
                      f"normal {e.normal.min():.3g} to {e.normal.max():.3g} mm")
     return lines
+
+
+#: Name prefixes of the shape keys an analysis puts on the model's mean mesh.
+SHAPE_KEY_PREFIXES = ("Effect: ", "Group mean: ", "Discriminant")
+
+
+def analysis_shape_keys(result: Analysis, base) -> dict:
+    """Shape keys for the model's mean mesh: ``{key name: (positions (N, 3) mm, slider min, slider max)}``.
+
+    ``base`` (N, 3) is the mesh's basis (the model's mean, model frame). A group level's
+    key is ``base + β`` (slider 1 = the level against the reference group, range −1…2). A
+    covariate's key is ``base + s β`` for ``s`` units of the covariate, ``s`` the power of ten
+    that keeps ±3 SD of the covariate within Blender's slider range of ±10 (``"per 10 of
+    age"``: slider value 1 = 10 years). The discriminant's key moves one within-group SD of
+    the discriminant score (slider ±3); a group mean's key is that mean (0…1).
+    """
+    base = np.asarray(base, dtype=float)
+    keys = {}
+    for e in result.effects:
+        if e.term == result.group or e.term not in result.attributes or e.unit.find(" − ") >= 0:
+            keys[f"Effect: {e.name} ({e.unit})"] = (base + e.displacement, -1.0, 2.0)
+            continue
+        values = np.asarray(result.attributes[e.term], dtype=float)
+        span = max(3.0 * float(np.std(values)), 1e-12)
+        scale = 10.0 ** math.ceil(math.log10(span / 10.0)) if span > 10.0 else 1.0
+        keys[f"Effect: {e.name} (per {scale:g} of {e.term})"] = (base + scale * e.displacement, -span / scale,
+                                                                 span / scale)
+    if result.discriminant:
+        keys["Discriminant (per within-group SD)"] = (base + result.discriminant["displacement"], -3.0, 3.0)
+    for lv in result.levels:
+        keys[f"Group mean: {lv}"] = (result.group_means[lv], 0.0, 1.0)
+    return keys
+
+
+def diverging_colours(values, *, limit: float | None = None, mask=None) -> np.ndarray:
+    """RGBA (n, 4) of a blue–white–red scale, ±``limit`` (default: the largest |value|); points where
+    ``mask`` is False are grey (not significant)."""
+    import matplotlib
+
+    v = np.asarray(values, dtype=float)
+    lim = float(np.max(np.abs(v))) if limit is None else float(limit)
+    rgba = matplotlib.colormaps["RdBu_r"](0.5 + 0.5 * v / max(lim, 1e-12))
+    if mask is not None:
+        rgba[~np.asarray(mask, bool), :3] = 0.78
+    return rgba

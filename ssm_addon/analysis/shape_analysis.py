@@ -29,7 +29,7 @@ from ..pipeline.errors import InputError
 from .attributes import Attributes
 from .statistics import TermTest, centroid_size, term_test
 
-__all__ = ["CENTROID_SIZE", "MIN_GROUP_SIZE", "Analysis", "Effect", "analyze", "check_analysis", "design_matrix"]
+__all__ = ["CENTROID_SIZE", "MIN_GROUP_SIZE", "Analysis", "Effect", "analyze", "design_matrix"]
 
 #: The covariate name under which each instance's centroid size (mm, world) is available.
 CENTROID_SIZE = "centroid_size"
@@ -269,16 +269,6 @@ def _check_size(m: int, columns: dict) -> None:
     if m < n_columns + 2:
         raise InputError(f"analysis: {m} instances for a model of {n_columns} columns (intercept, "
                          f"{', '.join(columns)}): need at least {n_columns + 2}")
-
-
-def check_analysis(attributes: Attributes, instance_names, *, group: str | None = None, covariates=(),
-                   reference: str | None = None) -> None:
-    """Raise the InputError :func:`analyze` would raise for these attributes and instances, before
-    any model exists (a build checks its ``[analysis]`` table when it reads the project)."""
-    attrs, _ = attributes.aligned(instance_names)
-    sizes = np.arange(1.0, len(attrs.names) + 1.0)  # stands in for the centroid sizes, unknown before the build
-    rows, columns, _, _ = design_matrix(attrs, group=group, covariates=covariates, sizes=sizes, reference=reference)
-    _check_size(rows.size, columns)
 
 
 def analyze(model, attributes: Attributes, *, group: str | None = None, covariates=(), permutations: int = 1000,
