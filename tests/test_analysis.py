@@ -258,3 +258,37 @@ def test_bad_analysis_inputs_say_what_is_wrong():
     r = analyze(model, extra, group="group", permutations=99)
     assert len(r.names) == 11 and r.excluded == {names[11]: "missing group"}
     assert any("'ghost'" in w for w in r.warnings) and any("left out" in w for w in r.warnings)
+
+
+# ------------------------------------------------------------------------------- command line
+def test_ssm_analyze_writes_the_files_and_refuses_bad_input(tmp_path, capsys):
+    from ssm_addon.analysis import write_attributes
+    from ssm_addon.cli.command import main
+    from ssm_addon.model.files import save_npz
+
+    model, attrs, _ = population(n=20, seed=8)
+    build = tmp_path / "build"
+    build.mkdir()
+    save_npz(model, build / "model.npz")
+    out = tmp_path / "analysis"
+    assert main(["analyze", str(build), "--group", "group", "--out", str(out)]) == 2
+    assert "no attributes.csv" in capsys.readouterr().err and not out.exists()
+    write_attributes(attrs, build / "attributes.csv")
+    assert main(["analyze", str(build), "--group", "group", "--covariate", "age", "--permutations", "199",
+                 "--out", str(out)]) == 0
+    said = capsys.readouterr().out
+    assert "analysis of 20 instances (control 10, patient 10)" in said and "group: p = " in said
+    doc = json.loads((out / "analysis.json").read_text())
+    direct = analyze(model, attrs, group="group", covariates=["age"], permutations=199)
+    assert doc["group_test"]["p_value"] == direct.group_test.p_value  # one computation, two routes
+    assert {"analysis.npz", "analysis_scores.csv", "analysis_map.png"} <= {p.name for p in out.iterdir()}
+    for args, message in ((["--group", "gruop"], "no attribute column 'gruop'"),
+                          (["--group", "group", "--permutations", "5"], "permutations must be an integer >= 99"),
+                          ([], "give --group COLUMN, --covariate COLUMN, or both")):
+        target = tmp_path / f"bad{len(args)}"
+        assert main(["analyze", str(build), *args, "--out", str(target)]) == 2
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err and not target.exists()
+    # the build folder holds the inputs: never written into
+    assert main(["analyze", str(build), "--group", "group", "--out", str(build)]) == 2
+    assert sorted(p.name for p in build.iterdir()) == ["attributes.csv", "model.npz"]

@@ -216,6 +216,61 @@ def test_write_project_round_trip(files, tmp_path):
     assert write_project(tmp_path / "elsewhere" / "copy.toml", again).read_text() == text  # byte-identical
 
 
+ATTRIBUTES = VALID.replace('landmarks = "data/one.csv"\n',
+                           'landmarks = "data/one.csv"\nattributes = { group = "patient", age = 63 }\n') + """
+[analysis]
+attributes = "subjects.csv"
+group = "group"
+covariates = ["age", "centroid_size"]
+permutations = 500
+"""
+
+
+def test_attributes_come_from_the_instances_and_a_csv_and_round_trip(files, tmp_path):
+    (files / "subjects.csv").write_text("name,group,age,height\none,control,70,1.8\ntwo,control,51,1.7\n"
+                                        "three,control,40,1.6\n")
+    proj = read_project(_write(files, ATTRIBUTES))
+    t = proj.attributes
+    assert t.kinds == {"group": "category", "age": "number", "height": "number"}
+    got = t.aligned(["one", "two"])[0]
+    # the instance's own table wins over the CSV; the CSV fills the rest
+    assert got.values["group"] == ("patient", "control") and got.values["age"] == (63.0, 51.0)
+    assert got.values["height"] == (1.8, 1.7)
+    assert proj.analysis.covariates == ("age", "centroid_size") and proj.analysis.permutations == 500
+    assert proj.analysis.attributes == str(files / "subjects.csv")
+    out = write_project(tmp_path / "elsewhere" / "copy.toml", proj)
+    text = out.read_text()
+    assert 'attributes = { group = "patient", age = 63 }' in text and 'attributes = "../subjects.csv"' in text
+    again = read_project(out)
+    assert again.analysis == proj.analysis and again.instance_attributes == proj.instance_attributes
+    assert write_project(tmp_path / "elsewhere" / "copy.toml", again).read_text() == text
+
+
+@pytest.mark.parametrize("change, message", [
+    (("group = \"group\"", "group = \"gruop\""), "no attribute column 'gruop' (did you mean 'group'?)"),
+    (("attributes = \"subjects.csv\"", "attributes = \"missing.csv\""), "attributes file not found"),
+    (("permutations = 500", "permutations = 5"), "permutations must be an integer >= 99"),
+    (("attributes = { group = \"patient\", age = 63 }", "attributes = { group = [1, 2] }"),
+     "attribute 'group' must be a number or a string"),
+    (("attributes = { group = \"patient\", age = 63 }", "attributes = \"patient\""),
+     "attributes must be a table of attributes"),
+    (("[analysis]", "[study]\nattributes = \"subjects.csv\"\n[analysis]"),
+     "attributes given in both [study] and [analysis]"),
+])
+def test_bad_attributes_in_a_project_name_the_line(files, change, message):
+    (files / "subjects.csv").write_text("name,group,age\none,control,70\ntwo,control,51\n")
+    text = ATTRIBUTES.replace(*change)
+    assert message in _error(files, text)
+
+
+def test_study_table_gives_the_attribute_file_too(files):
+    (files / "subjects.csv").write_text("name,group\none,a\ntwo,b\n")
+    text = VALID + '\n[study]\nattributes = "subjects.csv"\n'
+    proj = read_project(_write(files, text))
+    assert proj.attributes.values["group"] == ("a", "b") and not proj.analysis.requested
+    assert "[analysis] needs attributes" in _error(files, VALID + '\n[analysis]\ngroup = "group"\n')
+
+
 def test_cli_prints_input_error_and_exits_2(files, capsys):
     path = _write(files, VALID.replace("label = 20", "label = 2.5"))
     assert main(["build", str(path), "--out", str(files / "out")]) == 2
