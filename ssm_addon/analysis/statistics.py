@@ -206,7 +206,8 @@ def term_test(points, reduced, term, *, permutations: int = 1000, seed: int = 0,
     d0 = np.asarray(reduced, dtype=float).reshape(n, -1)
     d1 = np.asarray(term, dtype=float).reshape(n, -1)
     u0 = orthonormal_basis(d0)
-    r0 = x - np.einsum("ia,ja,jnk->ink", u0, u0, x)  # (I − H0) X
+    flat_x = x.reshape(n, -1)
+    r0 = (flat_x - u0 @ (u0.T @ flat_x)).reshape(x.shape)  # (I − H0) X
     uq = orthonormal_basis(d1 - u0 @ (u0.T @ d1))
     q = uq.shape[1]
     residual_df = n - u0.shape[1] - q
@@ -227,8 +228,8 @@ def term_test(points, reduced, term, *, permutations: int = 1000, seed: int = 0,
     k_modes = int(min(np.searchsorted(share, GLOBAL_VARIANCE) + 1, max(residual_df - 1, 1), share.size))
     modes_w = v[:, keep][:, ::-1][:, :k_modes]
     g_obs = float(np.sum((uq.T @ modes_w) ** 2))
-    centred = x.reshape(n, -1) - x.reshape(n, -1).mean(axis=0)
-    total = float(np.einsum("ij,ij->", centred, centred))
+    centred = flat_x - flat_x.mean(axis=0)
+    total = float(np.sum(centred * centred))
     a_obs = float(np.sum((uq.T @ z) ** 2))
     f_obs = (a_obs / q) / max((total_r0 - a_obs) / residual_df, 1e-300)
 
@@ -236,10 +237,15 @@ def term_test(points, reduced, term, *, permutations: int = 1000, seed: int = 0,
     # Permuting the residuals' rows equals gathering the bases' rows by the inverse order.
     inverse = np.argsort(orders, axis=1, kind="stable")
     ub = np.concatenate([u0, uq], axis=1)
+    zm = np.concatenate([z, modes_w], axis=1)
     count_global = count_f = 0
     tol = 1e-9
     if per_point:
-        rw = np.einsum("inj,njk->ink", r0, _whitening(r0)).reshape(n, -1)
+        whiten = _whitening(r0)
+        rw = np.empty_like(r0)
+        for j in range(3):  # (n, N, 3) @ (N, 3, 3) as three broadcast products
+            rw[:, :, j] = np.sum(r0 * whiten[None, :, :, j], axis=2)
+        rw = rw.reshape(n, -1)
         v_obs = np.sum(((uq.T @ rw) ** 2).reshape(q, n_points, 3), axis=(0, 2))
         counts = np.zeros(n_points, np.int64)
         max_stats = np.empty(int(permutations))
@@ -249,16 +255,18 @@ def term_test(points, reduced, term, *, permutations: int = 1000, seed: int = 0,
             raise Cancelled("analysis cancelled")
         inv = inverse[start:start + block]
         c = inv.shape[0]
-        gathered = ub[inv]  # (c, n, p0 + q): row i of permutation k is ub[inv[k, i]]
-        g0, gq = gathered[:, :, : u0.shape[1]], gathered[:, :, u0.shape[1]:]
-        a = np.sum(np.einsum("cia,ir->car", gq, z) ** 2, axis=(1, 2))
-        b = np.sum(np.einsum("cia,ir->car", g0, z) ** 2, axis=(1, 2))
+        # (c, p0 + q, n): row a of permutation k is column a of ub with its rows gathered by inv[k]
+        gathered = np.ascontiguousarray(ub.T[:, inv].transpose(1, 0, 2))
+        p0 = u0.shape[1]
+        both = (gathered.reshape(-1, n) @ zm).reshape(c, p0 + q, -1)  # one product for both global statistics
+        a = np.sum(both[:, p0:, : z.shape[1]] ** 2, axis=(1, 2))
+        b = np.sum(both[:, :p0, : z.shape[1]] ** 2, axis=(1, 2))
         f = (a / q) / np.maximum((total_r0 - a - b) / residual_df, 1e-300)
         count_f += int(np.sum(f >= f_obs * (1 - tol)))
-        gm = np.sum(np.einsum("cia,ir->car", gq, modes_w) ** 2, axis=(1, 2))
+        gm = np.sum(both[:, p0:, z.shape[1]:] ** 2, axis=(1, 2))
         count_global += int(np.sum(gm >= g_obs * (1 - tol)))
         if per_point:
-            prod = (gq.transpose(0, 2, 1).reshape(c * q, n) @ rw).reshape(c, q, n_points, 3)
+            prod = (gathered[:, p0:].reshape(c * q, n) @ rw).reshape(c, q, n_points, 3)
             vp = np.sum(prod**2, axis=(1, 3))  # (c, N)
             counts += np.sum(vp >= v_obs * (1 - tol), axis=0)
             max_stats[start:start + c] = vp.max(axis=1)
