@@ -127,3 +127,25 @@ def test_plots_and_meshes_exist(verse_build):
         assert np.allclose(verts, m["instance_points_world"][i], atol=1e-3)
         assert np.array_equal(faces, m["faces"])
     assert not list(out.parent.glob(".out.building-*"))
+
+
+@pytest.mark.slow
+def test_lumbar_and_thoracic_vertebrae_differ_at_the_transverse_processes(verse_build, tmp_path):
+    """The analysis on real vertebrae: T9–T12 against L1–L5 differ globally (the smallest p a split of
+    4 and 5 allows is 1/126), and the largest outward difference is at the tips of the lumbar
+    vertebrae's longer transverse processes (far left and right of the mean, |x| > 25 mm)."""
+    out, _ = verse_build
+    subjects = tmp_path / "subjects.csv"
+    subjects.write_text("name,region\n" + "".join(f"{n},{'thoracic' if n.startswith('T') else 'lumbar'}\n"
+                                                   for n in VERSE_LABELS))
+    proc = run_cli("analyze", out, "--attributes", subjects, "--group", "region", "--reference", "thoracic",
+                   "--out", tmp_path / "analysis")
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert "only 126 distinct ways to split 9 instances" in proc.stderr
+    doc = json.loads((tmp_path / "analysis" / "analysis.json").read_text())
+    assert doc["group"]["counts"] == {"thoracic": 4, "lumbar": 5}
+    assert doc["group_test"]["p_value"] <= 0.05 and doc["group_test"]["p_value_f"] <= 0.05
+    with np.load(tmp_path / "analysis" / "analysis.npz", allow_pickle=False) as z:
+        normal, mean = z["displacement_normal"], z["mean"]
+    top = np.argsort(-normal)[:10]
+    assert np.all(np.abs(mean[top, 0]) > 25.0) and normal[top].min() > 8.0  # mm, lumbar − thoracic

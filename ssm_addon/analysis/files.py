@@ -17,7 +17,7 @@
     statistic and p-values as point fields.
 ``analysis_map.png``, ``analysis_scores.png``
     The group displacement's normal component on the mean surface (diverging scale in mm,
-    points not significant at FDR 5 % greyed) and score scatter plots coloured by group.
+    points not significant at FDR 5 % faded towards grey) and score scatter plots coloured by group.
 """
 
 from __future__ import annotations
@@ -41,6 +41,8 @@ __all__ = ["FDR_LEVEL", "SHAPE_KEY_PREFIXES", "analysis_arrays", "analysis_docum
 
 #: The FDR level of the maps' significance masks and the counts in analysis.json.
 FDR_LEVEL = 0.05
+#: How much of its colour a point not significant keeps in the maps (the rest is grey).
+GREY_MIX = 0.3
 
 
 def _term_doc(test, adjusted_for) -> dict:
@@ -141,7 +143,8 @@ def _mesh_view(points: np.ndarray):
 
 def analysis_map_picture(result: Analysis, path, *, effect: str | None = None) -> Path:
     """The normal component of an effect on the mean surface (mm, diverging blue–red scale with
-    its legend); points not significant at FDR 5 % of the effect's term are grey."""
+    its legend, clipped at the 99th percentile); points not significant at FDR 5 % of the effect's term
+    are faded towards grey (when any point is significant)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.collections import PolyCollection
     from matplotlib.colors import TwoSlopeNorm
@@ -150,7 +153,7 @@ def analysis_map_picture(result: Analysis, path, *, effect: str | None = None) -
     e = result.effect(effect) if effect else result.effects[0]
     test = result.tests[e.term]
     value = e.normal
-    lim = max(float(np.max(np.abs(value))), 1e-6)
+    lim = max(float(np.percentile(np.abs(value), 99)), 1e-6)  # a few extreme points do not wash out the rest
     norm = TwoSlopeNorm(vcenter=0.0, vmin=-lim, vmax=lim)
     fig = Figure(figsize=(9.0, 4.4), dpi=100)
     FigureCanvasAgg(fig)
@@ -168,8 +171,9 @@ def analysis_map_picture(result: Analysis, path, *, effect: str | None = None) -
         n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         light = 0.45 + 0.55 * np.abs(n[:, 2]) / np.maximum(np.linalg.norm(n, axis=1), 1e-12)
         rgba = cmap(norm(value[faces].mean(axis=1)))
-        grey = significant[faces].sum(axis=1) < 2
-        rgba[grey, :3] = 0.78
+        if significant.any():  # with none significant, fading everything would hide where the estimate lies
+            grey = significant[faces].sum(axis=1) < 2
+            rgba[grey, :3] = GREY_MIX * rgba[grey, :3] + (1 - GREY_MIX) * 0.78
         rgba[:, :3] *= light[:, None]
         ax.add_collection(PolyCollection(tri[order, :, :2], facecolors=rgba[order], edgecolors="none"))
         half = 0.55 * float(np.max(np.ptp(p[:, :2], axis=0)))
@@ -186,8 +190,9 @@ def analysis_map_picture(result: Analysis, path, *, effect: str | None = None) -
 
     fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), cax=cax, label=f"normal displacement, {e.unit} (mm)")
     t = test
-    fig.suptitle(f"{e.name} ({e.unit}): global p = {t.p_value:.3g}, {int(significant.sum())} of {len(significant)} "
-                 f"points significant at FDR {FDR_LEVEL:g} (grey: not)", fontsize=10)
+    where = (f"{int(significant.sum())} of {len(significant)} points significant at FDR {FDR_LEVEL:g} (faded: not)"
+             if significant.any() else f"no point significant at FDR {FDR_LEVEL:g} (colours: the estimate)")
+    fig.suptitle(f"{e.name} ({e.unit}): global p = {t.p_value:.3g}; {where}", fontsize=10)
     path = Path(path)
     fig.savefig(path)
     return path
@@ -349,12 +354,13 @@ def analysis_shape_keys(result: Analysis, base) -> dict:
 
 def diverging_colours(values, *, limit: float | None = None, mask=None) -> np.ndarray:
     """RGBA (n, 4) of a blue–white–red scale, ±``limit`` (default: the largest |value|); points where
-    ``mask`` is False are grey (not significant)."""
+    ``mask`` is False are faded towards grey (not significant)."""
     import matplotlib
 
     v = np.asarray(values, dtype=float)
     lim = float(np.max(np.abs(v))) if limit is None else float(limit)
     rgba = matplotlib.colormaps["RdBu_r"](0.5 + 0.5 * v / max(lim, 1e-12))
     if mask is not None:
-        rgba[~np.asarray(mask, bool), :3] = 0.78
+        off = ~np.asarray(mask, bool)
+        rgba[off, :3] = GREY_MIX * rgba[off, :3] + (1 - GREY_MIX) * 0.78
     return rgba

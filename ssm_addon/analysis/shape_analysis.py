@@ -376,6 +376,11 @@ def analyze(model, attributes: Attributes, *, group: str | None = None, covariat
         for j, lv in enumerate(levels[1:]):
             glab[columns[group][:, j] > 0.5] = lv
         counts = {lv: int(np.sum(glab == lv)) for lv in levels}
+        labelings = math.factorial(m) // math.prod(math.factorial(c) for c in counts.values())
+        if labelings < permutations:
+            warnings.append(f"only {labelings} distinct ways to split {m} instances into groups of "
+                            f"{', '.join(str(c) for c in counts.values())}: no p-value of the group can be below "
+                            f"1/{labelings} = {1 / labelings:.2g}, whatever the shapes")
         group_means = {lv: points[glab == lv].mean(axis=0) for lv in levels}
         if len(levels) > 2:
             others = [columns[o] for o in terms if o != group]
