@@ -174,9 +174,88 @@ def test_project_compute_table(population, tmp_path):
 def test_unreachable_scheduler_fails_fast_and_clearly():
     pytest.importorskip("distributed", reason="Dask is optional (pip install .[dask])")
     t0 = time.perf_counter()
-    with pytest.raises(InputError, match=r"tcp://127\.0\.0\.1:9.*no Dask scheduler answered"):
+    with pytest.raises(InputError, match=r"tcp://127\.0\.0\.1:9: nothing accepts connections there"):
         Executor("tcp://127.0.0.1:9", jobs=1)
     assert time.perf_counter() - t0 < 10
+
+
+def _listener(kind: str):
+    """A local TCP server that is not a Dask scheduler: 'silent' accepts and never answers, 'http' is a
+    web server (as the Dask dashboard's port 8787 is). Returns (address, close)."""
+    import http.server
+    import socket
+    import threading
+
+    if kind == "http":
+        server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), http.server.SimpleHTTPRequestHandler)
+        threading.Thread(target=server.serve_forever, daemon=True).start()
+        return f"tcp://127.0.0.1:{server.server_address[1]}", server.shutdown
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    sock.listen(8)
+    held = []
+    threading.Thread(target=lambda: [held.append(sock.accept()) for _ in range(8)], daemon=True).start()
+    return f"tcp://127.0.0.1:{sock.getsockname()[1]}", sock.close
+
+
+@pytest.mark.parametrize("kind", ["silent", "http"])
+def test_a_listener_that_is_not_a_scheduler_fails_within_the_deadline(kind):
+    pytest.importorskip("distributed", reason="Dask is optional (pip install .[dask])")
+    address, close = _listener(kind)
+    try:
+        t0 = time.perf_counter()
+        with pytest.raises(InputError, match=rf"{re.escape(address)}: something accepts connections there but sent "
+                                             r"no Dask handshake within 2 s: not a Dask scheduler"):
+            Executor(address, jobs=1, connect_timeout_s=2.0)
+        assert time.perf_counter() - t0 < 4
+    finally:
+        close()
+
+
+@pytest.mark.slow
+def test_build_against_a_silent_listener_stops_within_15_s_with_its_address(population, tmp_path):
+    pytest.importorskip("distributed", reason="Dask is optional (pip install .[dask])")
+    address, close = _listener("silent")
+    try:
+        proj = _project(population, tmp_path, 3)
+        t0 = time.perf_counter()
+        proc = subprocess.run([sys.executable, "-m", "ssm_addon", "build", str(proj), "--out", str(tmp_path / "out"),
+                               "--scheduler", address, "--no-blend"], cwd=ROOT, capture_output=True, text=True,
+                              timeout=60, env={**os.environ, "PYTHONPATH": str(ROOT)})
+        took = time.perf_counter() - t0
+    finally:
+        close()
+    assert proc.returncode == 2 and took < 15, (took, proc.stderr[-1500:])
+    assert f"{address}: something accepts connections there but sent no Dask handshake within 10 s" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not (tmp_path / "out").exists() and not (tmp_path / "out.cache").exists()
+
+
+def test_jobs_are_capped_at_the_cores_with_a_note():
+    from ssm_addon.pipeline.compute import usable_cores
+
+    with Executor("processes", jobs=100000) as ex:
+        assert ex.jobs == usable_cores() and ex.note == f"--jobs 100000 capped at {usable_cores()} (the machine's " \
+                                                        f"{usable_cores()} cores)"
+    with Executor("processes", jobs=1) as ex:
+        assert ex.note == ""
+
+
+@pytest.mark.slow
+def test_dask_local_starts_no_more_workers_than_cores_and_instances_and_leaves_no_scratch(tmp_path, monkeypatch):
+    pytest.importorskip("distributed", reason="Dask is optional (pip install .[dask])")
+    import tempfile
+
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    tempfile.tempdir = None  # re-read TMPDIR
+    try:
+        with Executor("dask-local", jobs=100000, tasks=1) as ex:
+            assert ex.jobs == 1 and "capped at 1 (the 1 instance(s))" in ex.note
+            assert len(ex._client.scheduler_info()["workers"]) == 1  # noqa: SLF001 - the cluster's own count
+            assert ex.map(abs, [-4]) == [4]
+    finally:
+        tempfile.tempdir = None
+    assert list(tmp_path.iterdir()) == []  # no dask-scratch-space, no ssm-dask-* left
 
 
 def test_scheduler_names_and_time_left():
@@ -193,3 +272,67 @@ def test_executor_map_keeps_order_and_reports(tmp_path):
     with Executor("processes", jobs=2) as ex:
         out = ex.map(abs, [-3, 1, -2, 5], on_result=lambda i, r: seen.append((i, r)), labels=list("abcd"))
     assert out == [3, 1, 2, 5] and sorted(seen) == [(0, 3), (1, 1), (2, 2), (3, 5)]
+
+
+def _damage(entry: Path, how: str) -> None:
+    data = entry.read_bytes()
+    if how == "truncated":
+        entry.write_bytes(data[: len(data) // 2])
+    elif how == "bit-flipped":
+        b = bytearray(data)
+        b[len(b) // 2] ^= 0x40
+        entry.write_bytes(bytes(b))
+    elif how == "wrong-shape":
+        with np.load(entry, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+        arrays["points_object"] = arrays["points_object"][:-7]
+        np.savez(entry, **arrays)
+        if not str(entry).endswith(".npz"):
+            os.replace(str(entry) + ".npz", entry)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("how", ["truncated", "bit-flipped", "wrong-shape"])
+def test_a_damaged_cache_entry_is_recomputed_with_one_line(population, tmp_path, how):
+    proj = _project(population, tmp_path, 3)
+    cache = tmp_path / "cache"
+    _build(proj, tmp_path / "a", cache=cache)
+    entries = sorted((cache / "instances").glob("*.npz"))
+    assert len(entries) == 3
+    _damage(entries[0], how)
+    lines: list = []
+    res = _build(proj, tmp_path / "b", lines, cache=cache)
+    said = [m for m in lines if m.startswith("cache: the entry of instance")]
+    assert len(said) == 1 and "is damaged" in said[0] and "recomputing it" in said[0], lines
+    assert res.study.streamed == {"cached": 2, "computed": 1}
+    for k in ARRAYS:
+        assert np.array_equal(_arrays(tmp_path / "a")[k], _arrays(tmp_path / "b")[k])
+    assert (entries[0].parent / (entries[0].name + ".damaged")).exists()  # kept aside, never read again
+    lines.clear()
+    assert _build(proj, tmp_path / "c", lines, cache=cache).study.streamed == {"cached": 3, "computed": 0}
+    assert not any("is damaged" in m for m in lines)
+
+
+@pytest.mark.slow
+def test_a_cache_that_cannot_be_written_is_used_read_only(population, tmp_path, monkeypatch):
+    import errno
+
+    from ssm_addon.pipeline import cache as cache_module
+
+    proj = _project(population, tmp_path, 3)
+    cache = tmp_path / "cache"
+    first = _build(proj, tmp_path / "a", cache=cache)
+    assert first.study.streamed["computed"] == 3
+    next(iter(sorted((cache / "instances").glob("*.npz")))).unlink()  # one entry missing: needs a write
+
+    def read_only(*args, **kwargs):
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    monkeypatch.setattr(cache_module, "open", read_only, raising=False)
+    lines: list = []
+    res = _build(proj, tmp_path / "b", lines, cache=cache)
+    said = [m for m in lines if "used read-only" in m]
+    assert len(said) == 1 and "Read-only file system" in said[0]
+    assert res.study.streamed == {"cached": 2, "computed": 1}
+    for k in ARRAYS:
+        assert np.array_equal(_arrays(tmp_path / "a")[k], _arrays(tmp_path / "b")[k])

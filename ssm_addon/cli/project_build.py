@@ -418,7 +418,10 @@ def build(
         say("cache: not used by [correspondence] method = \"model\" (its rounds depend on every instance)")
         build_cache = None
     with owned_output_folder(out_dir, inputs, force=force) as tmp:
-        with Executor(scheduler or project.compute.scheduler, jobs) as executor:  # closed before the files
+        with Executor(scheduler or project.compute.scheduler, jobs, tasks=len(project.instances),
+                      connect_timeout_s=project.compute.connect_timeout_s) as executor:  # closed before the files
+            if executor.note:
+                say(f"compute: {executor.note}")
             run(study, jobs=jobs, progress=sub_progress(progress, 0.0, 0.95), cancelled=cancelled, log=say,
                 executor=executor, cache=build_cache)
         check_cancelled(cancelled)

@@ -356,7 +356,7 @@ def fit_batch(model_path, targets: list[FitTarget], out_dir, *, params: FitParam
     folders = file_names(names)
     args = [(str(model_path), t, out_dir / folders[t.name], params, partial, free, outlier_probability)
             for t in targets]
-    with Executor(scheduler, jobs) as executor:
+    with Executor(scheduler, jobs, tasks=len(targets)) as executor:
         docs = executor.map(_fit_job, args, progress=progress, labels=names, verb="fitted")
     k = max((len(d["coefficients"]) for d in docs), default=0)
     with open(out_dir / "coefficients.csv", "w", newline="", encoding="utf-8") as fh:

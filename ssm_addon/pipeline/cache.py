@@ -128,6 +128,12 @@ class InstanceProduct:
 class BuildCache:
     """Per-instance and template entries in ``folder`` (created at the first write).
 
+    Every entry read is validated (a readable ``.npz`` with the keys and array shapes the
+    build expects, finite points); a damaged one is moved aside (``<entry>.damaged``) and
+    recomputed. A cache that cannot be written is used read-only for the rest of the build.
+    Either is said once in :attr:`notes` (the build prints them); the cache never raises
+    for its own files.
+
     Raises
     ------
     InputError
@@ -139,6 +145,8 @@ class BuildCache:
         self.folder = Path(folder).expanduser().resolve()
         self.hits = 0
         self.writes = 0
+        self.read_only = False
+        self.notes: list[str] = []
         if self.folder.exists():
             if not self.folder.is_dir():
                 raise InputError(f"--cache {self.folder}: is a file, not a folder")
@@ -147,10 +155,21 @@ class BuildCache:
                                  f"{MARKER}); choose another --cache folder")
         self._ready = False
 
-    def _make(self) -> None:
+    def take_notes(self) -> list[str]:
+        """The notes since the last call (each said once)."""
+        notes, self.notes = self.notes, []
+        return notes
+
+    def _unwritable(self, err: OSError, what: str) -> None:
+        if not self.read_only:
+            self.notes.append(f"cache: cannot write {what} in {self.folder} ({err.strerror or err}); the cache is used "
+                              "read-only for this build (its entries are read, new ones are not kept)")
+        self.read_only = True
+
+    def _make(self) -> bool:
         """Create the folder and its marker at the first write (a build that fails first leaves nothing)."""
-        if self._ready:
-            return
+        if self._ready or self.read_only:
+            return self._ready
         try:
             (self.folder / "instances").mkdir(parents=True, exist_ok=True)
             (self.folder / "templates").mkdir(exist_ok=True)
@@ -158,39 +177,78 @@ class BuildCache:
             if not marker.exists():
                 marker.write_text(json.dumps({"format": FORMAT, "ssm_builder": __version__}) + "\n")
         except OSError as err:
-            raise InputError(f"--cache {self.folder}: cannot create the cache ({err.strerror})") from None
+            self._unwritable(err, "the cache's folders")
+            return False
         self._ready = True
+        return True
 
     # ------------------------------------------------------------------ files
     def _write(self, path: Path, arrays: dict) -> None:
-        self._make()
+        if not self._make():
+            return
         tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
         try:
             with open(tmp, "wb") as f:
                 np.savez(f, **arrays)
             os.replace(tmp, path)
         except OSError as err:
-            tmp.unlink(missing_ok=True)
-            raise InputError(f"--cache {self.folder}: cannot write {path.name} ({err.strerror})") from None
+            try:
+                tmp.unlink(missing_ok=True)
+            except OSError:
+                pass
+            self._unwritable(err, path.name)
+            return
         self.writes += 1
 
-    @staticmethod
-    def _read(path: Path) -> dict | None:
+    def _damaged(self, path: Path, what: str, reason: str) -> None:
+        """Move a damaged entry aside (kept for a look, never read again) and say so."""
+        aside = path.with_name(path.name + ".damaged")
+        try:
+            os.replace(path, aside)
+            where = f"moved aside to {aside.name}"
+        except OSError:
+            where = "left in place (the cache is not writable)"
+        self.notes.append(f"cache: the entry of {what} is damaged ({reason}); {where}; recomputing it")
+
+    def _read(self, path: Path, what: str, shapes: dict | None = None) -> dict | None:
+        """The entry's arrays, or None when there is none or it is damaged (then moved aside).
+
+        ``shapes``: key -> expected shape (None for a free axis) of the arrays that must be there.
+        """
+        import zipfile
+        import zlib
+
         if not path.exists():
             return None
         try:
             with np.load(path, allow_pickle=False) as npz:
-                return {k: npz[k] for k in npz.files}
-        except (OSError, ValueError, KeyError, EOFError):
-            return None  # a damaged entry is recomputed (and rewritten)
+                arrays = {k: npz[k] for k in npz.files}
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as err:
+            self._damaged(path, what, f"unreadable: {type(err).__name__}: {err}")
+            return None
+        for key, shape in (shapes or {}).items():
+            a = arrays.get(key)
+            if a is None:
+                self._damaged(path, what, f"no {key!r}")
+                return None
+            if len(a.shape) != len(shape) or any(e is not None and e != g for e, g in zip(shape, a.shape)):
+                self._damaged(path, what, f"{key} has shape {a.shape}, expected "
+                                          f"{tuple('any' if e is None else e for e in shape)}")
+                return None
+            if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
+                self._damaged(path, what, f"{key} holds NaN or infinite values")
+                return None
+        return arrays
 
     # ------------------------------------------------------------------ instances
     def instance_path(self, key: str) -> Path:
         return self.folder / "instances" / f"{key}.npz"
 
-    def get_instance(self, key: str, name: str) -> InstanceProduct | None:
-        """The product stored under ``key`` (renamed to ``name``), or None."""
-        a = self._read(self.instance_path(key))
+    def get_instance(self, key: str, name: str, n_points: int | None = None) -> InstanceProduct | None:
+        """The product stored under ``key`` (renamed to ``name``), or None; ``n_points``: the
+        template's point count its coating must have."""
+        shape = {"points_object": (n_points, 3), "warped_points_object": (n_points, 3)}
+        a = self._read(self.instance_path(key), f"instance {name!r}", shape)
         if a is None:
             return None
         try:
@@ -202,7 +260,8 @@ class BuildCache:
             product = InstanceProduct(name=name, frame=frame_from_arrays("frame", a),
                                       volume_mm3=float(a["volume_mm3"]), voxels=int(a["voxels"]), coating=coating,
                                       findings=findings, from_cache=True)
-        except (KeyError, ValueError, TypeError):
+        except (KeyError, ValueError, TypeError) as err:
+            self._damaged(self.instance_path(key), f"instance {name!r}", f"{type(err).__name__}: {err}")
             return None
         self.hits += 1
         return product
@@ -221,13 +280,19 @@ class BuildCache:
         return self.folder / "templates" / f"{key}.npz"
 
     def get_template(self, key: str) -> Template | None:
-        a = self._read(self.template_path(key))
+        path = self.template_path(key)
+        a = self._read(path, "the template", {"points_object": (None, 3), "faces": (None, 3), "curvature": (None,)})
         if a is None:
+            return None
+        n = len(a["points_object"])
+        if len(a["curvature"]) != n or a["faces"].size == 0 or a["faces"].min() < 0 or a["faces"].max() >= n:
+            self._damaged(path, "the template", "its faces or curvature do not match its points")
             return None
         try:
             t = Template(points_object=a["points_object"], faces=a["faces"], curvature=a["curvature"],
                          frame=frame_from_arrays("frame", a), params=json.loads(str(a["params_json"])))
-        except (KeyError, ValueError, TypeError):
+        except (KeyError, ValueError, TypeError) as err:
+            self._damaged(path, "the template", f"{type(err).__name__}: {err}")
             return None
         self.hits += 1
         return t

@@ -29,14 +29,14 @@ from collections.abc import Callable, Sequence
 from ..pipeline.errors import Cancelled, InputError
 from ..pipeline.progress import CancelledFn, ProgressFn, report
 
-__all__ = ["SCHEDULERS", "Executor", "check_scheduler", "ignore_sigint", "run_one_thread", "stop_children",
-           "time_left_text"]
+__all__ = ["CONNECT_TIMEOUT_S", "SCHEDULERS", "Executor", "check_scheduler", "ignore_sigint", "probe_scheduler",
+           "run_one_thread", "stop_children", "time_left_text", "usable_cores"]
 
 SCHEDULERS = ("serial", "processes", "dask-local")
 """Scheduler names; anything else must be a Dask scheduler address (``tcp://``, ``tls://``, ``ucx://``)."""
 
-CONNECT_TIMEOUT_S = 5.0
-"""How long to wait for a Dask scheduler address to answer."""
+CONNECT_TIMEOUT_S = 10.0
+"""How long to wait for a Dask scheduler address to answer (the default of ``[compute] connect_timeout_s``)."""
 
 _ADDRESS_PREFIXES = ("tcp://", "tls://", "ucx://", "inproc://", "ws://", "wss://")
 
@@ -108,6 +108,93 @@ def stop_children(before: set) -> None:
             child.kill()
 
 
+def usable_cores() -> int:
+    """Cores this process may run on (its CPU affinity where the system says, else the CPU count)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def _host_port(address: str) -> tuple[str, int]:
+    rest = address.split("://", 1)[1].rstrip("/")
+    host, _, port = rest.rpartition(":")
+    if not host or not port.isdigit():
+        raise InputError(f"--scheduler {address}: expected tcp://HOST:PORT (a Dask scheduler listens on 8786 by "
+                         "default)")
+    return host.strip("[]"), int(port)
+
+
+def probe_scheduler(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
+    """Check that a Dask scheduler answers at ``tcp://HOST:PORT`` within ``timeout_s``.
+
+    A Dask scheduler sends its handshake as soon as a connection opens: a message of
+    frames whose first 8 bytes are the frame count (a small little-endian integer). No
+    connection, no bytes within the deadline (a silent listener; an HTTP server such as
+    the dashboard on 8787 waits for a request) or other bytes are each an InputError that
+    names the address and what answered. Interruptible: Ctrl-C stops the wait at once.
+    """
+    import socket
+
+    host, port = _host_port(address)
+    deadline = time.monotonic() + float(timeout_s)
+    try:
+        sock = socket.create_connection((host, port), timeout=max(float(timeout_s), 0.1))
+    except OSError as err:
+        raise InputError(f"--scheduler {address}: nothing accepts connections there ({err.strerror or err}); start a "
+                         "scheduler with `dask scheduler` (port 8786) or check the address") from None
+    with sock:
+        data = b""
+        try:
+            while len(data) < 8 and time.monotonic() < deadline:
+                sock.settimeout(max(deadline - time.monotonic(), 0.05))
+                chunk = sock.recv(8 - len(data))
+                if not chunk:
+                    break
+                data += chunk
+        except TimeoutError:
+            pass
+        except OSError as err:
+            raise InputError(f"--scheduler {address}: the connection failed ({err})") from None
+    if not data:
+        hint = " (8787 is the Dask dashboard's port; the scheduler's is 8786 by default)" if port == 8787 else ""
+        raise InputError(f"--scheduler {address}: something accepts connections there but sent no Dask handshake "
+                         f"within {timeout_s:g} s: not a Dask scheduler{hint}")
+    frames = int.from_bytes(data.ljust(8, b"\0"), "little")
+    if len(data) < 8 or not 1 <= frames <= 64:
+        shown = data[:8].decode("latin-1").encode("unicode_escape").decode()
+        raise InputError(f"--scheduler {address}: the server there answered {shown!r}, not a Dask handshake: not a "
+                         "Dask scheduler (a web server or another service?)")
+
+
+def _client_within(client_cls, address: str, timeout_s: float):
+    """``client_cls(address)`` in a helper thread, abandoned with an InputError after ``timeout_s``
+    (a Client's own timeout does not hold against every server)."""
+    import threading
+
+    box: dict = {}
+
+    def connect():
+        try:
+            box["client"] = client_cls(address, timeout=f"{timeout_s:g}s")
+        except BaseException as err:  # noqa: BLE001 - handed to the caller
+            box["error"] = err
+
+    thread = threading.Thread(target=connect, daemon=True, name="ssm-dask-connect")
+    thread.start()
+    thread.join(timeout_s + 1.0)
+    if thread.is_alive():
+        raise InputError(f"--scheduler {address}: no Dask scheduler answered within {timeout_s:g} s; start one with "
+                         "`dask scheduler` or check the address")
+    err = box.get("error")
+    if isinstance(err, OSError | TimeoutError):
+        raise InputError(f"--scheduler {address}: no Dask scheduler answered within {timeout_s:g} s "
+                         f"({type(err).__name__}: {err}); start one with `dask scheduler` or check the address")
+    if err is not None:
+        raise err
+    return box["client"]
+
+
 class Executor:
     """Maps a per-instance function over inputs on the chosen scheduler.
 
@@ -130,9 +217,19 @@ class Executor:
         :data:`CONNECT_TIMEOUT_S`.
     """
 
-    def __init__(self, scheduler: str = "processes", jobs: int = 1, *, start_method: str = "spawn"):
+    def __init__(self, scheduler: str = "processes", jobs: int = 1, *, start_method: str = "spawn",
+                 connect_timeout_s: float = CONNECT_TIMEOUT_S, tasks: int | None = None):
         self.scheduler = check_scheduler(scheduler)
+        self.connect_timeout_s = float(connect_timeout_s)
         self.jobs = max(1, int(jobs or 1))
+        self.note = ""
+        if self.scheduler in ("processes", "dask-local"):
+            cores, asked = usable_cores(), self.jobs
+            limit = min(cores, tasks) if tasks is not None and self.scheduler == "dask-local" else cores
+            if self.jobs > max(1, limit):
+                self.jobs = max(1, int(limit))
+                why = f"the machine's {cores} cores" if limit == cores else f"the {tasks} instance(s)"
+                self.note = f"--jobs {asked} capped at {self.jobs} ({why})"
         if start_method not in ("spawn", "forkserver"):  # fork is avoided: the caller may hold threads
             raise InputError(f"start_method must be 'spawn' or 'forkserver', got {start_method!r}")
         self.start_method = start_method
@@ -154,16 +251,22 @@ class Executor:
             raise InputError(f"--scheduler {self.scheduler}: Dask is not installed; install it with "
                              "pip install \"ssm-builder[dask]\" (or use --scheduler processes)") from None
         if self.scheduler == "dask-local":
+            import tempfile
+
+            # the workers' scratch space in a folder of our own, removed on close (not $TMPDIR/dask-scratch-space)
+            import dask
+
+            self._scratch = tempfile.mkdtemp(prefix="ssm-dask-")
+            self._dask_config = dask.config.set({"temporary-directory": self._scratch})  # scheduler's too
             self._cluster = LocalCluster(n_workers=self.jobs, threads_per_worker=1, processes=True,
-                                         dashboard_address=None, silence_logs=logging.ERROR)
+                                         dashboard_address=None, silence_logs=logging.ERROR,
+                                         local_directory=self._scratch)
             self._client = Client(self._cluster)
             return
-        try:
-            self._client = Client(self.scheduler, timeout=f"{CONNECT_TIMEOUT_S:g}s")
-        except (OSError, TimeoutError) as err:
-            raise InputError(f"--scheduler {self.scheduler}: no Dask scheduler answered within {CONNECT_TIMEOUT_S:g} s "
-                             f"({type(err).__name__}: {err}); start one with `dask scheduler` or check the "
-                             "address") from None
+        deadline = time.monotonic() + self.connect_timeout_s
+        if self.scheduler.startswith("tcp://"):
+            probe_scheduler(self.scheduler, self.connect_timeout_s)
+        self._client = _client_within(Client, self.scheduler, max(deadline - time.monotonic(), 1.0))
 
     @property
     def workers(self) -> int:
@@ -188,6 +291,14 @@ class Executor:
         if self._cluster is not None:
             self._cluster.close()
             self._cluster = None
+        if getattr(self, "_dask_config", None) is not None:
+            self._dask_config.__exit__(None, None, None)  # the caller's dask configuration again
+            self._dask_config = None
+        if getattr(self, "_scratch", None):
+            import shutil
+
+            shutil.rmtree(self._scratch, ignore_errors=True)
+            self._scratch = None
 
     def __enter__(self) -> Executor:
         return self

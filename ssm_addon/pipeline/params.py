@@ -821,6 +821,10 @@ class ComputeParams:
     cache: str = param("auto", kind="str", label="Cache",
                        help="per-instance cache folder for resuming: 'auto' (DIR.cache beside the output folder), "
                             "'off', or a folder (relative to the project file)")
+    connect_timeout_s: float = param(10.0, unit="s", minimum=0.5, maximum=600.0, label="Connect timeout",
+                                     advanced=True,
+                                     help="how long a Dask scheduler address may take to answer its handshake "
+                                          "before the build stops with an error")
 
     _where = "compute parameters:"
 

@@ -569,6 +569,8 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
     timings, volumes, frames = {}, {}, {}
     tkey = template_key(study) if cache is not None else None
     template = cache.get_template(tkey) if cache is not None else None
+    for note in cache.take_notes() if cache is not None else ():
+        say(note)
     if template is None:
         tspec = study.instance(tname)
         report(progress, 0.0, f"import: {tname} (template instance)")
@@ -608,13 +610,15 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
     keys = [job.key() for job in jobs] if cache is not None else [None] * len(jobs)
     todo = []
     for job, key in zip(jobs, keys):
-        hit = cache.get_instance(key, job.spec.name) if cache is not None else None
+        hit = cache.get_instance(key, job.spec.name, len(template.points_object)) if cache is not None else None
         if hit is not None:
             products[job.spec.name] = hit
         else:
             todo.append((job, key))
     cached = len(products)
     if cache is not None:
+        for note in cache.take_notes():
+            say(note)
         say(f"coating: {cached} of {len(jobs)} instance(s) taken from the cache {cache.folder}, {len(todo)} to coat")
 
     def arrived(i, product):
@@ -625,6 +629,8 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
     report(progress, 0.2, f"coating: {len(todo)} instance(s) on {executor.describe()}")
     executor.map(coat_from_source, [j for j, _k in todo], on_result=arrived, labels=[j.spec.name for j, _k in todo],
                  verb="coated", progress=sub_progress(progress, 0.2, 1.0), cancelled=cancelled)
+    for note in cache.take_notes() if cache is not None else ():
+        say(note)
     findings = [f for name in names for f in products[name].findings]
     findings += check_volumes_together({n: products[n].volume_mm3 for n in names}, study.quality_params)
     findings = [dataclasses.replace(f, stage="import") for f in findings]
