@@ -190,7 +190,7 @@ def test_no_instances(files):
 
 def test_single_instance_is_not_a_population(files):
     msg = _error(files, VALID.rsplit("[[instances]]", 1)[0].replace('instance = "two"', 'instance = "one"'))
-    assert "needs at least two" in msg
+    assert "a build needs at least 3" in msg
 
 
 def test_volume_and_mesh_are_exclusive(files):

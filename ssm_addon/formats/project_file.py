@@ -71,6 +71,9 @@ INSTANCE_KEYS = {
     "landmarks": "a file path (string)",
     "attributes": "a table of attributes, e.g. { group = \"patient\", age = 63 }",
 }
+#: Longest instance name: it names output files (``coated/<name>.ply``, ``landmarks/<name>.mrk.json``),
+#: and file systems allow 255 bytes per file name.
+MAX_NAME_CHARS = 200
 #: [template] keys besides the TemplateParams fields.
 STUDY_TEMPLATE_KEYS = ("instance",)
 SECTIONS = ("instances", *P.TABLES, "analysis", "study")
@@ -222,8 +225,19 @@ def _existing_file(value, key, what, ctx, where, base) -> Path:
     line = ctx.lines.key(*where, key)
     if not isinstance(value, str):
         raise _kind_error(ctx, f"{what}: {key}", INSTANCE_KEYS[key], value, line)
-    path = _resolve(value, base)
-    if not path.is_file():
+    if "\0" in value or any(ord(c) < 32 for c in value):
+        raise ctx.error(f"{what}: {key} {value!r} holds a control character (NUL, tab or newline): not a file path",
+                        line)
+    try:
+        path = _resolve(value, base)
+        exists = path.is_file()
+    except RuntimeError:  # Path.resolve on a symbolic link that points back at itself
+        raise ctx.error(f"{what}: {key} {value!r} is a symbolic link loop (it points back at itself)", line) from None
+    except (OSError, ValueError) as err:
+        raise ctx.error(f"{what}: {key} {value!r}: cannot be used as a path ({err})", line) from None
+    if not exists:
+        if os.path.islink(path):
+            raise ctx.error(f"{what}: {key} {path} is a symbolic link to nothing (or a link loop)", line)
         raise ctx.error(f"{what}: {key} file not found: {path}", line)
     return path
 
@@ -242,7 +256,7 @@ def _params(cls, doc: dict, section: str, ctx: _Context, extra=()):
 def _instances(doc: dict, ctx: _Context, base: Path, landmarks_required: bool = True) -> list[InstanceSpec]:
     raw = doc.get("instances")
     if raw is None or (isinstance(raw, list) and not raw):
-        raise ctx.error("no [[instances]]: a project needs at least two instances, each with name, volume (or mesh) "
+        raise ctx.error("no [[instances]]: a build needs at least 3 instances, each with name, volume (or mesh) "
                         "and landmarks")
     if not isinstance(raw, list) or not all(isinstance(t, dict) for t in raw):
         raise ctx.error("instances must be an array of tables ([[instances]])", ctx.lines.key("instances"))
@@ -260,6 +274,12 @@ def _instances(doc: dict, ctx: _Context, base: Path, landmarks_required: bool = 
             raise _kind_error(ctx, f"{label_txt} name", INSTANCE_KEYS["name"], name, ctx.lines.key(*where, "name"))
         if not name.strip():
             raise ctx.error(f"{label_txt}: empty name", ctx.lines.key(*where, "name"))
+        if any(ord(c) < 32 or ord(c) == 127 for c in name):
+            raise ctx.error(f"{label_txt}: name {name!r} holds a control character (NUL, tab, newline); an instance "
+                            "name must be printable (it names files and Blender objects)", ctx.lines.key(*where, "name"))
+        if len(name) > MAX_NAME_CHARS:
+            raise ctx.error(f"{label_txt}: name is {len(name)} characters; at most {MAX_NAME_CHARS} (it names the "
+                            f"instance's output files): {name[:40]!r}…", ctx.lines.key(*where, "name"))
         what = f"instance {name!r}"
         if name in seen:
             raise ctx.error(f"duplicate instance name {name!r} (instances #{seen[name] + 1} and #{i + 1})",
@@ -416,7 +436,8 @@ def read_project(path) -> Project:
 
     instances = _instances(doc, ctx, path.parent, landmarks_required=correspondence.method == "landmarks")
     if len(instances) < 2:
-        raise ctx.error(f"only one instance ({instances[0].name!r}): a shape model needs at least two",
+        raise ctx.error(f"only one instance ({instances[0].name!r}): a build needs at least 3 (a model with its "
+                        "leave-one-out metrics)",
                         ctx.lines.table("instances", 0))
     marked = [inst for inst in instances if inst.landmark_set is not None]
     if not marked:

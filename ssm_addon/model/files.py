@@ -6,6 +6,8 @@ import csv
 import datetime
 import json
 import os
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -106,6 +108,11 @@ def model_from_arrays(arrays: dict, where: str = "model") -> ShapeModel:
     for key, arr in (("instance_points", pts), ("instance_points_world", world)):
         if arr.shape != (n, npts, 3):
             raise InputError(f"{where}: '{key}' has shape {arr.shape}; expected ({n}, {npts}, 3)")
+    for key, arr in (("mean", mean), ("modes", modes), ("variances", variances), ("instance_points", pts),
+                     ("instance_points_world", world)):
+        if arr.size and not np.all(np.isfinite(arr)):
+            bad = int(np.sum(~np.isfinite(arr)))
+            raise InputError(f"{where}: '{key}' holds {bad} NaN or infinite value(s); the model is damaged")
     params = arrays.get("params", {})
     return ShapeModel(
         mean=mean,
@@ -138,8 +145,9 @@ def load_npz(path) -> ShapeModel:
             arrays = {k: data[k] for k in NPZ_KEYS}
     except InputError:
         raise
-    except (OSError, ValueError) as err:
-        raise InputError(f"{path}: cannot read as a model .npz ({err})") from err
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as err:
+        raise InputError(f"{path}: damaged or not a model .npz ({type(err).__name__}: {err}); rebuild it or "
+                         "copy it again") from None
     try:
         params = json.loads(str(arrays.pop("params_json")))
     except json.JSONDecodeError as err:
@@ -242,12 +250,23 @@ def load_statismo(path) -> ShapeModel:
         cells = np.asarray(f["representer/cells"][()]) if "representer/cells" in f else np.zeros((3, 0), int)
         if cells.ndim != 2 or cells.shape[0] != 3:
             raise InputError(f"{path}: '/representer/cells' has shape {cells.shape}; expected (3, F) triangles")
-        if "ssm" in f:
-            names = np.asarray([s.decode() if isinstance(s, bytes) else str(s) for s in f["ssm/instance_names"][()]])
-            pts = np.asarray(f["ssm/instance_points"][()], dtype=float)
-            world = np.asarray(f["ssm/instance_points_world"][()], dtype=float)
-            pj = f["ssm/params_json"][()]
-            params = json.loads(pj.decode() if isinstance(pj, bytes) else str(pj))
+        ssm_keys = ("instance_names", "instance_points", "instance_points_world", "params_json")
+        if "ssm" in f and all(f"ssm/{k}" in f for k in ssm_keys):
+            try:
+                names = np.asarray([s.decode() if isinstance(s, bytes) else str(s)
+                                    for s in f["ssm/instance_names"][()]])
+                pts = np.asarray(f["ssm/instance_points"][()], dtype=float)
+                world = np.asarray(f["ssm/instance_points_world"][()], dtype=float)
+                pj = f["ssm/params_json"][()]
+                params = json.loads(pj.decode() if isinstance(pj, bytes) else str(pj))
+            except (ValueError, TypeError, UnicodeDecodeError) as err:
+                raise InputError(f"{path}: the /ssm group is damaged ({type(err).__name__}: {err})") from None
+            if not isinstance(params, dict):
+                raise InputError(f"{path}: '/ssm/params_json' is not a JSON object")
+        elif "ssm" in f:
+            missing = [k for k in ssm_keys if f"ssm/{k}" not in f]
+            raise InputError(f"{path}: the /ssm group (SSM Builder's training data) lacks {', '.join(missing)}; the "
+                             "file is damaged or was edited (delete /ssm to use the model without its instances)")
         else:
             npts = mean.shape[0]
             names = np.zeros(0, dtype="<U1")

@@ -10,6 +10,8 @@ gate                          figure                                          st
 ============================  ==============================================  ==========
 ``components``                share of the second-largest connected part      import
 ``volume``                    volume / median volume of the study             import
+``duplicate``                 the same file and label, or bit-identical       import
+                              content, as another instance
 ``landmark_distance``         landmark to surface distance (mm; an error)     import
 ``landmark_residual``         coated landmark to given landmark (mm)          coating
 ``landmark_transfer``         given landmark to the others' model's           coating
@@ -34,6 +36,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -45,12 +48,14 @@ __all__ = [
     "QualityError",
     "check_coating",
     "check_correspondence_rounds",
+    "check_duplicate_instances",
     "check_frames",
     "check_landmark_transfer",
     "check_landmarks_on_surface",
     "check_model",
     "check_volume",
     "check_volumes_together",
+    "content_digest",
     "loo_outlier_scores",
     "warnings_text",
 ]
@@ -137,6 +142,47 @@ def check_volumes_together(volumes_mm3: dict[str, float], params: QualityParams)
                                f"{median / 1000:.1f} cm³ (allowed {1 / params.max_volume_ratio:.2f}–"
                                f"{params.max_volume_ratio:g}×): another structure or a wrong label?",
                                ratio, params.max_volume_ratio))
+    return out
+
+
+def content_digest(*arrays) -> str:
+    """SHA-1 of arrays' bytes (shape and dtype included): equal for bit-identical content."""
+    import hashlib
+
+    h = hashlib.sha1()
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def check_duplicate_instances(sources: dict[str, tuple], digests: dict[str, str] | None = None) -> list[Finding]:
+    """Instances that are another instance again: the same file and label, or bit-identical content
+    (a copied file under another name). A shape counted twice narrows the model's variance.
+
+    Parameters
+    ----------
+    sources : dict name -> (file path, label)
+    digests : dict name -> str, optional
+        :func:`content_digest` of what each instance became (its object mask, or its coating).
+    """
+    by_source: dict = {}
+    by_digest: dict = {}
+    out = []
+    for name, source in sources.items():
+        digest = (digests or {}).get(name)
+        if source in by_source:
+            path, label = source
+            where = f"{Path(str(path)).name}" + (f", label {label}" if label is not None else "")
+            out.append(Finding(name, "duplicate", f"the same file and label as instance {by_source[source]!r} "
+                                                  f"({where}): one shape counted twice"))
+        elif digest is not None and digest in by_digest:
+            out.append(Finding(name, "duplicate", f"identical to instance {by_digest[digest]!r} (bit for bit): the "
+                                                  "same shape under another name, counted twice"))
+        by_source.setdefault(source, name)
+        if digest is not None:
+            by_digest.setdefault(digest, name)
     return out
 
 

@@ -31,6 +31,7 @@ from collections import Counter
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -44,12 +45,14 @@ from ..model.pca import ShapeModel, build_model
 from ..model.quality import (
     check_coating,
     check_correspondence_rounds,
+    check_duplicate_instances,
     check_frames,
     check_landmark_transfer,
     check_landmarks_on_surface,
     check_model,
     check_volume,
     check_volumes_together,
+    content_digest,
 )
 from ..pipeline.errors import InputError, check_cancelled
 from ..pipeline.params import CoatingParams, CorrespondenceParams, ModelParams, QualityParams, TemplateParams
@@ -633,6 +636,8 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
         say(note)
     findings = [f for name in names for f in products[name].findings]
     findings += check_volumes_together({n: products[n].volume_mm3 for n in names}, study.quality_params)
+    findings += check_duplicate_instances(instance_sources(study, names),
+                                          {n: content_digest(products[n].coating.points_object) for n in names})
     findings = [dataclasses.replace(f, stage="import") for f in findings]
     frames.update({n: products[n].frame for n in names})
     coatings = {n: products[n].coating for n in names}
@@ -823,6 +828,16 @@ def merge_findings(recorded: Sequence[dict], result: StageResult) -> list[dict]:
     return [f for f in recorded if not replaced(f)] + [f.to_dict() for f in result.findings]
 
 
+def instance_sources(study: Study, names) -> dict[str, tuple]:
+    """``{name: (file, label)}`` of instances: what makes two of them the same input."""
+    out = {}
+    for n in names:
+        spec = study.instance(n)
+        path = spec.volume if spec.volume is not None else spec.mesh
+        out[n] = (str(Path(path).resolve()) if path is not None else f"<{n}>", spec.label)
+    return out
+
+
 def import_result(study: Study, volumes: dict[str, ObjectVolume], seconds: float) -> StageResult:
     """The import stage's result for ``volumes`` just imported: the import gates on them.
 
@@ -833,6 +848,9 @@ def import_result(study: Study, volumes: dict[str, ObjectVolume], seconds: float
     findings = [f for name, ov in volumes.items() for f in check_volume(name, ov, qp)]
     every = {**study.volumes, **volumes}
     findings += check_volumes_together({n: every[n].volume_mm3 for n in study.names if n in every}, qp)
+    names = [n for n in study.names if n in every]
+    findings += check_duplicate_instances(instance_sources(study, names),
+                                          {n: content_digest(every[n].mask, every[n].frame.matrix_world) for n in names})
     return StageResult("import", {"volumes": dict(volumes), "frames": {n: v.frame for n, v in volumes.items()}},
                        tuple(findings), {"import": seconds}, (f"import: {len(volumes)} instances in {seconds:.2f} s",))
 
