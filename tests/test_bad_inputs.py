@@ -125,3 +125,38 @@ def test_duplicate_instances_are_a_finding_by_name(population, tmp_path):
     assert set(dup) == {"again", "copied"}
     assert "the same file and label as instance 'demo_01' (demo_01.nii.gz, label 20)" in dup["again"]
     assert "identical to instance 'demo_01' (bit for bit)" in dup["copied"]
+
+
+def test_geometry_problems_are_named_not_blamed_on_the_landmarks(population, tmp_path):
+    import gzip
+    import struct
+
+    import nibabel as nib
+    import nrrd
+
+    from ssm_addon.formats.label_maps import read_label_map
+
+    data = np.zeros((12, 12, 12), np.uint8)
+    data[3:9, 3:9, 3:9] = 20
+    img = nib.Nifti1Image(data, np.eye(4))
+    img.set_qform(None, code=0)
+    img.set_sform(None, code=0)
+    nib.save(img, tmp_path / "ok.nii.gz")
+    raw = bytearray(gzip.open(tmp_path / "ok.nii.gz").read())
+    raw[80:84] = struct.pack("<f", 0.0)  # pixdim[1] = 0 (nibabel would mend it to 1 on reading)
+    (tmp_path / "zero.nii").write_bytes(bytes(raw))
+    with pytest.raises(InputError, match=r"zero\.nii: the header gives voxel size \[0\.0, 1\.0, 1\.0\] .*no size in mm"):
+        read_label_map(tmp_path / "zero.nii")
+    nrrd.write(str(tmp_path / "bare.nrrd"), data)
+    with pytest.raises(InputError, match=r"bare\.nrrd: the NRRD header has neither 'space directions' nor 'spacings'"):
+        read_label_map(tmp_path / "bare.nrrd")
+    # a template instance of one voxel: the voxel count is the cause, not its landmarks
+    one = np.zeros((10, 10, 10), np.uint8)
+    one[5, 5, 5] = 20
+    nib.save(nib.Nifti1Image(one, np.eye(4)), tmp_path / "one.nii.gz")
+    proj = _project(population, tmp_path)
+    text = proj.read_text()
+    proj.write_text(re.sub(r'volume = "[^"]*demo_00.nii.gz"', f'volume = "{tmp_path / "one.nii.gz"}"', text))
+    with pytest.raises(InputError, match=r"instance 'demo_00' .*only 1 voxel\(s\) at 1 mm; at least 64"):
+        build(read_project(proj), tmp_path / "out", blend=False)
+    assert not (tmp_path / "out").exists()

@@ -116,6 +116,15 @@ def _read_nifti(path: Path):
     import nibabel as nib
 
     img = nib.load(str(path))
+    with nib.openers.ImageOpener(str(path)) as f:  # the header as written (nibabel mends zero voxel sizes to 1)
+        hdr = type(img.header).from_fileobj(f, check=False)
+    if hasattr(hdr, "get_qform") and int(hdr["qform_code"]) == 0 and int(hdr["sform_code"]) == 0:
+        zooms = np.asarray(hdr["pixdim"][1:4], dtype=float)  # the affine comes from these alone
+        bad = [i + 1 for i, z in enumerate(zooms) if not (np.isfinite(z) and z > 0)]
+        if bad:
+            raise InputError(f"{path}: the header gives voxel size {zooms.tolist()} (pixdim {bad[0]} is not a "
+                             "positive number) and no orientation (qform and sform codes 0): the voxels have no size "
+                             "in mm; fix the header (e.g. resave it from the segmentation tool)")
     data = np.asanyarray(img.dataobj)
     return data, np.asarray(img.affine, dtype=float)
 
@@ -165,7 +174,14 @@ def _read_nrrd(path: Path):
             affine[:3, col] = row
     elif "spacings" in header:
         sp = np.asarray(header["spacings"], dtype=float)[:3]
-        affine[:3, :3] = np.diag(np.where(np.isfinite(sp), sp, 1.0))
+        if not np.all(np.isfinite(sp) & (sp > 0)):
+            raise InputError(f"{path}: 'spacings' {sp.tolist()} are not all positive numbers: the voxels have no size "
+                             "in mm")
+        affine[:3, :3] = np.diag(sp)
+    else:
+        raise InputError(f"{path}: the NRRD header has neither 'space directions' nor 'spacings': the voxel size and "
+                         "orientation are unknown, and a model needs mm in the image's world (resave it from "
+                         "3D Slicer, or add 'space: left-posterior-superior' and 'space directions')")
     origin = header.get("space origin")
     if origin is not None:
         affine[:3, 3] = np.asarray(origin, dtype=float)[:3]

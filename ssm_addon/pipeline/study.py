@@ -580,6 +580,8 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
         ov = import_instance(tspec, spacing_mm=study.template_params.spacing_mm,
                              frame_method=study.template_params.frame, cancelled=cancelled)
         volumes[tname], frames[tname] = ov, ov.frame
+        check_volume(tname, ov, study.quality_params)  # a few voxels is the cause, not the landmarks (its findings
+        # are the worker's to report)
         check_landmarks_on_surface(tname, ov, study.landmarks(tname), study.quality_params,
                                    source=str(tspec.landmarks) if tspec.landmarks is not None else "")
         timings["import"] = time.perf_counter() - t0
