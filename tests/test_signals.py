@@ -115,3 +115,38 @@ def test_signal_during_the_blender_step_cannot_crash_it(project, tmp_path):
         assert "Segmentation fault" not in err + rest and "Traceback" not in err
         assert elapsed < 2.0 and alive == []
         assert not out.exists() and [p.name for p in tmp_path.iterdir()] in ([], ["out.cache"])
+
+
+@pytest.mark.parametrize("scheduler", ["processes", "dask-local"])
+@pytest.mark.parametrize(("signum", "code"), [(signal.SIGHUP, 129), (signal.SIGINT, 130)])
+def test_a_signal_to_the_whole_process_group_ends_with_one_line(project, tmp_path, scheduler, signum, code):
+    """A terminal's hang-up or Ctrl-C reaches every process of the group: the workers, Dask's nannies
+    and multiprocessing's resource tracker too. None of them prints a traceback."""
+    if scheduler == "dask-local":
+        pytest.importorskip("distributed", reason="Dask is optional (pip install .[dask])")
+    out = tmp_path / "out"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, "-u", "-m", "ssm_addon", "build", str(project), "--out", str(out),
+                             "--jobs", "2", "--no-blend", "--scheduler", scheduler], cwd=tmp_path, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    seen = []
+    for line in proc.stdout:
+        seen.append(line)
+        if "coating:" in line:
+            break
+    else:
+        pytest.fail("".join(seen[-20:]) + proc.stderr.read()[-2000:])
+    time.sleep(1.0)
+    kids = _children(proc.pid)
+    t0 = time.monotonic()
+    os.killpg(proc.pid, signum)
+    proc.wait(timeout=60)
+    elapsed = time.monotonic() - t0
+    rest, err = proc.stdout.read(), proc.stderr.read()
+    time.sleep(1.0)
+    assert proc.returncode == code and elapsed < 5.0, (proc.returncode, elapsed, err[-2000:])
+    assert "Traceback" not in err + rest and "KeyError" not in err, err[-3000:]
+    assert err.strip().splitlines() == [f"interrupted by {signal.Signals(signum).name}: stopped; the output folder "
+                                        "is as it was"]
+    assert [k for k in kids if _alive(k)] == []
+    assert not out.exists()

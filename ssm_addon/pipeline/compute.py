@@ -29,8 +29,9 @@ from collections.abc import Callable, Sequence
 from ..pipeline.errors import Cancelled, InputError
 from ..pipeline.progress import CancelledFn, ProgressFn, report
 
-__all__ = ["CONNECT_TIMEOUT_S", "SCHEDULERS", "Executor", "check_scheduler", "ignore_sigint", "probe_scheduler",
-           "run_one_thread", "stop_children", "time_left_text", "usable_cores"]
+__all__ = ["CONNECT_TIMEOUT_S", "SCHEDULERS", "Executor", "check_scheduler", "dask_setup", "ignore_sigint",
+           "probe_scheduler", "run_one_thread", "start_resource_tracker", "stop_children", "time_left_text",
+           "usable_cores"]
 
 SCHEDULERS = ("serial", "processes", "dask-local")
 """Scheduler names; anything else must be a Dask scheduler address (``tcp://``, ``tls://``, ``ucx://``)."""
@@ -89,10 +90,44 @@ def run_one_thread(fn: Callable, item):
 
 
 def ignore_sigint() -> None:
-    """Worker initializer: Ctrl-C is for the main process, which stops the workers."""
+    """Worker initializer: Ctrl-C and a hang-up are for the main process, which stops the workers.
+
+    (A terminal sends both to every process of its foreground group, workers included.)
+    """
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if hasattr(signal, "SIGHUP"):
+        signal.signal(signal.SIGHUP, signal.SIG_IGN)
+
+
+def dask_setup(worker=None) -> None:
+    """Dask preload hook (``preload=["ssm_addon.pipeline.compute"]``): a LocalCluster worker leaves
+    Ctrl-C and hang-ups to the main process, which closes the cluster (no worker tracebacks)."""
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        ignore_sigint()
+
+
+def start_resource_tracker() -> None:
+    """Start multiprocessing's resource tracker with SIGHUP and SIGINT ignored (inherited across its
+    exec), so a terminal's hang-up to the whole process group does not kill it mid-build (its
+    successor would print a KeyError traceback per semaphore). The window is milliseconds."""
+    import signal
+    import threading
+    from multiprocessing import resource_tracker
+
+    if threading.current_thread() is not threading.main_thread():  # only the main thread sets handlers
+        resource_tracker.ensure_running()
+        return
+    numbers = [getattr(signal, n) for n in ("SIGHUP", "SIGINT") if hasattr(signal, n)]
+    previous = {n: signal.signal(n, signal.SIG_IGN) for n in numbers}
+    try:
+        resource_tracker.ensure_running()
+    finally:
+        for n, handler in previous.items():
+            signal.signal(n, handler)
 
 
 def stop_children(before: set) -> None:
@@ -256,11 +291,12 @@ class Executor:
             # the workers' scratch space in a folder of our own, removed on close (not $TMPDIR/dask-scratch-space)
             import dask
 
+            start_resource_tracker()
             self._scratch = tempfile.mkdtemp(prefix="ssm-dask-")
             self._dask_config = dask.config.set({"temporary-directory": self._scratch})  # scheduler's too
             self._cluster = LocalCluster(n_workers=self.jobs, threads_per_worker=1, processes=True,
                                          dashboard_address=None, silence_logs=logging.ERROR,
-                                         local_directory=self._scratch)
+                                         local_directory=self._scratch, preload=[__name__])
             self._client = Client(self._cluster)
             return
         deadline = time.monotonic() + self.connect_timeout_s
@@ -353,6 +389,7 @@ class Executor:
 
         before = {c.pid for c in multiprocessing.active_children()}
         if self._pool is None:
+            start_resource_tracker()
             context = multiprocessing.get_context(self.start_method)
             self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=context, initializer=ignore_sigint)
         pool = self._pool
