@@ -160,3 +160,35 @@ def test_geometry_problems_are_named_not_blamed_on_the_landmarks(population, tmp
     with pytest.raises(InputError, match=r"instance 'demo_00' .*only 1 voxel\(s\) at 1 mm; at least 64"):
         build(read_project(proj), tmp_path / "out", blend=False)
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow
+def test_model_method_names_an_instance_whose_frame_disagrees(tmp_path):
+    """One instance turned 180° about S in its scanner, without landmarks, in a model-method build:
+    the finding says which instance's frame disagrees (not only the symptoms)."""
+    import nibabel as nib
+
+    pop = tmp_path / "pop"
+    demo.make_demo_population(pop, n=6, seed=1)
+    img = nib.load(pop / "demo_03.nii.gz")
+    centre = img.affine @ np.r_[np.array(img.shape) / 2, 1]
+    turn = np.diag([-1.0, -1.0, 1.0, 1.0])
+    move, back = np.eye(4), np.eye(4)
+    move[:3, 3], back[:3, 3] = centre[:3], -centre[:3]
+    affine = move @ turn @ back @ img.affine
+    turned = nib.Nifti1Image(np.asarray(img.dataobj), affine)
+    turned.set_qform(affine, code=1)
+    turned.set_sform(affine, code=1)
+    nib.save(turned, pop / "demo_03_turned.nii.gz")
+    text = (pop / "project.toml").read_text().split("[analysis]")[0]
+    blocks = (pop / "project.toml").read_text().split("[[instances]]")[1:]
+    text += "[correspondence]\nmethod = \"model\"\n\n"
+    for b in blocks:
+        if "demo_03" in b:
+            b = re.sub(r'landmarks = "[^"]*"\n', "", b.replace("demo_03.nii.gz", "demo_03_turned.nii.gz"))
+        text += "[[instances]]" + b
+    (pop / "turned.toml").write_text(text)
+    result = build(read_project(pop / "turned.toml"), tmp_path / "out", blend=False)
+    frames = [f for f in result.study.findings if f.gate == "frame"]
+    assert [f.instance for f in frames] == ["demo_03"]
+    assert "turned 180°" in frames[0].message and "the frames disagree" in frames[0].message
