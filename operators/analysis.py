@@ -25,7 +25,7 @@ import bpy
 import numpy as np
 from bpy.props import StringProperty
 
-from ssm_addon.analysis.attributes import read_attributes
+from ssm_addon.analysis.attributes import attributes_from_tables, read_attributes
 from ssm_addon.analysis.files import (
     FDR_LEVEL,
     SHAPE_KEY_PREFIXES,
@@ -40,7 +40,7 @@ from ssm_addon.pipeline.params import AnalysisParams
 from . import bridge
 from .jobs import BackgroundJob
 from .properties import draw_params, scene_params
-from .scene import find_model_object, model_from_object
+from .scene import find_model_object, model_from_object, scene_instance_attributes
 
 RECORD_KEY = "ssm_analysis_record"
 
@@ -95,11 +95,19 @@ class SSM_OT_run_analysis(BackgroundJob, bpy.types.Operator):
         if obj is None:
             raise InputError("Run Analysis: no SSM model in the scene")
         params = scene_params(context, "ssm_analysis")
-        if not params.attributes:
-            raise InputError("Run Analysis: choose the attribute table (a CSV with a name column) in the Analysis panel")
         if not params.requested:
             raise InputError("Run Analysis: give a group column, covariates, or both")
-        attributes = read_attributes(bpy.path.abspath(params.attributes))
+        own = scene_instance_attributes(context)  # an opened project's instance attributes
+        if params.attributes:
+            attributes = read_attributes(bpy.path.abspath(params.attributes))
+            if own:
+                attributes = attributes_from_tables(own, source="the project's instance attributes").merged(
+                    attributes)
+        elif own:
+            attributes = attributes_from_tables(own, source="the project's instance attributes")
+        else:
+            raise InputError("Run Analysis: choose the attribute table (a CSV with a name column) in the Analysis "
+                             "panel, or open a project whose instances have attributes")
         model = model_from_object(obj)
         self._object_name = name = obj.name
         out = Path(bpy.path.abspath(self.out_dir)) if self.out_dir else None

@@ -32,7 +32,15 @@ from ssm_addon.pipeline.params import OutputParams
 
 from . import bridge
 from .properties import scene_params, set_group
-from .scene import FINDINGS_KEY, mesh_file_world, scene_instances, set_landmark, study_from_scene
+from .scene import (
+    FINDINGS_KEY,
+    INSTANCE_ATTRIBUTES_KEY,
+    mesh_file_world,
+    scene_instance_attributes,
+    scene_instances,
+    set_landmark,
+    study_from_scene,
+)
 
 # ------------------------------------------------------------------ scene construction
 
@@ -177,7 +185,10 @@ def project_from_scene(context, path) -> core.Project:
                         template=study.template_params, coating=study.coating_params, model=study.model_params,
                         output=scene_params(context, "ssm_output"), quality=study.quality_params,
                         correspondence=study.correspondence_params,
-                        landmark_names=study.landmarks(study.template_instance).names)
+                        landmark_names=study.landmarks(study.template_instance).names,
+                        analysis=scene_params(context, "ssm_analysis"),
+                        instance_attributes={n: a for n, a in scene_instance_attributes(context).items()
+                                             if n in {i.name for i in specs}})
 
 
 def load_project_into_scene(context, project: core.Project) -> list:
@@ -194,8 +205,10 @@ def load_project_into_scene(context, project: core.Project) -> list:
                          frame_method=project.template.frame)
     for key, params in (("ssm_template", project.template), ("ssm_coating", project.coating),
                         ("ssm_model", project.model), ("ssm_output", project.output),
-                        ("ssm_quality", project.quality), ("ssm_correspondence", project.correspondence)):
+                        ("ssm_quality", project.quality), ("ssm_correspondence", project.correspondence),
+                        ("ssm_analysis", project.analysis)):
         set_group(getattr(scene, key), params)
+    scene[INSTANCE_ATTRIBUTES_KEY] = json.dumps(project.instance_attributes)
     created = add_instance_objects(context, items)
     for obj, spec in zip(created, project.instances):
         if obj.name != spec.name and bpy.data.objects.get(spec.name) is None:

@@ -534,3 +534,16 @@ def study_from_scene(context, *, template_instance: str | None = None, template:
             if COATING_KEY in obj:
                 study.coatings[obj.ssm.instance.name] = coating_from_object(obj)
     return study
+
+
+#: Scene property holding the instances' own attribute tables of an opened project (JSON), written
+#: back when the project is saved and used by Run Analysis when no attribute file is given.
+INSTANCE_ATTRIBUTES_KEY = "ssm_instance_attributes"
+
+
+def scene_instance_attributes(context) -> dict:
+    """``{instance name: {column: value}}`` of the project opened into the scene (empty if none)."""
+    import json
+
+    raw = context.scene.get(INSTANCE_ATTRIBUTES_KEY)
+    return json.loads(raw) if raw else {}

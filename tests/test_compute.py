@@ -336,3 +336,27 @@ def test_a_cache_that_cannot_be_written_is_used_read_only(population, tmp_path, 
     assert res.study.streamed == {"cached": 2, "computed": 1}
     for k in ARRAYS:
         assert np.array_equal(_arrays(tmp_path / "a")[k], _arrays(tmp_path / "b")[k])
+
+
+def test_ctrl_c_stops_a_build_waiting_for_a_scheduler_at_once(population, tmp_path):
+    pytest.importorskip("distributed", reason="Dask is optional (pip install .[dask])")
+    address, close = _listener("silent")
+    try:
+        proj = _project(population, tmp_path, 3)
+        proc = subprocess.Popen([sys.executable, "-u", "-m", "ssm_addon", "build", str(proj), "--out",
+                                 str(tmp_path / "out"), "--scheduler", address, "--no-blend"], cwd=ROOT,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                env={**os.environ, "PYTHONPATH": str(ROOT)})
+        for line in proc.stdout:
+            if line.startswith("project:"):
+                break
+        time.sleep(1.5)  # inside the 10 s handshake wait
+        t0 = time.perf_counter()
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=30)
+        took = time.perf_counter() - t0
+        err = proc.stderr.read()
+    finally:
+        close()
+    assert proc.returncode == 130 and took < 1.0, (took, err[-1500:])
+    assert err.strip().splitlines() == ["interrupted by SIGINT: stopped; the output folder is as it was"]
