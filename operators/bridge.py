@@ -257,6 +257,22 @@ def get_point_attribute(mesh: bpy.types.Mesh, name: str) -> np.ndarray | None:
     return out
 
 
+def show_colour_attributes() -> int:
+    """Set every 3D viewport's Solid shading to show the meshes' colour attributes (not the
+    materials' flat viewport colour), so correspondence colours show in the default shading.
+    Returns the number of viewports set."""
+    n = 0
+    for screen in bpy.data.screens:
+        for area in screen.areas:
+            if area.type != "VIEW_3D":
+                continue
+            for space in area.spaces:
+                if space.type == "VIEW_3D":
+                    space.shading.color_type = "VERTEX"
+                    n += 1
+    return n
+
+
 def color_material(name: str = "SSM Correspondence Colours", attribute: str = "correspondence"):
     """A material that shows the correspondence colour attribute in renders."""
     mat = bpy.data.materials.get(name)

@@ -33,7 +33,7 @@ from ssm_addon.pipeline.study import model_stage
 
 from . import bridge
 from .jobs import BackgroundJob
-from .properties import draw_params
+from .properties import draw_params, scene_params
 from .scene import (
     MODEL_COLLECTION,
     MODEL_KEY,
@@ -387,6 +387,9 @@ class SSM_OT_save_model(BackgroundJob, bpy.types.Operator):
         mp = context.scene.ssm_model
         with_metrics, plots, n_samples, seed, max_loo = self.metrics, self.plots, self.n_samples, mp.seed, mp.max_loo
         extra = {"model_object": obj.name}  # read here: the worker thread must not touch bpy
+        output = scene_params(context, "ssm_output")
+        files = {"statismo": output.statismo, "tables": output.scores, "gltf": output.gltf, "vtk": output.vtk,
+                 "exchange_modes": output.exchange_modes}
 
         def work(progress, cancelled):
             if with_metrics:
@@ -394,7 +397,8 @@ class SSM_OT_save_model(BackgroundJob, bpy.types.Operator):
                                              progress=progress, cancelled=cancelled)
             else:
                 mets = {"compactness": core_metrics.compactness(model)}
-            written = write_outputs(model, out_dir, metrics=mets, per_instance=per_instance, extra=extra, plots=plots)
+            written = write_outputs(model, out_dir, metrics=mets, per_instance=per_instance, extra=extra, plots=plots,
+                                    **files)
             written["html"] = str(write_report_html(out_dir, model, doc=written.pop("document"),
                                                     title=f"SSM Builder: {extra['model_object']}"))
             return written

@@ -74,6 +74,11 @@ def test_blender_command_build_equals_python_build(bpy_clean, small_demo, tmp_pa
     assert len(landmarks) == 13 * len(instances)
     assert bpy.data.objects["SSM Template"].ssm.role == "TEMPLATE"
     assert sum(o.ssm.role == "COATED" for o in bpy.data.objects) == len(instances)
+    # opened as saved, the correspondence colours show in Solid shading and no voxel surface covers them
+    spaces = [sp for scr in bpy.data.screens for a in scr.areas if a.type == "VIEW_3D" for sp in a.spaces
+              if sp.type == "VIEW_3D"]
+    assert spaces and all(sp.shading.color_type == "VERTEX" for sp in spaces), [sp.shading.color_type for sp in spaces]
+    assert all(o.hide_get() for o in instances), [(o.name, o.hide_get()) for o in instances]
 
 
 def test_blender_command_reports_input_errors(bpy_clean, tmp_path, capsys):

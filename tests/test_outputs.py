@@ -7,6 +7,7 @@ import hashlib
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from ssm_addon.__main__ import main
@@ -147,3 +148,39 @@ def test_score_tables_hold_the_models_projections(quick_project, tmp_path):
                    else text.replace("[output]", "[output]\nscores = false"))
     build(read_project(off), tmp_path / "off", log=None)
     assert not (tmp_path / "off" / "scores.csv").exists() and not (tmp_path / "off" / "eigenvalues.csv").exists()
+
+
+def test_exchange_meshes_open_at_their_real_size(tmp_path):
+    """model.glb is in metres (glTF's unit) with a morph target per mode; the VTK meshes are the mean
+    and the mean ±2 SD per mode in mm."""
+    import xml.etree.ElementTree as ET
+
+    from ssm_addon.formats.gltf import read_glb
+    from ssm_addon.model.files import write_exchange_meshes
+    from ssm_addon.model.pca import build_model
+
+    rng = np.random.default_rng(4)
+    base = np.c_[np.cos(np.linspace(0, 6, 30)), np.sin(np.linspace(0, 6, 30)), np.linspace(0, 1, 30)] * 40.0
+    base = base + [100.0, -1000.0, 150.0]  # scanner-like coordinates, mm
+    shapes = base[None] + rng.normal(scale=1.0, size=(8, 30, 3))
+    faces = np.array([[i, i + 1, i + 2] for i in range(28)])
+    model = build_model(shapes, faces, [f"s{i}" for i in range(8)])
+    written = write_exchange_meshes(model, tmp_path, modes=3)
+    doc, binary = read_glb(written["gltf"])
+    pos = doc["accessors"][doc["meshes"][0]["primitives"][0]["attributes"]["POSITION"]]
+    np.testing.assert_allclose(pos["max"], model.mean.max(axis=0) / 1000, rtol=1e-6)  # metres
+    view = doc["bufferViews"][pos["bufferView"]]
+    stored = np.frombuffer(binary[view["byteOffset"]:view["byteOffset"] + view["byteLength"]], np.float32)
+    np.testing.assert_allclose(stored.reshape(-1, 3), model.mean / 1000, rtol=1e-6, atol=1e-7)
+    targets = doc["meshes"][0]["primitives"][0]["targets"]
+    assert len(targets) == 3 and doc["meshes"][0]["extras"]["targetNames"][0] == "Mode 1 (+1 SD)"
+    t = doc["accessors"][targets[0]["POSITION"]]
+    tv = doc["bufferViews"][t["bufferView"]]
+    shift = np.frombuffer(binary[tv["byteOffset"]:tv["byteOffset"] + tv["byteLength"]], np.float32).reshape(-1, 3)
+    np.testing.assert_allclose(shift, model.standard_deviations[0] * model.modes[0] / 1000, atol=1e-7)
+    plus = ET.parse(tmp_path / "vtk" / "mode_2_plus2sd.vtp").getroot().find("PolyData/Piece/Points/DataArray")
+    pts = np.array(plus.text.split(), float).reshape(-1, 3)
+    np.testing.assert_allclose(pts, model.mean + 2 * model.standard_deviations[1] * model.modes[1], atol=1e-6)
+    legacy = (tmp_path / "vtk" / "mean.vtk").read_text().splitlines()
+    assert legacy[0] == "# vtk DataFile Version 4.2" and "POINTS 30 double" in legacy
+    assert "SCALARS variance_mm2 double 1" in legacy and "POLYGONS 28 112" in legacy

@@ -271,7 +271,8 @@ def write_study_files(study: Study, folder: Path, *, output: OutputParams, proje
         **(extra or {}),
     }
     written = write_outputs(study.model, folder, metrics=study.metrics, per_instance=per_instance, extra=info,
-                            plots=True, statismo=output.statismo, report=False, tables=output.scores)
+                            plots=True, statismo=output.statismo, report=False, tables=output.scores,
+                            gltf=output.gltf, vtk=output.vtk, exchange_modes=output.exchange_modes)
     doc = written.pop("document")
     for key, value in written.items():
         if key == "plots":

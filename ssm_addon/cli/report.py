@@ -365,6 +365,9 @@ def write_outputs(
     statismo_name: str = "model.h5",
     report: bool = True,
     tables: bool = True,
+    gltf: bool = True,
+    vtk: bool = True,
+    exchange_modes: int = 5,
 ) -> dict:
     """Write a model's outputs into ``out_dir``: its files, the plots and (``report``) ``report.json``.
 
@@ -374,7 +377,8 @@ def write_outputs(
     missing) and the report under ``"document"`` (a build adds its timings and writes it once).
     """
     out_dir = Path(out_dir)
-    written = write_model_files(model, out_dir, statismo=statismo, statismo_name=statismo_name, tables=tables)
+    written = write_model_files(model, out_dir, statismo=statismo, statismo_name=statismo_name, tables=tables,
+                                gltf=gltf, vtk=vtk, exchange_modes=exchange_modes)
     plot_info = write_plots(model, out_dir, metrics) if plots else {"files": []}
     written["plots"] = plot_info["files"]
     if "skipped" in plot_info:

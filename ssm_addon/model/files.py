@@ -318,13 +318,53 @@ def write_score_tables(model: ShapeModel, out_dir) -> dict:
     return {"scores": str(out_dir / "scores.csv"), "eigenvalues": str(out_dir / "eigenvalues.csv")}
 
 
-def write_model_files(model: ShapeModel, out_dir, *, statismo: bool = True, statismo_name: str = "model.h5",
-                      tables: bool = True) -> dict:
-    """Write ``model.npz``, (``statismo``) the statismo file and (``tables``) the score tables
-    (:func:`write_score_tables`) into ``out_dir``.
+def write_exchange_meshes(model: ShapeModel, out_dir, *, gltf: bool = True, vtk: bool = True, modes: int = 5,
+                          sigmas: float = 2.0) -> dict:
+    """The model as meshes other tools open (model frame; glTF in metres, VTK in mm).
 
-    Returns ``{"npz": path, "statismo": path, "scores": path, "eigenvalues": path}`` (only
-    what was written).
+    ``model.glb``: the mean shape with one morph target per mode (the first ``modes``),
+    each +1 SD (√λ_k q_k), named ``Mode k (+1 SD)``. ``vtk/mean.vtp`` (and legacy
+    ``vtk/mean.vtk``): the mean with the per-point variance (mm²) and the first mode's
+    displacement; ``vtk/mode_<k>_minus<s>sd.vtp`` / ``_plus<s>sd.vtp``: the mean ∓ ``sigmas``
+    SD along each of the first ``modes`` modes, as ShapeWorks' analysis writes them.
+    Returns ``{name: path}``.
+    """
+    from ..formats.gltf import write_glb
+    from ..formats.vtk import write_vtk, write_vtp
+
+    out_dir = Path(out_dir)
+    k = min(int(modes), model.n_modes)
+    sd = model.standard_deviations
+    written = {}
+    if gltf:
+        targets = {f"Mode {i + 1} (+1 SD)": sd[i] * model.modes[i] for i in range(k)}
+        written["gltf"] = str(write_glb(out_dir / "model.glb", model.mean, model.faces, targets))
+    if vtk:
+        folder = out_dir / "vtk"
+        folder.mkdir(exist_ok=True)
+        fields = {"variance_mm2": model.point_variance}
+        if k:
+            fields["mode_1_sd_mm"] = sd[0] * model.modes[0]
+        write_vtp(folder / "mean.vtp", model.mean, model.faces, fields)
+        write_vtk(folder / "mean.vtk", model.mean, model.faces, fields, title="SSM Builder mean shape (mm)")
+        tag = f"{sigmas:g}".replace(".", "p")
+        for i in range(k):
+            for sign, word in ((-1, "minus"), (1, "plus")):
+                shift = sign * sigmas * sd[i] * model.modes[i]
+                write_vtp(folder / f"mode_{i + 1}_{word}{tag}sd.vtp", model.mean + shift, model.faces,
+                          {"displacement_mm": shift})
+        written["vtk"] = str(folder)
+    return written
+
+
+def write_model_files(model: ShapeModel, out_dir, *, statismo: bool = True, statismo_name: str = "model.h5",
+                      tables: bool = True, gltf: bool = False, vtk: bool = False, exchange_modes: int = 5) -> dict:
+    """Write ``model.npz``, (``statismo``) the statismo file, (``tables``) the score tables
+    (:func:`write_score_tables`) and (``gltf``, ``vtk``) the exchange meshes
+    (:func:`write_exchange_meshes`) into ``out_dir``.
+
+    Returns ``{"npz": path, "statismo": path, "scores": path, "eigenvalues": path, "gltf": path,
+    "vtk": folder}`` (only what was written).
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -333,4 +373,6 @@ def write_model_files(model: ShapeModel, out_dir, *, statismo: bool = True, stat
         written["statismo"] = str(save_statismo(model, out_dir / statismo_name))
     if tables and model.n_instances:
         written.update(write_score_tables(model, out_dir))
+    if gltf or vtk:
+        written.update(write_exchange_meshes(model, out_dir, gltf=gltf, vtk=vtk, modes=exchange_modes))
     return written

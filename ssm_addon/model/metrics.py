@@ -533,8 +533,14 @@ def _draw_cumulative(ax, model):
     k = np.arange(1, model.n_modes + 1)
     ax.plot(k, 100 * model.variability_concentration("eigen"), "o-", ms=3, color="#aa3377", label="eigenvalues")
     coord = model.variability_concentration("coordinate")[: model.n_modes]
-    ax.plot(k[: len(coord)], 100 * coord, "s--", ms=2, color="#999933", label="coordinate variances")
+    ax.plot(k[: len(coord)], 100 * coord, "s--", ms=2, color="#999933",
+            label="k largest point-coordinate variances\n(no PCA: what the modes gain over raw coordinates)")
     ax.set_xscale("log")
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _pos: f"{v:g}"))  # 1, 2, 5, 10 … not colliding 3×10⁰
+    ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set_ylim(0, 101)
     ax.set_xlabel("number of modes k")
     ax.set_ylabel("variability captured (%)")
@@ -618,16 +624,29 @@ def plot_model_figure(model: ShapeModel, path_png):
 
 
 def plot_metrics(metrics: dict, path_png):
-    """Generalization and specificity (mean ± std, mm) over k. Returns the PNG path."""
-    fig, (ax,) = _figure()
+    """Compactness (cumulative share of the variance, %) and generalization and specificity (mean
+    ± std, mm) over the number of modes k, side by side. Returns the PNG path."""
+    fig, (left, right) = _figure(ncols=2)
+    comp = (metrics.get("compactness") or {}).get("cumulative")
+    if comp:
+        k = np.arange(1, len(comp) + 1)
+        left.plot(k, 100 * np.asarray(comp, float), "o-", ms=3, color="#4477aa")
+    left.set_ylim(0, 101)
+    left.set_xlabel("number of modes k")
+    left.set_ylabel("variance captured (%)")
+    left.set_title("Compactness")
+    left.grid(True, alpha=0.3)
     for key, colour in (("generalization", "#228833"), ("specificity", "#ee6677")):
         m = metrics.get(key)
         if m:
-            ax.errorbar(m["k"], m["mean_mm"], yerr=m["std_mm"], fmt="o-", ms=3, capsize=2, color=colour, label=key)
-    ax.set_xlabel("number of modes k")
-    ax.set_ylabel("mean point distance (mm)")
-    ax.legend()
-    ax.grid(True, alpha=0.3)
+            right.errorbar(m["k"], m["mean_mm"], yerr=m["std_mm"], fmt="o-", ms=3, capsize=2, color=colour,
+                           label=key)
+    right.set_xlabel("number of modes k")
+    right.set_ylabel("mean point distance (mm)")
+    right.set_title("Generalization and specificity")
+    if right.get_legend_handles_labels()[0]:
+        right.legend()
+    right.grid(True, alpha=0.3)
     return _save(fig, path_png)
 
 

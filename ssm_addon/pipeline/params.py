@@ -662,6 +662,13 @@ class OutputParams:
     statismo: bool = param(True, label="Statismo file", help="write model.h5 (statismo 0.9 layout)")
     scores: bool = param(True, label="Score tables",
                          help="write scores.csv (each instance's mode weights in SD and mm) and eigenvalues.csv")
+    gltf: bool = param(True, label="glTF",
+                       help="write model.glb: the mean with one morph target per mode, in metres (glTF's unit)")
+    vtk: bool = param(True, label="VTK meshes",
+                      help="write vtk/mean.vtp (and .vtk) with the per-point variance, and the mean ±2 SD along "
+                           "each of the first modes (for ParaView, 3D Slicer, ShapeWorks)")
+    exchange_modes: int = param(5, minimum=1, maximum=100, label="Exchange modes", advanced=True,
+                                help="modes written as glTF morph targets and VTK ±2 SD meshes")
     blend: bool = param(True, label="Blender file", help="write model.blend when bpy is available")
     picture: bool = param(True, label="Mode picture", help="write modes.png (paper fig. 10) when bpy is available")
     picture_modes: int = param(2, minimum=1, maximum=10, label="Picture modes",

@@ -1,0 +1,100 @@
+"""glTF 2.0 binary (``.glb``): a triangle mesh with morph targets, in metres.
+
+glTF's unit is the metre (spec 3.4, "Coordinate System and Units"), so coordinates in mm
+are written scaled by 0.001 and a viewer shows the model at its real size. Each morph
+target is a displacement of every vertex (``POSITION`` of the target); its default weight
+is 0, so the file opens on the mean shape and a viewer's morph sliders play the modes.
+
+References
+----------
+.. [1] Khronos Group, "glTF 2.0 Specification" (2021): GLB container (chapter 4), meshes
+   and morph targets (3.7.2), accessors with ``min``/``max`` required for ``POSITION``.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["MM_TO_M", "read_glb", "write_glb"]
+
+MM_TO_M = 0.001
+
+_FLOAT, _UINT32 = 5126, 5125
+_ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
+
+
+def write_glb(path, points_mm, faces, morph_targets_mm: dict | None = None, *, name: str = "SSM model") -> Path:
+    """Write a mesh and its morph targets as a binary glTF file, coordinates in metres.
+
+    Parameters
+    ----------
+    path : path
+        The ``.glb`` file.
+    points_mm : (N, 3) array_like
+        Vertex positions, mm (any right-handed frame; written as they are, times 0.001).
+    faces : (F, 3) int array_like
+        Triangles, counter-clockwise seen from outside.
+    morph_targets_mm : dict name -> (N, 3) array_like, optional
+        Displacements (mm) of every vertex, one morph target each (e.g. +1 SD of a mode).
+    name : str
+        Mesh and node name.
+    """
+    pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3) * MM_TO_M
+    tris = np.asarray(faces, dtype=np.uint32).reshape(-1, 3)
+    targets = {k: np.asarray(v, dtype=np.float64).reshape(-1, 3) * MM_TO_M for k, v in (morph_targets_mm or {}).items()}
+    blobs, views, accessors = [], [], []
+
+    def add(array: np.ndarray, component: int, kind: str, target=None, bounds=False) -> int:
+        data = np.ascontiguousarray(array).tobytes()
+        offset = sum(len(b) for b in blobs)
+        blobs.append(data + b"\0" * (-len(data) % 4))
+        view = {"buffer": 0, "byteOffset": offset, "byteLength": len(data)}
+        if target is not None:
+            view["target"] = target
+        views.append(view)
+        acc = {"bufferView": len(views) - 1, "componentType": component, "count": int(array.shape[0]),
+               "type": kind}
+        if bounds:
+            acc["min"] = [float(v) for v in array.min(axis=0)]
+            acc["max"] = [float(v) for v in array.max(axis=0)]
+        accessors.append(acc)
+        return len(accessors) - 1
+
+    position = add(pts.astype(np.float32), _FLOAT, "VEC3", _ARRAY_BUFFER, bounds=True)
+    indices = add(tris.reshape(-1, 1), _UINT32, "SCALAR", _ELEMENT_ARRAY_BUFFER)
+    accessors[indices]["count"] = int(tris.size)
+    primitive = {"attributes": {"POSITION": position}, "indices": indices, "mode": 4}
+    mesh = {"name": name, "primitives": [primitive]}
+    if targets:
+        primitive["targets"] = [{"POSITION": add(t.astype(np.float32), _FLOAT, "VEC3", _ARRAY_BUFFER, bounds=True)}
+                                for t in targets.values()]
+        mesh["weights"] = [0.0] * len(targets)
+        mesh["extras"] = {"targetNames": list(targets)}  # the names viewers show on the sliders
+    binary = b"".join(blobs)
+    doc = {"asset": {"version": "2.0", "generator": "SSM Builder"}, "scene": 0,
+           "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0, "name": name}], "meshes": [mesh],
+           "accessors": accessors, "bufferViews": views, "buffers": [{"byteLength": len(binary)}],
+           "extras": {"unit": "metre (the model's mm times 0.001)"}}
+    text = json.dumps(doc, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)
+    out = struct.pack("<III", 0x46546C67, 2, 12 + 8 + len(text) + 8 + len(binary))
+    out += struct.pack("<II", len(text), 0x4E4F534A) + text + struct.pack("<II", len(binary), 0x004E4942) + binary
+    path = Path(path)
+    path.write_bytes(out)
+    return path
+
+
+def read_glb(path) -> tuple[dict, bytes]:
+    """The JSON document and the binary chunk of a ``.glb`` file (for checks and tests)."""
+    raw = Path(path).read_bytes()
+    magic, version, length = struct.unpack_from("<III", raw, 0)
+    if magic != 0x46546C67 or version != 2 or length != len(raw):
+        raise ValueError(f"{path}: not a glTF 2.0 binary file")
+    n, kind = struct.unpack_from("<II", raw, 12)
+    doc = json.loads(raw[20:20 + n])
+    m, _ = struct.unpack_from("<II", raw, 20 + n)
+    return doc, raw[28 + n:28 + n + m]
