@@ -182,3 +182,13 @@ def test_large_study_generalization_agrees_with_the_gram_route():
     # the same errors to float32 precision of the residuals (one power iteration, float32 residual vectors)
     np.testing.assert_allclose(fast, np.array(exact["per_instance_mm"]), rtol=2e-4)
     assert abs(fast.mean() / np.mean(exact["per_instance_mm"]) - 1) < 1e-5
+
+
+def test_view_orientation_names_where_the_axes_point_and_the_scale_bar_is_round():
+    from ssm_addon.model.metrics import AXIS_NAMES, scale_bar_mm, view_orientation
+
+    assert view_orientation(np.eye(3)) == "R → · A ↑"
+    coronal = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])  # seen from the front
+    assert view_orientation(coronal) == "L → · S ↑"
+    assert view_orientation(coronal, AXIS_NAMES) == "−x → · +z ↑"
+    assert scale_bar_mm(0.5, 320) == 50.0 and scale_bar_mm(0.1, 320) == 10.0

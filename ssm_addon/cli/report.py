@@ -23,7 +23,7 @@ from ..model.metrics import report_document, write_plots
 
 __all__ = ["write_outputs", "write_report_html", "instance_thumbnails", "write_html_report"]
 
-THUMB_PX = 128
+THUMB_PX = 160
 
 
 def _shade(points: np.ndarray, faces: np.ndarray, colours: np.ndarray, view: np.ndarray):
@@ -42,14 +42,16 @@ def _shade(points: np.ndarray, faces: np.ndarray, colours: np.ndarray, view: np.
 
 
 def instance_thumbnails(points: np.ndarray, faces: np.ndarray, names, *, size_px: int = THUMB_PX) -> dict[str, bytes]:
-    """A small PNG of every shape: ``{name: png bytes}`` (Pillow, painter's algorithm).
+    """A small PNG of every shape, two views side by side: ``{name: png bytes}`` (Pillow, painter's
+    algorithm; ``2 size_px`` × ``size_px`` pixels).
 
     Parameters
     ----------
     points : (n, N, 3) float, mm
         The coated instances in the model frame; all seen along the axis in which the
-        mean shape is thinnest (its largest silhouette), at one scale, coloured by their
-        place on the mean shape (corresponding regions share a colour), Lambert-shaded.
+        mean shape is thinnest (its largest silhouette) and across it, at one scale,
+        coloured by their place on the mean shape (corresponding regions share a colour),
+        Lambert-shaded.
     faces : (F, 3) int
     names : n names
     """
@@ -62,25 +64,28 @@ def instance_thumbnails(points: np.ndarray, faces: np.ndarray, names, *, size_px
     mean = pts.mean(axis=0)
     depth = int(np.argmin(np.ptp(mean, axis=0)))
     sx, sy = [a for a in range(3) if a != depth]
-    view = np.eye(3)[[sx, sy, depth]]
+    # two views: along the thinnest axis (the largest silhouette) and along the first axis across it
+    views = [np.eye(3)[[sx, sy, depth]], np.eye(3)[[depth, sy, sx]]]
     lo, hi = mean.min(axis=0), mean.max(axis=0)
     colours = np.ones((len(mean), 4))
     colours[:, :3] = 0.15 + 0.8 * (mean - lo) / np.where(hi > lo, hi - lo, 1.0)
-    half = 0.55 * float(np.max(np.ptp(pts.reshape(-1, 3)[:, [sx, sy]], axis=0)))
+    half = 0.55 * float(np.max(np.ptp(pts.reshape(-1, 3), axis=0)))
     ss = 2  # supersampling, for smooth edges
     size = size_px * ss
     out = {}
     for i, name in enumerate(names):
-        polys, rgba = _shade(pts[i] - pts[i].mean(axis=0), faces, colours, view)
-        xy = (polys / (2 * half) + 0.5) * size
-        xy[:, :, 1] = size - xy[:, :, 1]  # screen y runs down
-        img = Image.new("RGB", (size, size), (255, 255, 255))
+        img = Image.new("RGB", (2 * size, size), (255, 255, 255))
         draw = ImageDraw.Draw(img)
-        fill = (np.clip(rgba[:, :3], 0, 1) * 255).astype(np.uint8)
-        for tri, col in zip(xy.tolist(), fill.tolist()):
-            draw.polygon([tuple(v) for v in tri], fill=tuple(col))
+        for j, view in enumerate(views):
+            polys, rgba = _shade(pts[i] - pts[i].mean(axis=0), faces, colours, view)
+            xy = (polys / (2 * half) + 0.5) * size
+            xy[:, :, 0] += j * size
+            xy[:, :, 1] = size - xy[:, :, 1]  # screen y runs down
+            fill = (np.clip(rgba[:, :3], 0, 1) * 255).astype(np.uint8)
+            for tri, col in zip(xy.tolist(), fill.tolist()):
+                draw.polygon([tuple(v) for v in tri], fill=tuple(col))
         buf = io.BytesIO()
-        img.resize((size_px, size_px), Image.LANCZOS).save(buf, format="PNG")
+        img.resize((2 * size_px, size_px), Image.LANCZOS).save(buf, format="PNG")
         out[str(name)] = buf.getvalue()
     return out
 
@@ -293,7 +298,7 @@ def write_html_report(path, doc: dict, *, images: dict[str, bytes] | None = None
             res = fit.get("landmark_residuals_mm") or []
             o = outliers.get(name, {})
             flags = by_instance.get(name, [])
-            thumb = _img(thumbnails[name], name, THUMB_PX // 2 * 2) if name in thumbnails else ""
+            thumb = _img(thumbnails[name], name, THUMB_PX * 2) if name in thumbnails else ""
             rows.append({"_class": "warn" if flags else "", "cells": [
                 f"<b>{html.escape(name)}</b>", thumb, _num(fit.get("mean_distance_mm"), 3),
                 _num(fit.get("max_distance_mm"), 3), _num(fit.get("folded_after")),

@@ -566,7 +566,39 @@ def modes_figure_labels(model: ShapeModel, n_modes: int, sigmas: float = 2.0) ->
     return rows
 
 
-def label_grid_picture(grid_rgb: np.ndarray, path_png, *, row_labels, column_labels, title: str = "") -> Path:
+#: Patient directions of the model frame's axes (+, −) when the object frames follow the patient
+#: axes (frame method "auto" or "patient"): x right, y anterior, z superior.
+AXIS_LETTERS = (("R", "L"), ("A", "P"), ("S", "I"))
+#: The axes' names when they need not be patient directions (moments frames, other tools' models).
+AXIS_NAMES = (("+x", "−x"), ("+y", "−y"), ("+z", "−z"))
+
+
+def axis_letters(model: ShapeModel):
+    """:data:`AXIS_LETTERS` for a model whose frames follow the patient axes, else :data:`AXIS_NAMES`."""
+    return AXIS_LETTERS if model.params.get("frame_method") in ("auto", "patient") else AXIS_NAMES
+
+
+def view_orientation(screen_from_model: np.ndarray, letters=AXIS_LETTERS) -> str:
+    """Where the model's axes point on screen for a view (rows: screen x, screen y):
+    ``"R → · S ↑"`` (screen right is the model's +x, R; screen up its +z, S)."""
+    out = []
+    for row, arrow in zip(np.asarray(screen_from_model, float)[:2], ("→", "↑")):
+        axis = int(np.argmax(np.abs(row)))
+        out.append(f"{letters[axis][0 if row[axis] > 0 else 1]} {arrow}")
+    return " · ".join(out)
+
+
+def scale_bar_mm(mm_per_px: float, cell_px: float) -> float:
+    """A round scale-bar length (mm) near a fifth of a cell."""
+    target = 0.2 * cell_px * mm_per_px
+    for v in (1, 2, 5, 10, 20, 50, 100, 200, 500):
+        if v >= target:
+            return float(v)
+    return 1000.0
+
+
+def label_grid_picture(grid_rgb: np.ndarray, path_png, *, row_labels, column_labels, title: str = "",
+                       mm_per_px: float | None = None) -> Path:
     """A rendered picture grid (rows × columns of equal cells) with row and column labels.
 
     Used for the paper's fig. 10 (``operators/render.py`` renders the shapes; the
@@ -576,11 +608,13 @@ def label_grid_picture(grid_rgb: np.ndarray, path_png, *, row_labels, column_lab
     ----------
     grid_rgb : (H, W, 3 or 4) array in [0, 1]
         The cells, ``len(row_labels)`` rows by ``len(column_labels)`` columns.
+    mm_per_px : float, optional
+        The render's scale: a scale bar (mm) is drawn in the bottom-left cell.
     """
     img = np.asarray(grid_rgb)
     h, w = img.shape[:2]
     n_rows, n_cols = len(row_labels), len(column_labels)
-    left_px, top_px = 320, 90 if title else 50
+    left_px, top_px = 320, 110 if title else 70
     fig, _ = _figure(width=(w + left_px + 20) / 100, height=(h + top_px + 10) / 100)
     fig.clear()
     ax = fig.add_axes([left_px / (w + left_px + 20), 10 / (h + top_px + 10), w / (w + left_px + 20),
@@ -596,6 +630,12 @@ def label_grid_picture(grid_rgb: np.ndarray, path_png, *, row_labels, column_lab
         ax.axhline(r * h / n_rows, color="#bbbbbb", lw=0.8)
     for c in range(1, n_cols):
         ax.axvline(c * w / n_cols, color="#bbbbbb", lw=0.8)
+    if mm_per_px:
+        cell_w, cell_h = w / n_cols, h / n_rows
+        length = scale_bar_mm(mm_per_px, cell_w)
+        x0, y0 = 0.08 * cell_w, h - 0.08 * cell_h
+        ax.plot([x0, x0 + length / mm_per_px], [y0, y0], color="black", lw=3, solid_capstyle="butt")
+        ax.text(x0, y0 - 0.03 * cell_h, f"{length:g} mm", fontsize=12, va="bottom")
     if title:
         fig.suptitle(title, fontsize=16, y=1 - 12 / (h + top_px + 10), va="top")
     return _save(fig, path_png)
