@@ -225,6 +225,7 @@ def colour_correspondence(obj, template_points: np.ndarray, mode: str = "POSITIO
         mesh.materials.append(mat)
     else:
         mesh.materials[0] = mat
+    show_colour_attributes()
 
 
 def recolour_scene(context) -> None:
@@ -258,16 +259,20 @@ def get_point_attribute(mesh: bpy.types.Mesh, name: str) -> np.ndarray | None:
 
 
 def show_colour_attributes() -> int:
-    """Set every 3D viewport's Solid shading to show the meshes' colour attributes (not the
-    materials' flat viewport colour), so correspondence colours show in the default shading.
-    Returns the number of viewports set."""
+    """Set Solid shading to show the meshes' colour attributes (not the materials' flat grey
+    viewport colour), so correspondence colours show in Blender's default shading: every 3D
+    viewport and every scene's Workbench render settings that still use the default
+    (Material) colouring; a colouring the user chose is left. Returns the viewports set."""
+    for scene in bpy.data.scenes:
+        if scene.display.shading.color_type == "MATERIAL":
+            scene.display.shading.color_type = "VERTEX"
     n = 0
     for screen in bpy.data.screens:
         for area in screen.areas:
             if area.type != "VIEW_3D":
                 continue
             for space in area.spaces:
-                if space.type == "VIEW_3D":
+                if space.type == "VIEW_3D" and space.shading.color_type == "MATERIAL":
                     space.shading.color_type = "VERTEX"
                     n += 1
     return n

@@ -85,7 +85,7 @@ def model_location(context, model: ShapeModel) -> np.ndarray:
 
 
 def create_model_object(context, model: ShapeModel, name: str = MODEL_NAME, n_keys: int | None = None,
-                        template_points: np.ndarray | None = None):
+                        template_points: np.ndarray | None = None, activate: bool = True):
     """Create (or replace) the model mesh object from a ShapeModel.
 
     Mean shape with the template faces and triangle-index colours, one shape key per mode
@@ -96,6 +96,9 @@ def create_model_object(context, model: ShapeModel, name: str = MODEL_NAME, n_ke
     ----------
     n_keys : int, optional
         Number of mode shape keys (default: every mode of the model).
+    activate : bool
+        Make the model the selected, active object (Import Shape Model); Build Model leaves
+        the active instance active, so Build Template still finds it.
 
     Returns
     -------
@@ -120,11 +123,12 @@ def create_model_object(context, model: ShapeModel, name: str = MODEL_NAME, n_ke
     obj.ssm.role = "MODEL"
     obj.ssm.source = str(model.params.get("source", ""))
     store_model(obj, model)
-    for ob in context.view_layer.objects:
-        ob.select_set(False)
-    if obj.name in context.view_layer.objects:
-        obj.select_set(True)
-        context.view_layer.objects.active = obj
+    if activate:
+        for ob in context.view_layer.objects:
+            ob.select_set(False)
+        if obj.name in context.view_layer.objects:
+            obj.select_set(True)
+            context.view_layer.objects.active = obj
     return obj
 
 
@@ -159,7 +163,7 @@ class SSM_OT_build_model(BackgroundJob, bpy.types.Operator):
 
     def finish(self, context, result):
         model = result.product["model"]
-        obj = create_model_object(context, model, template_points=self._template_points)
+        obj = create_model_object(context, model, template_points=self._template_points, activate=False)
         found = record_findings(context, result)
         conc = model.variability_concentration()
         k3 = min(3, model.n_modes)
@@ -273,7 +277,8 @@ class SSM_OT_animate_modes(bpy.types.Operator):
         scene.frame_start = 1
         scene.frame_end = plan["end"] - 1 if self.cyclic else plan["end"]
         scene.frame_set(1)
-        self.report({"INFO"}, f"{obj.name}: {m} modes animated over frames 1-{plan['end']}")
+        self.report({"INFO"}, f"{obj.name}: {m} modes animated over frames 1-{scene.frame_end}"
+                              f"{' (looping)' if self.cyclic else ''}")
         return {"FINISHED"}
 
 

@@ -128,3 +128,43 @@ def test_panel_registered(bpy_clean):
     assert params_from_group(CoatingParams, settings).registration_sigmas_mm == ()
     settings.k1 = 0.35  # typed in the sidebar: the same number as 0.35 in a project file
     assert params_from_group(CoatingParams, settings).k1 == 0.35
+
+
+def test_a_render_in_the_default_shading_shows_the_correspondence_colours(bpy_clean, tmp_path):
+    """After coating, the scene's Solid shading shows colour attributes: a Workbench render of a
+    coated instance (its instance hidden) is not one flat grey."""
+    bpy = bpy_clean
+    inst, _ = _scene(bpy, tmp_path)
+    assert bpy.ops.ssm.coat_template() == {"FINISHED"}
+    scene = bpy.context.scene
+    assert scene.display.shading.color_type == "VERTEX"
+    coated = bpy.data.objects[f"{inst[2].name} coated"]
+    for obj in scene.objects:
+        obj.hide_render = obj != coated
+    cam_data = bpy.data.cameras.new("cam")
+    cam_data.type = "ORTHO"
+    cam_data.ortho_scale = 80.0
+    cam = bpy.data.objects.new("cam", cam_data)
+    scene.collection.objects.link(cam)
+    centre = np.asarray(coated.matrix_world.translation) + bridge_centre(coated)
+    cam.location = (centre[0], centre[1], centre[2] + 200.0)
+    scene.camera = cam
+    cam_data.clip_end = 1000.0
+    scene.render.engine = "BLENDER_WORKBENCH"
+    scene.render.resolution_x = scene.render.resolution_y = 96
+    scene.render.filepath = str(tmp_path / "coated.png")
+    scene.render.image_settings.file_format = "PNG"
+    bpy.ops.render.render(write_still=True)
+    import matplotlib.image as mpimg
+
+    img = mpimg.imread(str(tmp_path / "coated.png"))[:, :, :3].reshape(-1, 3)
+    fg = img[np.abs(img - img[0]).sum(axis=1) > 0.05]  # pixels unlike the corner (background)
+    assert len(fg) > 500
+    chroma = fg.max(axis=1) - fg.min(axis=1)  # 0 for any grey
+    assert np.percentile(chroma, 75) > 0.1 and fg.std(axis=0).max() > 0.05
+
+
+def bridge_centre(obj) -> np.ndarray:
+    from ssm.operators import bridge
+
+    return bridge.mesh_vertices(obj.data).mean(axis=0)

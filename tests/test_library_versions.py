@@ -1,9 +1,9 @@
-"""The same inputs give the same model on another scipy: the one the extension zip bundles.
+"""The same inputs give the same model with the libraries the extension zip bundles.
 
-The extension bundles scipy 1.15.3 (``wheels_cache/``) while a fresh ``pip install .`` resolves
-the newest scipy; Blender's own numpy is the same in both. A venv with the bundled scipy (and
-this interpreter's numpy) builds the demo population headless; its ``model.npz`` arrays must
-equal this interpreter's bit for bit.
+The extension bundles the versions of ``constraints.txt`` (scipy 1.15.3, ...; ``wheels_cache/``)
+while a fresh ``pip install .`` resolves the newest allowed ones; Blender's own numpy is the same
+in both. A venv with the constraints' versions (and this interpreter's numpy) builds the demo
+population headless; its ``model.npz`` arrays must equal this interpreter's bit for bit.
 """
 
 from __future__ import annotations
@@ -18,8 +18,6 @@ import pytest
 from conftest import ROOT
 
 from ssm_addon.cli import demo
-
-pytestmark = pytest.mark.slow
 
 WHEELS = ROOT / "wheels_cache" / "linux-x64"
 ARRAYS = ("mean", "faces", "modes", "variances", "instance_points", "instance_points_world")
@@ -37,8 +35,8 @@ def _bundled_scipy_venv(folder: Path) -> Path:
     subprocess.run([sys.executable, "-m", "venv", str(folder)], check=True, capture_output=True)
     py = folder / "bin" / "python"
     local = subprocess.run([str(py), "-m", "pip", "install", "-q", "--no-index", "--find-links", str(WHEELS),
-                            f"scipy=={version}", "scikit-image", "nibabel", "pynrrd", "h5py", "matplotlib",
-                            "threadpoolctl"], capture_output=True, text=True)
+                            "-c", str(ROOT / "constraints.txt"), "scipy", "scikit-image", "nibabel", "pynrrd", "h5py",
+                            "matplotlib", "threadpoolctl"], capture_output=True, text=True)
     same_numpy = subprocess.run([str(py), "-m", "pip", "install", "-q", f"numpy=={np.__version__}"],
                                 capture_output=True, text=True)
     if local.returncode or same_numpy.returncode:
@@ -57,6 +55,7 @@ def _build(python, project: Path, out: Path) -> dict:
         return {k: z[k] for k in ARRAYS}
 
 
+@pytest.mark.slow
 def test_the_bundled_scipy_builds_the_same_model_bit_for_bit(tmp_path):
     py = _bundled_scipy_venv(tmp_path / "venv")
     version = subprocess.run([str(py), "-c", "import scipy; print(scipy.__version__)"], capture_output=True,
@@ -66,3 +65,18 @@ def test_the_bundled_scipy_builds_the_same_model_bit_for_bit(tmp_path):
     there = _build(py, project, tmp_path / "bundled")
     for key in ARRAYS:
         assert np.array_equal(here[key], there[key]), (key, version)
+
+
+def test_the_constraints_file_states_the_versions_the_zip_bundles():
+    import json
+
+    pins = {}
+    for line in (ROOT / "constraints.txt").read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            name, _, version = line.partition("==")
+            pins[name.strip().lower().replace("-", "_")] = version.strip()
+    resolved = json.loads((WHEELS / "resolved.json").read_text())["wheels"]
+    bundled = {w.split("-")[0].lower(): w.split("-")[1] for w in resolved}
+    assert pins and "numpy" not in pins  # Blender's own numpy
+    for name, version in pins.items():
+        assert bundled.get(name) == version, (name, version, bundled.get(name))

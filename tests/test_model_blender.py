@@ -53,7 +53,11 @@ def add_coated(bpy, population, n=N_INST):
 def built(bpy_clean, population):
     bpy = bpy_clean
     add_coated(bpy, population)
+    instance = bpy.data.objects["V00"]
+    bpy.context.view_layer.objects.active = instance
     assert bpy.ops.ssm.build_model() == {"FINISHED"}
+    # the active instance stays active (Build Template right after still finds it)
+    assert bpy.context.view_layer.objects.active == instance
     from ssm.operators import model as opmodel
 
     obj = bpy.data.objects["SSM Model"]
@@ -111,6 +115,8 @@ def test_evaluated_mesh_at_mode_values_obeys_eq7(built):
 def test_gltf_export_has_one_morph_target_per_mode(built, tmp_path):
     bpy, obj, model = built
     path = tmp_path / "model.gltf"
+    for o in bpy.context.view_layer.objects:
+        o.select_set(o == obj)
     bpy.ops.export_scene.gltf(filepath=str(path), export_format="GLTF_SEPARATE", export_morph=True, use_selection=True)
     doc = json.loads(path.read_text())
     assert len(doc["meshes"]) == 1

@@ -181,6 +181,19 @@ def test_exchange_meshes_open_at_their_real_size(tmp_path):
     plus = ET.parse(tmp_path / "vtk" / "mode_2_plus2sd.vtp").getroot().find("PolyData/Piece/Points/DataArray")
     pts = np.array(plus.text.split(), float).reshape(-1, 3)
     np.testing.assert_allclose(pts, model.mean + 2 * model.standard_deviations[1] * model.modes[1], atol=1e-6)
+    extent = np.array(pos["max"]) - np.array(pos["min"])
+    np.testing.assert_allclose(extent, np.ptp(model.mean, axis=0) / 1000, rtol=1e-6)  # 80 mm wide: 0.08 m
+    assert abs(extent[0] - 0.08) < 0.01
+    vtk = pytest.importorskip("vtk", reason="VTK's own readers (pip install vtk) read the files back where present")
+    for name, reader in (("mean.vtp", vtk.vtkXMLPolyDataReader()), ("mean.vtk", vtk.vtkPolyDataReader())):
+        reader.SetFileName(str(tmp_path / "vtk" / name))
+        reader.Update()
+        poly = reader.GetOutput()
+        assert poly.GetNumberOfPoints() == 30 and poly.GetNumberOfPolys() == 28, name
+        got = np.array([poly.GetPoint(i) for i in range(30)])
+        np.testing.assert_allclose(got, model.mean, atol=1e-6)
+        var = poly.GetPointData().GetArray("variance_mm2")
+        np.testing.assert_allclose([var.GetValue(i) for i in range(30)], model.point_variance, rtol=1e-8)
     legacy = (tmp_path / "vtk" / "mean.vtk").read_text().splitlines()
     assert legacy[0] == "# vtk DataFile Version 4.2" and "POINTS 30 double" in legacy
     assert "SCALARS variance_mm2 double 1" in legacy and "POLYGONS 28 112" in legacy

@@ -75,7 +75,7 @@ STAGE_EXCLUDE_TOP = frozenset({
     "ssm_addon",  # the core goes in once, as its wheel (imported as ``ssm_addon``)
     ".git", ".github", ".ci", ".venv", "venv", "tests", "tools", "docs", "build", "dist",
     "wheels", "wheels_cache", "scripts", ".pytest_cache", ".ruff_cache", "pyproject.toml", ".gitignore",
-    "requirements.txt", "requirements-dev.txt", "out", "demo_out",
+    "requirements.txt", "requirements-dev.txt", "constraints.txt", "out", "demo_out",
 })
 #: Names excluded at any depth.
 STAGE_EXCLUDE_ANY = ("__pycache__", "*.pyc", "*.pyo", "*.zip", "*.blend1", ".DS_Store")

@@ -23,7 +23,9 @@ from ..model.metrics import report_document, write_plots
 
 __all__ = ["write_outputs", "write_report_html", "instance_thumbnails", "write_html_report"]
 
-THUMB_PX = 160
+THUMB_PX = 256
+#: Width (px) of one thumbnail view on the page.
+THUMB_SHOWN_PX = 160
 
 
 def _shade(points: np.ndarray, faces: np.ndarray, colours: np.ndarray, view: np.ndarray):
@@ -298,7 +300,8 @@ def write_html_report(path, doc: dict, *, images: dict[str, bytes] | None = None
             res = fit.get("landmark_residuals_mm") or []
             o = outliers.get(name, {})
             flags = by_instance.get(name, [])
-            thumb = _img(thumbnails[name], name, THUMB_PX * 2) if name in thumbnails else ""
+            # drawn at 256 px per view, shown at 160 (the page's zoom shows the rest) so the table fits 1300 px
+            thumb = _img(thumbnails[name], name, THUMB_SHOWN_PX * 2) if name in thumbnails else ""
             rows.append({"_class": "warn" if flags else "", "cells": [
                 f"<b>{html.escape(name)}</b>", thumb, _num(fit.get("mean_distance_mm"), 3),
                 _num(fit.get("max_distance_mm"), 3), _num(fit.get("folded_after")),
@@ -340,7 +343,7 @@ FIGURES = (("variability.png", "Eigenvalue spectrum and concentration of variabi
            ("metrics.png", "Compactness, generalization and specificity by number of modes"))
 
 
-ANALYSIS_FIGURES = (("analysis_map.png", "Group difference along the surface normal on the mean shape (mm); grey: "
+ANALYSIS_FIGURES = (("analysis_map.png", "Group difference along the surface normal on the mean shape (mm); faded: "
                                           "not significant at FDR 5 %"),
                     ("analysis_scores.png", "Mode scores of the instances by group (SD)"))
 
