@@ -250,6 +250,13 @@ def test_bad_analysis_inputs_say_what_is_wrong():
     many = table(**{f"c{k}": list(np.random.default_rng(k).normal(size=12)) for k in range(11)})
     with pytest.raises(InputError, match="12 instances for a model of 12 columns"):
         analyze(model, many, covariates=[f"c{k}" for k in range(11)], permutations=99)
+    from ssm_addon.model.pca import ShapeModel
+
+    bare = ShapeModel(mean=model.mean, faces=model.faces, modes=model.modes, variances=model.variances,
+                      instance_names=np.zeros(0, "<U1"), instance_points=np.zeros((0, model.n_points, 3)),
+                      instance_points_world=np.zeros((0, model.n_points, 3)), params={"source": "femur.h5"})
+    with pytest.raises(InputError, match=r"model \(femur.h5\) holds no training shapes"):
+        analyze(bare, table(group=list(truth["groups"])), group="group", permutations=99)
     with pytest.raises(InputError, match="permutations must be >= 99"):
         analyze(model, table(group=list(truth["groups"])), group="group", permutations=10)
     # rows naming no instance are a warning; instances without values are left out and said

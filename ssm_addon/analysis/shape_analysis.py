@@ -318,6 +318,10 @@ def analyze(model, attributes: Attributes, *, group: str | None = None, covariat
     if int(permutations) < 99:
         raise InputError(f"analysis: permutations must be >= 99 (p-values need the resolution), got {permutations}")
     covariates = tuple(covariates)
+    if model.n_instances == 0:
+        raise InputError(f"analysis: the model ({model.params.get('source', 'model')}) holds no training shapes, only "
+                         "its mean and modes (a statismo file from another tool?); the analysis needs the instances' "
+                         "points: use a model.npz from ssm build")
     say = progress or (lambda f, m: None)
     names_all = tuple(str(s) for s in model.instance_names)
     attrs, unknown = attributes.aligned(names_all)
