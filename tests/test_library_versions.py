@@ -93,10 +93,9 @@ def _verse_project(folder: Path) -> Path | None:
 
 @pytest.mark.slow
 def test_the_zips_libraries_build_the_same_models_bit_for_bit(constraints_env, tmp_path):
-    projects = {"demo": demo.make_demo_population(tmp_path / "population", n=6, seed=2)}
-    verse = _verse_project(tmp_path)
-    if verse is not None:
-        projects["verse004 L1-L3"] = verse
+    verse = _verse_project(tmp_path)  # real vertebrae where the shared data are, else the demo
+    projects = ({"verse004 L1-L3": verse} if verse is not None
+                else {"demo": demo.make_demo_population(tmp_path / "population", n=6, seed=2)})
     for name, project in projects.items():
         here = _build(sys.executable, project, tmp_path / f"{name}-here")
         there = _build(constraints_env, project, tmp_path / f"{name}-zip")
