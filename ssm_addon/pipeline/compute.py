@@ -103,9 +103,13 @@ def ignore_sigint() -> None:
 
 def dask_setup(worker=None) -> None:
     """Dask preload hook (``preload=["ssm_addon.pipeline.compute"]``): a LocalCluster worker leaves
-    Ctrl-C and hang-ups to the main process, which closes the cluster (no worker tracebacks)."""
+    Ctrl-C and hang-ups to the main process, which closes the cluster, and logs nothing below
+    CRITICAL: a task's error reaches the build through its future, and what a worker would log
+    while the cluster shuts down under it (a heartbeat to a closed scheduler) is noise."""
+    import logging
     import threading
 
+    logging.getLogger("distributed").setLevel(logging.CRITICAL)
     if threading.current_thread() is threading.main_thread():
         ignore_sigint()
 
@@ -295,7 +299,7 @@ class Executor:
             self._scratch = tempfile.mkdtemp(prefix="ssm-dask-")
             self._dask_config = dask.config.set({"temporary-directory": self._scratch})  # scheduler's too
             self._cluster = LocalCluster(n_workers=self.jobs, threads_per_worker=1, processes=True,
-                                         dashboard_address=None, silence_logs=logging.ERROR,
+                                         dashboard_address=None, silence_logs=logging.CRITICAL,
                                          local_directory=self._scratch, preload=[__name__])
             self._client = Client(self._cluster)
             return
