@@ -259,13 +259,18 @@ def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> 
     t = result.timings_s
     print("timings: " + ", ".join(f"{k} {v:.2f} s" for k, v in t.items()), flush=True)
     print(f"outputs in {result.out_dir}:")
-    for key in ("npz", "statismo", "report", "html", "blend", "picture"):
+    for key in ("npz", "statismo", "gltf", "report", "html", "blend", "picture", "scores", "eigenvalues",
+                "attributes"):
         if key in result.files:
-            print(f"  {key:9s} {result.files[key]}")
+            print(f"  {key:11s} {result.files[key]}")
     for f in result.files.get("plots", []):
-        print(f"  {'plot':9s} {f}")
+        print(f"  {'plot':11s} {f}")
     if "coated" in result.files:
-        print(f"  {'coated':9s} {result.files['coated']}/<name>.ply")
+        print(f"  {'coated':11s} {result.files['coated']}/<name>.ply")
+    if "vtk" in result.files:
+        print(f"  {'vtk':11s} {result.files['vtk']}/ (mean, ±2 SD per mode, coated/<name>.vtp)")
+    if "analysis" in result.files:
+        print(f"  {'analysis':11s} {result.files['analysis']}/ (analysis.json, analysis.npz, effects/*.vtp, maps)")
     from ..model.quality import warnings_text
 
     if result.study.findings:  # said last, where a reader looks
