@@ -115,17 +115,8 @@ class SSM_OT_run_analysis(BackgroundJob, bpy.types.Operator):
             raise InputError(f"Run Analysis: {out} is not empty; choose an empty or new folder")
 
         def work(progress, cancelled):
-            import tempfile
-
-            folder = out if out is not None else Path(tempfile.mkdtemp(prefix="ssm-analysis-"))
-            try:
-                result, doc, _ = run_analysis(model, attributes, params, folder, model_path=name,
-                                              progress=progress, cancelled=cancelled, pictures=out is not None)
-            finally:
-                if out is None:
-                    import shutil
-
-                    shutil.rmtree(folder, ignore_errors=True)
+            result, doc, _ = run_analysis(model, attributes, params, out, model_path=name, progress=progress,
+                                          cancelled=cancelled)
             return result, doc
 
         return work

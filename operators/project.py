@@ -114,9 +114,9 @@ def write_model_blend(result, path) -> str:
     _ensure_registered()
     bpy.ops.wm.read_homefile(use_empty=True)
     show_study(bpy.context, result.study, output=result.project.output)
-    # opened as saved: the correspondence colours in Solid shading, and the coated meshes not hidden by
-    # the voxel surfaces they sit on (the instances are hidden, Alt+H shows them)
-    bridge.show_colour_attributes()
+    # opened as saved: the correspondence colours in Solid shading (set when show_study coloured the
+    # meshes), and the coated meshes not hidden by the voxel surfaces they sit on (the instances are
+    # hidden, Alt+H shows them)
     coated = {o.ssm.instance.name for o in bpy.data.objects if o.ssm.role == "COATED" and o.ssm.instance}
     for layer in bpy.context.scene.view_layers:
         layer.update()  # synced with the collections the objects were just linked to

@@ -111,7 +111,7 @@ def analysis_arrays(result: Analysis) -> dict:
     terms = list(result.tests)
     arrays = {
         "mean": result.mean, "faces": np.asarray(result.faces, np.int64),
-        "effect_names": np.asarray([e.name for e in result.effects] or [""])[: len(result.effects)],
+        "effect_names": np.asarray([e.name for e in result.effects], dtype=str),
         "effects": np.stack([e.displacement for e in result.effects]) if result.effects else np.zeros((0, n_points, 3)),
         "effects_normal": np.stack([e.normal for e in result.effects]) if result.effects else np.zeros((0, n_points)),
         "term_names": np.asarray(terms),
@@ -198,20 +198,24 @@ def analysis_map_picture(result: Analysis, path, *, effect: str | None = None) -
     return path
 
 
+def _scores_sd(result: Analysis, model) -> np.ndarray:
+    """(analysed instances, K) mode weights in SD (:meth:`ShapeModel.scores` / √λ), rows in ``result.names``."""
+    row = {str(n): i for i, n in enumerate(model.instance_names)}
+    return model.scores()[[row[n] for n in result.names]] / model.standard_deviations
+
+
 def scores_picture(result: Analysis, model, path, *, modes: int = 3) -> Path:
     """Score scatter plots of the first modes (SD), coloured by group."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    index = [list(map(str, model.instance_names)).index(n) for n in result.names]
-    flat = np.asarray(model.instance_points, float)[index].reshape(len(index), -1) - model.mean.reshape(-1)
     k = min(modes, model.n_modes)
-    z = flat @ model.modes[:k].reshape(k, -1).T / model.standard_deviations[:k]
+    z = _scores_sd(result, model)[:, :k]
     pairs = [(0, 1), (0, 2), (1, 2)][: max(1, k * (k - 1) // 2)] if k >= 2 else []
     fig = Figure(figsize=(4.0 * max(1, len(pairs)), 3.8), dpi=100)
     FigureCanvasAgg(fig)
-    labels = np.asarray(result.attributes[result.group], dtype=object) if result.group else np.array(["all"] * len(
-        index), dtype=object)
+    labels = np.asarray(result.attributes[result.group], dtype=object) if result.group else np.array(
+        ["all"] * len(z), dtype=object)
     levels = list(result.levels) if result.group else ["all"]
     colours = ["#4477aa", "#ee6677", "#228833", "#ccbb44", "#66ccee", "#aa3377", "#bbbbbb"]
     for j, (a, b) in enumerate(pairs):
@@ -232,15 +236,17 @@ def scores_picture(result: Analysis, model, path, *, modes: int = 3) -> Path:
 
 
 def write_analysis(result: Analysis, out_dir, *, model=None, model_path: str | None = None,
-                   pictures: bool = True) -> dict:
+                   pictures: bool = True, doc: dict | None = None) -> dict:
     """Write the analysis's files into ``out_dir`` (created); returns ``{file: path}``.
+
+    ``doc``: ``analysis.json``'s content when the caller has it (:func:`analysis_document`).
 
     ``model`` (the analysed ShapeModel) adds the score table and plot.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written = {}
-    doc = analysis_document(result, model_path=model_path)
+    doc = analysis_document(result, model_path=model_path) if doc is None else doc
     written["analysis.json"] = out / "analysis.json"
     written["analysis.json"].write_text(json.dumps(doc, indent=1, sort_keys=False))
     written["analysis.npz"] = write_npz(out / "analysis.npz", analysis_arrays(result))
@@ -263,9 +269,7 @@ def write_analysis(result: Analysis, out_dir, *, model=None, model_path: str | N
                                                             {"displacement_mm": d["displacement"],
                                                              "normal_mm": d["normal"]})
     if model is not None:
-        index = [list(map(str, model.instance_names)).index(n) for n in result.names]
-        flat = np.asarray(model.instance_points, float)[index].reshape(len(index), -1) - model.mean.reshape(-1)
-        z = flat @ model.modes.reshape(model.n_modes, -1).T / model.standard_deviations
+        z = _scores_sd(result, model)
         cols = list(result.attributes)
         path = out / "analysis_scores.csv"
         with path.open("w", newline="") as fh:
@@ -287,19 +291,22 @@ def write_analysis(result: Analysis, out_dir, *, model=None, model_path: str | N
     return written
 
 
-def run_analysis(model, attributes, params, out_dir, *, model_path: str | None = None, progress=None,
+def run_analysis(model, attributes, params, out_dir=None, *, model_path: str | None = None, progress=None,
                  cancelled=None, pictures: bool = True) -> tuple[Analysis, dict, dict]:
     """:func:`~ssm_addon.analysis.shape_analysis.analyze` with an ``[analysis]`` parameter object,
-    its files written into ``out_dir``: returns (the analysis, ``analysis.json``'s content, the
-    files written). The one route of ``ssm analyze``, the build's ``[analysis]`` and Blender."""
+    its files written into ``out_dir`` (none when None): returns (the analysis, ``analysis.json``'s
+    content, the files written). The one route of ``ssm analyze``, the build's ``[analysis]`` and
+    Blender."""
     from .shape_analysis import analyze
 
     result = analyze(model, attributes, group=params.group or None, covariates=params.covariates,
                      permutations=params.permutations, seed=params.seed, size_removed=params.size_removed,
                      reference=params.reference or None, lda_modes=params.lda_modes, progress=progress,
                      cancelled=cancelled)
-    written = write_analysis(result, out_dir, model=model, model_path=model_path, pictures=pictures)
-    return result, json.loads(Path(written["analysis.json"]).read_text()), written
+    doc = analysis_document(result, model_path=model_path)
+    written = {} if out_dir is None else write_analysis(result, out_dir, model=model, model_path=model_path,
+                                                        pictures=pictures, doc=doc)
+    return result, doc, written
 
 
 def analysis_summary(result: Analysis) -> list[str]:
@@ -337,7 +344,7 @@ def analysis_shape_keys(result: Analysis, base) -> dict:
     base = np.asarray(base, dtype=float)
     keys = {}
     for e in result.effects:
-        if e.term == result.group or e.term not in result.attributes or e.unit.find(" − ") >= 0:
+        if e.level is not None:  # a category level against the reference
             keys[f"Effect: {e.name} ({e.unit})"] = (base + e.displacement, -1.0, 2.0)
             continue
         values = np.asarray(result.attributes[e.term], dtype=float)

@@ -56,6 +56,8 @@ class Effect:
         β: the change of every point for one unit (model frame).
     normal : (N,) ndarray, mm per unit
         The displacement's component along the mean surface's outward normal.
+    level : str or None
+        The category level the effect compares with the reference; None for a covariate.
     """
 
     name: str
@@ -63,6 +65,7 @@ class Effect:
     unit: str
     displacement: np.ndarray
     normal: np.ndarray
+    level: str | None = None
 
 
 @dataclass(frozen=True)
@@ -170,8 +173,9 @@ def design_matrix(attrs: Attributes, *, group: str | None, covariates=(), sizes=
     columns : dict term -> (m, q) ndarray
         Design columns of each term (covariates centred; categories dummy-coded).
     labels : dict term -> list of str
-        Each column's name (``"group: b"``) and, for categories, ``levels`` in
-        ``labels[term + "#levels"]``.
+        Each column's name (``"group: b"``).
+    levels : dict term -> list of str
+        A category's levels, the reference first (covariates have none).
     excluded : dict row -> reason
     """
     n = len(attrs.names)
@@ -199,7 +203,7 @@ def design_matrix(attrs: Attributes, *, group: str | None, covariates=(), sizes=
         missing |= miss
         raw[t] = (kind, col)
     rows = np.flatnonzero(~missing)
-    columns, labels = {}, {}
+    columns, labels, levels_of = {}, {}, {}
     for t in terms:
         kind, col = raw[t]
         col = col[rows]
@@ -226,9 +230,9 @@ def design_matrix(attrs: Attributes, *, group: str | None, covariates=(), sizes=
                                  f"at least {MIN_GROUP_SIZE} (counts: {counts})")
             columns[t] = np.stack([(col == lv).astype(float) for lv in levels[1:]], axis=1)
             labels[t] = [f"{t}: {lv}" for lv in levels[1:]]
-            labels[t + "#levels"] = levels
+            levels_of[t] = levels
     excluded = {i: reasons[i] for i in sorted(reasons)}
-    return rows, columns, labels, excluded
+    return rows, columns, labels, levels_of, excluded
 
 
 def _discriminant(scores: np.ndarray, labels: np.ndarray, levels, modes: np.ndarray) -> dict:
@@ -262,13 +266,6 @@ def _discriminant(scores: np.ndarray, labels: np.ndarray, levels, modes: np.ndar
         correct += levels[int(np.argmin(d))] == labels[i]
     return {"displacement": shape, "group_scores": group_scores, "modes": int(k),
             "loo_accuracy": correct / m, "eigenvalue": float(w[-1])}
-
-
-def _check_size(m: int, columns: dict) -> None:
-    n_columns = 1 + sum(c.shape[1] for c in columns.values())
-    if m < n_columns + 2:
-        raise InputError(f"analysis: {m} instances for a model of {n_columns} columns (intercept, "
-                         f"{', '.join(columns)}): need at least {n_columns + 2}")
 
 
 def analyze(model, attributes: Attributes, *, group: str | None = None, covariates=(), permutations: int = 1000,
@@ -330,14 +327,17 @@ def analyze(model, attributes: Attributes, *, group: str | None = None, covariat
         warnings.append(f"{len(unknown)} attribute rows name no instance of the model and were ignored: "
                         f"{', '.join(map(repr, unknown[:8]))}{' …' if len(unknown) > 8 else ''}")
     sizes_all = centroid_size(np.asarray(model.instance_points_world, float))
-    rows, columns, labels, excluded_rows = design_matrix(attrs, group=group, covariates=covariates,
-                                                         sizes=sizes_all, reference=reference)
+    rows, columns, labels, levels_of, excluded_rows = design_matrix(attrs, group=group, covariates=covariates,
+                                                                    sizes=sizes_all, reference=reference)
     excluded = {names_all[i]: f"missing {', '.join(t)}" for i, t in excluded_rows.items()}
     if excluded:
         warnings.append(f"{len(excluded)} of {len(names_all)} instances left out for missing attributes: "
                         + "; ".join(f"{k} ({v})" for k, v in list(excluded.items())[:8]))
     m = rows.size
-    _check_size(m, columns)
+    n_columns = 1 + sum(c.shape[1] for c in columns.values())
+    if m < n_columns + 2:
+        raise InputError(f"analysis: {m} instances for a model of {n_columns} columns (intercept, "
+                         f"{', '.join(columns)}): need at least {n_columns + 2}")
     points = np.asarray(model.instance_points, float)[rows]
     sizes = sizes_all[rows]
     if size_removed:
@@ -359,13 +359,14 @@ def analyze(model, attributes: Attributes, *, group: str | None = None, covariat
     for t in terms:
         for j, lab in enumerate(labels[t]):
             disp = beta[col].reshape(-1, 3)
-            if t + "#levels" in labels:
-                lv = labels[t + "#levels"]
+            lv = levels_of.get(t)
+            if lv is not None:
                 unit = f"{lv[j + 1]} − {lv[0]}"
             else:
                 unit = "1 mm" if t == CENTROID_SIZE else f"1 unit of {t}"
             units[lab] = unit
-            effects.append(Effect(lab, t, unit, disp, np.einsum("nk,nk->n", disp, normals)))
+            effects.append(Effect(lab, t, unit, disp, np.einsum("nk,nk->n", disp, normals),
+                                  level=lv[j + 1] if lv is not None else None))
             col += 1
     tests = {}
     for k, t in enumerate(terms):
@@ -375,7 +376,7 @@ def analyze(model, attributes: Attributes, *, group: str | None = None, covariat
                              cancelled=cancelled)
     levels, counts, group_means, pairwise, discriminant = (), {}, {}, {}, None
     if group:
-        levels = tuple(labels[group + "#levels"])
+        levels = tuple(levels_of[group])
         glab = np.array([levels[0]] * m, dtype=object)
         for j, lv in enumerate(levels[1:]):
             glab[columns[group][:, j] > 0.5] = lv
