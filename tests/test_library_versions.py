@@ -38,6 +38,8 @@ def _pins() -> dict:
 
 def test_the_constraints_file_states_the_versions_the_zip_bundles():
     pins = _pins()
+    if not (WHEELS / "resolved.json").exists():  # the full suite builds it first (test_extension_package)
+        pytest.skip(f"no {WHEELS / 'resolved.json'}: build the zip first (tools/build_extension.py)")
     resolved = json.loads((WHEELS / "resolved.json").read_text())["wheels"]
     bundled = {w.split("-")[0].lower(): w.split("-")[1] for w in resolved}
     assert pins and "numpy" not in pins  # Blender's own numpy

@@ -1,6 +1,6 @@
 """Evaluation of ``ssm fit`` on real and demo data: leave-one-out fits and completion.
 
-Usage: ``.venv/bin/python tools/eval_fit.py``
+Usage: ``.venv/bin/python tools/eval_fit.py [--femur10-only] [--step K]``
 
 For VerSe (the nine vertebrae of sub-verse004, when ``../shared/data`` is present) and
 the 24-instance demo: every instance fitted by a model of the others (built from the
@@ -8,6 +8,12 @@ study's coatings), its surface distance for the model-constrained fit and for th
 fit (the coating's relaxation from it); and completion: the instance with one side
 (x > median, 40–50 %) removed, the predicted missing part's distance to the real surface
 and the share of its points within 2 posterior standard deviations of it.
+
+femur10 (dense truth, ``../shared/data/femur10``): each femur completed from its
+proximal half (the vertices above its median height, every ``--step``-th as points) by
+the model of the other nine (their meshes' own correspondence, rigidly aligned), from the
+model frame; the missing half's error is the distance of each vertex from its true place
+(not a surface distance), with the share within 2 posterior SD.
 """
 
 from __future__ import annotations
@@ -22,7 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
-from ssm_addon import demo  # noqa: E402
+from ssm_addon.cli import demo  # noqa: E402
 from ssm_addon.cli.project_build import build, read_project  # noqa: E402
 from ssm_addon.coating.coating import coat_from_start  # noqa: E402
 from ssm_addon.coating.distance_map import DistanceMap  # noqa: E402
@@ -30,6 +36,7 @@ from ssm_addon.fitting.fit import Pose, Target, fit_model  # noqa: E402
 from ssm_addon.meshutil import Mesh, marching_cubes  # noqa: E402
 from ssm_addon.model.pca import build_model  # noqa: E402
 from ssm_addon.pipeline.params import FitParams  # noqa: E402
+from ssm_addon.pipeline.study import import_instances  # noqa: E402
 
 
 def evaluate(label: str, project_path: Path, out: Path) -> None:
@@ -42,7 +49,7 @@ def evaluate(label: str, project_path: Path, out: Path) -> None:
     for left in s.names:
         names = [n for n in s.names if n != left]
         m = build_model(np.stack([s.coatings[n].points_object for n in names]), s.template.faces, names)
-        ov = s.volume(left)
+        ov = s.volumes[left] if left in s.volumes else import_instances(s, names=[left])[left]
         verts, faces = marching_cubes(ov.mask)
         surf = ov.voxel_to_object(verts)
         dm = DistanceMap.from_object_volume(ov)
@@ -65,7 +72,26 @@ def evaluate(label: str, project_path: Path, out: Path) -> None:
 
 
 def main() -> None:
-    from conftest import VERSE_DIR
+    import argparse
+
+    from conftest import FEMUR10_DIR, VERSE_DIR
+
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--femur10-only", action="store_true")
+    parser.add_argument("--step", type=int, default=1)
+    args = parser.parse_args()
+    if FEMUR10_DIR.exists():
+        from test_fitting import femur10_completion
+
+        rows = femur10_completion(FEMUR10_DIR, step=args.step)
+        print("femur10: completion of the distal half from the proximal half (model of the other nine)")
+        for r in rows:
+            print(f"  {r['name']}: missing {r['missing_mm']:.2f} mm (SD {r['sd_missing_mm']:.2f}), "
+                  f"seen {r['seen_mm']:.2f} mm, {100 * r['within_2sd']:.1f} % within 2 SD")
+        print(f"  mean: missing {np.mean([r['missing_mm'] for r in rows]):.2f} mm, "
+              f"{100 * np.mean([r['within_2sd'] for r in rows]):.1f} % within 2 SD")
+    if args.femur10_only:
+        return
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 import weakref
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -38,8 +38,9 @@ from ..pipeline.errors import InputError, check_cancelled
 from ..pipeline.params import FitParams
 from ..pipeline.progress import CancelledFn, ProgressFn, report
 
-__all__ = ["FitResult", "Pose", "Target", "fit_any_pose", "fit_model", "model_error_variance", "model_landmarks",
-           "outlier_limit", "rigid_screen", "start_poses"]
+__all__ = ["FitResult", "ModelErrorField", "Pose", "Target", "correlation_length", "farthest_point_indices",
+           "fit_any_pose", "fit_model", "loo_residuals", "model_error_field", "model_error_variance", "model_landmarks", "outlier_limit",
+           "rigid_screen", "start_poses"]
 
 
 @dataclass(frozen=True)
@@ -221,33 +222,148 @@ def model_error_variance(model, n_modes: int | None = None) -> np.ndarray | None
     Lüthi M, Gerig T, Jud C, Vetter T. Gaussian Process Morphable Models. IEEE TPAMI
     40(8), 2018 (augmenting a PCA model with a kernel for what it does not span).
     """
-    pts = np.asarray(getattr(model, "instance_points", np.zeros((0,))), float)
-    if pts.ndim != 3 or len(pts) < 3 or pts.shape[1] != len(model.mean):
-        return None
     key = (n_modes,)
     cached = _MODEL_ERROR.get(model, {})
     if key in cached:
         return cached[key]
-    idx = np.unique(np.linspace(0, len(pts) - 1, min(len(pts), MODEL_ERROR_MAX_INSTANCES)).round().astype(int))
-    flat = pts.reshape(len(pts), -1)
-    total = np.zeros(pts.shape[1])
-    for i in idx:
-        others = np.delete(flat, i, axis=0)
-        mu = others.mean(axis=0)
-        y = others - mu
-        w, u = np.linalg.eigh(y @ y.T)  # the Gram matrix: (n-1)², not (3N)²
-        order = np.argsort(w)[::-1]
-        w, u = w[order], u[:, order]
-        keep = w > 1e-9 * max(w[0], 1e-300)
-        k = int(keep.sum()) if n_modes is None else min(int(keep.sum()), int(n_modes))
-        basis = (u[:, :k].T @ y) / np.sqrt(w[:k])[:, None]  # (k, 3N) orthonormal rows
-        r = flat[i] - mu
-        r = r - basis.T @ (basis @ r)
-        total += (r.reshape(-1, 3) ** 2).sum(axis=1)
-    out = total / len(idx)
+    res = loo_residuals(model, n_modes)
+    if res is None:
+        return None
+    out = (res ** 2).sum(axis=2).mean(axis=0)
     cached[key] = out
     _MODEL_ERROR[model] = cached
     return out
+
+
+def loo_residuals(model, n_modes: int | None = None) -> np.ndarray | None:
+    """Leave-one-out residuals (n, N, 3), mm, model frame: each training instance (at most
+    ``MODEL_ERROR_MAX_INSTANCES``, evenly spread) minus its reconstruction by the model of
+    the others on ``n_modes`` modes (default every mode). None without 3 instances."""
+    pts = np.asarray(getattr(model, "instance_points", np.zeros((0,))), float)
+    if pts.ndim != 3 or len(pts) < 3 or pts.shape[1] != len(model.mean):
+        return None
+    idx = np.unique(np.linspace(0, len(pts) - 1, min(len(pts), MODEL_ERROR_MAX_INSTANCES)).round().astype(int))
+    flat = pts.reshape(len(pts), -1)
+    out = np.empty((len(idx), pts.shape[1], 3))
+    for row, i in enumerate(idx):
+        others = np.delete(flat, i, axis=0)
+        mu = others.mean(axis=0)
+        y = others - mu
+        w, u = np.linalg.eigh(y @ y.T)
+        order = np.argsort(w)[::-1]
+        w, u = w[order], u[:, order]
+        keep = int((w > 1e-9 * max(w[0], 1e-300)).sum())
+        k = keep if n_modes is None else min(keep, int(n_modes))
+        basis = (u[:, :k].T @ y) / np.sqrt(w[:k])[:, None]
+        r = flat[i] - mu
+        out[row] = (r - basis.T @ (basis @ r)).reshape(-1, 3)
+    return out
+
+
+def farthest_point_indices(points: np.ndarray, k: int) -> np.ndarray:
+    """``k`` indices of ``points`` (M, 3) spread by farthest-point sampling from index 0
+    (ties: the lowest index)."""
+    points = np.asarray(points, float)
+    k = min(int(k), len(points))
+    idx = np.zeros(k, int)
+    d = np.linalg.norm(points - points[0], axis=1)
+    for j in range(1, k):
+        idx[j] = int(np.argmax(d))
+        d = np.minimum(d, np.linalg.norm(points - points[idx[j]], axis=1))
+    return idx
+
+
+MODEL_ERROR_PAIRS = 200_000
+"""Point pairs sampled (fixed seed) to measure the residuals' correlation length."""
+MODEL_ERROR_CENTRES = 500
+"""Most kernel centres of the model-error field (farthest-point samples of the mean)."""
+
+
+@dataclass(frozen=True)
+class ModelErrorField:
+    """The model's own error as a smooth Gaussian process on its points (model frame, mm).
+
+    Per axis, cov(e(x), e(y)) = a(x) a(y) exp(−|x − y|² / 2ℓ²): ``amplitude_mm`` a (N,)
+    from the training instances' leave-one-out residuals (a² is a third of
+    :func:`model_error_variance`), ``length_mm`` ℓ the distance at which those residuals'
+    correlation falls to e^(−1/2). ``basis`` (N, 3, 3r) is its low-rank (Nyström) form on
+    ``r`` kernel eigenvectors, each coefficient of prior variance 1: the extra modes a
+    partial fit is given, so that what the model cannot represent neither bends the pose
+    nor vanishes from the posterior of the part the target does not show.
+    """
+
+    amplitude_mm: np.ndarray
+    length_mm: float
+    basis: np.ndarray
+
+
+def correlation_length(points: np.ndarray, residuals: np.ndarray, *, pairs: int = MODEL_ERROR_PAIRS) -> float:
+    """Distance (mm) at which residual fields (n, N, 3) on ``points`` (N, 3) correlate by
+    e^(−1/2), the length of a Gaussian kernel with that correlation; from ``pairs`` point
+    pairs drawn with a fixed seed, binned by distance."""
+    rng = np.random.default_rng(0)
+    a = rng.integers(0, len(points), pairs)
+    b = rng.integers(0, len(points), pairs)
+    d = np.linalg.norm(points[a] - points[b], axis=1)
+    num = (residuals[:, a] * residuals[:, b]).sum(-1).mean(0)
+    den = np.sqrt((residuals[:, a] ** 2).sum(-1).mean(0) * (residuals[:, b] ** 2).sum(-1).mean(0))
+    ok = den > 1e-300
+    d, c = d[ok], num[ok] / den[ok]
+    extent = float(np.linalg.norm(points.max(0) - points.min(0)))
+    edges = np.linspace(0.0, extent, 81)
+    which = np.digitize(d, edges) - 1
+    counts = np.bincount(which, minlength=len(edges))[:80]
+    sums = np.bincount(which, weights=c, minlength=len(edges))[:80]
+    centres = 0.5 * (edges[:-1] + edges[1:])
+    valid = counts >= 20
+    centres, corr = centres[valid], sums[valid] / counts[valid]
+    target = math.exp(-0.5)
+    below = np.nonzero(corr < target)[0]
+    if not len(below):
+        return extent
+    j = int(below[0])
+    if j == 0:
+        return float(centres[0])
+    t = (corr[j - 1] - target) / max(corr[j - 1] - corr[j], 1e-12)
+    return float(centres[j - 1] + t * (centres[j] - centres[j - 1]))
+
+
+_ERROR_FIELD: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def model_error_field(model, *, keep: float = 0.99) -> ModelErrorField | None:
+    """The model's :class:`ModelErrorField` (cached per model); None without at least 3
+    training instances. ``keep``: the share of the kernel's trace its eigenvectors keep.
+
+    References
+    ----------
+    Lüthi M, Gerig T, Jud C, Vetter T. Gaussian Process Morphable Models. IEEE TPAMI
+    40(8), 2018 (a PCA model augmented by a smooth kernel for what it does not span).
+    """
+    if model in _ERROR_FIELD:
+        return _ERROR_FIELD[model]
+    res = loo_residuals(model)
+    if res is None:
+        return None
+    mean = np.asarray(model.mean, float)
+    amp = np.sqrt((res ** 2).sum(-1).mean(0) / 3.0)
+    length = max(correlation_length(mean, res), 1e-6)
+    centres = mean[farthest_point_indices(mean, MODEL_ERROR_CENTRES)]
+    kcc = np.exp(-((centres[:, None] - centres[None]) ** 2).sum(-1) / (2 * length ** 2))
+    w, u = np.linalg.eigh(kcc)
+    order = np.argsort(w)[::-1]
+    w, u = np.maximum(w[order], 0.0), u[:, order]
+    r = int(min(len(w), np.searchsorted(np.cumsum(w) / w.sum(), keep) + 1))
+    kxc = np.exp(-((mean[:, None] - centres[None]) ** 2).sum(-1) / (2 * length ** 2))
+    phi = kxc @ (u[:, :r] / np.sqrt(w[:r]))  # (N, r): phi phiᵀ ≈ the kernel
+    phi /= np.maximum(np.linalg.norm(phi, axis=1, keepdims=True), 1e-300)  # unit prior variance per point
+    f = amp[:, None] * phi
+    basis = np.zeros((len(mean), 3, 3 * r))
+    for axis in range(3):
+        basis[:, axis, axis * r:(axis + 1) * r] = f
+    field_ = ModelErrorField(amplitude_mm=amp, length_mm=length, basis=basis)
+    _ERROR_FIELD[model] = field_
+    return field_
 
 
 def _posterior(q, shape, faces, rows_v, w, pose, lm_pairs, w_lm, sigma2, params, lam, k):
@@ -262,13 +378,15 @@ def _posterior(q, shape, faces, rows_v, w, pose, lm_pairs, w_lm, sigma2, params,
     s2 = sigma2 / pose.scale ** 2
     m = jac.shape[2]
     if len(rows_v):
-        ja = jac[rows_v]
+        used, inv = np.unique(rows_v, return_inverse=True)
+        w_used = np.bincount(inv, weights=w, minlength=len(used))
+        ja = jac[used]
         if len(faces):
-            nrm = vertex_normals(shape, faces)[rows_v]
-            jn = np.einsum("pd,pdm->pm", nrm, ja)
-            info = np.einsum("p,pm,pl->ml", w, jn, jn)
+            jn = np.einsum("pd,pdm->pm", vertex_normals(shape, faces)[used], ja)
+            info = (jn * w_used[:, None]).T @ jn
         else:
-            info = np.einsum("p,pdm,pdl->ml", w, ja, ja)
+            flat = ja.reshape(-1, m)
+            info = (flat * np.repeat(w_used, 3)[:, None]).T @ flat
     else:
         info = np.zeros((m, m))
     if lm_pairs is not None:
@@ -278,7 +396,12 @@ def _posterior(q, shape, faces, rows_v, w, pose, lm_pairs, w_lm, sigma2, params,
     prior[:k, :k] = params.prior_weight * np.diag(1.0 / lam)
     prior[k:, k:] = 1e-9 * np.eye(6)  # (almost) flat: the pose is what the data says
     cov = np.linalg.inv(info / s2 + prior)
-    per_point = np.einsum("ndm,ml,ndl->n", jac, cov, jac)
+    per_point = np.zeros(n)
+    for axis in range(3):  # only the parameters that move this axis (the error field's are per axis)
+        ja = jac[:, axis, :]
+        cols = np.flatnonzero(np.any(ja != 0.0, axis=0))
+        ja = ja[:, cols]
+        per_point += ((ja @ cov[np.ix_(cols, cols)]) * ja).sum(axis=1)
     return cov[:k, :k], per_point
 
 
@@ -298,7 +421,10 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
         object frame).
     partial : bool
         The target covers only part of the shape: only target → model correspondences,
-        and the distances are measured over the target's points.
+        and the distances are measured over the target's points. With ``model_error``
+        the model is augmented by its :class:`ModelErrorField` (the completion's
+        posterior then holds what the model cannot represent where the target is
+        silent), and the pose follows the target along the shape's normals only.
 
     Returns
     -------
@@ -312,6 +438,12 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
     npts = len(mean)
     q = np.asarray(model.modes[:k], float).reshape(k, npts, 3).transpose(1, 2, 0)  # (N, 3, K)
     lam = np.maximum(np.asarray(model.variances[:k], float), 1e-12)
+    n_modes = k
+    error_field = model_error_field(model) if partial and params.model_error else None
+    if error_field is not None:  # the model's error as extra modes of prior variance 1
+        q = np.concatenate([q, error_field.basis], axis=2)
+        lam = np.concatenate([lam, np.ones(error_field.basis.shape[2])])
+        k = q.shape[2]
     names, tris, bary = model_landmarks(model)
     lm_pairs = None
     if target.landmarks is not None and len(target.landmarks):
@@ -358,6 +490,13 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
         w = np.concatenate(ws) if ws else np.zeros(0)
         # pose from the current shape's corresponding points (and landmarks)
         src, dst, wp = shape[rows_v], y, w
+        normals = vertex_normals(shape, model.faces) if len(model.faces) else None
+        if partial and normals is not None and len(rows_v):
+            # a partial target pins the pose least: its points pull along the shape's normal
+            # only, as in the coefficients' step, so nothing drags the pose along the surface
+            nrm_p = normals[rows_v]
+            along = np.einsum("pd,pd->p", nrm_p, pose.inverse(y) - src)
+            dst = pose.apply(src + nrm_p * along[:, None])
         if lm_pairs is not None:
             lm_shape = np.einsum("lk,lkj->lj", lm_pairs[2], shape[lm_pairs[1]])
             src = np.concatenate([src, lm_shape])
@@ -370,14 +509,15 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
         # plane): where it lies along the surface is not observed, so sliding is neither
         # penalised nor mistaken for information (calibrated posterior, no tangential bias)
         yl = pose.inverse(y) - mean[rows_v]  # (P, 3)
-        nrm = vertex_normals(shape, model.faces)[rows_v] if len(model.faces) else None
-        qa = q[rows_v]  # (P, 3, K)
-        if nrm is not None:
-            qn = np.einsum("pd,pdk->pk", nrm, qa)  # (P, K): n·Q
-            wq = qn * w[:, None]
-            a = wq.T @ qn
-            rhs = wq.T @ np.einsum("pd,pd->p", nrm, yl)
+        if normals is not None:  # summed per model point: n·Q once per point used
+            used, inv = np.unique(rows_v, return_inverse=True)
+            qn = np.einsum("ud,udk->uk", normals[used], q[used])  # (U, K): n·Q
+            w_used = np.bincount(inv, weights=w, minlength=len(used))
+            r_used = np.bincount(inv, weights=w * np.einsum("pd,pd->p", normals[rows_v], yl), minlength=len(used))
+            a = (qn * w_used[:, None]).T @ qn
+            rhs = qn.T @ r_used
         else:
+            qa = q[rows_v]  # (P, 3, K)
             a = np.einsum("p,pdk,pdl->kl", w, qa, qa)
             rhs = np.einsum("p,pdk,pd->k", w, qa, yl)
         if lm_pairs is not None:
@@ -398,7 +538,7 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
             converged = True
             break
     cov_b, per_point = _posterior(q, shape, model.faces, rows_v, w, pose, lm_pairs, w_lm, sigma2, params, lam, k)
-    if params.model_error:  # what the model cannot represent, added to what the data leaves open
+    if params.model_error and error_field is None:  # what the model cannot represent, added
         extra = model_error_variance(model, k)
         if extra is not None:
             per_point = per_point + extra
@@ -419,6 +559,7 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
         if not target.has_surface:
             mean_d = float(np.mean(list(residuals.values())))
             max_d = float(np.max(list(residuals.values())))
+    b, lam, cov_b, k = b[:n_modes], lam[:n_modes], cov_b[:n_modes, :n_modes], n_modes
     z = b / np.sqrt(lam)
     d2 = float(np.sum(z * z))
     return FitResult(points=x, coefficients=z, b=b, pose=pose, posterior_sd_mm=sd, mahalanobis=math.sqrt(d2),
@@ -544,10 +685,13 @@ def fit_any_pose(model, target: Target, *, params: FitParams | None = None, fram
     first = [i for i, (n, _p, _d) in enumerate(screened) if n in priority]
     rest = sorted((i for i in range(len(screened)) if i not in first), key=lambda i: (screened[i][2], i))[:keep]
     order = first + rest
+    # a partial target's candidates are fitted without the model-error field (the costly
+    # part of a completion); the chosen one is fitted again with it from its pose
+    search = replace(params, model_error=False) if partial and params.model_error else params
     results = {}
     for n, i in enumerate(order):
         name, pose, _d = screened[i]
-        results[name] = fit_model(model, target, params=params, pose=pose, partial=partial, cancelled=cancelled)
+        results[name] = fit_model(model, target, params=search, pose=pose, partial=partial, cancelled=cancelled)
         report(progress, (n + 1) / len(order), f"start {name}: {results[name].mean_distance_mm:.3f} mm")
     fitted = {n: float(r.mean_distance_mm) for n, r in results.items()}
     chosen = min(fitted, key=lambda n: (fitted[n], list(fitted).index(n)))
@@ -557,6 +701,8 @@ def fit_any_pose(model, target: Target, *, params: FitParams | None = None, fram
         if fitted[mine] <= PRIORITY_TOLERANCE * fitted[chosen] + 1e-9:
             chosen = mine
     best = results[chosen]
+    if search is not params:
+        best = fit_model(model, target, params=params, pose=best.pose, partial=partial, cancelled=cancelled)
     doc = {"starts": [{"name": n, "screened_mm": (None if not np.isfinite(d) else d), "fitted_mm": fitted.get(n)}
                       for n, _p, d in screened], "chosen": chosen}
     return best, doc

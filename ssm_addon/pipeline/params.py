@@ -704,7 +704,8 @@ class FitParams:
                                    help="weight of one landmark against one surface correspondence")
     model_error: bool = param(True, label="Model error", advanced=True,
                               help="the posterior SD includes the model's own error (its training instances' "
-                                   "leave-one-out residuals per point), not only the target's noise")
+                                   "leave-one-out residuals), not only the target's noise: for a partial target "
+                                   "as a smooth Gaussian process fitted with the modes, otherwise added per point")
 
     _where = "fit parameters:"
 
