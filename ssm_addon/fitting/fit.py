@@ -332,8 +332,10 @@ _ERROR_FIELD: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def model_error_field(model, *, keep: float = 0.99) -> ModelErrorField | None:
-    """The model's :class:`ModelErrorField` (cached per model); None without at least 3
-    training instances. ``keep``: the share of the kernel's trace its eigenvectors keep.
+    """The model's :class:`ModelErrorField` (cached per model). None without at least 3
+    training instances, or when the residuals' correlation length is below twice the
+    points' spacing (independent per point: :func:`model_error_variance` is all there is).
+    ``keep``: the share of the kernel's trace its eigenvectors keep.
 
     References
     ----------
@@ -347,7 +349,11 @@ def model_error_field(model, *, keep: float = 0.99) -> ModelErrorField | None:
         return None
     mean = np.asarray(model.mean, float)
     amp = np.sqrt((res ** 2).sum(-1).mean(0) / 3.0)
-    length = max(correlation_length(mean, res), 1e-6)
+    length = correlation_length(mean, res)
+    spacing = float(np.median(cKDTree(mean).query(mean, k=2)[0][:, 1]))
+    if not length >= 2.0 * spacing:  # independent per point: no smooth part to fit
+        _ERROR_FIELD[model] = None
+        return None
     centres = mean[farthest_point_indices(mean, MODEL_ERROR_CENTRES)]
     kcc = np.exp(-((centres[:, None] - centres[None]) ** 2).sum(-1) / (2 * length ** 2))
     w, u = np.linalg.eigh(kcc)
@@ -405,6 +411,12 @@ def _posterior(q, shape, faces, rows_v, w, pose, lm_pairs, w_lm, sigma2, params,
     return cov[:k, :k], per_point
 
 
+TANGENTIAL_PULL = 0.1
+"""A partial target's pull on the pose along the shape's surface, against 1 along its normal:
+small, so the model's misfit on the seen part cannot drag the pose along the surface, not 0,
+so a start shifted along a flat part still converges."""
+
+
 def fit_model(model, target: Target, *, params: FitParams | None = None, pose: Pose | None = None,
               partial: bool = False, progress: ProgressFn = None, cancelled: CancelledFn = None) -> FitResult:
     """Fit ``model`` to ``target``: pose and coefficients under the model's prior.
@@ -424,7 +436,7 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
         and the distances are measured over the target's points. With ``model_error``
         the model is augmented by its :class:`ModelErrorField` (the completion's
         posterior then holds what the model cannot represent where the target is
-        silent), and the pose follows the target along the shape's normals only.
+        silent), and the pose follows the target mostly along the shape's normals (``TANGENTIAL_PULL``).
 
     Returns
     -------
@@ -492,11 +504,12 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
         src, dst, wp = shape[rows_v], y, w
         normals = vertex_normals(shape, model.faces) if len(model.faces) else None
         if partial and normals is not None and len(rows_v):
-            # a partial target pins the pose least: its points pull along the shape's normal
-            # only, as in the coefficients' step, so nothing drags the pose along the surface
+            # a partial target pins the pose least: its points pull mostly along the shape's
+            # normal, as in the coefficients' step (TANGENTIAL_PULL along the surface)
             nrm_p = normals[rows_v]
-            along = np.einsum("pd,pd->p", nrm_p, pose.inverse(y) - src)
-            dst = pose.apply(src + nrm_p * along[:, None])
+            gap = pose.inverse(y) - src
+            along = np.einsum("pd,pd->p", nrm_p, gap)[:, None] * nrm_p
+            dst = pose.apply(src + along + TANGENTIAL_PULL * (gap - along))
         if lm_pairs is not None:
             lm_shape = np.einsum("lk,lkj->lj", lm_pairs[2], shape[lm_pairs[1]])
             src = np.concatenate([src, lm_shape])
