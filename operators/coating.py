@@ -112,14 +112,8 @@ class SSM_OT_coat_template(BackgroundJob, bpy.types.Operator):
         cancel_after = self.cancel_after
         done = [0]
 
-        def counting(progress):
-            def inner(fraction, message):
-                if message.startswith("coated "):
-                    done[0] += 1
-                if progress is not None:
-                    progress(fraction, message)
-
-            return inner
+        def count(_name):
+            done[0] += 1
 
         def work(progress, cancelled):
             def stop():
@@ -130,7 +124,8 @@ class SSM_OT_coat_template(BackgroundJob, bpy.types.Operator):
             apply_stage(study, imported)
             t0 = time.perf_counter()
             try:
-                return imported, coating_stage(study, names=names, progress=counting(progress), cancelled=stop), False
+                return imported, coating_stage(study, names=names, progress=progress, cancelled=stop,
+                                                 on_coated=count), False
             except core.CoatingCancelled as err:  # Esc: keep the finished instances
                 kept = {n: r for n, r in zip(names, err.results) if r is not None}
                 return imported, coating_result(study, kept, {n: r.fit.start for n, r in kept.items()},
@@ -218,19 +213,18 @@ def prepare_refinement(op, context, *, fresh: bool):
     cancel_after = getattr(op, "cancel_after", -1)
     refined = [0]
 
-    def work(progress, cancelled):
-        def counting(fraction, message):
-            refined[0] += ": coated " in message  # "round r: coated <instance> (i/n)"
-            if progress is not None:
-                progress(fraction, message)
+    def count(_name):
+        refined[0] += 1
 
+    def work(progress, cancelled):
         def stop():
             return bool(cancelled and cancelled()) or 0 <= cancel_after <= refined[0]
 
         t0 = time.perf_counter()
         imported = import_result(study, loader.load(sub_progress(progress, 0.0, 0.1), stop), time.perf_counter() - t0)
         apply_stage(study, imported)
-        return imported, refine_correspondence(study, progress=sub_progress(counting, 0.1, 1.0), cancelled=stop)
+        return imported, refine_correspondence(study, progress=sub_progress(progress, 0.1, 1.0), cancelled=stop,
+                                                on_coated=count)
 
     return work
 

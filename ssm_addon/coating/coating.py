@@ -52,6 +52,7 @@ import math
 import os
 import sys
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 
@@ -420,6 +421,7 @@ def coat_all(
     cancelled: CancelledFn = None,
     names: list[str] | None = None,
     start_method: str = "spawn",
+    on_coated: Callable[[str], None] | None = None,
 ) -> list[CoatingResult]:
     """Coat the template onto every target (paper 4), serially or across processes.
 
@@ -432,7 +434,8 @@ def coat_all(
     Progress is reported per finished instance. Cancellation is checked between
     instances (and inside an instance when serial): :class:`CoatingCancelled` is
     raised with ``.results``, a list with the finished :class:`CoatingResult` and
-    None for the instances not coated.
+    None for the instances not coated. ``on_coated(name)`` is called (in this process) as
+    each instance's coating arrives.
     """
     params = CoatingParams() if params is None else params
     pts, faces = _template_arrays(template)
@@ -455,6 +458,8 @@ def coat_all(
             except Cancelled:
                 raise CoatingCancelled(f"coating cancelled after {i} of {n} instances", results) from None
             report(progress, (i + 1) / n, f"coated {names[i]} ({i + 1}/{n})")
+            if on_coated is not None:
+                on_coated(names[i])
         return results
     arrays = Mesh(pts, faces)
     args = [(arrays, template_landmarks_object, targets[i], target_landmarks_object_list[i], params, names[i])
@@ -462,6 +467,8 @@ def coat_all(
 
     def keep(i, result):
         results[i] = result
+        if on_coated is not None:
+            on_coated(names[i])
 
     with Executor("processes", jobs, start_method=start_method) as executor:
         try:

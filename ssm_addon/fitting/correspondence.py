@@ -515,11 +515,12 @@ def _improves(after: float, before: float, margin: float = KEEP_MARGIN) -> bool:
 
 
 def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progress: ProgressFn = None,
-                  cancelled: CancelledFn = None, log=None, executor=None) -> tuple[list[RoundFigures],
-                                                                                   CorrespondenceCheck]:
+                  cancelled: CancelledFn = None, log=None, executor=None,
+                  on_coated=None) -> tuple[list[RoundFigures], CorrespondenceCheck]:
     """Refinement rounds on a coated study (every instance coated): updates ``study.template``
     (the mean shape, in the model frame) and ``study.coatings``; returns each round's
-    figures and the self-check of the coatings kept.
+    figures and the self-check of the coatings kept. ``on_coated(name)`` is called as each
+    round's coating of an instance arrives.
 
     A round: :func:`round_landmarks` on every instance (the leave-one-out fits, which
     also measure the landmark transfer error of the coatings the round starts from),
@@ -540,6 +541,9 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
         instances' size (the refinement diverged; nothing is kept).
     """
     say = log or (lambda _m: None)
+
+    def arrived(labels):  # on_result for one executor.map: the instance's name to on_coated
+        return None if on_coated is None else (lambda i, _result: on_coated(labels[i]))
     names = list(study.names)
     if len(names) < 3:
         raise InputError(f"model-guided correspondence needs at least 3 instances, the study has {len(names)}")
@@ -615,7 +619,7 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
                 found = dict(zip(redo, executor.map(
                     _coat_mean_job, [(template_points, faces, study.volume(n), locations,
                                       fitted[names.index(n)][0], study.coating_params, n) for n in redo],
-                    labels=redo, verb=f"round {r}: coated",
+                    labels=redo, verb=f"round {r}: coated", on_result=arrived(redo),
                     progress=sub_progress(progress, span[1], r / (total + 1)), cancelled=cancelled)))
                 resampled = [found.get(n, study.coatings[n]) for n in names]
                 change = _finish_round(study, names, points, resampled, fitted, faces, size, r, t0, rounds, say,
@@ -625,7 +629,7 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
             coated = executor.map(_coat_mean_job, [(mean, faces, study.volume(n), locations, w,
                                                     study.coating_params, n)
                                                    for n, (w, _d, _s, _t) in zip(names, fitted)],
-                                  labels=names, verb=f"round {r}: coated",
+                                  labels=names, verb=f"round {r}: coated", on_result=arrived(names),
                                   progress=sub_progress(progress, span[1], (r - 0.2) / (total + 1)),
                                   cancelled=cancelled)
             # how far the mean shape's coating slid the template's points on their own instance;

@@ -306,12 +306,14 @@ def _landmarks_object(study: Study, name: str, common: Sequence[str]) -> np.ndar
 
 
 def coat_instances(study: Study, *, names: Sequence[str] | None = None, jobs: int = 1,
-                   progress: ProgressFn = None, cancelled: CancelledFn = None) -> dict[str, CoatingResult]:
+                   progress: ProgressFn = None, cancelled: CancelledFn = None,
+                   on_coated: Callable[[str], None] | None = None) -> dict[str, CoatingResult]:
     """Coat the template onto instances (paper 4), ``jobs`` processes.
 
     Parameters
     ----------
     names : instance names (default: every instance).
+    on_coated : called with each instance's name as its coating arrives.
 
     Returns
     -------
@@ -337,7 +339,7 @@ def coat_instances(study: Study, *, names: Sequence[str] | None = None, jobs: in
     targets = [study.volume(n) for n in names]
     lms = [_landmarks_object(study, n, common) for n in names]
     results = coat_all(study.template, src, targets, lms, params=study.coating_params, jobs=jobs,
-                       progress=progress, cancelled=cancelled, names=names)
+                       progress=progress, cancelled=cancelled, names=names, on_coated=on_coated)
     return dict(zip(names, results))
 
 
@@ -411,7 +413,7 @@ def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: in
 
 
 def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn = None, cancelled: CancelledFn = None,
-                          log: Log = None, executor=None) -> StageResult:
+                          log: Log = None, executor=None, on_coated: Callable[[str], None] | None = None) -> StageResult:
     """The model method's coating (``[correspondence] method = "model"``), on a copy of ``study``.
 
     Instances not coated yet get their start (:func:`start_coatings`); then the rounds of
@@ -419,6 +421,7 @@ def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn =
     instance fitted by the model of the others and relaxed onto its surface). ``study`` is
     not changed: the coatings, their starts, the mean-shape template and the rounds come
     back as the coating stage's result (:func:`apply_stage` puts them into a study).
+    ``on_coated(name)``: as each round's coating of an instance arrives.
     """
     from ..fitting.correspondence import refine_rounds
 
@@ -435,7 +438,7 @@ def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn =
         say(f"coating: {starts.count('landmark warp')} by landmarks, {starts.count('model fit')} from the landmarked "
             f"instances' model, {starts.count('object frames')} from the object frames; refining with the model")
     rounds, check = refine_rounds(work, study.correspondence_params, jobs=jobs, progress=progress,
-                                  cancelled=cancelled, log=say, executor=executor)
+                                  cancelled=cancelled, log=say, executor=executor, on_coated=on_coated)
     coated = {n: work.coatings[n] for n in study.names}
     kept = "" if check.kept_round == 0 else f"round {check.kept_round}'s "
     say(f"correspondence: {check.stop or 'no rounds'}; kept {kept or 'the start'}"
@@ -935,17 +938,20 @@ def self_check(study: Study, coatings: dict[str, CoatingResult], *, template: Te
 
 
 def coating_stage(study: Study, *, names: Sequence[str] | None = None, jobs: int = 1, progress: ProgressFn = None,
-                  cancelled: CancelledFn = None, log: Log = None, executor=None) -> StageResult:
+                  cancelled: CancelledFn = None, log: Log = None, executor=None,
+                  on_coated: Callable[[str], None] | None = None) -> StageResult:
     """Coating (paper 4) by the study's correspondence method, and the coating gates.
 
     ``method = "landmarks"``: :func:`coat_instances` (the paper's single pass, ``names``);
-    ``"model"``: :func:`refine_correspondence` (every instance).
+    ``"model"``: :func:`refine_correspondence` (every instance). ``on_coated(name)`` is
+    called as each coating arrives (for counting; progress lines are for people).
     """
     if study.correspondence_params.method != "landmarks":
         return refine_correspondence(study, jobs=jobs, progress=progress, cancelled=cancelled, log=log,
-                                     executor=executor)
+                                     executor=executor, on_coated=on_coated)
     t0 = time.perf_counter()
-    coated = coat_instances(study, names=names, jobs=jobs, progress=progress, cancelled=cancelled)
+    coated = coat_instances(study, names=names, jobs=jobs, progress=progress, cancelled=cancelled,
+                            on_coated=on_coated)
     check, found = self_check(study, {**study.coatings, **coated}, jobs=jobs, executor=executor, cancelled=cancelled)
     return coating_result(study, coated, {n: c.fit.start for n, c in coated.items()}, time.perf_counter() - t0,
                           check=check,
