@@ -418,7 +418,8 @@ so a start shifted along a flat part still converges."""
 
 
 def fit_model(model, target: Target, *, params: FitParams | None = None, pose: Pose | None = None,
-              partial: bool = False, progress: ProgressFn = None, cancelled: CancelledFn = None) -> FitResult:
+              partial: bool = False, tangential_pull: float = TANGENTIAL_PULL, progress: ProgressFn = None,
+              cancelled: CancelledFn = None) -> FitResult:
     """Fit ``model`` to ``target``: pose and coefficients under the model's prior.
 
     Parameters
@@ -436,7 +437,10 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
         and the distances are measured over the target's points. With ``model_error``
         the model is augmented by its :class:`ModelErrorField` (the completion's
         posterior then holds what the model cannot represent where the target is
-        silent), and the pose follows the target mostly along the shape's normals (``TANGENTIAL_PULL``).
+        silent), and the pose follows the target mostly along the shape's normals.
+    tangential_pull : float
+        A partial target's pull on the pose along the surface, against 1 along the normal
+        (1: point to point, fastest from a rough start; default ``TANGENTIAL_PULL``).
 
     Returns
     -------
@@ -503,13 +507,13 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
         # pose from the current shape's corresponding points (and landmarks)
         src, dst, wp = shape[rows_v], y, w
         normals = vertex_normals(shape, model.faces) if len(model.faces) else None
-        if partial and normals is not None and len(rows_v):
+        if partial and normals is not None and len(rows_v) and tangential_pull != 1.0:
             # a partial target pins the pose least: its points pull mostly along the shape's
             # normal, as in the coefficients' step (TANGENTIAL_PULL along the surface)
             nrm_p = normals[rows_v]
             gap = pose.inverse(y) - src
             along = np.einsum("pd,pd->p", nrm_p, gap)[:, None] * nrm_p
-            dst = pose.apply(src + along + TANGENTIAL_PULL * (gap - along))
+            dst = pose.apply(src + along + tangential_pull * (gap - along))
         if lm_pairs is not None:
             lm_shape = np.einsum("lk,lkj->lj", lm_pairs[2], shape[lm_pairs[1]])
             src = np.concatenate([src, lm_shape])
@@ -603,14 +607,17 @@ def _axis_rotation(axis: np.ndarray, degrees: float) -> np.ndarray:
     return np.eye(3) + np.sin(t) * k + (1 - np.cos(t)) * (k @ k)
 
 
-def start_poses(model, target: Target, *, frame_pose: Pose | None = None, turns: int = 4) -> list[tuple[str, Pose]]:
+def start_poses(model, target: Target, *, frame_pose: Pose | None = None, turns: int = 4,
+                partial: bool = False) -> list[tuple[str, Pose]]:
     """Candidate start poses (model frame -> target frame, mm) for a target in any coordinates.
 
     First the pose the target's object frame gives (``frame``), when known, and the model's
     axes moved onto the target's centroid (``model axes``: a target in the model's
     coordinates); then the mean shape's principal axes put on the target's in each of the
     4 proper sign combinations (``axes+++`` …), each also turned about the target's longest
-    axis by multiples of ``360 / turns`` degrees.
+    axis by multiples of ``360 / turns`` degrees. A ``partial`` target (part of the shape,
+    whose centroid is not the shape's) also gets each of those slid along its longest axis
+    so that its ends meet either end of the mean shape (``… slid ±d mm``).
     """
     out = [("frame", frame_pose)] if frame_pose is not None else []
     if len(target.samples) < 4:
@@ -619,6 +626,12 @@ def start_poses(model, target: Target, *, frame_pose: Pose | None = None, turns:
     ct, at = _principal_axes(np.asarray(target.samples, float))
     out.append(("model axes", Pose(np.eye(3), ct - cm)))  # the target in the model's axes, moved
     seen = [p.rotation for _n, p in out]
+    slide = 0.0
+    if partial:  # how far the part's middle can sit from the shape's, along the longest axes
+        extent_m = np.ptp((np.asarray(model.mean, float) - cm) @ am[:, 0])
+        extent_t = np.ptp((np.asarray(target.samples, float) - ct) @ at[:, 0])
+        slide = max(0.0, 0.5 * float(extent_m - extent_t))
+    shifts = (0.0, -slide, slide) if slide > 0 else (0.0,)
     for signs in ((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1)):
         d = np.diag(np.asarray(signs, float))
         r0 = at @ d @ am.T
@@ -630,7 +643,9 @@ def start_poses(model, target: Target, *, frame_pose: Pose | None = None, turns:
                 continue
             seen.append(r)
             name = "axes" + "".join("+" if x > 0 else "-" for x in signs) + (f" turned {360 * j // turns}°" if j else "")
-            out.append((name, Pose(r, ct - r @ cm)))
+            for shift in shifts:
+                label = name + (f" slid {shift:+.0f} mm" if shift else "")
+                out.append((label, Pose(r, ct - r @ cm + shift * at[:, 0])))
     return out
 
 
@@ -675,7 +690,7 @@ def fit_any_pose(model, target: Target, *, params: FitParams | None = None, fram
     """
     params = FitParams() if params is None else params
     mean = np.asarray(model.mean, float)
-    starts = start_poses(model, target, frame_pose=frame_pose)
+    starts = start_poses(model, target, frame_pose=frame_pose, partial=partial, turns=8 if partial else 4)
     names, *_ = model_landmarks(model)
     if target.landmarks is not None and len([n for n in target.landmarks.names if n in names]) >= 3:
         starts.insert(0, ("landmarks", None))
@@ -698,13 +713,15 @@ def fit_any_pose(model, target: Target, *, params: FitParams | None = None, fram
     first = [i for i, (n, _p, _d) in enumerate(screened) if n in priority]
     rest = sorted((i for i in range(len(screened)) if i not in first), key=lambda i: (screened[i][2], i))[:keep]
     order = first + rest
-    # a partial target's candidates are fitted without the model-error field (the costly
-    # part of a completion); the chosen one is fitted again with it from its pose
+    # the candidates are fitted point to point (the fastest from a rough start) and, for a
+    # partial target, without the model-error field (the costly part of a completion); the
+    # chosen one is fitted again as fit_model would from its pose
     search = replace(params, model_error=False) if partial and params.model_error else params
     results = {}
     for n, i in enumerate(order):
         name, pose, _d = screened[i]
-        results[name] = fit_model(model, target, params=search, pose=pose, partial=partial, cancelled=cancelled)
+        results[name] = fit_model(model, target, params=search, pose=pose, partial=partial, tangential_pull=1.0,
+                                  cancelled=cancelled)
         report(progress, (n + 1) / len(order), f"start {name}: {results[name].mean_distance_mm:.3f} mm")
     fitted = {n: float(r.mean_distance_mm) for n, r in results.items()}
     chosen = min(fitted, key=lambda n: (fitted[n], list(fitted).index(n)))
@@ -714,8 +731,8 @@ def fit_any_pose(model, target: Target, *, params: FitParams | None = None, fram
         if fitted[mine] <= PRIORITY_TOLERANCE * fitted[chosen] + 1e-9:
             chosen = mine
     best = results[chosen]
-    if search is not params:
-        best = fit_model(model, target, params=params, pose=best.pose, partial=partial, cancelled=cancelled)
+    if partial:
+        best = fit_model(model, target, params=params, pose=best.pose, partial=True, cancelled=cancelled)
     doc = {"starts": [{"name": n, "screened_mm": (None if not np.isfinite(d) else d), "fitted_mm": fitted.get(n)}
                       for n, _p, d in screened], "chosen": chosen}
     return best, doc
