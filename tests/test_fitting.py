@@ -503,7 +503,7 @@ def test_a_partial_femur_in_any_pose_is_found_by_sliding_starts():
     """The proximal half of a real femur, turned and moved anywhere, fitted by the model
     of the other nine with the pose search: the starts slid along the longest axis put
     the half at either end of the mean shape. Measured on femur00 and femur05 (the two
-    worst of three tried): the missing half 30.5 and 17.0 mm from its true place; with the
+    worst of three tried): the missing half 31.3 and 19.2 mm from its true place; with the
     unslid starts 130–414 mm (femur00, 03, 05); from the true pose 7.3 and 3.8 mm."""
     from ssm_addon.fitting.fit import fit_any_pose
 

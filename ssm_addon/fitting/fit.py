@@ -690,7 +690,7 @@ def fit_any_pose(model, target: Target, *, params: FitParams | None = None, fram
     """
     params = FitParams() if params is None else params
     mean = np.asarray(model.mean, float)
-    starts = start_poses(model, target, frame_pose=frame_pose, partial=partial, turns=8 if partial else 4)
+    starts = start_poses(model, target, frame_pose=frame_pose, partial=partial)
     names, *_ = model_landmarks(model)
     if target.landmarks is not None and len([n for n in target.landmarks.names if n in names]) >= 3:
         starts.insert(0, ("landmarks", None))
