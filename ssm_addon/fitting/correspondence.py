@@ -544,6 +544,7 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
 
     def arrived(labels):  # on_result for one executor.map: the instance's name to on_coated
         return None if on_coated is None else (lambda i, _result: on_coated(labels[i]))
+
     names = list(study.names)
     if len(names) < 3:
         raise InputError(f"model-guided correspondence needs at least 3 instances, the study has {len(names)}")
