@@ -24,7 +24,10 @@ correspondence self-check (the landmark transfer error, ``ssm_addon.fitting``) w
 rank correlation against the true error across instances. ``--suite`` runs the issue's
 matrix (single pass and model method at 15 and 6 landmarks, 15 jittered by 1.5 mm, and
 the model method with landmarks on 3 instances) and prints one table; ``--json FILE``
-appends every run's figures as JSON lines.
+appends every run's figures as JSON lines. ``--fit-projection`` also measures, for a
+folder of meshes, the leave-one-out fit's points as correspondence: each non-template
+instance's coating replaced by the model of the others fitted to it, projected onto the
+coating's surface (and halfway between the two), against the truth.
 
 Usage::
 
@@ -126,7 +129,7 @@ def truth_errors(study, truth: dict):
     """A function of coated points (object frames, by instance) -> their distances (mm, world)
     from ``truth`` (the template points' true places on each instance, world mm)."""
     def error_of(points: dict) -> dict:
-        return {n: np.linalg.norm(study.frame(n).to_world(points[n]) - truth[n], axis=1) for n in truth}
+        return {n: np.linalg.norm(study.frame(n).to_world(points[n]) - truth[n], axis=1) for n in truth if n in points}
 
     return error_of
 
@@ -198,7 +201,39 @@ def eval_meshes(args) -> dict:
     errors = error_of({n: study.coatings[n].points_object for n in names})
     label = (f"{args.population} {args.method} landmarks={args.landmarks} on={min(args.on, len(names))} "
              f"jitter={args.jitter}")
+    if args.fit_projection:
+        fit_projection(study, names, error_of)
     return report_run(label, errors, study, seconds, args, error_of)
+
+
+def fit_projection(study, names, error_of) -> dict:
+    """True error (mean mm over the non-template instances) of the coatings, of the
+    leave-one-out fit's points projected onto each coating's surface, and of the point
+    halfway between fit and coating projected likewise."""
+    from ssm_addon.fitting.fit import Pose, Target, fit_model
+    from ssm_addon.meshutil import MeshLocator
+    from ssm_addon.model.pca import build_model
+    from ssm_addon.pipeline.params import FitParams
+
+    faces = np.asarray(study.template.faces)
+    P = np.stack([study.coatings[n].points_object for n in names])
+    fit = FitParams(noise_mm=1.0, tolerance_mm=0.01, model_error=False)
+    found = {"coating": {}, "fit projected": {}, "halfway projected": {}}
+    for i, n in enumerate(names):
+        if n == study.template_instance:
+            continue
+        others = corr.aligned_to(np.delete(P, i, axis=0), P[i])
+        model = build_model(others, faces, [str(k) for k in range(len(others))])
+        y = fit_model(model, Target.from_mesh(P[i], faces, max_samples=2000), params=fit, pose=Pose()).points
+        locator = MeshLocator(P[i], faces)
+        found["coating"][n] = P[i]
+        found["fit projected"][n] = locator.query(y, k=12)[0]
+        found["halfway projected"][n] = locator.query(0.5 * (y + P[i]), k=12)[0]
+    out = {}
+    for what, points in found.items():
+        out[what] = float(np.mean([e.mean() for e in error_of(points).values()]))
+    print("  leave-one-out fit as correspondence: " + ", ".join(f"{k} {v:.3f} mm" for k, v in out.items()), flush=True)
+    return out
 
 
 def deformation_field(rng, centre: np.ndarray, size: float, scales=(0.6, 0.3, 0.15), amplitude=0.35):
@@ -408,6 +443,8 @@ def main(argv=None):
     ap.add_argument("--round-template", choices=("instance", "mean"), default=None,
                     help="[correspondence] round_template (default: the method's default)")
     ap.add_argument("--suite", action="store_true", help="the issue's matrix of settings, one table")
+    ap.add_argument("--fit-projection", action="store_true",
+                    help="also measure the leave-one-out fit's points as correspondence (folders of meshes)")
     ap.add_argument("--json", default=None, help="append each run's figures to this JSON-lines file")
     args = ap.parse_args(argv)
     if args.population not in MESH_SETS and args.population != "deformed" and not args.population.startswith("folder:"):
