@@ -209,29 +209,24 @@ def eval_meshes(args) -> dict:
 def fit_projection(study, names, error_of) -> dict:
     """True error (mean mm over the non-template instances) of the coatings, of the
     leave-one-out fit's points projected onto each coating's surface, and of the point
-    halfway between fit and coating projected likewise."""
-    from ssm_addon.fitting.fit import Pose, Target, fit_model
+    halfway between fit and coating projected likewise. The fit is the model method's own
+    (:func:`ssm_addon.fitting.correspondence.landmark_transfer`, the build's fit params)."""
     from ssm_addon.meshutil import MeshLocator
-    from ssm_addon.model.pca import build_model
-    from ssm_addon.pipeline.params import FitParams
 
     faces = np.asarray(study.template.faces)
+    locations = study.template.params["landmark_locations"]
+    fit = corr.correspondence_fit_params(study.correspondence_params)
     P = np.stack([study.coatings[n].points_object for n in names])
-    fit = FitParams(noise_mm=1.0, tolerance_mm=0.01, model_error=False)
     found = {"coating": {}, "fit projected": {}, "halfway projected": {}}
     for i, n in enumerate(names):
         if n == study.template_instance:
             continue
-        others = corr.aligned_to(np.delete(P, i, axis=0), P[i])
-        model = build_model(others, faces, [str(k) for k in range(len(others))])
-        y = fit_model(model, Target.from_mesh(P[i], faces, max_samples=2000), params=fit, pose=Pose()).points
+        result, _predicted, _d = corr.landmark_transfer(np.delete(P, i, axis=0), faces, P[i], locations, {}, fit=fit)
         locator = MeshLocator(P[i], faces)
         found["coating"][n] = P[i]
-        found["fit projected"][n] = locator.query(y, k=12)[0]
-        found["halfway projected"][n] = locator.query(0.5 * (y + P[i]), k=12)[0]
-    out = {}
-    for what, points in found.items():
-        out[what] = float(np.mean([e.mean() for e in error_of(points).values()]))
+        found["fit projected"][n] = locator.query(result.points, k=12)[0]
+        found["halfway projected"][n] = locator.query(0.5 * (result.points + P[i]), k=12)[0]
+    out = {what: float(np.mean([e.mean() for e in error_of(points).values()])) for what, points in found.items()}
     print("  leave-one-out fit as correspondence: " + ", ".join(f"{k} {v:.3f} mm" for k, v in out.items()), flush=True)
     return out
 
