@@ -31,7 +31,7 @@ from ssm_addon.pipeline.errors import InputError, SSMError
 from ssm_addon.pipeline.params import OutputParams
 
 from . import bridge
-from .properties import scene_params, set_group
+from .properties import set_scene_study_params
 from .scene import (
     FINDINGS_KEY,
     INSTANCE_ATTRIBUTES_KEY,
@@ -53,7 +53,7 @@ def _ensure_registered() -> None:
         register()
 
 
-def show_study(context, study, *, output: OutputParams | None = None) -> dict:
+def show_study(context, study) -> dict:
     """Put a study's products into the scene: instances, landmarks, template, coatings, model.
 
     The same writers the operators use; instances show the display surface of their
@@ -69,19 +69,13 @@ def show_study(context, study, *, output: OutputParams | None = None) -> dict:
 
     scene = context.scene
     bridge.ensure_mm_units(scene)
-    set_group(scene.ssm_template, study.template_params)
-    set_group(scene.ssm_coating, study.coating_params)
-    set_group(scene.ssm_model, study.model_params)
-    set_group(scene.ssm_quality, study.quality_params)
-    set_group(scene.ssm_correspondence, study.correspondence_params)
-    if output is not None:
-        set_group(scene.ssm_output, output)
+    set_scene_study_params(scene, study.params)
     objs = {}
     for order, spec in enumerate(study.instances):
         ov = study.volumes.get(spec.name)
         if ov is None:  # a streamed build keeps no volumes: read this one again (the same frame)
-            ov = import_instance(spec, spacing_mm=study.template_params.spacing_mm,
-                                 frame_method=study.template_params.frame)
+            ov = import_instance(spec, spacing_mm=study.params.template.spacing_mm,
+                                 frame_method=study.params.template.frame)
         verts, faces = display_surface(ov)
         obj = bridge.new_mesh_object(context, spec.name, verts, faces, collection_name=bridge.INSTANCES_COLLECTION,
                                      matrix_world=ov.frame.matrix_world)
@@ -109,11 +103,11 @@ def show_study(context, study, *, output: OutputParams | None = None) -> dict:
     return out
 
 
-def write_model_blend(result, path) -> str:
-    """Write ``model.blend`` for a build result: an empty file plus the study's objects."""
+def write_model_blend(study, path) -> str:
+    """Write ``model.blend`` for a built study: an empty file plus the study's objects."""
     _ensure_registered()
     bpy.ops.wm.read_homefile(use_empty=True)
-    show_study(bpy.context, result.study, output=result.project.output)
+    show_study(bpy.context, study)
     # opened as saved: the correspondence colours in Solid shading (set when show_study coloured the
     # meshes), and the coated meshes not hidden by the voxel surfaces they sit on (the instances are
     # hidden, Alt+H shows them)
@@ -128,22 +122,35 @@ def write_model_blend(result, path) -> str:
     return path
 
 
-def write_build_outputs(result, out_dir: Path, log=print) -> dict:
+def write_build_outputs(study, output: OutputParams, out_dir: Path, log=print) -> dict:
     """The Blender part of a headless build: ``modes.png`` (paper fig. 10) and ``model.blend``.
+
+    Parameters
+    ----------
+    study : Study
+        The built study (template, coatings, model).
+    output : OutputParams
+        The build's ``[output]`` table (which pictures; the .blend keeps it).
+    out_dir : Path
+        Where the files go.
+    log : callable or None
+        Gets one line per file written.
 
     Returns ``{"picture": "modes.png", "blend": "model.blend"}`` (names inside ``out_dir``).
     """
+    import dataclasses
+
     from .render import render_modes_figure
 
     _ensure_registered()
     out = {}
-    output = result.project.output
     if output.picture:
-        render_modes_figure(result.model, Path(out_dir) / "modes.png", n_modes=int(output.picture_modes))
+        render_modes_figure(study.model, Path(out_dir) / "modes.png", n_modes=int(output.picture_modes))
         out["picture"] = "modes.png"
         if log:
             log("picture: modes.png (mean and ±2σ of the first modes, axial / sagittal / coronal)")
-    write_model_blend(result, Path(out_dir) / "model.blend")
+    write_model_blend(dataclasses.replace(study, params=study.params.replace(output=output)),
+                      Path(out_dir) / "model.blend")
     out["blend"] = "model.blend"
     if log:
         log("blend: model.blend (instances, landmarks, template, coated instances, model with shape keys)")
@@ -165,7 +172,7 @@ def project_from_scene(context, path) -> core.Project:
     if len(study.instances) < 2:
         raise InputError(f"the scene has {len(study.instances)} SSM instance(s); a project needs at least two")
     missing = [i.name for i in study.instances if i.landmark_set is None]
-    model_method = study.correspondence_params.method == "model"
+    model_method = study.params.correspondence.method == "model"
     if missing and not model_method:
         raise InputError(f"no landmarks on instance(s) {', '.join(missing)}: place or import them first (or set "
                          "the correspondence method to Model, which needs them on the template instance only)")
@@ -191,11 +198,7 @@ def project_from_scene(context, path) -> core.Project:
         specs.append(InstanceSpec(name=spec.name, landmarks=lm_path, volume=spec.volume, label=spec.label,
                                   mesh=spec.mesh, mesh_spacing=spec.mesh_spacing, landmark_set=spec.landmark_set))
     return core.Project(path=path, instances=tuple(specs), template_instance=study.template_instance,
-                        template=study.template_params, coating=study.coating_params, model=study.model_params,
-                        output=scene_params(context, "ssm_output"), quality=study.quality_params,
-                        correspondence=study.correspondence_params,
-                        landmark_names=study.landmarks(study.template_instance).names,
-                        analysis=scene_params(context, "ssm_analysis"),
+                        params=study.params, landmark_names=study.landmarks(study.template_instance).names,
                         instance_attributes={n: a for n, a in scene_instance_attributes(context).items()
                                              if n in {i.name for i in specs}})
 
@@ -210,13 +213,9 @@ def load_project_into_scene(context, project: core.Project) -> list:
     from .landmarks import add_schema_name
 
     scene = context.scene
-    items = import_items(project.instances, spacing_mm=project.template.spacing_mm,
-                         frame_method=project.template.frame)
-    for key, params in (("ssm_template", project.template), ("ssm_coating", project.coating),
-                        ("ssm_model", project.model), ("ssm_output", project.output),
-                        ("ssm_quality", project.quality), ("ssm_correspondence", project.correspondence),
-                        ("ssm_analysis", project.analysis)):
-        set_group(getattr(scene, key), params)
+    items = import_items(project.instances, spacing_mm=project.params.template.spacing_mm,
+                         frame_method=project.params.template.frame)
+    set_scene_study_params(scene, project.params)
     scene[INSTANCE_ATTRIBUTES_KEY] = json.dumps(project.instance_attributes)
     created = add_instance_objects(context, items)
     for obj, spec in zip(created, project.instances):

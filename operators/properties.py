@@ -217,6 +217,7 @@ SSMQualitySettings = param_group(P.QualityParams, "SSMQualitySettings")
 SSMFitSettings = param_group(P.FitParams, "SSMFitSettings")
 SSMCorrespondenceSettings = param_group(P.CorrespondenceParams, "SSMCorrespondenceSettings")
 SSMAnalysisSettings = param_group(P.AnalysisParams, "SSMAnalysisSettings")
+SSMComputeSettings = param_group(P.ComputeParams, "SSMComputeSettings")  # kept for Save Project; no panel
 
 
 def _recolour(self, context):
@@ -237,17 +238,13 @@ class SSMStudySettings(bpy.types.PropertyGroup):
                                        description="The instance the template is built from ([template] instance)")
 
 
-#: Scene property name -> (group class, parameter class).
-SCENE_GROUPS = {
-    "ssm_template": (SSMTemplateSettings, P.TemplateParams),
-    "ssm_coating": (SSMCoatingSettings, P.CoatingParams),
-    "ssm_model": (SSMModelSettings, P.ModelParams),
-    "ssm_output": (SSMOutputSettings, P.OutputParams),
-    "ssm_quality": (SSMQualitySettings, P.QualityParams),
-    "ssm_fit": (SSMFitSettings, P.FitParams),
-    "ssm_correspondence": (SSMCorrespondenceSettings, P.CorrespondenceParams),
-    "ssm_analysis": (SSMAnalysisSettings, P.AnalysisParams),
-}
+_GROUPS = {"template": SSMTemplateSettings, "coating": SSMCoatingSettings, "model": SSMModelSettings,
+           "output": SSMOutputSettings, "quality": SSMQualitySettings, "correspondence": SSMCorrespondenceSettings,
+           "analysis": SSMAnalysisSettings, "compute": SSMComputeSettings}
+#: Scene property name -> (group class, parameter class): ``Scene.ssm_<table>`` for every table of
+#: :class:`ssm_addon.pipeline.params.StudyParams`, and ``Scene.ssm_fit`` (Fit Model's own).
+SCENE_GROUPS = {**{f"ssm_{section}": (_GROUPS[section], cls) for section, cls in P.SECTIONS.items()},
+                "ssm_fit": (SSMFitSettings, P.FitParams)}
 
 
 def scene_params(context, key: str):
@@ -256,8 +253,20 @@ def scene_params(context, key: str):
     return params_from_group(cls, getattr(context.scene, key))
 
 
+def scene_study_params(context) -> P.StudyParams:
+    """Every table's parameters as the scene holds them (the bundle a project file holds)."""
+    return P.StudyParams(**{section: scene_params(context, f"ssm_{section}") for section in P.SECTIONS})
+
+
+def set_scene_study_params(scene, params: P.StudyParams) -> None:
+    """Write every table of ``params`` into the scene's property groups."""
+    for section, value in params.tables():
+        set_group(getattr(scene, f"ssm_{section}"), value)
+
+
 classes = (SSMObjectProperties, SSMTemplateSettings, SSMCoatingSettings, SSMModelSettings, SSMOutputSettings,
-           SSMQualitySettings, SSMFitSettings, SSMCorrespondenceSettings, SSMAnalysisSettings, SSMStudySettings)
+           SSMQualitySettings, SSMFitSettings, SSMCorrespondenceSettings, SSMAnalysisSettings, SSMComputeSettings,
+           SSMStudySettings)
 
 
 def register_properties():

@@ -48,7 +48,7 @@ from ssm_addon.pipeline.study import Study, merge_findings
 from ssm_addon.template.template import Template
 
 from . import bridge
-from .properties import scene_params
+from .properties import scene_params, scene_study_params
 
 FRAME_KEY = "ssm_frame"
 TEMPLATE_KEY = "ssm_template"
@@ -518,11 +518,7 @@ def study_from_scene(context, *, template_instance: str | None = None, template:
         else:
             template_instance = objs[0].name
     study = Study(instances=tuple(instance_spec(context, o) for o in objs), template_instance=template_instance,
-                  template_params=scene_params(context, "ssm_template"),
-                  coating_params=scene_params(context, "ssm_coating"),
-                  model_params=scene_params(context, "ssm_model"),
-                  quality_params=scene_params(context, "ssm_quality"),
-                  correspondence_params=scene_params(context, "ssm_correspondence"))
+                  params=scene_study_params(context))
     for o in objs:
         frame = stored_frame(o)
         if frame is not None:

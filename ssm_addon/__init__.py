@@ -33,6 +33,7 @@ __version__ = "0.1.0"
 __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "pipeline.study": ("Study", "run"),
     "pipeline.errors": ("Cancelled", "InputError", "SSMError"),
+    "pipeline.params": ("StudyParams",),
     "formats.project_file": ("Project", "read_project", "write_project"),
     "formats.landmarks": ("LandmarkSet", "read_landmarks", "write_landmarks"),
     "cli.project_build": ("BuildResult", "build"),

@@ -115,11 +115,11 @@ def test_open_and_save_project_round_trip(bpy_clean, small_demo, tmp_path):
     by_name = {i.name: i for i in again.instances}
     assert set(by_name) == set(project.names)
     assert again.template_instance == project.template_instance
-    assert again.template_params.r_min_mm == pytest.approx(4.0) and again.spacing_mm == project.spacing_mm
-    assert again.coating_params.max_iterations == 60 and again.coating_params.k1 == pytest.approx(0.35)
+    assert again.params.template.r_min_mm == pytest.approx(4.0) and again.params.template.spacing_mm == project.params.template.spacing_mm
+    assert again.params.coating.max_iterations == 60 and again.params.coating.k1 == pytest.approx(0.35)
     # the demo's [analysis] and its instances' attributes survive the round trip through the scene
     assert scene.ssm_analysis.group == "group" and scene.ssm_analysis.covariates == "age"
-    assert again.analysis == project.analysis and again.instance_attributes == project.instance_attributes
+    assert again.params.analysis == project.params.analysis and again.instance_attributes == project.instance_attributes
     assert set(again.instance_attributes) == set(project.names)
     for inst in project.instances:
         copy = by_name[inst.name]

@@ -479,5 +479,5 @@ def test_default_relaxation_converges_without_folds_on_the_demo(tmp_path):
     run(study, stages=("import", "template", "coating"), jobs=2)
     fits = {n: c.fit for n, c in study.coatings.items()}
     assert len(fits) == 24
-    assert all(f.converged and f.iterations < study.coating_params.max_iterations for f in fits.values()), fits
+    assert all(f.converged and f.iterations < study.params.coating.max_iterations for f in fits.values()), fits
     assert sum(f.folded_after for f in fits.values()) == 0

@@ -159,7 +159,7 @@ def test_cache_refuses_foreign_folders(population, tmp_path):
 def test_project_compute_table(population, tmp_path):
     proj = _project(population, tmp_path, 3, extra='[compute]\nscheduler = "serial"\ncache = "mycache"\n')
     p = read_project(proj)
-    assert p.compute.scheduler == "serial" and Path(p.compute.cache) == (tmp_path / "mycache").resolve()
+    assert p.params.compute.scheduler == "serial" and Path(p.params.compute.cache) == (tmp_path / "mycache").resolve()
     bad = _project(population, tmp_path, 3, extra='[compute]\nscheduler = "slurm"\n')
     with pytest.raises(InputError, match="unknown scheduler 'slurm'"):
         read_project(bad)
@@ -167,7 +167,7 @@ def test_project_compute_table(population, tmp_path):
 
     text = project_text(p, tmp_path)
     assert "[compute]" in text and 'cache = "mycache"' in text
-    assert "[compute]" not in project_text(dataclasses.replace(p, compute=type(p.compute)()), tmp_path)
+    assert "[compute]" not in project_text(dataclasses.replace(p, params=p.params.replace(compute=type(p.params.compute)())), tmp_path)
 
 
 @pytest.mark.slow

@@ -275,7 +275,7 @@ def test_exact_landmarks_are_warped_to_where_given(population):
         for exact in (False, True):
             coated, _d, shift, transfer = refine_instance(
                 np.delete(points, i, axis=0), faces, mean, study.volume(name), loc, given,
-                fit=FitParams(tolerance_mm=0.01), coating=study.coating_params, exact_landmarks=exact,
+                fit=FitParams(tolerance_mm=0.01), coating=study.params.coating, exact_landmarks=exact,
                 current=points[i], name=name)
             warped = np.einsum("lk,lkd->ld", bary, coated.warped_points_object[faces[tri]])
             off[exact] += [np.linalg.norm(w - given[n]) for n, w in zip(loc["names"], warped)]

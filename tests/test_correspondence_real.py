@@ -18,7 +18,7 @@ from conftest import shared_data_dir
 from ssm_addon.formats.landmarks import LandmarkSet, read_landmarks, write_landmarks
 from ssm_addon.instances.importing import InstanceSpec
 from ssm_addon.meshutil import MeshLocation, MeshLocator, read_mesh
-from ssm_addon.pipeline.params import CorrespondenceParams
+from ssm_addon.pipeline.params import CorrespondenceParams, StudyParams
 from ssm_addon.pipeline.study import Study, run
 
 DATA = shared_data_dir()
@@ -54,7 +54,7 @@ def _build(files, meshes, tmp_path, *, landmarks: int, on: int, method: str):
             write_landmarks(lm, LandmarkSet(tuple(f"L{j:02d}" for j in range(len(idx))), v[idx], f.stem))
         specs.append(InstanceSpec(name=f.stem, mesh=f, landmarks=lm, landmark_set=read_landmarks(lm) if lm else None))
     study = Study(instances=specs, template_instance=files[0].stem,
-                  correspondence_params=CorrespondenceParams(method=method))
+                  params=StudyParams(correspondence=CorrespondenceParams(method=method)))
     run(study, stages=("import", "template"), jobs=2)
     template_points = study.template.points_object.copy()
     run(study, stages=("coating",), jobs=2)

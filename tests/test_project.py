@@ -87,9 +87,9 @@ def test_valid_project_resolves_paths_against_its_folder(files):
     assert proj.instances[0].volume == (files / "data" / "one.nii.gz").resolve()
     assert proj.instances[0].label == 20 and proj.instances[1].label is None
     assert proj.instances[1].landmarks == (files / "data" / "two.csv").resolve()
-    assert proj.template_instance == "two" and proj.spacing_mm == 1.5
-    assert proj.coating_params.kernel == "biharmonic"
-    assert proj.model_options["alignment"] == "rigid"
+    assert proj.template_instance == "two" and proj.params.template.spacing_mm == 1.5
+    assert proj.params.coating.kernel == "biharmonic"
+    assert proj.params.model.alignment == "rigid"
     assert proj.landmark_names == NAMES
 
 
@@ -211,8 +211,8 @@ def test_write_project_round_trip(files, tmp_path):
     again = read_project(out)
     assert [i.volume for i in again.instances] == [i.volume for i in proj.instances]
     assert [i.label for i in again.instances] == [i.label for i in proj.instances]
-    assert again.template_instance == proj.template_instance and again.spacing_mm == proj.spacing_mm
-    assert again.coating == proj.coating and again.model == proj.model and again.template == proj.template
+    assert again.template_instance == proj.template_instance and again.params.template.spacing_mm == proj.params.template.spacing_mm
+    assert again.params.coating == proj.params.coating and again.params.model == proj.params.model and again.params.template == proj.params.template
     assert write_project(tmp_path / "elsewhere" / "copy.toml", again).read_text() == text  # byte-identical
 
 
@@ -236,13 +236,13 @@ def test_attributes_come_from_the_instances_and_a_csv_and_round_trip(files, tmp_
     # the instance's own table wins over the CSV; the CSV fills the rest
     assert got.values["group"] == ("patient", "control") and got.values["age"] == (63.0, 51.0)
     assert got.values["height"] == (1.8, 1.7)
-    assert proj.analysis.covariates == ("age", "centroid_size") and proj.analysis.permutations == 500
-    assert proj.analysis.attributes == str(files / "subjects.csv")
+    assert proj.params.analysis.covariates == ("age", "centroid_size") and proj.params.analysis.permutations == 500
+    assert proj.params.analysis.attributes == str(files / "subjects.csv")
     out = write_project(tmp_path / "elsewhere" / "copy.toml", proj)
     text = out.read_text()
     assert 'attributes = { group = "patient", age = 63 }' in text and 'attributes = "../subjects.csv"' in text
     again = read_project(out)
-    assert again.analysis == proj.analysis and again.instance_attributes == proj.instance_attributes
+    assert again.params.analysis == proj.params.analysis and again.instance_attributes == proj.instance_attributes
     assert write_project(tmp_path / "elsewhere" / "copy.toml", again).read_text() == text
 
 
@@ -267,7 +267,7 @@ def test_study_table_gives_the_attribute_file_too(files):
     (files / "subjects.csv").write_text("name,group\none,a\ntwo,b\n")
     text = VALID + '\n[study]\nattributes = "subjects.csv"\n'
     proj = read_project(_write(files, text))
-    assert proj.attributes.values["group"] == ("a", "b") and not proj.analysis.requested
+    assert proj.attributes.values["group"] == ("a", "b") and not proj.params.analysis.requested
     assert "[analysis] needs attributes" in _error(files, VALID + '\n[analysis]\ngroup = "group"\n')
 
 

@@ -204,8 +204,8 @@ def test_command_line_options_override_the_project(tmp_path):
                                  "--coating-registration-sigmas-mm", "8", "4", "--model-n-modes", "3"])
     project = Project(path=tmp_path / "p.toml", instances=(), template_instance="")
     changed = _with_overrides(project, args)
-    assert changed.coating.k1 == 0.3 and changed.template.spacing_mm == 0.5
-    assert changed.coating.registration_sigmas_mm == (8.0, 4.0) and changed.model.n_modes == 3
+    assert changed.params.coating.k1 == 0.3 and changed.params.template.spacing_mm == 0.5
+    assert changed.params.coating.registration_sigmas_mm == (8.0, 4.0) and changed.params.model.n_modes == 3
     bad = _parser().parse_args(["build", "p.toml", "--out", "o", "--coating-k2", "0.1"])
     from ssm_addon.pipeline.errors import InputError
 

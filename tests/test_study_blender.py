@@ -156,8 +156,8 @@ def test_save_open_save_project_is_byte_identical(bpy_clean, tmp_path):
     assert {p.name: p.read_bytes() for p in (first.parent / "landmarks").iterdir()} == landmark_bytes
     # and the headless reader sees exactly the scene's parameters
     project = read_project(first)
-    assert project.coating.k1 == 0.35 and project.model.n_modes == 2
-    assert project.coating.registration_sigmas_mm == (12.0, 6.0, 3.0)
+    assert project.params.coating.k1 == 0.35 and project.params.model.n_modes == 2
+    assert project.params.coating.registration_sigmas_mm == (12.0, 6.0, 3.0)
 
 
 # ------------------------------------------------------------------------------ usability

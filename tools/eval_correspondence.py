@@ -215,7 +215,7 @@ def fit_projection(study, names, error_of) -> dict:
 
     faces = np.asarray(study.template.faces)
     locations = study.template.params["landmark_locations"]
-    fit = corr.correspondence_fit_params(study.correspondence_params)
+    fit = corr.correspondence_fit_params(study.params.correspondence)
     P = np.stack([study.coatings[n].points_object for n in names])
     found = {"coating": {}, "fit projected": {}, "halfway projected": {}}
     for i, n in enumerate(names):
@@ -324,13 +324,13 @@ EXACT_LANDMARKS = [None]
 def run_study(specs, template_name: str, method: str, iterations: int, jobs: int, spacing: float | None = None):
     study = Study(instances=specs, template_instance=template_name)
     if spacing:
-        study.template_params = replace(study.template_params, spacing_mm=spacing)
+        study.params = study.params.replace(template=replace(study.params.template, spacing_mm=spacing))
     extra = {} if LANDMARK_WEIGHT[0] is None else {"landmark_weight": LANDMARK_WEIGHT[0]}
     if ROUND_TEMPLATE[0] is not None:
         extra["round_template"] = ROUND_TEMPLATE[0]
     if EXACT_LANDMARKS[0] is not None:
         extra["exact_landmarks"] = EXACT_LANDMARKS[0]
-    study.correspondence_params = CorrespondenceParams(method=method, iterations=iterations, **extra)
+    study.params = study.params.replace(correspondence=CorrespondenceParams(method=method, iterations=iterations, **extra))
     t0 = time.perf_counter()
     say = lambda m: print("  " + m, flush=True)  # noqa: E731
     ROUND_STATES.clear()

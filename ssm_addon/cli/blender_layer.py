@@ -48,7 +48,7 @@ def extension_package():
 
 
 def blend_writer():
-    """``write_build_outputs(result, out_dir, log)`` of the Blender layer, or None."""
+    """``write_build_outputs(study, output, out_dir, log)`` of the Blender layer, or None."""
     if not bpy_available():
         return None
     pkg = extension_package()
@@ -68,7 +68,7 @@ def blend_writer_in_child():
     if not bpy_available() or extension_root() is None:
         return None
 
-    def write(result, out_dir, log=print):
+    def write(study, output, out_dir, log=print):
         import dataclasses
         import shutil
         import subprocess
@@ -80,7 +80,7 @@ def blend_writer_in_child():
         out_dir = Path(out_dir)
         handover = Path(tempfile.mkdtemp(prefix="ssm-blender-step-"))
         try:
-            save_study(result.study, handover, extra={"output": dataclasses.asdict(result.project.output)})
+            save_study(dataclasses.replace(study, params=study.params.replace(output=output)), handover)
             cmd = [sys.executable, "-m", "ssm_addon.cli.blender_layer", str(handover), str(out_dir)]
             if log is None:
                 cmd.append("--quiet")
@@ -114,19 +114,14 @@ def blend_writer_in_child():
 
 def _child_main(argv) -> int:
     """``python -m ssm_addon.cli.blender_layer STUDY_DIR OUT_DIR [--quiet]``: the Blender step."""
-    from types import SimpleNamespace
-
     from ..formats.blender_store import load_study
-    from ..pipeline import params as P
 
-    study, extra = load_study(argv[0])
-    output = P.from_table(P.OutputParams, extra.get("output", {}))
-    result = SimpleNamespace(study=study, model=study.model, project=SimpleNamespace(output=output))
+    study, _extra = load_study(argv[0])
     writer = blend_writer()
     if writer is None:
         print("the Blender layer is not available", file=sys.stderr)
         return 2
-    writer(result, Path(argv[1]), log=None if "--quiet" in argv else (lambda m: print(m, flush=True)))
+    writer(study, study.params.output, Path(argv[1]), log=None if "--quiet" in argv else (lambda m: print(m, flush=True)))
     return 0
 
 

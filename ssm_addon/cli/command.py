@@ -228,11 +228,11 @@ def _with_overrides(project, args):
     if cache not in (None, "auto", "off"):  # a folder given on the command line is relative to the working folder
         args.compute__cache = str(Path(cache).expanduser().resolve())
     for section, cls in P.TABLES.items():
-        current = getattr(project, section)
+        current = getattr(project.params, section)
         updated = P.from_arguments(args, cls, prefix=section, base=current)
         if updated != current:
             changes[section] = updated
-    return dataclasses.replace(project, **changes) if changes else project
+    return dataclasses.replace(project, params=project.params.replace(**changes)) if changes else project
 
 
 def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> int:
@@ -241,7 +241,7 @@ def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> 
 
     project = _with_overrides(read_project(project_path), args)
     hook = None
-    if blend and project.output.blend:
+    if blend and project.params.output.blend:
         hook = writer or blender_layer.blend_writer_in_child()
         if hook is None:
             why = ("bpy is not importable (pip install bpy==5.0.1)" if not blender_layer.bpy_available() else
@@ -250,10 +250,11 @@ def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> 
             print(f"skipping model.blend and modes.png: {why}", flush=True)
     print(f"project: {project.path} ({len(project.instances)} instances, {len(project.landmark_names)} landmarks)",
           flush=True)
-    if args is not None and getattr(args, "strict", False) and not project.quality.strict:
+    if args is not None and getattr(args, "strict", False) and not project.params.quality.strict:
         import dataclasses
 
-        project = dataclasses.replace(project, quality=dataclasses.replace(project.quality, strict=True))
+        strict = dataclasses.replace(project.params.quality, strict=True)
+        project = dataclasses.replace(project, params=project.params.replace(quality=strict))
     result = build(project, out, jobs=jobs, progress=_print_progress(), log=lambda m: print(m, flush=True),
                    blender_hook=hook, force=bool(getattr(args, "force", False)))
     t = result.timings_s

@@ -250,7 +250,7 @@ def write_study_files(study: Study, folder: Path, *, output: OutputParams, proje
     per_instance = {n: dataclasses.replace(study.coatings[n].fit,
                                            start=study.coating_start.get(n, study.coatings[n].fit.start))
                     for n in names}
-    cp = study.correspondence_params
+    cp = study.params.correspondence
     correspondence = {
         "method": cp.method,
         "start": {n: study.coating_start.get(n, study.coatings[n].fit.start) for n in names},
@@ -265,7 +265,7 @@ def write_study_files(study: Study, folder: Path, *, output: OutputParams, proje
         "template": {"instance": study.template_instance, "points": int(len(tpl.points_object)),
                      "triangles": int(len(tpl.faces)), "genus": int(genus(len(tpl.points_object), tpl.faces))},
         "correspondence": correspondence,
-        "quality": {"parameters": dataclasses.asdict(study.quality_params),
+        "quality": {"parameters": dataclasses.asdict(study.params.quality),
                     "findings": [f.to_dict() for f in study.findings],
                     "outlier_scores": study.outlier_scores},
         **(extra or {}),
@@ -297,12 +297,12 @@ def write_analysis_files(project: Project, study: Study, folder: Path, doc: dict
     aligned, _ = project.attributes.aligned(names)
     write_attributes(aligned, folder / "attributes.csv")
     files = {"attributes": "attributes.csv"}
-    if not project.analysis.requested:
+    if not project.params.analysis.requested:
         return files
     t0 = time.perf_counter()
     report(progress, 0.97, "analysis: groups and covariates")
     try:
-        result, adoc, _ = run_analysis(study.model, project.attributes, project.analysis, folder / "analysis",
+        result, adoc, _ = run_analysis(study.model, project.attributes, project.params.analysis, folder / "analysis",
                                        model_path="model.npz", cancelled=cancelled)
     except InputError as err:
         say(f"WARNING analysis: not run: {err}")
@@ -332,7 +332,7 @@ def open_cache(project: Project, out_dir: Path, cache=None):
     """
     from ..pipeline.cache import BuildCache
 
-    setting = project.compute.cache if cache is None else str(cache)
+    setting = project.params.compute.cache if cache is None else str(cache)
     if setting == "off":
         return None
     folder = out_dir.parent / f"{out_dir.name}.cache" if setting == "auto" else Path(setting).expanduser().resolve()
@@ -405,8 +405,8 @@ def build(
     say = log or (lambda _msg: None)
     out_dir = Path(out_dir).expanduser().resolve()
     inputs = [project.path] + [p for i in project.instances for p in (i.volume, i.mesh, i.landmarks) if p is not None]
-    if project.analysis.attributes:
-        inputs.append(Path(project.analysis.attributes))
+    if project.params.analysis.attributes:
+        inputs.append(Path(project.params.analysis.attributes))
     check_output_folder(out_dir, inputs, force=force)
     check_writable(out_dir)
     t_total = time.perf_counter()
@@ -415,29 +415,29 @@ def build(
                          "generalization) needs at least 3")
     study = Study.from_project(project)
     build_cache = open_cache(project, out_dir, cache)
-    if project.correspondence.method == "model" and build_cache is not None:
+    if project.params.correspondence.method == "model" and build_cache is not None:
         say("cache: not used by [correspondence] method = \"model\" (its rounds depend on every instance)")
         build_cache = None
     with owned_output_folder(out_dir, inputs, force=force) as tmp:
-        with Executor(scheduler or project.compute.scheduler, jobs, tasks=len(project.instances),
-                      connect_timeout_s=project.compute.connect_timeout_s) as executor:  # closed before the files
+        with Executor(scheduler or project.params.compute.scheduler, jobs, tasks=len(project.instances),
+                      connect_timeout_s=project.params.compute.connect_timeout_s) as executor:  # closed before the files
             if executor.note:
                 say(f"compute: {executor.note}")
             run(study, jobs=jobs, progress=sub_progress(progress, 0.0, 0.95), cancelled=cancelled, log=say,
                 executor=executor, cache=build_cache)
         check_cancelled(cancelled)
-        if project.quality.strict and study.findings:
+        if project.params.quality.strict and study.findings:
             raise QualityError(f"{len(study.findings)} quality gate(s) failed and [quality] strict is set; nothing "
                                f"was written to {out_dir}:\n" + warnings_text(study.findings))
         report(progress, 0.95, "writing outputs")
         t0 = time.perf_counter()
         result = BuildResult(out_dir=out_dir, project=project, study=study, files={}, report={})
         files: dict = {}
-        use_blend = project.output.blend if blend is None else blend
+        use_blend = project.params.output.blend if blend is None else blend
         if blender_hook is not None and use_blend:
             t1 = time.perf_counter()
             report(progress, 0.96, "Blender: model.blend and pictures")
-            files.update(blender_hook(result, tmp, say) or {})
+            files.update(blender_hook(study, project.params.output, tmp, say) or {})
             study.timings_s["blender"] = time.perf_counter() - t1
         check_cancelled(cancelled)
         extra = {"timings_s": dict(study.timings_s), "peak_memory": peak_memory_mb(),
@@ -445,7 +445,7 @@ def build(
                              "cache": str(build_cache.folder) if build_cache is not None else None,
                              "from_cache": study.streamed.get("cached", 0),
                              "computed": study.streamed.get("computed", len(study.names))}}
-        written, doc = write_study_files(study, tmp, output=project.output, project_path=project.path, extra=extra)
+        written, doc = write_study_files(study, tmp, output=project.params.output, project_path=project.path, extra=extra)
         files.update(written)
         files.update(write_analysis_files(project, study, tmp, doc, log=say, progress=progress, cancelled=cancelled))
         study.timings_s["write"] = time.perf_counter() - t0 - study.timings_s.get("blender", 0.0)

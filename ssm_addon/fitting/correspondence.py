@@ -619,7 +619,7 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
                     break
                 found = dict(zip(redo, executor.map(
                     _coat_mean_job, [(template_points, faces, study.volume(n), locations,
-                                      fitted[names.index(n)][0], study.coating_params, n) for n in redo],
+                                      fitted[names.index(n)][0], study.params.coating, n) for n in redo],
                     labels=redo, verb=f"round {r}: coated", on_result=arrived(redo),
                     progress=sub_progress(progress, span[1], r / (total + 1)), cancelled=cancelled)))
                 resampled = [found.get(n, study.coatings[n]) for n in names]
@@ -628,7 +628,7 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
                 converged = change < params.tolerance_mm
                 continue
             coated = executor.map(_coat_mean_job, [(mean, faces, study.volume(n), locations, w,
-                                                    study.coating_params, n)
+                                                    study.params.coating, n)
                                                    for n, (w, _d, _s, _t) in zip(names, fitted)],
                                   labels=names, verb=f"round {r}: coated", on_result=arrived(names),
                                   progress=sub_progress(progress, span[1], (r - 0.2) / (total + 1)),
@@ -639,7 +639,7 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
             slide = float(np.sqrt(((coated[anchor].points_object - sampling) ** 2).sum(axis=1).mean()))
             _c, _d, tri, bary = MeshLocator(coated[anchor].points_object, faces).query(
                 sampling, k=12, normals=vertex_normals(sampling, faces))
-            resampled = executor.map(_resample_job, [(c, faces, tri, bary, study.volume(n), study.coating_params, n)
+            resampled = executor.map(_resample_job, [(c, faces, tri, bary, study.volume(n), study.params.coating, n)
                                                      for n, c in zip(names, coated)],
                                      labels=names, verb=f"round {r}: re-sampled at the template's points",
                                      progress=sub_progress(progress, (r - 0.2) / (total + 1), r / (total + 1)),

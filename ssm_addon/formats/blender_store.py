@@ -76,8 +76,7 @@ def save_study(study: Study, folder, *, extra: dict | None = None) -> Path:
     doc = {
         "instances": insts,
         "template_instance": study.template_instance,
-        "parameters": {section: P.to_table(getattr(study, f"{section}_params"))
-                       for section in ("template", "coating", "model", "quality")},
+        "parameters": study.params.to_tables(),
         "metrics": study.metrics,
         "findings": [f.to_dict() for f in study.findings],
         "outlier_scores": study.outlier_scores,
@@ -109,10 +108,7 @@ def load_study(folder) -> tuple[Study, dict]:
                                   landmark_set=lm))
     par = doc["parameters"]
     study = Study(instances=tuple(specs), template_instance=doc["template_instance"],
-                  template_params=P.from_table(P.TemplateParams, par["template"]),
-                  coating_params=P.from_table(P.CoatingParams, par["coating"]),
-                  model_params=P.from_table(P.ModelParams, par["model"]),
-                  quality_params=P.from_table(P.QualityParams, par["quality"]))
+                  params=P.StudyParams.from_tables(par, where=f"{folder}:"))
     for k, spec in enumerate(specs):
         if f"volume/{k}/mask" in a:
             study.volumes[spec.name] = ObjectVolume(

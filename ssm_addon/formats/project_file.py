@@ -51,13 +51,7 @@ from ..pipeline import params as P
 from ..pipeline.errors import InputError
 from ..pipeline.params import (
     AnalysisParams,
-    CoatingParams,
-    ComputeParams,
-    CorrespondenceParams,
-    ModelParams,
-    OutputParams,
-    QualityParams,
-    TemplateParams,
+    StudyParams,
 )
 
 __all__ = ["Project", "project_text", "read_project", "toml_value", "write_project"]
@@ -76,7 +70,7 @@ INSTANCE_KEYS = {
 MAX_NAME_CHARS = 200
 #: [template] keys besides the TemplateParams fields.
 STUDY_TEMPLATE_KEYS = ("instance",)
-SECTIONS = ("instances", *P.TABLES, "analysis", "study")
+SECTIONS = ("instances", *P.SECTIONS, "study")
 #: [study] keys: the attribute table may also be given there (the same as [analysis] attributes).
 STUDY_KEYS = ("attributes",)
 
@@ -93,12 +87,11 @@ class Project:
         With absolute paths and the landmarks read (world mm, common name order).
     template_instance : str
         Name of the instance that gives the template.
-    template, coating, model, output : parameter objects
-        The tables (defaults for what the file leaves out).
+    params : StudyParams
+        Every table's parameters (defaults for what the file leaves out; ``params.analysis``
+        with its ``attributes`` path absolute).
     landmark_names : tuple of str
         The common landmark names, in the order of the first instance's file.
-    analysis : AnalysisParams
-        The ``[analysis]`` table (its ``attributes`` path absolute).
     instance_attributes : dict name -> dict
         Each instance's own ``attributes`` table, as written.
     attributes : Attributes or None
@@ -109,46 +102,14 @@ class Project:
     path: Path
     instances: tuple[InstanceSpec, ...]
     template_instance: str
-    template: TemplateParams = field(default_factory=TemplateParams)
-    coating: CoatingParams = field(default_factory=CoatingParams)
-    model: ModelParams = field(default_factory=ModelParams)
-    output: OutputParams = field(default_factory=OutputParams)
-    quality: QualityParams = field(default_factory=QualityParams)
-    correspondence: CorrespondenceParams = field(default_factory=CorrespondenceParams)
-    compute: ComputeParams = field(default_factory=ComputeParams)
+    params: StudyParams = field(default_factory=StudyParams)
     landmark_names: tuple[str, ...] = ()
-    analysis: AnalysisParams = field(default_factory=AnalysisParams)
     instance_attributes: dict = field(default_factory=dict)
     attributes: Any = None
 
     @property
     def names(self) -> tuple[str, ...]:
         return tuple(i.name for i in self.instances)
-
-    @property
-    def spacing_mm(self) -> float:
-        """Isotropic resampling spacing (mm) of every instance (paper 2)."""
-        return self.template.spacing_mm
-
-    @property
-    def frame_method(self) -> str:
-        return self.template.frame
-
-    @property
-    def template_params(self) -> TemplateParams:
-        return self.template
-
-    @property
-    def coating_params(self) -> CoatingParams:
-        return self.coating
-
-    @property
-    def model_options(self) -> dict:
-        return dataclasses.asdict(self.model)
-
-    @property
-    def output_options(self) -> dict:
-        return dataclasses.asdict(self.output)
 
 
 # --------------------------------------------------------------------------------------
@@ -424,17 +385,13 @@ def read_project(path) -> Project:
             line = ctx.lines.table(key) or ctx.lines.table(key, 0) or ctx.lines.key(key)
             raise ctx.error(f"unknown table or key {key!r}{_suggest(key, SECTIONS)}", line)
 
-    template = _params(TemplateParams, doc, "template", ctx, extra=STUDY_TEMPLATE_KEYS)
-    coating = _params(CoatingParams, doc, "coating", ctx)
-    model = _params(ModelParams, doc, "model", ctx)
-    output = _params(OutputParams, doc, "output", ctx)
-    quality = _params(QualityParams, doc, "quality", ctx)
-    correspondence = _params(CorrespondenceParams, doc, "correspondence", ctx)
-    compute = _params(ComputeParams, doc, "compute", ctx)
+    tables = {section: _params(cls, doc, section, ctx, extra=STUDY_TEMPLATE_KEYS if section == "template" else ())
+              for section, cls in P.TABLES.items()}  # [analysis] with the attributes, below
+    compute = tables["compute"]
     if compute.cache not in ("auto", "off") and not Path(compute.cache).is_absolute():
-        compute = dataclasses.replace(compute, cache=str((path.parent / compute.cache).resolve()))
+        tables["compute"] = dataclasses.replace(compute, cache=str((path.parent / compute.cache).resolve()))
 
-    instances = _instances(doc, ctx, path.parent, landmarks_required=correspondence.method == "landmarks")
+    instances = _instances(doc, ctx, path.parent, landmarks_required=tables["correspondence"].method == "landmarks")
     if len(instances) < 2:
         raise ctx.error(f"only one instance ({instances[0].name!r}): a build needs at least 3 (a model with its "
                         "leave-one-out metrics)",
@@ -471,10 +428,9 @@ def read_project(path) -> Project:
         raise ctx.error(f"[template] instance {template_instance!r} has no landmarks; the template instance needs "
                         "them", line)
 
-    return Project(path=path, instances=tuple(instances), template_instance=template_instance, template=template,
-                   coating=coating, model=model, output=output, quality=quality, correspondence=correspondence,
-                   compute=compute, landmark_names=matched[0].names, analysis=analysis,
-                   instance_attributes=inline_attributes, attributes=attributes)
+    params = StudyParams(**tables, analysis=analysis)
+    return Project(path=path, instances=tuple(instances), template_instance=template_instance, params=params,
+                   landmark_names=matched[0].names, instance_attributes=inline_attributes, attributes=attributes)
 
 
 # --------------------------------------------------------------------------------------
@@ -508,18 +464,18 @@ def project_text(project: Project, base: Path) -> str:
     written explicitly, in definition order (Save -> Open -> Save gives the same bytes)."""
     lines = ["# SSM Builder project (paths relative to this file)", "", "[template]",
              f"instance = {toml_value(project.template_instance)}"]
-    for section, params in (("template", project.template), ("coating", project.coating),
-                            ("correspondence", project.correspondence), ("model", project.model),
-                            ("output", project.output), ("quality", project.quality)):
+    for section, params in project.params.tables():
+        if section in ("compute", "analysis"):  # written below, only what is set
+            continue
         if section != "template":
             lines += ["", f"[{section}]"]
         lines += [f"{k} = {toml_value(v)}" for k, v in P.to_table(params).items()]
-    compute = P.to_table(project.compute, only_changed=True)  # written only when set (Blender has no such panel)
+    compute = P.to_table(project.params.compute, only_changed=True)  # written only when set (Blender has no such panel)
     if compute:
         if compute.get("cache") not in (None, "auto", "off"):
             compute["cache"] = _relative(Path(compute["cache"]), base)
         lines += ["", "[compute]"] + [f"{k} = {toml_value(v)}" for k, v in compute.items()]
-    analysis = P.to_table(project.analysis, only_changed=True)
+    analysis = P.to_table(project.params.analysis, only_changed=True)
     if analysis:
         if analysis.get("attributes"):
             analysis["attributes"] = _relative(Path(analysis["attributes"]), base)

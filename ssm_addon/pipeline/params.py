@@ -41,13 +41,18 @@ from ..pipeline.errors import InputError
 
 __all__ = [
     "type_name",
+    "AnalysisParams",
     "CoatingParams",
     "ComputeParams",
     "CorrespondenceParams",
     "FitParams",
     "ModelParams",
     "OutputParams",
+    "QualityParams",
+    "SECTIONS",
     "Spec",
+    "StudyParams",
+    "TABLES",
     "TemplateParams",
     "add_arguments",
     "check",
@@ -880,9 +885,71 @@ class AnalysisParams:
         return bool(self.group or self.covariates)
 
 
-TABLES = {"template": TemplateParams, "coating": CoatingParams, "correspondence": CorrespondenceParams,
-          "model": ModelParams, "output": OutputParams, "quality": QualityParams,
-          "compute": ComputeParams}
+@dataclass(frozen=True)
+class StudyParams:
+    """Every stage's parameters of a study: one field per project-file table.
+
+    The one bundle the study (:class:`ssm_addon.pipeline.study.Study`), the project file
+    (:class:`ssm_addon.formats.project_file.Project`) and the Blender scene (one property
+    group per field, ``Scene.ssm_<table>``) hold, so a new table is added here once.
+
+    Examples
+    --------
+    >>> p = StudyParams().replace(coating=CoatingParams(k1=0.3))
+    >>> p.coating.k1, p.template.spacing_mm
+    (0.3, 1.0)
+    >>> [section for section, _ in StudyParams().tables()][:3]
+    ['template', 'coating', 'correspondence']
+    """
+
+    template: TemplateParams = field(default_factory=TemplateParams)
+    coating: CoatingParams = field(default_factory=CoatingParams)
+    correspondence: CorrespondenceParams = field(default_factory=CorrespondenceParams)
+    model: ModelParams = field(default_factory=ModelParams)
+    output: OutputParams = field(default_factory=OutputParams)
+    quality: QualityParams = field(default_factory=QualityParams)
+    compute: ComputeParams = field(default_factory=ComputeParams)
+    analysis: AnalysisParams = field(default_factory=AnalysisParams)
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if type(value) is not SECTIONS[f.name]:
+                raise InputError(f"study parameters: [{f.name}] must be {SECTIONS[f.name].__name__}, got "
+                                 f"{type(value).__name__}")
+
+    def tables(self) -> tuple[tuple[str, Any], ...]:
+        """``((table name, parameter object), ...)`` in project-file order."""
+        return tuple((f.name, getattr(self, f.name)) for f in dataclasses.fields(self))
+
+    def to_tables(self) -> dict[str, dict[str, Any]]:
+        """``{table name: {project key: value}}`` of every table (JSON- and TOML-ready)."""
+        return {section: to_table(params) for section, params in self.tables()}
+
+    @classmethod
+    def from_tables(cls, tables: Mapping, *, where: str = "") -> StudyParams:
+        """The bundle of ``{table name: {project key: value}}`` (absent tables take defaults), validated."""
+        unknown = sorted(set(tables) - set(SECTIONS))
+        if unknown:
+            raise InputError(f"{where} unknown table(s) {', '.join(unknown)}".strip())
+        return cls(**{section: from_table(SECTIONS[section], table, where=f"{where} [{section}]".strip())
+                      for section, table in tables.items()})
+
+    def replace(self, **tables) -> StudyParams:
+        """A copy with the given tables replaced (``replace(coating=CoatingParams(k1=0.3))``)."""
+        unknown = sorted(set(tables) - set(SECTIONS))
+        if unknown:
+            raise InputError(f"study parameters: unknown table(s) {', '.join(unknown)} (tables: "
+                             f"{', '.join(SECTIONS)})")
+        return dataclasses.replace(self, **tables)
+
+
+#: Table name -> parameter class of every table of a study (the fields of :class:`StudyParams`).
+SECTIONS = {"template": TemplateParams, "coating": CoatingParams, "correspondence": CorrespondenceParams,
+            "model": ModelParams, "output": OutputParams, "quality": QualityParams,
+            "compute": ComputeParams, "analysis": AnalysisParams}
+#: The tables ``ssm build`` takes as ``--<table>-<key>`` options (the analysis runs with ``ssm analyze``).
+TABLES = {k: v for k, v in SECTIONS.items() if k != "analysis"}
 
 
 def markdown_tables() -> str:
@@ -890,7 +957,7 @@ def markdown_tables() -> str:
     out = ["# Parameters", "",
            "Generated from `ssm_addon/pipeline/params.py` (`python -m ssm_addon params`); the same names are the",
            "project file's keys, the `ssm build --<table>-<key>` options and the SSM sidebar's fields.", ""]
-    for section, cls in {**TABLES, "analysis": AnalysisParams}.items():
+    for section, cls in SECTIONS.items():
         out += [f"## [{section}]", "", (cls.__doc__ or "").strip().splitlines()[0], "",
                 "| key | default | allowed | meaning |", "|---|---|---|---|"]
         if section == "template":

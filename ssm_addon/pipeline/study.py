@@ -55,7 +55,7 @@ from ..model.quality import (
     content_digest,
 )
 from ..pipeline.errors import InputError, check_cancelled
-from ..pipeline.params import CoatingParams, CorrespondenceParams, ModelParams, QualityParams, TemplateParams
+from ..pipeline.params import CoatingParams, QualityParams, StudyParams
 from ..pipeline.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..pipeline.records import versions
 from ..template.template import Template, build_template
@@ -104,9 +104,10 @@ class Study:
         The instances in study order (their sources and landmarks, world mm).
     template_instance : str
         Name of the instance the template is built from (paper 3).
-    template_params, coating_params, model_params : parameter objects
-        See :mod:`ssm_addon.pipeline.params`; ``template_params.spacing_mm`` and ``.frame`` also
-        set every instance's import.
+    params : StudyParams
+        Every stage's parameters, one field per project table
+        (:class:`ssm_addon.pipeline.params.StudyParams`); ``params.template.spacing_mm`` and
+        ``.frame`` also set every instance's import.
     volumes : dict name -> ObjectVolume
         Each imported instance, resampled in its object frame (paper 2).
     frames : dict name -> ObjectFrame
@@ -137,11 +138,7 @@ class Study:
 
     instances: tuple[InstanceSpec, ...]
     template_instance: str = ""
-    template_params: TemplateParams = field(default_factory=TemplateParams)
-    coating_params: CoatingParams = field(default_factory=CoatingParams)
-    model_params: ModelParams = field(default_factory=ModelParams)
-    quality_params: QualityParams = field(default_factory=QualityParams)
-    correspondence_params: CorrespondenceParams = field(default_factory=CorrespondenceParams)
+    params: StudyParams = field(default_factory=StudyParams)
     volumes: dict[str, ObjectVolume] = field(default_factory=dict)
     frames: dict[str, ObjectFrame] = field(default_factory=dict)
     template: Template | None = None
@@ -170,9 +167,7 @@ class Study:
     @classmethod
     def from_project(cls, project) -> Study:
         """The study of a parsed project file (:func:`ssm_addon.cli.project_build.read_project`)."""
-        return cls(instances=project.instances, template_instance=project.template_instance,
-                   template_params=project.template, coating_params=project.coating, model_params=project.model,
-                   quality_params=project.quality, correspondence_params=project.correspondence)
+        return cls(instances=project.instances, template_instance=project.template_instance, params=project.params)
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -213,12 +208,12 @@ def study_parameters(study: Study, landmark_names: Sequence[str] = ()) -> dict:
     machine), so identical builds give identical model files.
     """
     return {
-        "spacing_mm": float(study.template_params.spacing_mm),
-        "frame_method": study.template_params.frame,
+        "spacing_mm": float(study.params.template.spacing_mm),
+        "frame_method": study.params.template.frame,
         "template_instance": study.template_instance,
-        "template": study.template_params.to_dict(),
-        "coating": study.coating_params.to_dict(),
-        "model": dataclasses.asdict(study.model_params),
+        "template": study.params.template.to_dict(),
+        "coating": study.params.coating.to_dict(),
+        "model": dataclasses.asdict(study.params.model),
         "landmarks": list(landmark_names),
         "versions": versions(),
     }
@@ -239,7 +234,7 @@ def import_instances(study: Study, *, names: Sequence[str] | None = None, jobs: 
     """
     todo = [study.instance(n) for n in (study.names if names is None else names)]
     n = len(todo)
-    tp = study.template_params
+    tp = study.params.template
     shared = {}
     paths = [inst.volume for inst in todo if inst.volume is not None]
     for path in sorted({p for p in paths if paths.count(p) > 1}):
@@ -272,7 +267,7 @@ def make_template(study: Study, *, progress: ProgressFn = None, cancelled: Cance
     """The template (paper 3) from the study's template instance."""
     name = study.template_instance
     try:
-        template = build_template(study.volume(name), study.template_params, progress=progress, cancelled=cancelled)
+        template = build_template(study.volume(name), study.params.template, progress=progress, cancelled=cancelled)
     except InputError as err:
         raise InputError(f"template from instance {name!r}: {err}") from None
     study_with = Study(instances=study.instances, template_instance=name, template=template, frames={
@@ -333,12 +328,12 @@ def coat_instances(study: Study, *, names: Sequence[str] | None = None, jobs: in
     common = common_landmark_names(study, names)
     for name in dict.fromkeys([study.template_instance, *names]):  # landmarks on their instance's surface
         inst = study.instance(name)
-        check_landmarks_on_surface(name, study.volume(name), study.landmarks(name), study.quality_params,
+        check_landmarks_on_surface(name, study.volume(name), study.landmarks(name), study.params.quality,
                                    source=str(inst.landmarks) if inst.landmarks is not None else "")
     src = _landmarks_object(study, study.template_instance, common)
     targets = [study.volume(n) for n in names]
     lms = [_landmarks_object(study, n, common) for n in names]
-    results = coat_all(study.template, src, targets, lms, params=study.coating_params, jobs=jobs,
+    results = coat_all(study.template, src, targets, lms, params=study.params.coating, jobs=jobs,
                        progress=progress, cancelled=cancelled, names=names, on_coated=on_coated)
     return dict(zip(names, results))
 
@@ -358,7 +353,7 @@ def coat_from_frames(study: Study, names: Sequence[str], *, jobs: int = 1, cance
     from ..pipeline.compute import Executor
 
     mesh = Mesh(study.template.points_object, study.template.faces)
-    args = [(mesh, study.volume(n), study.coating_params, n) for n in names]
+    args = [(mesh, study.volume(n), study.params.coating, n) for n in names]
     with Executor("processes", min(jobs, len(args)) if args else 1) as executor:
         results = executor.map(_coat_from_frames_job, args, labels=list(names), verb="coated", cancelled=cancelled)
     return dict(zip(names, results))
@@ -395,12 +390,12 @@ def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: in
     coated = coat_instances(study, names=need, jobs=jobs, cancelled=cancelled) if need else {}
     rest = [n for n in names if n not in landmarked]
     if rest and landmarked:
-        cp = study.correspondence_params
+        cp = study.params.correspondence
         stack = np.stack([(coated.get(n) or study.coatings[n]).points_object for n in landmarked])
         coated.update(starts_from_model(stack, study.template.faces, study.template.points_object,
                                         template_landmark_locations(study), {n: study.volume(n) for n in rest},
                                         fit=correspondence_fit_params(cp),
-                                        coating=study.coating_params, template_frame=study.frame(study.template_instance),
+                                        coating=study.params.coating, template_frame=study.frame(study.template_instance),
                                         jobs=jobs, cancelled=cancelled))
         start = "model fit"
     else:
@@ -437,14 +432,14 @@ def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn =
         starts = [work.coating_start[n] for n in missing]
         say(f"coating: {starts.count('landmark warp')} by landmarks, {starts.count('model fit')} from the landmarked "
             f"instances' model, {starts.count('object frames')} from the object frames; refining with the model")
-    rounds, check = refine_rounds(work, study.correspondence_params, jobs=jobs, progress=progress,
+    rounds, check = refine_rounds(work, study.params.correspondence, jobs=jobs, progress=progress,
                                   cancelled=cancelled, log=say, executor=executor, on_coated=on_coated)
     coated = {n: work.coatings[n] for n in study.names}
     kept = "" if check.kept_round == 0 else f"round {check.kept_round}'s "
     say(f"correspondence: {check.stop or 'no rounds'}; kept {kept or 'the start'}"
         f"{' coatings' if kept else ''}; landmark transfer error {check.study_mm:.3f} mm")
-    findings = (check_landmark_transfer(check, study.quality_params)
-                + check_correspondence_rounds(rounds, check, study.correspondence_params.tolerance_mm))
+    findings = (check_landmark_transfer(check, study.params.quality)
+                + check_correspondence_rounds(rounds, check, study.params.correspondence.tolerance_mm))
     return coating_result(study, coated, {n: work.coating_start.get(n, coated[n].fit.start) for n in coated},
                           time.perf_counter() - t0, template=work.template, rounds=tuple(rounds), check=check,
                           extra_findings=tuple(findings))
@@ -551,7 +546,7 @@ def template_key(study: Study) -> str:
     return digest("template", {"source": file_digest(spec.source), "label": spec.label,
                                "mesh_spacing": spec.mesh_spacing},
                   {"names": list(lm.names), "points_world": np.asarray(lm.points_world, float)} if lm else None,
-                  study.template_params.to_dict())
+                  study.params.template.to_dict())
 
 
 def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn = None,
@@ -580,12 +575,12 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
     if template is None:
         tspec = study.instance(tname)
         report(progress, 0.0, f"import: {tname} (template instance)")
-        ov = import_instance(tspec, spacing_mm=study.template_params.spacing_mm,
-                             frame_method=study.template_params.frame, cancelled=cancelled)
+        ov = import_instance(tspec, spacing_mm=study.params.template.spacing_mm,
+                             frame_method=study.params.template.frame, cancelled=cancelled)
         volumes[tname], frames[tname] = ov, ov.frame
-        check_volume(tname, ov, study.quality_params)  # a few voxels is the cause, not the landmarks (its findings
+        check_volume(tname, ov, study.params.quality)  # a few voxels is the cause, not the landmarks (its findings
         # are the worker's to report)
-        check_landmarks_on_surface(tname, ov, study.landmarks(tname), study.quality_params,
+        check_landmarks_on_surface(tname, ov, study.landmarks(tname), study.params.quality,
                                    source=str(tspec.landmarks) if tspec.landmarks is not None else "")
         timings["import"] = time.perf_counter() - t0
         say(f"import: {tname} (the template instance) in {timings['import']:.2f} s; the coating workers read "
@@ -608,12 +603,12 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
     src = template.frame.to_object(study.landmarks(tname).subset(common).points_world)
     uses = Counter(i.volume for i in study.instances if i.volume is not None)
     order = sorted(range(len(names)), key=lambda i: (str(study.instances[i].source), i))  # one file's labels together
-    jobs = [InstanceJob(spec=study.instances[i], spacing_mm=study.template_params.spacing_mm,
-                        frame_method=study.template_params.frame,
+    jobs = [InstanceJob(spec=study.instances[i], spacing_mm=study.params.template.spacing_mm,
+                        frame_method=study.params.template.frame,
                         shared_file=uses.get(study.instances[i].volume, 0) > 1,
                         template_points=template.points_object, template_faces=template.faces,
-                        template_landmarks_object=src, landmark_names=common, coating_params=study.coating_params,
-                        quality_params=study.quality_params) for i in order]
+                        template_landmarks_object=src, landmark_names=common, coating_params=study.params.coating,
+                        quality_params=study.params.quality) for i in order]
     products: dict = {}
     keys = [job.key() for job in jobs] if cache is not None else [None] * len(jobs)
     todo = []
@@ -640,7 +635,7 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
     for note in cache.take_notes() if cache is not None else ():
         say(note)
     findings = [f for name in names for f in products[name].findings]
-    findings += check_volumes_together({n: products[n].volume_mm3 for n in names}, study.quality_params)
+    findings += check_volumes_together({n: products[n].volume_mm3 for n in names}, study.params.quality)
     findings += check_duplicate_instances(instance_sources(study, names),
                                           {n: content_digest(products[n].coating.points_object) for n in names})
     findings = [dataclasses.replace(f, stage="import") for f in findings]
@@ -685,7 +680,7 @@ def make_model(study: Study, *, names: Sequence[str] | None = None, progress: Pr
     params = study_parameters(study, common)
     params["landmark_locations"] = template_landmark_locations(study)
     params["fit"] = {n: {k: v for k, v in study.coatings[n].fit.to_dict().items() if k != "time_s"} for n in names}
-    mp = study.model_params
+    mp = study.params.model
     return build_model(pts, study.template.faces, names, instance_points_world=world, alignment=mp.alignment,
                        n_modes=mp.n_modes, variance_fraction=mp.variance_fraction, solver=mp.solver,
                        precision=mp.precision, params=params, progress=progress, cancelled=cancelled)
@@ -751,7 +746,7 @@ def evaluate_model(study: Study, *, progress: ProgressFn = None, cancelled: Canc
 
     if study.model is None:
         raise InputError("metrics: build the model first")
-    mp = study.model_params
+    mp = study.params.model
     return metrics.evaluate(study.model, n_samples=mp.specificity_samples, seed=mp.seed, max_loo=mp.max_loo,
                             progress=progress, cancelled=cancelled)
 
@@ -849,7 +844,7 @@ def import_result(study: Study, volumes: dict[str, ObjectVolume], seconds: float
     The volume-consistency gate compares every instance imported so far (``study.volumes``
     and ``volumes``).
     """
-    qp = study.quality_params
+    qp = study.params.quality
     findings = [f for name, ov in volumes.items() for f in check_volume(name, ov, qp)]
     every = {**study.volumes, **volumes}
     findings += check_volumes_together({n: every[n].volume_mm3 for n in study.names if n in every}, qp)
@@ -888,7 +883,7 @@ def coating_result(study: Study, coated: dict[str, CoatingResult], starts: dict[
     and ``check`` (the correspondence self-check, :func:`self_check`) join the product
     when given; ``extra_findings`` (the self-check's and the rounds' gates) the findings.
     """
-    findings = tuple(f for n, c in coated.items() for f in check_coating(n, c.fit, study.quality_params))
+    findings = tuple(f for n, c in coated.items() for f in check_coating(n, c.fit, study.params.quality))
     findings += tuple(extra_findings)
     product = {"coatings": dict(coated), "coating_start": dict(starts)}
     if template is not None:
@@ -921,7 +916,7 @@ def self_check(study: Study, coatings: dict[str, CoatingResult], *, template: Te
 
     template = template or study.template
     names = list(study.names)
-    if (not study.correspondence_params.self_check or len(names) < 3 or template is None
+    if (not study.params.correspondence.self_check or len(names) < 3 or template is None
             or any(n not in coatings for n in names)):
         return None, ()
     locations = (template.params or {}).get("landmark_locations") or {}
@@ -931,10 +926,10 @@ def self_check(study: Study, coatings: dict[str, CoatingResult], *, template: Te
         lm = study.landmarks(n)
         frame = frames.get(n) or study.frame(n)
         given[n] = {} if lm is None else dict(zip(lm.names, frame.to_object(lm.points_world)))
-    fit = correspondence_fit_params(study.correspondence_params)
+    fit = correspondence_fit_params(study.params.correspondence)
     check = check_correspondence({n: coatings[n].points_object for n in names}, template.faces, locations, given,
                                  fit=fit, executor=executor, jobs=jobs, cancelled=cancelled)
-    return check, tuple(check_landmark_transfer(check, study.quality_params))
+    return check, tuple(check_landmark_transfer(check, study.params.quality))
 
 
 def coating_stage(study: Study, *, names: Sequence[str] | None = None, jobs: int = 1, progress: ProgressFn = None,
@@ -946,7 +941,7 @@ def coating_stage(study: Study, *, names: Sequence[str] | None = None, jobs: int
     ``"model"``: :func:`refine_correspondence` (every instance). ``on_coated(name)`` is
     called as each coating arrives (for counting; progress lines are for people).
     """
-    if study.correspondence_params.method != "landmarks":
+    if study.params.correspondence.method != "landmarks":
         return refine_correspondence(study, jobs=jobs, progress=progress, cancelled=cancelled, log=log,
                                      executor=executor, on_coated=on_coated)
     t0 = time.perf_counter()
@@ -962,10 +957,10 @@ def model_stage(study: Study, *, progress: ProgressFn = None, cancelled: Cancell
     """The model (paper 5): :func:`make_model`, its leave-one-out outlier scores and the model gates."""
     t0 = time.perf_counter()
     model = make_model(study, progress=progress, cancelled=cancelled)
-    findings, scores = check_model(model, study.quality_params)
+    findings, scores = check_model(model, study.params.quality)
     names = list(model.instance_names)
     findings = check_frames(names, np.stack([study.coatings[n].points_object for n in names]),
-                            study.template_instance, study.model_params.alignment) + list(findings)
+                            study.template_instance, study.params.model.alignment) + list(findings)
     seconds = time.perf_counter() - t0
     return StageResult("model", {"model": model, "outlier_scores": scores}, tuple(findings), {"model": seconds},
                        (f"model: {model.n_modes} modes, {model.n_points} points in {seconds:.2f} s",))
@@ -1003,14 +998,14 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
         for line in result.lines():
             say(line)
 
-    if (executor is not None and study.correspondence_params.method == "landmarks"
+    if (executor is not None and study.params.correspondence.method == "landmarks"
             and all(s in stages for s in ("import", "template", "coating"))):
         report(progress, 0.0, f"import, template and coating: {n} instances on {executor.describe()}")
         applied(stream_instances(study, executor, cache=cache, progress=sub_progress(progress, 0.0, 0.85),
                                  cancelled=cancelled, log=say))
         stages = [s for s in stages if s not in ("import", "template", "coating")]
     if "import" in stages:
-        report(progress, 0.0, f"import: {n} instances at {study.template_params.spacing_mm:g} mm")
+        report(progress, 0.0, f"import: {n} instances at {study.params.template.spacing_mm:g} mm")
         applied(import_stage(study, jobs=jobs, progress=sub_progress(progress, 0.0, 0.15), cancelled=cancelled))
     if "template" in stages:
         check_cancelled(cancelled)
@@ -1025,7 +1020,7 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
             if message.startswith("coated "):
                 report(coat_prog, fraction, message)
 
-        single = study.correspondence_params.method == "landmarks"
+        single = study.params.correspondence.method == "landmarks"
         applied(coating_stage(study, jobs=jobs, progress=(per_instance if progress else None) if single else coat_prog,
                               cancelled=cancelled, log=say, executor=executor))
     if "model" in stages:
