@@ -594,7 +594,7 @@ class SSM_OT_propose_landmarks(BackgroundJob, bpy.types.Operator):
 
         obj = find_model_object(context)
         model = model_from_object(obj) if obj is not None else None
-        if model is not None and (model.params or {}).get("landmark_locations", {}).get("names"):
+        if model is not None and len(model.landmark_locations):
             return model
         if self.method == "model":
             raise InputError("propose landmarks: no model with landmarks in the scene (build the model from a "
@@ -607,7 +607,7 @@ class SSM_OT_propose_landmarks(BackgroundJob, bpy.types.Operator):
             raise InputError(f"propose landmarks: {target.name} has no object frame (import it with SSM)")
         have = landmark_empties(target)
         known = instance_landmarks(context, target) if have else None
-        names = [n for n in model.params["landmark_locations"]["names"] if n not in have]
+        names = [n for n in model.landmark_locations.names if n not in have]
         if not names:
             raise InputError(f"propose landmarks: {target.name} already has every landmark the model knows")
         mesh = (blender_to_file_world(target, bridge.object_world_vertices(target)), bridge.mesh_triangles(target.data))

@@ -357,9 +357,7 @@ def template_from_object(obj) -> Template:
     d = bridge.load_arrays(obj, TEMPLATE_KEY)
     if d is None or obj.ssm.instance is None:
         raise InputError(f"{obj.name!r}: no template stored (build the template)")
-    frame = stored_frame(obj.ssm.instance)
-    return Template(points_object=d["points_object"], faces=d["faces"], curvature=d["curvature"], frame=frame,
-                    params=json.loads(d.get("params_json", "{}")))
+    return Template.from_arrays(d, stored_frame(obj.ssm.instance))
 
 
 def coated_objects(context) -> list:

@@ -15,7 +15,6 @@
 
 from __future__ import annotations
 
-import json
 import time
 
 import bpy
@@ -59,10 +58,7 @@ def write_template_object(context, instance, template):
     name = obj.name if obj is not None else TEMPLATE_NAME
     obj = bridge.new_mesh_object(context, name, template.points_object, faces,
                                  collection_name=TEMPLATE_COLLECTION, matrix_world=object_to_blender_matrix(instance))
-    bridge.store_arrays(obj, TEMPLATE_KEY, {
-        "points_object": template.points_object, "faces": faces, "curvature": template.curvature,
-        "params_json": json.dumps(template.params, default=str),
-    })
+    bridge.store_arrays(obj, TEMPLATE_KEY, template.to_arrays())
     bridge.colour_correspondence(obj, template.points_object, context.scene.ssm_display.colouring)
     bridge.set_point_attribute(obj.data, "curvature", np.asarray(template.curvature))
     obj.ssm.role = "TEMPLATE"

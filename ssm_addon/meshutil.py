@@ -24,6 +24,7 @@ from .pipeline.errors import InputError
 __all__ = [
     "unique_rows",
     "ManifoldReport",
+    "LandmarkLocations",
     "Mesh",
     "MeshLocation",
     "MeshLocator",
@@ -460,6 +461,83 @@ class MeshLocation:
         f = np.asarray(faces)[self.triangles]
         pts = np.asarray(points, float)
         return np.einsum("lk,lkj->lj", self.bary, pts[f])
+
+
+@dataclass(frozen=True)
+class LandmarkLocations:
+    """Named landmarks as points of a triangle mesh: a triangle and barycentric weights each.
+
+    On the template (paper 3) they are the template instance's landmarks; with the
+    template's connectivity they are the same points of every coated instance and of the
+    mean shape (the landmarks a model knows, the ones a build writes for every instance).
+
+    Attributes
+    ----------
+    names : tuple of str
+    triangles : (L,) int ndarray
+    bary : (L, 3) float ndarray
+        Barycentric weights of the triangle's corners (rows sum to 1).
+
+    Examples
+    --------
+    >>> loc = LandmarkLocations(("tip",), np.array([0]), np.array([[0.0, 1.0, 0.0]]))
+    >>> loc.evaluate(np.eye(3) * 10, np.array([[0, 1, 2]])).tolist()
+    [[0.0, 10.0, 0.0]]
+    >>> LandmarkLocations.from_dict(loc.to_dict()).names, len(LandmarkLocations.none())
+    (('tip',), 0)
+    """
+
+    names: tuple[str, ...]
+    triangles: np.ndarray
+    bary: np.ndarray
+
+    def __post_init__(self):
+        object.__setattr__(self, "names", tuple(str(n) for n in self.names))
+        object.__setattr__(self, "triangles", np.asarray(self.triangles, np.int64).reshape(-1))
+        object.__setattr__(self, "bary", np.asarray(self.bary, float).reshape(-1, 3))
+        if not (len(self.names) == len(self.triangles) == len(self.bary)):
+            raise InputError(f"landmark locations: {len(self.names)} names, {len(self.triangles)} triangles and "
+                             f"{len(self.bary)} barycentric rows; expected one of each per landmark")
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    @property
+    def location(self) -> MeshLocation:
+        """The points without their names."""
+        return MeshLocation(self.triangles, self.bary)
+
+    def evaluate(self, points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+        """(L, 3) positions of the landmarks on a mesh with the same topology (its frame)."""
+        return self.location.evaluate(points, faces)
+
+    @classmethod
+    def none(cls) -> LandmarkLocations:
+        """No landmarks."""
+        return cls((), np.zeros(0, np.int64), np.zeros((0, 3)))
+
+    @classmethod
+    def locate(cls, names, points_on: np.ndarray, faces: np.ndarray, query: np.ndarray) -> LandmarkLocations:
+        """The nearest mesh points of named (L, 3) ``query`` points (same frame as ``points_on``)."""
+        loc = locate_on_mesh(points_on, faces, query)
+        return cls(tuple(names), loc.triangles, loc.bary)
+
+    def to_dict(self) -> dict:
+        """``{"names", "triangles", "bary"}`` as JSON-ready lists (the form ``params_json`` stores)."""
+        return {"names": list(self.names), "triangles": [int(t) for t in self.triangles],
+                "bary": [[float(x) for x in row] for row in self.bary]}
+
+    @classmethod
+    def from_dict(cls, d) -> LandmarkLocations:
+        """From :meth:`to_dict`'s form; an absent or empty dict gives no landmarks."""
+        if not d or not d.get("names"):
+            return cls.none()
+        return cls(tuple(d["names"]), d["triangles"], d["bary"])
+
+    def subset(self, names) -> LandmarkLocations:
+        """The landmarks ``names`` (in that order; each must be one of :attr:`names`)."""
+        idx = [self.names.index(n) for n in names]
+        return LandmarkLocations(tuple(names), self.triangles[idx], self.bary[idx])
 
 
 def locate_on_mesh(points_on: np.ndarray, faces: np.ndarray, query: np.ndarray) -> MeshLocation:

@@ -248,7 +248,7 @@ def test_model_method_keeps_the_template_points_on_the_template_instance(populat
           f"max {off.max():.3f} mm")
     assert slide > 0.05 and off.mean() < 0.5 * slide
     assert np.array_equal(cKDTree(template_points).query(final)[1], np.arange(len(final)))
-    assert study.template.params.get("mean_shape_template")
+    assert study.template.is_mean_shape
 
 
 @pytest.mark.slow
@@ -262,9 +262,8 @@ def test_exact_landmarks_are_warped_to_where_given(population):
     assert CorrespondenceParams().exact_landmarks is True
     study = Study.from_project(read_project(population))
     run(study, stages=("import", "template", "coating"), jobs=2)
-    loc = study.template.params["landmark_locations"]
+    loc = study.template.landmark_locations
     faces = np.asarray(study.template.faces)
-    tri, bary = np.asarray(loc["triangles"], int), np.asarray(loc["bary"], float)
     names = list(study.names)
     points = np.stack([study.coatings[n].points_object for n in names])
     mean = points.mean(axis=0)
@@ -277,8 +276,8 @@ def test_exact_landmarks_are_warped_to_where_given(population):
                 np.delete(points, i, axis=0), faces, mean, study.volume(name), loc, given,
                 fit=FitParams(tolerance_mm=0.01), coating=study.params.coating, exact_landmarks=exact,
                 current=points[i], name=name)
-            warped = np.einsum("lk,lkd->ld", bary, coated.warped_points_object[faces[tri]])
-            off[exact] += [np.linalg.norm(w - given[n]) for n, w in zip(loc["names"], warped)]
+            warped = loc.evaluate(coated.warped_points_object, faces)
+            off[exact] += [np.linalg.norm(w - given[n]) for n, w in zip(loc.names, warped)]
             shifts[exact].append(shift)
             if exact:
                 assert coated.fit.warp_regularization == 0.0

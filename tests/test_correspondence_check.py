@@ -16,7 +16,7 @@ import pytest
 from test_coating import icosphere
 
 from ssm_addon.fitting.correspondence import CorrespondenceCheck, RoundFigures, check_correspondence
-from ssm_addon.meshutil import MeshLocation
+from ssm_addon.meshutil import LandmarkLocations
 from ssm_addon.model.quality import check_correspondence_rounds, check_frames, check_landmark_transfer
 from ssm_addon.pipeline.params import FitParams, QualityParams
 
@@ -31,7 +31,7 @@ def _population(n=7, seed=3):
     # the template's landmarks: mesh points at the corners (first vertex of a triangle using it)
     tri = np.array([int(np.flatnonzero((f == i).any(axis=1))[0]) for i in LANDMARKS])
     bary = np.array([(f[t] == i).astype(float) for t, i in zip(tri, LANDMARKS)])
-    locations = {"names": [f"L{i}" for i in LANDMARKS], "triangles": tri.tolist(), "bary": bary.tolist()}
+    locations = LandmarkLocations(tuple(f"L{i}" for i in LANDMARKS), tri, bary)
     given = {n: {f"L{i}": p[i] for i in LANDMARKS} for n, p in points.items()}
     return v, f, axes, points, locations, given
 
@@ -99,8 +99,11 @@ def test_rounds_at_their_limit_are_a_finding_converged_ones_are_not():
 
 def test_landmark_locations_read_the_corners():
     v, f, _axes, points, locations, _given = _population(n=3)
-    loc = MeshLocation(np.asarray(locations["triangles"]), np.asarray(locations["bary"]))
-    assert np.allclose(loc.evaluate(points["e1"], f), points["e1"][list(LANDMARKS)])
+    assert np.allclose(locations.evaluate(points["e1"], f), points["e1"][list(LANDMARKS)])
+    assert np.allclose(locations.location.evaluate(points["e1"], f), points["e1"][list(LANDMARKS)])
+    again = LandmarkLocations.from_dict(locations.to_dict())
+    assert again.names == locations.names and np.array_equal(again.triangles, locations.triangles)
+    assert np.array_equal(again.bary, locations.bary) and len(LandmarkLocations.from_dict(None)) == 0
 
 
 def test_a_coating_turned_end_for_end_is_named_by_the_frame_gate():

@@ -214,7 +214,7 @@ def fit_projection(study, names, error_of) -> dict:
     from ssm_addon.meshutil import MeshLocator
 
     faces = np.asarray(study.template.faces)
-    locations = study.template.params["landmark_locations"]
+    locations = study.template.landmark_locations
     fit = corr.correspondence_fit_params(study.params.correspondence)
     P = np.stack([study.coatings[n].points_object for n in names])
     found = {"coating": {}, "fit projected": {}, "halfway projected": {}}

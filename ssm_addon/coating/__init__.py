@@ -6,7 +6,7 @@ Every public name of the subpackage's modules, imported on first use (:mod:`ssm_
 from .._lazy import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, {
-    "coating": ("CoatingCancelled", "CoatingParams", "CoatingResult", "FitFigures", "coat", "coat_all", "coat_from_start", "template_mesh"),
+    "coating": ("CoatingCancelled", "CoatingParams", "CoatingStart", "CoatingResult", "FitFigures", "coat", "coat_all", "coat_from_start", "template_mesh"),
     "distance_map": ("DistanceMap",),
     "proposal": ("PROPOSAL_METHODS", "propose_by_model", "propose_from_meshes", "propose_landmarks", "propose_landmarks_by_coating", "surface_points_object", "transfer_landmarks"),
     "registration": ("register_to_surface",),

@@ -55,6 +55,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
+from enum import StrEnum
 
 import numpy as np
 
@@ -72,6 +73,7 @@ from ..pipeline.progress import CancelledFn, ProgressFn, report, sub_progress
 
 __all__ = [
     "CoatingCancelled",
+    "CoatingStart",
     "CoatingParams",
     "CoatingResult",
     "FitFigures",
@@ -80,6 +82,22 @@ __all__ = [
     "coat_from_start",
     "template_mesh",
 ]
+
+
+class CoatingStart(StrEnum):
+    """How a coating began (paper 4); the value is the text reports, files and panels show.
+
+    >>> CoatingStart("model fit") is CoatingStart.MODEL_FIT, f"{CoatingStart.OBJECT_FRAMES}"
+    (True, 'object frames')
+    """
+
+    #: the landmark warp (eq. 2) with the instance's own landmarks
+    LANDMARK_WARP = "landmark warp"
+    #: the landmark warp with landmarks a model fitted to the instance's surface supplied
+    #: (the bootstrap of paper 7)
+    MODEL_FIT = "model fit"
+    #: the template put into the instance's object frame (paper 2), without landmarks
+    OBJECT_FRAMES = "object frames"
 
 
 @dataclass(frozen=True)
@@ -97,8 +115,11 @@ class FitFigures:
     converged: bool = True
     warp_regularization: float = 0.0
     untangle_rounds: int = 0
-    start: str = "landmark warp"
+    start: CoatingStart = CoatingStart.LANDMARK_WARP
     landmark_names: tuple = ()  # of landmark_residuals_mm, where known
+
+    def __post_init__(self):
+        object.__setattr__(self, "start", CoatingStart(self.start))
 
     @property
     def max_landmark_residual_mm(self) -> float:
@@ -111,6 +132,7 @@ class FitFigures:
 
     def to_dict(self) -> dict:
         d = asdict(self)
+        d["start"] = str(self.start)
         d["landmark_residuals_mm"] = [float(x) for x in self.landmark_residuals_mm]
         d["landmark_names"] = [str(x) for x in self.landmark_names]
         return d
@@ -188,7 +210,7 @@ def coat_from_start(
     template_location: MeshLocation | None = None,
     target_landmarks_object: np.ndarray | None = None,
     distance_map: DistanceMap | None = None,
-    start_label: str | None = None,
+    start_label: CoatingStart | None = None,
     progress: ProgressFn = None,
     cancelled: CancelledFn = None,
     name: str = "",
@@ -212,9 +234,9 @@ def coat_from_start(
         mm), for the landmark residuals of the fit figures.
     distance_map : DistanceMap, optional
         The target's, if already built.
-    start_label : str, optional
-        How the start was made, for ``FitFigures.start`` (default "landmark warp" when
-        ``start`` is given, else "object frames").
+    start_label : CoatingStart, optional
+        How the start was made, for ``FitFigures.start`` (default ``LANDMARK_WARP`` when
+        ``start`` is given, else ``OBJECT_FRAMES``).
 
     Returns
     -------
@@ -226,7 +248,7 @@ def coat_from_start(
     if warped.shape != points.shape:
         raise InputError(f"coating {name or target.source}: start has shape {warped.shape}, template {points.shape}")
     target_landmarks = target_landmarks_object
-    label = start_label or ("object frames" if start is None else "landmark warp")
+    label = start_label or (CoatingStart.OBJECT_FRAMES if start is None else CoatingStart.LANDMARK_WARP)
     t0 = time.perf_counter()
     report(progress, 0.0, "distance map")
     dm = distance_map if distance_map is not None else DistanceMap.from_object_volume(target)
@@ -267,7 +289,7 @@ def coat_from_start(
             report(progress, 0.15, "surface registration from the object frames")
             alt = registered(points, sigmas[:n_coarse])
             if folds(dm.project(alt, params.projection_iterations)) < coarse_folds:
-                moved, start_from = alt, "object frames"
+                moved, start_from = alt, CoatingStart.OBJECT_FRAMES
     moved = registered(moved, sigmas[n_coarse:])
     report(progress, 0.2, "projection")
     projected = dm.project(moved, params.projection_iterations)

@@ -277,7 +277,7 @@ def propose_by_model(model, target_frame, target_mesh_world, *, known: LandmarkS
     Parameters
     ----------
     model : ShapeModel
-        With landmarks (``params["landmark_locations"]``).
+        With landmarks (:attr:`~ssm_addon.model.pca.ShapeModel.landmark_locations`).
     target_frame : ObjectFrame
     target_mesh_world : ((V, 3) world mm, (F, 3))
         The target's closed surface.
@@ -297,9 +297,10 @@ def propose_by_model(model, target_frame, target_mesh_world, *, known: LandmarkS
     InputError
         The model carries no landmarks, or none of ``names``.
     """
-    from ..fitting.fit import Pose, Target, fit_model, model_landmarks
+    from ..fitting.fit import Pose, Target, fit_model
 
-    model_names, tris, bary = model_landmarks(model)
+    located = model.landmark_locations
+    model_names = located.names
     if not model_names:
         raise InputError("propose landmarks: the model carries no landmarks (build it from a landmarked template)")
     wanted = [n for n in (model_names if names is None else names) if n in model_names]
@@ -311,8 +312,5 @@ def propose_by_model(model, target_frame, target_mesh_world, *, known: LandmarkS
                               landmarks=None if known is None or not len(known) else
                               LandmarkSet(known.names, target_frame.to_object(known.points_world), source))
     result = fit_model(model, target, params=params, pose=Pose(), progress=progress, cancelled=cancelled)
-    corners = np.asarray(result.points)[np.asarray(model.faces)[tris]]
-    pts = np.einsum("lk,lkd->ld", bary, corners)
-    index = {n: i for i, n in enumerate(model_names)}
-    rows = [index[n] for n in wanted]
-    return LandmarkSet(tuple(wanted), target_frame.to_world(pts[rows]), source)
+    pts = located.subset(wanted).evaluate(result.points, model.faces)
+    return LandmarkSet(tuple(wanted), target_frame.to_world(pts), source)

@@ -300,11 +300,8 @@ def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = No
     doc["landmarks_used"] = sorted(result.landmark_residuals_mm)
     doc["warnings"] = warnings
     if free and target.locator is not None:
-        from ..coating.coating import coat_from_start
-        from ..instances.volume import ObjectFrame
-
         doc["files"]["free"] = "fitted_free.ply"
-        doc["free"] = _free_fit(result, faces, t, model, out_dir / "fitted_free.ply", coat_from_start, ObjectFrame)
+        doc["free"] = _free_fit(result, faces, t, model, out_dir / "fitted_free.ply")
     (out_dir / "fit.png").write_bytes(fit_picture(result, faces, target, title=t.name, outlier=doc["outlier"]))
     (out_dir / "fit.json").write_text(json.dumps(doc, indent=1), encoding="utf-8")
     report(progress, 1.0, f"fitted {t.name}: Mahalanobis {result.mahalanobis:.2f}, mean distance "
@@ -312,18 +309,18 @@ def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = No
     return doc
 
 
-def _free_fit(result, faces, t, model, path, coat_from_start, ObjectFrame) -> dict:
+def _free_fit(result, faces, t, model, path) -> dict:
     """The model fit relaxed freely onto the target's surface (the coating's projection and
     relaxation, paper 4.2), in the target's own object frame."""
+    from ..coating.coating import CoatingStart, coat_from_start
     from ..instances.importing import InstanceSpec, import_instance
+    from ..meshutil import Mesh
 
     spacing = float((model.params or {}).get("spacing_mm", 1.0))
     spec = InstanceSpec(name=t.name, volume=t.volume, label=t.label, mesh=t.mesh)
     ov = import_instance(spec, spacing_mm=spacing, frame_method=(model.params or {}).get("frame_method", "auto"))
     start = ov.frame.to_object(result.points)
-    from ..meshutil import Mesh
-
-    coated = coat_from_start(Mesh(start, faces), ov, start=start, start_label="model fit", name=t.name)
+    coated = coat_from_start(Mesh(start, faces), ov, start=start, start_label=CoatingStart.MODEL_FIT, name=t.name)
     write_ply(path, ov.frame.to_world(coated.points_object), faces)
     return {"mean_distance_mm": coated.fit.mean_distance_mm, "max_distance_mm": coated.fit.max_distance_mm,
             "folded": coated.fit.folded_after}

@@ -54,12 +54,12 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
-from ..coating.coating import CoatingResult, coat, settle_on_surface
+from ..coating.coating import CoatingResult, CoatingStart, coat, settle_on_surface
 from ..coating.distance_map import DistanceMap
 from ..coating.relaxation import folded_triangles
 from ..fitting.fit import Pose, Target, fit_model, rigid_screen
 from ..formats.landmarks import LandmarkSet
-from ..meshutil import Mesh, MeshLocation, MeshLocator, edge_lengths, vertex_normals
+from ..meshutil import LandmarkLocations, Mesh, MeshLocation, MeshLocator, edge_lengths, vertex_normals
 from ..meshutil import edges as mesh_edges
 from ..model.pca import build_model, procrustes_fit
 from ..pipeline.compute import Executor
@@ -200,7 +200,7 @@ AXIS_TURNS = tuple(np.diag(d).astype(float) for d in ((1, 1, 1), (1, -1, -1), (-
 WORLD_POSE_TOLERANCE = 1.25
 
 
-def landmark_transfer(others: np.ndarray, faces: np.ndarray, surface_points: np.ndarray, landmark_locations: dict,
+def landmark_transfer(others: np.ndarray, faces: np.ndarray, surface_points: np.ndarray, landmark_locations: LandmarkLocations,
                       landmarks_object: dict, *, fit: FitParams, surface_faces: np.ndarray | None = None,
                       world_pose: Pose | None = None):
     """Fit the model of ``others`` to one surface alone; predict the landmarks there.
@@ -214,7 +214,7 @@ def landmark_transfer(others: np.ndarray, faces: np.ndarray, surface_points: np.
     surface_points : (V, 3) mm
         The instance's surface (object frame): its coating's points, or the vertices of
         ``surface_faces``.
-    landmark_locations : {"names", "triangles", "bary"}
+    landmark_locations : LandmarkLocations
         The template's landmarks as points of the mesh.
     landmarks_object : dict name -> (3,) mm
         The instance's given landmarks (object frame).
@@ -249,9 +249,8 @@ def landmark_transfer(others: np.ndarray, faces: np.ndarray, surface_points: np.
             own = fit_model(model, target, params=fit, pose=world_pose)
             if own.mean_distance_mm <= WORLD_POSE_TOLERANCE * result.mean_distance_mm:
                 result = own
-    loc = MeshLocation(np.asarray(landmark_locations["triangles"], int), np.asarray(landmark_locations["bary"], float))
-    predicted = loc.evaluate(result.points, faces)
-    names = list(landmark_locations.get("names", ()))
+    predicted = landmark_locations.evaluate(result.points, faces)
+    names = list(landmark_locations.names)
     distances = {n: float(np.linalg.norm(predicted[i] - np.asarray(landmarks_object[n], float)))
                  for i, n in enumerate(names) if n in landmarks_object}
     return result, predicted, distances
@@ -262,7 +261,7 @@ def _transfer_job(args):
     return landmark_transfer(others, faces, surface, locations, given, fit=fit)[2]
 
 
-def check_correspondence(points: dict, faces: np.ndarray, landmark_locations: dict, landmarks_object: dict, *,
+def check_correspondence(points: dict, faces: np.ndarray, landmark_locations: LandmarkLocations, landmarks_object: dict, *,
                          fit: FitParams, executor=None, jobs: int = 1, cancelled: CancelledFn = None,
                          **kw) -> CorrespondenceCheck:
     """The landmark transfer error of a coated study (:class:`CorrespondenceCheck`).
@@ -272,7 +271,7 @@ def check_correspondence(points: dict, faces: np.ndarray, landmark_locations: di
     points : dict instance -> (N, 3) mm
         Every instance's coated points (object frame), at least 3 instances.
     faces : (F, 3) int
-    landmark_locations : {"names", "triangles", "bary"}
+    landmark_locations : LandmarkLocations
         The template's landmarks as points of the mesh.
     landmarks_object : dict instance -> {landmark: (3,) mm}
         Given landmarks; instances without any are not checked.
@@ -281,7 +280,7 @@ def check_correspondence(points: dict, faces: np.ndarray, landmark_locations: di
     """
     names = list(points)
     checked = [n for n in names if landmarks_object.get(n)]
-    if len(names) < 3 or not checked or not len(landmark_locations.get("names", ())):
+    if len(names) < 3 or not checked or not len(landmark_locations):
         return CorrespondenceCheck(**kw)
     stack = np.stack([np.asarray(points[n], float) for n in names])
     f = np.asarray(faces, np.int64)
@@ -297,7 +296,7 @@ def check_correspondence(points: dict, faces: np.ndarray, landmark_locations: di
     return CorrespondenceCheck.from_landmarks(dict(zip(checked, found)), **kw)
 
 
-def start_from_model(coated: np.ndarray, faces: np.ndarray, template_points: np.ndarray, landmark_locations: dict,
+def start_from_model(coated: np.ndarray, faces: np.ndarray, template_points: np.ndarray, landmark_locations: LandmarkLocations,
                      target, *, fit: FitParams, coating: CoatingParams, template_frame=None,
                      name: str = "") -> CoatingResult:
     """The start of an instance without landmarks: the model of the landmarked instances'
@@ -311,7 +310,7 @@ def start_from_model(coated: np.ndarray, faces: np.ndarray, template_points: np.
     faces : (F, 3) int
     template_points : (N, 3) mm
         The template (its instance's object frame).
-    landmark_locations : {"names", "triangles", "bary"}
+    landmark_locations : LandmarkLocations
         The template's landmarks as points of the mesh.
     target : ObjectVolume
     template_frame : ObjectFrame, optional
@@ -321,7 +320,7 @@ def start_from_model(coated: np.ndarray, faces: np.ndarray, template_points: np.
 
     Returns
     -------
-    CoatingResult (object frame of ``target``) with ``fit.start = "model fit"``.
+    CoatingResult (object frame of ``target``) with ``fit.start = CoatingStart.MODEL_FIT``.
     """
     dm = DistanceMap.from_object_volume(target)
     # the model in the template's frame; its fit tries the turns of the principal axes
@@ -333,17 +332,16 @@ def start_from_model(coated: np.ndarray, faces: np.ndarray, template_points: np.
         world = Pose(rotation=rot[0], translation=t[0])
     _result, predicted, _d = landmark_transfer(coated, faces, dm.surface_vertices, landmark_locations, {}, fit=fit,
                                                surface_faces=dm.surface_faces, world_pose=world)
-    loc = MeshLocation(np.asarray(landmark_locations["triangles"], int), np.asarray(landmark_locations["bary"], float))
-    result = coat(Mesh(template_points, faces), loc.evaluate(template_points, faces), target, predicted,
+    result = coat(Mesh(template_points, faces), landmark_locations.evaluate(template_points, faces), target, predicted,
                   params=coating, distance_map=dm, name=name)
-    return replace(result, fit=replace(result.fit, start="model fit"))
+    return replace(result, fit=replace(result.fit, start=CoatingStart.MODEL_FIT))
 
 
 def _start_job(args):
     return start_from_model(*args[:5], fit=args[5], coating=args[6], template_frame=args[7], name=args[8])
 
 
-def starts_from_model(coated: np.ndarray, faces: np.ndarray, template_points: np.ndarray, landmark_locations: dict,
+def starts_from_model(coated: np.ndarray, faces: np.ndarray, template_points: np.ndarray, landmark_locations: LandmarkLocations,
                       targets: dict, *, fit: FitParams, coating: CoatingParams, template_frame=None, jobs: int = 1,
                       cancelled: CancelledFn = None) -> dict[str, CoatingResult]:
     """:func:`start_from_model` for every instance of ``targets`` (name -> ObjectVolume), ``jobs`` processes."""
@@ -355,7 +353,7 @@ def starts_from_model(coated: np.ndarray, faces: np.ndarray, template_points: np
     return dict(zip(names, found))
 
 
-def round_landmarks(others: np.ndarray, faces: np.ndarray, target, landmark_locations: dict,
+def round_landmarks(others: np.ndarray, faces: np.ndarray, target, landmark_locations: LandmarkLocations,
                     landmarks_object: dict, *, fit: FitParams, exact_landmarks: bool = True,
                     current: np.ndarray | None = None, name: str = "") -> tuple[np.ndarray, float, float, dict]:
     """The model half of a round for one instance: the model of ``others`` fitted to its
@@ -369,7 +367,7 @@ def round_landmarks(others: np.ndarray, faces: np.ndarray, target, landmark_loca
     faces : (F, 3)
     target : ObjectVolume
         The instance.
-    landmark_locations : {"names", "triangles", "bary"}
+    landmark_locations : LandmarkLocations
         The template's landmarks as points of the mesh.
     landmarks_object : dict name -> (3,) mm
         The instance's landmarks in its object frame (may be empty).
@@ -395,7 +393,7 @@ def round_landmarks(others: np.ndarray, faces: np.ndarray, target, landmark_loca
         surface, surface_faces = current, None
     result, fitted, transfer = landmark_transfer(others, faces, surface, landmark_locations, landmarks_object,
                                                  fit=fit, surface_faces=surface_faces)
-    all_names = list(landmark_locations.get("names", ()))
+    all_names = list(landmark_locations.names)
     given = [i for i, n in enumerate(all_names) if n in landmarks_object]
     given_points = np.array([landmarks_object[all_names[i]] for i in given], float).reshape(-1, 3)
     absent = len(given) < len(all_names)
@@ -403,32 +401,30 @@ def round_landmarks(others: np.ndarray, faces: np.ndarray, target, landmark_loca
         # the landmarks' posterior places: the fit with the given landmarks as soft
         # constraints, read off at the template's landmark points
         model = build_model(others if current is None else aligned_to(others, current), faces,
-                            [str(i) for i in range(len(others))], params={"landmark_locations": landmark_locations})
+                            [str(i) for i in range(len(others))],
+                            params={"landmark_locations": landmark_locations.to_dict()})
         lms = LandmarkSet(tuple(all_names[i] for i in given), given_points, name)
         result = fit_model(model, Target.from_mesh(dm.surface_vertices, dm.surface_faces, landmarks=lms,
                                                    max_samples=REFINE_FIT_SAMPLES), params=fit,
                            pose=Pose() if current is None else result.pose)
-        loc = MeshLocation(np.asarray(landmark_locations["triangles"], int),
-                           np.asarray(landmark_locations["bary"], float))
-        fitted = loc.evaluate(result.points, faces)
+        fitted = landmark_locations.evaluate(result.points, faces)
     if exact_landmarks and given:
         fitted[given] = given_points
     shift = float(np.sqrt(((fitted[given] - given_points) ** 2).sum(axis=1).mean())) if given else 0.0
     return fitted, float(result.mean_distance_mm), shift, transfer
 
 
-def coat_mean_shape(template_points: np.ndarray, faces: np.ndarray, target, landmark_locations: dict,
+def coat_mean_shape(template_points: np.ndarray, faces: np.ndarray, target, landmark_locations: LandmarkLocations,
                     warp_landmarks: np.ndarray, *, coating: CoatingParams, name: str = "") -> CoatingResult:
     """The coating half of a round: the mean shape coated onto one instance by the paper's
     pipeline (landmark warp eq. 2 to ``warp_landmarks`` (L, 3) mm, projection, relaxation
     eq. 3), in the instance's object frame."""
-    loc = MeshLocation(np.asarray(landmark_locations["triangles"], int), np.asarray(landmark_locations["bary"], float))
-    return coat(Mesh(template_points, faces), loc.evaluate(template_points, faces), target, warp_landmarks,
+    return coat(Mesh(template_points, faces), landmark_locations.evaluate(template_points, faces), target, warp_landmarks,
                 params=coating, name=name)
 
 
 def refine_instance(others: np.ndarray, faces: np.ndarray, template_points: np.ndarray, target,
-                    landmark_locations: dict, landmarks_object: dict, *, fit: FitParams,
+                    landmark_locations: LandmarkLocations, landmarks_object: dict, *, fit: FitParams,
                     coating: CoatingParams, exact_landmarks: bool = True, current: np.ndarray | None = None,
                     name: str = "") -> tuple[CoatingResult, float, float, dict]:
     """One instance in one round: :func:`round_landmarks` (the model of ``others`` fitted to
@@ -553,7 +549,7 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
         raise InputError(f"model-guided correspondence: instance(s) not coated yet: {', '.join(missing)}")
     faces = np.asarray(study.template.faces)
     # the template's landmarks as mesh points, located at make_template (study.py)
-    locations = (study.template.params or {}).get("landmark_locations") or {"names": [], "triangles": [], "bary": []}
+    locations = study.template.landmark_locations
     fit = correspondence_fit_params(params)
     lm_object = {}
     for n in names:
@@ -563,7 +559,7 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
     anchor = names.index(study.template_instance)
     # the template's sampling (paper 3: its points on the template instance); a study
     # refined before has the mean shape as template and its template instance re-sampled
-    mean_template = (study.template.params or {}).get("mean_shape_template")
+    mean_template = study.template.is_mean_shape
     sampling = np.array(study.coatings[names[anchor]].points_object if mean_template else study.template.points_object,
                         dtype=float)
     size = float(np.linalg.norm(np.ptp(study.coatings[names[anchor]].points_object, axis=0)))
@@ -574,7 +570,7 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
     if params.round_template == "instance" and mean_template:
         raise InputError("model-guided correspondence: round_template = \"instance\" needs the template instance's "
                          "template, the study has the mean shape (refined with round_template = \"mean\")")
-    complete = {n: bool(locations.get("names")) and all(k in lm_object[n] for k in locations["names"]) for n in names}
+    complete = {n: bool(len(locations)) and all(k in lm_object[n] for k in locations.names) for n in names}
     best_check, stop, converged, total = None, "limit", False, params.iterations
     try:
         for r in range(1, total + 2):
@@ -695,25 +691,22 @@ def _finish_round(study, names, points, resampled, fitted, faces, size, r, t0, r
     return change
 
 
-def _given_landmark_residuals(coating: CoatingResult, faces: np.ndarray, locations: dict,
+def _given_landmark_residuals(coating: CoatingResult, faces: np.ndarray, locations: LandmarkLocations,
                               given: dict) -> CoatingResult:
     """The coating with its landmark residuals measured against the instance's *given*
     landmarks (object frame, mm), not against the round's warp targets (the fit's
     estimate): a given landmark the population moves far is then named by the
     ``landmark_residual`` gate; an instance without landmarks has none."""
-    idx = [i for i, n in enumerate(locations.get("names", ())) if n in given]
+    here = locations.subset([n for n in locations.names if n in given])
     residuals = ()
-    if idx:
-        at = MeshLocation(np.asarray(locations["triangles"], np.int64)[idx],
-                          np.asarray(locations["bary"], float)[idx]).evaluate(coating.points_object, faces)
-        want = np.array([given[locations["names"][i]] for i in idx])
+    if len(here):
+        at = here.evaluate(coating.points_object, faces)
+        want = np.array([given[n] for n in here.names])
         residuals = tuple(float(x) for x in np.linalg.norm(at - want, axis=1))
-    return replace(coating, fit=replace(coating.fit, landmark_residuals_mm=residuals,
-                                        landmark_names=tuple(locations["names"][i] for i in idx)))
+    return replace(coating, fit=replace(coating.fit, landmark_residuals_mm=residuals, landmark_names=here.names))
 
 
 def _mean_template(study, mean_points: np.ndarray, faces: np.ndarray):
     """The mean shape as the study's template (model frame; curvature and frame kept)."""
     t = study.template
-    return replace(t, points_object=np.asarray(mean_points, float), faces=faces,
-                   params={**t.params, "mean_shape_template": True})
+    return replace(t, points_object=np.asarray(mean_points, float), faces=faces, is_mean_shape=True)

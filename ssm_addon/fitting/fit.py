@@ -39,7 +39,7 @@ from ..pipeline.params import FitParams
 from ..pipeline.progress import CancelledFn, ProgressFn, report
 
 __all__ = ["FitResult", "ModelErrorField", "Pose", "Target", "correlation_length", "farthest_point_indices",
-           "fit_any_pose", "fit_model", "loo_residuals", "model_error_field", "model_error_variance", "model_landmarks", "outlier_limit",
+           "fit_any_pose", "fit_model", "loo_residuals", "model_error_field", "model_error_variance", "outlier_limit",
            "rigid_screen", "start_poses"]
 
 
@@ -166,19 +166,6 @@ class FitResult:
                 "iterations": int(self.iterations), "converged": bool(self.converged),
                 "posterior_sd_mm": {"mean": float(self.posterior_sd_mm.mean()),
                                     "max": float(self.posterior_sd_mm.max())}}
-
-
-def model_landmarks(model) -> tuple[tuple[str, ...], np.ndarray, np.ndarray]:
-    """The landmarks stored with a model: names, triangles (L,) and barycentric weights (L, 3).
-
-    They are points of the mean mesh (the template's landmarks located on the template's
-    triangles, ``params["landmark_locations"]``); empty when the model has none.
-    """
-    loc = (model.params or {}).get("landmark_locations") or {}
-    names = tuple(loc.get("names", ()))
-    if not names:
-        return (), np.zeros(0, int), np.zeros((0, 3))
-    return names, np.asarray(loc["triangles"], int), np.asarray(loc["bary"], float)
 
 
 def _procrustes(src: np.ndarray, dst: np.ndarray, w: np.ndarray, scale: bool) -> Pose:
@@ -460,7 +447,8 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
         q = np.concatenate([q, error_field.basis], axis=2)
         lam = np.concatenate([lam, np.ones(error_field.basis.shape[2])])
         k = q.shape[2]
-    names, tris, bary = model_landmarks(model)
+    located = model.landmark_locations
+    names = list(located.names)
     lm_pairs = None
     if target.landmarks is not None and len(target.landmarks):
         common = [n for n in names if n in target.landmarks.names]
@@ -471,8 +459,8 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
                              f"({', '.join(target.landmarks.names[:5])}{'…' if len(target.landmarks) > 5 else ''}) is "
                              f"one the model knows ({known})")
         idx = [names.index(n) for n in common]
-        verts = np.asarray(model.faces)[tris[idx]]  # (L, 3) vertex ids
-        lm_pairs = (common, verts, bary[idx], target.landmarks.subset(common).points_world, unknown)
+        verts = np.asarray(model.faces)[located.triangles[idx]]  # (L, 3) vertex ids
+        lm_pairs = (common, verts, located.bary[idx], target.landmarks.subset(common).points_world, unknown)
     if not target.has_surface and lm_pairs is None:
         raise InputError(f"{target.source or 'target'}: nothing to fit to (no surface, points or known landmarks)")
     if pose is None:
@@ -691,7 +679,7 @@ def fit_any_pose(model, target: Target, *, params: FitParams | None = None, fram
     params = FitParams() if params is None else params
     mean = np.asarray(model.mean, float)
     starts = start_poses(model, target, frame_pose=frame_pose, partial=partial)
-    names, *_ = model_landmarks(model)
+    names = model.landmark_locations.names
     if target.landmarks is not None and len([n for n in target.landmarks.names if n in names]) >= 3:
         starts.insert(0, ("landmarks", None))
     if not target.has_surface or not starts:

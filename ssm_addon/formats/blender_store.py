@@ -57,10 +57,7 @@ def save_study(study: Study, folder, *, extra: dict | None = None) -> Path:
         frame_to_arrays(f"frame/{index[name]}", frame, arrays)
     t = study.template
     if t is not None:
-        arrays["template/points_object"] = np.asarray(t.points_object, float)
-        arrays["template/faces"] = np.asarray(t.faces, np.int64)
-        arrays["template/curvature"] = np.asarray(t.curvature, float)
-        arrays["template/params_json"] = np.asarray(json.dumps(jsonable(t.params)))
+        arrays.update({f"template/{k}": np.asarray(v) for k, v in t.to_arrays().items()})
         frame_to_arrays("template/frame", t.frame, arrays)
     for name, c in study.coatings.items():
         k = index[name]
@@ -122,9 +119,8 @@ def load_study(folder) -> tuple[Study, dict]:
                 points_object=a[f"coating/{k}/points_object"], warped_points_object=a[f"coating/{k}/warped_points_object"],
                 fit=FitFigures.from_json(str(a[f"coating/{k}/fit_json"])), name=spec.name)
     if "template/points_object" in a:
-        study.template = Template(points_object=a["template/points_object"], faces=a["template/faces"],
-                                  curvature=a["template/curvature"], frame=frame_from_arrays("template/frame", a),
-                                  params=json.loads(str(a["template/params_json"])))
+        study.template = Template.from_arrays({k.removeprefix("template/"): v for k, v in a.items()
+                                               if k.startswith("template/")}, frame_from_arrays("template/frame", a))
     if "model/mean" in a:
         study.model = model_from_arrays({**{k: a[f"model/{k}"] for k in (
             "mean", "faces", "modes", "variances", "instance_names", "instance_points", "instance_points_world")},

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..meshutil import LandmarkLocations
 from ..pipeline.errors import InputError, check_cancelled
 from ..pipeline.progress import report
 from ..pipeline.records import jsonable, versions
@@ -95,6 +96,13 @@ class ShapeModel:
     @property
     def alignment(self) -> str:
         return str(self.params.get("alignment", "none"))
+
+    @property
+    def landmark_locations(self) -> LandmarkLocations:
+        """The landmarks the model knows, as points of the mean mesh (the template instance's,
+        located on the template's triangles; ``params["landmark_locations"]`` in files); empty
+        when it has none."""
+        return LandmarkLocations.from_dict((self.params or {}).get("landmark_locations"))
 
     @property
     def total_variance(self) -> float:

@@ -30,7 +30,6 @@ import numpy as np
 from .. import __version__
 from ..coating.coating import CoatingResult, FitFigures
 from ..instances.volume import ObjectFrame, frame_from_arrays, frame_to_arrays
-from ..model.pca import jsonable
 from ..model.quality import Finding
 from ..pipeline.errors import InputError
 from ..template.template import Template
@@ -289,8 +288,7 @@ class BuildCache:
             self._damaged(path, "the template", "its faces or curvature do not match its points")
             return None
         try:
-            t = Template(points_object=a["points_object"], faces=a["faces"], curvature=a["curvature"],
-                         frame=frame_from_arrays("frame", a), params=json.loads(str(a["params_json"])))
+            t = Template.from_arrays(a, frame_from_arrays("frame", a))
         except (KeyError, ValueError, TypeError) as err:
             self._damaged(path, "the template", f"{type(err).__name__}: {err}")
             return None
@@ -298,10 +296,7 @@ class BuildCache:
         return t
 
     def put_template(self, key: str, template: Template) -> None:
-        arrays = {"points_object": np.asarray(template.points_object, float),
-                  "faces": np.asarray(template.faces, np.int64),
-                  "curvature": np.asarray(template.curvature, float),
-                  "params_json": np.asarray(json.dumps(jsonable(template.params)))}
+        arrays = {k: np.asarray(v) for k, v in template.to_arrays().items()}
         frame_to_arrays("frame", template.frame, arrays)
         self._write(self.template_path(key), arrays)
 

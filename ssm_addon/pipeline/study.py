@@ -35,12 +35,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..coating.coating import CoatingResult, coat_all
+from ..coating.coating import CoatingResult, CoatingStart, coat_all
 from ..formats.label_maps import read_label_map
 from ..formats.landmarks import LandmarkSet
 from ..instances.importing import InstanceSpec, import_instance
 from ..instances.volume import ObjectFrame, ObjectVolume
-from ..meshutil import genus, locate_on_mesh
+from ..meshutil import LandmarkLocations, genus
 from ..model.pca import ShapeModel, build_model
 from ..model.quality import (
     check_coating,
@@ -128,8 +128,9 @@ class Study:
     streamed : dict
         After a streamed build (:func:`stream_instances`): instances taken from the cache
         (``cached``) and coated (``computed``).
-    coating_start : dict name -> str
-        How each coating started: ``"landmarks"``, ``"model fit"``, ``"object frames"``.
+    coating_start : dict name -> CoatingStart
+        How each instance's correspondence began (where it differs from its coating's own
+        ``fit.start``: the model method's start).
     correspondence_rounds : list of RoundFigures
         The model method's refinement rounds.
     correspondence_check : CorrespondenceCheck or None
@@ -147,7 +148,7 @@ class Study:
     metrics: dict | None = None
     findings: list = field(default_factory=list)
     outlier_scores: dict = field(default_factory=dict)
-    coating_start: dict = field(default_factory=dict)
+    coating_start: dict[str, CoatingStart] = field(default_factory=dict)
     correspondence_rounds: list = field(default_factory=list)
     correspondence_check: object | None = None
     timings_s: dict[str, float] = field(default_factory=dict)
@@ -272,8 +273,7 @@ def make_template(study: Study, *, progress: ProgressFn = None, cancelled: Cance
         raise InputError(f"template from instance {name!r}: {err}") from None
     study_with = Study(instances=study.instances, template_instance=name, template=template, frames={
         name: study.frame(name)})
-    template.params["landmark_locations"] = template_landmark_locations(study_with)
-    return template
+    return dataclasses.replace(template, landmark_locations=template_landmark_locations(study_with))
 
 
 def common_landmark_names(study: Study, names: Sequence[str]) -> tuple[str, ...]:
@@ -397,10 +397,10 @@ def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: in
                                         fit=correspondence_fit_params(cp),
                                         coating=study.params.coating, template_frame=study.frame(study.template_instance),
                                         jobs=jobs, cancelled=cancelled))
-        start = "model fit"
+        start = CoatingStart.MODEL_FIT
     else:
         coated.update(coat_from_frames(study, rest, jobs=jobs, cancelled=cancelled))
-        start = "object frames"
+        start = CoatingStart.OBJECT_FRAMES
     # a landmarked instance's own record (the landmark warp, or the object frames where the
     # registration fell back from it), the others' start
     study.coating_start.update({n: coated[n].fit.start if n in landmarked else start for n in names})
@@ -678,7 +678,7 @@ def make_model(study: Study, *, names: Sequence[str] | None = None, progress: Pr
     except InputError:
         pass
     params = study_parameters(study, common)
-    params["landmark_locations"] = template_landmark_locations(study)
+    params["landmark_locations"] = template_landmark_locations(study).to_dict()
     params["fit"] = {n: {k: v for k, v in study.coatings[n].fit.to_dict().items() if k != "time_s"} for n in names}
     mp = study.params.model
     return build_model(pts, study.template.faces, names, instance_points_world=world, alignment=mp.alignment,
@@ -686,23 +686,22 @@ def make_model(study: Study, *, names: Sequence[str] | None = None, progress: Pr
                        precision=mp.precision, params=params, progress=progress, cancelled=cancelled)
 
 
-def template_landmark_locations(study: Study) -> dict:
+def template_landmark_locations(study: Study) -> LandmarkLocations:
     """The template instance's landmarks as points of the template mesh (triangle, barycentric).
 
     With the template's connectivity they are the same points of every coated instance
     and of the mean shape: the landmarks a model knows (``ssm fit --landmarks``) and the
     ones written for every instance. Located once, on the template built from the
-    template instance (kept in ``template.params`` when the mean shape takes its place).
+    template instance (kept in ``template.landmark_locations`` when the mean shape takes
+    its place).
     """
-    if study.template is not None and "landmark_locations" in (study.template.params or {}):
-        return study.template.params["landmark_locations"]
+    if study.template is not None and len(study.template.landmark_locations):
+        return study.template.landmark_locations
     lm = study.landmarks(study.template_instance)
     if lm is None or study.template is None:
-        return {"names": [], "triangles": [], "bary": []}
+        return LandmarkLocations.none()
     pts = study.frame(study.template_instance).to_object(lm.points_world)
-    loc = locate_on_mesh(study.template.points_object, study.template.faces, pts)
-    return {"names": list(lm.names), "triangles": [int(t) for t in loc.triangles],
-            "bary": [[float(x) for x in row] for row in loc.bary]}
+    return LandmarkLocations.locate(lm.names, study.template.points_object, study.template.faces, pts)
 
 
 def carried_landmarks(study: Study) -> dict[str, LandmarkSet]:
@@ -714,17 +713,14 @@ def carried_landmarks(study: Study) -> dict[str, LandmarkSet]:
     build writes for review (``landmarks/<name>.<ext>``), also for instances that had none.
     """
     loc = template_landmark_locations(study)
-    if not loc["names"]:
+    if not len(loc):
         return {}
-    faces = np.asarray(study.template.faces)
-    tris, bary = np.asarray(loc["triangles"], int), np.asarray(loc["bary"], float)
     out = {}
     for name in study.names:
         if name not in study.coatings:
             continue
-        corners = np.asarray(study.coatings[name].points_object)[faces[tris]]  # (L, 3, 3)
-        pts = study.frame(name).to_world(np.einsum("lk,lkd->ld", bary, corners))
-        out[name] = LandmarkSet(tuple(loc["names"]), pts, f"{name} (carried over by the coating)")
+        pts = study.frame(name).to_world(loc.evaluate(study.coatings[name].points_object, study.template.faces))
+        out[name] = LandmarkSet(loc.names, pts, f"{name} (carried over by the coating)")
     return out
 
 
@@ -919,7 +915,7 @@ def self_check(study: Study, coatings: dict[str, CoatingResult], *, template: Te
     if (not study.params.correspondence.self_check or len(names) < 3 or template is None
             or any(n not in coatings for n in names)):
         return None, ()
-    locations = (template.params or {}).get("landmark_locations") or {}
+    locations = template.landmark_locations
     frames = {**study.frames, **(frames or {})}
     given = {}
     for n in names:

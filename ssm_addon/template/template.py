@@ -81,6 +81,13 @@ class Template:
         The template instance's object frame (object mm -> world mm).
     params : dict
         Parameters and figures of the build (JSON-serialisable).
+    landmark_locations : LandmarkLocations
+        The template instance's landmarks as points of the template's triangles (empty
+        until the study locates them); with the template's connectivity they are the same
+        points of every coated instance and of the mean shape.
+    is_mean_shape : bool
+        True when the points are a mean shape coated onto the template instance (the
+        model method's ``round_template = "mean"``, paper 3.3), not the reduced surface.
     """
 
     points_object: np.ndarray
@@ -88,11 +95,43 @@ class Template:
     curvature: np.ndarray
     frame: ObjectFrame
     params: dict = field(default_factory=dict)
+    landmark_locations: meshutil.LandmarkLocations = field(default_factory=meshutil.LandmarkLocations.none)
+    is_mean_shape: bool = False
 
     @property
     def points_world(self) -> np.ndarray:
         """(N, 3) vertices in world mm."""
         return self.frame.to_world(self.points_object)
+
+    def to_arrays(self) -> dict:
+        """Plain arrays and JSON strings (no frame, no pickles) for ``.npz`` files, the build cache,
+        the Blender hand-over and ID properties; :meth:`from_arrays` reads them back."""
+        return {"points_object": np.asarray(self.points_object, float),
+                "faces": np.asarray(self.faces, np.int64),
+                "curvature": np.asarray(self.curvature, float),
+                "params_json": json.dumps(self.params, default=_json_default),
+                "landmark_locations_json": json.dumps(self.landmark_locations.to_dict()),
+                "is_mean_shape": np.asarray(int(self.is_mean_shape))}
+
+    @classmethod
+    def from_arrays(cls, arrays, frame: ObjectFrame) -> Template:
+        """The template of :meth:`to_arrays`' arrays (a mapping or an npz) in ``frame``.
+
+        Files written before the landmark locations and the mean-shape flag had fields of
+        their own (they were ``params["landmark_locations"]`` / ``["mean_shape_template"]``)
+        read the same.
+        """
+        params = dict(json.loads(str(arrays["params_json"]))) if "params_json" in arrays else {}
+        old_locations = params.pop("landmark_locations", None)
+        old_mean = bool(params.pop("mean_shape_template", False))
+        if "landmark_locations_json" in arrays:
+            locations = meshutil.LandmarkLocations.from_dict(json.loads(str(arrays["landmark_locations_json"])))
+        else:
+            locations = meshutil.LandmarkLocations.from_dict(old_locations)
+        mean = bool(np.asarray(arrays["is_mean_shape"]).reshape(-1)[0]) if "is_mean_shape" in arrays else old_mean
+        return cls(points_object=np.asarray(arrays["points_object"], float),
+                   faces=np.asarray(arrays["faces"]).astype(np.int64), curvature=np.asarray(arrays["curvature"], float),
+                   frame=frame, params=params, landmark_locations=locations, is_mean_shape=mean)
 
 
 # --------------------------------------------------------------------------- topology
@@ -702,20 +741,19 @@ def save_template(path, template: Template) -> Path:
 
     Keys: ``points_object`` (N, 3) mm, ``faces`` (F, 3), ``curvature`` (N,) 1/mm,
     ``frame_origin_world`` (3,), ``frame_axes_world`` (3, 3), ``frame_second_moments_mm2``
-    (3,), ``frame_method`` (str), ``params_json`` (str).
+    (3,), ``frame_method`` (str), ``params_json`` (str), ``landmark_locations_json`` (str:
+    names, triangles, barycentric weights) and ``is_mean_shape`` (0 or 1).
     """
     path = Path(path)
     fr = template.frame
+    arrays = {k: (np.array(v) if isinstance(v, str) else v) for k, v in template.to_arrays().items()}
     np.savez(
         path,
-        points_object=np.asarray(template.points_object, float),
-        faces=np.asarray(template.faces, np.int64),
-        curvature=np.asarray(template.curvature, float),
         frame_origin_world=np.asarray(fr.origin_world, float),
         frame_axes_world=np.asarray(fr.axes_world, float),
         frame_second_moments_mm2=np.asarray(fr.second_moments_mm2, float),
         frame_method=np.array(str(fr.method)),
-        params_json=np.array(json.dumps(template.params, default=_json_default)),
+        **arrays,
     )
     return path if path.suffix == ".npz" else path.with_name(path.name + ".npz")
 
@@ -746,6 +784,4 @@ def load_template(path) -> Template:
         second_moments_mm2=d.get("frame_second_moments_mm2", np.zeros(3)),
         method=str(d["frame_method"]) if "frame_method" in d else "moments",
     )
-    params = json.loads(str(d["params_json"])) if "params_json" in d else {}
-    return Template(points_object=d["points_object"], faces=d["faces"].astype(np.int64), curvature=d["curvature"],
-                    frame=frame, params=params)
+    return Template.from_arrays(d, frame)
