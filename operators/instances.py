@@ -70,7 +70,7 @@ def write_instance(context, obj, spec: InstanceSpec, *, kind: str, frame, volume
     ssm.source_kind = kind
     ssm.source = relative_source(str(spec.source)) if spec.source is not None else ""
     ssm.label = -1 if spec.label is None else int(spec.label)
-    ssm.mesh_spacing_mm = float(spec.mesh_spacing or 0.0)
+    ssm.mesh_spacing_mm = float(spec.mesh_spacing_mm or 0.0)
     ssm.volume_mm3 = float(volume_mm3)
     write_frame(obj, frame, bridge.matrix_to_numpy(obj.matrix_world))
     obj[VOXELS_PROP] = int(voxels)
@@ -88,13 +88,13 @@ def import_items(specs, *, spacing_mm: float, frame_method: str, label_maps: dic
         check_cancelled(cancelled)
         prog = sub_progress(progress, k / len(specs), (k + 1) / len(specs), f"{spec.name}: ")
         report(prog, 0.0, "reading")
-        label_map = (label_maps or {}).get(spec.volume)
+        label_map = (label_maps or {}).get(spec.volume_path)
         vol = core.read_instance(spec, spacing_mm=spacing_mm, label_map=label_map, cancelled=cancelled)
         report(prog, 0.3, "object frame and resampling")
         ov = core.object_from_volume(vol, spacing_mm=spacing_mm, frame_method=frame_method, cancelled=cancelled)
         report(prog, 0.7, "surface")
         verts_world, faces = display_surface(vol)
-        items.append({"spec": spec, "kind": "MESH_FILE" if spec.mesh is not None else "VOLUME", "object_volume": ov,
+        items.append({"spec": spec, "kind": "MESH_FILE" if spec.mesh_path is not None else "VOLUME", "object_volume": ov,
                       "vertices_object": ov.frame.to_object(verts_world), "faces": faces,
                       "volume_mm3": vol.volume_mm3, "voxels": int(np.count_nonzero(vol.mask))})
     return items
@@ -213,13 +213,13 @@ class SSM_OT_import_segmentation(BackgroundJob, bpy.types.Operator, ImportHelper
                 report(prog, 0.0, "reading")
                 label_maps = {}
                 if imageio.is_mesh_file(path):
-                    specs = [InstanceSpec(name=instance_name(pattern, path, None), mesh=Path(path))]
+                    specs = [InstanceSpec(name=instance_name(pattern, path, None), mesh_path=Path(path))]
                 else:
                     label_maps[Path(path)] = label_map = imageio.read_label_map(path)
                     labels = sorted(imageio.label_counts(label_map)) if split else [label]
                     if not labels:
                         raise InputError(f"{path}: empty mask: the label map has no non-zero voxels")
-                    specs = [InstanceSpec(name=instance_name(pattern, path, lab), volume=Path(path), label=lab)
+                    specs = [InstanceSpec(name=instance_name(pattern, path, lab), volume_path=Path(path), label=lab)
                              for lab in labels]
                 items += import_items(specs, spacing_mm=spacing, frame_method=frame_method, label_maps=label_maps,
                                       progress=sub_progress(prog, 0.2, 1.0), cancelled=cancelled)
@@ -302,7 +302,7 @@ class SSM_OT_add_mesh_instances(BackgroundJob, bpy.types.Operator):
                 coll.objects.link(obj)
             if not is_instance(obj):
                 obj.ssm.order = next_order(context)
-            write_instance(context, obj, InstanceSpec(name=name, mesh_spacing=float(self.spacing_mm) or None),
+            write_instance(context, obj, InstanceSpec(name=name, mesh_spacing_mm=float(self.spacing_mm) or None),
                            kind="BLENDER_MESH", frame=ov.frame, volume_mm3=vol.volume_mm3,
                            voxels=int(np.count_nonzero(vol.mask)))
             cache_volume(context, obj, ov)

@@ -401,7 +401,7 @@ class SSM_OT_save_model(BackgroundJob, bpy.types.Operator):
                 mets = core_metrics.evaluate(model, n_samples=n_samples, seed=seed, max_loo=max_loo,
                                              progress=progress, cancelled=cancelled)
             else:
-                mets = {"compactness": core_metrics.compactness(model)}
+                mets = core_metrics.ModelMetrics(compactness=core_metrics.compactness(model))
             written = write_outputs(model, out_dir, metrics=mets, per_instance=per_instance, extra=extra, plots=plots,
                                     **files)
             written["html"] = str(write_report_html(out_dir, model, doc=written.pop("document"),

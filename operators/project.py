@@ -80,10 +80,10 @@ def show_study(context, study) -> dict:
         obj = bridge.new_mesh_object(context, spec.name, verts, faces, collection_name=bridge.INSTANCES_COLLECTION,
                                      matrix_world=ov.frame.matrix_world)
         obj.ssm.order = order
-        write_instance(context, obj, spec, kind="VOLUME" if spec.volume is not None else "MESH_FILE", frame=ov.frame,
+        write_instance(context, obj, spec, kind="VOLUME" if spec.volume_path is not None else "MESH_FILE", frame=ov.frame,
                        volume_mm3=ov.volume_mm3, voxels=int(np.count_nonzero(ov.mask)))
         objs[spec.name] = obj
-        lm = spec.landmark_set
+        lm = spec.landmarks
         if lm is not None:
             for name in lm.names:
                 if name not in {i.name for i in scene.ssm_landmarks.names}:
@@ -171,7 +171,7 @@ def project_from_scene(context, path) -> core.Project:
     study = study_from_scene(context, coatings=False)
     if len(study.instances) < 2:
         raise InputError(f"the scene has {len(study.instances)} SSM instance(s); a project needs at least two")
-    missing = [i.name for i in study.instances if i.landmark_set is None]
+    missing = [i.name for i in study.instances if i.landmarks is None]
     model_method = study.params.correspondence.method == "model"
     if missing and not model_method:
         raise InputError(f"no landmarks on instance(s) {', '.join(missing)}: place or import them first (or set "
@@ -185,18 +185,18 @@ def project_from_scene(context, path) -> core.Project:
     specs = []
     for spec in study.instances:
         lm_path = None
-        if spec.landmark_set is not None:
+        if spec.landmarks is not None:
             lm_path = folder / "landmarks" / f"{files[spec.name]}.fcsv"
-            core_landmarks.write_landmarks(lm_path, spec.landmark_set)
+            core_landmarks.write_landmarks(lm_path, spec.landmarks)
         if spec.source is None:  # a Blender mesh: written out
             (folder / "meshes").mkdir(exist_ok=True)
             mesh_path = folder / "meshes" / f"{files[spec.name]}.ply"
             verts, faces = mesh_file_world(objs[spec.name])
             write_ply(mesh_path, verts, faces)
-            spec = InstanceSpec(name=spec.name, mesh=mesh_path, mesh_spacing=spec.mesh_spacing,
-                                landmark_set=spec.landmark_set)
-        specs.append(InstanceSpec(name=spec.name, landmarks=lm_path, volume=spec.volume, label=spec.label,
-                                  mesh=spec.mesh, mesh_spacing=spec.mesh_spacing, landmark_set=spec.landmark_set))
+            spec = InstanceSpec(name=spec.name, mesh_path=mesh_path, mesh_spacing_mm=spec.mesh_spacing_mm,
+                                landmarks=spec.landmarks)
+        specs.append(InstanceSpec(name=spec.name, landmarks_path=lm_path, volume_path=spec.volume_path, label=spec.label,
+                                  mesh_path=spec.mesh_path, mesh_spacing_mm=spec.mesh_spacing_mm, landmarks=spec.landmarks))
     return core.Project(path=path, instances=tuple(specs), template_instance=study.template_instance,
                         params=study.params, landmark_names=study.landmarks(study.template_instance).names,
                         instance_attributes={n: a for n, a in scene_instance_attributes(context).items()
@@ -221,7 +221,7 @@ def load_project_into_scene(context, project: core.Project) -> list:
     for obj, spec in zip(created, project.instances):
         if obj.name != spec.name and bpy.data.objects.get(spec.name) is None:
             obj.name = spec.name
-        lm = spec.landmark_set
+        lm = spec.landmarks
         if lm is None:
             continue
         for name in lm.names:

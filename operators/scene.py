@@ -172,10 +172,10 @@ def instance_spec(context, obj) -> InstanceSpec:
     path = Path(absolute_source_path(obj)) if obj.ssm.source else None
     mesh_spacing = float(ssm.mesh_spacing_mm) or None
     if ssm.source_kind == "VOLUME":
-        return InstanceSpec(name=obj.name, volume=path, label=None if ssm.label < 0 else int(ssm.label), landmark_set=lm)
+        return InstanceSpec(name=obj.name, volume_path=path, label=None if ssm.label < 0 else int(ssm.label), landmarks=lm)
     if ssm.source_kind == "MESH_FILE":
-        return InstanceSpec(name=obj.name, mesh=path, mesh_spacing=mesh_spacing, landmark_set=lm)
-    return InstanceSpec(name=obj.name, mesh_spacing=mesh_spacing, landmark_set=lm)
+        return InstanceSpec(name=obj.name, mesh_path=path, mesh_spacing_mm=mesh_spacing, landmarks=lm)
+    return InstanceSpec(name=obj.name, mesh_spacing_mm=mesh_spacing, landmarks=lm)
 
 
 # ---------------------------------------------------------------------------- landmarks
@@ -314,7 +314,7 @@ class VolumeLoader:
             report(prog, 0.0, "reading")
             if mesh is not None:
                 ov = core_instances.object_from_mesh(mesh[0], mesh[1], spacing_mm=self.spacing,
-                                                     mesh_spacing_mm=spec.mesh_spacing,
+                                                     mesh_spacing_mm=spec.mesh_spacing_mm,
                                                      frame_method=self.frame_method, source=spec.name,
                                                      cancelled=cancelled)
             else:

@@ -106,8 +106,8 @@ def test_open_and_save_project_round_trip(bpy_clean, small_demo, tmp_path):
     empties = [o for o in bpy.data.objects if o.ssm.role == "LANDMARK"]
     assert len(empties) == len(project.instances) * len(project.landmark_names)
     first = project.instances[0]
-    emp = bpy.data.objects[f"{first.name} {first.landmark_set.names[0]}"]
-    assert np.allclose(np.array(emp.matrix_world.translation), first.landmark_set.points_world[0], atol=1e-3)
+    emp = bpy.data.objects[f"{first.name} {first.landmarks.names[0]}"]
+    assert np.allclose(np.array(emp.matrix_world.translation), first.landmarks.points_world[0], atol=1e-3)
 
     saved = tmp_path / "again" / "project.toml"
     assert bpy.ops.ssm.save_project(filepath=str(saved)) == {"FINISHED"}
@@ -123,10 +123,10 @@ def test_open_and_save_project_round_trip(bpy_clean, small_demo, tmp_path):
     assert set(again.instance_attributes) == set(project.names)
     for inst in project.instances:
         copy = by_name[inst.name]
-        assert copy.volume == inst.volume and copy.label == inst.label
-        assert copy.landmarks.parent == saved.parent / "landmarks"
-        assert copy.landmark_set.names == inst.landmark_set.names
-        assert np.allclose(copy.landmark_set.points_world, inst.landmark_set.points_world, atol=1e-3)
+        assert copy.volume_path == inst.volume_path and copy.label == inst.label
+        assert copy.landmarks_path.parent == saved.parent / "landmarks"
+        assert copy.landmarks.names == inst.landmarks.names
+        assert np.allclose(copy.landmarks.points_world, inst.landmarks.points_world, atol=1e-3)
 
 
 def test_save_project_needs_landmarked_instances(bpy_clean, tmp_path):

@@ -57,7 +57,7 @@ def _landmark_ext(path) -> str:
     """The extension of the template instance's landmark file (e.g. ``mrk.json``)."""
     project = read_project(path)
     spec = next(i for i in project.instances if i.name == project.template_instance)
-    return spec.landmarks.name.split(".", 1)[1]
+    return spec.landmarks_path.name.split(".", 1)[1]
 
 
 def _swap_two_landmarks(population, prefix: str):
@@ -69,13 +69,13 @@ def _swap_two_landmarks(population, prefix: str):
     victim = "demo_00" if tpl != "demo_00" else "demo_01"
     project = read_project(population)
     spec = next(i for i in project.instances if i.name == victim)
-    lm = read_landmarks(spec.landmarks)
+    lm = read_landmarks(spec.landmarks_path)
     pts = lm.points_world.copy()
     far = int(np.argmax(np.linalg.norm(pts - pts[0], axis=1)))
     pts[[0, far]] = pts[[far, 0]]
     swapped = population.parent / f"{prefix}_{victim}.fcsv"
     write_landmarks(swapped, LandmarkSet(lm.names, pts, victim))
-    text = population.read_text().replace(f'landmarks = "{spec.landmarks.name}"', f'landmarks = "{swapped.name}"')
+    text = population.read_text().replace(f'landmarks = "{spec.landmarks_path.name}"', f'landmarks = "{swapped.name}"')
     return victim, lm, pts, far, text
 
 

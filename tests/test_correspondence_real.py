@@ -52,7 +52,7 @@ def _build(files, meshes, tmp_path, *, landmarks: int, on: int, method: str):
         if i < on:
             lm = tmp_path / f"{method}-{on}-{f.stem}.csv"
             write_landmarks(lm, LandmarkSet(tuple(f"L{j:02d}" for j in range(len(idx))), v[idx], f.stem))
-        specs.append(InstanceSpec(name=f.stem, mesh=f, landmarks=lm, landmark_set=read_landmarks(lm) if lm else None))
+        specs.append(InstanceSpec(name=f.stem, mesh_path=f, landmarks_path=lm, landmarks=read_landmarks(lm) if lm else None))
     study = Study(instances=specs, template_instance=files[0].stem,
                   params=StudyParams(correspondence=CorrespondenceParams(method=method)))
     run(study, stages=("import", "template"), jobs=2)

@@ -168,7 +168,7 @@ def test_leave_one_out_fit_of_a_real_vertebra(verse_models, tmp_path):
                      params={**study.model.params})
     save_npz(m8, tmp_path / "m8.npz")
     inst = study.instance(left)
-    t = apply.FitTarget(name=left, volume=inst.volume, label=inst.label)
+    t = apply.FitTarget(name=left, volume=inst.volume_path, label=inst.label)
     doc = apply.fit_to_folder(apply.load_model(tmp_path / "m8.npz"), t, tmp_path / "fit", free=True)
     print(f"\nL3 from a model of the other 8: constrained fit mean {doc['mean_distance_mm']:.2f} / max "
           f"{doc['max_distance_mm']:.2f} mm, free fit mean {doc['free']['mean_distance_mm']:.2f} / max "
@@ -292,8 +292,8 @@ def test_a_training_instance_fits_alike_as_mesh_label_map_and_in_any_pose(demo_b
     folder, project = demo_build
     model = load_model(folder / "out" / "model.npz")
     inst = project.instances[2]
-    ref = fit_to_folder(model, FitTarget(name="label", volume=inst.volume, label=inst.label), folder / "f_label")
-    v, f = display_surface(load_volume(inst.volume, inst.label))
+    ref = fit_to_folder(model, FitTarget(name="label", volume=inst.volume_path, label=inst.label), folder / "f_label")
+    v, f = display_surface(load_volume(inst.volume_path, inst.label))
     write_ply(folder / "mesh.ply", v, f)
     mesh = fit_to_folder(model, FitTarget(name="mesh", mesh=folder / "mesh.ply"), folder / "f_mesh")
     assert abs(mesh["mean_distance_mm"] - ref["mean_distance_mm"]) < 0.1 and not mesh["outlier"], mesh
@@ -323,7 +323,7 @@ def test_partial_open_meshes_tiny_targets_and_units_are_said(demo_build, capsys)
     npz = folder / "out" / "model.npz"
     model = load_model(npz)
     inst = project.instances[1]
-    v, f = display_surface(load_volume(inst.volume, inst.label))
+    v, f = display_surface(load_volume(inst.volume_path, inst.label))
     keep = v[:, 2] > np.median(v[:, 2])
     faces = f[keep[f].all(axis=1)]
     used = np.unique(faces)
@@ -334,7 +334,7 @@ def test_partial_open_meshes_tiny_targets_and_units_are_said(demo_build, capsys)
     assert "--partial" in capsys.readouterr().err
     half = fit_to_folder(model, FitTarget(name="half", mesh=folder / "half.ply"), folder / "h2", partial=True)
     assert 0.3 < half["coverage"] < 0.8, half["coverage"]
-    whole = fit_to_folder(model, FitTarget(name="whole", volume=inst.volume, label=inst.label), folder / "h3")
+    whole = fit_to_folder(model, FitTarget(name="whole", volume=inst.volume_path, label=inst.label), folder / "h3")
     assert whole["coverage"] > 0.95 and whole["warnings"] == []
     # the half predicts the whole: its fit lies near the whole shape's fit (mm)
     a = np.load(folder / "h2" / "fit.npz", allow_pickle=False)["posterior_mean"]
@@ -397,15 +397,15 @@ def test_batches_say_their_landmarks_and_merged_labels_are_named(demo_build, cap
     assert "project landmarks" not in capsys.readouterr().out
     inst = project.instances[0]
     single = folder / "b3"
-    assert main(["fit", str(npz), "--volume", str(inst.volume), "--label", str(inst.label), "--out", str(single)]) == 0
+    assert main(["fit", str(npz), "--volume", str(inst.volume_path), "--label", str(inst.label), "--out", str(single)]) == 0
     one = json.loads((single / "fit.json").read_text())
     sub = next(p for p in (folder / "b2").iterdir() if p.is_dir() and p.name.startswith(inst.name))
     batch = json.loads((sub / "fit.json").read_text())
     assert batch["landmarks_used"] == [] and abs(batch["mean_distance_mm"] - one["mean_distance_mm"]) < 1e-6
     from ssm_addon.formats.label_maps import read_label_map
 
-    if len(np.unique(read_label_map(inst.volume).labels)) > 2:  # the demo's label map holds several instances
-        assert main(["fit", str(npz), "--volume", str(inst.volume), "--out", str(folder / "b4")]) == 0
+    if len(np.unique(read_label_map(inst.volume_path).labels)) > 2:  # the demo's label map holds several instances
+        assert main(["fit", str(npz), "--volume", str(inst.volume_path), "--out", str(folder / "b4")]) == 0
         assert "fitted merged" in capsys.readouterr().err
 
 

@@ -12,6 +12,7 @@ from test_model import FACES, names, random_rotation, synthetic_population
 from ssm_addon.cli.report import write_outputs
 from ssm_addon.model.files import load_npz, load_statismo
 from ssm_addon.model.metrics import (
+    ModelMetrics,
     aggregate_fit,
     compactness,
     evaluate,
@@ -147,7 +148,7 @@ def test_report_and_plots(tmp_path, population):
 
 def test_write_outputs_writes_every_file(tmp_path, population):
     _, model = population
-    out = write_outputs(model, tmp_path / "out", metrics={"compactness": compactness(model)}, plots=False)
+    out = write_outputs(model, tmp_path / "out", metrics=ModelMetrics(compactness=compactness(model)), plots=False)
     assert load_npz(out["npz"]).n_modes == model.n_modes
     assert load_statismo(out["statismo"]).n_modes == model.n_modes
     assert out["plots"] == []

@@ -84,9 +84,9 @@ def _line_of(text: str, needle: str) -> int:
 def test_valid_project_resolves_paths_against_its_folder(files):
     proj = read_project(_write(files, VALID))
     assert proj.names == ("one", "two")
-    assert proj.instances[0].volume == (files / "data" / "one.nii.gz").resolve()
+    assert proj.instances[0].volume_path == (files / "data" / "one.nii.gz").resolve()
     assert proj.instances[0].label == 20 and proj.instances[1].label is None
-    assert proj.instances[1].landmarks == (files / "data" / "two.csv").resolve()
+    assert proj.instances[1].landmarks_path == (files / "data" / "two.csv").resolve()
     assert proj.template_instance == "two" and proj.params.template.spacing_mm == 1.5
     assert proj.params.coating.kernel == "biharmonic"
     assert proj.params.model.alignment == "rigid"
@@ -99,7 +99,7 @@ def test_paths_resolve_against_project_folder_not_cwd(files, monkeypatch):
     text = VALID.replace('"data/', '"../../data/')
     monkeypatch.chdir(files / "data")
     proj = read_project(_write(sub, text))
-    assert proj.instances[1].volume == (files / "data" / "two.nii.gz").resolve()
+    assert proj.instances[1].volume_path == (files / "data" / "two.nii.gz").resolve()
 
 
 def test_unknown_key_names_line_and_suggests_closest(files):
@@ -209,7 +209,7 @@ def test_write_project_round_trip(files, tmp_path):
     text = out.read_text()
     assert '"../data/one.nii.gz"' in text  # relative to the new file
     again = read_project(out)
-    assert [i.volume for i in again.instances] == [i.volume for i in proj.instances]
+    assert [i.volume_path for i in again.instances] == [i.volume_path for i in proj.instances]
     assert [i.label for i in again.instances] == [i.label for i in proj.instances]
     assert again.template_instance == proj.template_instance and again.params.template.spacing_mm == proj.params.template.spacing_mm
     assert again.params.coating == proj.params.coating and again.params.model == proj.params.model and again.params.template == proj.params.template
@@ -297,7 +297,7 @@ def demo_surfaces(demo_population):
 
     out = {}
     for inst in read_project(demo_population).instances:
-        img = nib.load(inst.volume)
+        img = nib.load(inst.volume_path)
         mask = np.asarray(img.dataobj) == demo.VERTEBRA_LABEL
         box = ndimage.find_objects(mask.astype(np.uint8))[0]
         verts, faces, _, _ = marching_cubes(np.pad(mask[box], 1).astype(np.float32), 0.5)
@@ -345,11 +345,11 @@ def test_demo_landmarks_lie_on_the_surface(demo_population, demo_surfaces):
     from scipy.spatial import cKDTree
 
     proj = read_project(demo_population)
-    formats = {Path(i.landmarks).name.split(".", 1)[1] for i in proj.instances}
+    formats = {Path(i.landmarks_path).name.split(".", 1)[1] for i in proj.instances}
     assert formats == {"fcsv", "mrk.json", "csv", "json"}
     for inst in proj.instances:
         world = demo_surfaces[inst.name][2]
-        d, _ = cKDTree(world).query(read_landmarks(inst.landmarks).points_world)
+        d, _ = cKDTree(world).query(read_landmarks(inst.landmarks_path).points_world)
         assert d.max() < 1.5 and np.median(d) < 0.6, (inst.name, d.round(2))
 
 
@@ -361,7 +361,7 @@ def test_demo_landmarks_match_the_generator(demo_population):
         canon = demo.landmarks_canonical(shape)
         pose = np.array(t["canonical_to_world"])
         expected = np.array([canon[n] for n in proj.landmark_names]) @ pose[:3, :3].T + pose[:3, 3]
-        assert np.allclose(inst.landmark_set.points_world, expected, atol=1e-3)
+        assert np.allclose(inst.landmarks.points_world, expected, atol=1e-3)
         sdf = demo.vertebra_sdf(np.array(list(canon.values())), shape)
         assert np.abs(sdf).max() < 1e-9  # analytic surface points
 
@@ -426,8 +426,8 @@ def test_parallel_build_equals_serial(demo_population, tmp_path):
 
 def test_info_lists_labels_with_voxel_counts(demo_population, capsys):
     inst = read_project(demo_population).instances[0]
-    labels = np.asarray(nib.load(inst.volume).dataobj)
-    assert main(["info", str(inst.volume)]) == 0
+    labels = np.asarray(nib.load(inst.volume_path).dataobj)
+    assert main(["info", str(inst.volume_path)]) == 0
     out = capsys.readouterr().out
     assert "spacing: 0.8 x 0.8 x 1.5 mm" in out
     for label in (demo.VERTEBRA_LABEL, demo.NEIGHBOUR_LABEL):
@@ -439,7 +439,7 @@ def test_template_command_reports_genus_one_for_a_demo_vertebra(demo_population,
 
     inst = read_project(demo_population).instances[0]
     out = tmp_path / "template.ply"
-    assert main(["template", str(inst.volume), "--label", "20", "--spacing", "1.0", "--out", str(out)]) == 0
+    assert main(["template", str(inst.volume_path), "--label", "20", "--spacing", "1.0", "--out", str(out)]) == 0
     text = capsys.readouterr().out
     verts, faces, _ = read_ply(out)
     assert f"vertices: {len(verts)}" in text and f"faces:    {len(faces)}" in text

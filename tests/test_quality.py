@@ -40,13 +40,13 @@ def _variant(population, tmp_path, name, edit):
 
 def _first_landmarks(project):
     inst = read_project(project).instances[0]
-    return inst.landmarks, inst
+    return inst.landmarks_path, inst
 
 
 def test_a_landmark_file_one_metre_away_is_an_error_naming_file_and_landmark(population, tmp_path):
     def edit(path, proj):
         lm_path, inst = _first_landmarks(path)
-        lm = inst.landmark_set
+        lm = inst.landmarks
         write_landmarks(lm_path, LandmarkSet(lm.names, lm.points_world + [1000.0, 0, 0], "x"))
 
     project = _variant(population, tmp_path, "offset", edit)
@@ -62,9 +62,9 @@ def test_a_landmark_file_one_metre_away_is_an_error_naming_file_and_landmark(pop
 def test_another_instances_landmark_file_is_an_error(population, tmp_path):
     def edit(path, proj):
         a, b = proj.instances[0], proj.instances[1]
-        shutil.copy(b.landmarks, a.landmarks.with_suffix(".tmp"))
+        shutil.copy(b.landmarks_path, a.landmarks_path.with_suffix(".tmp"))
         # instance 0 gets instance 1's landmarks (same names, another pose): the wrong file
-        write_landmarks(a.landmarks, LandmarkSet(b.landmark_set.names, b.landmark_set.points_world, "wrong"))
+        write_landmarks(a.landmarks_path, LandmarkSet(b.landmarks.names, b.landmarks.points_world, "wrong"))
 
     project = _variant(population, tmp_path, "wrong", edit)
     with pytest.raises(InputError, match="mm from the instance's surface"):
@@ -86,11 +86,11 @@ def test_landmarks_in_lps_declared_as_ras_get_an_error_that_says_so(tmp_path, ve
 def test_a_two_component_target_and_an_odd_volume_are_flagged(population, tmp_path):
     def edit(path, proj):
         inst = proj.instances[2]
-        img = nib.load(inst.volume)
+        img = nib.load(inst.volume_path)
         labels = np.asarray(img.dataobj).copy()
         other = labels == demo.NEIGHBOUR_LABEL
         labels[other] = demo.VERTEBRA_LABEL  # the neighbouring vertebra under the same label
-        nib.save(nib.Nifti1Image(labels, img.affine), str(inst.volume))
+        nib.save(nib.Nifti1Image(labels, img.affine), str(inst.volume_path))
 
     project = _variant(population, tmp_path, "two", edit)
     name = read_project(project).instances[2].name

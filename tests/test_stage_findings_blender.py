@@ -28,10 +28,10 @@ def flawed_project(tmp_path_factory):
                     .replace("[model]", "[model]\nspecificity_samples = 50"))
     project = read_project(path)
     two = project.instances[2]  # two components: the neighbour under the vertebra's label
-    img = nib.load(two.volume)
+    img = nib.load(two.volume_path)
     labels = np.asarray(img.dataobj).copy()
     labels[labels == demo.NEIGHBOUR_LABEL] = demo.VERTEBRA_LABEL
-    nib.save(nib.Nifti1Image(labels, img.affine), str(two.volume))
+    nib.save(nib.Nifti1Image(labels, img.affine), str(two.volume_path))
     return path, two.name
 
 

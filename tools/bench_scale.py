@@ -164,7 +164,7 @@ def cmd_pca(args) -> None:
         t0 = time.perf_counter()
         metrics = evaluate(model, n_samples=500, seed=0, max_loo=100)
         t_metrics = time.perf_counter() - t0
-    g = metrics["generalization"]
+    g = metrics.generalization
     print(f"PCA ({model.params['eigensolver']}): {model.n_modes} modes in {t_model:.1f} s; metrics "
           f"({g['method']}) in {t_metrics:.1f} s; peak RSS {mem.main_mb / 1024:.2f} GB "
           f"(ru_maxrss {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GB)")

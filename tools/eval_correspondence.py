@@ -191,7 +191,7 @@ def eval_meshes(args) -> dict:
                 pts = v[lm_idx] + rng.normal(scale=args.jitter, size=(len(lm_idx), 3)) * (i > 0 or args.jitter_template)
                 lm = Path(tmp) / f"{name}.csv"
                 write_landmarks(lm, LandmarkSet(tuple(f"L{j:02d}" for j in range(len(lm_idx))), pts, name))
-            specs.append(InstanceSpec(name=name, mesh=f, landmarks=lm, landmark_set=read_landmarks(lm) if lm else None))
+            specs.append(InstanceSpec(name=name, mesh_path=f, landmarks_path=lm, landmarks=read_landmarks(lm) if lm else None))
         study, template_points, seconds = run_study(specs, names[0], args.method, args.iterations, args.jobs)
     # point i of every coating is template point i, which lies on the template instance's
     # surface: its true place on instance k is the same place of k's mesh (shared faces)
@@ -378,8 +378,8 @@ def eval_deformed(args):
                     pts = pts + rng.normal(scale=args.jitter, size=pts.shape)
                 lm = Path(tmp) / f"{name}.fcsv"
                 write_landmarks(lm, LandmarkSet(given.names, pts, name))
-            specs.append(InstanceSpec(name=name, volume=f, label=1, landmarks=lm,
-                                      landmark_set=read_landmarks(lm) if lm else None))
+            specs.append(InstanceSpec(name=name, volume_path=f, label=1, landmarks_path=lm,
+                                      landmarks=read_landmarks(lm) if lm else None))
         study, template_points, seconds = run_study(specs, names[0], args.method, args.iterations, args.jobs)
     p0 = study.frame(names[0]).to_world(template_points)
     error_of = truth_errors(study, {n: p0 + u(p0) for n, u in zip(names, maps)})

@@ -75,7 +75,8 @@ class BuildResult:
         return self.study.model
 
     @property
-    def metrics(self) -> dict:
+    def metrics(self):
+        """The model's :class:`~ssm_addon.model.metrics.ModelMetrics`."""
         return self.study.metrics
 
     @property
@@ -239,7 +240,7 @@ def write_study_files(study: Study, folder: Path, *, output: OutputParams, proje
         files["coated"] = "coated"
     carried = carried_landmarks(study)
     if output.landmarks and carried:
-        given = study.instance(study.template_instance).landmarks
+        given = study.instance(study.template_instance).landmarks_path
         ext = landmark_format(given) if given is not None else "fcsv"
         (folder / "landmarks").mkdir()
         for name in names:
@@ -339,7 +340,7 @@ def open_cache(project: Project, out_dir: Path, cache=None):
     if folder == out_dir or out_dir in folder.parents:
         raise InputError(f"--cache {folder}: inside the output folder {out_dir}, which a build replaces; put the "
                          "cache beside it")
-    inputs = {p.resolve() for i in project.instances for p in (i.volume, i.mesh, i.landmarks) if p is not None}
+    inputs = {p.resolve() for i in project.instances for p in (i.volume_path, i.mesh_path, i.landmarks_path) if p is not None}
     if folder in inputs or any(folder in p.parents for p in inputs):
         raise InputError(f"--cache {folder}: holds the study's input files; choose another folder")
     return BuildCache(folder)
@@ -404,7 +405,7 @@ def build(
     """
     say = log or (lambda _msg: None)
     out_dir = Path(out_dir).expanduser().resolve()
-    inputs = [project.path] + [p for i in project.instances for p in (i.volume, i.mesh, i.landmarks) if p is not None]
+    inputs = [project.path] + [p for i in project.instances for p in (i.volume_path, i.mesh_path, i.landmarks_path) if p is not None]
     if project.params.analysis.attributes:
         inputs.append(Path(project.params.analysis.attributes))
     check_output_folder(out_dir, inputs, force=force)

@@ -365,7 +365,7 @@ def write_report_html(out_dir, model, *, doc: dict | None = None, title: str = "
 def write_outputs(
     model,
     out_dir,
-    *, metrics: dict | None = None,
+    *, metrics=None,
     per_instance: dict | None = None,
     extra: dict | None = None,
     plots: bool = True,

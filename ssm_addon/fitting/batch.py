@@ -317,7 +317,7 @@ def _free_fit(result, faces, t, model, path) -> dict:
     from ..meshutil import Mesh
 
     spacing = float((model.params or {}).get("spacing_mm", 1.0))
-    spec = InstanceSpec(name=t.name, volume=t.volume, label=t.label, mesh=t.mesh)
+    spec = InstanceSpec(name=t.name, volume_path=t.volume, label=t.label, mesh_path=t.mesh)
     ov = import_instance(spec, spacing_mm=spacing, frame_method=(model.params or {}).get("frame_method", "auto"))
     start = ov.frame.to_object(result.points)
     coated = coat_from_start(Mesh(start, faces), ov, start=start, start_label=CoatingStart.MODEL_FIT, name=t.name)
@@ -390,5 +390,5 @@ def targets_from_project(path, *, landmarks: bool = True) -> list[FitTarget]:
     from ..formats.project_file import read_project
 
     proj = read_project(path)
-    return [FitTarget(name=i.name, volume=i.volume, label=i.label, mesh=i.mesh,
-                      landmarks=i.landmarks if landmarks else None) for i in proj.instances]
+    return [FitTarget(name=i.name, volume=i.volume_path, label=i.label, mesh=i.mesh_path,
+                      landmarks=i.landmarks_path if landmarks else None) for i in proj.instances]

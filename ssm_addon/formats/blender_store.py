@@ -21,6 +21,7 @@ from ..formats.landmarks import LandmarkSet
 from ..instances.importing import InstanceSpec
 from ..instances.volume import ObjectVolume, frame_from_arrays, frame_to_arrays
 from ..model.files import model_from_arrays, write_npz
+from ..model.metrics import ModelMetrics
 from ..model.quality import Finding
 from ..pipeline import params as P
 from ..pipeline.errors import InputError
@@ -38,9 +39,9 @@ def save_study(study: Study, folder, *, extra: dict | None = None) -> Path:
     arrays: dict[str, np.ndarray] = {}
     insts = []
     for i, spec in enumerate(study.instances):
-        lm = spec.landmark_set
-        insts.append({"name": spec.name, "landmarks": spec.landmarks, "volume": spec.volume, "label": spec.label,
-                      "mesh": spec.mesh, "mesh_spacing": spec.mesh_spacing,
+        lm = spec.landmarks
+        insts.append({"name": spec.name, "landmarks": spec.landmarks_path, "volume": spec.volume_path, "label": spec.label,
+                      "mesh": spec.mesh_path, "mesh_spacing": spec.mesh_spacing_mm,
                       "landmark_names": list(lm.names) if lm is not None else None,
                       "landmark_source": lm.source if lm is not None else ""})
         if lm is not None:
@@ -74,7 +75,7 @@ def save_study(study: Study, folder, *, extra: dict | None = None) -> Path:
         "instances": insts,
         "template_instance": study.template_instance,
         "parameters": study.params.to_tables(),
-        "metrics": study.metrics,
+        "metrics": study.metrics.to_dict() if study.metrics is not None else None,
         "findings": [f.to_dict() for f in study.findings],
         "outlier_scores": study.outlier_scores,
         "timings_s": study.timings_s,
@@ -99,10 +100,10 @@ def load_study(folder) -> tuple[Study, dict]:
         lm = None
         if d["landmark_names"] is not None:
             lm = LandmarkSet(tuple(d["landmark_names"]), a[f"landmarks/{i}"], d.get("landmark_source", ""))
-        specs.append(InstanceSpec(name=d["name"], landmarks=Path(d["landmarks"]) if d["landmarks"] else None,
-                                  volume=Path(d["volume"]) if d["volume"] else None, label=d["label"],
-                                  mesh=Path(d["mesh"]) if d["mesh"] else None, mesh_spacing=d["mesh_spacing"],
-                                  landmark_set=lm))
+        specs.append(InstanceSpec(name=d["name"], landmarks_path=Path(d["landmarks"]) if d["landmarks"] else None,
+                                  volume_path=Path(d["volume"]) if d["volume"] else None, label=d["label"],
+                                  mesh_path=Path(d["mesh"]) if d["mesh"] else None, mesh_spacing_mm=d["mesh_spacing"],
+                                  landmarks=lm))
     par = doc["parameters"]
     study = Study(instances=tuple(specs), template_instance=doc["template_instance"],
                   params=P.StudyParams.from_tables(par, where=f"{folder}:"))
@@ -125,7 +126,7 @@ def load_study(folder) -> tuple[Study, dict]:
         study.model = model_from_arrays({**{k: a[f"model/{k}"] for k in (
             "mean", "faces", "modes", "variances", "instance_names", "instance_points", "instance_points_world")},
             "params": json.loads(str(a["model/params_json"]))}, str(folder))
-    study.metrics = doc["metrics"]
+    study.metrics = ModelMetrics.from_dict(doc["metrics"])
     study.findings = [Finding(**{k: (float("nan") if v is None and k in ("value", "threshold") else v)
                                  for k, v in f.items()}) for f in doc["findings"]]
     study.outlier_scores = doc["outlier_scores"]

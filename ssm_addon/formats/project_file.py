@@ -288,8 +288,8 @@ def _instances(doc: dict, ctx: _Context, base: Path, landmarks_required: bool = 
                 if isinstance(v, dict | list) or not isinstance(v, str | int | float | bool):
                     raise ctx.error(f"{what}: attribute {k!r} must be a number or a string, got {P.type_name(v)} "
                                     f"{v!r}", line)
-        out.append(InstanceSpec(name=name, landmarks=lm_path, volume=volume, label=table.get("label"), mesh=mesh,
-                                mesh_spacing=mesh_spacing, landmark_set=lms))
+        out.append(InstanceSpec(name=name, landmarks_path=lm_path, volume_path=volume, label=table.get("label"), mesh_path=mesh,
+                                mesh_spacing_mm=mesh_spacing, landmarks=lms))
     return out
 
 
@@ -396,19 +396,19 @@ def read_project(path) -> Project:
         raise ctx.error(f"only one instance ({instances[0].name!r}): a build needs at least 3 (a model with its "
                         "leave-one-out metrics)",
                         ctx.lines.table("instances", 0))
-    marked = [inst for inst in instances if inst.landmark_set is not None]
+    marked = [inst for inst in instances if inst.landmarks is not None]
     if not marked:
         raise ctx.error("no instance has landmarks: the template instance needs them (they name the places "
                         "written for every instance)")
     try:
-        matched = match_landmarks([inst.landmark_set for inst in marked])
+        matched = match_landmarks([inst.landmarks for inst in marked])
     except InputError as err:
         raise ctx.error(f"landmark names differ between instances (reference: instance {marked[0].name!r}): "
                         f"{err}") from None
     if len(matched[0]) < 4:
         raise ctx.error(f"{len(matched[0])} landmarks: the landmark warp (eq. 2) needs at least 4 per instance")
     by_name = {inst.name: lm for inst, lm in zip(marked, matched)}
-    instances = [dataclasses.replace(inst, landmark_set=by_name.get(inst.name)) for inst in instances]
+    instances = [dataclasses.replace(inst, landmarks=by_name.get(inst.name)) for inst in instances]
 
     names = [i.name for i in instances]
     try:
@@ -482,16 +482,16 @@ def project_text(project: Project, base: Path) -> str:
         lines += ["", "[analysis]"] + [f"{k} = {toml_value(v)}" for k, v in analysis.items()]
     for inst in project.instances:
         lines += ["", "[[instances]]", f"name = {toml_value(inst.name)}"]
-        if inst.volume is not None:
-            lines.append(f"volume = {toml_value(_relative(inst.volume, base))}")
+        if inst.volume_path is not None:
+            lines.append(f"volume = {toml_value(_relative(inst.volume_path, base))}")
             if inst.label is not None:
                 lines.append(f"label = {int(inst.label)}")
         else:
-            lines.append(f"mesh = {toml_value(_relative(inst.mesh, base))}")
-            if inst.mesh_spacing is not None:
-                lines.append(f"mesh_spacing = {toml_value(float(inst.mesh_spacing))}")
-        if inst.landmarks is not None:
-            lines.append(f"landmarks = {toml_value(_relative(inst.landmarks, base))}")
+            lines.append(f"mesh = {toml_value(_relative(inst.mesh_path, base))}")
+            if inst.mesh_spacing_mm is not None:
+                lines.append(f"mesh_spacing = {toml_value(float(inst.mesh_spacing_mm))}")
+        if inst.landmarks_path is not None:
+            lines.append(f"landmarks = {toml_value(_relative(inst.landmarks_path, base))}")
         own = project.instance_attributes.get(inst.name)
         if own:
             lines.append("attributes = { " + ", ".join(f"{_key(k)} = {toml_value(v)}" for k, v in own.items()) + " }")

@@ -13,11 +13,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from ..formats.label_maps import is_mesh_file, load_volume, select_label
+from ..formats.landmarks import LandmarkSet
 from ..instances.frame import object_frame
 from ..instances.resampling import resample
 from ..instances.volume import LabelMap, ObjectFrame, ObjectVolume, Volume
@@ -36,32 +36,33 @@ class InstanceSpec:
     Attributes
     ----------
     name : str
-    landmarks : Path or None
+    landmarks_path : Path or None
         Landmark file (world mm); None when the instance has no landmarks.
-    volume : Path or None
+    volume_path : Path or None
         Label map file (NIfTI/NRRD/MetaImage/NumPy), or None for a mesh instance.
     label : int or None
         Label picked from the label map (None: all non-zero voxels).
-    mesh : Path or None
+    mesh_path : Path or None
         Closed surface mesh (STL/PLY/OBJ) in world mm.
-    mesh_spacing : float or None
+    mesh_spacing_mm : float or None
         Voxelization step of a mesh in mm (None: the study's spacing).
-    landmark_set : LandmarkSet or None
-        The landmarks as read (world mm), in the study's common name order.
+    landmarks : LandmarkSet or None
+        The landmarks as read (world mm of the instance's file), in the study's common
+        name order.
     """
 
     name: str
-    landmarks: Path | None = None
-    volume: Path | None = None
+    landmarks_path: Path | None = None
+    volume_path: Path | None = None
     label: int | None = None
-    mesh: Path | None = None
-    mesh_spacing: float | None = None
-    landmark_set: Any = None
+    mesh_path: Path | None = None
+    mesh_spacing_mm: float | None = None
+    landmarks: LandmarkSet | None = None
 
     @property
     def source(self) -> Path:
         """The label map or mesh file."""
-        return self.volume if self.volume is not None else self.mesh
+        return self.volume_path if self.volume_path is not None else self.mesh_path
 
 
 def safe_file_name(name: str) -> str:
@@ -189,14 +190,14 @@ def read_instance(spec: InstanceSpec, *, spacing_mm: float, label_map: LabelMap 
                   cancelled: CancelledFn = None) -> Volume:
     """The read step of :func:`import_instance`: the instance's binary object in its input grid.
 
-    A mesh is voxelized at ``spec.mesh_spacing`` (or ``spacing_mm``).
+    A mesh is voxelized at ``spec.mesh_spacing_mm`` (or ``spacing_mm``).
     """
     try:
-        if spec.mesh is not None:
-            return load_mesh_volume(spec.mesh, spec.mesh_spacing or spacing_mm, cancelled=cancelled)
-        if spec.volume is None:
+        if spec.mesh_path is not None:
+            return load_mesh_volume(spec.mesh_path, spec.mesh_spacing_mm or spacing_mm, cancelled=cancelled)
+        if spec.volume_path is None:
             raise InputError("no source file (volume or mesh)")
-        return select_label(label_map, spec.label) if label_map is not None else load_volume(spec.volume, spec.label)
+        return select_label(label_map, spec.label) if label_map is not None else load_volume(spec.volume_path, spec.label)
     except InputError as err:
         raise InputError(f"instance {spec.name!r}: {err}") from None
 

@@ -22,6 +22,7 @@ import dataclasses
 import json
 import math
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +37,38 @@ from ..model.pca import (
 )
 from ..pipeline.errors import InputError, SSMError, check_cancelled
 from ..pipeline.progress import report, sub_progress
+
+
+@dataclass(frozen=True)
+class ModelMetrics:
+    """How good a model is on its own training shapes (see the module docstring).
+
+    Attributes
+    ----------
+    compactness : dict
+        :func:`compactness`: C(k) with its standard error, per k (eq. 8 of the eigenvalues).
+    generalization : dict or None
+        :func:`generalization`: leave-one-out (or k-fold) reconstruction error per k, mm.
+    specificity : dict or None
+        :func:`specificity`: distance of random model shapes to the nearest training
+        shape per k, mm.
+    """
+
+    compactness: dict
+    generalization: dict | None = None
+    specificity: dict | None = None
+
+    def to_dict(self) -> dict:
+        """The ``metrics`` entry of ``report.json`` (what is measured only)."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if getattr(self, f.name) is not None}
+
+    @classmethod
+    def from_dict(cls, d) -> ModelMetrics | None:
+        """From :meth:`to_dict`'s form (None when there are no metrics)."""
+        if not d:
+            return None
+        return cls(compactness=d.get("compactness") or {}, generalization=d.get("generalization"),
+                   specificity=d.get("specificity"))
 
 
 # ---------------------------------------------------------------------------------------
@@ -390,14 +423,14 @@ def evaluate(
     max_loo: int = 100,
     progress=None,
     cancelled=None,
-) -> dict:
+) -> ModelMetrics:
     """Compactness, generalization and specificity of a model on its own training shapes.
 
     Generalization refits from ``model.instance_points`` (the model frame); for an
     aligned model each fold re-runs the same Procrustes alignment on its training part.
     """
-    out = {"compactness": compactness(model)}
-    out["generalization"] = generalization(
+    comp = compactness(model)
+    gen = generalization(
         model.instance_points,
         faces=model.faces,
         ks=ks,
@@ -407,10 +440,10 @@ def evaluate(
         progress=sub_progress(progress, 0.0, 0.7),
         cancelled=cancelled,
     )
-    out["specificity"] = specificity(
+    spe = specificity(
         model, ks=ks, n_samples=n_samples, seed=seed, progress=sub_progress(progress, 0.7, 1.0), cancelled=cancelled
     )
-    return out
+    return ModelMetrics(compactness=comp, generalization=gen, specificity=spe)
 
 
 # ---------------------------------------------------------------------------------------
@@ -476,7 +509,7 @@ def model_summary(model: ShapeModel) -> dict:
     )
 
 
-def report_document(model: ShapeModel, *, metrics: dict | None = None, per_instance: dict | None = None,
+def report_document(model: ShapeModel, *, metrics: ModelMetrics | None = None, per_instance: dict | None = None,
                     extra: dict | None = None) -> dict:
     """The content of ``report.json`` (JSON-ready): model summary, metrics, per-instance fit figures, their summary.
 
@@ -486,7 +519,7 @@ def report_document(model: ShapeModel, *, metrics: dict | None = None, per_insta
     per = {str(k): _as_dict(v) for k, v in (per_instance or {}).items()}
     doc = {
         "model": model_summary(model),
-        "metrics": metrics or {},
+        "metrics": metrics.to_dict() if metrics is not None else {},
         "instances": per,
         "fit_summary": aggregate_fit(per),
     }
@@ -494,7 +527,7 @@ def report_document(model: ShapeModel, *, metrics: dict | None = None, per_insta
     return jsonable(doc)
 
 
-def write_report(path, model: ShapeModel, *, metrics: dict | None = None, per_instance: dict | None = None, extra=None):
+def write_report(path, model: ShapeModel, *, metrics: ModelMetrics | None = None, per_instance: dict | None = None, extra=None):
     """Write ``report.json`` (:func:`report_document`); returns the path written."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -663,11 +696,11 @@ def plot_model_figure(model: ShapeModel, path_png):
     return _save(fig, path_png)
 
 
-def plot_metrics(metrics: dict, path_png):
+def plot_metrics(metrics: ModelMetrics, path_png):
     """Compactness (cumulative share of the variance, %) and generalization and specificity (mean
     ± std, mm) over the number of modes k, side by side. Returns the PNG path."""
     fig, (left, right) = _figure(ncols=2)
-    comp = (metrics.get("compactness") or {}).get("cumulative")
+    comp = (metrics.compactness or {}).get("cumulative")
     if comp:
         k = np.arange(1, len(comp) + 1)
         left.plot(k, 100 * np.asarray(comp, float), "o-", ms=3, color="#4477aa")
@@ -677,7 +710,7 @@ def plot_metrics(metrics: dict, path_png):
     left.set_title("Compactness")
     left.grid(True, alpha=0.3)
     for key, colour in (("generalization", "#228833"), ("specificity", "#ee6677")):
-        m = metrics.get(key)
+        m = getattr(metrics, key)
         if m:
             right.errorbar(m["k"], m["mean_mm"], yerr=m["std_mm"], fmt="o-", ms=3, capsize=2, color=colour,
                            label=key)
@@ -690,7 +723,7 @@ def plot_metrics(metrics: dict, path_png):
     return _save(fig, path_png)
 
 
-def write_plots(model: ShapeModel, out_dir, metrics: dict | None = None) -> dict:
+def write_plots(model: ShapeModel, out_dir, metrics: ModelMetrics | None = None) -> dict:
     """Write spectrum, cumulative variance, fig. 9 and metrics plots into ``out_dir``.
 
     Returns {"files": [...]} or {"files": [], "skipped": message} without matplotlib.
@@ -702,7 +735,7 @@ def write_plots(model: ShapeModel, out_dir, metrics: dict | None = None) -> dict
             plot_cumulative_variance(model, out_dir / "cumulative_variance.png"),
             plot_model_figure(model, out_dir / "variability.png"),
         ]
-        if metrics and (metrics.get("generalization") or metrics.get("specificity")):
+        if metrics is not None and (metrics.generalization or metrics.specificity):
             files.append(plot_metrics(metrics, out_dir / "metrics.png"))
     except SSMError as err:
         return {"files": [], "skipped": str(err)}

@@ -41,6 +41,7 @@ from ..formats.landmarks import LandmarkSet
 from ..instances.importing import InstanceSpec, import_instance
 from ..instances.volume import ObjectFrame, ObjectVolume
 from ..meshutil import LandmarkLocations, genus
+from ..model.metrics import ModelMetrics
 from ..model.pca import ShapeModel, build_model
 from ..model.quality import (
     check_coating,
@@ -117,7 +118,7 @@ class Study:
     coatings : dict name -> CoatingResult
         The template coated onto each instance (object mm of that instance).
     model : ShapeModel or None
-    metrics : dict or None
+    metrics : ModelMetrics or None
         Compactness, generalization, specificity.
     findings : list of Finding
         Failed quality gates (:mod:`ssm_addon.model.quality`), in stage order.
@@ -145,7 +146,7 @@ class Study:
     template: Template | None = None
     coatings: dict[str, CoatingResult] = field(default_factory=dict)
     model: ShapeModel | None = None
-    metrics: dict | None = None
+    metrics: ModelMetrics | None = None
     findings: list = field(default_factory=list)
     outlier_scores: dict = field(default_factory=dict)
     coating_start: dict[str, CoatingStart] = field(default_factory=dict)
@@ -182,7 +183,7 @@ class Study:
 
     def landmarks(self, name: str) -> LandmarkSet | None:
         """The instance's landmarks (world mm of its file), or None."""
-        lm = self.instance(name).landmark_set
+        lm = self.instance(name).landmarks
         return lm if lm is not None and len(lm) else None
 
     def frame(self, name: str) -> ObjectFrame:
@@ -237,7 +238,7 @@ def import_instances(study: Study, *, names: Sequence[str] | None = None, jobs: 
     n = len(todo)
     tp = study.params.template
     shared = {}
-    paths = [inst.volume for inst in todo if inst.volume is not None]
+    paths = [inst.volume_path for inst in todo if inst.volume_path is not None]
     for path in sorted({p for p in paths if paths.count(p) > 1}):
         check_cancelled(cancelled)
         try:
@@ -249,7 +250,7 @@ def import_instances(study: Study, *, names: Sequence[str] | None = None, jobs: 
     def one(inst: InstanceSpec) -> ObjectVolume:
         check_cancelled(cancelled)
         ov = import_instance(inst, spacing_mm=tp.spacing_mm, frame_method=tp.frame,
-                             label_map=shared.get(inst.volume), cancelled=cancelled)
+                             label_map=shared.get(inst.volume_path), cancelled=cancelled)
         done[0] += 1
         report(progress, done[0] / n, f"imported {inst.name} ({done[0]}/{n}): {ov.mask.shape} voxels at "
                                       f"{ov.spacing_mm:g} mm, frame {ov.frame.method}")
@@ -329,7 +330,7 @@ def coat_instances(study: Study, *, names: Sequence[str] | None = None, jobs: in
     for name in dict.fromkeys([study.template_instance, *names]):  # landmarks on their instance's surface
         inst = study.instance(name)
         check_landmarks_on_surface(name, study.volume(name), study.landmarks(name), study.params.quality,
-                                   source=str(inst.landmarks) if inst.landmarks is not None else "")
+                                   source=str(inst.landmarks_path) if inst.landmarks_path is not None else "")
     src = _landmarks_object(study, study.template_instance, common)
     targets = [study.volume(n) for n in names]
     lms = [_landmarks_object(study, n, common) for n in names]
@@ -481,9 +482,9 @@ class InstanceJob:
         from ..pipeline.cache import digest, file_digest
 
         spec, qp = self.spec, self.quality_params
-        lm = spec.landmark_set.subset(self.landmark_names)
-        return digest("instance", {"source": file_digest(spec.source), "kind": "volume" if spec.volume else "mesh",
-                                   "label": spec.label, "mesh_spacing": spec.mesh_spacing},
+        lm = spec.landmarks.subset(self.landmark_names)
+        return digest("instance", {"source": file_digest(spec.source), "kind": "volume" if spec.volume_path else "mesh",
+                                   "label": spec.label, "mesh_spacing": spec.mesh_spacing_mm},
                       {"names": list(lm.names), "points_world": np.asarray(lm.points_world, float)},
                       {"spacing_mm": self.spacing_mm, "frame": self.frame_method},
                       np.asarray(self.template_points, float), np.asarray(self.template_faces, np.int64),
@@ -521,16 +522,16 @@ def coat_from_source(job: InstanceJob):
 
     spec, qp = job.spec, job.quality_params
     label_map = None
-    if job.shared_file and spec.volume is not None:
+    if job.shared_file and spec.volume_path is not None:
         try:
-            label_map = _label_map_once(spec.volume)
+            label_map = _label_map_once(spec.volume_path)
         except InputError as err:
-            raise InputError(f"instances using {spec.volume.name}: {err}") from None
+            raise InputError(f"instances using {spec.volume_path.name}: {err}") from None
     ov = import_instance(spec, spacing_mm=job.spacing_mm, frame_method=job.frame_method, label_map=label_map)
     findings = check_volume(spec.name, ov, qp)
-    check_landmarks_on_surface(spec.name, ov, spec.landmark_set, qp,
-                               source=str(spec.landmarks) if spec.landmarks is not None else "")
-    lm = ov.frame.to_object(spec.landmark_set.subset(job.landmark_names).points_world)
+    check_landmarks_on_surface(spec.name, ov, spec.landmarks, qp,
+                               source=str(spec.landmarks_path) if spec.landmarks_path is not None else "")
+    lm = ov.frame.to_object(spec.landmarks.subset(job.landmark_names).points_world)
     result = coat(Mesh(job.template_points, job.template_faces), job.template_landmarks_object, ov, lm,
                   params=job.coating_params, name=spec.name)
     return InstanceProduct(name=spec.name, frame=ov.frame, volume_mm3=float(ov.volume_mm3),
@@ -542,9 +543,9 @@ def template_key(study: Study) -> str:
     from ..pipeline.cache import digest, file_digest
 
     spec = study.instance(study.template_instance)
-    lm = spec.landmark_set
+    lm = spec.landmarks
     return digest("template", {"source": file_digest(spec.source), "label": spec.label,
-                               "mesh_spacing": spec.mesh_spacing},
+                               "mesh_spacing": spec.mesh_spacing_mm},
                   {"names": list(lm.names), "points_world": np.asarray(lm.points_world, float)} if lm else None,
                   study.params.template.to_dict())
 
@@ -581,7 +582,7 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
         check_volume(tname, ov, study.params.quality)  # a few voxels is the cause, not the landmarks (its findings
         # are the worker's to report)
         check_landmarks_on_surface(tname, ov, study.landmarks(tname), study.params.quality,
-                                   source=str(tspec.landmarks) if tspec.landmarks is not None else "")
+                                   source=str(tspec.landmarks_path) if tspec.landmarks_path is not None else "")
         timings["import"] = time.perf_counter() - t0
         say(f"import: {tname} (the template instance) in {timings['import']:.2f} s; the coating workers read "
             "the other instances")
@@ -601,11 +602,11 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
     t0 = time.perf_counter()
     # the template's frame is its instance's object frame (the same numbers as study.frame)
     src = template.frame.to_object(study.landmarks(tname).subset(common).points_world)
-    uses = Counter(i.volume for i in study.instances if i.volume is not None)
+    uses = Counter(i.volume_path for i in study.instances if i.volume_path is not None)
     order = sorted(range(len(names)), key=lambda i: (str(study.instances[i].source), i))  # one file's labels together
     jobs = [InstanceJob(spec=study.instances[i], spacing_mm=study.params.template.spacing_mm,
                         frame_method=study.params.template.frame,
-                        shared_file=uses.get(study.instances[i].volume, 0) > 1,
+                        shared_file=uses.get(study.instances[i].volume_path, 0) > 1,
                         template_points=template.points_object, template_faces=template.faces,
                         template_landmarks_object=src, landmark_names=common, coating_params=study.params.coating,
                         quality_params=study.params.quality) for i in order]
@@ -736,7 +737,7 @@ def landmark_distances(study: Study, carried: dict[str, LandmarkSet]) -> dict[st
     return out
 
 
-def evaluate_model(study: Study, *, progress: ProgressFn = None, cancelled: CancelledFn = None) -> dict:
+def evaluate_model(study: Study, *, progress: ProgressFn = None, cancelled: CancelledFn = None) -> ModelMetrics:
     """Compactness, generalization and specificity of the study's model."""
     from ..model import metrics
 
@@ -794,7 +795,7 @@ def apply_stage(study: Study, result: StageResult) -> Study:
     for key, value in result.product.items():
         if key == "correspondence_rounds":
             study.correspondence_rounds = list(study.correspondence_rounds) + list(value)
-        elif key != "metrics" and isinstance(getattr(study, key), dict):
+        elif isinstance(getattr(study, key), dict):
             getattr(study, key).update(value)
         else:
             setattr(study, key, value)
@@ -829,7 +830,7 @@ def instance_sources(study: Study, names) -> dict[str, tuple]:
     out = {}
     for n in names:
         spec = study.instance(n)
-        path = spec.volume if spec.volume is not None else spec.mesh
+        path = spec.volume_path if spec.volume_path is not None else spec.mesh_path
         out[n] = (str(Path(path).resolve()) if path is not None else f"<{n}>", spec.label)
     return out
 
