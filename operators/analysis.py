@@ -39,7 +39,7 @@ from ssm_addon.pipeline.params import AnalysisParams
 
 from . import bridge
 from .jobs import BackgroundJob
-from .properties import draw_params, scene_params
+from .properties import SSMPanel, draw_params, scene_params
 from .scene import find_model_object, model_from_object, scene_instance_attributes
 
 RECORD_KEY = "ssm_analysis_record"
@@ -137,13 +137,10 @@ class SSM_OT_run_analysis(BackgroundJob, bpy.types.Operator):
         return {"FINISHED"}
 
 
-class SSM_PT_analysis(bpy.types.Panel):
+class SSM_PT_analysis(SSMPanel, bpy.types.Panel):
     """Analysis: attribute table, group and covariates, Run; the tests and the effect sliders."""
 
     bl_idname = "SSM_PT_analysis"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "SSM"
     bl_label = "Analysis"
     bl_order = 45
     bl_options = {"DEFAULT_CLOSED"}
@@ -171,12 +168,9 @@ class SSM_PT_analysis(bpy.types.Panel):
                     col.prop(kb, "value", text=name, slider=True)
 
 
-class SSM_PT_analysis_advanced(bpy.types.Panel):
+class SSM_PT_analysis_advanced(SSMPanel, bpy.types.Panel):
     bl_label = "Advanced"
     bl_idname = "SSM_PT_analysis_advanced"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "SSM"
     bl_parent_id = "SSM_PT_analysis"
     bl_options = {"DEFAULT_CLOSED"}
 

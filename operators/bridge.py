@@ -346,6 +346,21 @@ def evaluated_vertices(context, obj: bpy.types.Object) -> np.ndarray:
         ev.to_mesh_clear()
 
 
+def select_only(context, objects, *, active=None) -> None:
+    """Select exactly ``objects`` in the view layer (every other object deselected).
+
+    ``active``, when given and in the view layer, becomes the active object; otherwise the
+    active object stays as it was.
+    """
+    chosen = {o.name for o in objects if o is not None}
+    layer = context.view_layer
+    layer.update()  # objects just linked to a collection join the layer's list only then
+    for ob in layer.objects:
+        ob.select_set(ob.name in chosen)
+    if active is not None and active.name in layer.objects:
+        layer.objects.active = active
+
+
 def add_empty(context, name: str, location, parent=None, size: float = 1.5, collection=None) -> bpy.types.Object:
     """A sphere empty at a Blender-world location (mm), optionally parented keeping its place."""
     from mathutils import Matrix, Vector

@@ -25,7 +25,7 @@ from ssm_addon.pipeline.study import apply_stage, coating_result, coating_stage,
 
 from . import bridge
 from .jobs import BackgroundJob
-from .properties import draw_params, scene_params
+from .properties import SSMPanel, draw_params, scene_params
 from .scene import (
     COATED_COLLECTION,
     COATED_SUFFIX,
@@ -276,12 +276,9 @@ def correspondence_rounds(context) -> list[dict]:
         return []
 
 
-class SSM_PT_coating(bpy.types.Panel):
+class SSM_PT_coating(SSMPanel, bpy.types.Panel):
     bl_label = "Coating"
     bl_idname = "SSM_PT_coating"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "SSM"
     bl_order = 30
     bl_options = {"DEFAULT_CLOSED"}
 
@@ -338,12 +335,9 @@ class SSM_PT_coating(bpy.types.Panel):
                     box.label(text=f"    {f['gate']}: {f['message']}", icon="BLANK1")
 
 
-class SSM_PT_coating_advanced(bpy.types.Panel):
+class SSM_PT_coating_advanced(SSMPanel, bpy.types.Panel):
     bl_label = "Advanced"
     bl_idname = "SSM_PT_coating_advanced"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "SSM"
     bl_parent_id = "SSM_PT_coating"
     bl_options = {"DEFAULT_CLOSED"}
 

@@ -23,7 +23,7 @@ from ssm_addon.pipeline.params import FitParams
 
 from . import bridge
 from .jobs import BackgroundJob
-from .properties import draw_params, scene_params
+from .properties import SSMPanel, draw_params, scene_params
 from .scene import find_model_object, is_instance, mode_keys, model_from_object, object_to_blender_matrix
 
 FIT_COLLECTION = "SSM Fits"
@@ -126,12 +126,9 @@ class SSM_OT_fit_model(BackgroundJob, bpy.types.Operator):
         return {"FINISHED"}
 
 
-class SSM_PT_fit(bpy.types.Panel):
+class SSM_PT_fit(SSMPanel, bpy.types.Panel):
     bl_label = "Fit"
     bl_idname = "SSM_PT_fit"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "SSM"
     bl_order = 45
     bl_options = {"DEFAULT_CLOSED"}
 

@@ -28,7 +28,7 @@ from ssm_addon.pipeline.progress import report, sub_progress
 
 from . import bridge
 from .jobs import BackgroundJob
-from .properties import scene_params
+from .properties import SSMPanel, scene_params
 from .scene import (
     absolute_source_path,
     cache_volume,
@@ -232,10 +232,7 @@ class SSM_OT_import_segmentation(BackgroundJob, bpy.types.Operator, ImportHelper
         if self._set_spacing is not None:
             context.scene.ssm_template.spacing_mm = self._set_spacing
         created = add_instance_objects(context, items)
-        for obj in context.view_layer.objects:
-            obj.select_set(obj in created)
-        if created:
-            context.view_layer.objects.active = created[-1]
+        bridge.select_only(context, created, active=created[-1] if created else None)
         self.report({"INFO"}, f"Imported {len(created)} instance(s): {', '.join(o.name for o in created)}")
         return {"FINISHED"}
 
@@ -311,14 +308,11 @@ class SSM_OT_add_mesh_instances(BackgroundJob, bpy.types.Operator):
 
 
 # ------------------------------------------------------------------------------- panel
-class SSM_PT_instances(bpy.types.Panel):
+class SSM_PT_instances(SSMPanel, bpy.types.Panel):
     """Sidebar: the training instances and how to add them."""
 
     bl_idname = "SSM_PT_instances"
     bl_label = "Instances"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "SSM"
     bl_order = 0
 
     def draw(self, context):

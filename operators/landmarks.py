@@ -35,7 +35,7 @@ from ssm_addon.pipeline.progress import sub_progress
 
 from . import bridge
 from .jobs import BackgroundJob
-from .properties import scene_params
+from .properties import SSMPanel, scene_params
 from .scene import (
     LANDMARK_PROP,
     ORDER_PROP,
@@ -434,9 +434,7 @@ class SSM_OT_place_landmarks(bpy.types.Operator):
         picked = self._landmark_under(coord)
         if picked and picked != self._reselect:
             emp = landmark_empties(self._instance)[picked]
-            for obj in context.selected_objects:
-                obj.select_set(False)
-            emp.select_set(True)
+            bridge.select_only(context, [emp])
             self._reselect = picked
             self._update_header(context)
             return {"RUNNING_MODAL"}
@@ -684,12 +682,9 @@ class SSM_OT_propose_landmarks(BackgroundJob, bpy.types.Operator):
 # ------------------------------------------------------------------------------ panel
 
 
-class SSM_PT_landmarks(bpy.types.Panel):
+class SSM_PT_landmarks(SSMPanel, bpy.types.Panel):
     bl_label = "Landmarks"
     bl_idname = "SSM_PT_landmarks"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "SSM"
     bl_order = 10
 
     def draw(self, context):

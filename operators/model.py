@@ -33,7 +33,7 @@ from ssm_addon.pipeline.study import model_stage
 
 from . import bridge
 from .jobs import BackgroundJob
-from .properties import draw_params, scene_params
+from .properties import SSMPanel, draw_params, scene_params
 from .scene import (
     MODEL_COLLECTION,
     MODEL_KEY,
@@ -124,11 +124,7 @@ def create_model_object(context, model: ShapeModel, name: str = MODEL_NAME, n_ke
     obj.ssm.source = str(model.params.get("source", ""))
     store_model(obj, model)
     if activate:
-        for ob in context.view_layer.objects:
-            ob.select_set(False)
-        if obj.name in context.view_layer.objects:
-            obj.select_set(True)
-            context.view_layer.objects.active = obj
+        bridge.select_only(context, [obj], active=obj)
     return obj
 
 
@@ -423,14 +419,10 @@ class SSM_OT_save_model(BackgroundJob, bpy.types.Operator):
 # ---------------------------------------------------------------------------------------
 # panel
 # ---------------------------------------------------------------------------------------
-class SSM_PT_model(bpy.types.Panel):
+class SSM_PT_model(SSMPanel, bpy.types.Panel):
     """Model: build, per-mode variance bars and sliders, animation, sampling, files."""
 
     bl_idname = "SSM_PT_model"
-
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "SSM"
     bl_label = "Model"
     bl_order = 40
 
@@ -484,12 +476,9 @@ class SSM_PT_model(bpy.types.Panel):
             box.label(text=f"{f['instance'] or 'study'} [{f['gate']}]: {f['message']}")
 
 
-class SSM_PT_model_advanced(bpy.types.Panel):
+class SSM_PT_model_advanced(SSMPanel, bpy.types.Panel):
     bl_label = "Advanced"
     bl_idname = "SSM_PT_model_advanced"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "SSM"
     bl_parent_id = "SSM_PT_model"
     bl_options = {"DEFAULT_CLOSED"}
 

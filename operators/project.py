@@ -31,7 +31,7 @@ from ssm_addon.pipeline.errors import InputError, SSMError
 from ssm_addon.pipeline.params import OutputParams
 
 from . import bridge
-from .properties import set_scene_study_params
+from .properties import SSMPanel, set_scene_study_params
 from .scene import (
     FINDINGS_KEY,
     INSTANCE_ATTRIBUTES_KEY,
@@ -231,10 +231,7 @@ def load_project_into_scene(context, project: core.Project) -> list:
             set_landmark(context, obj, name, file_world=p, order=i)
     template = next((o for o in created if o.name == project.template_instance), created[0] if created else None)
     scene.ssm_display.template_instance = template
-    for obj in context.view_layer.objects:
-        obj.select_set(obj in created)
-    if template is not None:
-        context.view_layer.objects.active = template
+    bridge.select_only(context, created, active=template)
     return created
 
 
@@ -281,12 +278,9 @@ class SSM_OT_open_project(bpy.types.Operator, ImportHelper):
         return {"FINISHED"}
 
 
-class SSM_PT_project(bpy.types.Panel):
+class SSM_PT_project(SSMPanel, bpy.types.Panel):
     bl_label = "Project"
     bl_idname = "SSM_PT_project"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "SSM"
     bl_order = 50
 
     def draw(self, context):
@@ -299,12 +293,9 @@ class SSM_PT_project(bpy.types.Panel):
         layout.prop(context.scene.ssm_display, "template_instance")
 
 
-class SSM_PT_project_output(bpy.types.Panel):
+class SSM_PT_project_output(SSMPanel, bpy.types.Panel):
     bl_label = "Build outputs"
     bl_idname = "SSM_PT_project_output"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "SSM"
     bl_parent_id = "SSM_PT_project"
     bl_options = {"DEFAULT_CLOSED"}
 
@@ -314,12 +305,9 @@ class SSM_PT_project_output(bpy.types.Panel):
         draw_params(self.layout, context.scene.ssm_output, OutputParams)
 
 
-class SSM_PT_project_quality(bpy.types.Panel):
+class SSM_PT_project_quality(SSMPanel, bpy.types.Panel):
     bl_label = "Quality gates"
     bl_idname = "SSM_PT_project_quality"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "SSM"
     bl_parent_id = "SSM_PT_project"
     bl_options = {"DEFAULT_CLOSED"}
 

@@ -180,6 +180,18 @@ def set_group(group, params) -> None:
             setattr(group, s.name, value)
 
 
+class SSMPanel:
+    """Base of every SSM panel: the 3D viewport's sidebar (N), tab "SSM".
+
+    Mixed in before ``bpy.types.Panel`` (``class SSM_PT_x(SSMPanel, bpy.types.Panel)``); a
+    sub-panel sets ``bl_parent_id``, a panel closed at first ``bl_options``.
+    """
+
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = "SSM"
+
+
 def draw_params(layout, group, cls, *, advanced: bool = False, skip=()) -> None:
     """Draw the (plain or advanced) parameters of ``cls`` from its group."""
     col = layout.column(align=True)

@@ -185,9 +185,13 @@ def schema_names(context) -> tuple[str, ...]:
 
 
 def landmark_empties(instance) -> dict:
-    """``{landmark name: empty}`` of an instance."""
+    """``{landmark name: empty}`` of an instance: its children that are its landmarks.
+
+    Landmark empties are parented to their instance (:func:`set_landmark`), so this reads
+    the instance's children, not every object of the file (panels call it while drawing).
+    """
     out = {}
-    for obj in bpy.data.objects:
+    for obj in instance.children:
         if obj.ssm.role == "LANDMARK" and obj.ssm.instance == instance and LANDMARK_PROP in obj:
             out[str(obj[LANDMARK_PROP])] = obj
     return out

@@ -26,7 +26,7 @@ from ssm_addon.pipeline.study import apply_stage, import_result, template_stage
 
 from . import bridge
 from .jobs import BackgroundJob
-from .properties import draw_params
+from .properties import SSMPanel, draw_params
 from .scene import (
     TEMPLATE_COLLECTION,
     TEMPLATE_KEY,
@@ -111,18 +111,13 @@ class SSM_OT_build_template(BackgroundJob, bpy.types.Operator):
         msg = (f"template: {len(template.points_object)} points, {len(template.faces)} triangles, "
                f"genus {template.params.get('genus')} from {instance.name}")
         report_stage(self, msg, found)
-        for o in context.view_layer.objects:
-            o.select_set(False)
-        obj.select_set(True)
+        bridge.select_only(context, [obj])
         return {"FINISHED"}
 
 
-class SSM_PT_template(bpy.types.Panel):
+class SSM_PT_template(SSMPanel, bpy.types.Panel):
     bl_label = "Template"
     bl_idname = "SSM_PT_template"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "SSM"
     bl_order = 20
     bl_options = {"DEFAULT_CLOSED"}
 
@@ -140,12 +135,9 @@ class SSM_PT_template(bpy.types.Panel):
             layout.label(text=f"from {src}")
 
 
-class SSM_PT_template_advanced(bpy.types.Panel):
+class SSM_PT_template_advanced(SSMPanel, bpy.types.Panel):
     bl_label = "Advanced"
     bl_idname = "SSM_PT_template_advanced"
-    bl_space_type = "VIEW_3D"
-    bl_region_type = "UI"
-    bl_category = "SSM"
     bl_parent_id = "SSM_PT_template"
     bl_options = {"DEFAULT_CLOSED"}
 

@@ -286,3 +286,37 @@ def test_the_core_doctests_pass():
         assert result.failed == 0, f"ssm_addon.{m}: {result.failed} doctest(s) failed"
         attempted += result.attempted
     assert attempted >= 20, attempted
+
+
+def _operator_classes():
+    for path in sorted(OPERATORS.glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ClassDef):
+                yield path, node
+
+
+def test_every_panel_is_an_ssm_sidebar_panel():
+    """Panels take the sidebar placement from one base (``properties.SSMPanel``), not each their own."""
+    panels = 0
+    for path, cls in _operator_classes():
+        bases = [ast.unparse(b) for b in cls.bases]
+        if "bpy.types.Panel" in bases:
+            panels += 1
+            assert bases[0] == "SSMPanel", f"{path.name}: {cls.name} does not derive from SSMPanel"
+        own = {t.id for n in cls.body if isinstance(n, ast.Assign) for t in n.targets if isinstance(t, ast.Name)}
+        if cls.name != "SSMPanel":
+            assert not own & {"bl_space_type", "bl_region_type", "bl_category"}, f"{path.name}: {cls.name}"
+    assert panels >= 10, panels
+
+
+def test_panels_draw_without_scanning_every_object():
+    """``draw()`` runs at every redraw: it must not loop over ``bpy.data.objects`` (a look-up by
+    name is fine)."""
+    offenders = []
+    for path, cls in _operator_classes():
+        for fn in cls.body:
+            if isinstance(fn, ast.FunctionDef) and fn.name in ("draw", "draw_item", "poll"):
+                for node in ast.walk(fn):
+                    if isinstance(node, ast.For | ast.comprehension) and ast.unparse(node.iter) == "bpy.data.objects":
+                        offenders.append(f"{path.name}: {cls.name}.{fn.name}")
+    assert not offenders, offenders
