@@ -176,10 +176,10 @@ def test_large_study_generalization_agrees_with_the_gram_route():
     basis = np.linalg.qr(rng.standard_normal((3 * npts, 5)))[0].T
     x = (rng.standard_normal((n, 5)) * [10.0, 7.0, 5.0, 3.0, 2.0]) @ basis + 0.1 * rng.standard_normal((n, 3 * npts))
     x = x.reshape(n, npts, 3)
-    exact = M.generalization(x, ks=[1, 2, 3, 4, 5], folds=10)
-    fold_of = np.empty(n, dtype=int)
-    fold_of[np.random.default_rng(0).permutation(n)] = np.arange(n) % 10  # generalization's seeded partition
-    fast = M._generalization_randomized(x.reshape(n, -1), fold_of, 10, [1, 2, 3, 4, 5])  # noqa: SLF001
+    exact = M.generalization(x, ks=[1, 2, 3, 4, 5], folds=10, solver="gram")
+    randomized = M.generalization(x, ks=[1, 2, 3, 4, 5], folds=10, solver="randomized")
+    assert "randomized" in randomized["method"] and "randomized" not in exact["method"]
+    fast = np.array(randomized["per_instance_mm"])
     # the same errors to float32 precision of the residuals (one power iteration, float32 residual vectors)
     np.testing.assert_allclose(fast, np.array(exact["per_instance_mm"]), rtol=2e-4)
     assert abs(fast.mean() / np.mean(exact["per_instance_mm"]) - 1) < 1e-5

@@ -331,7 +331,7 @@ def test_demo_shapes_are_closed_genus_one_solids(demo_population, demo_surfaces)
         dims = tuple(int(d) for d in np.ceil((hi - lo) / h) + 1)
         to_canon = np.diag([h, h, h, 1.0])
         to_canon[:3, 3] = lo
-        fine = demo._rasterize(lambda q, s=shape: demo.vertebra_sdf(q, s), dims, to_canon)
+        fine = demo.rasterize(lambda q, s=shape: demo.vertebra_sdf(q, s), dims, to_canon)
         assert not fine[0].any() and not fine[-1].any() and not fine[:, :, 0].any() and not fine[:, :, -1].any()
         assert ndimage.label(fine)[1] == 1 and _euler(fine) == 0, inst.name  # genus (2 - chi) / 2 = 1
         _, components, _, img = demo_surfaces[inst.name]

@@ -138,9 +138,10 @@ def _core_module_aliases(tree: ast.AST, folder: Path) -> set[str]:
 
 
 def test_no_private_names_used_across_modules():
-    """Neither imported (``from .x import _y``) nor reached by attribute (``meshutil._y``)."""
+    """Neither imported (``from .x import _y``) nor reached by attribute (``meshutil._y``), by the core,
+    the operators or the tests (a path a test needs is a public option of the function)."""
     offenders = []
-    for folder in (CORE, OPERATORS):
+    for folder in (CORE, OPERATORS, ROOT / "tests"):
         for path in sorted(folder.rglob("*.py")):
             tree = ast.parse(path.read_text())
             modules = _core_module_aliases(tree, folder)
@@ -179,11 +180,11 @@ def test_read_frame_resample_exists_once():
 
 
 def test_every_parameter_has_a_project_key_and_a_command_line_option():
-    from ssm_addon.cli.command import _parser
+    from ssm_addon.cli.command import argument_parser
 
-    parser = _parser()
-    build = parser._subparsers._group_actions[0].choices["build"]  # noqa: SLF001 - argparse has no public accessor
-    flags = {opt for action in build._actions for opt in action.option_strings}  # noqa: SLF001
+    parser = argument_parser()
+    build_parser = parser._subparsers._group_actions[0].choices["build"]  # noqa: SLF001 - argparse has no public accessor
+    flags = {opt for action in build_parser._actions for opt in action.option_strings}  # noqa: SLF001
     for section, cls in P.TABLES.items():
         keys = P.keys(cls)
         for s in P.specs(cls):
@@ -197,20 +198,20 @@ def test_every_parameter_has_a_project_key_and_a_command_line_option():
 
 
 def test_command_line_options_override_the_project(tmp_path):
-    from ssm_addon.cli.command import _parser, _with_overrides
+    from ssm_addon.cli.command import argument_parser, with_overrides
     from ssm_addon.cli.project_build import Project
 
-    args = _parser().parse_args(["build", "p.toml", "--out", "o", "--coating-k1", "0.3", "--template-spacing", "0.5",
+    args = argument_parser().parse_args(["build", "p.toml", "--out", "o", "--coating-k1", "0.3", "--template-spacing", "0.5",
                                  "--coating-registration-sigmas-mm", "8", "4", "--model-n-modes", "3"])
     project = Project(path=tmp_path / "p.toml", instances=(), template_instance="")
-    changed = _with_overrides(project, args)
+    changed = with_overrides(project, args)
     assert changed.params.coating.k1 == 0.3 and changed.params.template.spacing_mm == 0.5
     assert changed.params.coating.registration_sigmas_mm == (8.0, 4.0) and changed.params.model.n_modes == 3
-    bad = _parser().parse_args(["build", "p.toml", "--out", "o", "--coating-k2", "0.1"])
+    bad = argument_parser().parse_args(["build", "p.toml", "--out", "o", "--coating-k2", "0.1"])
     from ssm_addon.pipeline.errors import InputError
 
     with pytest.raises(InputError, match="k2 .* must exceed k1"):
-        _with_overrides(project, bad)
+        with_overrides(project, bad)
 
 
 def test_parameters_validated_with_the_allowed_range():

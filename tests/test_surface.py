@@ -146,8 +146,8 @@ def test_ball_sums_by_runs_and_by_fft_equal_brute_force():
     hit[inside] = mask[tuple(pos[inside].T)]
     count = hit.sum(1)
     moment = (hit[:, :, None] * offs[None]).sum(1)
-    for fn in (surface._ball_sums, surface._ball_sums_fft):
-        c, mo = fn(mask, vox, radius)
+    for method in ("runs", "fft"):
+        c, mo = surface.ball_sums(mask, vox, radius, method=method)
         np.testing.assert_allclose(c, count, atol=1e-3)
         np.testing.assert_allclose(mo, moment, atol=1e-3)
 

@@ -286,13 +286,13 @@ def test_voronoi_regions_do_not_depend_on_the_search_order():
     seeds as a set: the same seeds given in another order (another tie order inside the shortest-path
     search, as another scipy version has) give the same region for every vertex."""
     verts, faces = T.surface_mesh(cube())
-    graph = T._mesh_graph(verts, faces)  # noqa: SLF001 - the function under test
+    graph = T.mesh_graph(verts, faces)
     rng = np.random.default_rng(3)
     seeds = np.unique(rng.choice(len(verts), 120, replace=False))
-    dist, labels = T._voronoi(graph, seeds)  # noqa: SLF001
+    dist, labels = T.geodesic_voronoi(graph, seeds)
     for k in range(3):
         perm = np.random.default_rng(k).permutation(len(seeds))
-        d2, l2 = T._voronoi(graph, seeds[perm])  # noqa: SLF001
+        d2, l2 = T.geodesic_voronoi(graph, seeds[perm])
         np.testing.assert_array_equal(d2, dist)
         np.testing.assert_array_equal(seeds[perm][l2], seeds[labels])  # the same seed vertex for every vertex
     # every vertex lies in the region of a seed at its geodesic distance (a Voronoi diagram), and ties exist

@@ -74,7 +74,8 @@ def _print_progress():
     return progress
 
 
-def _parser() -> argparse.ArgumentParser:
+def argument_parser() -> argparse.ArgumentParser:
+    """The ``ssm`` command's parser: every subcommand, and every parameter as a ``--<table>-<key>`` option."""
     from ..pipeline import params as P
 
     parser = argparse.ArgumentParser(
@@ -215,7 +216,7 @@ def cmd_template(args) -> int:
     return 0
 
 
-def _with_overrides(project, args):
+def with_overrides(project, args):
     """The project with the parameters given on the command line (``--coating-k1 0.3``)."""
     import dataclasses
 
@@ -239,7 +240,7 @@ def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> 
     from ..cli import blender_layer
     from ..cli.project_build import build, read_project
 
-    project = _with_overrides(read_project(project_path), args)
+    project = with_overrides(read_project(project_path), args)
     hook = None
     if blend and project.params.output.blend:
         hook = writer or blender_layer.blend_writer_in_child()
@@ -397,7 +398,7 @@ def main(argv=None, in_blender: bool = False, blend_writer=None) -> int:
         None: found from a source checkout when ``bpy`` is importable.
     """
     try:
-        args = _parser().parse_args(sys.argv[1:] if argv is None else list(argv))
+        args = argument_parser().parse_args(sys.argv[1:] if argv is None else list(argv))
     except SystemExit as exc:  # argparse: --help (0) or a usage error (2); never exit Blender
         return exc.code if isinstance(exc.code, int) else EXIT_INPUT
     restore = {} if in_blender else _catch_signals()

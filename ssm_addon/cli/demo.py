@@ -175,7 +175,7 @@ def pose_matrix(rot: np.ndarray, shift: np.ndarray) -> np.ndarray:
     return m
 
 
-def _rasterize(sdf, dims, voxel_to_canon: np.ndarray, block: int = 4) -> np.ndarray:
+def rasterize(sdf, dims, voxel_to_canon: np.ndarray, block: int = 4) -> np.ndarray:
     """Boolean grid ``sdf(canonical points) <= 0`` at voxel centres, coarse-to-fine.
 
     The implicit functions are (close to) distance bounds, so a ``block``³ voxel block
@@ -264,8 +264,8 @@ def make_demo_population(
         affine, dims = _grid_affine(corners @ rot.T + shift, spacing, direction)
         to_canon = np.linalg.inv(pose_matrix(rot, shift)) @ affine
         labels = np.zeros(dims, np.uint8)
-        labels[_rasterize(lambda q, s=shape: neighbour_sdf(q, s), dims, to_canon)] = NEIGHBOUR_LABEL
-        labels[_rasterize(lambda q, s=shape: vertebra_sdf(q, s), dims, to_canon)] = VERTEBRA_LABEL
+        labels[rasterize(lambda q, s=shape: neighbour_sdf(q, s), dims, to_canon)] = NEIGHBOUR_LABEL
+        labels[rasterize(lambda q, s=shape: vertebra_sdf(q, s), dims, to_canon)] = VERTEBRA_LABEL
         img = nib.Nifti1Image(labels, affine)
         img.set_qform(affine, code=1)
         img.set_sform(affine, code=1)

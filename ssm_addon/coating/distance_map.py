@@ -31,11 +31,9 @@ class DistanceMap:
     hold -0.5 and +0.5 voxel, so the zero level set of the trilinear interpolant passes
     exactly through the marching-cubes vertices (edge midpoints). Optionally
     (``band_vox`` > 0) nodes within that band get exact point-to-triangle distances to
-    the marching-cubes surface instead; measured on an ellipsoid (24×12×11 voxels, 3,000
-    points up to 3 voxels off), three projection steps leave points 0.020 voxel (mean)
-    and 0.16 (max) from the exact surface with the EDT field, 0.034 / 0.17 with an exact
-    band of 1.25 voxels (kinks of the exact distance at staircase corners bias the
-    interpolated zero set), so the EDT field is the default. Values and gradients
+    the marching-cubes surface instead; the kinks of the exact distance at staircase
+    corners bias the interpolated zero set, so projections land closer to the surface with
+    the EDT field, the default (figures in ``docs/measurements.md``, Coating). Values and gradients
     (central differences) are interpolated trilinearly; negative inside. Points outside
     the grid are clamped onto it and their distance increased by the clamping offset, so
     projection pulls them in. Fit figures use exact distances to the marching-cubes

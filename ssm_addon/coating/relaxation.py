@@ -32,9 +32,9 @@ def folded_triangles(
     The surface normal is taken at the triangle's centroid (paper 4.2) from the
     distance map smoothed at ``normal_sigma_mm`` (:meth:`DistanceMap.smooth_normals`):
     the raw gradient flags correct triangles that span a thin process or lamina (their
-    centroid lies inside, near the medial surface, where the raw gradient flips; 3 of
-    1,262 triangles of the VerSe L1 template on its own surface), the 3 mm smoothed one
-    none. ``normal_sigma_mm`` 0: the raw gradient (the paper's test). Degenerate
+    centroid lies inside, near the medial surface, where the raw gradient flips), the
+    smoothed one does not (figures in ``docs/measurements.md``, Coating).
+    ``normal_sigma_mm`` 0: the raw gradient (the paper's test). Degenerate
     (zero-area) triangles count as folded.
     """
     fn = face_normals(points, faces)
@@ -89,11 +89,8 @@ def untangle(
 
     Why the regions that fail go back: smoothing a fold it cannot remove (a thin
     lamina narrower than the triangles) widens round after round and drags points
-    along the surface. On the deformed-vertebra population with known correspondence
-    (``tools/eval_correspondence.py deformed``) keeping every round's smoothing put
-    points 0.95 mm from their true places (95th percentile 2.98 mm), no untangling
-    0.77 mm (1.68 mm) with folds left on 13 of 20 instances, and this rule 0.80 mm
-    (1.87 mm) with folds on 6; VerSe T9–L5 ends with no fold either way.
+    along the surface; going back keeps correspondence where the folds stay (figures
+    against known correspondence in ``docs/measurements.md``, Coating).
 
     Returns
     -------
@@ -178,8 +175,7 @@ def relax(
     Why two phases: switching vertices between the two force laws every few steps
     kicks the mesh, and the umbrella force (divided by each vertex's own degree, on
     the folded vertices only) is not the gradient of an energy, so the system never
-    settles (on VerSe vertebrae 160–200 vertices still moved faster than the tolerance
-    after 400 steps). Phase 2 is conservative and converges. With ``params.springs =
+    settles. Phase 2 is conservative and converges. With ``params.springs =
     "tension"`` a spring pulls when stretched and never pushes: the warped template's
     rest lengths do not fit the surface everywhere, and at equilibrium linear springs
     buckle the compressed parts into folds.
@@ -189,14 +185,10 @@ def relax(
     set by the coating), up to 2,000 steps. Where the projection left the mesh unfolded
     that state is already an equilibrium (every spring at rest, every vertex on the
     surface), so the springs act only where the fold handling moved vertices, pulling
-    them back to the registration's spacing. Measured against known correspondence
-    (template point to its true place) this places points as well as the previous
-    25-step pass with linear springs and warped rest lengths, which never converged
-    (deformed-vertebra population, 20 instances: mean 0.953 mm both, 95th percentile
-    2.98 vs 2.91 mm; femur10: 2.350 vs 2.351 mm), while settling with the warped rest
-    lengths drifts the points (1.06 mm) and settling with linear springs leaves folds.
-    On VerSe T9–L5 from the L1 template every vertebra converges by tolerance (5–810
-    steps) with no fold left (the 25-step pass: none converged, 20 folds on T9 and T11).
+    them back to the registration's spacing. Against known correspondence this places
+    points as well as a short pass with linear springs and warped rest lengths that never
+    converged, and it converges with no fold left (figures in ``docs/measurements.md``,
+    Coating).
 
     Parameters
     ----------

@@ -100,8 +100,8 @@ def object_frame(volume: Volume, method: str = "auto") -> ObjectFrame:
     * ``"patient"``: each principal axis paired with the nearest patient axis (R, A, S;
       an assignment so that no two share one), signed along it; object x, y, z = the
       axes paired with R, A, S. Stable where eigenvalues are close or third moments
-      small (measured on VerSe: L5's two largest moments differ by ~10 %, L1/L2 skewness
-      signs flip), so it is the default for images.
+      small (near-symmetric shapes, e.g. vertebrae: ``docs/measurements.md``, Object
+      frames), so it is the default for images.
     * ``"moments"``: descending eigenvalues, signs by third moments, see
       :func:`frame_axes_moments`; for meshes in arbitrary coordinates.
     * ``"auto"``: ``"patient"`` if ``volume.patient_oriented`` else ``"moments"``.

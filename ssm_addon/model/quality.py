@@ -394,7 +394,7 @@ def _loo_scores_in_subspace(gram: np.ndarray, npts: int, variance_fraction: floa
     return {"mahalanobis2": m2, "modes": ks, "loo_error_mm": err, "max_t": tmax}
 
 
-def loo_outlier_scores(instance_points: np.ndarray, *, variance_fraction: float = 0.95) -> dict:
+def loo_outlier_scores(instance_points: np.ndarray, *, variance_fraction: float = 0.95, method: str = "auto") -> dict:
     """Leave-one-out outlier scores of every training shape (paper 5's model without it).
 
     For each instance i the model of the others (eqs. 4–6, 1/n normalisation) gives its
@@ -403,12 +403,18 @@ def loo_outlier_scores(instance_points: np.ndarray, *, variance_fraction: float 
     D² = Σ b_k²/λ_k and the reconstruction error (RMS over points, mm). Computed
     through the n × n Gram matrix (no 3N × 3N matrix).
 
+    ``method``: ``"exact"`` solves one n × n eigenproblem per instance; ``"subspace"`` works in
+    the leading modes of all instances (the same scores to rounding, in O(n²) per instance);
+    ``"auto"`` takes the subspace above ``EXACT_LOO_MAX`` instances.
+
     Returns
     -------
     dict with ``mahalanobis2`` (n,), ``modes`` (n,) K per instance, ``loo_error_mm`` (n,),
     and ``max_t`` (n,): the largest |b_k| / √(λ_k (m+1)/(m−1)) over the K modes, which for a
     new Gaussian shape follows Student's t with m − 1 degrees of freedom (m = n − 1).
     """
+    if method not in ("auto", "exact", "subspace"):
+        raise InputError(f"outlier scores: unknown method {method!r} (auto, exact, subspace)")
     x = np.asarray(instance_points, dtype=float)
     n = x.shape[0]
     flat = x.reshape(n, -1)
@@ -418,7 +424,7 @@ def loo_outlier_scores(instance_points: np.ndarray, *, variance_fraction: float 
     if n < 3:
         return {"mahalanobis2": m2, "modes": ks, "loo_error_mm": err, "max_t": tmax}
     npts = x.shape[1]
-    if n > EXACT_LOO_MAX:
+    if method == "subspace" or (method == "auto" and n > EXACT_LOO_MAX):
         return _loo_scores_in_subspace(gram, npts, variance_fraction)
     for i in range(n):
         rest = np.delete(np.arange(n), i)

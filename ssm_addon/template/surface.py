@@ -16,7 +16,7 @@ Method
   and first moments) are evaluated only at the surface voxels: the ball is a stack of
   runs along the last axis and, with prefix sums of the mask along that axis, each
   run costs four look-ups (exact integers; an FFT correlation over the bounding box
-  is the fallback for very dense cases, see :func:`_ball_sums`).
+  is the fallback for very dense cases, see :func:`ball_sums`).
 * **Sub-voxel surface points**: the same ball count gives, for a locally plane
   surface, the signed distance ``t`` from the voxel centre to the surface along the
   normal (the filled fraction of a ball cut by a plane at distance t is
@@ -87,6 +87,7 @@ from ..pipeline.errors import InputError
 __all__ = [
     "Curvature",
     "SurfaceGeometry",
+    "ball_sums",
     "surface_voxels",
     "surface_graph",
     "surface_normals",
@@ -243,7 +244,8 @@ def _ball_sums_fft(mask: np.ndarray, voxels: np.ndarray, radius_vox: float) -> t
     return count, moment
 
 
-def _ball_sums(mask: np.ndarray, voxels: np.ndarray, radius_vox: float) -> tuple[np.ndarray, np.ndarray]:
+def ball_sums(mask: np.ndarray, voxels: np.ndarray, radius_vox: float, *,
+              method: str = "auto") -> tuple[np.ndarray, np.ndarray]:
     """Count and first moments of the object voxels in a ball around each voxel.
 
     Returns ``count (M,)`` and ``moment (M, 3)`` = sum of offsets (voxel units) of the
@@ -252,15 +254,19 @@ def _ball_sums(mask: np.ndarray, voxels: np.ndarray, radius_vox: float) -> tuple
     and of k * mask along that axis every run costs four look-ups per voxel, so the
     work is M * (disc area) instead of a correlation of the whole bounding box
     (exact integer arithmetic). :func:`_ball_sums_fft` computes the same by FFT over
-    the bounding box; on this 2-core machine the runs took 0.10 s vs 0.21 s for VerSe
-    L1 at 1 mm (radius 5) and tied at 0.5 mm (radius 10, 1.5–1.6 s, with far less
-    memory), so the FFT is used only when M * (disc area) exceeds 8 box volumes.
+    the bounding box; the runs are faster at the usual radii and tie at large ones with
+    far less memory (``docs/measurements.md``, Template), so ``method = "auto"`` takes the
+    FFT only when M * (disc area) exceeds 8 box volumes; ``"runs"`` and ``"fft"`` force one route (the same counts; moments to 1e-3).
     """
+    if method not in ("auto", "runs", "fft"):
+        raise InputError(f"ball sums: unknown method {method!r} (auto, runs, fft)")
+    if method == "fft":
+        return _ball_sums_fft(mask, voxels, radius_vox)
     r = int(np.floor(radius_vox))
     lo = voxels.min(0) - r
     hi = voxels.max(0) + r + 1
     n_runs = (2 * r + 1) ** 2 * np.pi / 4
-    if len(voxels) * n_runs > 8 * np.prod((hi - lo).astype(float)):
+    if method == "auto" and len(voxels) * n_runs > 8 * np.prod((hi - lo).astype(float)):
         return _ball_sums_fft(mask, voxels, radius_vox)  # dense surfaces / large radii
     sub = _crop(mask, lo, hi).astype(bool)
     nx, ny, nz = sub.shape
@@ -321,7 +327,7 @@ def _normals_and_offsets(mask, voxels, radius_vox):
     radius_vox = _check_radius(radius_vox, "normal radius")
     if len(vox) == 0:
         return np.zeros((0, 3)), np.zeros(0)
-    count, moment = _ball_sums(mask, vox, radius_vox)
+    count, moment = ball_sums(mask, vox, radius_vox)
     # voxel centre minus centre of mass = -(moment / count)
     vec = -moment / np.maximum(count, 1.0)[:, None]
     norm = np.linalg.norm(vec, axis=1)

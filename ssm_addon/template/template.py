@@ -55,7 +55,9 @@ __all__ = [
     "Triangulation",
     "build_template",
     "clean_topology",
+    "geodesic_voronoi",
     "load_template",
+    "mesh_graph",
     "object_volume_at_spacing",
     "reduce_points",
     "reduction_radii",
@@ -398,7 +400,8 @@ class Triangulation:
     genus: int
 
 
-def _mesh_graph(verts: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
+def mesh_graph(verts: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
+    """The mesh's edges as a symmetric sparse graph weighted by edge length (the units of ``verts``)."""
     e = meshutil.edges(faces)
     w = np.linalg.norm(verts[e[:, 0]] - verts[e[:, 1]], axis=1)
     n = len(verts)
@@ -419,7 +422,7 @@ def _nearest_vertex(verts: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return tied.min(axis=1).astype(np.int64)
 
 
-def _voronoi(graph, seeds):
+def geodesic_voronoi(graph, seeds):
     """Geodesic Voronoi diagram of ``seeds`` on the mesh graph: (distance in voxels, region) per vertex.
 
     Independent of the shortest-path implementation. The distances are (the minimum over
@@ -583,7 +586,7 @@ def triangulate(
         raise InputError(f"triangulate: the mask's surface has {ncomp} components; clean the topology first")
     target_genus = int(meshutil.genus(len(verts), mfaces))
     medges = meshutil.edges(mfaces)
-    graph = _mesh_graph(verts, mfaces)
+    graph = mesh_graph(verts, mfaces)
     nearest = _nearest_vertex(verts, pts)
     seeds_list, first = np.unique(nearest, return_index=True)
     keep = np.sort(first)  # keep the given order, drop later duplicates
@@ -593,7 +596,7 @@ def triangulate(
     refinements = 0
     while True:
         check_cancelled(cancelled)
-        dist, labels = _voronoi(graph, seeds)
+        dist, labels = geodesic_voronoi(graph, seeds)
         tris, _ = _dual(labels, mfaces)
         tris = _cancel_pillows(tris)
         bad = _bad_labels(labels, len(seeds), mfaces, medges, tris)
