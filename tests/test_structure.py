@@ -97,6 +97,8 @@ def test_the_core_is_one_subpackage_per_stage():
             module = importlib.import_module(f"ssm_addon.{pkg}.{m}")
             for name in getattr(module, "__all__", ()):
                 assert name in init.__all__ and getattr(init, name) is getattr(module, name), (pkg, m, name)
+        for name in init.__all__:  # and every name it re-exports exists
+            assert hasattr(init, name), (pkg, name)
 
 
 def test_the_public_api_and_the_old_module_paths():

@@ -125,11 +125,6 @@ class FitFigures:
     def max_landmark_residual_mm(self) -> float:
         return max(self.landmark_residuals_mm, default=0.0)
 
-    @property
-    def poor(self) -> bool:
-        """Folds left or a vertex farther than one voxel from the surface."""
-        return self.folded_after > 0 or self.max_distance_mm > self.spacing_mm
-
     def to_dict(self) -> dict:
         d = asdict(self)
         d["start"] = str(self.start)

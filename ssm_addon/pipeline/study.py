@@ -55,6 +55,7 @@ from ..model.quality import (
     check_volumes_together,
     content_digest,
 )
+from ..pipeline.compute import time_left_text
 from ..pipeline.errors import InputError, check_cancelled
 from ..pipeline.params import CoatingParams, QualityParams, StudyParams
 from ..pipeline.progress import CancelledFn, ProgressFn, report, sub_progress
@@ -1012,14 +1013,19 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
         check_cancelled(cancelled)
         report(progress, 0.3, f"coating: {n} instances, {jobs} job(s)")
         coat_prog = sub_progress(progress, 0.3, 0.85)
+        if study.params.correspondence.method == "landmarks":  # one progress line per instance, as it arrives
+            t0, arrived = time.perf_counter(), []
 
-        def per_instance(fraction: float, message: str) -> None:  # the single pass: one line per instance
-            if message.startswith("coated "):
-                report(coat_prog, fraction, message)
+            def coated(name: str) -> None:
+                arrived.append(name)
+                left = time_left_text(len(arrived), n, time.perf_counter() - t0)
+                report(coat_prog, len(arrived) / n, f"coated {name} ({len(arrived)}/{n})" + (f", {left}" if left else ""))
 
-        single = study.params.correspondence.method == "landmarks"
-        applied(coating_stage(study, jobs=jobs, progress=(per_instance if progress else None) if single else coat_prog,
-                              cancelled=cancelled, log=say, executor=executor))
+            applied(coating_stage(study, jobs=jobs, cancelled=cancelled, log=say, executor=executor,
+                                  on_coated=coated if progress else None))
+        else:
+            applied(coating_stage(study, jobs=jobs, progress=coat_prog, cancelled=cancelled, log=say,
+                                  executor=executor))
     if "model" in stages:
         check_cancelled(cancelled)
         report(progress, 0.85, "model: PCA")
