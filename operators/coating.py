@@ -304,9 +304,13 @@ class SSM_PT_coating(SSMPanel, bpy.types.Panel):
             kept = "kept" if r.get("kept", True) else "dropped"
             transfer = r.get("transfer_after_mm")
             judged = f", transfer {transfer:.2f} mm" if isinstance(transfer, float) and transfer == transfer else ""
+            noise = r.get("landmark_noise") or {}
             box.label(text=f"round {r['round']} {kept}: mean {r['mean_change_mm']:.3f} mm, instances ≤ {moved:.2f} "
                       f"mm, landmarks ≤ {shift:.2f} mm, folds {sum(r['folds'].values())}{judged}, "
                       f"{r['seconds']:.0f} s")
+            if noise.get("shrink"):
+                box.label(text=f"    landmarks {noise['click_mm']:.2f} mm off, model {noise['model_mm']:.2f} mm: "
+                          f"moved {noise['shrink']:.0%} to the prediction")
         check = correspondence_check(context)
         if check.get("instance_mm"):
             worst = max(check["instance_mm"], key=check["instance_mm"].get)

@@ -132,6 +132,16 @@ def test_template_keys_follow_template_params(files):
     assert f"unknown key '{key}_typo'" in msg and f"did you mean '{key}'" in msg
 
 
+def test_the_exact_landmarks_key_of_earlier_versions_is_read_as_the_landmark_error(files):
+    """``exact_landmarks = true`` (earlier versions) is ``landmark_noise_mm = 0``; ``false`` the estimate."""
+    for old, new in (("true", 0.0), ("false", None)):
+        proj = read_project(_write(files, VALID + f"\n[correspondence]\nexact_landmarks = {old}\n"))
+        assert proj.params.correspondence.landmark_noise_mm == new
+    assert "true or false" in _error(files, VALID + "\n[correspondence]\nexact_landmarks = 1\n")
+    assert "same setting" in _error(files, VALID + "\n[correspondence]\nexact_landmarks = true\n"
+                                           "landmark_noise_mm = 1.0\n")
+
+
 def test_missing_file_names_key_instance_and_line(files):
     text = VALID.replace("data/two.nii.gz", "data/missing.nii.gz")
     msg = _error(files, text)

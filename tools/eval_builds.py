@@ -37,7 +37,7 @@ VERSE = {"T9": 16, "T10": 17, "T11": 18, "T12": 19, "L1": 20, "L2": 21, "L3": 22
 def verse_project(folder: Path, landmarks_on, method: str, iterations: int, exact: bool = False) -> Path:
     src = DATA / "verse004"
     lines = ["[template]", 'instance = "L1"', "spacing = 1.0", "", "[correspondence]", f'method = "{method}"',
-             f"iterations = {iterations}", f"exact_landmarks = {str(exact).lower()}", "", "[model]",
+             f"iterations = {iterations}", ("landmark_noise_mm = 0.0" if exact else ""), "", "[model]",
              'alignment = "none"', ""]
     for name, label in VERSE.items():
         lines += ["[[instances]]", f'name = "{name}"', f'volume = "{src / "sub-verse004_seg-vert_msk.nii.gz"}"',
@@ -57,7 +57,7 @@ def demo_project(folder: Path, n: int, method: str, iterations: int, exact: bool
     text = path.read_text()
     text = re.sub(r"\n\[correspondence\][^\[]*", "\n", text)
     text = text.replace("[coating]", f'[correspondence]\nmethod = "{method}"\niterations = {iterations}\n'
-                        f'exact_landmarks = {str(exact).lower()}\n\n[coating]')
+                        ('landmark_noise_mm = 0.0' if exact else '') + '\n\n[coating]')
     out = path.with_name(f"project-{method}.toml")
     out.write_text(text)
     return out
@@ -96,7 +96,7 @@ def main(argv=None):
     ap.add_argument("--iterations", type=int, default=3)
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--methods", default="landmarks,model")
-    ap.add_argument("--exact-landmarks", action="store_true", help="[correspondence] exact_landmarks = true")
+    ap.add_argument("--exact-landmarks", action="store_true", help="[correspondence] landmark_noise_mm = 0 (exact landmarks)")
     args = ap.parse_args(argv)
     baseline = None
     with tempfile.TemporaryDirectory() as tmp:

@@ -32,7 +32,7 @@ coating's surface (and halfway between the two), against the truth.
 Usage::
 
     python tools/eval_correspondence.py femur10 [--landmarks 15] [--on 10] [--jitter 0]
-        [--method landmarks|model] [--exact-landmarks] [--iterations 3] [--jobs 2]
+        [--method landmarks|model] [--landmark-noise MM] [--iterations 3] [--jobs 2]
     python tools/eval_correspondence.py knee30-tibia --suite --json runs.jsonl
     python tools/eval_correspondence.py folder:/data/femurs:*.ply --landmarks 6
     python tools/eval_correspondence.py deformed [--n 20] ...
@@ -140,12 +140,15 @@ def report_run(label: str, errors: dict, study, seconds: float, args, error_of=N
     if error_of is not None:
         for r, state in zip(getattr(study, "correspondence_rounds", ()), ROUND_STATES):
             e = np.concatenate(list(error_of(state).values()))
+            noise = r.landmark_noise
             truth_rounds.append({"round": r.round, "kept": r.kept, "true_mean_mm": float(e.mean()),
                                  "true_p95_mm": float(np.percentile(e, 95)),
-                                 "transfer_before_mm": r.transfer_before_mm, "transfer_after_mm": r.transfer_after_mm})
+                                 "transfer_before_mm": r.transfer_before_mm, "transfer_after_mm": r.transfer_after_mm,
+                                 "click_mm": noise.click_mm, "model_mm": noise.model_mm, "shrink": noise.shrink})
             print(f"  round {r.round} ({'kept' if r.kept else 'dropped'}): true error {e.mean():.3f} / "
                   f"{np.percentile(e, 95):.2f} mm (start {allv.mean() if not r.kept else float('nan'):.3f}); "
-                  f"transfer {r.transfer_before_mm:.3f} -> {r.transfer_after_mm:.3f} mm")
+                  f"transfer {r.transfer_before_mm:.3f} -> {r.transfer_after_mm:.3f} mm; landmarks "
+                  f"{noise.click_mm:.2f} mm off (model {noise.model_mm:.2f}), moved {noise.shrink:.0%}")
     per = {n: float(e.mean()) for n, e in errors.items()}
     check = self_check(study)
     rho = rank_correlation(per, check, study.template_instance)
@@ -158,7 +161,7 @@ def report_run(label: str, errors: dict, study, seconds: float, args, error_of=N
     rounds = [(r.round, r.kept) for r in getattr(study, "correspondence_rounds", ()) if hasattr(r, "kept")]
     stop = getattr(getattr(study, "correspondence_check", None), "stop", "")
     row = {"population": args.population, "method": args.method, "landmarks": args.landmarks, "on": args.on,
-           "jitter": args.jitter, "exact_landmarks": args.exact_landmarks, "mean_mm": float(allv.mean()),
+           "jitter": args.jitter, "landmark_noise": args.landmark_noise, "mean_mm": float(allv.mean()),
            "p95_mm": float(np.percentile(allv, 95)), "max_mm": float(allv.max()), "seconds": seconds,
            "self_check_mm": float(np.mean(list(check.values()))) if check else None, "rank_correlation": rho,
            "rounds": rounds, "truth_rounds": truth_rounds, "stop": stop, "reconstruction_mm": float(np.mean(list(recon.values()))),
@@ -318,7 +321,7 @@ def deformed_population(n: int, label: int, seed: int, workdir: Path):
 LANDMARK_WEIGHT = [None]
 ROUND_TEMPLATE = [None]
 ROUND_STATES: list = []  # the model method's re-sampled coatings of every round (object frames)
-EXACT_LANDMARKS = [None]
+LANDMARK_NOISE = [None]
 
 
 def run_study(specs, template_name: str, method: str, iterations: int, jobs: int, spacing: float | None = None):
@@ -328,8 +331,8 @@ def run_study(specs, template_name: str, method: str, iterations: int, jobs: int
     extra = {} if LANDMARK_WEIGHT[0] is None else {"landmark_weight": LANDMARK_WEIGHT[0]}
     if ROUND_TEMPLATE[0] is not None:
         extra["round_template"] = ROUND_TEMPLATE[0]
-    if EXACT_LANDMARKS[0] is not None:
-        extra["exact_landmarks"] = EXACT_LANDMARKS[0]
+    if LANDMARK_NOISE[0] is not None:
+        extra["landmark_noise_mm"] = LANDMARK_NOISE[0]
     study.params = study.params.replace(correspondence=CorrespondenceParams(method=method, iterations=iterations, **extra))
     t0 = time.perf_counter()
     say = lambda m: print("  " + m, flush=True)  # noqa: E731
@@ -433,8 +436,8 @@ def main(argv=None):
     ap.add_argument("--label", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--landmark-weight", type=float, default=None)
-    ap.add_argument("--exact-landmarks", choices=("default", "true", "false"), default="default",
-                    help="[correspondence] exact_landmarks (default: the method's default)")
+    ap.add_argument("--landmark-noise", type=float, default=None,
+                    help="[correspondence] landmark_noise_mm (default: estimated; 0: exact landmarks)")
     ap.add_argument("--round-template", choices=("instance", "mean"), default=None,
                     help="[correspondence] round_template (default: the method's default)")
     ap.add_argument("--suite", action="store_true", help="the issue's matrix of settings, one table")
@@ -446,7 +449,7 @@ def main(argv=None):
         ap.error(f"unknown population {args.population!r}")
     LANDMARK_WEIGHT[0] = args.landmark_weight
     ROUND_TEMPLATE[0] = args.round_template
-    EXACT_LANDMARKS[0] = {"default": None, "true": True, "false": False}[args.exact_landmarks]
+    LANDMARK_NOISE[0] = args.landmark_noise
     if args.suite:
         suite(args)
     else:

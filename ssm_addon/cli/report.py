@@ -285,10 +285,14 @@ def write_html_report(path, doc: dict, *, images: dict[str, bytes] | None = None
             parts.append(_table([{"_class": "" if r.get("kept", True) else "warn", "cells": [
                 str(r["round"]), _num(r.get("mean_change_mm"), 3),
                 _num(max((r.get("instance_change_mm") or {}).values(), default=None), 2),
+                _num((r.get("landmark_noise") or {}).get("click_mm"), 2),
+                _num((r.get("landmark_noise") or {}).get("model_mm"), 2),
+                _num(100 * (r.get("landmark_noise") or {}).get("shrink", 0.0), 0),
                 _num(r.get("transfer_before_mm"), 3), _num(r.get("transfer_after_mm"), 3),
                 "kept" if r.get("kept", True) else "dropped", _num(sum((r.get("folds") or {}).values())),
                 _num(r.get("seconds"), 1)]} for r in rounds],
-                ["round", "mean shape moved (mm)", "instances moved ≤ (mm)", "transfer before (mm)",
+                ["round", "mean shape moved (mm)", "instances moved ≤ (mm)", "landmark error (mm/axis)",
+                 "model's prediction error (mm/axis)", "landmarks moved (%)", "transfer before (mm)",
                  "transfer after (mm)", "kept", "folds", "seconds"]))
 
     # instances

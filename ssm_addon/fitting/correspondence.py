@@ -12,15 +12,19 @@ does both (``[correspondence] method = "model"``):
 2. **Rounds**, each: every instance is **fitted by the model built without it**
    (leave-one-out, so an instance never fits itself) — pose and coefficients under the
    model's prior, against its surface (:func:`round_landmarks`). The fit read off at the
-   template's landmark points supplies the landmarks an instance lacks; the given ones
-   are kept where given (``exact_landmarks = true``, the default) or replaced by the
-   fit's posterior with the given ones as soft constraints of weight ``landmark_weight``
-   (``false``: rough or extremal-point landmarks, VerSe's). The template is then coated
-   onto the instance with them by the paper's pipeline (:func:`coat_mean_shape`:
-   landmark warp eq. 2, registration, projection, relaxation eq. 3): with
-   ``round_template = "instance"`` (the default) the template itself, and instances
-   whose every landmark is given and exact keep their coating; with ``"mean"`` the
-   **mean shape** (paper 3.3), re-sampled at the template's points.
+   template's landmark points supplies the landmarks an instance lacks (its posterior,
+   the given ones as soft constraints of weight ``landmark_weight``). The given ones are
+   moved towards the fit's prediction by the share their **click error** calls for
+   (:func:`landmark_noise`): the template instance's transfer error is the model's error
+   alone (its landmarks define the correspondence), the other instances' hold the click
+   error too; each given landmark moves α = σ_c² / (σ_c² + σ_m²) of the way
+   (``[correspondence] landmark_noise_mm``: estimated by default, 0 for exact landmarks,
+   which stay where given). The template is then coated onto the instance with them by
+   the paper's pipeline (:func:`coat_mean_shape`: landmark warp eq. 2, registration,
+   projection, relaxation eq. 3): with ``round_template = "instance"`` (the default) the
+   template itself, and instances whose every landmark is given and stays keep their
+   coating; with ``"mean"`` the **mean shape** (paper 3.3), re-sampled at the template's
+   points.
    A round is **kept only when it helps**, judged without truth by the landmark transfer
    error (:class:`CorrespondenceCheck`): each instance's given landmarks predicted by the
    model of the *other* instances fitted to its surface alone; the next round's fits
@@ -72,7 +76,8 @@ from ..pipeline.progress import CancelledFn, ProgressFn, sub_progress
 REFINE_FIT_SAMPLES = 2000
 REFINE_FIT_TOLERANCE_MM = 0.01
 
-__all__ = ["AXIS_TURNS", "WORLD_POSE_TOLERANCE", "CorrespondenceCheck", "RoundFigures", "aligned_to",
+__all__ = ["AXIS_TURNS", "WORLD_POSE_TOLERANCE", "CorrespondenceCheck", "LandmarkNoise", "RoundFigures",
+           "RoundLandmarks", "aligned_to", "landmark_noise", "round_landmarks", "coat_mean_shape",
            "correspondence_fit_params", "check_correspondence", "landmark_transfer", "refine_instance",
            "refine_rounds", "resample_instance", "start_from_model", "starts_from_model"]
 
@@ -83,6 +88,78 @@ def correspondence_fit_params(params: CorrespondenceParams) -> FitParams:
     use the fitted shape, never its posterior SD)."""
     return FitParams(noise_mm=params.fit_noise_mm, landmark_weight=params.landmark_weight,
                      tolerance_mm=REFINE_FIT_TOLERANCE_MM, model_error=False)
+
+
+@dataclass(frozen=True)
+class LandmarkNoise:
+    """How far off the given landmarks are (the click error) and how far the population's
+    prediction of them is (the model error), per axis, mm; and how far a round moves each
+    given landmark towards its prediction.
+
+    Attributes
+    ----------
+    model_mm : float
+        σ_m: the landmark transfer error of the template instance, whose given landmarks
+        define the correspondence (RMS per axis).
+    click_mm : float
+        σ_c: estimated from the other landmarked instances' transfer errors (their part
+        beyond σ_m), or as given (``[correspondence] landmark_noise_mm``).
+    shrink : float
+        α = σ_c² / (σ_c² + σ_m²): the share of the way from a given landmark to its
+        prediction the round moves it (the least-squares combination of two independent
+        estimates with these errors); 0 keeps every landmark where given.
+    estimated : bool
+        ``click_mm`` was estimated (not given).
+    """
+
+    model_mm: float = 0.0
+    click_mm: float = 0.0
+    shrink: float = 0.0
+    estimated: bool = True
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def landmark_noise(differences: dict, template_instance: str, *, click_mm: float | None = None) -> LandmarkNoise:
+    """The click and model errors of the given landmarks, from the landmark transfer.
+
+    Parameters
+    ----------
+    differences : dict instance -> (G, 3) mm
+        Each landmarked instance's predicted minus given landmarks (:attr:`RoundLandmarks.difference`).
+    template_instance : str
+        Its landmarks are exact by definition: their transfer error is the model's alone.
+    click_mm : float, optional
+        The click error per axis when known (0: the landmarks are exact); default estimated:
+        σ_c² = mean over the other instances of |d|²/3, less σ_m².
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> d = {f"i{k}": rng.normal(scale=0.5, size=(15, 3)) + rng.normal(scale=1.5 * (k > 0), size=(15, 3))
+    ...      for k in range(30)}
+    >>> noise = landmark_noise(d, "i0")
+    >>> round(noise.click_mm, 1), 0.8 < noise.shrink < 1.0
+    (1.5, True)
+    >>> landmark_noise(d, "i0", click_mm=0.0).shrink
+    0.0
+    """
+    own = differences.get(template_instance)
+    if own is None or not len(own):
+        return LandmarkNoise(estimated=click_mm is None)
+    model2 = float((np.asarray(own, float) ** 2).sum(axis=1).mean() / 3)
+    others = [np.asarray(d, float) for n, d in differences.items() if n != template_instance and len(d)]
+    if click_mm is None:
+        if not others:
+            return LandmarkNoise(model_mm=math.sqrt(model2))
+        total2 = float(np.mean([(d ** 2).sum(axis=1).mean() / 3 for d in others]))
+        click2 = max(0.0, total2 - model2)
+    else:
+        click2 = float(click_mm) ** 2
+    shrink = click2 / (click2 + model2) if click2 + model2 > 0 else 0.0
+    return LandmarkNoise(model_mm=math.sqrt(model2), click_mm=math.sqrt(click2), shrink=shrink,
+                         estimated=click_mm is None)
 
 
 @dataclass(frozen=True)
@@ -102,7 +179,10 @@ class RoundFigures:
         Folded triangles left after the relaxation and the re-sampling.
     landmark_shift_mm : dict name -> mm
         RMS distance between each instance's given landmarks and the places the round
-        warped them to (the fit's estimate); 0 with ``exact_landmarks`` or none given.
+        warped them to; 0 for exact landmarks or none given.
+    landmark_noise : LandmarkNoise
+        The click and model errors of the given landmarks the round estimated, and the
+        share α of the way to their prediction it moved them (:func:`landmark_noise`).
     sampling_slide_mm : float
         RMS distance by which the mean-shape coating moved the template instance's
         points along its surface; the re-sampling puts them back (:func:`resample_instance`).
@@ -122,6 +202,7 @@ class RoundFigures:
     folds: dict = field(default_factory=dict)
     landmark_shift_mm: dict = field(default_factory=dict)
     sampling_slide_mm: float = 0.0
+    landmark_noise: LandmarkNoise = field(default_factory=lambda: LandmarkNoise())
     transfer_before_mm: float = float("nan")
     transfer_after_mm: float = float("nan")
     kept: bool = True
@@ -353,12 +434,53 @@ def starts_from_model(coated: np.ndarray, faces: np.ndarray, template_points: np
     return dict(zip(names, found))
 
 
+@dataclass(frozen=True)
+class RoundLandmarks:
+    """The model half of a round for one instance (:func:`round_landmarks`), object mm.
+
+    Attributes
+    ----------
+    warp : (L, 3) float ndarray
+        The landmarks the round's warp (eq. 2) takes: the given ones where given, the
+        fit's estimate of the absent ones (:meth:`shrunk` moves the given ones).
+    predicted : (L, 3) float ndarray
+        Every landmark as the model of the other instances, fitted to this instance's
+        surface alone, puts it (the landmark transfer).
+    given : (L,) bool ndarray
+        Which landmarks the instance has.
+    fit_distance_mm : float
+        Mean surface distance of the fit.
+    transfer : dict given landmark -> mm
+        The landmark transfer error of the coating the round started from.
+    """
+
+    warp: np.ndarray
+    predicted: np.ndarray
+    given: np.ndarray
+    fit_distance_mm: float
+    transfer: dict
+
+    @property
+    def difference(self) -> np.ndarray:
+        """(G, 3) mm: the prediction minus the given landmark, for each given landmark."""
+        return self.predicted[self.given] - self.warp[self.given]
+
+    def shrunk(self, shrink: float) -> tuple[np.ndarray, float]:
+        """The warp with each given landmark moved ``shrink`` (0..1) of the way to its
+        prediction, and the RMS move (mm)."""
+        warp = np.array(self.warp, float)
+        move = float(shrink) * self.difference
+        warp[self.given] += move
+        return warp, float(np.sqrt((move ** 2).sum(axis=1).mean())) if len(move) else 0.0
+
+
 def round_landmarks(others: np.ndarray, faces: np.ndarray, target, landmark_locations: LandmarkLocations,
-                    landmarks_object: dict, *, fit: FitParams, exact_landmarks: bool = True,
-                    current: np.ndarray | None = None, name: str = "") -> tuple[np.ndarray, float, float, dict]:
+                    landmarks_object: dict, *, fit: FitParams, current: np.ndarray | None = None,
+                    name: str = "") -> RoundLandmarks:
     """The model half of a round for one instance: the model of ``others`` fitted to its
     surface alone, its landmark transfer (:func:`landmark_transfer`) and the landmarks the
-    round's warp takes (eq. 2).
+    round's warp takes (eq. 2): the given ones where given, the absent ones from the fit
+    with the given ones as soft constraints (its posterior).
 
     Parameters
     ----------
@@ -371,47 +493,39 @@ def round_landmarks(others: np.ndarray, faces: np.ndarray, target, landmark_loca
         The template's landmarks as points of the mesh.
     landmarks_object : dict name -> (3,) mm
         The instance's landmarks in its object frame (may be empty).
-    exact_landmarks : bool
-        True (default): the given landmarks are warped to exactly where given and only
-        absent ones come from the fit. False: the warp uses the fit's estimate of every
-        landmark, the given ones as soft constraints (its posterior: the given place
-        pulled by the population, for rough or extremal-point landmarks).
     current : (N, 3) mm, optional
         The instance's coating the round starts from: the surface of the landmark
         transfer check; default its marching-cubes surface.
 
     Returns
     -------
-    ((L, 3) warp landmarks in mm, mean surface distance of the fit in mm, RMS distance in
-    mm between the given landmarks and the warp's: 0 for exact landmarks or none given,
-    dict given landmark -> transfer distance in mm of the coating the round started from)
+    RoundLandmarks
     """
     dm = DistanceMap.from_object_volume(target)
     if current is None:
         surface, surface_faces = dm.surface_vertices, dm.surface_faces
     else:
         surface, surface_faces = current, None
-    result, fitted, transfer = landmark_transfer(others, faces, surface, landmark_locations, landmarks_object,
-                                                 fit=fit, surface_faces=surface_faces)
+    result, predicted, transfer = landmark_transfer(others, faces, surface, landmark_locations, landmarks_object,
+                                                    fit=fit, surface_faces=surface_faces)
     all_names = list(landmark_locations.names)
-    given = [i for i, n in enumerate(all_names) if n in landmarks_object]
-    given_points = np.array([landmarks_object[all_names[i]] for i in given], float).reshape(-1, 3)
-    absent = len(given) < len(all_names)
-    if given and fit.landmark_weight > 0 and (absent or not exact_landmarks):
-        # the landmarks' posterior places: the fit with the given landmarks as soft
+    given = np.array([n in landmarks_object for n in all_names], dtype=bool)
+    given_points = np.array([landmarks_object[n] for n in all_names if n in landmarks_object], float).reshape(-1, 3)
+    warp = np.array(predicted, float)
+    if given.any() and not given.all() and fit.landmark_weight > 0:
+        # the absent landmarks' posterior places: the fit with the given landmarks as soft
         # constraints, read off at the template's landmark points
         model = build_model(others if current is None else aligned_to(others, current), faces,
                             [str(i) for i in range(len(others))],
                             params={"landmark_locations": landmark_locations.to_dict()})
-        lms = LandmarkSet(tuple(all_names[i] for i in given), given_points, name)
+        lms = LandmarkSet(tuple(n for n in all_names if n in landmarks_object), given_points, name)
         result = fit_model(model, Target.from_mesh(dm.surface_vertices, dm.surface_faces, landmarks=lms,
                                                    max_samples=REFINE_FIT_SAMPLES), params=fit,
                            pose=Pose() if current is None else result.pose)
-        fitted = landmark_locations.evaluate(result.points, faces)
-    if exact_landmarks and given:
-        fitted[given] = given_points
-    shift = float(np.sqrt(((fitted[given] - given_points) ** 2).sum(axis=1).mean())) if given else 0.0
-    return fitted, float(result.mean_distance_mm), shift, transfer
+        warp = landmark_locations.evaluate(result.points, faces)
+    warp[given] = given_points
+    return RoundLandmarks(warp=warp, predicted=np.asarray(predicted, float), given=given,
+                          fit_distance_mm=float(result.mean_distance_mm), transfer=transfer)
 
 
 def coat_mean_shape(template_points: np.ndarray, faces: np.ndarray, target, landmark_locations: LandmarkLocations,
@@ -425,22 +539,22 @@ def coat_mean_shape(template_points: np.ndarray, faces: np.ndarray, target, land
 
 def refine_instance(others: np.ndarray, faces: np.ndarray, template_points: np.ndarray, target,
                     landmark_locations: LandmarkLocations, landmarks_object: dict, *, fit: FitParams,
-                    coating: CoatingParams, exact_landmarks: bool = True, current: np.ndarray | None = None,
+                    coating: CoatingParams, shrink: float = 0.0, current: np.ndarray | None = None,
                     name: str = "") -> tuple[CoatingResult, float, float, dict]:
     """One instance in one round: :func:`round_landmarks` (the model of ``others`` fitted to
-    it) then :func:`coat_mean_shape` (``template_points``, the mean shape, coated onto it
-    with the landmarks the fit gives).
+    it) then :func:`coat_mean_shape` (``template_points`` coated onto it with the landmarks
+    the fit gives, the given ones moved ``shrink`` of the way to their prediction).
 
     Returns
     -------
     (CoatingResult, mean surface distance of the fit in mm, RMS shift of the given
     landmarks in mm, dict given landmark -> transfer distance in mm)
     """
-    warp, distance, shift, transfer = round_landmarks(others, faces, target, landmark_locations, landmarks_object,
-                                                      fit=fit, exact_landmarks=exact_landmarks, current=current,
-                                                      name=name)
+    found = round_landmarks(others, faces, target, landmark_locations, landmarks_object, fit=fit, current=current,
+                            name=name)
+    warp, shift = found.shrunk(shrink)
     coated = coat_mean_shape(template_points, faces, target, landmark_locations, warp, coating=coating, name=name)
-    return coated, distance, shift, transfer
+    return coated, found.fit_distance_mm, shift, found.transfer
 
 
 def resample_instance(coating: CoatingResult, faces: np.ndarray, triangles: np.ndarray, bary: np.ndarray, target,
@@ -492,7 +606,7 @@ def _resample_job(args):
 
 
 def _landmarks_job(args):
-    return round_landmarks(*args[:5], fit=args[5], exact_landmarks=args[6], current=args[7], name=args[8])
+    return round_landmarks(*args[:5], fit=args[5], current=args[6], name=args[7])
 
 
 def _coat_mean_job(args):
@@ -582,11 +696,11 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
             mean = aligned_to(points, points[anchor]).mean(axis=0)
             # the fits of this round judge the coatings it starts from (the last round's)
             args = [(np.delete(points, i, axis=0), faces, study.volume(n), locations, lm_object[n], fit,
-                     params.exact_landmarks, points[i], n) for i, n in enumerate(names)]
+                     points[i], n) for i, n in enumerate(names)]
             span = (r - 1) / (total + 1), (r - 0.5) / (total + 1)
             fitted = executor.map(_landmarks_job, args, labels=names, verb=f"round {r}: fitted",
                                   progress=sub_progress(progress, span[0], span[1]), cancelled=cancelled)
-            check = CorrespondenceCheck.from_landmarks({n: t for n, (_w, _d, _s, t) in zip(names, fitted)})
+            check = CorrespondenceCheck.from_landmarks({n: f.transfer for n, f in zip(names, fitted)})
             if best_check is None:
                 best_check = check
             else:
@@ -604,28 +718,40 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
                     break
             if r > total:
                 break
+            # the given landmarks' click error against the population's prediction of them; each
+            # is moved that share of the way to its prediction (the template instance's define
+            # the correspondence and stay)
+            noise = landmark_noise({n: f.difference for n, f in zip(names, fitted) if f.given.any()},
+                                   study.template_instance, click_mm=params.landmark_noise_mm)
+            moved = {n: f.shrunk(0.0 if n == study.template_instance else noise.shrink) for n, f in zip(names, fitted)}
+            warps = {n: w for n, (w, _s) in moved.items()}
+            shifts = {n: s for n, (_w, s) in moved.items()}
+            if noise.estimated and any(f.given.any() for n, f in zip(names, fitted) if n != study.template_instance):
+                say(f"correspondence round {r}: given landmarks {noise.click_mm:.2f} mm off (per axis, estimated), "
+                    f"the model's prediction {noise.model_mm:.2f} mm: each moved {noise.shrink:.0%} of the way "
+                    "to its prediction")
             if params.round_template == "instance":
                 # the template itself, coated with the landmarks the fits give: instances whose
-                # every landmark is given and exact would be coated as they are, and keep theirs
-                redo = [n for n in names if not (params.exact_landmarks and complete[n])]
+                # every landmark is given and stays where given would be coated as they are, and
+                # keep theirs
+                redo = [n for n in names if not (complete[n] and shifts[n] == 0.0)]
                 if not redo:
-                    say("correspondence: every instance has every landmark, exact: the rounds have nothing to "
-                        "refine (the single pass's coatings)")
+                    say("correspondence: every instance has every landmark and none moves: the rounds have nothing "
+                        "to refine (the single pass's coatings)")
                     stop = "converged"
                     break
                 found = dict(zip(redo, executor.map(
                     _coat_mean_job, [(template_points, faces, study.volume(n), locations,
-                                      fitted[names.index(n)][0], study.params.coating, n) for n in redo],
+                                      warps[n], study.params.coating, n) for n in redo],
                     labels=redo, verb=f"round {r}: coated", on_result=arrived(redo),
                     progress=sub_progress(progress, span[1], r / (total + 1)), cancelled=cancelled)))
                 resampled = [found.get(n, study.coatings[n]) for n in names]
-                change = _finish_round(study, names, points, resampled, fitted, faces, size, r, t0, rounds, say,
-                                       mean, 0.0, check.study_mm, template=start_template)
+                change = _finish_round(study, names, points, resampled, fitted, shifts, noise, faces, size, r, t0,
+                                       rounds, say, mean, 0.0, check.study_mm, template=start_template)
                 converged = change < params.tolerance_mm
                 continue
-            coated = executor.map(_coat_mean_job, [(mean, faces, study.volume(n), locations, w,
-                                                    study.params.coating, n)
-                                                   for n, (w, _d, _s, _t) in zip(names, fitted)],
+            coated = executor.map(_coat_mean_job, [(mean, faces, study.volume(n), locations, warps[n],
+                                                    study.params.coating, n) for n in names],
                                   labels=names, verb=f"round {r}: coated", on_result=arrived(names),
                                   progress=sub_progress(progress, span[1], (r - 0.2) / (total + 1)),
                                   cancelled=cancelled)
@@ -642,8 +768,8 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
                                      cancelled=cancelled)
             moved = np.stack([c.points_object for c in coated])
             _check_diverged(aligned_to(moved, moved[anchor]).mean(axis=0), mean, size, r)
-            change = _finish_round(study, names, points, resampled, fitted, faces, size, r, t0, rounds, say, mean,
-                                   slide, check.study_mm)
+            change = _finish_round(study, names, points, resampled, fitted, shifts, noise, faces, size, r, t0, rounds,
+                                   say, mean, slide, check.study_mm)
             converged = change < params.tolerance_mm
         study.coatings, study.template = dict(best[0]), best[1]
         for n in names:
@@ -664,8 +790,8 @@ def _check_diverged(new_mean: np.ndarray, mean: np.ndarray, size: float, r: int)
     return change
 
 
-def _finish_round(study, names, points, resampled, fitted, faces, size, r, t0, rounds, say, mean, slide, before,
-                  template=None):
+def _finish_round(study, names, points, resampled, fitted, shifts, noise, faces, size, r, t0, rounds, say, mean,
+                  slide, before, template=None):
     """Check a round, record its figures, and make its re-sampled coatings and mean shape the
     study's; returns the RMS movement of the mean shape (mm)."""
     new_points = np.stack([c.points_object for c in resampled])
@@ -675,10 +801,10 @@ def _finish_round(study, names, points, resampled, fitted, faces, size, r, t0, r
         round=r, mean_change_mm=change,
         instance_change_mm={n: float(np.sqrt(((new_points[i] - points[i]) ** 2).sum(axis=1).mean()))
                             for i, n in enumerate(names)},
-        fit_distance_mm={n: d for n, (_w, d, _s, _t) in zip(names, fitted)},
+        fit_distance_mm={n: f.fit_distance_mm for n, f in zip(names, fitted)},
         folds={n: int(c.fit.folded_after) for n, c in zip(names, resampled)},
-        landmark_shift_mm={n: s for n, (_w, _d, s, _t) in zip(names, fitted)},
-        sampling_slide_mm=slide, transfer_before_mm=before, seconds=time.perf_counter() - t0)
+        landmark_shift_mm=dict(shifts), sampling_slide_mm=slide, landmark_noise=noise, transfer_before_mm=before,
+        seconds=time.perf_counter() - t0)
     rounds.append(fig)
     for n, c in zip(names, resampled):
         study.coatings[n] = c

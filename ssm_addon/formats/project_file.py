@@ -203,10 +203,26 @@ def _existing_file(value, key, what, ctx, where, base) -> Path:
     return path
 
 
+#: Keys of earlier versions, read as today's: [table] -> {old key: (new key, {old value: new value})}.
+LEGACY_KEYS = {"correspondence": {"exact_landmarks": ("landmark_noise_mm", {True: 0.0, False: None})}}
+
+
 def _params(cls, doc: dict, section: str, ctx: _Context, extra=()):
     table = doc.get(section, {})
     if not isinstance(table, dict):
         raise ctx.error(f"[{section}] must be a table, got {P.type_name(table)}", ctx.lines.key(section))
+    for old, (new, values) in LEGACY_KEYS.get(section, {}).items():
+        if old in table:
+            line = ctx.lines.key(section, old)
+            if new in table:
+                raise ctx.error(f"[{section}] {old} (of earlier versions) and {new} are the same setting; give {new}",
+                                line)
+            value = table[old]
+            if not isinstance(value, bool):
+                raise _kind_error(ctx, f"[{section}] {old}", "true or false", value, line)
+            table = {k: v for k, v in table.items() if k != old}
+            if values[value] is not None:
+                table[new] = values[value]
     allowed = {*P.keys(cls), *extra}
     _check_keys(table, allowed, f"[{section}]", ctx, (section,))
     values = {k: v for k, v in table.items() if k not in extra}

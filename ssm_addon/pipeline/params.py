@@ -730,8 +730,10 @@ class CorrespondenceParams:
     by its landmarks. ``"model"`` continues with the mean shape as template (paper 3.3)
     and refines every instance with a model built without it, fitted to its surface
     (paper 7's bootstrap); instances without landmarks start from the model of the
-    landmarked ones (from the object frames when only the template instance has them).
-    A round is kept only when it lowers the landmark transfer error (the self-check).
+    landmarked ones (from the object frames when only the template instance has them),
+    and the given landmarks move towards the population's prediction by the share their
+    click error calls for. A round is kept only when it lowers the landmark transfer error
+    (the self-check).
     """
 
     method: str = param("landmarks", choices=CORRESPONDENCE_METHODS, label="Method",
@@ -749,10 +751,12 @@ class CorrespondenceParams:
     landmark_weight: float = param(10.0, minimum=0.0, maximum=1e9, label="Landmark weight",
                                    help="weight of a given landmark in the model fit, against one surface "
                                         "point (0: landmarks ignored)")
-    exact_landmarks: bool = param(True, label="Exact landmarks",
-                                  help="the given landmarks are where the anatomy is: each round warps them to "
-                                       "exactly where given; off: rough or extremal-point landmarks, which each "
-                                       "round replaces by the model fit's estimate")
+    landmark_noise_mm: float | None = param(None, kind="float", unit="mm", minimum=0.0, maximum=100.0,
+                                            none_means="estimated from the population", label="Landmark error",
+                                            help="how far the given landmarks are from where the anatomy is (SD per "
+                                                 "axis): each round moves a given landmark towards the other "
+                                                 "instances' prediction of it by the share this calls for; 0: exact "
+                                                 "landmarks, kept where given")
     self_check: bool = param(True, label="Self-check",
                              help="measure the landmark transfer error (each instance's given landmarks predicted "
                                   "by the other instances' model) after the coating; the model method always does")

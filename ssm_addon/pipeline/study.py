@@ -437,9 +437,8 @@ def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn =
     rounds, check = refine_rounds(work, study.params.correspondence, jobs=jobs, progress=progress,
                                   cancelled=cancelled, log=say, executor=executor, on_coated=on_coated)
     coated = {n: work.coatings[n] for n in study.names}
-    kept = "" if check.kept_round == 0 else f"round {check.kept_round}'s "
-    say(f"correspondence: {check.stop or 'no rounds'}; kept {kept or 'the start'}"
-        f"{' coatings' if kept else ''}; landmark transfer error {check.study_mm:.3f} mm")
+    kept = "the start" if check.kept_round == 0 else f"round {check.kept_round}'s coatings"
+    say(f"correspondence: {check.stop or 'no rounds'}; kept {kept}; landmark transfer error {check.study_mm:.3f} mm")
     findings = (check_landmark_transfer(check, study.params.quality)
                 + check_correspondence_rounds(rounds, check, study.params.correspondence.tolerance_mm))
     return coating_result(study, coated, {n: work.coating_start.get(n, coated[n].fit.start) for n in coated},
