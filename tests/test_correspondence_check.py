@@ -135,3 +135,47 @@ def test_aligned_to_undoes_a_turn_and_the_transfer_sees_through_it():
     a = check_correspondence(points, f, locations, given, fit=fit)
     b = check_correspondence(turned, f, locations, given_turned, fit=fit)
     assert abs(a.study_mm - b.study_mm) < 0.05, (a.study_mm, b.study_mm)
+
+
+def test_landmark_noise_separates_the_click_error_from_the_model_error():
+    """The template instance's transfer differences are the model's error alone; the others' add
+    the click error: the estimate recovers both (per axis, mm) and the least-squares share.
+    The other instances' predictions against their own coatings bound the model error below."""
+    from ssm_addon.fitting.correspondence import landmark_noise
+
+    rng = np.random.default_rng(5)
+    for model_sd, click_sd in ((0.5, 1.5), (1.0, 0.0), (0.3, 0.6)):
+        d = {f"i{k}": rng.normal(scale=model_sd, size=(15, 3))
+             + (rng.normal(scale=click_sd, size=(15, 3)) if k else 0.0) for k in range(40)}
+        found = landmark_noise(d, "i0")
+        assert found.estimated
+        # sigma_m^2 comes from one instance's 45 coordinates: standard error ~0.2 sigma_m^2
+        assert found.click_mm ** 2 == pytest.approx(click_sd ** 2, abs=0.7 * model_sd ** 2), (model_sd, click_sd, found)
+        share = found.click_mm ** 2 / (found.click_mm ** 2 + found.model_mm ** 2)
+        # a click error below the model's is not acted on: the clicks are the better estimate
+        assert found.shrink == (pytest.approx(share) if found.click_mm >= found.model_mm else 0.0), found
+    assert found.shrink > 0.5  # the last: clicks twice as far off as the model's prediction
+    coating = {n: v * 2.0 for n, v in d.items()}  # predictions twice as far from the coatings: a larger model error
+    floor = landmark_noise(d, "i0", coating_differences=coating)
+    assert floor.model_mm > found.model_mm and floor.click_mm < found.click_mm
+    known = landmark_noise(d, "i0", click_mm=1.0)
+    assert not known.estimated and known.click_mm == 1.0
+    assert known.shrink == pytest.approx(1.0 / (1.0 + known.model_mm ** 2))
+    assert landmark_noise(d, "i0", click_mm=0.0).shrink == 0.0  # exact landmarks stay
+    assert landmark_noise({"i0": d["i0"]}, "i0").shrink == 0.0  # no other landmarked instance: nothing to estimate
+
+
+def test_a_round_is_kept_only_when_the_instances_improve_together():
+    """Kept: the mean transfer error falls by the margin and the instances' own figures fall in a
+    paired test; a fall one instance carries, or one within the margin, keeps the start."""
+    from ssm_addon.fitting.correspondence import round_helps
+
+    rng = np.random.default_rng(2)
+    before = {f"i{k}": 2.0 + rng.normal(scale=0.3) for k in range(20)}
+    check = CorrespondenceCheck.from_landmarks
+    b = check({n: {"L": v} for n, v in before.items()})
+    together = check({n: {"L": v - 0.2 + rng.normal(scale=0.05)} for n, v in before.items()})
+    one = check({n: {"L": v - (4.0 if n == "i3" else 0.0) + rng.normal(scale=0.05)} for n, v in before.items()})
+    small = check({n: {"L": v * 0.995} for n, v in before.items()})
+    assert round_helps(together, b) and not round_helps(one, b) and not round_helps(small, b)
+    assert round_helps(check({}), b)  # nothing to judge by

@@ -28,7 +28,8 @@ does both (``[correspondence] method = "model"``):
    A round is **kept only when it helps**, judged without truth by the landmark transfer
    error (:class:`CorrespondenceCheck`): each instance's given landmarks predicted by the
    model of the *other* instances fitted to its surface alone; the next round's fits
-   measure it. A round that does not lower it by ``KEEP_MARGIN`` is dropped, the rounds
+   measure it. A round that does not lower it by ``KEEP_MARGIN``, and by more than chance
+   (:func:`round_helps`: a paired test of the instances' own figures), is dropped, the rounds
    stop and the coatings before it are kept (when that is the start, the model method's
    result is the single pass). Otherwise the rounds stop when the mean shape moves less
    than ``tolerance_mm`` (RMS) or after ``iterations`` (a finding: they did not settle).
@@ -57,6 +58,7 @@ import time
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
+from scipy.stats import t as student_t
 
 from ..coating.coating import CoatingResult, CoatingStart, coat, settle_on_surface
 from ..coating.distance_map import DistanceMap
@@ -77,7 +79,7 @@ REFINE_FIT_SAMPLES = 2000
 REFINE_FIT_TOLERANCE_MM = 0.01
 
 __all__ = ["AXIS_TURNS", "WORLD_POSE_TOLERANCE", "CorrespondenceCheck", "LandmarkNoise", "RoundFigures",
-           "RoundLandmarks", "aligned_to", "landmark_noise", "round_landmarks", "coat_mean_shape",
+           "RoundLandmarks", "aligned_to", "landmark_noise", "round_helps", "round_landmarks", "coat_mean_shape",
            "correspondence_fit_params", "check_correspondence", "landmark_transfer", "refine_instance",
            "refine_rounds", "resample_instance", "start_from_model", "starts_from_model"]
 
@@ -121,8 +123,19 @@ class LandmarkNoise:
         return asdict(self)
 
 
-def landmark_noise(differences: dict, template_instance: str, *, click_mm: float | None = None) -> LandmarkNoise:
+def landmark_noise(differences: dict, template_instance: str, *, click_mm: float | None = None,
+                   coating_differences: dict | None = None) -> LandmarkNoise:
     """The click and model errors of the given landmarks, from the landmark transfer.
+
+    The least-squares combination of a click and the population's prediction moves the
+    click α = σ_c² / (σ_c² + σ_m²) of the way to the prediction. σ_m² (per axis) is the
+    larger of the template instance's transfer error (its given landmarks define the
+    correspondence, so its difference holds no click error) and the other instances'
+    prediction against their own coatings' landmark points (no click in it either): a
+    prediction's error is at least that. The other instances' transfer errors hold both:
+    σ_c² = mean |d|²/3 less σ_m². A click error below the model's is not acted on (α = 0):
+    the clicks are then the better estimate, and what the estimate reads as click error is
+    within the coatings' own drift at the landmarks (measured in ``docs/measurements.md``).
 
     Parameters
     ----------
@@ -131,8 +144,9 @@ def landmark_noise(differences: dict, template_instance: str, *, click_mm: float
     template_instance : str
         Its landmarks are exact by definition: their transfer error is the model's alone.
     click_mm : float, optional
-        The click error per axis when known (0: the landmarks are exact); default estimated:
-        σ_c² = mean over the other instances of |d|²/3, less σ_m².
+        The click error per axis when known (0: the landmarks are exact); default estimated.
+    coating_differences : dict instance -> (G, 3) mm, optional
+        Each instance's predicted landmarks minus its coating's landmark points.
 
     Examples
     --------
@@ -149,15 +163,20 @@ def landmark_noise(differences: dict, template_instance: str, *, click_mm: float
     if own is None or not len(own):
         return LandmarkNoise(estimated=click_mm is None)
     model2 = float((np.asarray(own, float) ** 2).sum(axis=1).mean() / 3)
+    coating = [np.asarray(d, float) for n, d in (coating_differences or {}).items()
+               if n != template_instance and len(d)]
+    if coating:
+        model2 = max(model2, float(np.mean([(d ** 2).sum(axis=1).mean() / 3 for d in coating])))
     others = [np.asarray(d, float) for n, d in differences.items() if n != template_instance and len(d)]
     if click_mm is None:
         if not others:
             return LandmarkNoise(model_mm=math.sqrt(model2))
         total2 = float(np.mean([(d ** 2).sum(axis=1).mean() / 3 for d in others]))
         click2 = max(0.0, total2 - model2)
+        act = click2 >= model2
     else:
-        click2 = float(click_mm) ** 2
-    shrink = click2 / (click2 + model2) if click2 + model2 > 0 else 0.0
+        click2, act = float(click_mm) ** 2, True
+    shrink = click2 / (click2 + model2) if act and click2 + model2 > 0 else 0.0
     return LandmarkNoise(model_mm=math.sqrt(model2), click_mm=math.sqrt(click2), shrink=shrink,
                          estimated=click_mm is None)
 
@@ -614,14 +633,43 @@ def _coat_mean_job(args):
 
 
 # a round is kept only when it lowers the landmark transfer error of the coatings kept so
-# far by this share: a change within it is the fits' noise, and the start (the single
-# pass) is the simpler result
+# far by this share, and by more than chance: the landmarked instances' transfer errors
+# fall in a one-sided paired t-test at KEEP_LEVEL (a change within the fits' noise, or
+# one a few instances carry, keeps the start: the single pass is the simpler result)
 KEEP_MARGIN = 0.01
+KEEP_LEVEL = 0.05
 
 
-def _improves(after: float, before: float, margin: float = KEEP_MARGIN) -> bool:
-    """A round helps when it lowers the transfer error (no landmarks to judge by: it is kept)."""
-    return not (math.isfinite(after) and math.isfinite(before)) or after < before * (1.0 - margin)
+def round_helps(after: CorrespondenceCheck, before: CorrespondenceCheck, *, margin: float = KEEP_MARGIN,
+                level: float = KEEP_LEVEL) -> bool:
+    """Whether a round's coatings (``after``) beat the ones kept so far (``before``).
+
+    The mean landmark transfer error must fall by ``margin`` (a share), and the instances'
+    own transfer errors must fall together: a one-sided paired t-test of the per-instance
+    differences at ``level`` (with fewer than 3 instances in both, the margin alone). No
+    landmarks to judge by (NaN): the round is kept.
+
+    Examples
+    --------
+    >>> before = CorrespondenceCheck(instance_mm={"a": 1.0, "b": 2.0, "c": 1.5, "d": 1.2}, study_mm=1.425)
+    >>> round_helps(CorrespondenceCheck(instance_mm={"a": 0.9, "b": 1.8, "c": 1.4, "d": 1.1}, study_mm=1.3), before)
+    True
+    >>> round_helps(CorrespondenceCheck(instance_mm={"a": 0.2, "b": 2.1, "c": 1.6, "d": 1.3}, study_mm=1.3), before)
+    False
+    """
+    if not (math.isfinite(after.study_mm) and math.isfinite(before.study_mm)):
+        return True
+    if not after.study_mm < before.study_mm * (1.0 - margin):
+        return False
+    common = [n for n in before.instance_mm if n in after.instance_mm]
+    if len(common) < 3:
+        return True
+    diff = np.array([after.instance_mm[n] - before.instance_mm[n] for n in common])
+    sd = float(diff.std(ddof=1))
+    if sd == 0.0:
+        return bool(diff.mean() < 0)
+    t = float(diff.mean()) / (sd / math.sqrt(len(diff)))
+    return t < float(student_t.ppf(level, len(diff) - 1))
 
 
 def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progress: ProgressFn = None,
@@ -637,7 +685,8 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
     :func:`coat_mean_shape` with the landmarks they give, and :func:`resample_instance`
     (back at the template's points, so every round's coatings are judged at the same
     sampling as the start's). The next round's fits judge it: a round that does not lower
-    the transfer error by ``KEEP_MARGIN`` is dropped and the rounds stop (``stop =
+    the transfer error by ``KEEP_MARGIN`` and by more than chance (:func:`round_helps`) is
+    dropped and the rounds stop (``stop =
     "criterion"``); after the last round one more pass of fits judges it. When the start
     is kept, ``study`` keeps the single pass's coatings and template.
 
@@ -704,7 +753,7 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
             if best_check is None:
                 best_check = check
             else:
-                kept = _improves(check.study_mm, best_check.study_mm)
+                kept = round_helps(check, best_check)
                 rounds[-1] = replace(rounds[-1], transfer_after_mm=check.study_mm, kept=kept)
                 if not kept:
                     say(f"correspondence round {r - 1} dropped: the landmark transfer error went from "
@@ -722,7 +771,9 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
             # is moved that share of the way to its prediction (the template instance's define
             # the correspondence and stay)
             noise = landmark_noise({n: f.difference for n, f in zip(names, fitted) if f.given.any()},
-                                   study.template_instance, click_mm=params.landmark_noise_mm)
+                                   study.template_instance, click_mm=params.landmark_noise_mm,
+                                   coating_differences={n: f.predicted[f.given] - locations.evaluate(points[i], faces)[f.given]
+                                                        for i, (n, f) in enumerate(zip(names, fitted)) if f.given.any()})
             moved = {n: f.shrunk(0.0 if n == study.template_instance else noise.shrink) for n, f in zip(names, fitted)}
             warps = {n: w for n, (w, _s) in moved.items()}
             shifts = {n: s for n, (_w, s) in moved.items()}
