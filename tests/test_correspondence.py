@@ -233,7 +233,7 @@ def test_model_method_keeps_the_template_points_on_the_template_instance(populat
     import ssm_addon.fitting.correspondence as corr
     from ssm_addon.pipeline.study import Study, run
 
-    monkeypatch.setattr(corr, "_improves", lambda *args: True)
+    monkeypatch.setattr(corr, "round_helps", lambda *args, **kwargs: True)
 
     proj = _variant(population, "keep.toml",
                     correspondence='[correspondence]\nmethod = "model"\niterations = 2\nround_template = "mean"')

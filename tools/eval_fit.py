@@ -1,6 +1,6 @@
 """Evaluation of ``ssm fit`` on real and demo data: leave-one-out fits and completion.
 
-Usage: ``.venv/bin/python tools/eval_fit.py [--femur10-only] [--step K]``
+Usage: ``.venv/bin/python tools/eval_fit.py [--femur10-only | --no-femur10] [--no-demo] [--step K]``
 
 For VerSe (the nine vertebrae of sub-verse004, when ``../shared/data`` is present) and
 the 24-instance demo: every instance fitted by a model of the others (built from the
@@ -78,9 +78,11 @@ def main() -> None:
 
     parser = argparse.ArgumentParser()
     parser.add_argument("--femur10-only", action="store_true")
+    parser.add_argument("--no-femur10", action="store_true", help="VerSe and the demo only")
+    parser.add_argument("--no-demo", action="store_true")
     parser.add_argument("--step", type=int, default=1)
     args = parser.parse_args()
-    if FEMUR10_DIR.exists():
+    if FEMUR10_DIR.exists() and not args.no_femur10:
         from test_fitting import femur10_completion
 
         rows = femur10_completion(FEMUR10_DIR, step=args.step)
@@ -99,7 +101,8 @@ def main() -> None:
             from test_build_verse import write_verse_project
 
             evaluate("VerSe sub-verse004 (T9-L5)", write_verse_project(tmp, VERSE_DIR), tmp / "verse")
-        evaluate("demo (24)", demo.make_demo_population(tmp / "demo", n=24, seed=0), tmp / "demo_out")
+        if not args.no_demo:
+            evaluate("demo (24)", demo.make_demo_population(tmp / "demo", n=24, seed=0), tmp / "demo_out")
 
 
 if __name__ == "__main__":
