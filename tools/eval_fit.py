@@ -7,7 +7,8 @@ the 24-instance demo: every instance fitted by a model of the others (built from
 study's coatings), its surface distance for the model-constrained fit and for the free
 fit (the coating's relaxation from it); and completion: the instance with one side
 (x > median, 40–50 %) removed, the predicted missing part's distance to the real surface
-and the share of its points within 2 posterior standard deviations of it.
+and the share of its points within 2 posterior standard deviations of it (target noise
+``--noise``, default the fit's own default).
 
 femur10 (dense truth, ``../shared/data/femur10``): each femur completed from its
 proximal half (the vertices above its median height, every ``--step``-th as points) by
@@ -38,6 +39,8 @@ from ssm_addon.model.pca import build_model  # noqa: E402
 from ssm_addon.pipeline.params import FitParams  # noqa: E402
 from ssm_addon.pipeline.study import import_instances  # noqa: E402
 
+NOISE_MM = [FitParams().noise_mm]  # the completion's target noise (--noise)
+
 
 def evaluate(label: str, project_path: Path, out: Path) -> None:
     result = build(read_project(project_path), out, jobs=2, log=None)
@@ -59,7 +62,7 @@ def evaluate(label: str, project_path: Path, out: Path) -> None:
         free_d = dm.surface_distance(free.points_object)
         seen = surf[:, 0] <= np.median(surf[:, 0])
         part = fit_model(m, Target.from_points(surf[seen]), pose=Pose(), partial=True,
-                         params=FitParams(noise_mm=0.5))
+                         params=FitParams(noise_mm=NOISE_MM[0]))
         missing = part.points[:, 0] > np.median(surf[:, 0])
         miss_d = dm.surface_distance(part.points[missing])
         within = float((miss_d <= 2 * part.posterior_sd_mm[missing]).mean())
@@ -80,8 +83,11 @@ def main() -> None:
     parser.add_argument("--femur10-only", action="store_true")
     parser.add_argument("--no-femur10", action="store_true", help="VerSe and the demo only")
     parser.add_argument("--no-demo", action="store_true")
+    parser.add_argument("--noise", type=float, default=FitParams().noise_mm,
+                        help="target noise of the VerSe/demo completions, mm (default: the fit's default)")
     parser.add_argument("--step", type=int, default=1)
     args = parser.parse_args()
+    NOISE_MM[0] = args.noise
     if FEMUR10_DIR.exists() and not args.no_femur10:
         from test_fitting import femur10_completion
 
