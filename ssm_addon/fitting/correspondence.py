@@ -325,7 +325,8 @@ def landmark_transfer(others: np.ndarray, faces: np.ndarray, surface_points: np.
         surface alone is fitted from the turns of the principal axes (``AXIS_TURNS``).
     world_pose : Pose, optional
         The pose the instances' input coordinates give (model frame -> the surface's);
-        kept unless a turn fits ``WORLD_POSE_TOLERANCE`` times closer.
+        kept unless a turn screens ``WORLD_POSE_TOLERANCE`` times closer (rigid ICP of the
+        mean shape from each; only the pose chosen is fitted).
 
     Returns
     -------
@@ -342,13 +343,14 @@ def landmark_transfer(others: np.ndarray, faces: np.ndarray, surface_points: np.
         centre = model.mean.mean(axis=0)
         poses = [Pose(rotation=r, translation=np.asarray(surface_points, float).mean(axis=0) - r @ centre)
                  for r in AXIS_TURNS]
-        # the turns screened by rigid ICP of the mean shape; the closest one fitted
-        screened = [rigid_screen(model.mean, target, p, partial=False) for p in poses]
-        result = fit_model(model, target, params=fit, pose=min(screened, key=lambda x: x[1])[0])
+        # the turns screened by rigid ICP of the mean shape, and the input coordinates' pose,
+        # kept unless a turn screens WORLD_POSE_TOLERANCE times closer; the one chosen fitted
+        best = min((rigid_screen(model.mean, target, p, partial=False) for p in poses), key=lambda x: x[1])
         if world_pose is not None:
-            own = fit_model(model, target, params=fit, pose=world_pose)
-            if own.mean_distance_mm <= WORLD_POSE_TOLERANCE * result.mean_distance_mm:
-                result = own
+            own = rigid_screen(model.mean, target, world_pose, partial=False)
+            if own[1] <= WORLD_POSE_TOLERANCE * best[1]:
+                best = own
+        result = fit_model(model, target, params=fit, pose=best[0])
     predicted = landmark_locations.evaluate(result.points, faces)
     names = list(landmark_locations.names)
     distances = {n: float(np.linalg.norm(predicted[i] - np.asarray(landmarks_object[n], float)))
