@@ -336,7 +336,7 @@ class SSM_PT_coating(SSMPanel, bpy.types.Panel):
                     icon="ERROR" if findings else "CHECKMARK",
                 )
                 for f in findings:
-                    box.label(text=f"    {f['gate']}: {f['message']}", icon="BLANK1")
+                    box.label(text=f"    {f.gate}: {f.message}", icon="BLANK1")
 
 
 class SSM_PT_coating_advanced(SSMPanel, bpy.types.Panel):

@@ -473,7 +473,7 @@ class SSM_PT_model(SSMPanel, bpy.types.Panel):
         box.label(text=f"Quality: {len(findings)} finding(s)" if findings else "Quality: every gate passed",
                   icon="ERROR" if findings else "CHECKMARK")
         for f in findings:
-            box.label(text=f"{f['instance'] or 'study'} [{f['gate']}]: {f['message']}")
+            box.label(text=f"{f.instance or 'study'} [{f.gate}]: {f.message}")
 
 
 class SSM_PT_model_advanced(SSMPanel, bpy.types.Panel):

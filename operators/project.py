@@ -33,13 +33,13 @@ from ssm_addon.pipeline.params import OutputParams
 from . import bridge
 from .properties import SSMPanel, set_scene_study_params
 from .scene import (
-    FINDINGS_KEY,
     INSTANCE_ATTRIBUTES_KEY,
     mesh_file_world,
     scene_instance_attributes,
     scene_instances,
     set_landmark,
     study_from_scene,
+    write_findings,
 )
 
 # ------------------------------------------------------------------ scene construction
@@ -99,7 +99,7 @@ def show_study(context, study) -> dict:
     if study.model is not None:
         out["model"] = create_model_object(context, study.model,
                                            template_points=study.template.points_object if study.template else None)
-    scene[FINDINGS_KEY] = json.dumps([f.to_dict() for f in study.findings])  # what the panels show
+    write_findings(scene, study.findings)  # what the panels show
     return out
 
 

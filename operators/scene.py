@@ -42,6 +42,7 @@ from ssm_addon.instances.importing import InstanceSpec
 from ssm_addon.instances.volume import ObjectFrame, ObjectVolume
 from ssm_addon.model.files import model_from_arrays
 from ssm_addon.model.pca import ShapeModel
+from ssm_addon.model.quality import Finding
 from ssm_addon.pipeline.errors import InputError
 from ssm_addon.pipeline.progress import report, sub_progress
 from ssm_addon.pipeline.study import Study, merge_findings
@@ -467,37 +468,39 @@ def find_model_object(context) -> bpy.types.Object | None:
 FINDINGS_KEY = "ssm_findings"
 
 
-def scene_findings(context) -> list[dict]:
-    """The findings of the stages run in this scene (``Scene["ssm_findings"]``), in stage order.
-
-    Each is ``Finding.to_dict()`` with its ``stage``: the same findings (gate, instance,
-    figure) a headless build of the scene's project writes into ``report.json``.
-    """
+def scene_findings(context) -> list[Finding]:
+    """The findings of the stages run in this scene (``Scene["ssm_findings"]``), in stage order:
+    the same findings (stage, gate, instance, figure) a headless build of the scene's project
+    writes into ``report.json``."""
     try:
-        return list(json.loads(context.scene.get(FINDINGS_KEY, "[]")))
-    except ValueError:
+        return [Finding.from_dict(d) for d in json.loads(context.scene.get(FINDINGS_KEY, "[]"))]
+    except (ValueError, KeyError, TypeError):
         return []
 
 
-def record_findings(context, result) -> list[dict]:
+def write_findings(scene, findings) -> None:
+    """Keep ``findings`` in the scene (as :meth:`Finding.to_dict`)."""
+    scene[FINDINGS_KEY] = json.dumps([f.to_dict() for f in findings])
+
+
+def record_findings(context, result) -> list[Finding]:
     """Keep a stage result's findings in the scene (:func:`ssm_addon.pipeline.study.merge_findings`)."""
     merged = merge_findings(scene_findings(context), result)
-    context.scene[FINDINGS_KEY] = json.dumps(merged)
-    return [f for f in merged if f["stage"] == result.stage]
+    write_findings(context.scene, merged)
+    return [f for f in merged if f.stage == result.stage]
 
 
-def report_stage(op, message: str, findings: list[dict]) -> None:
+def report_stage(op, message: str, findings: list[Finding]) -> None:
     """Report a stage's outcome on ``op``: a WARNING naming every failed gate, else INFO."""
     if findings:
-        op.report({"WARNING"}, f"{message}; quality gates failed: " + "; ".join(
-            f"{f['instance']}: {f['message']}" if f["instance"] else f["message"] for f in findings))
+        op.report({"WARNING"}, f"{message}; quality gates failed: " + "; ".join(str(f) for f in findings))
     else:
         op.report({"INFO"}, message)
 
 
-def instance_findings(context, name: str, stage: str | None = None) -> list[dict]:
+def instance_findings(context, name: str, stage: str | None = None) -> list[Finding]:
     """The recorded findings of instance ``name`` (of ``stage`` only, when given)."""
-    return [f for f in scene_findings(context) if f["instance"] == name and stage in (None, f["stage"])]
+    return [f for f in scene_findings(context) if f.instance == name and stage in (None, f.stage)]
 
 
 def study_from_scene(context, *, template_instance: str | None = None, template: bool = True,

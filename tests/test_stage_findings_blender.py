@@ -56,7 +56,7 @@ def test_blender_and_headless_builds_report_the_same_findings(bpy_clean, flawed_
     assert bpy.ops.ssm.build_template() == {"FINISHED"}
     assert bpy.ops.ssm.coat_template() == {"FINISHED"}
     assert bpy.ops.ssm.build_model() == {"FINISHED"}
-    shown = {_key(f) for f in opscene.scene_findings(bpy.context)}
+    shown = {_key(f.to_dict()) for f in opscene.scene_findings(bpy.context)}
     assert shown == expected
     blender_model = opscene.model_from_object(opscene.find_model_object(bpy.context))
     for key in ("mean", "modes", "variances", "instance_points"):

@@ -127,8 +127,7 @@ def load_study(folder) -> tuple[Study, dict]:
             "mean", "faces", "modes", "variances", "instance_names", "instance_points", "instance_points_world")},
             "params": json.loads(str(a["model/params_json"]))}, str(folder))
     study.metrics = ModelMetrics.from_dict(doc["metrics"])
-    study.findings = [Finding(**{k: (float("nan") if v is None and k in ("value", "threshold") else v)
-                                 for k, v in f.items()}) for f in doc["findings"]]
+    study.findings = [Finding.from_dict(f) for f in doc["findings"]]
     study.outlier_scores = doc["outlier_scores"]
     study.timings_s = doc["timings_s"]
     return study, doc.get("extra", {})

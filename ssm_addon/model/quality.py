@@ -91,10 +91,19 @@ class Finding:
     stage: str = ""
 
     def to_dict(self) -> dict:
+        """JSON-ready (NaN figures as None): the form of ``report.json`` and the Blender scene."""
         d = asdict(self)
         for k in ("value", "threshold"):
             d[k] = None if not math.isfinite(d[k]) else float(d[k])
         return d
+
+    @classmethod
+    def from_dict(cls, d) -> Finding:
+        """The finding of :meth:`to_dict`'s form."""
+        return cls(instance=str(d.get("instance", "")), gate=str(d["gate"]), message=str(d["message"]),
+                   value=float("nan") if d.get("value") is None else float(d["value"]),
+                   threshold=float("nan") if d.get("threshold") is None else float(d["threshold"]),
+                   stage=str(d.get("stage", "")))
 
     def __str__(self) -> str:
         return f"{self.instance}: {self.message}" if self.instance else self.message

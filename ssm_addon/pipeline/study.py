@@ -44,6 +44,7 @@ from ..meshutil import LandmarkLocations, genus
 from ..model.metrics import ModelMetrics
 from ..model.pca import ShapeModel, build_model
 from ..model.quality import (
+    Finding,
     check_coating,
     check_correspondence_rounds,
     check_duplicate_instances,
@@ -805,24 +806,22 @@ def apply_stage(study: Study, result: StageResult) -> Study:
     return study
 
 
-def merge_findings(recorded: Sequence[dict], result: StageResult) -> list[dict]:
+def merge_findings(recorded: Sequence[Finding], result: StageResult) -> list[Finding]:
     """Findings kept across runs of single stages (Blender): ``recorded`` updated by ``result``.
 
-    Each finding is a dict (``Finding.to_dict()`` and its ``stage``). A stage's result
-    replaces the earlier findings of that stage for the instances it covers (the volumes
-    or coatings it made; every instance for the template, model and metrics), so an
-    instance coated again without a problem loses its old coating finding.
+    A stage's result replaces the earlier findings of that stage for the instances it
+    covers (the volumes or coatings it made; every instance for the template, model and
+    metrics), so an instance coated again without a problem loses its old coating finding.
     """
     product = result.product
     covered = set(product.get("coatings", {})) | set(product.get("volumes", {}))
     if result.stage not in ("import", "coating"):
         covered = None
 
-    def replaced(f: dict) -> bool:
-        return f.get("stage") == result.stage and (covered is None or f.get("instance") in covered or
-                                                   not f.get("instance"))
+    def replaced(f: Finding) -> bool:
+        return f.stage == result.stage and (covered is None or f.instance in covered or not f.instance)
 
-    return [f for f in recorded if not replaced(f)] + [f.to_dict() for f in result.findings]
+    return [f for f in recorded if not replaced(f)] + list(result.findings)
 
 
 def instance_sources(study: Study, names) -> dict[str, tuple]:
