@@ -323,3 +323,13 @@ def test_panels_draw_without_scanning_every_object():
                     if isinstance(node, ast.For | ast.comprehension) and ast.unparse(node.iter) == "bpy.data.objects":
                         offenders.append(f"{path.name}: {cls.name}.{fn.name}")
     assert not offenders, offenders
+
+
+def test_the_build_path_does_not_import_scipy_stats():
+    """``scipy.stats`` costs about 0.5 s and 20 MB per process to import; the build's modules
+    (and every worker process that runs them) use ``scipy.special`` for distribution tails."""
+    code = ("import sys\nimport ssm_addon.cli.project_build, ssm_addon.pipeline.study, ssm_addon.fitting.correspondence, "
+            "ssm_addon.fitting.fit, ssm_addon.coating.coating\nprint('scipy.stats' in sys.modules)")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                          env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert proc.returncode == 0 and proc.stdout.strip() == "False", proc.stdout + proc.stderr

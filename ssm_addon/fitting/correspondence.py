@@ -58,7 +58,7 @@ import time
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
-from scipy.stats import t as student_t
+from scipy.special import stdtrit
 
 from ..coating.coating import CoatingResult, CoatingStart, coat, settle_on_surface
 from ..coating.distance_map import DistanceMap
@@ -671,7 +671,7 @@ def round_helps(after: CorrespondenceCheck, before: CorrespondenceCheck, *, marg
     if sd == 0.0:
         return bool(diff.mean() < 0)
     t = float(diff.mean()) / (sd / math.sqrt(len(diff)))
-    return t < float(student_t.ppf(level, len(diff) - 1))
+    return t < float(stdtrit(len(diff) - 1, level))
 
 
 def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progress: ProgressFn = None,
