@@ -77,6 +77,9 @@ from ..pipeline.progress import CancelledFn, ProgressFn, sub_progress
 # a coarser surface sample and a looser stop than ``ssm fit`` (20,000 samples, 0.001 mm)
 REFINE_FIT_SAMPLES = 2000
 REFINE_FIT_TOLERANCE_MM = 0.01
+# points of the shape and of the surface the start poses are screened with (rigid ICP, for ranking
+# the turns of the axes; the fit that follows uses REFINE_FIT_SAMPLES)
+SCREEN_SAMPLES = 500
 
 __all__ = ["AXIS_TURNS", "WORLD_POSE_TOLERANCE", "CorrespondenceCheck", "LandmarkNoise", "RoundFigures",
            "RoundLandmarks", "aligned_to", "landmark_noise", "round_helps", "round_landmarks", "coat_mean_shape",
@@ -345,9 +348,10 @@ def landmark_transfer(others: np.ndarray, faces: np.ndarray, surface_points: np.
                  for r in AXIS_TURNS]
         # the turns screened by rigid ICP of the mean shape, and the input coordinates' pose,
         # kept unless a turn screens WORLD_POSE_TOLERANCE times closer; the one chosen fitted
-        best = min((rigid_screen(model.mean, target, p, partial=False) for p in poses), key=lambda x: x[1])
+        best = min((rigid_screen(model.mean, target, p, partial=False, samples=SCREEN_SAMPLES) for p in poses),
+                   key=lambda x: x[1])
         if world_pose is not None:
-            own = rigid_screen(model.mean, target, world_pose, partial=False)
+            own = rigid_screen(model.mean, target, world_pose, partial=False, samples=SCREEN_SAMPLES)
             if own[1] <= WORLD_POSE_TOLERANCE * best[1]:
                 best = own
         result = fit_model(model, target, params=fit, pose=best[0])
