@@ -40,6 +40,7 @@ from .scene import (
     report_stage,
     scene_instances,
     study_from_scene,
+    write_template_object,
 )
 
 
@@ -171,6 +172,8 @@ class SSM_OT_coat_template(BackgroundJob, bpy.types.Operator):
 
 
 ROUNDS_KEY = "ssm_correspondence_rounds"
+#: Scene property: the model method's choice of the template's instance (JSON).
+TEMPLATE_CHOICE_KEY = "ssm_template_choice"
 CHECK_KEY = "ssm_correspondence_check"
 
 
@@ -209,7 +212,7 @@ def prepare_refinement(op, context, *, fresh: bool):
     if study.template is None:
         raise InputError("refine correspondence: no template (build the template first)")
     loader = VolumeLoader(context, scene_instances(context))
-    op._loader, op._faces, op._fresh = loader, study.template.faces, fresh
+    op._loader, op._fresh = loader, fresh
     cancel_after = getattr(op, "cancel_after", -1)
     refined = [0]
 
@@ -236,11 +239,15 @@ def finish_refinement(op, context, outcome):
     coatings, starts = result.product["coatings"], result.product["coating_start"]
     rounds = list(result.product.get("correspondence_rounds", ()))
     mean_points = result.product["template"].points_object
+    medoid = result.product.get("template_instance")
+    if medoid is not None and bpy.data.objects.get(medoid) is not None:  # the template built from the medoid
+        write_template_object(context, bpy.data.objects[medoid], result.product["template"])
+        context.scene[TEMPLATE_CHOICE_KEY] = json.dumps(result.product.get("template_choice", {}))
     written = []
     for name, coating in coatings.items():
         inst = bpy.data.objects.get(name)
         if inst is not None:
-            obj = write_coated(context, inst, coating, op._faces, mean_points)
+            obj = write_coated(context, inst, coating, result.product["template"].faces, mean_points)
             obj["ssm_coating_start"] = starts.get(name, coating.fit.start)
             written.append(obj)
     previous = [] if op._fresh else correspondence_rounds(context)

@@ -40,6 +40,7 @@ from .scene import (
     set_landmark,
     study_from_scene,
     write_findings,
+    write_template_object,
 )
 
 # ------------------------------------------------------------------ scene construction
@@ -65,7 +66,6 @@ def show_study(context, study) -> dict:
     from .instances import write_instance
     from .landmarks import add_schema_name
     from .model import create_model_object
-    from .template import write_template_object
 
     scene = context.scene
     bridge.ensure_mm_units(scene)

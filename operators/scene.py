@@ -357,6 +357,22 @@ def find_template(context):
                  if o.type == "MESH" and o.ssm.role == "TEMPLATE" and TEMPLATE_KEY in o), None)
 
 
+def write_template_object(context, instance, template):
+    """Create or replace ``"SSM Template"`` for ``template`` built from ``instance``."""
+    faces = np.asarray(template.faces)
+    obj = find_template(context) or bpy.data.objects.get(TEMPLATE_NAME)
+    name = obj.name if obj is not None else TEMPLATE_NAME
+    obj = bridge.new_mesh_object(context, name, template.points_object, faces,
+                                 collection_name=TEMPLATE_COLLECTION, matrix_world=object_to_blender_matrix(instance))
+    bridge.store_arrays(obj, TEMPLATE_KEY, template.to_arrays())
+    bridge.colour_correspondence(obj, template.points_object, context.scene.ssm_display.colouring)
+    bridge.set_point_attribute(obj.data, "curvature", np.asarray(template.curvature))
+    obj.ssm.role = "TEMPLATE"
+    obj.ssm.instance = instance
+    context.scene.ssm_display.template_instance = instance
+    return obj
+
+
 def template_from_object(obj) -> Template:
     """The float64 template stored on the template object."""
     d = bridge.load_arrays(obj, TEMPLATE_KEY)

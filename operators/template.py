@@ -18,7 +18,6 @@ from __future__ import annotations
 import time
 
 import bpy
-import numpy as np
 
 from ssm_addon.pipeline.errors import InputError
 from ssm_addon.pipeline.params import TemplateParams
@@ -28,16 +27,13 @@ from . import bridge
 from .jobs import BackgroundJob
 from .properties import SSMPanel, draw_params
 from .scene import (
-    TEMPLATE_COLLECTION,
-    TEMPLATE_KEY,
-    TEMPLATE_NAME,
     VolumeLoader,
     find_template,
     is_instance,
-    object_to_blender_matrix,
     record_findings,
     report_stage,
     study_from_scene,
+    write_template_object,
 )
 
 
@@ -49,22 +45,6 @@ def source_instance(context):
     if obj is not None and obj.ssm.role in {"TEMPLATE", "COATED", "LANDMARK"} and is_instance(obj.ssm.instance):
         return obj.ssm.instance
     return None
-
-
-def write_template_object(context, instance, template):
-    """Create or replace ``"SSM Template"`` for ``template`` built from ``instance``."""
-    faces = np.asarray(template.faces)
-    obj = find_template(context) or bpy.data.objects.get(TEMPLATE_NAME)
-    name = obj.name if obj is not None else TEMPLATE_NAME
-    obj = bridge.new_mesh_object(context, name, template.points_object, faces,
-                                 collection_name=TEMPLATE_COLLECTION, matrix_world=object_to_blender_matrix(instance))
-    bridge.store_arrays(obj, TEMPLATE_KEY, template.to_arrays())
-    bridge.colour_correspondence(obj, template.points_object, context.scene.ssm_display.colouring)
-    bridge.set_point_attribute(obj.data, "curvature", np.asarray(template.curvature))
-    obj.ssm.role = "TEMPLATE"
-    obj.ssm.instance = instance
-    context.scene.ssm_display.template_instance = instance
-    return obj
 
 
 class SSM_OT_build_template(BackgroundJob, bpy.types.Operator):

@@ -198,7 +198,8 @@ def eval_meshes(args) -> dict:
         study, template_points, seconds = run_study(specs, names[0], args.method, args.iterations, args.jobs)
     # point i of every coating is template point i, which lies on the template instance's
     # surface: its true place on instance k is the same place of k's mesh (shared faces)
-    _c, _d, tri, bary = MeshLocator(v0, f0).query(study.frame(names[0]).to_world(template_points), k=12)
+    t = names.index(study.template_instance)  # the model method may build its template from another instance
+    _c, _d, tri, bary = MeshLocator(meshes[t][0], f0).query(study.frame(names[t]).to_world(template_points), k=12)
     loc = MeshLocation(tri, bary)
     error_of = truth_errors(study, {n: loc.evaluate(v, f0) for n, (v, _f) in zip(names, meshes)})
     errors = error_of({n: study.coatings[n].points_object for n in names})
@@ -347,6 +348,8 @@ def run_study(specs, template_name: str, method: str, iterations: int, jobs: int
     run(study, stages=("import", "template"), jobs=jobs, log=say)
     template_points = study.template.points_object.copy()
     run(study, stages=("coating",), jobs=jobs, log=say)
+    if not study.template.is_mean_shape:  # the template's own points (another instance's, when the medoid's)
+        template_points = study.template.points_object.copy()
     return study, template_points, time.perf_counter() - t0
 
 
@@ -384,7 +387,8 @@ def eval_deformed(args):
             specs.append(InstanceSpec(name=name, volume_path=f, label=1, landmarks_path=lm,
                                       landmarks=read_landmarks(lm) if lm else None))
         study, template_points, seconds = run_study(specs, names[0], args.method, args.iterations, args.jobs)
-    p0 = study.frame(names[0]).to_world(template_points)
+    t = names.index(study.template_instance)  # the model method may build its template from another instance
+    p0 = invert(maps[t], study.frame(names[t]).to_world(template_points))  # the template's points, undeformed
     error_of = truth_errors(study, {n: p0 + u(p0) for n, u in zip(names, maps)})
     errors = error_of({n: study.coatings[n].points_object for n in names})
     label = (f"deformed-{label_names[args.label]} n={args.n} {args.method} landmarks={len(given)} "

@@ -37,6 +37,7 @@ from ..pipeline.params import (
     OutputParams,
 )
 from ..pipeline.progress import CancelledFn, ProgressFn, report, sub_progress
+from ..pipeline.records import jsonable
 from ..pipeline.study import Study, carried_landmarks, landmark_distances, run, study_parameters
 
 # --------------------------------------------------------------------------------------
@@ -254,6 +255,8 @@ def write_study_files(study: Study, folder: Path, *, output: OutputParams, proje
     cp = study.params.correspondence
     correspondence = {
         "method": cp.method,
+        "template_instance": study.template_instance,
+        "template_choice": jsonable(study.template_choice),
         "start": {n: study.coating_start.get(n, study.coatings[n].fit.start) for n in names},
         "rounds": [r.to_dict() for r in study.correspondence_rounds],
         "stop": study.correspondence_check.stop if study.correspondence_check is not None else "",

@@ -280,6 +280,17 @@ def write_html_report(path, doc: dict, *, images: dict[str, bytes] | None = None
                      + (f" Self-check: landmark transfer error {_num(check.get('study_mm'), 2)} mm (each "
                         "instance's given landmarks predicted by the model of the others fitted to its surface)."
                         if transfer else "") + "</p>")
+        choice = corr.get("template_choice") or {}
+        if choice.get("medoid"):
+            used = choice["medoid"] if choice.get("kept") else choice.get("given")
+            parts.append(f"<p>Template from <b>{html.escape(str(used))}</b>: the population's medoid is "
+                         f"{html.escape(str(choice['medoid']))} (the instance nearest the mean shape); "
+                         + (f"the landmark transfer error with the given template {html.escape(str(choice.get('given')))} "
+                            f"{_num(choice.get('transfer_given_mm'), 3)} mm, with the medoid's "
+                            f"{_num(choice.get('transfer_medoid_mm'), 3)} mm; "
+                            f"{'the medoid' if choice.get('kept') else 'the given'} template kept."
+                            if choice.get("medoid") != choice.get("given") else "it gave the template already.")
+                         + "</p>")
         rounds = corr.get("rounds") or []
         if rounds:
             parts.append(_table([{"_class": "" if r.get("kept", True) else "warn", "cells": [

@@ -13,5 +13,5 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "progress": ("report", "sub_progress"),
     "records": ("jsonable", "versions"),
     "resources": ("BYTES_PER_OBJECT_VOXEL", "check_allocation", "memory_limit_bytes"),
-    "study": ("InstanceJob", "STAGES", "StageResult", "Study", "apply_stage", "carried_landmarks", "coat_from_source", "coat_instances", "coating_result", "coating_stage", "common_landmark_names", "evaluate_model", "import_instances", "import_result", "import_stage", "landmark_distances", "make_model", "make_template", "merge_findings", "metrics_stage", "model_stage", "refine_correspondence", "run", "start_coatings", "stream_instances", "study_parameters", "template_landmark_locations", "template_stage"),
+    "study": ("InstanceJob", "STAGES", "StageResult", "Study", "apply_stage", "carried_landmarks", "coat_from_source", "coat_instances", "coating_result", "coating_stage", "common_landmark_names", "evaluate_model", "import_instances", "import_result", "import_stage", "landmark_distances", "make_model", "make_template", "medoid_template", "merge_findings", "metrics_stage", "model_stage", "population_medoid", "refine_correspondence", "run", "start_coatings", "stream_instances", "study_parameters", "template_landmark_locations", "template_stage"),
 })

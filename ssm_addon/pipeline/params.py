@@ -719,6 +719,7 @@ class FitParams:
 
 
 CORRESPONDENCE_METHODS = ("landmarks", "model")
+TEMPLATE_CHOICES = ("medoid", "given")
 ROUND_TEMPLATES = ("instance", "mean")
 
 
@@ -744,6 +745,11 @@ class CorrespondenceParams:
     tolerance_mm: float = param(0.1, unit="mm", minimum=0.0, maximum=100.0, label="Stop below",
                                 help="stop the refinement when the mean shape moves less than this (RMS; a "
                                      "tenth of the default 1 mm voxel)")
+    template_choice: str = param("medoid", choices=TEMPLATE_CHOICES, label="Template from",
+                                 help="'medoid': the template is built again from the landmarked instance nearest the "
+                                      "population's mean shape (paper 3.3: the model should not depend on the "
+                                      "template's instance), kept when the self-check improves; 'given': the "
+                                      "[template] instance")
     round_template: str = param("instance", choices=ROUND_TEMPLATES, label="Round template",
                                 help="what each round coats: 'instance', the template (its instance's points) "
                                      "with the landmarks the fit gives; 'mean', the mean shape (paper 3.3), "

@@ -82,9 +82,11 @@ __all__ = [
     "landmark_distances",
     "make_model",
     "make_template",
+    "medoid_template",
     "merge_findings",
     "metrics_stage",
     "model_stage",
+    "population_medoid",
     "refine_correspondence",
     "run",
     "start_coatings",
@@ -138,6 +140,9 @@ class Study:
         The model method's refinement rounds.
     correspondence_check : CorrespondenceCheck or None
         The correspondence self-check (landmark transfer error) of the coatings.
+    template_choice : dict
+        The model method's choice of the template's instance (``template_choice =
+        "medoid"``): ``given``, ``medoid``, their landmark transfer errors (mm) and ``kept``.
     """
 
     instances: tuple[InstanceSpec, ...]
@@ -154,6 +159,7 @@ class Study:
     coating_start: dict[str, CoatingStart] = field(default_factory=dict)
     correspondence_rounds: list = field(default_factory=list)
     correspondence_check: object | None = None
+    template_choice: dict = field(default_factory=dict)
     timings_s: dict[str, float] = field(default_factory=dict)
     streamed: dict = field(default_factory=dict)
 
@@ -435,6 +441,9 @@ def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn =
         starts = [work.coating_start[n] for n in missing]
         say(f"coating: {starts.count('landmark warp')} by landmarks, {starts.count('model fit')} from the landmarked "
             f"instances' model, {starts.count('object frames')} from the object frames; refining with the model")
+    choice = {}
+    if study.params.correspondence.template_choice == "medoid":
+        work, choice = medoid_template(work, jobs=jobs, executor=executor, cancelled=cancelled, log=say)
     rounds, check = refine_rounds(work, study.params.correspondence, jobs=jobs, progress=progress,
                                   cancelled=cancelled, log=say, executor=executor, on_coated=on_coated)
     coated = {n: work.coatings[n] for n in study.names}
@@ -442,9 +451,89 @@ def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn =
     say(f"correspondence: {check.stop or 'no rounds'}; kept {kept}; landmark transfer error {check.study_mm:.3f} mm")
     findings = (check_landmark_transfer(check, study.params.quality)
                 + check_correspondence_rounds(rounds, check, study.params.correspondence.tolerance_mm))
-    return coating_result(study, coated, {n: work.coating_start.get(n, coated[n].fit.start) for n in coated},
-                          time.perf_counter() - t0, template=work.template, rounds=tuple(rounds), check=check,
-                          extra_findings=tuple(findings))
+    result = coating_result(study, coated, {n: work.coating_start.get(n, coated[n].fit.start) for n in coated},
+                            time.perf_counter() - t0, template=work.template, rounds=tuple(rounds), check=check,
+                            extra_findings=tuple(findings))
+    if choice:
+        result.product["template_choice"] = choice
+        result.product["template_instance"] = work.template_instance
+    return result
+
+
+def population_medoid(study: Study, candidates: Sequence[str]) -> tuple[str, dict[str, float]]:
+    """The instance of ``candidates`` whose coating is nearest the mean shape of every coating.
+
+    The coatings are put onto the template instance's by their correspondence (rigidly:
+    object frames may disagree by a turn); the distance is the RMS over the points, mm.
+    Ties go to the earlier instance in study order.
+
+    Returns
+    -------
+    (name, {instance: RMS distance from the mean, mm})
+    """
+    from ..fitting.correspondence import aligned_to
+
+    names = list(study.names)
+    points = np.stack([study.coatings[n].points_object for n in names])
+    aligned = aligned_to(points, points[names.index(study.template_instance)])
+    rms = np.sqrt(((aligned - aligned.mean(axis=0)) ** 2).sum(axis=2).mean(axis=1))
+    distance = {n: float(d) for n, d in zip(names, rms)}
+    return min(candidates, key=lambda n: (distance[n], names.index(n))), distance
+
+
+def medoid_template(study: Study, *, jobs: int = 1, executor=None, cancelled: CancelledFn = None,
+                    log: Log = None) -> tuple[Study, dict]:
+    """The study with its template built again from the population's medoid, when that helps.
+
+    Paper 3.3: a template from one arbitrary instance makes the model depend on it. The
+    medoid (:func:`population_medoid`) among the instances with every template landmark
+    given is the one most like the mean shape, so every other coating deforms it least.
+    Its template (paper 3) is coated onto every instance as the start was (landmarks, or the
+    landmarked instances' model), and kept when it lowers the landmark transfer error
+    (:func:`ssm_addon.fitting.correspondence.round_helps`: by 1 %, the instances together).
+
+    Returns
+    -------
+    (the study to refine: a copy with the medoid's template and coatings, or ``study``;
+    the record: ``given``, ``medoid``, ``transfer_given_mm``, ``transfer_medoid_mm``, ``kept``)
+    """
+    from ..fitting.correspondence import check_correspondence, correspondence_fit_params, round_helps
+
+    say = log or (lambda _m: None)
+    wanted = study.template.landmark_locations.names
+    complete = [n for n in study.names if study.landmarks(n) is not None
+                and set(wanted) <= set(study.landmarks(n).names)]
+    if len(complete) < 2 or not len(wanted):
+        return study, {}
+    medoid, distance = population_medoid(study, complete)
+    record = {"given": study.template_instance, "medoid": medoid,
+              "rms_from_mean_mm": {study.template_instance: distance[study.template_instance], medoid: distance[medoid]}}
+    if medoid == study.template_instance:
+        say(f"correspondence: the template's instance {medoid} is the population's medoid already")
+        return study, {**record, "kept": True}
+    check_cancelled(cancelled)
+    other = dataclasses.replace(study, template_instance=medoid, coatings={}, coating_start={},
+                                volumes=dict(study.volumes), frames=dict(study.frames))
+    other.template = make_template(other, cancelled=cancelled)
+    other.coatings.update(start_coatings(other, list(other.names), jobs=jobs, cancelled=cancelled))
+    fit = correspondence_fit_params(study.params.correspondence)
+
+    def transfer(s: Study):
+        given = {}
+        for n in s.names:
+            lm = s.landmarks(n)
+            given[n] = {} if lm is None else dict(zip(lm.names, s.frame(n).to_object(lm.points_world)))
+        return check_correspondence({n: s.coatings[n].points_object for n in s.names}, s.template.faces,
+                                    s.template.landmark_locations, given, fit=fit, executor=executor, jobs=jobs,
+                                    cancelled=cancelled)
+
+    before, after = transfer(study), transfer(other)
+    kept = round_helps(after, before)
+    record.update(transfer_given_mm=before.study_mm, transfer_medoid_mm=after.study_mm, kept=kept)
+    say(f"correspondence: template from the medoid {medoid} ({distance[medoid]:.2f} mm RMS from the mean shape, "
+        f"{study.template_instance} {distance[study.template_instance]:.2f} mm): landmark transfer error "
+        f"{before.study_mm:.3f} -> {after.study_mm:.3f} mm, {'kept' if kept else 'not kept'}")
+    return (other if kept else study), record
 
 
 # ----------------------------------------------------------------------------- streamed build
