@@ -179,3 +179,24 @@ def test_a_round_is_kept_only_when_the_instances_improve_together():
     small = check({n: {"L": v * 0.995} for n, v in before.items()})
     assert round_helps(together, b) and not round_helps(one, b) and not round_helps(small, b)
     assert round_helps(check({}), b)  # nothing to judge by
+
+
+def test_the_population_medoid_is_the_instance_nearest_the_mean_shape_whatever_its_frame():
+    """The medoid is found from the coatings put onto the template instance's by their
+    correspondence: an instance stored turned (its moments frame flipped) is still compared
+    by shape, and only the candidates (instances with every landmark) can be chosen."""
+    from ssm_addon.coating.coating import CoatingResult, FitFigures
+    from ssm_addon.instances.importing import InstanceSpec
+    from ssm_addon.pipeline.study import Study, population_medoid
+
+    rng = np.random.default_rng(3)
+    base = rng.normal(size=(200, 3)) * [20.0, 10.0, 5.0]
+    scale = {"a": 1.30, "b": 1.12, "c": 0.98, "d": 0.80, "e": 1.02}
+    points = {n: base * s + rng.normal(scale=0.05, size=base.shape) for n, s in scale.items()}
+    points["e"] = points["e"] * np.array([-1.0, -1.0, 1.0])  # turned 180° about z in its object frame
+    fit = FitFigures(0.0, 0.0, 0, 0, 1)
+    study = Study(instances=tuple(InstanceSpec(name=n) for n in scale), template_instance="a")
+    study.coatings = {n: CoatingResult(points_object=p, warped_points_object=p, fit=fit, name=n) for n, p in points.items()}
+    medoid, distance = population_medoid(study, list(scale))
+    assert medoid == "e" and distance["e"] < distance["c"] < distance["b"]  # mean scale 1.044: e (turned), then c
+    assert population_medoid(study, ["a", "b", "d"])[0] == "b"
