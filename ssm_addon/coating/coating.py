@@ -439,6 +439,7 @@ def coat_all(
     names: list[str] | None = None,
     start_method: str = "spawn",
     on_coated: Callable[[str], None] | None = None,
+    executor=None,
 ) -> list[CoatingResult]:
     """Coat the template onto every target (paper 4), serially or across processes.
 
@@ -452,7 +453,8 @@ def coat_all(
     instances (and inside an instance when serial): :class:`CoatingCancelled` is
     raised with ``.results``, a list with the finished :class:`CoatingResult` and
     None for the instances not coated. ``on_coated(name)`` is called (in this process) as
-    each instance's coating arrives.
+    each instance's coating arrives. ``executor`` (:class:`~ssm_addon.pipeline.compute.Executor`):
+    where the coatings run, the caller's; default ``jobs`` local processes of its own.
     """
     params = CoatingParams() if params is None else params
     pts, faces = _template_arrays(template)
@@ -462,7 +464,7 @@ def coat_all(
     n = len(targets)
     results: list[CoatingResult | None] = [None] * n
     jobs = max(1, min(int(jobs or 1), n, os.cpu_count() or 1))
-    if jobs == 1 or _in_blender():
+    if executor is None and (jobs == 1 or _in_blender()):
         for i, (tgt, lm) in enumerate(zip(targets, target_landmarks_object_list)):
             if cancelled is not None and cancelled():
                 raise CoatingCancelled(f"coating cancelled after {i} of {n} instances", results)
@@ -487,11 +489,15 @@ def coat_all(
         if on_coated is not None:
             on_coated(names[i])
 
-    with Executor("processes", jobs, start_method=start_method) as executor:
-        try:
-            executor.map(_coat_job, args, on_result=keep, labels=names, verb="coated", progress=progress,
-                         cancelled=cancelled)
-        except Cancelled:
-            raise CoatingCancelled(f"coating cancelled after {sum(r is not None for r in results)} of {n} instances",
-                                   results) from None
+    own = executor is None
+    executor = Executor("processes", jobs, start_method=start_method) if own else executor
+    try:
+        executor.map(_coat_job, args, on_result=keep, labels=names, verb="coated", progress=progress,
+                     cancelled=cancelled)
+    except Cancelled:
+        raise CoatingCancelled(f"coating cancelled after {sum(r is not None for r in results)} of {n} instances",
+                               results) from None
+    finally:
+        if own:
+            executor.close()
     return results

@@ -449,13 +449,19 @@ def _start_job(args):
 
 def starts_from_model(coated: np.ndarray, faces: np.ndarray, template_points: np.ndarray, landmark_locations: LandmarkLocations,
                       targets: dict, *, fit: FitParams, coating: CoatingParams, template_frame=None, jobs: int = 1,
-                      cancelled: CancelledFn = None) -> dict[str, CoatingResult]:
-    """:func:`start_from_model` for every instance of ``targets`` (name -> ObjectVolume), ``jobs`` processes."""
+                      cancelled: CancelledFn = None, executor=None) -> dict[str, CoatingResult]:
+    """:func:`start_from_model` for every instance of ``targets`` (name -> ObjectVolume), on
+    ``executor`` (default: ``jobs`` local processes)."""
     names = list(targets)
     args = [(coated, faces, template_points, landmark_locations, targets[n], fit, coating, template_frame, n)
             for n in names]
-    with Executor("processes", max(1, min(int(jobs or 1), len(args), os.cpu_count() or 1))) as executor:
+    own = executor is None
+    executor = Executor("processes", max(1, min(int(jobs or 1), len(args), os.cpu_count() or 1))) if own else executor
+    try:
         found = executor.map(_start_job, args, labels=names, verb="coated", cancelled=cancelled)
+    finally:
+        if own:
+            executor.close()
     return dict(zip(names, found))
 
 
@@ -643,7 +649,7 @@ def _coat_mean_job(args):
 # fall in a one-sided paired t-test at KEEP_LEVEL (a change within the fits' noise, or
 # one a few instances carry, keeps the start: the single pass is the simpler result)
 KEEP_MARGIN = 0.01
-KEEP_LEVEL = 0.05
+KEEP_LEVEL = 0.10
 
 
 def round_helps(after: CorrespondenceCheck, before: CorrespondenceCheck, *, margin: float = KEEP_MARGIN,

@@ -56,7 +56,7 @@ from ..model.quality import (
     check_volumes_together,
     content_digest,
 )
-from ..pipeline.compute import time_left_text
+from ..pipeline.compute import time_left_text, usable_cores
 from ..pipeline.errors import InputError, check_cancelled
 from ..pipeline.params import CoatingParams, QualityParams, StudyParams
 from ..pipeline.progress import CancelledFn, ProgressFn, report, sub_progress
@@ -311,13 +311,15 @@ def _landmarks_object(study: Study, name: str, common: Sequence[str]) -> np.ndar
 
 def coat_instances(study: Study, *, names: Sequence[str] | None = None, jobs: int = 1,
                    progress: ProgressFn = None, cancelled: CancelledFn = None,
-                   on_coated: Callable[[str], None] | None = None) -> dict[str, CoatingResult]:
+                   on_coated: Callable[[str], None] | None = None, executor=None) -> dict[str, CoatingResult]:
     """Coat the template onto instances (paper 4), ``jobs`` processes.
 
     Parameters
     ----------
     names : instance names (default: every instance).
     on_coated : called with each instance's name as its coating arrives.
+    executor : Executor, optional
+        Where the coatings run (default: ``jobs`` local processes).
 
     Returns
     -------
@@ -343,7 +345,7 @@ def coat_instances(study: Study, *, names: Sequence[str] | None = None, jobs: in
     targets = [study.volume(n) for n in names]
     lms = [_landmarks_object(study, n, common) for n in names]
     results = coat_all(study.template, src, targets, lms, params=study.params.coating, jobs=jobs,
-                       progress=progress, cancelled=cancelled, names=names, on_coated=on_coated)
+                       progress=progress, cancelled=cancelled, names=names, on_coated=on_coated, executor=executor)
     return dict(zip(names, results))
 
 
@@ -354,22 +356,28 @@ def _coat_from_frames_job(args):
     return coat_from_start(template, target, params=params, name=name)
 
 
-def coat_from_frames(study: Study, names: Sequence[str], *, jobs: int = 1, cancelled: CancelledFn = None
-                     ) -> dict[str, CoatingResult]:
+def coat_from_frames(study: Study, names: Sequence[str], *, jobs: int = 1, cancelled: CancelledFn = None,
+                     executor=None) -> dict[str, CoatingResult]:
     """Coat the template onto instances from the object frames alone (no landmarks; paper 2's
-    alignment, then the coating's registration, projection and relaxation)."""
+    alignment, then the coating's registration, projection and relaxation), on ``executor``
+    (default: ``jobs`` local processes)."""
     from ..meshutil import Mesh
     from ..pipeline.compute import Executor
 
     mesh = Mesh(study.template.points_object, study.template.faces)
     args = [(mesh, study.volume(n), study.params.coating, n) for n in names]
-    with Executor("processes", min(jobs, len(args)) if args else 1) as executor:
+    own = executor is None
+    executor = Executor("processes", min(jobs, len(args)) if args else 1) if own else executor
+    try:
         results = executor.map(_coat_from_frames_job, args, labels=list(names), verb="coated", cancelled=cancelled)
+    finally:
+        if own:
+            executor.close()
     return dict(zip(names, results))
 
 
 def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: int = 1,
-                   cancelled: CancelledFn = None) -> dict[str, CoatingResult]:
+                   cancelled: CancelledFn = None, executor=None) -> dict[str, CoatingResult]:
     """The first coatings of the model method: by landmarks where given, else from the
     model of the landmarked instances, else from the frames.
 
@@ -396,7 +404,7 @@ def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: in
     landmarked = with_lm if len(with_lm) > 1 else []
     # the model of the landmarked instances needs their coatings, asked for or not
     need = [n for n in landmarked if n in names or n not in study.coatings]
-    coated = coat_instances(study, names=need, jobs=jobs, cancelled=cancelled) if need else {}
+    coated = coat_instances(study, names=need, jobs=jobs, cancelled=cancelled, executor=executor) if need else {}
     rest = [n for n in names if n not in landmarked]
     if rest and landmarked:
         cp = study.params.correspondence
@@ -405,10 +413,10 @@ def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: in
                                         template_landmark_locations(study), {n: study.volume(n) for n in rest},
                                         fit=correspondence_fit_params(cp),
                                         coating=study.params.coating, template_frame=study.frame(study.template_instance),
-                                        jobs=jobs, cancelled=cancelled))
+                                        jobs=jobs, cancelled=cancelled, executor=executor))
         start = CoatingStart.MODEL_FIT
     else:
-        coated.update(coat_from_frames(study, rest, jobs=jobs, cancelled=cancelled))
+        coated.update(coat_from_frames(study, rest, jobs=jobs, cancelled=cancelled, executor=executor))
         start = CoatingStart.OBJECT_FRAMES
     # a landmarked instance's own record (the landmark warp, or the object frames where the
     # registration fell back from it), the others' start
@@ -427,16 +435,30 @@ def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn =
     back as the coating stage's result (:func:`apply_stage` puts them into a study).
     ``on_coated(name)``: as each round's coating of an instance arrives.
     """
-    from ..fitting.correspondence import refine_rounds
+    from ..pipeline.compute import Executor
 
     say = log or (lambda _m: None)
     t0 = time.perf_counter()
+    own = executor is None  # one pool of processes for every step (starts, template choice, rounds)
+    executor = Executor("processes", max(1, min(int(jobs or 1), len(study.names), usable_cores()))) if own else executor
+    try:
+        return _refine(study, jobs=jobs, progress=progress, cancelled=cancelled, say=say, executor=executor,
+                       on_coated=on_coated, t0=t0)
+    finally:
+        if own:
+            executor.close()
+
+
+def _refine(study, *, jobs, progress, cancelled, say, executor, on_coated, t0) -> StageResult:
+    """:func:`refine_correspondence` on ``executor``."""
+    from ..fitting.correspondence import refine_rounds
+
     missing = [n for n in study.names if n not in study.coatings]
     work = dataclasses.replace(study, coatings=dict(study.coatings), coating_start=dict(study.coating_start),
                                volumes=dict(study.volumes), frames=dict(study.frames), findings=list(study.findings),
                                correspondence_rounds=list(study.correspondence_rounds), timings_s={})
     if missing:
-        started = start_coatings(work, missing, jobs=jobs, cancelled=cancelled)
+        started = start_coatings(work, missing, jobs=jobs, cancelled=cancelled, executor=executor)
         work.coatings.update(started)
         starts = [work.coating_start[n] for n in missing]
         say(f"coating: {starts.count('landmark warp')} by landmarks, {starts.count('model fit')} from the landmarked "
@@ -515,7 +537,7 @@ def medoid_template(study: Study, *, jobs: int = 1, executor=None, cancelled: Ca
     other = dataclasses.replace(study, template_instance=medoid, coatings={}, coating_start={},
                                 volumes=dict(study.volumes), frames=dict(study.frames))
     other.template = make_template(other, cancelled=cancelled)
-    other.coatings.update(start_coatings(other, list(other.names), jobs=jobs, cancelled=cancelled))
+    other.coatings.update(start_coatings(other, list(other.names), jobs=jobs, cancelled=cancelled, executor=executor))
     fit = correspondence_fit_params(study.params.correspondence)
 
     def transfer(s: Study):
