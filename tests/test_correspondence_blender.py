@@ -117,3 +117,34 @@ def test_propose_landmarks_fits_the_scene_model(bpy_clean, light_project):
     # a second proposal has nothing left to place: said, not silently done
     with pytest.raises(RuntimeError, match="already has every landmark the model knows"):
         bpy.ops.ssm.propose_landmarks(method="model")
+
+
+@pytest.mark.slow
+def test_the_medoid_template_of_the_model_method_reaches_the_scene(bpy_clean, tmp_path):
+    """Landmarks on every instance: the model method builds the template again from the
+    population's medoid when that lowers the self-check; Coat Template in Blender does what the
+    headless build does: the same template instance (the template object follows it), the same
+    coatings, the same record of the choice."""
+    import json
+
+    bpy = bpy_clean
+    from ssm.operators.scene import find_template
+
+    path = demo.make_demo_population(tmp_path / "population", n=6, seed=9)
+    path.write_text(path.read_text().replace("spacing = 1.0", "spacing = 1.0\nr_min_mm = 4.0\nr_max_mm = 8.0")
+                    .replace("[model]", "[model]\nspecificity_samples = 50")
+                    .replace("[coating]", '[correspondence]\nmethod = "model"\niterations = 2\n\n[coating]'))
+    headless = build(read_project(path), tmp_path / "out", log=None)
+    choice = headless.report["correspondence"]["template_choice"]
+    assert choice["kept"] and choice["medoid"] != choice["given"], choice  # the fixture exercises the choice
+    assert headless.study.template_instance == choice["medoid"]
+    assert bpy.ops.ssm.open_project(filepath=str(path)) == {"FINISHED"}
+    assert bpy.ops.ssm.build_template() == {"FINISHED"}
+    assert find_template(bpy.context).ssm.instance.name == choice["given"]
+    assert bpy.ops.ssm.coat_template() == {"FINISHED"}
+    assert find_template(bpy.context).ssm.instance.name == choice["medoid"]
+    assert bpy.context.scene.ssm_display.template_instance.name == choice["medoid"]
+    assert json.loads(bpy.context.scene["ssm_template_choice"])["medoid"] == choice["medoid"]
+    for name, pts in _coatings(bpy).items():
+        np.testing.assert_allclose(pts, headless.study.coatings[name].points_object, atol=1e-9, err_msg=name)
+    assert bpy.ops.ssm.build_model() == {"FINISHED"}  # the model is built on the medoid's template
