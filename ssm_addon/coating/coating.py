@@ -93,8 +93,8 @@ class CoatingStart(StrEnum):
 
     #: the landmark warp (eq. 2) with the instance's own landmarks
     LANDMARK_WARP = "landmark warp"
-    #: the landmark warp with landmarks a model fitted to the instance's surface supplied
-    #: (the bootstrap of paper 7)
+    #: a model's shape fitted to the instance's surface, relaxed onto it (the bootstrap of
+    #: paper 7)
     MODEL_FIT = "model fit"
     #: the template put into the instance's object frame (paper 2), without landmarks
     OBJECT_FRAMES = "object frames"

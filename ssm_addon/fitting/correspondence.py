@@ -6,9 +6,9 @@ section 7 a bootstrap in which a preliminary model replaces the landmarks. This 
 does both (``[correspondence] method = "model"``):
 
 1. **Start**: instances with landmarks are coated by them (paper 4); instances without
-   start from the model of the landmarked ones fitted to their surface
-   (:func:`start_from_model`), or from the object frames alone when only the template
-   instance has landmarks (paper 2 aligns them roughly).
+   start from the model of the landmarked ones fitted to their surface, relaxed onto it
+   (:func:`start_from_model`, paper 7), or from the object frames alone when only the
+   template instance has landmarks (paper 2 aligns them roughly).
 2. **Rounds**, each: every instance is **fitted by the model built without it**
    (leave-one-out, so an instance never fits itself) — pose and coefficients under the
    model's prior, against its surface (:func:`round_landmarks`). The fit read off at the
@@ -60,7 +60,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 from scipy.special import stdtrit
 
-from ..coating.coating import CoatingResult, CoatingStart, coat, settle_on_surface
+from ..coating.coating import CoatingResult, CoatingStart, coat, coat_from_start, settle_on_surface
 from ..coating.distance_map import DistanceMap
 from ..coating.relaxation import folded_triangles
 from ..fitting.fit import Pose, Target, fit_model, rigid_screen
@@ -405,9 +405,10 @@ def check_correspondence(points: dict, faces: np.ndarray, landmark_locations: La
 def start_from_model(coated: np.ndarray, faces: np.ndarray, template_points: np.ndarray, landmark_locations: LandmarkLocations,
                      target, *, fit: FitParams, coating: CoatingParams, template_frame=None,
                      name: str = "") -> CoatingResult:
-    """The start of an instance without landmarks: the model of the landmarked instances'
-    coatings, fitted to its surface, supplies its landmarks; the template is coated with
-    them (paper 4: landmark warp eq. 2, projection, relaxation eq. 3).
+    """The start of an instance without landmarks (the bootstrap of paper 7): the model of
+    the landmarked instances' coatings, fitted to its surface, is the rough adaptation of
+    the template that the landmark warp (eq. 2) gives a landmarked instance; registration,
+    projection and relaxation (eq. 3) take it onto the surface.
 
     Parameters
     ----------
@@ -436,11 +437,14 @@ def start_from_model(coated: np.ndarray, faces: np.ndarray, template_points: np.
         there = target.frame.to_object(template_frame.to_world(template_points))
         _s, rot, t = procrustes_fit(np.asarray(template_points, float)[None], there, scale=False)
         world = Pose(rotation=rot[0], translation=t[0])
-    _result, predicted, _d = landmark_transfer(coated, faces, dm.surface_vertices, landmark_locations, {}, fit=fit,
-                                               surface_faces=dm.surface_faces, world_pose=world)
-    result = coat(Mesh(template_points, faces), landmark_locations.evaluate(template_points, faces), target, predicted,
-                  params=coating, distance_map=dm, name=name)
-    return replace(result, fit=replace(result.fit, start=CoatingStart.MODEL_FIT))
+    fitted, predicted, _d = landmark_transfer(coated, faces, dm.surface_vertices, landmark_locations, {}, fit=fit,
+                                              surface_faces=dm.surface_faces, world_pose=world)
+    # paper 7: the fitted shape replaces the landmark warp as the rough adaptation, and the
+    # relaxation (eq. 3) takes it onto the surface; the landmarks it predicts give the
+    # coating's landmark residuals
+    return coat_from_start(Mesh(template_points, faces), target, start=fitted.points, params=coating,
+                           template_location=landmark_locations, target_landmarks_object=predicted,
+                           distance_map=dm, start_label=CoatingStart.MODEL_FIT, name=name)
 
 
 def _start_job(args):

@@ -383,8 +383,8 @@ def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: in
 
     Instances with landmarks are coated by them (paper 4) when at least two instances have
     landmarks (the template instance and another). The others start from the model of
-    those coatings fitted to their surface, which supplies their landmarks
-    (:func:`ssm_addon.fitting.correspondence.start_from_model`); when only the template
+    those coatings fitted to their surface and relaxed onto it
+    (:func:`ssm_addon.fitting.correspondence.start_from_model`, paper 7); when only the template
     instance has landmarks, from the object frames (paper 2). ``study.coating_start``
     records which start each instance had.
 
