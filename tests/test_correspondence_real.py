@@ -101,8 +101,8 @@ def test_knee30_patellas_frames_and_landmarks_on_three(tmp_path):
     """Patellas are near-symmetric: their moments frames flip (the frame gate names the
     instances, and the self-check sees through it, aligning by correspondence). With
     landmarks on 3 of 12, the rest start from the model of those three (poses tried by the
-    axis turns, the input coordinates preferred) and land within 1.5× of the single pass
-    with landmarks on all."""
+    axis turns, the input coordinates preferred, the fitted shape relaxed onto the surface) and
+    land within 1.3× of the single pass with landmarks on all."""
     files, meshes = _meshes(DATA / "knee30", "*_Patella.ply", limit=12)
     single, e_single = _build(files, meshes, tmp_path, landmarks=15, on=len(files), method="landmarks")
     run(single, stages=("model",))
@@ -115,7 +115,7 @@ def test_knee30_patellas_frames_and_landmarks_on_three(tmp_path):
     starts = set(few.coating_start[f.stem] for f in files[3:])
     print(f"patellas: landmarks on all {a.mean():.3f} mm, on 3 {b.mean():.3f} mm (worst {b.max():.1f}); {starts}")
     assert starts == {"model fit"}
-    assert b.mean() < 1.5 * a.mean() and b.max() < 10.0
+    assert b.mean() < 1.3 * a.mean() and b.max() < 10.0
 
 
 def test_clicked_landmarks_are_denoised_by_the_population_on_knee30_patellas(tmp_path):
