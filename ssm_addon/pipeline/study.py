@@ -414,13 +414,11 @@ def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: in
                                         fit=correspondence_fit_params(cp),
                                         coating=study.params.coating, template_frame=study.frame(study.template_instance),
                                         jobs=jobs, cancelled=cancelled, executor=executor))
-        start = CoatingStart.MODEL_FIT
     else:
         coated.update(coat_from_frames(study, rest, jobs=jobs, cancelled=cancelled, executor=executor))
-        start = CoatingStart.OBJECT_FRAMES
-    # a landmarked instance's own record (the landmark warp, or the object frames where the
-    # registration fell back from it), the others' start
-    study.coating_start.update({n: coated[n].fit.start if n in landmarked else start for n in names})
+    # each coating's own record: the landmark warp or the model fit, or the object frames
+    # where the registration fell back from either
+    study.coating_start.update({n: coated[n].fit.start for n in names})
     return {n: coated[n] for n in names}
 
 
