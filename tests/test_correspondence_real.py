@@ -82,7 +82,7 @@ def test_model_method_at_its_defaults_is_no_worse_than_the_single_pass_on_femur1
           f"{np.percentile(b, 95):.2f} mm; stop {model.correspondence_check.stop}, kept round "
           f"{model.correspondence_check.kept_round}")
     assert b.mean() <= a.mean() + 0.01 and np.percentile(b, 95) <= np.percentile(a, 95) + 0.05
-    # femur01 is far from the mean femur; the medoid template takes its place (paper 3.3)
+    # femur00 is farther from the mean femur than femur07, whose template takes its place (paper 3.3)
     assert model.template_instance != files[0].stem and b.mean() < 0.85 * a.mean()
     check = model.correspondence_check
     assert check.stop in ("converged", "criterion", "limit")
