@@ -239,10 +239,13 @@ def finish_refinement(op, context, outcome):
     coatings, starts = result.product["coatings"], result.product["coating_start"]
     rounds = list(result.product.get("correspondence_rounds", ()))
     mean_points = result.product["template"].points_object
+    if result.product.get("template_choice"):
+        context.scene[TEMPLATE_CHOICE_KEY] = json.dumps(result.product["template_choice"])
     medoid = result.product.get("template_instance")
-    if medoid is not None and bpy.data.objects.get(medoid) is not None:  # the template built from the medoid
+    current = context.scene.ssm_display.template_instance
+    if (medoid is not None and (current is None or current.name != medoid)
+            and bpy.data.objects.get(medoid) is not None):  # the template built again from the medoid
         write_template_object(context, bpy.data.objects[medoid], result.product["template"])
-        context.scene[TEMPLATE_CHOICE_KEY] = json.dumps(result.product.get("template_choice", {}))
     written = []
     for name, coating in coatings.items():
         inst = bpy.data.objects.get(name)
