@@ -66,7 +66,7 @@ from ..coating.warp import fold_free_warp, landmark_warp
 from ..instances.volume import ObjectVolume
 from ..meshutil import Mesh, MeshLocation, edge_lengths, locate_on_mesh, mesh_area
 from ..meshutil import edges as mesh_edges
-from ..pipeline.compute import Executor, run_one_thread
+from ..pipeline.compute import executor_or_local, run_one_thread
 from ..pipeline.errors import Cancelled, InputError, check_cancelled
 from ..pipeline.params import CoatingParams
 from ..pipeline.progress import CancelledFn, ProgressFn, report, sub_progress
@@ -489,15 +489,11 @@ def coat_all(
         if on_coated is not None:
             on_coated(names[i])
 
-    own = executor is None
-    executor = Executor("processes", jobs, start_method=start_method) if own else executor
     try:
-        executor.map(_coat_job, args, on_result=keep, labels=names, verb="coated", progress=progress,
+        with executor_or_local(executor, jobs, start_method=start_method) as pool:
+            pool.map(_coat_job, args, on_result=keep, labels=names, verb="coated", progress=progress,
                      cancelled=cancelled)
     except Cancelled:
         raise CoatingCancelled(f"coating cancelled after {sum(r is not None for r in results)} of {n} instances",
                                results) from None
-    finally:
-        if own:
-            executor.close()
     return results

@@ -53,7 +53,6 @@ one another by their correspondence before a model is built of them
 from __future__ import annotations
 
 import math
-import os
 import time
 from dataclasses import asdict, dataclass, field, replace
 
@@ -68,7 +67,7 @@ from ..formats.landmarks import LandmarkSet
 from ..meshutil import LandmarkLocations, Mesh, MeshLocation, MeshLocator, edge_lengths, vertex_normals
 from ..meshutil import edges as mesh_edges
 from ..model.pca import build_model, procrustes_fit
-from ..pipeline.compute import Executor
+from ..pipeline.compute import executor_or_local
 from ..pipeline.errors import InputError, check_cancelled
 from ..pipeline.params import CoatingParams, CorrespondenceParams, FitParams
 from ..pipeline.progress import CancelledFn, ProgressFn, sub_progress
@@ -84,7 +83,7 @@ SCREEN_SAMPLES = 500
 __all__ = ["AXIS_TURNS", "WORLD_POSE_TOLERANCE", "CorrespondenceCheck", "LandmarkNoise", "RoundFigures",
            "RoundLandmarks", "aligned_to", "landmark_noise", "round_helps", "round_landmarks", "coat_mean_shape",
            "correspondence_fit_params", "check_correspondence", "landmark_transfer", "refine_instance",
-           "refine_rounds", "resample_instance", "start_from_model", "starts_from_model"]
+           "refine_rounds", "resample_instance", "round_fits", "start_from_model", "starts_from_model"]
 
 
 def correspondence_fit_params(params: CorrespondenceParams) -> FitParams:
@@ -392,13 +391,8 @@ def check_correspondence(points: dict, faces: np.ndarray, landmark_locations: La
     f = np.asarray(faces, np.int64)
     args = [(np.delete(stack, names.index(n), axis=0), f, stack[names.index(n)], landmark_locations,
              landmarks_object[n], fit) for n in checked]
-    own = executor is None
-    executor = Executor("processes", max(1, min(int(jobs or 1), len(args), os.cpu_count() or 1))) if own else executor
-    try:
-        found = executor.map(_transfer_job, args, labels=checked, verb="checked", cancelled=cancelled)
-    finally:
-        if own:
-            executor.close()
+    with executor_or_local(executor, jobs, len(args)) as pool:
+        found = pool.map(_transfer_job, args, labels=checked, verb="checked", cancelled=cancelled)
     return CorrespondenceCheck.from_landmarks(dict(zip(checked, found)), **kw)
 
 
@@ -459,13 +453,8 @@ def starts_from_model(coated: np.ndarray, faces: np.ndarray, template_points: np
     names = list(targets)
     args = [(coated, faces, template_points, landmark_locations, targets[n], fit, coating, template_frame, n)
             for n in names]
-    own = executor is None
-    executor = Executor("processes", max(1, min(int(jobs or 1), len(args), os.cpu_count() or 1))) if own else executor
-    try:
-        found = executor.map(_start_job, args, labels=names, verb="coated", cancelled=cancelled)
-    finally:
-        if own:
-            executor.close()
+    with executor_or_local(executor, jobs, len(args)) as pool:
+        found = pool.map(_start_job, args, labels=names, verb="coated", cancelled=cancelled)
     return dict(zip(names, found))
 
 
@@ -536,18 +525,20 @@ def round_landmarks(others: np.ndarray, faces: np.ndarray, target, landmark_loca
     -------
     RoundLandmarks
     """
-    dm = DistanceMap.from_object_volume(target)
+    all_names = list(landmark_locations.names)
+    given = np.array([n in landmarks_object for n in all_names], dtype=bool)
+    given_points = np.array([landmarks_object[n] for n in all_names if n in landmarks_object], float).reshape(-1, 3)
+    posterior = bool(given.any() and not given.all() and fit.landmark_weight > 0)
+    # the instance's own surface only where a fit needs it (no coating to fit, or the posterior)
+    dm = DistanceMap.from_object_volume(target) if current is None or posterior else None
     if current is None:
         surface, surface_faces = dm.surface_vertices, dm.surface_faces
     else:
         surface, surface_faces = current, None
     result, predicted, transfer = landmark_transfer(others, faces, surface, landmark_locations, landmarks_object,
                                                     fit=fit, surface_faces=surface_faces)
-    all_names = list(landmark_locations.names)
-    given = np.array([n in landmarks_object for n in all_names], dtype=bool)
-    given_points = np.array([landmarks_object[n] for n in all_names if n in landmarks_object], float).reshape(-1, 3)
     warp = np.array(predicted, float)
-    if given.any() and not given.all() and fit.landmark_weight > 0:
+    if posterior:
         # the absent landmarks' posterior places: the fit with the given landmarks as soft
         # constraints, read off at the template's landmark points
         model = build_model(others if current is None else aligned_to(others, current), faces,
@@ -688,9 +679,27 @@ def round_helps(after: CorrespondenceCheck, before: CorrespondenceCheck, *, marg
     return t < float(stdtrit(len(diff) - 1, level))
 
 
+def round_fits(study, names, *, fit: FitParams, jobs: int = 1, executor=None, cancelled: CancelledFn = None,
+               progress: ProgressFn = None, verb: str = "fitted") -> dict[str, RoundLandmarks]:
+    """:func:`round_landmarks` for the instances ``names`` of a coated study: each fitted by
+    the model of every other instance's coating, against its own coating (object mm), on
+    ``executor`` (default: ``jobs`` local processes)."""
+    if not names:
+        return {}
+    every = list(study.names)
+    points = np.stack([study.coatings[n].points_object for n in every])
+    faces = np.asarray(study.template.faces)
+    locations = study.template.landmark_locations
+    args = [(np.delete(points, every.index(n), axis=0), faces, study.volume(n), locations, study.landmarks_object(n),
+             fit, points[every.index(n)], n) for n in names]
+    with executor_or_local(executor, jobs, len(args)) as pool:
+        found = pool.map(_landmarks_job, args, labels=list(names), verb=verb, progress=progress, cancelled=cancelled)
+    return dict(zip(names, found))
+
+
 def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progress: ProgressFn = None,
-                  cancelled: CancelledFn = None, log=None, executor=None,
-                  on_coated=None) -> tuple[list[RoundFigures], CorrespondenceCheck]:
+                  cancelled: CancelledFn = None, log=None, executor=None, on_coated=None,
+                  first_fits: dict | None = None) -> tuple[list[RoundFigures], CorrespondenceCheck]:
     """Refinement rounds on a coated study (every instance coated): updates ``study.template``
     (the mean shape, in the model frame) and ``study.coatings``; returns each round's
     figures and the self-check of the coatings kept. ``on_coated(name)`` is called as each
@@ -730,10 +739,7 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
     # the template's landmarks as mesh points, located at make_template (study.py)
     locations = study.template.landmark_locations
     fit = correspondence_fit_params(params)
-    lm_object = {}
-    for n in names:
-        lm = study.landmarks(n)
-        lm_object[n] = {} if lm is None else dict(zip(lm.names, study.frame(n).to_object(lm.points_world)))
+    lm_object = {n: study.landmarks_object(n) for n in names}
     rounds: list[RoundFigures] = []
     anchor = names.index(study.template_instance)
     # the template's sampling (paper 3: its points on the template instance); a study
@@ -742,8 +748,6 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
     sampling = np.array(study.coatings[names[anchor]].points_object if mean_template else study.template.points_object,
                         dtype=float)
     size = float(np.linalg.norm(np.ptp(study.coatings[names[anchor]].points_object, axis=0)))
-    own = executor is None
-    executor = Executor("processes", max(1, min(int(jobs or 1), len(names), os.cpu_count() or 1))) if own else executor
     best = (dict(study.coatings), study.template)
     start_template, template_points = study.template, np.asarray(study.template.points_object, float)
     if params.round_template == "instance" and mean_template:
@@ -751,7 +755,7 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
                          "template, the study has the mean shape (refined with round_template = \"mean\")")
     complete = {n: bool(len(locations)) and all(k in lm_object[n] for k in locations.names) for n in names}
     best_check, stop, converged, total = None, "limit", False, params.iterations
-    try:
+    with executor_or_local(executor, jobs, len(names)) as executor:
         for r in range(1, total + 2):
             check_cancelled(cancelled)
             t0 = time.perf_counter()
@@ -759,12 +763,14 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
             # the mean shape (paper 3.3), of the coatings put onto the template instance's
             # (their object frames may disagree by a turn): the new template, in its frame
             mean = aligned_to(points, points[anchor]).mean(axis=0)
-            # the fits of this round judge the coatings it starts from (the last round's)
-            args = [(np.delete(points, i, axis=0), faces, study.volume(n), locations, lm_object[n], fit,
-                     points[i], n) for i, n in enumerate(names)]
+            # the fits of this round judge the coatings it starts from (the last round's); the
+            # first round's may have come with the study (``first_fits``)
+            have = dict(first_fits or {}) if r == 1 else {}
             span = (r - 1) / (total + 1), (r - 0.5) / (total + 1)
-            fitted = executor.map(_landmarks_job, args, labels=names, verb=f"round {r}: fitted",
-                                  progress=sub_progress(progress, span[0], span[1]), cancelled=cancelled)
+            have.update(round_fits(study, [n for n in names if n not in have], fit=fit, executor=executor,
+                                   cancelled=cancelled, progress=sub_progress(progress, span[0], span[1]),
+                                   verb=f"round {r}: fitted"))
+            fitted = [have[n] for n in names]
             check = CorrespondenceCheck.from_landmarks({n: f.transfer for n, f in zip(names, fitted)})
             if best_check is None:
                 best_check = check
@@ -841,9 +847,6 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
         study.coatings, study.template = dict(best[0]), best[1]
         for n in names:
             study.coatings[n] = _given_landmark_residuals(study.coatings[n], faces, locations, lm_object[n])
-    finally:
-        if own:
-            executor.close()
     kept_round = max((f.round for f in rounds if f.kept), default=0)
     return rounds, replace(best_check, stop=stop, kept_round=kept_round)
 

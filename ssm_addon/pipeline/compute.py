@@ -24,13 +24,14 @@ from __future__ import annotations
 import os
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 
 from ..pipeline.errors import Cancelled, InputError
 from ..pipeline.progress import CancelledFn, ProgressFn, report
 
-__all__ = ["CONNECT_TIMEOUT_S", "SCHEDULERS", "Executor", "check_scheduler", "dask_setup", "ignore_sigint",
-           "probe_scheduler", "run_one_thread", "start_resource_tracker", "stop_children", "time_left_text",
+__all__ = ["CONNECT_TIMEOUT_S", "SCHEDULERS", "Executor", "check_scheduler", "dask_setup", "executor_or_local",
+           "ignore_sigint", "probe_scheduler", "run_one_thread", "start_resource_tracker", "stop_children", "time_left_text",
            "usable_cores"]
 
 SCHEDULERS = ("serial", "processes", "dask-local")
@@ -451,3 +452,20 @@ class Executor:
             raise
 
 
+@contextmanager
+def executor_or_local(executor: Executor | None, jobs: int = 1, tasks: int | None = None,
+                      **options) -> Iterator[Executor]:
+    """``executor`` as given (the caller's: left open), else local processes for this call.
+
+    The local pool has ``jobs`` processes, at most ``tasks`` (and the usable cores,
+    :class:`Executor`), and is closed on leaving the block, also on an error. ``options``
+    go to :class:`Executor` (``start_method``).
+    """
+    if executor is not None:
+        yield executor
+        return
+    wanted = max(1, int(jobs or 1))
+    if tasks is not None:
+        wanted = max(1, min(wanted, int(tasks)))
+    with Executor("processes", wanted, **options) as local:
+        yield local

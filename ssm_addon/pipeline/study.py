@@ -56,7 +56,7 @@ from ..model.quality import (
     check_volumes_together,
     content_digest,
 )
-from ..pipeline.compute import time_left_text, usable_cores
+from ..pipeline.compute import executor_or_local, time_left_text
 from ..pipeline.errors import InputError, check_cancelled
 from ..pipeline.params import CoatingParams, QualityParams, StudyParams
 from ..pipeline.progress import CancelledFn, ProgressFn, report, sub_progress
@@ -193,6 +193,14 @@ class Study:
         """The instance's landmarks (world mm of its file), or None."""
         lm = self.instance(name).landmarks
         return lm if lm is not None and len(lm) else None
+
+    def landmarks_object(self, name: str, frame: ObjectFrame | None = None) -> dict[str, np.ndarray]:
+        """The instance's landmarks by name, (3,) mm in its object frame (``frame``, default
+        :meth:`frame`); empty without landmarks."""
+        lm = self.landmarks(name)
+        if lm is None:
+            return {}
+        return dict(zip(lm.names, (frame or self.frame(name)).to_object(lm.points_world)))
 
     def frame(self, name: str) -> ObjectFrame:
         """The instance's object frame (paper 2): its volume's, else a known one."""
@@ -362,17 +370,11 @@ def coat_from_frames(study: Study, names: Sequence[str], *, jobs: int = 1, cance
     alignment, then the coating's registration, projection and relaxation), on ``executor``
     (default: ``jobs`` local processes)."""
     from ..meshutil import Mesh
-    from ..pipeline.compute import Executor
 
     mesh = Mesh(study.template.points_object, study.template.faces)
     args = [(mesh, study.volume(n), study.params.coating, n) for n in names]
-    own = executor is None
-    executor = Executor("processes", min(jobs, len(args)) if args else 1) if own else executor
-    try:
-        results = executor.map(_coat_from_frames_job, args, labels=list(names), verb="coated", cancelled=cancelled)
-    finally:
-        if own:
-            executor.close()
+    with executor_or_local(executor, jobs, len(args)) as pool:
+        results = pool.map(_coat_from_frames_job, args, labels=list(names), verb="coated", cancelled=cancelled)
     return dict(zip(names, results))
 
 
@@ -433,39 +435,30 @@ def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn =
     back as the coating stage's result (:func:`apply_stage` puts them into a study).
     ``on_coated(name)``: as each round's coating of an instance arrives.
     """
-    from ..pipeline.compute import Executor
+    from ..fitting.correspondence import refine_rounds
 
     say = log or (lambda _m: None)
     t0 = time.perf_counter()
-    own = executor is None  # one pool of processes for every step (starts, template choice, rounds)
-    executor = Executor("processes", max(1, min(int(jobs or 1), len(study.names), usable_cores()))) if own else executor
-    try:
-        return _refine(study, jobs=jobs, progress=progress, cancelled=cancelled, say=say, executor=executor,
-                       on_coated=on_coated, t0=t0)
-    finally:
-        if own:
-            executor.close()
-
-
-def _refine(study, *, jobs, progress, cancelled, say, executor, on_coated, t0) -> StageResult:
-    """:func:`refine_correspondence` on ``executor``."""
-    from ..fitting.correspondence import refine_rounds
-
     missing = [n for n in study.names if n not in study.coatings]
     work = dataclasses.replace(study, coatings=dict(study.coatings), coating_start=dict(study.coating_start),
                                volumes=dict(study.volumes), frames=dict(study.frames), findings=list(study.findings),
                                correspondence_rounds=list(study.correspondence_rounds), timings_s={})
-    if missing:
-        started = start_coatings(work, missing, jobs=jobs, cancelled=cancelled, executor=executor)
-        work.coatings.update(started)
-        starts = [work.coating_start[n] for n in missing]
-        say(f"coating: {starts.count('landmark warp')} by landmarks, {starts.count('model fit')} from the landmarked "
-            f"instances' model, {starts.count('object frames')} from the object frames; refining with the model")
     choice = {}
-    if study.params.correspondence.template_choice == "medoid":
-        work, choice = medoid_template(work, jobs=jobs, executor=executor, cancelled=cancelled, log=say)
-    rounds, check = refine_rounds(work, study.params.correspondence, jobs=jobs, progress=progress,
-                                  cancelled=cancelled, log=say, executor=executor, on_coated=on_coated)
+    # one pool of processes for every step (starts, template choice, rounds)
+    with executor_or_local(executor, jobs, len(study.names)) as pool:
+        if missing:
+            work.coatings.update(start_coatings(work, missing, jobs=jobs, cancelled=cancelled, executor=pool))
+            starts = [work.coating_start[n] for n in missing]
+            say(f"coating: {starts.count('landmark warp')} by landmarks, {starts.count('model fit')} from the "
+                f"landmarked instances' model, {starts.count('object frames')} from the object frames; refining "
+                "with the model")
+        if study.params.correspondence.template_choice == "medoid":
+            work, choice, first_fits = medoid_template(work, jobs=jobs, executor=pool, cancelled=cancelled, log=say)
+        else:
+            first_fits = {}
+        rounds, check = refine_rounds(work, study.params.correspondence, jobs=jobs, progress=progress,
+                                      cancelled=cancelled, log=say, executor=pool, on_coated=on_coated,
+                                      first_fits=first_fits)
     coated = {n: work.coatings[n] for n in study.names}
     kept = "the start" if check.kept_round == 0 else f"round {check.kept_round}'s coatings"
     say(f"correspondence: {check.stop or 'no rounds'}; kept {kept}; landmark transfer error {check.study_mm:.3f} mm")
@@ -502,7 +495,7 @@ def population_medoid(study: Study, candidates: Sequence[str]) -> tuple[str, dic
 
 
 def medoid_template(study: Study, *, jobs: int = 1, executor=None, cancelled: CancelledFn = None,
-                    log: Log = None) -> tuple[Study, dict]:
+                    log: Log = None) -> tuple[Study, dict, dict]:
     """The study with its template built again from the population's medoid, when that helps.
 
     Paper 3.3: a template from one arbitrary instance makes the model depend on it. The
@@ -515,45 +508,40 @@ def medoid_template(study: Study, *, jobs: int = 1, executor=None, cancelled: Ca
     Returns
     -------
     (the study to refine: a copy with the medoid's template and coatings, or ``study``;
-    the record: ``given``, ``medoid``, ``transfer_given_mm``, ``transfer_medoid_mm``, ``kept``)
+    the record: ``given``, ``medoid``, ``transfer_given_mm``, ``transfer_medoid_mm``, ``kept``;
+    the landmarked instances' fits that judged the study returned
+    (:func:`ssm_addon.fitting.correspondence.round_fits`), which are its first round's)
     """
-    from ..fitting.correspondence import check_correspondence, correspondence_fit_params, round_helps
+    from ..fitting.correspondence import CorrespondenceCheck, correspondence_fit_params, round_fits, round_helps
 
     say = log or (lambda _m: None)
     wanted = study.template.landmark_locations.names
     complete = [n for n in study.names if study.landmarks(n) is not None
                 and set(wanted) <= set(study.landmarks(n).names)]
-    if len(complete) < 2 or not len(wanted):
-        return study, {}
+    if len(complete) < 2 or not len(wanted) or len(study.names) < 3:  # the rounds need 3 instances
+        return study, {}, {}
     medoid, distance = population_medoid(study, complete)
     record = {"given": study.template_instance, "medoid": medoid,
               "rms_from_mean_mm": {study.template_instance: distance[study.template_instance], medoid: distance[medoid]}}
     if medoid == study.template_instance:
         say(f"correspondence: the template's instance {medoid} is the population's medoid already")
-        return study, {**record, "kept": True}
+        return study, {**record, "kept": True}, {}
     check_cancelled(cancelled)
     other = dataclasses.replace(study, template_instance=medoid, coatings={}, coating_start={},
                                 volumes=dict(study.volumes), frames=dict(study.frames))
     other.template = make_template(other, cancelled=cancelled)
     other.coatings.update(start_coatings(other, list(other.names), jobs=jobs, cancelled=cancelled, executor=executor))
     fit = correspondence_fit_params(study.params.correspondence)
-
-    def transfer(s: Study):
-        given = {}
-        for n in s.names:
-            lm = s.landmarks(n)
-            given[n] = {} if lm is None else dict(zip(lm.names, s.frame(n).to_object(lm.points_world)))
-        return check_correspondence({n: s.coatings[n].points_object for n in s.names}, s.template.faces,
-                                    s.template.landmark_locations, given, fit=fit, executor=executor, jobs=jobs,
-                                    cancelled=cancelled)
-
-    before, after = transfer(study), transfer(other)
+    landmarked = [n for n in study.names if study.landmarks_object(n)]
+    fits = [round_fits(s, landmarked, fit=fit, jobs=jobs, executor=executor, cancelled=cancelled, verb="checked")
+            for s in (study, other)]
+    before, after = (CorrespondenceCheck.from_landmarks({n: f.transfer for n, f in found.items()}) for found in fits)
     kept = round_helps(after, before)
     record.update(transfer_given_mm=before.study_mm, transfer_medoid_mm=after.study_mm, kept=kept)
     say(f"correspondence: template from the medoid {medoid} ({distance[medoid]:.2f} mm RMS from the mean shape, "
         f"{study.template_instance} {distance[study.template_instance]:.2f} mm): landmark transfer error "
         f"{before.study_mm:.3f} -> {after.study_mm:.3f} mm, {'kept' if kept else 'not kept'}")
-    return (other if kept else study), record
+    return (other if kept else study), record, fits[1] if kept else fits[0]
 
 
 # ----------------------------------------------------------------------------- streamed build
@@ -1024,16 +1012,12 @@ def self_check(study: Study, coatings: dict[str, CoatingResult], *, template: Te
     if (not study.params.correspondence.self_check or len(names) < 3 or template is None
             or any(n not in coatings for n in names)):
         return None, ()
-    locations = template.landmark_locations
     frames = {**study.frames, **(frames or {})}
-    given = {}
-    for n in names:
-        lm = study.landmarks(n)
-        frame = frames.get(n) or study.frame(n)
-        given[n] = {} if lm is None else dict(zip(lm.names, frame.to_object(lm.points_world)))
+    given = {n: study.landmarks_object(n, frames.get(n)) for n in names}
     fit = correspondence_fit_params(study.params.correspondence)
-    check = check_correspondence({n: coatings[n].points_object for n in names}, template.faces, locations, given,
-                                 fit=fit, executor=executor, jobs=jobs, cancelled=cancelled)
+    check = check_correspondence({n: coatings[n].points_object for n in names}, template.faces,
+                                 template.landmark_locations, given, fit=fit, executor=executor, jobs=jobs,
+                                 cancelled=cancelled)
     return check, tuple(check_landmark_transfer(check, study.params.quality))
 
 
