@@ -103,8 +103,9 @@ class LandmarkNoise:
     Attributes
     ----------
     model_mm : float
-        σ_m: the landmark transfer error of the template instance, whose given landmarks
-        define the correspondence (RMS per axis).
+        σ_m: the larger of the template instance's landmark transfer error (its given
+        landmarks define the correspondence) and the other instances' predictions against
+        their own coatings' landmark points (RMS per axis).
     click_mm : float
         σ_c: estimated from the other landmarked instances' transfer errors (their part
         beyond σ_m), or as given (``[correspondence] landmark_noise_mm``).
