@@ -49,6 +49,7 @@ def shared_data_dir() -> Path:
 
 VERSE_DIR = shared_data_dir() / "verse004"
 FEMUR10_DIR = shared_data_dir() / "femur10"
+KNEE30_DIR = shared_data_dir() / "knee30"
 VERSE_FILE = VERSE_DIR / "sub-verse004_seg-vert_msk.nii.gz"
 VERSE_LABELS = {"T9": 16, "T10": 17, "T11": 18, "T12": 19, "L1": 20, "L2": 21, "L3": 22, "L4": 23, "L5": 24}
 

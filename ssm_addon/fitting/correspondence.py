@@ -89,9 +89,12 @@ __all__ = ["AXIS_TURNS", "WORLD_POSE_TOLERANCE", "CorrespondenceCheck", "Landmar
 def correspondence_fit_params(params: CorrespondenceParams) -> FitParams:
     """The fits of the model method and of the self-check: the ``[correspondence]`` noise
     and landmark weight, the looser stop, and no model error in the posterior (these fits
-    use the fitted shape, never its posterior SD)."""
+    use the fitted shape, never its posterior SD). The pose is stepped alternately with the
+    shape (``pose_step = "alternating"``), which stays nearer the pose the fit starts from
+    (the input coordinates' or the coating's); why: docs/measurements.md, "The fit's pose
+    step"."""
     return FitParams(noise_mm=params.fit_noise_mm, landmark_weight=params.landmark_weight,
-                     tolerance_mm=REFINE_FIT_TOLERANCE_MM, model_error=False)
+                     tolerance_mm=REFINE_FIT_TOLERANCE_MM, model_error=False, pose_step="alternating")
 
 
 @dataclass(frozen=True)

@@ -404,6 +404,66 @@ small, so the model's misfit on the seen part cannot drag the pose along the sur
 so a start shifted along a flat part still converges."""
 
 
+def _rotation_vector(w: np.ndarray) -> np.ndarray:
+    """The rotation matrix of the rotation vector ``w`` (axis × angle in radians, Rodrigues)."""
+    th = float(np.linalg.norm(w))
+    if th < 1e-15:
+        return np.eye(3)
+    k = _skew((w / th)[None])[0]
+    return np.eye(3) + math.sin(th) * k + (1.0 - math.cos(th)) * k @ k
+
+
+JOINT_DAMPING = 1e-6
+"""Marquardt damping of the joint step, relative to each unknown's own curvature (a floor of
+1e-12 of the largest): a direction the surface does not pin (a turn about a sphere's centre)
+is not moved by rounding noise."""
+JOINT_MAX_TURN = 0.2
+"""The joint step's largest turn (radians, about 11°); a longer step is shortened whole."""
+
+
+def _joint_step(pose, b, shape, normals, q, lam, rows_v, y, w, lm_pairs, w_lm, sigma2, prior_weight):
+    """One Gauss-Newton step of the fit's energy (paper eq. 7 with the prior) in the pose's small
+    turn ω, its shift δt and the coefficients δb together, every surface correspondence
+    point to plane (its distance along the shape's normal) and every landmark point to point.
+
+    The alternating step (a Procrustes pose from point-to-point pairs, then the coefficients)
+    holds each model point to its current closest point along the surface too, so a pose that
+    must slide along a smooth surface creeps there over many iterations; solved together, the
+    slide is taken at once. World mm; ``shape`` and ``normals`` in the model frame."""
+    rot = pose.rotation
+    x = pose.apply(shape)
+    centre = x.mean(axis=0)  # the turn about the shape's centroid: turn and shift decoupled
+    x = x - centre
+    y = y - centre
+    xp = x[rows_v]
+    nw = normals[rows_v] @ rot.T  # the shape's normals in the target frame
+    r = np.einsum("pd,pd->p", nw, y - xp)
+    jb = pose.scale * np.einsum("pd,pdk->pk", normals[rows_v], q[rows_v])  # (R n)·(s R Q) = s n·Q
+    jac = np.hstack([np.cross(xp, nw), nw, jb])
+    a = (jac * w[:, None]).T @ jac
+    g = (jac * w[:, None]).T @ r
+    if lm_pairs is not None:
+        xl = np.einsum("lk,lkj->lj", lm_pairs[2], x[lm_pairs[1]])
+        ql = np.einsum("lk,lkdm->ldm", lm_pairs[2], q[lm_pairs[1]])  # (L, 3, K) model frame
+        jl = np.concatenate([-_skew(xl), np.broadcast_to(np.eye(3), (len(xl), 3, 3)),
+                             pose.scale * np.einsum("de,lek->ldk", rot, ql)], axis=2).reshape(-1, a.shape[0])
+        rl = (np.asarray(lm_pairs[3], float) - centre - xl).reshape(-1)
+        a += w_lm * jl.T @ jl
+        g += w_lm * jl.T @ rl
+    a /= sigma2
+    g /= sigma2
+    a[6:, 6:] += prior_weight * np.diag(1.0 / lam)
+    g[6:] -= prior_weight * b / lam
+    diag = np.diag(a).copy()
+    a[np.diag_indices_from(a)] += JOINT_DAMPING * np.maximum(diag, 1e-12 * max(1.0, float(diag.max())))
+    d = np.linalg.solve(a, g)
+    angle = float(np.linalg.norm(d[:3]))
+    if angle > JOINT_MAX_TURN:  # far from the target the linear model of the turn is poor: a shorter step
+        d *= JOINT_MAX_TURN / angle
+    turn = _rotation_vector(d[:3])
+    return Pose(turn @ rot, turn @ (pose.translation - centre) + centre + d[3:6], pose.scale), b + d[6:]
+
+
 def fit_model(model, target: Target, *, params: FitParams | None = None, pose: Pose | None = None,
               partial: bool = False, tangential_pull: float = TANGENTIAL_PULL, progress: ProgressFn = None,
               cancelled: CancelledFn = None) -> FitResult:
@@ -474,6 +534,9 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
     it, converged, last = 0, False, pose.apply(shape)
     w_lm = params.landmark_weight
     tree_model = None
+    # a whole surface with a rigid pose: pose and shape solved together, point to plane
+    joint = (params.pose_step == "joint" and target.has_surface and not partial and not params.scale
+             and len(model.faces) > 0)
     for it in range(1, params.iterations + 1):
         check_cancelled(cancelled)
         x = pose.apply(shape)
@@ -507,6 +570,18 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
             src = np.concatenate([src, lm_shape])
             dst = np.concatenate([dst, lm_pairs[3]])
             wp = np.concatenate([wp, np.full(len(lm_shape), w_lm)])
+        if joint:  # pose and coefficients in one point-to-plane step (see _joint_step)
+            pose, b = _joint_step(pose, b, shape, normals, q, lam, rows_v, y, w, lm_pairs, w_lm, sigma2,
+                                  params.prior_weight)
+            shape = mean + q @ b
+            x_new = pose.apply(shape)
+            move = float(np.sqrt(((x_new - last) ** 2).sum(axis=1).mean()))
+            last = x_new
+            report(progress, it / params.iterations, f"fit step {it}: {move:.4f} mm")
+            if move < params.tolerance_mm:
+                converged = True
+                break
+            continue
         if len(src) >= 3:
             pose = _procrustes(src, dst, wp, params.scale)
         # coefficients: the posterior of the linear model in the model frame. A surface

@@ -685,6 +685,9 @@ class OutputParams:
         check(self, self._where)
 
 
+POSE_STEPS = ("joint", "alternating")
+
+
 @dataclass(frozen=True)
 class FitParams:
     """Fitting a model to new data (``ssm fit``, and the model-driven coating).
@@ -707,6 +710,10 @@ class FitParams:
                                 help="stop when the shape's points move less than this (RMS)")
     landmark_weight: float = param(10.0, minimum=0.0, maximum=1e9, label="Landmark weight",
                                    help="weight of one landmark against one surface correspondence")
+    pose_step: str = param("joint", choices=POSE_STEPS, label="Pose step", advanced=True,
+                           help="joint: pose and mode weights in one point-to-plane step (a pose that must slide "
+                                "along a smooth surface gets there); alternating: a point-to-point pose, then the "
+                                "weights (stays nearer the start pose)")
     model_error: bool = param(True, label="Model error", advanced=True,
                               help="the posterior SD includes the model's own error (its training instances' "
                                    "leave-one-out residuals), not only the target's noise: for a partial target "
