@@ -1,6 +1,7 @@
 """Evaluation of ``ssm fit`` on real and demo data: leave-one-out fits and completion.
 
 Usage: ``.venv/bin/python tools/eval_fit.py [--femur10-only | --no-femur10] [--no-demo] [--step K]``
+or ``.venv/bin/python tools/eval_fit.py --any-pose knee30-patella knee30-tibia femur10``
 
 For VerSe (the nine vertebrae of sub-verse004, when ``../shared/data`` is present) and
 the 24-instance demo: every instance fitted by a model of the others (built from the
@@ -15,6 +16,10 @@ proximal half (the vertices above its median height, every ``--step``-th as poin
 the model of the other nine (their meshes' own correspondence, rigidly aligned), from the
 model frame; the missing half's error is the distance of each vertex from its true place
 (not a surface distance), with the share within 2 posterior SD.
+
+``--any-pose SET ...``: held-out instances of dense-truth sets in random poses, fitted from
+any pose by the model of the others with each pose step (``FitParams.pose_step``), against
+their true points.
 """
 
 from __future__ import annotations
@@ -74,6 +79,36 @@ def evaluate(label: str, project_path: Path, out: Path) -> None:
           f"{a[:, 2].mean():.2f} mm, {100 * a[:, 3].mean():.1f} % within 2 SD")
 
 
+def any_pose(population: str, *, count: int = 8) -> None:
+    """A held-out instance of a dense-truth set (``tools/eval_correspondence.py``'s folders of
+    meshes sharing one connectivity) in a random pose, fitted from any pose
+    (:func:`ssm_addon.fitting.fit.fit_any_pose`) by the model of the others (their true
+    correspondence, rigidly aligned), with each pose step: mean distance of the fitted points
+    from their true places (not a surface distance), the surface distance, and the time."""
+    import time
+
+    from eval_correspondence import mesh_population
+    from scipy.spatial.transform import Rotation
+
+    from ssm_addon.fitting.fit import fit_any_pose
+
+    files, meshes = mesh_population(population)
+    points, faces = np.stack([v for v, _f in meshes]), meshes[0][1]
+    held_out = list(range(0, len(points), max(1, len(points) // count)))[:count]
+    for step in ("joint", "alternating"):
+        true_mm, surface_mm, t0 = [], [], time.perf_counter()
+        for k in held_out:
+            model = build_model(np.delete(points, k, axis=0), faces, [f.stem for i, f in enumerate(files) if i != k],
+                                alignment="rigid")
+            truth = points[k] @ Rotation.random(random_state=k).as_matrix().T + [10.0, -20.0, 5.0]
+            fitted, _doc = fit_any_pose(model, Target.from_mesh(truth, faces), params=FitParams(pose_step=step))
+            true_mm.append(float(np.linalg.norm(fitted.points - truth, axis=1).mean()))
+            surface_mm.append(fitted.mean_distance_mm)
+        print(f"{population}, {len(held_out)} held out in any pose, pose step {step}: fitted points "
+              f"{np.mean(true_mm):.3f} mm from their true places (largest {np.max(true_mm):.2f}), surface distance "
+              f"{np.mean(surface_mm):.3f} mm, {time.perf_counter() - t0:.1f} s", flush=True)
+
+
 def main() -> None:
     import argparse
 
@@ -86,7 +121,14 @@ def main() -> None:
     parser.add_argument("--noise", type=float, default=FitParams().noise_mm,
                         help="target noise of the VerSe/demo completions, mm (default: the fit's default)")
     parser.add_argument("--step", type=int, default=1)
+    parser.add_argument("--any-pose", nargs="+", metavar="SET",
+                        help="only the fit from any pose of held-out instances of these dense-truth sets "
+                             "(femur10, knee30-femur, knee30-tibia, knee30-patella, folder:PATH[:GLOB])")
     args = parser.parse_args()
+    if args.any_pose:
+        for population in args.any_pose:
+            any_pose(population)
+        return
     NOISE_MM[0] = args.noise
     if FEMUR10_DIR.exists() and not args.no_femur10:
         from test_fitting import femur10_completion
