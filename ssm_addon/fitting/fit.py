@@ -404,15 +404,6 @@ small, so the model's misfit on the seen part cannot drag the pose along the sur
 so a start shifted along a flat part still converges."""
 
 
-def _rotation_vector(w: np.ndarray) -> np.ndarray:
-    """The rotation matrix of the rotation vector ``w`` (axis × angle in radians, Rodrigues)."""
-    th = float(np.linalg.norm(w))
-    if th < 1e-15:
-        return np.eye(3)
-    k = _skew((w / th)[None])[0]
-    return np.eye(3) + math.sin(th) * k + (1.0 - math.cos(th)) * k @ k
-
-
 JOINT_DAMPING = 1e-6
 """Marquardt damping of the joint step, relative to each unknown's own curvature (a floor of
 1e-12 of the largest): a direction the surface does not pin (a turn about a sphere's centre)
@@ -460,7 +451,8 @@ def _joint_step(pose, b, shape, normals, q, lam, rows_v, y, w, lm_pairs, w_lm, s
     angle = float(np.linalg.norm(d[:3]))
     if angle > JOINT_MAX_TURN:  # far from the target the linear model of the turn is poor: a shorter step
         d *= JOINT_MAX_TURN / angle
-    turn = _rotation_vector(d[:3])
+        angle = JOINT_MAX_TURN
+    turn = _axis_rotation(d[:3], math.degrees(angle)) if angle > 1e-15 else np.eye(3)
     return Pose(turn @ rot, turn @ (pose.translation - centre) + centre + d[3:6], pose.scale), b + d[6:]
 
 
@@ -474,7 +466,9 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
     model : ShapeModel
     target : Target
     params : FitParams
-        Noise σ (mm), prior weight η, modes used, iterations, landmark weight, scale.
+        Noise σ (mm), prior weight η, modes used, iterations, landmark weight, scale, and the pose
+        step (``"joint"``: pose and coefficients in one point-to-plane step for a whole surface
+        with a rigid pose; otherwise alternately).
     pose : Pose, optional
         Start pose (model → target). Default: from the landmarks when at least 3 match,
         else the identity (the target is in the model's frame, e.g. an instance in its
@@ -555,60 +549,52 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
         rows_v = np.concatenate(rows) if rows else np.zeros(0, int)
         y = np.concatenate(ys) if ys else np.zeros((0, 3))
         w = np.concatenate(ws) if ws else np.zeros(0)
-        # pose from the current shape's corresponding points (and landmarks)
-        src, dst, wp = shape[rows_v], y, w
         normals = vertex_normals(shape, model.faces) if len(model.faces) else None
-        if partial and normals is not None and len(rows_v) and tangential_pull != 1.0:
-            # a partial target pins the pose least: its points pull mostly along the shape's
-            # normal, as in the coefficients' step (TANGENTIAL_PULL along the surface)
-            nrm_p = normals[rows_v]
-            gap = pose.inverse(y) - src
-            along = np.einsum("pd,pd->p", nrm_p, gap)[:, None] * nrm_p
-            dst = pose.apply(src + along + tangential_pull * (gap - along))
-        if lm_pairs is not None:
-            lm_shape = np.einsum("lk,lkj->lj", lm_pairs[2], shape[lm_pairs[1]])
-            src = np.concatenate([src, lm_shape])
-            dst = np.concatenate([dst, lm_pairs[3]])
-            wp = np.concatenate([wp, np.full(len(lm_shape), w_lm)])
         if joint:  # pose and coefficients in one point-to-plane step (see _joint_step)
             pose, b = _joint_step(pose, b, shape, normals, q, lam, rows_v, y, w, lm_pairs, w_lm, sigma2,
                                   params.prior_weight)
-            shape = mean + q @ b
-            x_new = pose.apply(shape)
-            move = float(np.sqrt(((x_new - last) ** 2).sum(axis=1).mean()))
-            last = x_new
-            report(progress, it / params.iterations, f"fit step {it}: {move:.4f} mm")
-            if move < params.tolerance_mm:
-                converged = True
-                break
-            continue
-        if len(src) >= 3:
-            pose = _procrustes(src, dst, wp, params.scale)
-        # coefficients: the posterior of the linear model in the model frame. A surface
-        # correspondence observes the distance along the shape's normal only (point to
-        # plane): where it lies along the surface is not observed, so sliding is neither
-        # penalised nor mistaken for information (calibrated posterior, no tangential bias)
-        yl = pose.inverse(y) - mean[rows_v]  # (P, 3)
-        if normals is not None:  # summed per model point: n·Q once per point used
-            used, inv = np.unique(rows_v, return_inverse=True)
-            qn = np.einsum("ud,udk->uk", normals[used], q[used])  # (U, K): n·Q
-            w_used = np.bincount(inv, weights=w, minlength=len(used))
-            r_used = np.bincount(inv, weights=w * np.einsum("pd,pd->p", normals[rows_v], yl), minlength=len(used))
-            a = (qn * w_used[:, None]).T @ qn
-            rhs = qn.T @ r_used
         else:
-            qa = q[rows_v]  # (P, 3, K)
-            a = np.einsum("p,pdk,pdl->kl", w, qa, qa)
-            rhs = np.einsum("p,pdk,pd->k", w, qa, yl)
-        if lm_pairs is not None:
-            qlm = np.einsum("lk,lkdm->ldm", lm_pairs[2], q[lm_pairs[1]])
-            mlm = np.einsum("lk,lkj->lj", lm_pairs[2], mean[lm_pairs[1]])
-            rlm = pose.inverse(lm_pairs[3]) - mlm
-            a += w_lm * np.einsum("idk,idm->km", qlm, qlm)
-            rhs += w_lm * np.einsum("idk,id->k", qlm, rlm)
-        s2 = sigma2 / pose.scale ** 2
-        precision = a / s2 + params.prior_weight * np.diag(1.0 / lam)
-        b = np.linalg.solve(precision + 1e-12 * np.eye(k) * max(1.0, float(np.abs(precision).max())), rhs / s2)
+            # pose from the current shape's corresponding points (and landmarks)
+            src, dst, wp = shape[rows_v], y, w
+            if partial and normals is not None and len(rows_v) and tangential_pull != 1.0:
+                # a partial target pins the pose least: its points pull mostly along the shape's
+                # normal, as in the coefficients' step (TANGENTIAL_PULL along the surface)
+                nrm_p = normals[rows_v]
+                gap = pose.inverse(y) - src
+                along = np.einsum("pd,pd->p", nrm_p, gap)[:, None] * nrm_p
+                dst = pose.apply(src + along + tangential_pull * (gap - along))
+            if lm_pairs is not None:
+                lm_shape = np.einsum("lk,lkj->lj", lm_pairs[2], shape[lm_pairs[1]])
+                src = np.concatenate([src, lm_shape])
+                dst = np.concatenate([dst, lm_pairs[3]])
+                wp = np.concatenate([wp, np.full(len(lm_shape), w_lm)])
+            if len(src) >= 3:
+                pose = _procrustes(src, dst, wp, params.scale)
+            # coefficients: the posterior of the linear model in the model frame. A surface
+            # correspondence observes the distance along the shape's normal only (point to
+            # plane): where it lies along the surface is not observed, so sliding is neither
+            # penalised nor mistaken for information (calibrated posterior, no tangential bias)
+            yl = pose.inverse(y) - mean[rows_v]  # (P, 3)
+            if normals is not None:  # summed per model point: n·Q once per point used
+                used, inv = np.unique(rows_v, return_inverse=True)
+                qn = np.einsum("ud,udk->uk", normals[used], q[used])  # (U, K): n·Q
+                w_used = np.bincount(inv, weights=w, minlength=len(used))
+                r_used = np.bincount(inv, weights=w * np.einsum("pd,pd->p", normals[rows_v], yl), minlength=len(used))
+                a = (qn * w_used[:, None]).T @ qn
+                rhs = qn.T @ r_used
+            else:
+                qa = q[rows_v]  # (P, 3, K)
+                a = np.einsum("p,pdk,pdl->kl", w, qa, qa)
+                rhs = np.einsum("p,pdk,pd->k", w, qa, yl)
+            if lm_pairs is not None:
+                qlm = np.einsum("lk,lkdm->ldm", lm_pairs[2], q[lm_pairs[1]])
+                mlm = np.einsum("lk,lkj->lj", lm_pairs[2], mean[lm_pairs[1]])
+                rlm = pose.inverse(lm_pairs[3]) - mlm
+                a += w_lm * np.einsum("idk,idm->km", qlm, qlm)
+                rhs += w_lm * np.einsum("idk,id->k", qlm, rlm)
+            s2 = sigma2 / pose.scale ** 2
+            precision = a / s2 + params.prior_weight * np.diag(1.0 / lam)
+            b = np.linalg.solve(precision + 1e-12 * np.eye(k) * max(1.0, float(np.abs(precision).max())), rhs / s2)
         shape = mean + q @ b
         x_new = pose.apply(shape)
         move = float(np.sqrt(((x_new - last) ** 2).sum(axis=1).mean()))
@@ -664,6 +650,7 @@ def _principal_axes(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _axis_rotation(axis: np.ndarray, degrees: float) -> np.ndarray:
+    """The turn by ``degrees`` about ``axis`` (any length), as a matrix (Rodrigues)."""
     a = axis / np.linalg.norm(axis)
     k = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
     t = np.radians(degrees)
