@@ -269,10 +269,11 @@ def propose_by_model(model, target_frame, target_mesh_world, *, known: LandmarkS
     """Landmarks for a target from a built model (paper 7's bootstrap): fit, then read them off.
 
     The model (pose and mode weights under its Gaussian prior,
-    :func:`ssm_addon.fitting.fit.fit_model`) is fitted to the target's surface, starting from
-    the target's object frame (the frame the model's instances were built in, paper 2),
-    with the target's ``known`` landmarks as soft constraints; the model's landmarks
-    (the template instance's, as points of the mean mesh) are read off the fitted shape.
+    :func:`ssm_addon.fitting.fit.fit_any_pose`) is fitted to the target's surface by the pose
+    search of ``ssm fit``, the target's object frame (the frame the model's instances were
+    built in, paper 2) and its ``known`` landmarks' pose preferred, the known landmarks as
+    soft constraints; the model's landmarks (the template instance's, as points of the mean
+    mesh) are read off the fitted shape.
 
     Parameters
     ----------
@@ -297,7 +298,7 @@ def propose_by_model(model, target_frame, target_mesh_world, *, known: LandmarkS
     InputError
         The model carries no landmarks, or none of ``names``.
     """
-    from ..fitting.fit import Pose, Target, fit_model
+    from ..fitting.fit import Pose, Target, fit_any_pose
 
     located = model.landmark_locations
     model_names = located.names
@@ -311,6 +312,9 @@ def propose_by_model(model, target_frame, target_mesh_world, *, known: LandmarkS
     target = Target.from_mesh(target_frame.to_object(verts), faces, source=source,
                               landmarks=None if known is None or not len(known) else
                               LandmarkSet(known.names, target_frame.to_object(known.points_world), source))
-    result = fit_model(model, target, params=params, pose=Pose(), progress=progress, cancelled=cancelled)
+    # the pose search of ``ssm fit``, the target's object frame preferred: a near-symmetric shape
+    # whose frame's axes were resolved end for end is still found
+    result, _search = fit_any_pose(model, target, params=params, frame_pose=Pose(), progress=progress,
+                                   cancelled=cancelled)
     pts = located.subset(wanted).evaluate(result.points, model.faces)
     return LandmarkSet(tuple(wanted), target_frame.to_world(pts), source)
