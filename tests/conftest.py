@@ -54,6 +54,21 @@ VERSE_FILE = VERSE_DIR / "sub-verse004_seg-vert_msk.nii.gz"
 VERSE_LABELS = {"T9": 16, "T10": 17, "T11": 18, "T12": 19, "L1": 20, "L2": 21, "L3": 22, "L4": 23, "L5": 24}
 
 
+def knee30_bone(bone: str):
+    """(names, (30, V, 3) vertices in mm, (F, 3) faces) of one knee30 bone (``"Patella"``,
+    ``"Tibia"``, ``"Femur"``): every subject's mesh shares the faces, so vertex i is the same
+    place on all. Skips the test where the data is absent."""
+    import numpy as np
+
+    from ssm_addon.meshutil import read_mesh
+
+    files = sorted(KNEE30_DIR.glob(f"*_{bone}.ply"))
+    if len(files) < 30:
+        pytest.skip(f"knee30 not found at {KNEE30_DIR} (set SSM_SHARED_DATA or place ../shared/data)")
+    meshes = [read_mesh(f) for f in files]
+    return [f.stem for f in files], np.stack([v for v, _f in meshes]), meshes[0][1]
+
+
 @pytest.fixture(scope="session")
 def verse_dir() -> Path:
     if not VERSE_FILE.exists():

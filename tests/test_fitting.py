@@ -10,7 +10,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
-from conftest import FEMUR10_DIR, KNEE30_DIR
+from conftest import FEMUR10_DIR, knee30_bone
 from scipy.spatial import ConvexHull
 from test_model import random_rotation, synthetic_population
 
@@ -97,18 +97,13 @@ def test_a_held_out_patella_in_any_pose_is_fitted_to_its_true_correspondence():
 
     from ssm_addon.fitting.fit import fit_any_pose
 
-    files = sorted(KNEE30_DIR.glob("*_Patella.ply"))
-    if len(files) < 30:
-        pytest.skip(f"knee30 not found at {KNEE30_DIR} (set SSM_SHARED_DATA or place ../shared/data)")
-    meshes = [read_mesh(f) for f in files]
-    faces = meshes[0][1]
-    points = np.stack([v for v, _f in meshes])
+    names, points, faces = knee30_bone("Patella")
     for k in (0, 9):
         others = np.delete(points, k, axis=0)
-        model = build_model(others, faces, [f.stem for i, f in enumerate(files) if i != k], alignment="rigid")
+        model = build_model(others, faces, [n for i, n in enumerate(names) if i != k], alignment="rigid")
         truth = points[k] @ Rotation.random(random_state=k).as_matrix().T + [10.0, -20.0, 5.0]
         res, _doc = fit_any_pose(model, Target.from_mesh(truth, faces))
-        assert np.linalg.norm(res.points - truth, axis=1).mean() < 0.25, files[k].name
+        assert np.linalg.norm(res.points - truth, axis=1).mean() < 0.25, names[k]
 
 
 def test_completion_predicts_the_missing_part_and_its_uncertainty_is_calibrated(model):

@@ -8,7 +8,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from conftest import KNEE30_DIR, VERSE_FILE, VERSE_LABELS
+from conftest import VERSE_FILE, VERSE_LABELS, knee30_bone
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
@@ -406,15 +406,10 @@ def test_model_proposal_finds_a_target_whose_frame_is_turned_end_for_end():
     # near-symmetric bone may be resolved: the pose search finds it (from the frame alone the
     # proposals landed about 23 mm off)
     from ssm_addon.coating.proposal import propose_by_model
-    from ssm_addon.meshutil import LandmarkLocations, locate_on_mesh, read_mesh
+    from ssm_addon.meshutil import LandmarkLocations, locate_on_mesh
     from ssm_addon.model.pca import build_model
 
-    files = sorted(KNEE30_DIR.glob("*_Patella.ply"))
-    if len(files) < 30:
-        pytest.skip(f"knee30 not found at {KNEE30_DIR} (set SSM_SHARED_DATA or place ../shared/data)")
-    meshes = [read_mesh(f) for f in files]
-    faces = meshes[0][1]
-    points = np.stack([v for v, _f in meshes])
+    names_all, points, faces = knee30_bone("Patella")
     held = 11
     train = np.delete(points, held, axis=0)
     picked = np.linspace(0, len(faces) - 1, 8).astype(int)
@@ -422,14 +417,14 @@ def test_model_proposal_finds_a_target_whose_frame_is_turned_end_for_end():
     at = locate_on_mesh(train[0], faces, corners)
     names = tuple(f"L{j}" for j in range(len(picked)))
     located = LandmarkLocations(names, at.triangles, at.bary)
-    model = build_model(train, faces, [f.stem for i, f in enumerate(files) if i != held], alignment="rigid",
+    model = build_model(train, faces, [n for i, n in enumerate(names_all) if i != held], alignment="rigid",
                         params={"landmark_locations": located.to_dict()})
     centre = points[held].mean(axis=0)
     turn = np.diag([-1.0, -1.0, 1.0])  # 180° about z through the centroid
     target = (points[held] - centre) @ turn.T + centre
     truth = located.evaluate(target, faces)
     frame = vol.ObjectFrame(origin_world=np.zeros(3), axes_world=np.eye(3))
-    proposed = propose_by_model(model, frame, (target, faces), source=files[held].name)
+    proposed = propose_by_model(model, frame, (target, faces), source=names_all[held])
     assert proposed.names == names
     error = np.linalg.norm(proposed.points_world - truth, axis=1)
     assert error.mean() < 1.5, error
