@@ -220,6 +220,7 @@ def test_fit_command_single_and_batch(model, tmp_path, capsys):
     for key in ("coefficients", "pose", "mahalanobis", "p_value", "mean_distance_mm", "max_distance_mm", "outlier"):
         assert key in doc
     assert doc["mean_distance_mm"] < 0.5
+    assert doc["params"]["pose_step"] == "joint" and doc["params"]["noise_mm"] == FitParams().noise_mm
     fit = np.load(tmp_path / "one" / "fit.npz", allow_pickle=False)
     assert fit["posterior_mean"].shape == model.mean.shape and fit["posterior_sd_mm"].shape == (model.n_points,)
     for i in range(3):
@@ -232,6 +233,7 @@ def test_fit_command_single_and_batch(model, tmp_path, capsys):
 
     targets = [FitTarget(name=f"s{i}", points=tmp_path / "batch" / f"s{i}.csv") for i in range(3)]
     docs = fit_batch(npz, targets, tmp_path / "batch_out", params=FitParams(noise_mm=0.1))
+    assert all(d["params"]["noise_mm"] == 0.1 for d in docs)  # what each fit was run with
     rows = (tmp_path / "batch_out" / "coefficients.csv").read_text().splitlines()
     assert rows[0].startswith("name,z1,z2") and len(rows) == 4
     assert [d["outlier"] for d in docs] == [False, False, True]  # 9 SD along mode 6: flagged

@@ -32,7 +32,7 @@ from ..fitting.fit import FitResult, Pose, Target, fit_any_pose, outlier_limit
 from ..formats.landmarks import read_landmarks
 from ..meshutil import write_ply
 from ..pipeline.errors import InputError
-from ..pipeline.params import FitParams
+from ..pipeline.params import FitParams, to_table
 from ..pipeline.progress import CancelledFn, ProgressFn, report
 
 __all__ = ["FitTarget", "fit_batch", "fit_to_folder", "load_model", "load_target"]
@@ -275,7 +275,7 @@ def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = No
                 "outlier": bool(result.mahalanobis ** 2 > limit),
                 "outlier_limit": {"probability": outlier_probability, "mahalanobis": math.sqrt(limit)},
                 "files": {"fitted": "fitted.ply", "npz": "fit.npz", "picture": "fit.png"},
-                "pose_search": search})
+                "params": to_table(params), "pose_search": search})
     # what the fit rests on, said rather than only stored
     spacing = float((model.params or {}).get("spacing_mm", 1.0))
     doc["coverage"] = coverage(result, target, max(2.0 * spacing, 3.0 * params.noise_mm))
