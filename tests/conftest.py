@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 import os
 import sys
@@ -54,6 +55,7 @@ VERSE_FILE = VERSE_DIR / "sub-verse004_seg-vert_msk.nii.gz"
 VERSE_LABELS = {"T9": 16, "T10": 17, "T11": 18, "T12": 19, "L1": 20, "L2": 21, "L3": 22, "L4": 23, "L5": 24}
 
 
+@functools.lru_cache(maxsize=3)
 def knee30_bone(bone: str):
     """(names, (30, V, 3) vertices in mm, (F, 3) faces) of one knee30 bone (``"Patella"``,
     ``"Tibia"``, ``"Femur"``): every subject's mesh shares the faces, so vertex i is the same

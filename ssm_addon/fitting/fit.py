@@ -763,9 +763,9 @@ def fit_any_pose(model, target: Target, *, params: FitParams | None = None, fram
     first = [i for i, (n, _p, _d) in enumerate(screened) if n in priority]
     rest = sorted((i for i in range(len(screened)) if i not in first), key=lambda i: (screened[i][2], i))[:keep]
     order = first + rest
-    # the candidates are fitted point to point (the fastest from a rough start) and, for a
-    # partial target, without the model-error field (the costly part of a completion); the
-    # chosen one is fitted again as fit_model would from its pose
+    # a partial target's candidates are fitted point to point (the fastest from a rough start)
+    # and without the model-error field (the costly part of a completion), the chosen one again
+    # as fit_model would from its pose; a whole surface's by params' pose step, once
     search = replace(params, model_error=False) if partial and params.model_error else params
     results = {}
     for n, i in enumerate(order):
