@@ -90,3 +90,27 @@ def test_a_fitted_value_beyond_three_sd_is_shown_not_clamped(scene_with_model):
     keys = mode_keys(model_obj)
     assert abs(keys[0].value - 4.5) < 0.2 and keys[0].slider_max >= keys[0].value and keys[0].slider_max < 10
     assert all(kb.slider_min == -3.0 and kb.slider_max == 3.0 for kb in keys[1:] if abs(kb.value) < 2.5)
+
+
+@pytest.mark.parametrize("pose_step", ["joint", "alternating"])
+def test_fit_model_gives_the_apis_fit_for_each_pose_step(scene_with_model, pose_step):
+    # Blender and ssm fit are one computation: the operator's fitted mesh is fit_any_pose's
+    # with the scene's fit parameters (a model shape turned and moved, not an instance)
+    from ssm.operators import bridge
+    from ssm.operators.properties import scene_params
+
+    from ssm_addon.fitting.fit import Target, fit_any_pose
+
+    bpy, model_obj, model = scene_with_model
+    bpy.context.scene.ssm_fit.pose_step = pose_step
+    target, _shape = _target(bpy, model, [0.8, 0.4])
+    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    target.matrix_world = [[*turn[0], 5.0], [*turn[1], -3.0], [*turn[2], 2.0], [0.0, 0.0, 0.0, 1.0]]
+    bpy.context.view_layer.update()
+    params = scene_params(bpy.context, "ssm_fit")
+    assert params.pose_step == pose_step
+    expected, _search = fit_any_pose(model, Target.from_mesh(bridge.object_world_vertices(target), model.faces),
+                                     params=params)
+    assert bpy.ops.ssm.fit_model() == {"FINISHED"}
+    fitted = bpy.data.objects[f"{target.name} fitted"]
+    np.testing.assert_allclose(bridge.mesh_vertices(fitted.data), expected.points, atol=1e-6)
