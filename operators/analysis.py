@@ -34,8 +34,8 @@ from ssm_addon.analysis.files import (
     diverging_colours,
     run_analysis,
 )
-from ssm_addon.pipeline.errors import InputError
-from ssm_addon.pipeline.params import AnalysisParams
+from ssm_addon.base.errors import InputError
+from ssm_addon.base.params import AnalysisParams
 
 from . import bridge
 from .jobs import BackgroundJob

@@ -17,10 +17,10 @@ import time
 import bpy
 from bpy.props import BoolProperty, IntProperty
 
+from ssm_addon.base.errors import InputError
+from ssm_addon.base.params import CoatingParams, CorrespondenceParams
+from ssm_addon.base.progress import sub_progress
 from ssm_addon.coating import coating as core
-from ssm_addon.pipeline.errors import InputError
-from ssm_addon.pipeline.params import CoatingParams, CorrespondenceParams
-from ssm_addon.pipeline.progress import sub_progress
 from ssm_addon.pipeline.study import apply_stage, coating_result, coating_stage, import_result, refine_correspondence
 
 from . import bridge

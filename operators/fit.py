@@ -17,9 +17,9 @@ import bpy
 import numpy as np
 from bpy.props import BoolProperty
 
+from ssm_addon.base.errors import InputError
+from ssm_addon.base.params import FitParams
 from ssm_addon.fitting.fit import Pose, Target, fit_any_pose, outlier_limit
-from ssm_addon.pipeline.errors import InputError
-from ssm_addon.pipeline.params import FitParams
 
 from . import bridge
 from .jobs import BackgroundJob

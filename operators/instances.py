@@ -19,12 +19,12 @@ import numpy as np
 from bpy.props import BoolProperty, CollectionProperty, FloatProperty, IntProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
+from ssm_addon.base.errors import InputError, check_cancelled
+from ssm_addon.base.progress import report, sub_progress
 from ssm_addon.formats import label_maps as imageio
 from ssm_addon.instances import importing as core
 from ssm_addon.instances.importing import InstanceSpec
 from ssm_addon.instances.volume import display_surface
-from ssm_addon.pipeline.errors import InputError, check_cancelled
-from ssm_addon.pipeline.progress import report, sub_progress
 
 from . import bridge
 from .jobs import BackgroundJob
@@ -200,7 +200,7 @@ class SSM_OT_import_segmentation(BackgroundJob, bpy.types.Operator, ImportHelper
         spacing = float(self.spacing_mm) if self.spacing_mm > 0 else tp.spacing_mm
         self._set_spacing = None
         if self.spacing_mm > 0:
-            from ssm_addon.pipeline import params as P
+            from ssm_addon.base import params as P
 
             P.from_table(type(tp), {**P.to_table(tp), "spacing": P.shortest_float32(spacing)}, where="import:")
             self._set_spacing = spacing

@@ -4,7 +4,7 @@ The pattern: ``prepare(context)`` reads everything it needs from ``bpy`` on the 
 thread and returns a plain callable ``work(progress, cancelled) -> result`` that uses
 only the core (numpy/scipy, never ``bpy``). When invoked from the UI, ``work`` runs in a
 worker thread while a timer updates the status-bar progress bar; Esc or right-click sets
-the cancel flag, the core raises :class:`~ssm_addon.pipeline.errors.Cancelled` at its next check
+the cancel flag, the core raises :class:`~ssm_addon.base.errors.Cancelled` at its next check
 and the scene is left as it was. ``finish(context, result)`` writes results back to
 ``bpy`` on the main thread. Called from a script (``bpy.ops.ssm.x()``, headless tests),
 ``execute`` runs the same two steps synchronously.
@@ -17,7 +17,7 @@ import traceback
 
 import bpy
 
-from ssm_addon.pipeline.errors import Cancelled, SSMError
+from ssm_addon.base.errors import Cancelled, SSMError
 
 
 class BackgroundJob:

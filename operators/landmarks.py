@@ -28,10 +28,10 @@ from bpy.props import (
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 from mathutils import Vector
 
+from ssm_addon.base.errors import InputError, SSMError
+from ssm_addon.base.progress import sub_progress
 from ssm_addon.coating import proposal
 from ssm_addon.formats import landmarks as core
-from ssm_addon.pipeline.errors import InputError, SSMError
-from ssm_addon.pipeline.progress import sub_progress
 
 from . import bridge
 from .jobs import BackgroundJob

@@ -23,12 +23,12 @@ import numpy as np
 from bpy.props import BoolProperty, FloatProperty, IntProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
+from ssm_addon.base.errors import InputError, SSMError
+from ssm_addon.base.params import ModelParams
 from ssm_addon.cli.report import write_outputs, write_report_html
 from ssm_addon.fitting.batch import load_model
 from ssm_addon.model import metrics as core_metrics
 from ssm_addon.model.pca import ShapeModel
-from ssm_addon.pipeline.errors import InputError, SSMError
-from ssm_addon.pipeline.params import ModelParams
 from ssm_addon.pipeline.study import model_stage
 
 from . import bridge

@@ -23,12 +23,12 @@ import numpy as np
 from bpy.props import StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
+from ssm_addon.base.errors import InputError, SSMError
+from ssm_addon.base.params import OutputParams
 from ssm_addon.formats import landmarks as core_landmarks
 from ssm_addon.formats import project_file as core
 from ssm_addon.instances.importing import InstanceSpec, file_names, import_instance
 from ssm_addon.meshutil import write_ply
-from ssm_addon.pipeline.errors import InputError, SSMError
-from ssm_addon.pipeline.params import OutputParams
 
 from . import bridge
 from .properties import SSMPanel, set_scene_study_params
@@ -312,7 +312,7 @@ class SSM_PT_project_quality(SSMPanel, bpy.types.Panel):
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context):
-        from ssm_addon.pipeline.params import QualityParams
+        from ssm_addon.base.params import QualityParams
 
         from .properties import draw_params
 

@@ -1,7 +1,7 @@
 """Properties: what an object is to SSM Builder, and the parameters of every stage.
 
 The stage parameters are not written here: each Blender property group is derived from
-the core's parameter dataclass (:mod:`ssm_addon.pipeline.params`, their one definition) by
+the core's parameter dataclass (:mod:`ssm_addon.base.params`, their one definition) by
 :func:`param_group`, with the same names, defaults, ranges, choices and descriptions.
 :func:`params_from_group` reads a group back into the dataclass (floats as the user
 typed them, not with Blender's single-precision noise) and :func:`set_group` writes one
@@ -21,8 +21,8 @@ from bpy.props import (
     StringProperty,
 )
 
-from ssm_addon.pipeline import params as P
-from ssm_addon.pipeline.errors import InputError
+from ssm_addon.base import params as P
+from ssm_addon.base.errors import InputError
 
 ROLES = [
     ("NONE", "None", "Not part of an SSM build"),
@@ -72,7 +72,7 @@ def _auto_name(name: str) -> str:
 
 
 def _blender_property(s: P.Spec):
-    """The bpy property of one parameter (see :class:`ssm_addon.pipeline.params.Spec`)."""
+    """The bpy property of one parameter (see :class:`ssm_addon.base.params.Spec`)."""
     unit = f" ({s.unit})" if s.unit and s.unit != "deg" else (" (°)" if s.unit == "deg" else "")
     name = f"{s.label}{unit}"
     desc = s.help[:1].upper() + s.help[1:] + (f". {s.range_text().capitalize()}" if s.kind not in ("bool",) else "")
@@ -125,7 +125,7 @@ def param_group(cls, name: str, extra: dict | None = None) -> type:
             annotations[_auto_name(s.name)] = BoolProperty(
                 name="Auto", default=s.default is None, description=f"Automatic: {s.none_means}")
     annotations.update(extra or {})
-    doc = f"{cls.__name__} as Blender properties (derived from ssm_addon.pipeline.params)."
+    doc = f"{cls.__name__} as Blender properties (derived from ssm_addon.base.params)."
     return type(name, (bpy.types.PropertyGroup,), {"__annotations__": annotations, "__doc__": doc,
                                                     "params_class": cls})
 
@@ -254,7 +254,7 @@ _GROUPS = {"template": SSMTemplateSettings, "coating": SSMCoatingSettings, "mode
            "output": SSMOutputSettings, "quality": SSMQualitySettings, "correspondence": SSMCorrespondenceSettings,
            "analysis": SSMAnalysisSettings, "compute": SSMComputeSettings}
 #: Scene property name -> (group class, parameter class): ``Scene.ssm_<table>`` for every table of
-#: :class:`ssm_addon.pipeline.params.StudyParams`, and ``Scene.ssm_fit`` (Fit Model's own).
+#: :class:`ssm_addon.base.params.StudyParams`, and ``Scene.ssm_fit`` (Fit Model's own).
 SCENE_GROUPS = {**{f"ssm_{section}": (_GROUPS[section], cls) for section, cls in P.SECTIONS.items()},
                 "ssm_fit": (SSMFitSettings, P.FitParams)}
 

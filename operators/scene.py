@@ -19,7 +19,7 @@ core stage function on it, and writes the product back. What is stored where:
   with their float64 points in ``obj["ssm_template"]`` / ``obj["ssm_coating"]``; their
   meshes are float32 views.
 * **model**: the model object's ``obj["ssm_model"]`` (see ``operators/model.py``).
-* **parameters**: the scene's property groups derived from :mod:`ssm_addon.pipeline.params`.
+* **parameters**: the scene's property groups derived from :mod:`ssm_addon.base.params`.
 
 So a saved and re-opened .blend continues exactly where it was, as long as the source
 files are where the instances say.
@@ -35,6 +35,8 @@ from pathlib import Path
 import bpy
 import numpy as np
 
+from ssm_addon.base.errors import InputError
+from ssm_addon.base.progress import report, sub_progress
 from ssm_addon.coating.coating import CoatingResult, FitFigures
 from ssm_addon.formats.landmarks import LandmarkSet
 from ssm_addon.instances import importing as core_instances
@@ -43,8 +45,6 @@ from ssm_addon.instances.volume import ObjectFrame, ObjectVolume
 from ssm_addon.model.files import model_from_arrays
 from ssm_addon.model.pca import ShapeModel
 from ssm_addon.model.quality import Finding
-from ssm_addon.pipeline.errors import InputError
-from ssm_addon.pipeline.progress import report, sub_progress
 from ssm_addon.pipeline.study import Study, merge_findings
 from ssm_addon.template.template import Template
 

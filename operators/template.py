@@ -1,6 +1,6 @@
 """Template in Blender (paper section 3): build the template from the active instance.
 
-* ``Scene.ssm_template``: the :class:`~ssm_addon.pipeline.params.TemplateParams` (derived
+* ``Scene.ssm_template``: the :class:`~ssm_addon.base.params.TemplateParams` (derived
   properties; spacing and frame apply to every instance of the study);
 * ``ssm.build_template``: a background job (status-bar progress, Esc cancels;
   synchronous from scripts) that runs the core's
@@ -19,8 +19,8 @@ import time
 
 import bpy
 
-from ssm_addon.pipeline.errors import InputError
-from ssm_addon.pipeline.params import TemplateParams
+from ssm_addon.base.errors import InputError
+from ssm_addon.base.params import TemplateParams
 from ssm_addon.pipeline.study import apply_stage, import_result, template_stage
 
 from . import bridge

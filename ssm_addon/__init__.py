@@ -17,7 +17,7 @@ The names a notebook needs are re-exported here (imported on first use):
 
 >>> import ssm_addon
 >>> ssm_addon.Study.__name__, ssm_addon.InputError.__module__
-('Study', 'ssm_addon.pipeline.errors')
+('Study', 'ssm_addon.base.errors')
 """
 
 import importlib
@@ -32,8 +32,8 @@ __version__ = "0.1.0"
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "pipeline.study": ("Study", "run"),
-    "pipeline.errors": ("Cancelled", "InputError", "SSMError"),
-    "pipeline.params": ("StudyParams",),
+    "base.errors": ("Cancelled", "InputError", "SSMError"),
+    "base.params": ("StudyParams",),
     "formats.project_file": ("Project", "read_project", "write_project"),
     "formats.landmarks": ("LandmarkSet", "read_landmarks", "write_landmarks"),
     "cli.project_build": ("BuildResult", "build"),
@@ -50,15 +50,18 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
 #: Kept for one release so scripts written against the old paths keep working.
 MOVED_MODULES = {
     "apply": "fitting.batch", "blender_layer": "cli.blender_layer", "cache": "pipeline.cache",
-    "compute": "pipeline.compute", "correspondence": "fitting.correspondence", "demo": "cli.demo",
-    "distance_map": "coating.distance_map", "errors": "pipeline.errors", "frame": "instances.frame",
+    "compute": "base.compute", "correspondence": "fitting.correspondence", "demo": "cli.demo",
+    "distance_map": "coating.distance_map", "errors": "base.errors", "frame": "instances.frame",
     "imageio": "formats.label_maps", "landmarks": "formats.landmarks", "metrics": "model.metrics",
-    "params": "pipeline.params", "progress": "pipeline.progress", "project": "cli.project_build",
+    "params": "base.params", "progress": "base.progress", "project": "cli.project_build",
     "proposal": "coating.proposal", "quality": "model.quality", "registration": "coating.registration",
     "relaxation": "coating.relaxation", "report": "cli.report", "resample": "instances.resampling",
-    "resources": "pipeline.resources", "store": "formats.blender_store", "study": "pipeline.study",
+    "resources": "base.resources", "store": "formats.blender_store", "study": "pipeline.study",
     "surface": "template.surface", "volume": "instances.volume", "voxelize": "instances.voxelize",
     "warp": "coating.warp",
+    # the foundation left the orchestrator's package (one build for both front ends)
+    "pipeline.compute": "base.compute", "pipeline.errors": "base.errors", "pipeline.params": "base.params",
+    "pipeline.progress": "base.progress", "pipeline.records": "base.records", "pipeline.resources": "base.resources",
 }
 
 

@@ -19,7 +19,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components as _cc
 from scipy.spatial import cKDTree
 
-from .pipeline.errors import InputError
+from .base.errors import InputError
 
 __all__ = [
     "unique_rows",

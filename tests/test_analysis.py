@@ -19,8 +19,8 @@ from ssm_addon.analysis import (
     term_test,
     write_analysis,
 )
+from ssm_addon.base.errors import InputError
 from ssm_addon.model.pca import build_model
-from ssm_addon.pipeline.errors import InputError
 
 RADIUS = 20.0
 NOISE_MM = 0.3

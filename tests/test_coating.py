@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 
 from ssm_addon import meshutil as mu
+from ssm_addon.base import params as P
+from ssm_addon.base.errors import InputError
 from ssm_addon.coating import coating as C
 from ssm_addon.coating import distance_map as DM
 from ssm_addon.coating import proposal as PR
@@ -13,8 +15,6 @@ from ssm_addon.coating import relaxation as RX
 from ssm_addon.coating import warp as W
 from ssm_addon.instances import importing as INS
 from ssm_addon.instances.volume import ObjectFrame, ObjectVolume
-from ssm_addon.pipeline import params as P
-from ssm_addon.pipeline.errors import InputError
 
 try:  # the template stage (paper 3); the tests fall back to an icosphere until it exists
     from ssm_addon.template.template import TemplateParams, build_template
@@ -281,7 +281,7 @@ def test_cancelling_keeps_finished_instances(batch, jobs):
     results = info.value.results
     done = [r for r in results if r is not None]
     assert 1 <= len(done) < len(targets)
-    from ssm_addon.pipeline.compute import run_one_thread  # batches run each instance with one BLAS thread
+    from ssm_addon.base.compute import run_one_thread  # batches run each instance with one BLAS thread
 
     reference = run_one_thread(lambda _: C.coat(template, ellipsoid_landmarks(a), targets[0], lms[0]), None)
     assert results[0] is not None and np.array_equal(results[0].points_object, reference.points_object)
@@ -386,7 +386,7 @@ def test_untangle_puts_back_a_region_whose_folds_it_cannot_remove(ellipsoid_pair
     every region fails: the points come back exactly as they went in."""
     from dataclasses import replace as dc_replace
 
-    from ssm_addon.pipeline.params import CoatingParams
+    from ssm_addon.base.params import CoatingParams
 
     a, _, ova, _, template = ellipsoid_pair
     pts, faces = np.asarray(template.points_object, float), np.asarray(template.faces)
@@ -442,8 +442,8 @@ def test_default_relaxation_converges_on_every_verse_vertebra_without_folds(vers
     the library-independent one, 12 from L1, 0 from T12 and 53 from L3 (67 → 65 in all)."""
     from conftest import VERSE_FILE, VERSE_LABELS
 
+    from ssm_addon.base.params import CoatingParams
     from ssm_addon.formats import landmarks as L
-    from ssm_addon.pipeline.params import CoatingParams
 
     obs = {k: INS.load_object(VERSE_FILE, label=v, spacing_mm=1.0) for k, v in VERSE_LABELS.items()}
     lms = {k: obs[k].frame.to_object(L.read_landmarks(verse_dir / "landmarks" / f"{k}.fcsv").points_world)

@@ -1,4 +1,4 @@
-"""Executors (serial, processes, Dask) and the resumable build cache (ssm_addon.pipeline.compute, ssm_addon.pipeline.cache)."""
+"""Executors (serial, processes, Dask) and the resumable build cache (ssm_addon.base.compute, ssm_addon.pipeline.cache)."""
 
 from __future__ import annotations
 
@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ssm_addon.base.compute import Executor, check_scheduler, time_left_text
+from ssm_addon.base.errors import InputError
 from ssm_addon.cli import demo
 from ssm_addon.cli.project_build import build, read_project
 from ssm_addon.pipeline.cache import BuildCache
-from ssm_addon.pipeline.compute import Executor, check_scheduler, time_left_text
-from ssm_addon.pipeline.errors import InputError
 
 ROOT = Path(__file__).resolve().parents[1]
 ARRAYS = ("mean", "modes", "variances", "instance_points", "instance_points_world")
@@ -232,7 +232,7 @@ def test_build_against_a_silent_listener_stops_within_15_s_with_its_address(popu
 
 
 def test_jobs_are_capped_at_the_cores_with_a_note():
-    from ssm_addon.pipeline.compute import usable_cores
+    from ssm_addon.base.compute import usable_cores
 
     with Executor("processes", jobs=100000) as ex:
         assert ex.jobs == usable_cores() and ex.note == f"--jobs 100000 capped at {usable_cores()} (the machine's " \

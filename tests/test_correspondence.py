@@ -11,11 +11,11 @@ import re
 import numpy as np
 import pytest
 
+from ssm_addon.base.errors import InputError
 from ssm_addon.cli import demo
 from ssm_addon.cli.project_build import build, read_project
 from ssm_addon.fitting.correspondence import refine_instance, round_landmarks
 from ssm_addon.formats.landmarks import read_landmarks
-from ssm_addon.pipeline.errors import InputError
 
 QUICK = {"spacing = 1.0": "spacing = 1.0\nr_min_mm = 4.0\nr_max_mm = 8.0",
          "[model]": "[model]\nspecificity_samples = 50"}
@@ -257,7 +257,7 @@ def test_a_round_moves_given_landmarks_by_the_share_it_is_given(population):
     to the other instances' prediction: exactly onto the given ones at 0 (exact landmarks),
     onto the prediction at 1, halfway at 0.5 (and says how far). One round of
     :func:`refine_instance` on the single pass's coatings."""
-    from ssm_addon.pipeline.params import CorrespondenceParams, FitParams
+    from ssm_addon.base.params import CorrespondenceParams, FitParams
     from ssm_addon.pipeline.study import Study, run
 
     assert CorrespondenceParams().landmark_noise_mm is None  # estimated by default

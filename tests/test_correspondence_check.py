@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 from test_coating import icosphere
 
+from ssm_addon.base.params import FitParams, QualityParams
 from ssm_addon.fitting.correspondence import CorrespondenceCheck, RoundFigures, check_correspondence
 from ssm_addon.meshutil import LandmarkLocations
 from ssm_addon.model.quality import check_correspondence_rounds, check_frames, check_landmark_transfer
-from ssm_addon.pipeline.params import FitParams, QualityParams
 
 LANDMARKS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11)  # the icosahedron's corners
 

@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 from conftest import shared_data_dir
 
+from ssm_addon.base.params import CorrespondenceParams, StudyParams
 from ssm_addon.formats.landmarks import LandmarkSet, read_landmarks, write_landmarks
 from ssm_addon.instances.importing import InstanceSpec
 from ssm_addon.meshutil import MeshLocation, MeshLocator, read_mesh
-from ssm_addon.pipeline.params import CorrespondenceParams, StudyParams
 from ssm_addon.pipeline.study import Study, run
 
 DATA = shared_data_dir()

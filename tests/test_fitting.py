@@ -16,14 +16,14 @@ from test_model import random_rotation, synthetic_population
 
 from ssm_addon import meshutil
 from ssm_addon.__main__ import main
+from ssm_addon.base.errors import InputError
+from ssm_addon.base.params import FitParams
 from ssm_addon.fitting import batch as apply
 from ssm_addon.fitting.fit import Pose, Target, fit_model
 from ssm_addon.formats.landmarks import LandmarkSet, write_landmarks
 from ssm_addon.meshutil import read_mesh
 from ssm_addon.model.files import load_statismo, save_npz, save_statismo
 from ssm_addon.model.pca import build_model, procrustes_fit
-from ssm_addon.pipeline.errors import InputError
-from ssm_addon.pipeline.params import FitParams
 
 
 @pytest.fixture(scope="module")

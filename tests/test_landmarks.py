@@ -12,6 +12,7 @@ from conftest import VERSE_FILE, VERSE_LABELS, knee30_bone
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from ssm_addon.base.errors import InputError
 from ssm_addon.coating.proposal import propose_from_meshes, propose_landmarks, surface_points_object, transfer_landmarks
 from ssm_addon.formats.landmarks import (
     LANDMARK_PRESETS,
@@ -24,7 +25,6 @@ from ssm_addon.formats.landmarks import (
 )
 from ssm_addon.instances import frame as FR
 from ssm_addon.instances import volume as vol
-from ssm_addon.pipeline.errors import InputError
 
 
 def _example_set() -> LandmarkSet:

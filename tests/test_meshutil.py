@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from ssm_addon import meshutil as mu
-from ssm_addon.pipeline.errors import InputError
+from ssm_addon.base.errors import InputError
 
 CUBE_V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float)
 CUBE_F = np.array([

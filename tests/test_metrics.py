@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from test_model import FACES, names, random_rotation, synthetic_population
 
+from ssm_addon.base.errors import InputError
 from ssm_addon.cli.report import write_outputs
 from ssm_addon.model.files import load_npz, load_statismo
 from ssm_addon.model.metrics import (
@@ -22,7 +23,6 @@ from ssm_addon.model.metrics import (
     write_report,
 )
 from ssm_addon.model.pca import build_model
-from ssm_addon.pipeline.errors import InputError
 
 NOISE_MM = 0.02
 # mean length of 3D isotropic Gaussian noise: 2 sqrt(2/pi) sigma

@@ -8,9 +8,9 @@ import h5py
 import numpy as np
 import pytest
 
+from ssm_addon.base.errors import InputError
 from ssm_addon.model.files import load_npz, load_statismo, save_npz, save_statismo
 from ssm_addon.model.pca import ShapeModel, build_model, generalized_procrustes
-from ssm_addon.pipeline.errors import InputError
 
 
 # ---------------------------------------------------------------------------------------

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from ssm_addon.__main__ import main
+from ssm_addon.base.errors import InputError
 from ssm_addon.cli import demo
 from ssm_addon.cli.project_build import MANIFEST, build, read_project
-from ssm_addon.pipeline.errors import InputError
 
 
 @pytest.fixture(scope="module")

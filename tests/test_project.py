@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 from ssm_addon.__main__ import main
+from ssm_addon.base.errors import Cancelled, InputError
 from ssm_addon.cli import demo
 from ssm_addon.cli.project_build import build, read_project, write_project
 from ssm_addon.formats.landmarks import LandmarkSet, read_landmarks, write_landmarks
-from ssm_addon.pipeline.errors import Cancelled, InputError
 
 NAMES = ("a", "b", "c", "d", "e")
 
@@ -122,7 +122,7 @@ def test_unknown_table_suggests_closest(files):
 
 
 def test_template_keys_follow_template_params(files):
-    from ssm_addon.pipeline.params import TemplateParams, specs
+    from ssm_addon.base.params import TemplateParams, specs
 
     spec = specs(TemplateParams)[2]
     key = spec.key

@@ -14,13 +14,13 @@ from pathlib import Path
 import pytest
 from conftest import REAL_HOME, ROOT
 
-from ssm_addon.pipeline import params as P
+from ssm_addon.base import params as P
 
 CORE = ROOT / "ssm_addon"
 OPERATORS = ROOT / "operators"
 
 
-STAGE_PACKAGES = ("formats", "instances", "template", "coating", "model", "fitting", "analysis", "pipeline", "cli")
+STAGE_PACKAGES = ("base", "formats", "instances", "template", "coating", "model", "fitting", "analysis", "pipeline", "cli")
 #: Blender modules every operators module may import; the stage modules import only these,
 #: ``project`` (which shows a whole study) and ``cli`` (its command) also the stage modules.
 SHARED_OPERATOR_MODULES = {"bridge", "jobs", "properties", "scene"}
@@ -210,14 +210,14 @@ def test_command_line_options_override_the_project(tmp_path):
     assert changed.params.coating.k1 == 0.3 and changed.params.template.spacing_mm == 0.5
     assert changed.params.coating.registration_sigmas_mm == (8.0, 4.0) and changed.params.model.n_modes == 3
     bad = argument_parser().parse_args(["build", "p.toml", "--out", "o", "--coating-k2", "0.1"])
-    from ssm_addon.pipeline.errors import InputError
+    from ssm_addon.base.errors import InputError
 
     with pytest.raises(InputError, match="k2 .* must exceed k1"):
         with_overrides(project, bad)
 
 
 def test_parameters_validated_with_the_allowed_range():
-    from ssm_addon.pipeline.errors import InputError
+    from ssm_addon.base.errors import InputError
 
     with pytest.raises(InputError, match=r"coating parameters: dt must be a number > 0 and <= 2, got 100.0"):
         P.CoatingParams(dt=100.0)

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from conftest import VERSE_FILE, VERSE_LABELS
 
+from ssm_addon.base import params as P
 from ssm_addon.cli.project_build import build, read_project
-from ssm_addon.pipeline import params as P
 
 pytestmark = pytest.mark.blender
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+from ssm_addon.base.errors import InputError
 from ssm_addon.instances import importing as INS
-from ssm_addon.pipeline.errors import InputError
 from ssm_addon.template import surface
 
 # --------------------------------------------------------------------------- shapes

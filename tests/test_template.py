@@ -9,11 +9,11 @@ from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
 from ssm_addon import meshutil as mu
+from ssm_addon.base.errors import Cancelled, InputError
 from ssm_addon.formats import label_maps as IO
 from ssm_addon.instances import frame as FR
 from ssm_addon.instances import resampling as RS
 from ssm_addon.instances.volume import ObjectFrame, ObjectVolume
-from ssm_addon.pipeline.errors import Cancelled, InputError
 from ssm_addon.template import surface
 from ssm_addon.template import template as T
 

@@ -14,13 +14,13 @@ import pytest
 from conftest import ROOT, VERSE_FILE, VERSE_LABELS
 
 from ssm_addon import meshutil as mu
+from ssm_addon.base.errors import InputError
 from ssm_addon.formats import label_maps as IO
 from ssm_addon.instances import frame as FR
 from ssm_addon.instances import importing as INS
 from ssm_addon.instances import resampling as RS
 from ssm_addon.instances import volume as V
 from ssm_addon.instances import voxelize as VX
-from ssm_addon.pipeline.errors import InputError
 
 # ----------------------------------------------------------------------------- fixtures
 

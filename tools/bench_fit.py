@@ -28,11 +28,11 @@ from scipy.spatial import ConvexHull  # noqa: E402
 from test_model import synthetic_population  # noqa: E402
 
 from ssm_addon import meshutil  # noqa: E402
+from ssm_addon.base.params import FitParams  # noqa: E402
 from ssm_addon.fitting.batch import FitTarget, fit_batch  # noqa: E402
 from ssm_addon.fitting.fit import Pose, Target, fit_any_pose, fit_model  # noqa: E402
 from ssm_addon.model.files import save_npz  # noqa: E402
 from ssm_addon.model.pca import build_model  # noqa: E402
-from ssm_addon.pipeline.params import FitParams  # noqa: E402
 
 
 def synthetic_model(n_points: int):

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..pipeline.errors import InputError
+from ..base.errors import InputError
 
 __all__ = ["MISSING_TOKENS", "NAME_COLUMNS", "Attributes", "attributes_from_tables", "read_attributes",
            "write_attributes"]

@@ -30,9 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..base.records import jsonable
 from ..formats.vtk import write_vtp
 from ..model.files import write_npz
-from ..pipeline.records import jsonable
 from .shape_analysis import Analysis
 
 __all__ = ["FDR_LEVEL", "SHAPE_KEY_PREFIXES", "analysis_arrays", "analysis_document", "analysis_map_picture",

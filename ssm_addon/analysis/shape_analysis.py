@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..pipeline.errors import InputError
+from ..base.errors import InputError
 from .attributes import Attributes
 from .statistics import TermTest, centroid_size, term_test
 

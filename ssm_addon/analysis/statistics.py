@@ -41,7 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..pipeline.errors import InputError
+from ..base.errors import InputError
 
 __all__ = ["TermTest", "benjamini_hochberg", "centroid_size", "orthonormal_basis", "permutation_orders",
            "term_test"]
@@ -193,13 +193,13 @@ def term_test(points, reduced, term, *, permutations: int = 1000, seed: int = 0,
     per_point : bool
         Also compute the per-point statistic and its p-values (else those arrays are empty).
     cancelled : callable, optional
-        Returns True to stop (raises :class:`~ssm_addon.pipeline.errors.Cancelled`).
+        Returns True to stop (raises :class:`~ssm_addon.base.errors.Cancelled`).
 
     Returns
     -------
     TermTest
     """
-    from ..pipeline.errors import Cancelled
+    from ..base.errors import Cancelled
 
     x = np.asarray(points, dtype=float)
     n, n_points = x.shape[0], x.shape[1]

@@ -74,8 +74,8 @@ def blend_writer_in_child():
         import subprocess
         import tempfile
 
+        from ..base.errors import SSMError
         from ..formats.blender_store import save_study
-        from ..pipeline.errors import SSMError
 
         out_dir = Path(out_dir)
         handover = Path(tempfile.mkdtemp(prefix="ssm-blender-step-"))

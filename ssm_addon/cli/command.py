@@ -27,7 +27,7 @@ import sys
 import time
 from pathlib import Path
 
-from ..pipeline.errors import Cancelled, InputError, SSMError
+from ..base.errors import Cancelled, InputError, SSMError
 
 EXIT_INPUT = 2
 EXIT_QUALITY = 3
@@ -76,7 +76,7 @@ def _print_progress():
 
 def argument_parser() -> argparse.ArgumentParser:
     """The ``ssm`` command's parser: every subcommand, and every parameter as a ``--<table>-<key>`` option."""
-    from ..pipeline import params as P
+    from ..base import params as P
 
     parser = argparse.ArgumentParser(
         prog="ssm",
@@ -191,9 +191,9 @@ def cmd_info(args) -> int:
 
 
 def cmd_template(args) -> int:
+    from ..base import params as P
     from ..instances.importing import load_object
     from ..meshutil import euler_characteristic, genus, write_ply
-    from ..pipeline import params as P
     from ..template.template import build_template
 
     params = P.from_arguments(args, P.TemplateParams)
@@ -220,7 +220,7 @@ def with_overrides(project, args):
     """The project with the parameters given on the command line (``--coating-k1 0.3``)."""
     import dataclasses
 
-    from ..pipeline import params as P
+    from ..base import params as P
 
     if args is None:
         return project
@@ -281,8 +281,8 @@ def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> 
 
 
 def cmd_fit(args) -> int:
+    from ..base import params as P
     from ..fitting import batch as apply
-    from ..pipeline import params as P
 
     params = P.from_arguments(args, P.FitParams)
     if not 0.5 < args.outlier_probability < 1.0:
@@ -335,8 +335,8 @@ def cmd_fit(args) -> int:
 def cmd_analyze(args) -> int:
     from ..analysis.attributes import read_attributes
     from ..analysis.files import analysis_summary, run_analysis
+    from ..base import params as P
     from ..fitting.batch import load_model
-    from ..pipeline import params as P
     from .project_build import owned_output_folder
 
     source = Path(args.model).expanduser()
@@ -416,7 +416,7 @@ def main(argv=None, in_blender: bool = False, blend_writer=None) -> int:
         if args.command == "analyze":
             return cmd_analyze(args)
         if args.command == "params":
-            from ..pipeline.params import markdown_tables
+            from ..base.params import markdown_tables
 
             print(markdown_tables())
             return 0

@@ -24,6 +24,11 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
+from ..base.compute import Executor
+from ..base.errors import InputError, check_cancelled
+from ..base.params import OutputParams
+from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
+from ..base.records import jsonable
 from ..cli.report import write_outputs, write_report_html
 from ..formats.landmarks import landmark_format, write_landmarks
 from ..formats.project_file import *  # noqa: F403  (split: explicit list follows)
@@ -31,13 +36,6 @@ from ..formats.project_file import Project
 from ..instances.importing import file_names
 from ..meshutil import genus, write_ply
 from ..model.quality import QualityError, warnings_text
-from ..pipeline.compute import Executor
-from ..pipeline.errors import InputError, check_cancelled
-from ..pipeline.params import (
-    OutputParams,
-)
-from ..pipeline.progress import CancelledFn, ProgressFn, report, sub_progress
-from ..pipeline.records import jsonable
 from ..pipeline.study import Study, carried_landmarks, landmark_distances, run, study_parameters
 
 # --------------------------------------------------------------------------------------
@@ -395,7 +393,7 @@ def build(
         Write into an existing folder that holds files an SSM build did not write (they
         are kept; see :func:`check_output_folder`).
     scheduler : str, optional
-        Where the per-instance work runs (:mod:`ssm_addon.pipeline.compute`); default the
+        Where the per-instance work runs (:mod:`ssm_addon.base.compute`); default the
         project's ``[compute] scheduler``.
     cache : path, "auto", "off" or None
         The per-instance cache (:mod:`ssm_addon.pipeline.cache`); None: the project's ``[compute]

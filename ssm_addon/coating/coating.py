@@ -59,6 +59,10 @@ from enum import StrEnum
 
 import numpy as np
 
+from ..base.compute import executor_or_local, run_one_thread
+from ..base.errors import Cancelled, InputError, check_cancelled
+from ..base.params import CoatingParams
+from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..coating.distance_map import DistanceMap
 from ..coating.registration import register_to_surface
 from ..coating.relaxation import folded_triangles, relax, untangle
@@ -66,10 +70,6 @@ from ..coating.warp import fold_free_warp, landmark_warp
 from ..instances.volume import ObjectVolume
 from ..meshutil import Mesh, MeshLocation, edge_lengths, locate_on_mesh, mesh_area
 from ..meshutil import edges as mesh_edges
-from ..pipeline.compute import executor_or_local, run_one_thread
-from ..pipeline.errors import Cancelled, InputError, check_cancelled
-from ..pipeline.params import CoatingParams
-from ..pipeline.progress import CancelledFn, ProgressFn, report, sub_progress
 
 __all__ = [
     "CoatingCancelled",
@@ -453,7 +453,7 @@ def coat_all(
     instances (and inside an instance when serial): :class:`CoatingCancelled` is
     raised with ``.results``, a list with the finished :class:`CoatingResult` and
     None for the instances not coated. ``on_coated(name)`` is called (in this process) as
-    each instance's coating arrives. ``executor`` (:class:`~ssm_addon.pipeline.compute.Executor`):
+    each instance's coating arrives. ``executor`` (:class:`~ssm_addon.base.compute.Executor`):
     where the coatings run, the caller's; default ``jobs`` local processes of its own.
     """
     params = CoatingParams() if params is None else params

@@ -14,9 +14,9 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from scipy import ndimage
 
+from ..base.errors import InputError
 from ..instances.volume import ObjectVolume
 from ..meshutil import MeshLocator, marching_cubes
-from ..pipeline.errors import InputError
 
 __all__ = ["DistanceMap"]
 

@@ -12,15 +12,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..base.errors import InputError, check_cancelled
+from ..base.params import CoatingParams, TemplateParams
+from ..base.progress import CancelledFn, ProgressFn
 from ..coating.coating import coat_from_start, template_mesh
 from ..formats.landmarks import LandmarkSet
 from ..instances.resampling import resample
 from ..instances.volume import ObjectVolume
 from ..instances.voxelize import voxelize_mesh
 from ..meshutil import locate_on_mesh, marching_cubes
-from ..pipeline.errors import InputError, check_cancelled
-from ..pipeline.params import CoatingParams, TemplateParams
-from ..pipeline.progress import CancelledFn, ProgressFn
 from ..template.template import build_template
 
 __all__ = [

@@ -12,10 +12,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..base.errors import check_cancelled
+from ..base.progress import CancelledFn
 from ..coating.distance_map import DistanceMap
 from ..meshutil import vertex_normals
-from ..pipeline.errors import check_cancelled
-from ..pipeline.progress import CancelledFn
 
 __all__ = ["register_to_surface"]
 

@@ -13,12 +13,12 @@ import math
 
 import numpy as np
 
+from ..base.errors import InputError, check_cancelled
+from ..base.params import CoatingParams
+from ..base.progress import CancelledFn, ProgressFn, report
 from ..coating.distance_map import DistanceMap
 from ..meshutil import edges as mesh_edges
 from ..meshutil import face_centroids, face_normals
-from ..pipeline.errors import InputError, check_cancelled
-from ..pipeline.params import CoatingParams
-from ..pipeline.progress import CancelledFn, ProgressFn, report
 
 __all__ = ["folded_triangles", "relax", "untangle"]
 

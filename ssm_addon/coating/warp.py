@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..pipeline.errors import InputError
-from ..pipeline.params import KERNELS
+from ..base.errors import InputError
+from ..base.params import KERNELS
 
 __all__ = ["KERNELS", "ThinPlateSpline", "fold_free_warp", "landmark_warp", "warp_jacobian_det"]
 

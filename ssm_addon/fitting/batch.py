@@ -28,12 +28,12 @@ from pathlib import Path
 
 import numpy as np
 
+from ..base.errors import InputError
+from ..base.params import FitParams, to_table
+from ..base.progress import CancelledFn, ProgressFn, report
 from ..fitting.fit import FitResult, Pose, Target, fit_any_pose, outlier_limit
 from ..formats.landmarks import read_landmarks
 from ..meshutil import write_ply
-from ..pipeline.errors import InputError
-from ..pipeline.params import FitParams, to_table
-from ..pipeline.progress import CancelledFn, ProgressFn, report
 
 __all__ = ["FitTarget", "fit_batch", "fit_to_folder", "load_model", "load_target"]
 
@@ -338,12 +338,12 @@ def fit_batch(model_path, targets: list[FitTarget], out_dir, *, params: FitParam
               progress: ProgressFn = None, scheduler: str = "processes") -> list[dict]:
     """Fit a model to many targets (one folder each) and write ``coefficients.csv``.
 
-    Each target is fitted by one call on ``scheduler`` (:class:`~ssm_addon.pipeline.compute.Executor`:
+    Each target is fitted by one call on ``scheduler`` (:class:`~ssm_addon.base.compute.Executor`:
     ``jobs`` local processes, a Dask LocalCluster or a Dask scheduler address); the worker
     reads the model and the target from their paths and writes the target's folder (on a
     remote cluster ``out_dir`` must be on a shared file system).
     """
-    from ..pipeline.compute import Executor
+    from ..base.compute import Executor
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -59,6 +59,10 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 from scipy.special import stdtrit
 
+from ..base.compute import executor_or_local
+from ..base.errors import InputError, check_cancelled
+from ..base.params import CoatingParams, CorrespondenceParams, FitParams
+from ..base.progress import CancelledFn, ProgressFn, sub_progress
 from ..coating.coating import CoatingResult, CoatingStart, coat, coat_from_start, settle_on_surface
 from ..coating.distance_map import DistanceMap
 from ..coating.relaxation import folded_triangles
@@ -67,10 +71,6 @@ from ..formats.landmarks import LandmarkSet
 from ..meshutil import LandmarkLocations, Mesh, MeshLocation, MeshLocator, edge_lengths, vertex_normals
 from ..meshutil import edges as mesh_edges
 from ..model.pca import build_model, procrustes_fit
-from ..pipeline.compute import executor_or_local
-from ..pipeline.errors import InputError, check_cancelled
-from ..pipeline.params import CoatingParams, CorrespondenceParams, FitParams
-from ..pipeline.progress import CancelledFn, ProgressFn, sub_progress
 
 # the fit only supplies the landmarks' posterior places and the coating does the rest:
 # a coarser surface sample and a looser stop than ``ssm fit`` (20,000 samples, 0.001 mm)
@@ -719,7 +719,7 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
     "criterion"``); after the last round one more pass of fits judges it. When the start
     is kept, ``study`` keeps the single pass's coatings and template.
 
-    Jobs run on ``executor`` (:class:`~ssm_addon.pipeline.compute.Executor`; default ``jobs``
+    Jobs run on ``executor`` (:class:`~ssm_addon.base.compute.Executor`; default ``jobs``
     local processes); their inputs include the instance's resampled volume.
 
     Raises

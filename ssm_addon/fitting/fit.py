@@ -32,11 +32,11 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..base.errors import InputError, check_cancelled
+from ..base.params import FitParams
+from ..base.progress import CancelledFn, ProgressFn, report
 from ..formats.landmarks import LandmarkSet
 from ..meshutil import MeshLocator, vertex_normals
-from ..pipeline.errors import InputError, check_cancelled
-from ..pipeline.params import FitParams
-from ..pipeline.progress import CancelledFn, ProgressFn, report
 
 __all__ = ["FitResult", "ModelErrorField", "Pose", "Target", "correlation_length", "farthest_point_indices",
            "fit_any_pose", "fit_model", "loo_residuals", "model_error_field", "model_error_variance", "outlier_limit",

@@ -16,6 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..base import params as P
+from ..base.errors import InputError
+from ..base.records import jsonable
 from ..coating.coating import CoatingResult, FitFigures
 from ..formats.landmarks import LandmarkSet
 from ..instances.importing import InstanceSpec
@@ -23,9 +26,6 @@ from ..instances.volume import ObjectVolume, frame_from_arrays, frame_to_arrays
 from ..model.files import model_from_arrays, write_npz
 from ..model.metrics import ModelMetrics
 from ..model.quality import Finding
-from ..pipeline import params as P
-from ..pipeline.errors import InputError
-from ..pipeline.records import jsonable
 from ..pipeline.study import Study
 from ..template.template import Template
 

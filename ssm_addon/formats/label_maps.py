@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..base.errors import InputError
 from ..instances.volume import LabelMap, Volume
 from ..meshutil import MESH_EXTENSIONS
-from ..pipeline.errors import InputError
 
 IMAGE_EXTENSIONS = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd", ".npy", ".npz")
 SUPPORTED_EXTENSIONS = IMAGE_EXTENSIONS + MESH_EXTENSIONS

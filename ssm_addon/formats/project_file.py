@@ -2,14 +2,14 @@
 
 A project file (TOML) lists the instances of a shape population and the parameters of
 every stage; :func:`read_project` parses and validates it (every problem is an
-:class:`~ssm_addon.pipeline.errors.InputError` naming the file, line, key or instance and the
+:class:`~ssm_addon.base.errors.InputError` naming the file, line, key or instance and the
 allowed values) and :func:`build` runs the study's stages (:mod:`ssm_addon.pipeline.study`) and
 writes the outputs atomically: everything goes into a temporary folder next to the
 output folder and is moved into place only when the whole build succeeded.
 
 The tables ``[template]``, ``[coating]``, ``[model]`` and ``[output]`` hold the fields of
-:class:`~ssm_addon.pipeline.params.TemplateParams`, :class:`~ssm_addon.pipeline.params.CoatingParams`,
-:class:`~ssm_addon.pipeline.params.ModelParams` and :class:`~ssm_addon.pipeline.params.OutputParams`
+:class:`~ssm_addon.base.params.TemplateParams`, :class:`~ssm_addon.base.params.CoatingParams`,
+:class:`~ssm_addon.base.params.ModelParams` and :class:`~ssm_addon.base.params.OutputParams`
 (their one definition); ``[template]`` also takes ``instance``. Example::
 
     [template]
@@ -45,14 +45,11 @@ from typing import Any
 
 import numpy as np
 
+from ..base import params as P
+from ..base.errors import InputError
+from ..base.params import AnalysisParams, StudyParams
 from ..formats.landmarks import LandmarkSet, match_landmarks, read_landmarks
 from ..instances.importing import InstanceSpec, file_names
-from ..pipeline import params as P
-from ..pipeline.errors import InputError
-from ..pipeline.params import (
-    AnalysisParams,
-    StudyParams,
-)
 
 __all__ = ["Project", "project_text", "read_project", "toml_value", "write_project"]
 

@@ -10,10 +10,8 @@ from __future__ import annotations
 import numpy as np
 from nibabel.affines import apply_affine
 
+from ..base.errors import InputError
 from ..instances.volume import ObjectFrame, Volume, bounding_box
-from ..pipeline.errors import InputError
-
-FRAME_METHODS = ("auto", "patient", "moments")
 
 
 def _object_voxels(volume: Volume) -> np.ndarray:

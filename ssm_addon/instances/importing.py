@@ -16,14 +16,14 @@ from pathlib import Path
 
 import numpy as np
 
+from ..base.errors import InputError, check_cancelled
+from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..formats.label_maps import is_mesh_file, load_volume, select_label
 from ..formats.landmarks import LandmarkSet
 from ..instances.frame import object_frame
 from ..instances.resampling import resample
 from ..instances.volume import LabelMap, ObjectFrame, ObjectVolume, Volume
 from ..instances.voxelize import load_mesh_volume, voxelize_mesh
-from ..pipeline.errors import InputError, check_cancelled
-from ..pipeline.progress import CancelledFn, ProgressFn, report, sub_progress
 
 __all__ = ["InstanceSpec", "file_names", "import_instance", "instance_frame", "load_object", "object_from_mesh", "object_from_volume",
            "read_instance", "safe_file_name"]

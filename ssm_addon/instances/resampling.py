@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 from nibabel.affines import apply_affine, voxel_sizes
 
+from ..base.errors import InputError, check_cancelled
+from ..base.progress import report
+from ..base.resources import BYTES_PER_OBJECT_VOXEL, check_allocation
 from ..instances.volume import ObjectFrame, ObjectVolume, Volume, bounding_box
-from ..pipeline.errors import InputError, check_cancelled
-from ..pipeline.progress import report
-from ..pipeline.resources import BYTES_PER_OBJECT_VOXEL, check_allocation
 
 __all__ = ["resample"]
 

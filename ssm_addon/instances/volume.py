@@ -21,8 +21,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from nibabel.affines import apply_affine, voxel_sizes
 
+from ..base.errors import InputError
 from ..meshutil import marching_cubes
-from ..pipeline.errors import InputError
 
 
 @dataclass(frozen=True)

@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..base.errors import InputError, check_cancelled
+from ..base.resources import BYTES_PER_OBJECT_VOXEL, check_allocation
 from ..instances.volume import Volume
 from ..meshutil import read_mesh
-from ..pipeline.errors import InputError, check_cancelled
-from ..pipeline.resources import BYTES_PER_OBJECT_VOXEL, check_allocation
 
 
 def mesh_edge_defects(faces: np.ndarray) -> tuple[int, int, int]:

@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
+from ..base.errors import InputError
+from ..base.records import jsonable
 from ..model.pca import ShapeModel
-from ..pipeline.errors import InputError
-from ..pipeline.records import jsonable
 
 NPZ_KEYS = (
     "mean",

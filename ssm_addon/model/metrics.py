@@ -27,16 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..model.pca import (
-    ALIGNMENTS,
-    RANDOMIZED_MIN_ELEMENTS,
-    ShapeModel,
-    generalized_procrustes,
-    jsonable,
-    procrustes_fit,
-)
-from ..pipeline.errors import InputError, SSMError, check_cancelled
-from ..pipeline.progress import report, sub_progress
+from ..base.errors import InputError, SSMError, check_cancelled
+from ..base.params import ALIGNMENTS
+from ..base.progress import report, sub_progress
+from ..model.pca import RANDOMIZED_MIN_ELEMENTS, ShapeModel, generalized_procrustes, jsonable, procrustes_fit
 
 
 @dataclass(frozen=True)

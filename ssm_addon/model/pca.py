@@ -24,13 +24,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..base.errors import InputError, check_cancelled
+from ..base.params import ALIGNMENTS
+from ..base.progress import report
+from ..base.records import jsonable, versions
 from ..meshutil import LandmarkLocations
-from ..pipeline.errors import InputError, check_cancelled
-from ..pipeline.progress import report
-from ..pipeline.records import jsonable, versions
-
-ALIGNMENTS = ("none", "rigid", "similarity")
-
 
 
 # ---------------------------------------------------------------------------------------

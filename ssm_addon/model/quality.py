@@ -1,7 +1,7 @@
 """Quality gates: results that are probably wrong, named with the reason.
 
 A shape model that is silently wrong is worse than none. Every gate compares one figure
-with a threshold of :class:`~ssm_addon.pipeline.params.QualityParams` (the project's
+with a threshold of :class:`~ssm_addon.base.params.QualityParams` (the project's
 ``[quality]`` table) and returns :class:`Finding` objects that name the instance, the
 gate, the figure and the threshold:
 
@@ -27,7 +27,7 @@ gate                          figure                                          st
 ============================  ==============================================  ==========
 
 Input problems that make a build meaningless (a mask of a few voxels, landmarks far
-from their instance's surface) are :class:`~ssm_addon.pipeline.errors.InputError` at once; the
+from their instance's surface) are :class:`~ssm_addon.base.errors.InputError` at once; the
 rest are findings. :func:`warnings_text` is the summary the command line prints last;
 with ``strict`` a build with findings fails (:class:`QualityError`).
 """
@@ -40,8 +40,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..pipeline.errors import InputError, SSMError
-from ..pipeline.params import QualityParams
+from ..base.errors import InputError, SSMError
+from ..base.params import QualityParams
 
 __all__ = [
     "Finding",

@@ -28,10 +28,10 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
+from ..base.errors import InputError
 from ..coating.coating import CoatingResult, FitFigures
 from ..instances.volume import ObjectFrame, frame_from_arrays, frame_to_arrays
 from ..model.quality import Finding
-from ..pipeline.errors import InputError
 from ..template.template import Template
 
 __all__ = ["BuildCache", "InstanceProduct", "file_digest", "digest"]

@@ -35,6 +35,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ..base.compute import executor_or_local, time_left_text
+from ..base.errors import InputError, check_cancelled
+from ..base.params import CoatingParams, QualityParams, StudyParams
+from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
+from ..base.records import versions
 from ..coating.coating import CoatingResult, CoatingStart, coat_all
 from ..formats.label_maps import read_label_map
 from ..formats.landmarks import LandmarkSet
@@ -56,11 +61,6 @@ from ..model.quality import (
     check_volumes_together,
     content_digest,
 )
-from ..pipeline.compute import executor_or_local, time_left_text
-from ..pipeline.errors import InputError, check_cancelled
-from ..pipeline.params import CoatingParams, QualityParams, StudyParams
-from ..pipeline.progress import CancelledFn, ProgressFn, report, sub_progress
-from ..pipeline.records import versions
 from ..template.template import Template, build_template
 
 __all__ = [
@@ -111,7 +111,7 @@ class Study:
         Name of the instance the template is built from (paper 3).
     params : StudyParams
         Every stage's parameters, one field per project table
-        (:class:`ssm_addon.pipeline.params.StudyParams`); ``params.template.spacing_mm`` and
+        (:class:`ssm_addon.base.params.StudyParams`); ``params.template.spacing_mm`` and
         ``.frame`` also set every instance's import.
     volumes : dict name -> ObjectVolume
         Each imported instance, resampled in its object frame (paper 2).
@@ -654,7 +654,7 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
 
     Only the template instance's volume is held in this process; every other instance
     is read, framed, resampled and coated by :func:`coat_from_source` on ``executor``
-    (:class:`~ssm_addon.pipeline.compute.Executor`) and only its points come back, so memory
+    (:class:`~ssm_addon.base.compute.Executor`) and only its points come back, so memory
     grows with n·N, not with the volumes. With ``cache`` (:class:`~ssm_addon.pipeline.cache.BuildCache`)
     the template and every finished coating are stored at once and taken from there on
     a rerun. ``study`` is not changed: the result (stage ``"coating"``) carries the template,
@@ -1071,7 +1071,7 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
     Progress: import 0–15 %, template 15–30 %, coating 30–85 %, model 85–90 %, metrics
     90–95 % of ``progress``; ``log`` receives each result's lines (:meth:`StageResult.lines`).
 
-    With an ``executor`` (:class:`~ssm_addon.pipeline.compute.Executor`), the landmarks method
+    With an ``executor`` (:class:`~ssm_addon.base.compute.Executor`), the landmarks method
     and the import, template and coating stages all asked for, those stages run streamed
     (:func:`stream_instances`: bounded memory, ``cache`` for resuming); the numbers are
     the same. ``study.streamed`` then holds the cache counts.

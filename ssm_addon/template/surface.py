@@ -82,7 +82,7 @@ import numpy as np
 import scipy.fft
 import scipy.sparse
 
-from ..pipeline.errors import InputError
+from ..base.errors import InputError
 
 __all__ = [
     "Curvature",

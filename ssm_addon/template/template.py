@@ -44,10 +44,10 @@ from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
 from .. import meshutil
+from ..base.errors import InputError, SSMError, check_cancelled
+from ..base.params import TemplateParams
+from ..base.progress import report, sub_progress
 from ..instances.volume import ObjectFrame, ObjectVolume
-from ..pipeline.errors import InputError, SSMError, check_cancelled
-from ..pipeline.params import TemplateParams
-from ..pipeline.progress import report, sub_progress
 
 __all__ = [
     "Template",

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 
-from ..pipeline.errors import InputError
+from .errors import InputError
 
 __all__ = ["BYTES_PER_OBJECT_VOXEL", "check_allocation", "memory_limit_bytes"]
 

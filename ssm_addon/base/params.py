@@ -34,12 +34,17 @@ from typing import Any
 
 import numpy as np
 
-from ..instances.frame import FRAME_METHODS
-from ..model.pca import ALIGNMENTS
-from ..pipeline.compute import check_scheduler
-from ..pipeline.errors import InputError
+from .compute import check_scheduler
+from .errors import InputError
+
+#: Object frame methods of paper 2 (:mod:`ssm_addon.instances.frame`).
+FRAME_METHODS = ("auto", "patient", "moments")
+#: Model alignments (:func:`ssm_addon.model.pca.build_model`): object frame only, Procrustes.
+ALIGNMENTS = ("none", "rigid", "similarity")
 
 __all__ = [
+    "ALIGNMENTS",
+    "FRAME_METHODS",
     "type_name",
     "AnalysisParams",
     "CoatingParams",
@@ -841,7 +846,7 @@ class QualityParams:
 class ComputeParams:
     """Where a build's per-instance work runs and where it keeps its cache; the ``[compute]`` table.
 
-    Not shown in Blender, which keeps local processes. See :mod:`ssm_addon.pipeline.compute` and
+    Not shown in Blender, which keeps local processes. See :mod:`ssm_addon.base.compute` and
     :mod:`ssm_addon.pipeline.cache`.
     """
 

@@ -27,8 +27,8 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 
-from ..pipeline.errors import Cancelled, InputError
-from ..pipeline.progress import CancelledFn, ProgressFn, report
+from .errors import Cancelled, InputError
+from .progress import CancelledFn, ProgressFn, report
 
 __all__ = ["CONNECT_TIMEOUT_S", "SCHEDULERS", "Executor", "check_scheduler", "dask_setup", "executor_or_local",
            "ignore_sigint", "probe_scheduler", "run_one_thread", "start_resource_tracker", "stop_children", "time_left_text",
@@ -103,7 +103,7 @@ def ignore_sigint() -> None:
 
 
 def dask_setup(worker=None) -> None:
-    """Dask preload hook (``preload=["ssm_addon.pipeline.compute"]``): a LocalCluster worker leaves
+    """Dask preload hook (``preload=["ssm_addon.base.compute"]``): a LocalCluster worker leaves
     Ctrl-C and hang-ups to the main process, which closes the cluster, and logs nothing below
     CRITICAL: a task's error reaches the build through its future, and what a worker would log
     while the cluster shuts down under it (a heartbeat to a closed scheduler) is noise."""
@@ -356,7 +356,7 @@ class Executor:
         ``on_result(i, result)`` is called in this process as each result arrives (to
         write it to the cache at once). ``progress`` gets ``"<verb> <label> (k/n), about
         … left"`` per result. Cancelling stops submitting, lets running items finish
-        (their ``on_result`` is still called) and raises :class:`~ssm_addon.pipeline.errors.Cancelled`.
+        (their ``on_result`` is still called) and raises :class:`~ssm_addon.base.errors.Cancelled`.
         An error in one item stops the map and is raised here unchanged.
         """
         items = list(items)
