@@ -27,8 +27,8 @@ from ssm_addon.base.errors import InputError, SSMError
 from ssm_addon.base.params import OutputParams
 from ssm_addon.formats import landmarks as core_landmarks
 from ssm_addon.formats import project_file as core
+from ssm_addon.formats.meshes import write_ply
 from ssm_addon.instances.importing import InstanceSpec, file_names, import_instance
-from ssm_addon.meshutil import write_ply
 
 from . import bridge
 from .properties import SSMPanel, set_scene_study_params

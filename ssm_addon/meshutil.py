@@ -1,4 +1,6 @@
-"""Triangle-mesh utilities: edges, topology checks, volume, normals and PLY files.
+"""The triangle mesh and its geometry: edges, topology checks, volume, normals, nearest points.
+
+Mesh files (PLY, STL, OBJ) are read and written by :mod:`ssm_addon.formats.meshes`.
 
 Meshes are ``vertices (V, 3)`` float arrays (any frame; lengths in that frame's unit,
 usually mm) and ``faces (F, 3)`` integer arrays of vertex indices. A face
@@ -12,7 +14,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import cached_property
-from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
@@ -22,6 +23,7 @@ from scipy.spatial import cKDTree
 from .base.errors import InputError
 
 __all__ = [
+    "as_faces",
     "unique_rows",
     "ManifoldReport",
     "LandmarkLocations",
@@ -32,8 +34,6 @@ __all__ = [
     "face_centroids",
     "locate_on_mesh",
     "marching_cubes",
-    "MESH_EXTENSIONS",
-    "read_mesh",
     "mesh_area",
     "triangle_quality",
     "connected_components",
@@ -42,14 +42,13 @@ __all__ = [
     "face_normals",
     "genus",
     "is_closed_manifold",
-    "read_ply",
     "signed_volume",
     "vertex_normals",
-    "write_ply",
 ]
 
 
-def _faces(faces) -> np.ndarray:
+def as_faces(faces) -> np.ndarray:
+    """``faces`` as an (F, 3) int64 array of vertex indices (an empty input gives (0, 3))."""
     f = np.asarray(faces)
     if f.size == 0:
         return np.zeros((0, 3), dtype=np.int64)
@@ -70,7 +69,7 @@ def edges(faces) -> np.ndarray:
     (E, 2) int64 array
         Each edge once, as ``(min, max)`` vertex indices, sorted lexicographically.
     """
-    f = _faces(faces)
+    f = as_faces(faces)
     e = np.sort(f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
     return unique_rows(e) if len(e) else np.zeros((0, 2), dtype=np.int64)
 
@@ -107,7 +106,7 @@ def euler_characteristic(vertices_count: int, faces) -> int:
         ``faces`` to ignore isolated vertices).
     faces : (F, 3) int array
     """
-    f = _faces(faces)
+    f = as_faces(faces)
     return int(vertices_count) - len(edges(f)) + len(f)
 
 
@@ -128,7 +127,7 @@ def connected_components(faces, n_vertices: int | None = None) -> tuple[int, np.
     labels : (V,) int array
         Component index per vertex.
     """
-    f = _faces(faces)
+    f = as_faces(faces)
     n = int(n_vertices) if n_vertices is not None else (int(f.max()) + 1 if len(f) else 0)
     e = edges(f)
     g = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
@@ -153,7 +152,7 @@ def genus(vertices_count: int | None, faces) -> int | np.ndarray:
         :func:`connected_components`). Meaningful only for closed orientable meshes
         (check :func:`is_closed_manifold`).
     """
-    f = _faces(faces)
+    f = as_faces(faces)
     n = int(vertices_count) if vertices_count is not None else (int(f.max()) + 1 if len(f) else 0)
     used = np.zeros(n, dtype=bool)
     used[f.ravel()] = True
@@ -234,7 +233,7 @@ def is_closed_manifold(faces) -> ManifoldReport:
     ManifoldReport
         Truthy when the mesh is closed and manifold with consistent orientation.
     """
-    f = _faces(faces)
+    f = as_faces(faces)
     empty = np.zeros((0, 2), dtype=np.int64)
     if len(f) == 0:
         return ManifoldReport(empty, empty, np.zeros(0, np.int64), empty, 0, 0)
@@ -287,7 +286,7 @@ def signed_volume(vertices, faces) -> float:
     vertices' unit (mm³ for mm).
     """
     v = np.asarray(vertices, dtype=float)
-    f = _faces(faces)
+    f = as_faces(faces)
     if len(f) == 0:
         return 0.0
     a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
@@ -298,7 +297,7 @@ def face_normals(vertices, faces, normalize: bool = True) -> np.ndarray:
     """(F, 3) face normals ``(b − a) × (c − a)``, unit length unless ``normalize=False``
     (then their length is twice the face area)."""
     v = np.asarray(vertices, dtype=float)
-    f = _faces(faces)
+    f = as_faces(faces)
     n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     if normalize:
         ln = np.linalg.norm(n, axis=1, keepdims=True)
@@ -309,7 +308,7 @@ def face_normals(vertices, faces, normalize: bool = True) -> np.ndarray:
 def vertex_normals(vertices, faces) -> np.ndarray:
     """(V, 3) unit vertex normals: area-weighted sum of the adjacent face normals."""
     v = np.asarray(vertices, dtype=float)
-    f = _faces(faces)
+    f = as_faces(faces)
     fn = face_normals(v, f, normalize=False)
     corners = f.ravel()
     out = np.stack(
@@ -578,7 +577,7 @@ class Mesh:
         v = np.asarray(self.vertices, dtype=float)
         if v.ndim != 2 or v.shape[1:] != (3,):
             raise InputError(f"mesh: vertices must be a (V, 3) array, got shape {v.shape}")
-        f = _faces(self.faces)
+        f = as_faces(self.faces)
         if len(f) and (f.min() < 0 or f.max() >= len(v)):
             raise InputError(f"mesh: faces index vertices outside 0..{len(v) - 1}")
         object.__setattr__(self, "vertices", v)
@@ -659,325 +658,3 @@ def marching_cubes(mask, *, level: float = 0.5) -> tuple[np.ndarray, np.ndarray]
     if signed_volume(verts, faces) < 0:
         faces = faces[:, ::-1].copy()
     return verts, faces
-
-
-# --------------------------------------------------------------------------- PLY I/O
-def write_ply(path, vertices, faces, vertex_scalars: dict | None = None, binary: bool = True) -> None:
-    """Write a triangle mesh as PLY.
-
-    Parameters
-    ----------
-    path : str or Path
-    vertices : (V, 3) float array
-        Written as float32 ``x y z`` (frame and unit are the caller's; mm by convention).
-    faces : (F, 3) int array
-    vertex_scalars : dict of name -> (V,) array, optional
-        Extra float32 vertex properties (e.g. ``{"curvature": c}``).
-    binary : bool
-        Binary little-endian (default) or ASCII.
-    """
-    v = np.asarray(vertices, dtype=np.float32).reshape(-1, 3)
-    f = _faces(faces).astype(np.int32)
-    scalars = {k: np.asarray(s, dtype=np.float32).ravel() for k, s in (vertex_scalars or {}).items()}
-    for k, s in scalars.items():
-        if len(s) != len(v):
-            raise InputError(f"{path}: vertex scalar '{k}' has {len(s)} values for {len(v)} vertices")
-    header = ["ply", f"format {'binary_little_endian' if binary else 'ascii'} 1.0", "comment SSM Builder",
-              f"element vertex {len(v)}", "property float x", "property float y", "property float z"]
-    header += [f"property float {k}" for k in scalars]
-    header += [f"element face {len(f)}", "property list uchar int vertex_indices", "end_header"]
-    vdtype = np.dtype([(n, "<f4") for n in ("x", "y", "z", *scalars)])
-    vrec = np.empty(len(v), dtype=vdtype)
-    vrec["x"], vrec["y"], vrec["z"] = v[:, 0], v[:, 1], v[:, 2]
-    for k, s in scalars.items():
-        vrec[k] = s
-    with open(path, "wb") as fh:
-        fh.write(("\n".join(header) + "\n").encode("ascii"))
-        if binary:
-            fh.write(vrec.tobytes())
-            frec = np.empty(len(f), dtype=np.dtype([("n", "u1"), ("i", "<i4", (3,))]))
-            frec["n"] = 3
-            frec["i"] = f
-            fh.write(frec.tobytes())
-        else:
-            cols = np.column_stack([vrec[n] for n in vdtype.names]) if len(v) else np.zeros((0, len(vdtype.names)))
-            np.savetxt(fh, cols, fmt="%.7g")
-            np.savetxt(fh, np.column_stack([np.full(len(f), 3), f]), fmt="%d")
-
-
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-    "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}
-
-
-def _parse_ply(path: Path, raw: bytes) -> dict:
-    """Elements of a PLY file: {element: {property: values}} (ASCII or binary, either endian)."""
-    end = raw.find(b"end_header")
-    if not raw.startswith(b"ply") or end < 0:
-        raise InputError(f"{path}: not a PLY file (no 'ply' magic or 'end_header')")
-    body_start = raw.find(b"\n", end) + 1
-    fmt = None
-    elements: list[tuple[str, int, list]] = []
-    for line in raw[:end].decode("latin-1").splitlines():
-        words = line.split()
-        if not words:
-            continue
-        if words[0] == "format":
-            fmt = words[1]
-        elif words[0] == "element":
-            elements.append((words[1], int(words[2]), []))
-        elif words[0] == "property":
-            if words[1] == "list":
-                elements[-1][2].append((words[4], "list", _PLY_TYPES[words[2]], _PLY_TYPES[words[3]]))
-            else:
-                elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
-    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
-        raise InputError(f"{path}: unsupported PLY format {fmt!r}")
-    result: dict[str, dict[str, object]] = {}
-    if fmt == "ascii":
-        tokens = raw[body_start:].split()
-        pos = 0
-        for name, count, props in elements:
-            if all(len(p) == 2 for p in props):
-                n = count * len(props)
-                if pos + n > len(tokens):
-                    raise InputError(f"{path}: truncated PLY: element {name!r} incomplete")
-                arr = np.array(tokens[pos : pos + n], dtype=np.float64).reshape(count, len(props))
-                pos += n
-                result[name] = {p[0]: arr[:, i] for i, p in enumerate(props)}
-            else:
-                values = {p[0]: [] for p in props}
-                for _ in range(count):
-                    for p in props:
-                        if pos >= len(tokens):
-                            raise InputError(f"{path}: truncated PLY: element {name!r} incomplete")
-                        if len(p) == 2:
-                            values[p[0]].append(float(tokens[pos]))
-                            pos += 1
-                        else:
-                            k = int(tokens[pos])
-                            values[p[0]].append([int(t) for t in tokens[pos + 1 : pos + 1 + k]])
-                            pos += 1 + k
-                result[name] = values
-    else:
-        order = "<" if fmt == "binary_little_endian" else ">"
-        buf = memoryview(raw)
-        pos = body_start
-        for name, count, props in elements:
-            if all(len(p) == 2 for p in props):
-                dt = np.dtype([(p[0], order + p[1]) for p in props])
-                if pos + dt.itemsize * count > len(raw):
-                    raise InputError(f"{path}: truncated PLY: element {name!r} incomplete")
-                arr = np.frombuffer(buf, dtype=dt, count=count, offset=pos)
-                pos += dt.itemsize * count
-                result[name] = {p[0]: arr[p[0]] for p in props}
-                continue
-            # Fast path: every list has the length of the first one.
-            fields, first_len = [], None
-            probe = pos
-            for p in props:
-                if len(p) == 2:
-                    fields.append((p[0], order + p[1]))
-                    probe += np.dtype(p[1]).itemsize
-                else:
-                    if probe + np.dtype(p[2]).itemsize > len(raw):
-                        raise InputError(f"{path}: truncated PLY: element {name!r} incomplete")
-                    k = int(np.frombuffer(buf, dtype=order + p[2], count=1, offset=probe)[0])
-                    first_len = k if first_len is None else first_len
-                    fields.append((p[0] + "#n", order + p[2]))
-                    fields.append((p[0], order + p[3], (k,)))
-                    probe += np.dtype(p[2]).itemsize + k * np.dtype(p[3]).itemsize
-            dt = np.dtype(fields)
-            ok = pos + dt.itemsize * count <= len(raw)
-            if ok:
-                arr = np.frombuffer(buf, dtype=dt, count=count, offset=pos)
-                ok = all(np.all(arr[f[0]] == arr[f[0]][0]) for f in fields if f[0].endswith("#n")) if count else True
-                ok = ok and all(np.all(arr[f[0] + "#n"] == arr[f[0]].shape[1]) for f in fields if len(f) == 3)
-            if ok:
-                pos += dt.itemsize * count
-                result[name] = {f[0]: arr[f[0]] for f in fields if not f[0].endswith("#n")}
-                continue
-            values = {p[0]: [] for p in props}
-            for _ in range(count):
-                for p in props:
-                    if len(p) == 2:
-                        size = np.dtype(p[1]).itemsize
-                        if pos + size > len(raw):
-                            raise InputError(f"{path}: truncated PLY: element {name!r} incomplete")
-                        values[p[0]].append(float(np.frombuffer(buf, order + p[1], 1, pos)[0]))
-                        pos += size
-                    else:
-                        size = np.dtype(p[2]).itemsize
-                        if pos + size > len(raw):
-                            raise InputError(f"{path}: truncated PLY: element {name!r} incomplete")
-                        k = int(np.frombuffer(buf, order + p[2], 1, pos)[0])
-                        pos += size
-                        isize = np.dtype(p[3]).itemsize
-                        if pos + k * isize > len(raw):
-                            raise InputError(f"{path}: truncated PLY: element {name!r} incomplete")
-                        values[p[0]].append(np.frombuffer(buf, order + p[3], k, pos).tolist())
-                        pos += k * isize
-            result[name] = values
-    return result
-
-
-def read_ply(path) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Read a triangle mesh from PLY (ASCII or binary, little or big endian).
-
-    Returns
-    -------
-    vertices : (V, 3) float64 array
-    faces : (F, 3) int64 array
-        Polygons with more than three corners are fan-triangulated.
-    vertex_scalars : dict of name -> (V,) float64 array
-        Every other scalar vertex property.
-
-    Raises
-    ------
-    InputError
-        Unreadable, not PLY, unsupported format, truncated, or no vertex/face elements;
-        the message names the file.
-    """
-    path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except OSError as err:
-        raise InputError(f"{path}: cannot read PLY file ({err})") from err
-    result = _parse_ply(path, raw)
-    vert = result.get("vertex")
-    face = result.get("face")
-    if vert is None or face is None or not all(c in vert for c in "xyz"):
-        raise InputError(f"{path}: PLY file needs 'vertex' (x, y, z) and 'face' elements")
-    vertices, scalars = _vertex_cols(path, vert)
-    key = "vertex_indices" if "vertex_indices" in face else ("vertex_index" if "vertex_index" in face else None)
-    if key is None:
-        raise InputError(f"{path}: PLY 'face' element has no vertex_indices list")
-    polys = face[key]
-    if isinstance(polys, np.ndarray) and polys.ndim == 2:
-        if polys.shape[1] == 3:
-            faces = polys.astype(np.int64)
-        else:
-            faces = _fan(polys.tolist())
-    else:
-        faces = _fan([list(p) for p in polys])
-    return vertices, faces, scalars
-
-
-def _vertex_cols(path, cols: dict) -> tuple[np.ndarray, dict]:
-    if not {"x", "y", "z"} <= set(cols):
-        raise InputError(f"{path}: vertex element lacks x, y, z properties")
-    v = np.column_stack([cols["x"], cols["y"], cols["z"]]).astype(np.float64)
-    rest = {
-        k: np.asarray(c, dtype=np.float64)
-        for k, c in cols.items()
-        if k not in ("x", "y", "z") and np.ndim(c) == 1
-    }
-    return v, rest
-
-
-def _fan(polys) -> np.ndarray:
-    if isinstance(polys, np.ndarray):
-        if polys.shape[1] == 3:
-            return polys
-        polys = polys.tolist()
-    tris = [(p[0], p[i], p[i + 1]) for p in polys for i in range(1, len(p) - 1)]
-    return np.asarray(tris, dtype=np.int64).reshape(-1, 3)
-
-
-# --------------------------------------------------------------------------- mesh files
-MESH_EXTENSIONS = (".stl", ".ply", ".obj")
-
-
-def _merge_vertices(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(3F, 3) triangle corners -> unique vertices and (F, 3) faces (exact duplicates merged)."""
-    vertices, inverse = np.unique(corners, axis=0, return_inverse=True)
-    return vertices.astype(np.float64), inverse.reshape(-1, 3).astype(np.int64)
-
-
-def _read_stl(path: Path):
-    raw = path.read_bytes()
-    if len(raw) >= 84:
-        n = int(np.frombuffer(raw, dtype="<u4", count=1, offset=80)[0])
-        if len(raw) == 84 + 50 * n:
-            rec = np.dtype([("normal", "<f4", 3), ("v", "<f4", (3, 3)), ("attr", "<u2")])
-            tri = np.frombuffer(raw, dtype=rec, count=n, offset=84)["v"]
-            return _merge_vertices(tri.reshape(-1, 3))
-    head = raw[:512].lstrip().lower()
-    if not head.startswith(b"solid"):
-        raise InputError(f"{path}: not an STL file (binary size mismatch and no ASCII 'solid' header); truncated?")
-    import re
-
-    text = raw.decode("latin-1")
-    num = r"([-+0-9.eEinfINFnaN]+)"
-    coords = re.findall(rf"vertex\s+{num}\s+{num}\s+{num}", text)
-    if len(coords) == 0 or len(coords) % 3:
-        raise InputError(f"{path}: corrupt ASCII STL: {len(coords)} vertices is not a multiple of 3")
-    if text.count("endfacet") * 3 != len(coords):
-        raise InputError(f"{path}: corrupt or truncated ASCII STL (facet/vertex count mismatch)")
-    return _merge_vertices(np.array(coords, dtype=np.float64))
-
-
-def _read_ply(path: Path):
-    vertices, faces, _ = read_ply(path)
-    return vertices, faces
-
-
-def _read_obj(path: Path):
-    vertices: list[list[float]] = []
-    polys: list[list[int]] = []
-    with open(path, encoding="latin-1") as fh:
-        for lineno, line in enumerate(fh, 1):
-            if line.startswith("v "):
-                parts = line.split()
-                if len(parts) < 4:
-                    raise InputError(f"{path}: line {lineno}: a vertex needs three coordinates")
-                vertices.append([float(parts[1]), float(parts[2]), float(parts[3])])
-            elif line.startswith("f "):
-                poly = []
-                for tok in line.split()[1:]:
-                    idx = int(tok.split("/")[0])
-                    poly.append(len(vertices) + idx if idx < 0 else idx - 1)
-                polys.append(poly)
-    if not vertices or not polys:
-        raise InputError(f"{path}: OBJ file has no vertices or no faces")
-    return np.array(vertices, dtype=np.float64), _fan(polys)
-
-
-def read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
-    """Read a triangle surface mesh (STL binary/ASCII, PLY ascii/binary, OBJ).
-
-    Polygons are fan-triangulated, OBJ negative indices resolved, STL duplicate vertices
-    merged; faces that repeat a vertex are dropped. Coordinates are taken as mm.
-
-    Returns
-    -------
-    vertices_world : (V, 3) float ndarray, mm
-    faces : (F, 3) int ndarray
-    """
-    path = Path(path)
-    ext = path.suffix.lower()
-    if ext not in MESH_EXTENSIONS:
-        raise InputError(f"{path}: unknown file extension {ext or '(none)'!r}; supported: {', '.join(MESH_EXTENSIONS)}")
-    if not path.is_file():
-        raise InputError(f"{path}: file not found")
-    reader = {".stl": _read_stl, ".ply": _read_ply, ".obj": _read_obj}[ext]
-    try:
-        vertices, faces = reader(path)
-    except InputError:
-        raise
-    except Exception as err:  # noqa: BLE001 - every parser failure becomes a named InputError
-        raise InputError(
-            f"{path}: cannot read {ext[1:].upper()} mesh, corrupt or truncated? ({type(err).__name__}: {err})"
-        ) from err
-    vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
-    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    if len(faces) == 0:
-        raise InputError(f"{path}: the mesh has no faces")
-    if faces.min() < 0 or faces.max() >= len(vertices):
-        raise InputError(f"{path}: face indices out of range (0..{len(vertices) - 1})")
-    if not np.all(np.isfinite(vertices)):
-        raise InputError(f"{path}: the mesh has NaN or infinite vertex coordinates")
-    keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])
-    return vertices, faces[keep]

@@ -62,7 +62,7 @@ def knee30_bone(bone: str):
     place on all. Skips the test where the data is absent."""
     import numpy as np
 
-    from ssm_addon.meshutil import read_mesh
+    from ssm_addon.formats.meshes import read_mesh
 
     files = sorted(KNEE30_DIR.glob(f"*_{bone}.ply"))
     if len(files) < 30:

@@ -139,7 +139,7 @@ def test_centroid_size_and_size_removed_analysis():
 
 
 def _knee_femurs(k_points=1500):
-    from ssm_addon.meshutil import read_mesh
+    from ssm_addon.formats.meshes import read_mesh
 
     folder = shared_data_dir() / "knee30"
     files = sorted(folder.glob("*_Femur.ply"))

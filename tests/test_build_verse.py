@@ -114,7 +114,7 @@ def test_report_has_metrics_and_fit_figures(verse_build):
 
 
 def test_plots_and_meshes_exist(verse_build):
-    from ssm_addon.meshutil import read_ply
+    from ssm_addon.formats.meshes import read_ply
 
     out, _ = verse_build
     for name in ("spectrum.png", "cumulative_variance.png"):

@@ -17,8 +17,9 @@ from conftest import shared_data_dir
 
 from ssm_addon.base.params import CorrespondenceParams, StudyParams
 from ssm_addon.formats.landmarks import LandmarkSet, read_landmarks, write_landmarks
+from ssm_addon.formats.meshes import read_mesh
 from ssm_addon.instances.importing import InstanceSpec
-from ssm_addon.meshutil import MeshLocation, MeshLocator, read_mesh
+from ssm_addon.meshutil import MeshLocation, MeshLocator
 from ssm_addon.pipeline.study import Study, run
 
 DATA = shared_data_dir()

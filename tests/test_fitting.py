@@ -21,7 +21,7 @@ from ssm_addon.base.params import FitParams
 from ssm_addon.fitting import batch as apply
 from ssm_addon.fitting.fit import Pose, Target, fit_model
 from ssm_addon.formats.landmarks import LandmarkSet, write_landmarks
-from ssm_addon.meshutil import read_mesh
+from ssm_addon.formats.meshes import read_mesh
 from ssm_addon.model.files import load_statismo, save_npz, save_statismo
 from ssm_addon.model.pca import build_model, procrustes_fit
 
@@ -320,8 +320,8 @@ def test_a_training_instance_fits_alike_as_mesh_label_map_and_in_any_pose(demo_b
 
     from ssm_addon.fitting.batch import FitTarget, fit_to_folder, load_model
     from ssm_addon.formats.label_maps import load_volume
+    from ssm_addon.formats.meshes import write_ply
     from ssm_addon.instances.volume import display_surface
-    from ssm_addon.meshutil import write_ply
 
     folder, project = demo_build
     model = load_model(folder / "out" / "model.npz")
@@ -350,8 +350,8 @@ def test_partial_open_meshes_tiny_targets_and_units_are_said(demo_build, capsys)
     coverage of the model's surface is reported and a small one is a warning."""
     from ssm_addon.fitting.batch import FitTarget, fit_to_folder, load_model
     from ssm_addon.formats.label_maps import load_volume
+    from ssm_addon.formats.meshes import write_ply
     from ssm_addon.instances.volume import display_surface
-    from ssm_addon.meshutil import write_ply
 
     folder, project = demo_build
     npz = folder / "out" / "model.npz"

@@ -14,6 +14,7 @@ from scipy.spatial import cKDTree
 
 from ssm_addon.base.errors import InputError
 from ssm_addon.coating.proposal import propose_from_meshes, propose_landmarks, surface_points_object, transfer_landmarks
+from ssm_addon.formats.label_maps import Volume
 from ssm_addon.formats.landmarks import (
     LANDMARK_PRESETS,
     LandmarkSet,
@@ -331,7 +332,7 @@ def _surface_voxel_centres_world(mask, affine):
 
 def _frame(mask, affine):
     """The object frame of paper section 2 (volume.object_frame, patient axes)."""
-    return FR.object_frame(vol.Volume(mask, affine, "verse", None, True))
+    return FR.object_frame(Volume(mask, affine, "verse", None, True))
 
 
 def test_verse_lps_landmarks_land_on_the_l1_surface(verse_dir, verse_labels):

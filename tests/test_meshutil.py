@@ -7,6 +7,7 @@ import pytest
 
 from ssm_addon import meshutil as mu
 from ssm_addon.base.errors import InputError
+from ssm_addon.formats import meshes
 
 CUBE_V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float)
 CUBE_F = np.array([
@@ -95,8 +96,8 @@ def test_ply_round_trip_keeps_vertices_faces_and_scalars(tmp_path, binary):
     v, f = grid_torus()
     c = np.linspace(0, 1, len(v))
     path = tmp_path / "t.ply"
-    mu.write_ply(path, v, f, vertex_scalars={"curvature": c}, binary=binary)
-    v2, f2, s = mu.read_ply(path)
+    meshes.write_ply(path, v, f, vertex_scalars={"curvature": c}, binary=binary)
+    v2, f2, s = meshes.read_ply(path)
     np.testing.assert_allclose(v2, v, atol=1e-5)
     np.testing.assert_array_equal(f2, f)
     np.testing.assert_allclose(s["curvature"], c, atol=1e-6)
@@ -106,4 +107,4 @@ def test_read_ply_rejects_a_non_ply_file(tmp_path):
     p = tmp_path / "x.ply"
     p.write_text("solid nothing\n")
     with pytest.raises(InputError, match="x.ply"):
-        mu.read_ply(p)
+        meshes.read_ply(p)

@@ -445,7 +445,8 @@ def test_info_lists_labels_with_voxel_counts(demo_population, capsys):
 
 
 def test_template_command_reports_genus_one_for_a_demo_vertebra(demo_population, tmp_path, capsys):
-    from ssm_addon.meshutil import genus, read_ply
+    from ssm_addon.formats.meshes import read_ply
+    from ssm_addon.meshutil import genus
 
     inst = read_project(demo_population).instances[0]
     out = tmp_path / "template.ply"

@@ -16,6 +16,7 @@ from conftest import ROOT, VERSE_FILE, VERSE_LABELS
 from ssm_addon import meshutil as mu
 from ssm_addon.base.errors import InputError
 from ssm_addon.formats import label_maps as IO
+from ssm_addon.formats import meshes
 from ssm_addon.instances import frame as FR
 from ssm_addon.instances import importing as INS
 from ssm_addon.instances import resampling as RS
@@ -361,7 +362,7 @@ def test_voxelized_icosphere_has_the_analytic_mesh_volume(tmp_path, fmt):
         "ply-binary": lambda p, v, f: write_ply(p, v, f, True),
         "obj": write_obj_quads_negative,
     }[fmt](path, v, f)
-    rv, rf = mu.read_mesh(path)
+    rv, rf = meshes.read_mesh(path)
     assert len(rv) == len(v) and len(rf) == len(f)
     assert mu.signed_volume(rv, rf) == pytest.approx(analytic, rel=1e-5)
     vol = VX.load_mesh_volume(path, 1.0)
@@ -378,7 +379,7 @@ def test_obj_polygons_are_triangulated(tmp_path):
         + ["f 1 4 3 2", "f 5 6 7 8", "f 1 2 6 5", "f 2 3 7 6", "f 3 4 8 7", "f 4 1 5 8"]
     )
     (tmp_path / "c.obj").write_text(cube + "\n")
-    v, f = mu.read_mesh(tmp_path / "c.obj")
+    v, f = meshes.read_mesh(tmp_path / "c.obj")
     assert f.shape == (12, 3)
     assert VX.mesh_edge_defects(f) == (0, 0, 0)
     assert mu.signed_volume(v * 10, f) == pytest.approx(1000.0)
@@ -461,7 +462,7 @@ def test_unknown_extension_lists_supported(tmp_path):
     with pytest.raises(InputError, match=r"scan\.dcm: unknown file extension '\.dcm'; supported: .*\.nii\.gz.*\.nrrd"):
         IO.read_label_map(p)
     with pytest.raises(InputError, match=r"scan\.dcm: unknown file extension.*\.stl"):
-        mu.read_mesh(p)
+        meshes.read_mesh(p)
 
 
 @pytest.mark.parametrize("ext", [".nii.gz", ".nrrd", ".mha"])

@@ -55,8 +55,8 @@ sys.path.insert(0, str(ROOT))
 import ssm_addon.fitting.correspondence as corr  # noqa: E402
 from ssm_addon.base.params import CorrespondenceParams  # noqa: E402
 from ssm_addon.formats.landmarks import LandmarkSet, read_landmarks, write_landmarks  # noqa: E402
+from ssm_addon.formats.meshes import read_mesh  # noqa: E402
 from ssm_addon.instances.importing import InstanceSpec  # noqa: E402
-from ssm_addon.meshutil import read_mesh  # noqa: E402
 from ssm_addon.pipeline.study import Study, run  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"

@@ -192,8 +192,9 @@ def cmd_info(args) -> int:
 
 def cmd_template(args) -> int:
     from ..base import params as P
+    from ..formats.meshes import write_ply
     from ..instances.importing import load_object
-    from ..meshutil import euler_characteristic, genus, write_ply
+    from ..meshutil import euler_characteristic, genus
     from ..template.template import build_template
 
     params = P.from_arguments(args, P.TemplateParams)

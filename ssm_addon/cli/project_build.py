@@ -31,10 +31,11 @@ from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..base.records import jsonable
 from ..cli.report import write_outputs, write_report_html
 from ..formats.landmarks import landmark_format, write_landmarks
+from ..formats.meshes import write_ply
 from ..formats.project_file import *  # noqa: F403  (split: explicit list follows)
 from ..formats.project_file import Project
 from ..instances.importing import file_names
-from ..meshutil import genus, write_ply
+from ..meshutil import genus
 from ..model.quality import QualityError, warnings_text
 from ..pipeline.study import Study, carried_landmarks, landmark_distances, run, study_parameters
 

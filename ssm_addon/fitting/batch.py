@@ -33,7 +33,7 @@ from ..base.params import FitParams, to_table
 from ..base.progress import CancelledFn, ProgressFn, report
 from ..fitting.fit import FitResult, Pose, Target, fit_any_pose, outlier_limit
 from ..formats.landmarks import read_landmarks
-from ..meshutil import write_ply
+from ..formats.meshes import write_ply
 
 __all__ = ["FitTarget", "fit_batch", "fit_to_folder", "load_model", "load_target"]
 
@@ -66,7 +66,7 @@ class FitTarget:
 
 
 def _read_points(path: Path) -> np.ndarray:
-    from ..meshutil import read_ply
+    from ..formats.meshes import read_ply
 
     if path.suffix.lower() == ".ply":
         v, _, _ = read_ply(path)
@@ -139,10 +139,10 @@ def load_target(t: FitTarget, model, *, spacing_mm: float | None = None,
         of fewer than ``MIN_TARGET_POINTS`` points (too few to fix a pose and a shape).
     """
     from ..formats.label_maps import read_label_map, select_label
+    from ..formats.meshes import read_mesh
     from ..instances.importing import instance_frame
     from ..instances.volume import display_surface
     from ..instances.voxelize import voxelize_mesh
-    from ..meshutil import read_mesh
 
     params = model.params or {}
     method = params.get("frame_method", "auto")

@@ -2,18 +2,85 @@
 
 *World* coordinates are the file's scanner/patient coordinates in mm, RAS: NRRD and
 MetaImage LPS spaces are converted to RAS on load. Every reader returns a
-:class:`~ssm_addon.instances.volume.LabelMap` (integer labels and the voxel -> world affine).
+:class:`LabelMap` (integer labels and the voxel -> world affine).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from nibabel.affines import apply_affine, voxel_sizes
 
 from ..base.errors import InputError
-from ..instances.volume import LabelMap, Volume
-from ..meshutil import MESH_EXTENSIONS
+from .meshes import MESH_EXTENSIONS
+
+
+@dataclass(frozen=True)
+class LabelMap:
+    """A label map as read from disk.
+
+    Attributes
+    ----------
+    labels : (I, J, K) integer ndarray
+        Label per voxel (0 = background).
+    affine : (4, 4) float ndarray
+        Voxel index (i, j, k, 1) -> world (x, y, z, 1) in mm (RAS).
+    path : str
+        The file it came from (for messages).
+    """
+
+    labels: np.ndarray
+    affine: np.ndarray
+    path: str = ""
+
+
+@dataclass(frozen=True)
+class Volume:
+    """A binary object in its input grid.
+
+    Attributes
+    ----------
+    mask : (I, J, K) bool ndarray
+        True inside the object.
+    affine : (4, 4) float ndarray
+        Voxel index -> world mm.
+    source : str
+        File or object the mask came from.
+    label : int or None
+        The label picked from a label map (None: all non-zero, or a mesh).
+    patient_oriented : bool
+        True when world axes are patient axes (R, A, S), i.e. the input was an image
+        with an orientation; False for meshes in arbitrary coordinates.
+    """
+
+    mask: np.ndarray
+    affine: np.ndarray
+    source: str = ""
+    label: int | None = None
+    patient_oriented: bool = True
+
+    @property
+    def spacing_mm(self) -> np.ndarray:
+        """(3,) voxel edge lengths in mm (column norms of the affine)."""
+        return voxel_sizes(self.affine)
+
+    @property
+    def voxel_volume_mm3(self) -> float:
+        """Volume of one voxel in mm³ (|det| of the affine's linear part)."""
+        return float(abs(np.linalg.det(self.affine[:3, :3])))
+
+    @property
+    def volume_mm3(self) -> float:
+        """Object volume in mm³: voxel count × voxel volume."""
+        return float(np.count_nonzero(self.mask)) * self.voxel_volume_mm3
+
+    def voxel_to_world(self, ijk: np.ndarray) -> np.ndarray:
+        """(M, 3) voxel coordinates -> (M, 3) world mm."""
+        return apply_affine(self.affine, np.asarray(ijk, dtype=float))
+
+
 
 IMAGE_EXTENSIONS = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd", ".npy", ".npz")
 SUPPORTED_EXTENSIONS = IMAGE_EXTENSIONS + MESH_EXTENSIONS

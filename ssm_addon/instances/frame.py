@@ -11,7 +11,8 @@ import numpy as np
 from nibabel.affines import apply_affine
 
 from ..base.errors import InputError
-from ..instances.volume import ObjectFrame, Volume, bounding_box
+from ..formats.label_maps import Volume
+from ..instances.volume import ObjectFrame, bounding_box
 
 
 def _object_voxels(volume: Volume) -> np.ndarray:

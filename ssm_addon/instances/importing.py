@@ -18,11 +18,11 @@ import numpy as np
 
 from ..base.errors import InputError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
-from ..formats.label_maps import is_mesh_file, load_volume, select_label
+from ..formats.label_maps import LabelMap, Volume, is_mesh_file, load_volume, select_label
 from ..formats.landmarks import LandmarkSet
 from ..instances.frame import object_frame
 from ..instances.resampling import resample
-from ..instances.volume import LabelMap, ObjectFrame, ObjectVolume, Volume
+from ..instances.volume import ObjectFrame, ObjectVolume
 from ..instances.voxelize import load_mesh_volume, voxelize_mesh
 
 __all__ = ["InstanceSpec", "file_names", "import_instance", "instance_frame", "load_object", "object_from_mesh", "object_from_volume",

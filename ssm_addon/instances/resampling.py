@@ -8,7 +8,8 @@ from nibabel.affines import apply_affine, voxel_sizes
 from ..base.errors import InputError, check_cancelled
 from ..base.progress import report
 from ..base.resources import BYTES_PER_OBJECT_VOXEL, check_allocation
-from ..instances.volume import ObjectFrame, ObjectVolume, Volume, bounding_box
+from ..formats.label_maps import Volume
+from ..instances.volume import ObjectFrame, ObjectVolume, bounding_box
 
 __all__ = ["resample"]
 

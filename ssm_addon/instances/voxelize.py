@@ -11,8 +11,8 @@ import numpy as np
 
 from ..base.errors import InputError, check_cancelled
 from ..base.resources import BYTES_PER_OBJECT_VOXEL, check_allocation
-from ..instances.volume import Volume
-from ..meshutil import read_mesh
+from ..formats.label_maps import Volume
+from ..formats.meshes import read_mesh
 
 
 def mesh_edge_defects(faces: np.ndarray) -> tuple[int, int, int]:
