@@ -26,9 +26,9 @@ from bpy_extras.io_utils import ExportHelper, ImportHelper
 from ssm_addon.base.errors import InputError, SSMError
 from ssm_addon.base.params import OutputParams
 from ssm_addon.formats import landmarks as core_landmarks
-from ssm_addon.formats import project_file as core
 from ssm_addon.formats.meshes import write_ply
 from ssm_addon.instances.importing import InstanceSpec, file_names, import_instance
+from ssm_addon.pipeline import project as core
 
 from . import bridge
 from .properties import SSMPanel, set_scene_study_params

@@ -34,7 +34,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "pipeline.study": ("Study", "run"),
     "base.errors": ("Cancelled", "InputError", "SSMError"),
     "base.params": ("StudyParams",),
-    "formats.project_file": ("Project", "read_project", "write_project"),
+    "pipeline.project": ("Project", "read_project", "write_project"),
     "formats.landmarks": ("LandmarkSet", "read_landmarks", "write_landmarks"),
     "cli.project_build": ("BuildResult", "build"),
     "instances.importing": ("InstanceSpec", "import_instance"),
@@ -56,12 +56,13 @@ MOVED_MODULES = {
     "params": "base.params", "progress": "base.progress", "project": "cli.project_build",
     "proposal": "coating.proposal", "quality": "model.quality", "registration": "coating.registration",
     "relaxation": "coating.relaxation", "report": "cli.report", "resample": "instances.resampling",
-    "resources": "base.resources", "store": "formats.blender_store", "study": "pipeline.study",
+    "resources": "base.resources", "store": "pipeline.store", "study": "pipeline.study",
     "surface": "template.surface", "volume": "instances.volume", "voxelize": "instances.voxelize",
     "warp": "coating.warp",
     # the foundation left the orchestrator's package (one build for both front ends)
     "pipeline.compute": "base.compute", "pipeline.errors": "base.errors", "pipeline.params": "base.params",
     "pipeline.progress": "base.progress", "pipeline.records": "base.records", "pipeline.resources": "base.resources",
+    "formats.project_file": "pipeline.project", "formats.blender_store": "pipeline.store",
 }
 
 

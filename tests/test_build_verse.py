@@ -159,11 +159,11 @@ def test_completion_of_held_out_vertebrae_is_calibrated(verse_build, verse_dir):
     vertebra's surface (their surface distance: VerSe has no dense truth)."""
     from ssm_addon.coating.distance_map import DistanceMap
     from ssm_addon.fitting.fit import Pose, Target, fit_model
-    from ssm_addon.formats.project_file import read_project
     from ssm_addon.instances.importing import import_instance
     from ssm_addon.meshutil import marching_cubes
     from ssm_addon.model.files import load_npz
     from ssm_addon.model.pca import build_model
+    from ssm_addon.pipeline.project import read_project
 
     out, _ = verse_build
     model = load_npz(out / "model.npz")

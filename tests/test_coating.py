@@ -472,7 +472,7 @@ def test_default_relaxation_converges_without_folds_on_the_demo(tmp_path):
     """The 24-instance demo population (the README's build): every instance converges by
     tolerance and no triangle is left folded."""
     from ssm_addon.cli import demo
-    from ssm_addon.cli.project_build import read_project
+    from ssm_addon.pipeline.project import read_project
     from ssm_addon.pipeline.study import Study, run
 
     study = Study.from_project(read_project(demo.make_demo_population(tmp_path / "demo", n=24, seed=0)))

@@ -17,8 +17,9 @@ import pytest
 from ssm_addon.base.compute import Executor, check_scheduler, time_left_text
 from ssm_addon.base.errors import InputError
 from ssm_addon.cli import demo
-from ssm_addon.cli.project_build import build, read_project
+from ssm_addon.cli.project_build import build
 from ssm_addon.pipeline.cache import BuildCache
+from ssm_addon.pipeline.project import read_project
 
 ROOT = Path(__file__).resolve().parents[1]
 ARRAYS = ("mean", "modes", "variances", "instance_points", "instance_points_world")
@@ -163,7 +164,7 @@ def test_project_compute_table(population, tmp_path):
     bad = _project(population, tmp_path, 3, extra='[compute]\nscheduler = "slurm"\n')
     with pytest.raises(InputError, match="unknown scheduler 'slurm'"):
         read_project(bad)
-    from ssm_addon.cli.project_build import project_text
+    from ssm_addon.pipeline.project import project_text
 
     text = project_text(p, tmp_path)
     assert "[compute]" in text and 'cache = "mycache"' in text

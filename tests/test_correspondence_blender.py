@@ -9,8 +9,9 @@ import pytest
 from test_correspondence import _template, _variant
 
 from ssm_addon.cli import demo
-from ssm_addon.cli.project_build import build, read_project
+from ssm_addon.cli.project_build import build
 from ssm_addon.formats.landmarks import read_landmarks
+from ssm_addon.pipeline.project import read_project
 
 pytestmark = pytest.mark.blender
 

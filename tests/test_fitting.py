@@ -180,7 +180,8 @@ def verse_models(verse_dir, tmp_path_factory):
     """The nine VerSe vertebrae built into a model (landmarks known), for leave-one-out fits."""
     from test_build_verse import write_verse_project
 
-    from ssm_addon.cli.project_build import build, read_project
+    from ssm_addon.cli.project_build import build
+    from ssm_addon.pipeline.project import read_project
 
     folder = tmp_path_factory.mktemp("verse_fit")
     project = read_project(write_verse_project(folder, verse_dir))
@@ -303,7 +304,7 @@ def demo_build(tmp_path_factory):
     """A small demo build (6 instances) and its label maps."""
     from ssm_addon.cli.demo import make_demo_population
     from ssm_addon.cli.project_build import build
-    from ssm_addon.formats.project_file import read_project
+    from ssm_addon.pipeline.project import read_project
 
     folder = tmp_path_factory.mktemp("posefit")
     proj = make_demo_population(folder / "pop", n=6, seed=3)

@@ -11,8 +11,8 @@ import pytest
 from ssm_addon.base.compute import Executor
 from ssm_addon.cli import demo
 from ssm_addon.cli.project_build import build
-from ssm_addon.formats.project_file import read_project
 from ssm_addon.pipeline.cache import BuildCache
+from ssm_addon.pipeline.project import read_project
 from ssm_addon.pipeline.study import Study, apply_stage, import_stage, refine_correspondence, run, template_stage
 
 pytestmark = pytest.mark.slow

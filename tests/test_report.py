@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from ssm_addon.cli import demo
-from ssm_addon.cli.project_build import build, read_project
+from ssm_addon.cli.project_build import build
+from ssm_addon.pipeline.project import read_project
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",

@@ -16,7 +16,7 @@ import pytest
 
 from ssm_addon.cli import demo
 from ssm_addon.cli.project_build import build
-from ssm_addon.formats.project_file import read_project
+from ssm_addon.pipeline.project import read_project
 
 pytestmark = [pytest.mark.blender, pytest.mark.slow]
 

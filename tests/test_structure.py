@@ -201,7 +201,7 @@ def test_every_parameter_has_a_project_key_and_a_command_line_option():
 
 def test_command_line_options_override_the_project(tmp_path):
     from ssm_addon.cli.command import argument_parser, with_overrides
-    from ssm_addon.cli.project_build import Project
+    from ssm_addon.pipeline.project import Project
 
     args = argument_parser().parse_args(["build", "p.toml", "--out", "o", "--coating-k1", "0.3", "--template-spacing", "0.5",
                                  "--coating-registration-sigmas-mm", "8", "4", "--model-n-modes", "3"])

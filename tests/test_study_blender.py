@@ -14,7 +14,8 @@ import pytest
 from conftest import VERSE_FILE, VERSE_LABELS
 
 from ssm_addon.base import params as P
-from ssm_addon.cli.project_build import build, read_project
+from ssm_addon.cli.project_build import build
+from ssm_addon.pipeline.project import read_project
 
 pytestmark = pytest.mark.blender
 

@@ -27,8 +27,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from ssm_addon import demo  # noqa: E402
-from ssm_addon.cli.project_build import build, read_project  # noqa: E402
+from ssm_addon.cli.project_build import build  # noqa: E402
 from ssm_addon.formats.landmarks import read_landmarks  # noqa: E402
+from ssm_addon.pipeline.project import read_project  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 VERSE = {"T9": 16, "T10": 17, "T11": 18, "T12": 19, "L1": 20, "L2": 21, "L3": 22, "L4": 23, "L5": 24}

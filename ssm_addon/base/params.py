@@ -912,7 +912,7 @@ class StudyParams:
     """Every stage's parameters of a study: one field per project-file table.
 
     The one bundle the study (:class:`ssm_addon.pipeline.study.Study`), the project file
-    (:class:`ssm_addon.formats.project_file.Project`) and the Blender scene (one property
+    (:class:`ssm_addon.pipeline.project.Project`) and the Blender scene (one property
     group per field, ``Scene.ssm_<table>``) hold, so a new table is added here once.
 
     Examples

@@ -60,7 +60,7 @@ def blend_writer():
 def blend_writer_in_child():
     """Like :func:`blend_writer`, but the Blender step runs in its own process and session.
 
-    The study is handed over on disk (:mod:`ssm_addon.formats.blender_store`: arrays and JSON, no
+    The study is handed over on disk (:mod:`ssm_addon.pipeline.store`: arrays and JSON, no
     pickles). A signal (Ctrl-C, SIGTERM, SIGHUP) reaches only this process, which stops
     the child and cleans up: it cannot interrupt Blender's C code half-way (that
     segfaulted). Returns None when the Blender layer is not available.
@@ -75,7 +75,7 @@ def blend_writer_in_child():
         import tempfile
 
         from ..base.errors import SSMError
-        from ..formats.blender_store import save_study
+        from ..pipeline.store import save_study
 
         out_dir = Path(out_dir)
         handover = Path(tempfile.mkdtemp(prefix="ssm-blender-step-"))
@@ -114,7 +114,7 @@ def blend_writer_in_child():
 
 def _child_main(argv) -> int:
     """``python -m ssm_addon.cli.blender_layer STUDY_DIR OUT_DIR [--quiet]``: the Blender step."""
-    from ..formats.blender_store import load_study
+    from ..pipeline.store import load_study
 
     study, _extra = load_study(argv[0])
     writer = blend_writer()

@@ -284,6 +284,7 @@ def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> 
 def cmd_fit(args) -> int:
     from ..base import params as P
     from ..fitting import batch as apply
+    from ..pipeline.project import targets_from_project
 
     params = P.from_arguments(args, P.FitParams)
     if not 0.5 < args.outlier_probability < 1.0:
@@ -293,7 +294,7 @@ def cmd_fit(args) -> int:
     out = Path(args.out).expanduser().resolve()
     inputs = [args.model, args.volume, args.mesh, args.points, args.landmarks, args.project]
     if args.project or args.glob:
-        targets = apply.targets_from_project(args.project, landmarks=not args.no_landmarks) if args.project else \
+        targets = targets_from_project(args.project, landmarks=not args.no_landmarks) if args.project else \
             apply.targets_from_glob(args.glob, args.label)
         with_lm = [t.name for t in targets if t.landmarks is not None]
         if with_lm:

@@ -1,7 +1,7 @@
 """The headless build: a project's stages end to end, with owned outputs.
 
 :func:`build` runs the study's stages (:mod:`ssm_addon.pipeline.study`) on a parsed project
-(:func:`ssm_addon.formats.project_file.read_project`) and writes the outputs atomically:
+(:func:`ssm_addon.pipeline.project.read_project`) and writes the outputs atomically:
 everything goes into a temporary folder next to the output folder and is moved into place
 only when the whole build succeeded.
 """
@@ -32,11 +32,10 @@ from ..base.records import jsonable
 from ..cli.report import write_outputs, write_report_html
 from ..formats.landmarks import landmark_format, write_landmarks
 from ..formats.meshes import write_ply
-from ..formats.project_file import *  # noqa: F403  (split: explicit list follows)
-from ..formats.project_file import Project
 from ..instances.importing import file_names
 from ..meshutil import genus
 from ..model.quality import QualityError, warnings_text
+from ..pipeline.project import Project, project_text, read_project, write_project  # noqa: F401 (the flat layout's imports)
 from ..pipeline.study import Study, carried_landmarks, landmark_distances, run, study_parameters
 
 # --------------------------------------------------------------------------------------

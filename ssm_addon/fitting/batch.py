@@ -381,14 +381,3 @@ def targets_from_glob(pattern: str, label: int | None = None) -> list[FitTarget]
         out.append(FitTarget(name=file_stem(p), mesh=p) if is_mesh_file(p) else
                    FitTarget(name=file_stem(p), volume=p, label=label))
     return out
-
-
-def targets_from_project(path, *, landmarks: bool = True) -> list[FitTarget]:
-    """The instances of a project file as targets (with their landmarks unless ``landmarks``
-    is false: ``ssm fit --no-landmarks``, so a batch fits the surfaces alone as a single
-    fit of the same file does)."""
-    from ..formats.project_file import read_project
-
-    proj = read_project(path)
-    return [FitTarget(name=i.name, volume=i.volume_path, label=i.label, mesh=i.mesh_path,
-                      landmarks=i.landmarks_path if landmarks else None) for i in proj.instances]

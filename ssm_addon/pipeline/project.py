@@ -48,10 +48,11 @@ import numpy as np
 from ..base import params as P
 from ..base.errors import InputError
 from ..base.params import AnalysisParams, StudyParams
+from ..fitting.batch import FitTarget
 from ..formats.landmarks import LandmarkSet, match_landmarks, read_landmarks
 from ..instances.importing import InstanceSpec, file_names
 
-__all__ = ["Project", "project_text", "read_project", "toml_value", "write_project"]
+__all__ = ["Project", "project_text", "read_project", "targets_from_project", "toml_value", "write_project"]
 
 INSTANCE_KEYS = {
     "name": "a string",
@@ -527,3 +528,10 @@ def write_project(path, project: Project) -> Path:
     return path
 
 
+def targets_from_project(path, *, landmarks: bool = True) -> list[FitTarget]:
+    """The instances of a project file as targets (with their landmarks unless ``landmarks``
+    is false: ``ssm fit --no-landmarks``, so a batch fits the surfaces alone as a single
+    fit of the same file does)."""
+    proj = read_project(path)
+    return [FitTarget(name=i.name, volume=i.volume_path, label=i.label, mesh=i.mesh_path,
+                      landmarks=i.landmarks_path if landmarks else None) for i in proj.instances]
