@@ -1,6 +1,6 @@
 """Coating in Blender (paper section 4): coat the template onto the instances.
 
-``ssm.coat_template`` runs the core's :func:`~ssm_addon.pipeline.study.coat_instances` on the
+``ssm.coat_template`` runs the core's :func:`~ssm_addon.pipeline.stages.coat_instances` on the
 scene's study (the float64 template, each instance's landmarks in its file world and its
 volume reloaded from source) and writes one mesh ``"<instance> coated"`` per instance:
 the template's topology and correspondence colours, placed so it overlays the instance,
@@ -21,7 +21,10 @@ from ssm_addon.base.errors import InputError
 from ssm_addon.base.params import CoatingParams, CorrespondenceParams
 from ssm_addon.base.progress import sub_progress
 from ssm_addon.coating import coating as core
-from ssm_addon.pipeline.study import apply_stage, coating_result, coating_stage, import_result, refine_correspondence
+from ssm_addon.pipeline.model_method import refine_correspondence
+from ssm_addon.pipeline.runner import coating_stage
+from ssm_addon.pipeline.stages import coating_result, import_result
+from ssm_addon.pipeline.study import apply_stage
 
 from . import bridge
 from .jobs import BackgroundJob

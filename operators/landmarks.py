@@ -30,7 +30,7 @@ from mathutils import Vector
 
 from ssm_addon.base.errors import InputError, SSMError
 from ssm_addon.base.progress import sub_progress
-from ssm_addon.coating import proposal
+from ssm_addon.correspondence import proposal
 from ssm_addon.formats import landmarks as core
 
 from . import bridge

@@ -29,7 +29,7 @@ from ssm_addon.cli.report import write_outputs, write_report_html
 from ssm_addon.fitting.batch import load_model
 from ssm_addon.model import metrics as core_metrics
 from ssm_addon.model.pca import ShapeModel
-from ssm_addon.pipeline.study import model_stage
+from ssm_addon.pipeline.stages import model_stage
 
 from . import bridge
 from .jobs import BackgroundJob

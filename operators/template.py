@@ -4,7 +4,7 @@
   properties; spacing and frame apply to every instance of the study);
 * ``ssm.build_template``: a background job (status-bar progress, Esc cancels;
   synchronous from scripts) that runs the core's
-  :func:`~ssm_addon.pipeline.study.make_template` on the scene's study with the active instance
+  :func:`~ssm_addon.pipeline.stages.make_template` on the scene's study with the active instance
   as template instance, and creates or replaces the mesh object ``"SSM Template"``
   (collection "SSM Template"): its mesh is a view of the float64 template kept in
   ``obj["ssm_template"]`` (points in the instance's object frame, faces, curvature),
@@ -21,7 +21,8 @@ import bpy
 
 from ssm_addon.base.errors import InputError
 from ssm_addon.base.params import TemplateParams
-from ssm_addon.pipeline.study import apply_stage, import_result, template_stage
+from ssm_addon.pipeline.stages import import_result, template_stage
+from ssm_addon.pipeline.study import apply_stage
 
 from . import bridge
 from .jobs import BackgroundJob

@@ -31,7 +31,8 @@ from ._lazy import lazy_exports
 __version__ = "0.1.0"
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, {
-    "pipeline.study": ("Study", "run"),
+    "pipeline.study": ("Study",),
+    "pipeline.runner": ("run",),
     "base.errors": ("Cancelled", "InputError", "SSMError"),
     "base.params": ("StudyParams",),
     "pipeline.project": ("Project", "read_project", "write_project"),
@@ -50,11 +51,11 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
 #: Kept for one release so scripts written against the old paths keep working.
 MOVED_MODULES = {
     "apply": "fitting.batch", "blender_layer": "cli.blender_layer", "cache": "pipeline.cache",
-    "compute": "base.compute", "correspondence": "fitting.correspondence", "demo": "cli.demo",
+    "compute": "base.compute", "demo": "cli.demo",
     "distance_map": "coating.distance_map", "errors": "base.errors", "frame": "instances.frame",
     "imageio": "formats.label_maps", "landmarks": "formats.landmarks", "metrics": "model.metrics",
     "params": "base.params", "progress": "base.progress", "project": "cli.project_build",
-    "proposal": "coating.proposal", "quality": "model.quality", "registration": "coating.registration",
+    "proposal": "correspondence.proposal", "quality": "model.quality", "registration": "coating.registration",
     "relaxation": "coating.relaxation", "report": "cli.report", "resample": "instances.resampling",
     "resources": "base.resources", "store": "pipeline.store", "study": "pipeline.study",
     "surface": "template.surface", "volume": "instances.volume", "voxelize": "instances.voxelize",
@@ -63,6 +64,7 @@ MOVED_MODULES = {
     "pipeline.compute": "base.compute", "pipeline.errors": "base.errors", "pipeline.params": "base.params",
     "pipeline.progress": "base.progress", "pipeline.records": "base.records", "pipeline.resources": "base.resources",
     "formats.project_file": "pipeline.project", "formats.blender_store": "pipeline.store",
+    "fitting.correspondence": "correspondence.rounds", "coating.proposal": "correspondence.proposal",
 }
 
 

@@ -10,9 +10,9 @@ from ssm_addon.base import params as P
 from ssm_addon.base.errors import InputError
 from ssm_addon.coating import coating as C
 from ssm_addon.coating import distance_map as DM
-from ssm_addon.coating import proposal as PR
 from ssm_addon.coating import relaxation as RX
 from ssm_addon.coating import warp as W
+from ssm_addon.correspondence import proposal as PR
 from ssm_addon.instances import importing as INS
 from ssm_addon.instances.volume import ObjectFrame, ObjectVolume
 
@@ -473,7 +473,8 @@ def test_default_relaxation_converges_without_folds_on_the_demo(tmp_path):
     tolerance and no triangle is left folded."""
     from ssm_addon.cli import demo
     from ssm_addon.pipeline.project import read_project
-    from ssm_addon.pipeline.study import Study, run
+    from ssm_addon.pipeline.runner import run
+    from ssm_addon.pipeline.study import Study
 
     study = Study.from_project(read_project(demo.make_demo_population(tmp_path / "demo", n=24, seed=0)))
     run(study, stages=("import", "template", "coating"), jobs=2)

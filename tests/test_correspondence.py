@@ -14,7 +14,7 @@ import pytest
 from ssm_addon.base.errors import InputError
 from ssm_addon.cli import demo
 from ssm_addon.cli.project_build import build
-from ssm_addon.fitting.correspondence import refine_instance, round_landmarks
+from ssm_addon.correspondence.rounds import refine_instance, round_landmarks
 from ssm_addon.formats.landmarks import read_landmarks
 from ssm_addon.pipeline.project import read_project
 
@@ -205,7 +205,7 @@ def test_landmarks_on_a_few_instances_start_the_rest_from_their_model(population
 @pytest.mark.slow
 def test_a_diverging_refinement_is_refused_and_writes_nothing(population, tmp_path, monkeypatch):
     """A round whose mean shape jumps by more than the shapes' size stops the build by name."""
-    import ssm_addon.fitting.correspondence as corr
+    import ssm_addon.correspondence.rounds as corr
 
     real = corr.coat_mean_shape
 
@@ -231,8 +231,9 @@ def test_model_method_keeps_the_template_points_on_the_template_instance(populat
     (Every round kept here, whatever the self-check says: the re-sampling is under test.)"""
     from scipy.spatial import cKDTree
 
-    import ssm_addon.fitting.correspondence as corr
-    from ssm_addon.pipeline.study import Study, run
+    import ssm_addon.correspondence.rounds as corr
+    from ssm_addon.pipeline.runner import run
+    from ssm_addon.pipeline.study import Study
 
     monkeypatch.setattr(corr, "round_helps", lambda *args, **kwargs: True)
 
@@ -259,7 +260,8 @@ def test_a_round_moves_given_landmarks_by_the_share_it_is_given(population):
     onto the prediction at 1, halfway at 0.5 (and says how far). One round of
     :func:`refine_instance` on the single pass's coatings."""
     from ssm_addon.base.params import CorrespondenceParams, FitParams
-    from ssm_addon.pipeline.study import Study, run
+    from ssm_addon.pipeline.runner import run
+    from ssm_addon.pipeline.study import Study
 
     assert CorrespondenceParams().landmark_noise_mm is None  # estimated by default
     study = Study.from_project(read_project(population))

@@ -16,7 +16,7 @@ import pytest
 from test_coating import icosphere
 
 from ssm_addon.base.params import FitParams, QualityParams
-from ssm_addon.fitting.correspondence import CorrespondenceCheck, RoundFigures, check_correspondence
+from ssm_addon.correspondence.rounds import CorrespondenceCheck, RoundFigures, check_correspondence
 from ssm_addon.meshutil import LandmarkLocations
 from ssm_addon.model.quality import check_correspondence_rounds, check_frames, check_landmark_transfer
 
@@ -123,7 +123,7 @@ def test_a_coating_turned_end_for_end_is_named_by_the_frame_gate():
 def test_aligned_to_undoes_a_turn_and_the_transfer_sees_through_it():
     """The self-check puts the others onto the checked coating by their correspondence:
     an instance stored turned end for end changes nothing."""
-    from ssm_addon.fitting.correspondence import aligned_to
+    from ssm_addon.correspondence.rounds import aligned_to
 
     v, f, _axes, points, locations, given = _population()
     flip = np.array([-1.0, 1.0, -1.0])  # 180° about y
@@ -141,7 +141,7 @@ def test_landmark_noise_separates_the_click_error_from_the_model_error():
     """The template instance's transfer differences are the model's error alone; the others' add
     the click error: the estimate recovers both (per axis, mm) and the least-squares share.
     The other instances' predictions against their own coatings bound the model error below."""
-    from ssm_addon.fitting.correspondence import landmark_noise
+    from ssm_addon.correspondence.rounds import landmark_noise
 
     rng = np.random.default_rng(5)
     for model_sd, click_sd in ((0.5, 1.5), (1.0, 0.0), (0.3, 0.6)):
@@ -168,7 +168,7 @@ def test_landmark_noise_separates_the_click_error_from_the_model_error():
 def test_a_round_is_kept_only_when_the_instances_improve_together():
     """Kept: the mean transfer error falls by the margin and the instances' own figures fall in a
     paired test; a fall one instance carries, or one within the margin, keeps the start."""
-    from ssm_addon.fitting.correspondence import round_helps
+    from ssm_addon.correspondence.rounds import round_helps
 
     rng = np.random.default_rng(2)
     before = {f"i{k}": 2.0 + rng.normal(scale=0.3) for k in range(20)}
@@ -187,7 +187,8 @@ def test_the_population_medoid_is_the_instance_nearest_the_mean_shape_whatever_i
     by shape, and only the candidates (instances with every landmark) can be chosen."""
     from ssm_addon.coating.coating import CoatingResult, FitFigures
     from ssm_addon.instances.importing import InstanceSpec
-    from ssm_addon.pipeline.study import Study, population_medoid
+    from ssm_addon.pipeline.model_method import population_medoid
+    from ssm_addon.pipeline.study import Study
 
     rng = np.random.default_rng(3)
     base = rng.normal(size=(200, 3)) * [20.0, 10.0, 5.0]

@@ -20,7 +20,8 @@ from ssm_addon.formats.landmarks import LandmarkSet, read_landmarks, write_landm
 from ssm_addon.formats.meshes import read_mesh
 from ssm_addon.instances.importing import InstanceSpec
 from ssm_addon.meshutil import MeshLocation, MeshLocator
-from ssm_addon.pipeline.study import Study, run
+from ssm_addon.pipeline.runner import run
+from ssm_addon.pipeline.study import Study
 
 DATA = shared_data_dir()
 

@@ -13,7 +13,12 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from ssm_addon.base.errors import InputError
-from ssm_addon.coating.proposal import propose_from_meshes, propose_landmarks, surface_points_object, transfer_landmarks
+from ssm_addon.correspondence.proposal import (
+    propose_from_meshes,
+    propose_landmarks,
+    surface_points_object,
+    transfer_landmarks,
+)
 from ssm_addon.formats.label_maps import Volume
 from ssm_addon.formats.landmarks import (
     LANDMARK_PRESETS,
@@ -406,7 +411,7 @@ def test_model_proposal_finds_a_target_whose_frame_is_turned_end_for_end():
     # landmarks of the held-out one given turned 180° in its frame, as a moments frame of a
     # near-symmetric bone may be resolved: the pose search finds it (from the frame alone the
     # proposals landed about 23 mm off)
-    from ssm_addon.coating.proposal import propose_by_model
+    from ssm_addon.correspondence.proposal import propose_by_model
     from ssm_addon.meshutil import LandmarkLocations, locate_on_mesh
     from ssm_addon.model.pca import build_model
 

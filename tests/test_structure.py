@@ -20,7 +20,8 @@ CORE = ROOT / "ssm_addon"
 OPERATORS = ROOT / "operators"
 
 
-STAGE_PACKAGES = ("base", "formats", "instances", "template", "coating", "model", "fitting", "analysis", "pipeline", "cli")
+STAGE_PACKAGES = ("base", "formats", "instances", "template", "coating", "model", "fitting", "correspondence", "analysis",
+                  "pipeline", "cli")
 #: Blender modules every operators module may import; the stage modules import only these,
 #: ``project`` (which shows a whole study) and ``cli`` (its command) also the stage modules.
 SHARED_OPERATOR_MODULES = {"bridge", "jobs", "properties", "scene"}
@@ -178,7 +179,7 @@ def test_read_frame_resample_exists_once():
                         callers.setdefault(name, set()).add(path.relative_to(ROOT).as_posix())
     assert callers["object_frame"] == {"ssm_addon/instances/importing.py"}, callers
     # resample is also the template's re-gridding and the mesh proposal's fallback, both on a given frame
-    assert callers["resample"] <= {"ssm_addon/instances/importing.py", "ssm_addon/coating/proposal.py"}, callers
+    assert callers["resample"] <= {"ssm_addon/instances/importing.py", "ssm_addon/correspondence/proposal.py"}, callers
 
 
 def test_every_parameter_has_a_project_key_and_a_command_line_option():
@@ -328,7 +329,7 @@ def test_panels_draw_without_scanning_every_object():
 def test_the_build_path_does_not_import_scipy_stats():
     """``scipy.stats`` costs about 0.5 s and 20 MB per process to import; the build's modules
     (and every worker process that runs them) use ``scipy.special`` for distribution tails."""
-    code = ("import sys\nimport ssm_addon.cli.project_build, ssm_addon.pipeline.study, ssm_addon.fitting.correspondence, "
+    code = ("import sys\nimport ssm_addon.cli.project_build, ssm_addon.pipeline.study, ssm_addon.correspondence.rounds, "
             "ssm_addon.fitting.fit, ssm_addon.coating.coating\nprint('scipy.stats' in sys.modules)")
     proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
                           env={**os.environ, "PYTHONPATH": str(ROOT)})

@@ -52,12 +52,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-import ssm_addon.fitting.correspondence as corr  # noqa: E402
+import ssm_addon.correspondence.rounds as corr  # noqa: E402
 from ssm_addon.base.params import CorrespondenceParams  # noqa: E402
 from ssm_addon.formats.landmarks import LandmarkSet, read_landmarks, write_landmarks  # noqa: E402
 from ssm_addon.formats.meshes import read_mesh  # noqa: E402
 from ssm_addon.instances.importing import InstanceSpec  # noqa: E402
-from ssm_addon.pipeline.study import Study, run  # noqa: E402
+from ssm_addon.pipeline.runner import run  # noqa: E402
+from ssm_addon.pipeline.study import Study  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 MESH_SETS = {"femur10": ("femur10", "femur*.ply"), "knee30-femur": ("knee30", "*_Femur.ply"),
@@ -214,7 +215,7 @@ def fit_projection(study, names, error_of) -> dict:
     """True error (mean mm over the non-template instances) of the coatings, of the
     leave-one-out fit's points projected onto each coating's surface, and of the point
     halfway between fit and coating projected likewise. The fit is the model method's own
-    (:func:`ssm_addon.fitting.correspondence.landmark_transfer`, the build's fit params)."""
+    (:func:`ssm_addon.correspondence.rounds.landmark_transfer`, the build's fit params)."""
     from ssm_addon.meshutil import MeshLocator
 
     faces = np.asarray(study.template.faces)

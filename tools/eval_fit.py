@@ -43,7 +43,7 @@ from ssm_addon.fitting.fit import Pose, Target, fit_model  # noqa: E402
 from ssm_addon.meshutil import Mesh, marching_cubes  # noqa: E402
 from ssm_addon.model.pca import build_model  # noqa: E402
 from ssm_addon.pipeline.project import read_project  # noqa: E402
-from ssm_addon.pipeline.study import import_instances  # noqa: E402
+from ssm_addon.pipeline.stages import import_instances  # noqa: E402
 
 NOISE_MM = [FitParams().noise_mm]  # the completion's target noise (--noise)
 

@@ -36,7 +36,8 @@ from ..instances.importing import file_names
 from ..meshutil import genus
 from ..model.quality import QualityError, warnings_text
 from ..pipeline.project import Project, project_text, read_project, write_project  # noqa: F401 (the flat layout's imports)
-from ..pipeline.study import Study, carried_landmarks, landmark_distances, run, study_parameters
+from ..pipeline.runner import run
+from ..pipeline.study import Study, carried_landmarks, landmark_distances, study_parameters
 
 # --------------------------------------------------------------------------------------
 # the build
@@ -363,7 +364,7 @@ def build(
 ) -> BuildResult:
     """Run the whole pipeline and write the outputs into ``out_dir`` atomically.
 
-    The stages of :func:`ssm_addon.pipeline.study.run`: import and object frames (paper 2) →
+    The stages of :func:`ssm_addon.pipeline.runner.run`: import and object frames (paper 2) →
     template (paper 3) → coating (paper 4, ``jobs`` processes) → model (paper 5, eqs.
     4–6) → compactness, generalization, specificity → files.
 

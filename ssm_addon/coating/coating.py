@@ -38,7 +38,7 @@ All coordinates are mm in an *object* frame (:class:`~ssm_addon.instances.volume
 the template and its landmarks in the source instance's frame, the target's volume,
 landmarks and the coated points in the target's frame. Because both frames are the
 paper's normalised object frames, the identity is already a rough alignment (this is
-what :mod:`ssm_addon.coating.proposal` relies on).
+what :mod:`ssm_addon.correspondence.proposal` relies on).
 
 The *surface* of an instance is the 0.5 iso-surface of its binary
 :class:`~ssm_addon.instances.volume.ObjectVolume` mask, i.e. its marching-cubes surface; fit

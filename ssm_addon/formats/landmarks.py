@@ -4,7 +4,7 @@ The coating of paper section 4 is guided by a small set of corresponding landmar
 (the paper used 15 per vertebra): pairs (P_i^s, P_i^d) on the template and on each
 instance, from which the landmark warp of eq. (2) is computed. This module reads and
 writes such sets and puts them into one common order (the *schema*); proposing a set
-for a new instance is :mod:`ssm_addon.coating.proposal`.
+for a new instance is :mod:`ssm_addon.correspondence.proposal`.
 
 Frames and units
 ----------------

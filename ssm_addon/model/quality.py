@@ -298,7 +298,7 @@ def check_coating(name: str, fit, params: QualityParams) -> list[Finding]:
 
 
 def check_landmark_transfer(check, params: QualityParams) -> list[Finding]:
-    """Gate on the correspondence self-check (:class:`~ssm_addon.fitting.correspondence.CorrespondenceCheck`):
+    """Gate on the correspondence self-check (:class:`~ssm_addon.correspondence.rounds.CorrespondenceCheck`):
     an instance whose given landmark lies far from where the other instances' model puts
     it (a landmark placed on the wrong feature, swapped, or a coating that slid)."""
     out = []

@@ -9,5 +9,9 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "project": ("Project", "project_text", "read_project", "targets_from_project", "toml_value", "write_project"),
     "store": ("load_study", "save_study"),
     "cache": ("BuildCache", "InstanceProduct", "digest", "file_digest"),
-    "study": ("InstanceJob", "STAGES", "StageResult", "Study", "apply_stage", "carried_landmarks", "coat_from_source", "coat_instances", "coating_result", "coating_stage", "common_landmark_names", "evaluate_model", "import_instances", "import_result", "import_stage", "landmark_distances", "make_model", "make_template", "medoid_template", "merge_findings", "metrics_stage", "model_stage", "population_medoid", "refine_correspondence", "run", "start_coatings", "stream_instances", "study_parameters", "template_landmark_locations", "template_stage"),
+    "model_method": ("medoid_template", "population", "population_medoid", "refine_correspondence", "start_coatings"),
+    "runner": ("coating_stage", "run"),
+    "stages": ("coat_from_frames", "coat_instances", "coating_result", "evaluate_model", "import_instances", "import_result", "import_stage", "make_model", "make_template", "metrics_stage", "model_stage", "self_check", "template_stage"),
+    "streaming": ("InstanceJob", "coat_from_source", "stream_instances", "template_key"),
+    "study": ("STAGES", "StageResult", "Study", "apply_stage", "carried_landmarks", "common_landmark_names", "instance_sources", "landmark_distances", "merge_findings", "study_parameters", "template_landmark_locations"),
 })

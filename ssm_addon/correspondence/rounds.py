@@ -68,9 +68,11 @@ from ..coating.distance_map import DistanceMap
 from ..coating.relaxation import folded_triangles
 from ..fitting.fit import Pose, Target, fit_model, rigid_screen
 from ..formats.landmarks import LandmarkSet
+from ..instances.volume import ObjectVolume
 from ..meshutil import LandmarkLocations, Mesh, MeshLocation, MeshLocator, edge_lengths, vertex_normals
 from ..meshutil import edges as mesh_edges
 from ..model.pca import build_model, procrustes_fit
+from ..template.template import Template
 
 # the fit only supplies the landmarks' posterior places and the coating does the rest:
 # a coarser surface sample and a looser stop than ``ssm fit`` (20,000 samples, 0.001 mm)
@@ -80,10 +82,50 @@ REFINE_FIT_TOLERANCE_MM = 0.01
 # the turns of the axes; the fit that follows uses REFINE_FIT_SAMPLES)
 SCREEN_SAMPLES = 500
 
-__all__ = ["AXIS_TURNS", "WORLD_POSE_TOLERANCE", "CorrespondenceCheck", "LandmarkNoise", "RoundFigures",
+__all__ = ["AXIS_TURNS", "Population", "WORLD_POSE_TOLERANCE", "CorrespondenceCheck", "LandmarkNoise", "RoundFigures",
            "RoundLandmarks", "aligned_to", "landmark_noise", "round_helps", "round_landmarks", "coat_mean_shape",
            "correspondence_fit_params", "check_correspondence", "landmark_transfer", "refine_instance",
            "refine_rounds", "resample_instance", "round_fits", "start_from_model", "starts_from_model"]
+
+
+@dataclass
+class Population:
+    """The coated instances the rounds refine: what :func:`refine_rounds` and :func:`round_fits` read,
+    and the coatings and template the rounds leave (:func:`refine_rounds` replaces them).
+
+    Attributes
+    ----------
+    names : tuple of str
+        The instances, in study order.
+    template_instance : str
+        The instance whose landmarks define the correspondence (paper 3).
+    template : Template
+        The template (object mm of its instance), or the mean shape (model frame) after rounds.
+    coatings : dict name -> CoatingResult
+        Every instance's coating, object mm of that instance.
+    volumes : dict name -> ObjectVolume
+        Every instance, resampled in its object frame (paper 2).
+    landmarks : dict name -> dict landmark -> (3,) mm
+        The given landmarks of each instance in its object frame (empty without landmarks).
+    coating_params : CoatingParams
+        The coating's parameters (paper 4).
+    """
+
+    names: tuple[str, ...]
+    template_instance: str
+    template: Template
+    coatings: dict[str, CoatingResult]
+    volumes: dict[str, ObjectVolume]
+    landmarks: dict[str, dict[str, np.ndarray]]
+    coating_params: CoatingParams
+
+    def volume(self, name: str) -> ObjectVolume:
+        if name not in self.volumes:
+            raise InputError(f"model-guided correspondence: instance {name!r} is not imported")
+        return self.volumes[name]
+
+    def landmarks_object(self, name: str) -> dict[str, np.ndarray]:
+        return self.landmarks.get(name, {})
 
 
 def correspondence_fit_params(params: CorrespondenceParams) -> FitParams:
@@ -683,7 +725,7 @@ def round_helps(after: CorrespondenceCheck, before: CorrespondenceCheck, *, marg
     return t < float(stdtrit(len(diff) - 1, level))
 
 
-def round_fits(study, names, *, fit: FitParams, jobs: int = 1, executor=None, cancelled: CancelledFn = None,
+def round_fits(study: Population, names, *, fit: FitParams, jobs: int = 1, executor=None, cancelled: CancelledFn = None,
                progress: ProgressFn = None, verb: str = "fitted") -> dict[str, RoundLandmarks]:
     """:func:`round_landmarks` for the instances ``names`` of a coated study: each fitted by
     the model of every other instance's coating, against its own coating (object mm), on
@@ -701,11 +743,11 @@ def round_fits(study, names, *, fit: FitParams, jobs: int = 1, executor=None, ca
     return dict(zip(names, found))
 
 
-def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progress: ProgressFn = None,
+def refine_rounds(study: Population, params: CorrespondenceParams, *, jobs: int = 1, progress: ProgressFn = None,
                   cancelled: CancelledFn = None, log=None, executor=None, on_coated=None,
                   first_fits: dict | None = None) -> tuple[list[RoundFigures], CorrespondenceCheck]:
-    """Refinement rounds on a coated study (every instance coated): updates ``study.template``
-    (the mean shape, in the model frame) and ``study.coatings``; returns each round's
+    """Refinement rounds on a coated population (every instance coated): updates ``study.template``
+    (the mean shape, in the model frame) and ``study.coatings`` of the :class:`Population`; returns each round's
     figures and the self-check of the coatings kept. ``on_coated(name)`` is called as each
     round's coating of an instance arrives.
 
@@ -740,7 +782,7 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
     if missing:
         raise InputError(f"model-guided correspondence: instance(s) not coated yet: {', '.join(missing)}")
     faces = np.asarray(study.template.faces)
-    # the template's landmarks as mesh points, located at make_template (study.py)
+    # the template's landmarks as mesh points, located when the template was made (pipeline.stages)
     locations = study.template.landmark_locations
     fit = correspondence_fit_params(params)
     lm_object = {n: study.landmarks_object(n) for n in names}
@@ -819,7 +861,7 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
                     break
                 found = dict(zip(redo, executor.map(
                     _coat_mean_job, [(template_points, faces, study.volume(n), locations,
-                                      warps[n], study.params.coating, n) for n in redo],
+                                      warps[n], study.coating_params, n) for n in redo],
                     labels=redo, verb=f"round {r}: coated", on_result=arrived(redo),
                     progress=sub_progress(progress, span[1], r / (total + 1)), cancelled=cancelled)))
                 resampled = [found.get(n, study.coatings[n]) for n in names]
@@ -828,7 +870,7 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
                 converged = change < params.tolerance_mm
                 continue
             coated = executor.map(_coat_mean_job, [(mean, faces, study.volume(n), locations, warps[n],
-                                                    study.params.coating, n) for n in names],
+                                                    study.coating_params, n) for n in names],
                                   labels=names, verb=f"round {r}: coated", on_result=arrived(names),
                                   progress=sub_progress(progress, span[1], (r - 0.2) / (total + 1)),
                                   cancelled=cancelled)
@@ -838,7 +880,7 @@ def refine_rounds(study, params: CorrespondenceParams, *, jobs: int = 1, progres
             slide = float(np.sqrt(((coated[anchor].points_object - sampling) ** 2).sum(axis=1).mean()))
             _c, _d, tri, bary = MeshLocator(coated[anchor].points_object, faces).query(
                 sampling, k=12, normals=vertex_normals(sampling, faces))
-            resampled = executor.map(_resample_job, [(c, faces, tri, bary, study.volume(n), study.params.coating, n)
+            resampled = executor.map(_resample_job, [(c, faces, tri, bary, study.volume(n), study.coating_params, n)
                                                      for n, c in zip(names, coated)],
                                      labels=names, verb=f"round {r}: re-sampled at the template's points",
                                      progress=sub_progress(progress, (r - 0.2) / (total + 1), r / (total + 1)),
@@ -864,7 +906,7 @@ def _check_diverged(new_mean: np.ndarray, mean: np.ndarray, size: float, r: int)
     return change
 
 
-def _finish_round(study, names, points, resampled, fitted, shifts, noise, faces, size, r, t0, rounds, say, mean,
+def _finish_round(study: Population, names, points, resampled, fitted, shifts, noise, faces, size, r, t0, rounds, say, mean,
                   slide, before, template=None):
     """Check a round, record its figures, and make its re-sampled coatings and mean shape the
     study's; returns the RMS movement of the mean shape (mm)."""
@@ -906,7 +948,7 @@ def _given_landmark_residuals(coating: CoatingResult, faces: np.ndarray, locatio
     return replace(coating, fit=replace(coating.fit, landmark_residuals_mm=residuals, landmark_names=here.names))
 
 
-def _mean_template(study, mean_points: np.ndarray, faces: np.ndarray):
+def _mean_template(study: Population, mean_points: np.ndarray, faces: np.ndarray):
     """The mean shape as the study's template (model frame; curvature and frame kept)."""
     t = study.template
     return replace(t, points_object=np.asarray(mean_points, float), faces=faces, is_mean_shape=True)

@@ -1,0 +1,201 @@
+"""The coating stage by the model method (``[correspondence] method = "model"``): the starts,
+the medoid template and the rounds of :mod:`ssm_addon.correspondence` on a study (paper 3.3, 7)."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from ..base.compute import executor_or_local
+from ..base.errors import InputError, check_cancelled
+from ..base.progress import CancelledFn, ProgressFn
+from ..coating.coating import CoatingResult
+from ..correspondence.rounds import Population
+from ..model.quality import (
+    check_correspondence_rounds,
+    check_landmark_transfer,
+)
+from .stages import coat_from_frames, coat_instances, coating_result, make_template
+from .study import Log, StageResult, Study, template_landmark_locations
+
+__all__ = ["medoid_template", "population", "population_medoid", "refine_correspondence", "start_coatings"]
+
+
+def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: int = 1,
+                   cancelled: CancelledFn = None, executor=None) -> dict[str, CoatingResult]:
+    """The first coatings of the model method: by landmarks where given, else from the
+    model of the landmarked instances, else from the frames.
+
+    Instances with landmarks are coated by them (paper 4) when at least two instances have
+    landmarks (the template instance and another). The others start from the model of
+    those coatings fitted to their surface and relaxed onto it
+    (:func:`ssm_addon.correspondence.rounds.start_from_model`, paper 7); when only the template
+    instance has landmarks, from the object frames (paper 2). ``study.coating_start``
+    records which start each instance had.
+
+    Raises
+    ------
+    InputError
+        The template instance has no landmarks (they name the places carried to every
+        instance).
+    """
+    from ..correspondence.rounds import correspondence_fit_params, starts_from_model
+
+    names = list(study.names if names is None else names)
+    with_lm = [n for n in study.names if study.landmarks(n) is not None]
+    if study.template_instance not in with_lm:
+        raise InputError(f"[correspondence] method = \"model\": the template instance {study.template_instance!r} "
+                         "needs landmarks (they name the places carried to every other instance)")
+    landmarked = with_lm if len(with_lm) > 1 else []
+    # the model of the landmarked instances needs their coatings, asked for or not
+    need = [n for n in landmarked if n in names or n not in study.coatings]
+    coated = coat_instances(study, names=need, jobs=jobs, cancelled=cancelled, executor=executor) if need else {}
+    rest = [n for n in names if n not in landmarked]
+    if rest and landmarked:
+        cp = study.params.correspondence
+        stack = np.stack([(coated.get(n) or study.coatings[n]).points_object for n in landmarked])
+        coated.update(starts_from_model(stack, study.template.faces, study.template.points_object,
+                                        template_landmark_locations(study), {n: study.volume(n) for n in rest},
+                                        fit=correspondence_fit_params(cp),
+                                        coating=study.params.coating, template_frame=study.frame(study.template_instance),
+                                        jobs=jobs, cancelled=cancelled, executor=executor))
+    else:
+        coated.update(coat_from_frames(study, rest, jobs=jobs, cancelled=cancelled, executor=executor))
+    # each coating's own record: the landmark warp or the model fit, or the object frames
+    # where the registration fell back from either
+    study.coating_start.update({n: coated[n].fit.start for n in names})
+    return {n: coated[n] for n in names}
+
+
+def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn = None, cancelled: CancelledFn = None,
+                          log: Log = None, executor=None, on_coated: Callable[[str], None] | None = None) -> StageResult:
+    """The model method's coating (``[correspondence] method = "model"``), on a copy of ``study``.
+
+    Instances not coated yet get their start (:func:`start_coatings`); then the rounds of
+    :func:`ssm_addon.correspondence.rounds.refine_rounds` (the mean shape as template, each
+    instance fitted by the model of the others and relaxed onto its surface). ``study`` is
+    not changed: the coatings, their starts, the mean-shape template and the rounds come
+    back as the coating stage's result (:func:`apply_stage` puts them into a study).
+    ``on_coated(name)``: as each round's coating of an instance arrives.
+    """
+    from ..correspondence.rounds import refine_rounds
+
+    say = log or (lambda _m: None)
+    t0 = time.perf_counter()
+    missing = [n for n in study.names if n not in study.coatings]
+    work = dataclasses.replace(study, coatings=dict(study.coatings), coating_start=dict(study.coating_start),
+                               volumes=dict(study.volumes), frames=dict(study.frames), findings=list(study.findings),
+                               correspondence_rounds=list(study.correspondence_rounds), timings_s={})
+    choice = {}
+    # one pool of processes for every step (starts, template choice, rounds)
+    with executor_or_local(executor, jobs, len(study.names)) as pool:
+        if missing:
+            work.coatings.update(start_coatings(work, missing, jobs=jobs, cancelled=cancelled, executor=pool))
+            starts = [work.coating_start[n] for n in missing]
+            say(f"coating: {starts.count('landmark warp')} by landmarks, {starts.count('model fit')} from the "
+                f"landmarked instances' model, {starts.count('object frames')} from the object frames; refining "
+                "with the model")
+        if study.params.correspondence.template_choice == "medoid":
+            work, choice, first_fits = medoid_template(work, jobs=jobs, executor=pool, cancelled=cancelled, log=say)
+        else:
+            first_fits = {}
+        refined = population(work)
+        rounds, check = refine_rounds(refined, study.params.correspondence, jobs=jobs, progress=progress,
+                                      cancelled=cancelled, log=say, executor=pool, on_coated=on_coated,
+                                      first_fits=first_fits)
+        work.coatings, work.template = refined.coatings, refined.template
+    coated = {n: work.coatings[n] for n in study.names}
+    kept = "the start" if check.kept_round == 0 else f"round {check.kept_round}'s coatings"
+    say(f"correspondence: {check.stop or 'no rounds'}; kept {kept}; landmark transfer error {check.study_mm:.3f} mm")
+    findings = (check_landmark_transfer(check, study.params.quality)
+                + check_correspondence_rounds(rounds, check, study.params.correspondence.tolerance_mm))
+    result = coating_result(study, coated, {n: work.coating_start.get(n, coated[n].fit.start) for n in coated},
+                            time.perf_counter() - t0, template=work.template, rounds=tuple(rounds), check=check,
+                            extra_findings=tuple(findings))
+    if choice:
+        result.product["template_choice"] = choice
+        result.product["template_instance"] = work.template_instance
+    return result
+
+
+def population_medoid(study: Study, candidates: Sequence[str]) -> tuple[str, dict[str, float]]:
+    """The instance of ``candidates`` whose coating is nearest the mean shape of every coating.
+
+    The coatings are put onto the template instance's by their correspondence (rigidly:
+    object frames may disagree by a turn); the distance is the RMS over the points, mm.
+    Ties go to the earlier instance in study order.
+
+    Returns
+    -------
+    (name, {instance: RMS distance from the mean, mm})
+    """
+    from ..correspondence.rounds import aligned_to
+
+    names = list(study.names)
+    points = np.stack([study.coatings[n].points_object for n in names])
+    aligned = aligned_to(points, points[names.index(study.template_instance)])
+    rms = np.sqrt(((aligned - aligned.mean(axis=0)) ** 2).sum(axis=2).mean(axis=1))
+    distance = {n: float(d) for n, d in zip(names, rms)}
+    return min(candidates, key=lambda n: (distance[n], names.index(n))), distance
+
+
+def medoid_template(study: Study, *, jobs: int = 1, executor=None, cancelled: CancelledFn = None,
+                    log: Log = None) -> tuple[Study, dict, dict]:
+    """The study with its template built again from the population's medoid, when that helps.
+
+    Paper 3.3: a template from one arbitrary instance makes the model depend on it. The
+    medoid (:func:`population_medoid`) among the instances with every template landmark
+    given is the one most like the mean shape, so every other coating deforms it least.
+    Its template (paper 3) is coated onto every instance as the start was (landmarks, or the
+    landmarked instances' model), and kept when it lowers the landmark transfer error
+    (:func:`ssm_addon.correspondence.rounds.round_helps`: by 1 %, the instances together).
+
+    Returns
+    -------
+    (the study to refine: a copy with the medoid's template and coatings, or ``study``;
+    the record: ``given``, ``medoid``, ``transfer_given_mm``, ``transfer_medoid_mm``, ``kept``;
+    the landmarked instances' fits that judged the study returned
+    (:func:`ssm_addon.correspondence.rounds.round_fits`), which are its first round's)
+    """
+    from ..correspondence.rounds import CorrespondenceCheck, correspondence_fit_params, round_fits, round_helps
+
+    say = log or (lambda _m: None)
+    wanted = study.template.landmark_locations.names
+    complete = [n for n in study.names if study.landmarks(n) is not None
+                and set(wanted) <= set(study.landmarks(n).names)]
+    if len(complete) < 2 or not len(wanted) or len(study.names) < 3:  # the rounds need 3 instances
+        return study, {}, {}
+    medoid, distance = population_medoid(study, complete)
+    record = {"given": study.template_instance, "medoid": medoid,
+              "rms_from_mean_mm": {study.template_instance: distance[study.template_instance], medoid: distance[medoid]}}
+    if medoid == study.template_instance:
+        say(f"correspondence: the template's instance {medoid} is the population's medoid already")
+        return study, {**record, "kept": True}, {}
+    check_cancelled(cancelled)
+    other = dataclasses.replace(study, template_instance=medoid, coatings={}, coating_start={},
+                                volumes=dict(study.volumes), frames=dict(study.frames))
+    other.template = make_template(other, cancelled=cancelled)
+    other.coatings.update(start_coatings(other, list(other.names), jobs=jobs, cancelled=cancelled, executor=executor))
+    fit = correspondence_fit_params(study.params.correspondence)
+    landmarked = [n for n in study.names if study.landmarks_object(n)]
+    fits = [round_fits(population(s), landmarked, fit=fit, jobs=jobs, executor=executor, cancelled=cancelled, verb="checked")
+            for s in (study, other)]
+    before, after = (CorrespondenceCheck.from_landmarks({n: f.transfer for n, f in found.items()}) for found in fits)
+    kept = round_helps(after, before)
+    record.update(transfer_given_mm=before.study_mm, transfer_medoid_mm=after.study_mm, kept=kept)
+    say(f"correspondence: template from the medoid {medoid} ({distance[medoid]:.2f} mm RMS from the mean shape, "
+        f"{study.template_instance} {distance[study.template_instance]:.2f} mm): landmark transfer error "
+        f"{before.study_mm:.3f} -> {after.study_mm:.3f} mm, {'kept' if kept else 'not kept'}")
+    return (other if kept else study), record, fits[1] if kept else fits[0]
+
+
+def population(study: Study) -> Population:
+    """The study's coated instances as the rounds read them (:class:`~ssm_addon.correspondence.rounds.Population`):
+    the template, the coatings, the imported volumes and the given landmarks in each object frame (mm)."""
+    names = study.names
+    return Population(names=names, template_instance=study.template_instance, template=study.template,
+                      coatings=dict(study.coatings), volumes=dict(study.volumes),
+                      landmarks={n: study.landmarks_object(n) for n in names}, coating_params=study.params.coating)

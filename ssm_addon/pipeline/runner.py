@@ -1,0 +1,102 @@
+"""``run``: the stages of a study in order (the loop both the command line and scripts use), and
+the coating stage by the study's correspondence method."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+
+from ..base.compute import time_left_text
+from ..base.errors import InputError, check_cancelled
+from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
+from .model_method import refine_correspondence
+from .stages import coat_instances, coating_result, import_stage, metrics_stage, model_stage, self_check, template_stage
+from .streaming import stream_instances
+from .study import STAGES, Log, StageResult, Study, apply_stage
+
+__all__ = ["coating_stage", "run"]
+
+
+def coating_stage(study: Study, *, names: Sequence[str] | None = None, jobs: int = 1, progress: ProgressFn = None,
+                  cancelled: CancelledFn = None, log: Log = None, executor=None,
+                  on_coated: Callable[[str], None] | None = None) -> StageResult:
+    """Coating (paper 4) by the study's correspondence method, and the coating gates.
+
+    ``method = "landmarks"``: :func:`coat_instances` (the paper's single pass, ``names``);
+    ``"model"``: :func:`refine_correspondence` (every instance). ``on_coated(name)`` is
+    called as each coating arrives (for counting; progress lines are for people).
+    """
+    if study.params.correspondence.method != "landmarks":
+        return refine_correspondence(study, jobs=jobs, progress=progress, cancelled=cancelled, log=log,
+                                     executor=executor, on_coated=on_coated)
+    t0 = time.perf_counter()
+    coated = coat_instances(study, names=names, jobs=jobs, progress=progress, cancelled=cancelled,
+                            on_coated=on_coated)
+    check, found = self_check(study, {**study.coatings, **coated}, jobs=jobs, executor=executor, cancelled=cancelled)
+    return coating_result(study, coated, {n: c.fit.start for n, c in coated.items()}, time.perf_counter() - t0,
+                          check=check,
+                          extra_findings=found)
+
+
+def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress: ProgressFn = None,
+        cancelled: CancelledFn = None, log: Log = None, executor=None, cache=None) -> Study:
+    """Run ``stages`` in order on ``study``, applying each stage's result, and return it.
+
+    Progress: import 0–15 %, template 15–30 %, coating 30–85 %, model 85–90 %, metrics
+    90–95 % of ``progress``; ``log`` receives each result's lines (:meth:`StageResult.lines`).
+
+    With an ``executor`` (:class:`~ssm_addon.base.compute.Executor`), the landmarks method
+    and the import, template and coating stages all asked for, those stages run streamed
+    (:func:`stream_instances`: bounded memory, ``cache`` for resuming); the numbers are
+    the same. ``study.streamed`` then holds the cache counts.
+    """
+    say = log or (lambda _m: None)
+    n = len(study.instances)
+    unknown = [s for s in stages if s not in STAGES]
+    if unknown:
+        raise InputError(f"study: unknown stage(s) {', '.join(unknown)} (stages: {', '.join(STAGES)})")
+
+    def applied(result: StageResult) -> None:
+        apply_stage(study, result)
+        for line in result.lines():
+            say(line)
+
+    if (executor is not None and study.params.correspondence.method == "landmarks"
+            and all(s in stages for s in ("import", "template", "coating"))):
+        report(progress, 0.0, f"import, template and coating: {n} instances on {executor.describe()}")
+        applied(stream_instances(study, executor, cache=cache, progress=sub_progress(progress, 0.0, 0.85),
+                                 cancelled=cancelled, log=say))
+        stages = [s for s in stages if s not in ("import", "template", "coating")]
+    if "import" in stages:
+        report(progress, 0.0, f"import: {n} instances at {study.params.template.spacing_mm:g} mm")
+        applied(import_stage(study, jobs=jobs, progress=sub_progress(progress, 0.0, 0.15), cancelled=cancelled))
+    if "template" in stages:
+        check_cancelled(cancelled)
+        report(progress, 0.15, f"template: from {study.template_instance}")
+        applied(template_stage(study, progress=sub_progress(progress, 0.15, 0.3), cancelled=cancelled))
+    if "coating" in stages:
+        check_cancelled(cancelled)
+        report(progress, 0.3, f"coating: {n} instances, {jobs} job(s)")
+        coat_prog = sub_progress(progress, 0.3, 0.85)
+        if study.params.correspondence.method == "landmarks":  # one progress line per instance, as it arrives
+            t0, arrived = time.perf_counter(), []
+
+            def coated(name: str) -> None:
+                arrived.append(name)
+                left = time_left_text(len(arrived), n, time.perf_counter() - t0)
+                report(coat_prog, len(arrived) / n, f"coated {name} ({len(arrived)}/{n})" + (f", {left}" if left else ""))
+
+            applied(coating_stage(study, jobs=jobs, cancelled=cancelled, log=say, executor=executor,
+                                  on_coated=coated if progress else None))
+        else:
+            applied(coating_stage(study, jobs=jobs, progress=coat_prog, cancelled=cancelled, log=say,
+                                  executor=executor))
+    if "model" in stages:
+        check_cancelled(cancelled)
+        report(progress, 0.85, "model: PCA")
+        applied(model_stage(study, cancelled=cancelled))
+    if "metrics" in stages:
+        check_cancelled(cancelled)
+        report(progress, 0.9, "metrics: compactness, generalization, specificity")
+        applied(metrics_stage(study, cancelled=cancelled))
+    return study

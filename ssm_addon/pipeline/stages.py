@@ -1,0 +1,322 @@
+"""The stage functions of the method: import (paper 2), template (3), coating by the single
+pass (4), model (5) and metrics, each returning a :class:`~ssm_addon.pipeline.study.StageResult`
+(product, findings, timings, summary) that both front ends apply."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from ..base.compute import executor_or_local
+from ..base.errors import InputError, check_cancelled
+from ..base.progress import CancelledFn, ProgressFn, report
+from ..coating.coating import CoatingResult, coat_all
+from ..formats.label_maps import read_label_map
+from ..instances.importing import InstanceSpec, import_instance
+from ..instances.volume import ObjectVolume
+from ..meshutil import genus
+from ..model.metrics import ModelMetrics
+from ..model.pca import ShapeModel, build_model
+from ..model.quality import (
+    check_coating,
+    check_duplicate_instances,
+    check_frames,
+    check_landmark_transfer,
+    check_landmarks_on_surface,
+    check_model,
+    check_volume,
+    check_volumes_together,
+    content_digest,
+)
+from ..template.template import Template, build_template
+from .study import (
+    StageResult,
+    Study,
+    common_landmark_names,
+    instance_sources,
+    study_parameters,
+    template_landmark_locations,
+)
+
+__all__ = ["coat_from_frames", "coat_instances", "coating_result", "evaluate_model", "import_instances", "import_result", "import_stage", "make_model", "make_template", "metrics_stage", "model_stage", "self_check", "template_stage"]
+
+
+def import_instances(study: Study, *, names: Sequence[str] | None = None, jobs: int = 1,
+                     progress: ProgressFn = None, cancelled: CancelledFn = None) -> dict[str, ObjectVolume]:
+    """Read every instance, compute its object frame and resample it (paper 2).
+
+    Label maps shared by several instances (one file, several labels) are read once.
+    With ``jobs`` > 1 the instances are processed in threads (the numeric work releases
+    the GIL); the result does not depend on ``jobs``.
+
+    Returns
+    -------
+    dict name -> ObjectVolume, in study order (only ``names``, default all).
+    """
+    todo = [study.instance(n) for n in (study.names if names is None else names)]
+    n = len(todo)
+    tp = study.params.template
+    shared = {}
+    paths = [inst.volume_path for inst in todo if inst.volume_path is not None]
+    for path in sorted({p for p in paths if paths.count(p) > 1}):
+        check_cancelled(cancelled)
+        try:
+            shared[path] = read_label_map(path)
+        except InputError as err:
+            raise InputError(f"instances using {path.name}: {err}") from None
+    done = [0]
+
+    def one(inst: InstanceSpec) -> ObjectVolume:
+        check_cancelled(cancelled)
+        ov = import_instance(inst, spacing_mm=tp.spacing_mm, frame_method=tp.frame,
+                             label_map=shared.get(inst.volume_path), cancelled=cancelled)
+        done[0] += 1
+        report(progress, done[0] / n, f"imported {inst.name} ({done[0]}/{n}): {ov.mask.shape} voxels at "
+                                      f"{ov.spacing_mm:g} mm, frame {ov.frame.method}")
+        return ov
+
+    workers = max(1, min(int(jobs or 1), n))
+    if workers == 1:
+        volumes = [one(inst) for inst in todo]
+    else:
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            volumes = list(pool.map(one, todo))
+    return {inst.name: ov for inst, ov in zip(todo, volumes)}
+
+
+def make_template(study: Study, *, progress: ProgressFn = None, cancelled: CancelledFn = None) -> Template:
+    """The template (paper 3) from the study's template instance."""
+    name = study.template_instance
+    try:
+        template = build_template(study.volume(name), study.params.template, progress=progress, cancelled=cancelled)
+    except InputError as err:
+        raise InputError(f"template from instance {name!r}: {err}") from None
+    study_with = Study(instances=study.instances, template_instance=name, template=template, frames={
+        name: study.frame(name)})
+    return dataclasses.replace(template, landmark_locations=template_landmark_locations(study_with))
+
+
+def _landmarks_object(study: Study, name: str, common: Sequence[str]) -> np.ndarray:
+    lm = study.landmarks(name).subset(common)
+    return study.frame(name).to_object(lm.points_world)
+
+
+def coat_instances(study: Study, *, names: Sequence[str] | None = None, jobs: int = 1,
+                   progress: ProgressFn = None, cancelled: CancelledFn = None,
+                   on_coated: Callable[[str], None] | None = None, executor=None) -> dict[str, CoatingResult]:
+    """Coat the template onto instances (paper 4), ``jobs`` processes.
+
+    Parameters
+    ----------
+    names : instance names (default: every instance).
+    on_coated : called with each instance's name as its coating arrives.
+    executor : Executor, optional
+        Where the coatings run (default: ``jobs`` local processes).
+
+    Returns
+    -------
+    dict name -> CoatingResult (object mm of each instance). Cancelling raises
+    :class:`~ssm_addon.coating.coating.CoatingCancelled` whose ``results`` keep the finished ones.
+
+    Raises
+    ------
+    InputError
+        Before any coating, when a landmark lies farther than ``[quality]
+        max_landmark_distance_mm`` from its instance's surface (a wrong file, an offset,
+        LPS read as RAS: the message says which).
+    """
+    if study.template is None:
+        raise InputError("coating: build the template first")
+    names = list(study.names if names is None else names)
+    common = common_landmark_names(study, names)
+    for name in dict.fromkeys([study.template_instance, *names]):  # landmarks on their instance's surface
+        inst = study.instance(name)
+        check_landmarks_on_surface(name, study.volume(name), study.landmarks(name), study.params.quality,
+                                   source=str(inst.landmarks_path) if inst.landmarks_path is not None else "")
+    src = _landmarks_object(study, study.template_instance, common)
+    targets = [study.volume(n) for n in names]
+    lms = [_landmarks_object(study, n, common) for n in names]
+    results = coat_all(study.template, src, targets, lms, params=study.params.coating, jobs=jobs,
+                       progress=progress, cancelled=cancelled, names=names, on_coated=on_coated, executor=executor)
+    return dict(zip(names, results))
+
+
+def _coat_from_frames_job(args):
+    from ..coating.coating import coat_from_start
+
+    template, target, params, name = args
+    return coat_from_start(template, target, params=params, name=name)
+
+
+def coat_from_frames(study: Study, names: Sequence[str], *, jobs: int = 1, cancelled: CancelledFn = None,
+                     executor=None) -> dict[str, CoatingResult]:
+    """Coat the template onto instances from the object frames alone (no landmarks; paper 2's
+    alignment, then the coating's registration, projection and relaxation), on ``executor``
+    (default: ``jobs`` local processes)."""
+    from ..meshutil import Mesh
+
+    mesh = Mesh(study.template.points_object, study.template.faces)
+    args = [(mesh, study.volume(n), study.params.coating, n) for n in names]
+    with executor_or_local(executor, jobs, len(args)) as pool:
+        results = pool.map(_coat_from_frames_job, args, labels=list(names), verb="coated", cancelled=cancelled)
+    return dict(zip(names, results))
+
+
+def make_model(study: Study, *, names: Sequence[str] | None = None, progress: ProgressFn = None,
+               cancelled: CancelledFn = None) -> ShapeModel:
+    """PCA of the coated instances (paper 5, eqs. 4–6), in study order.
+
+    Parameters
+    ----------
+    names : instances to use (default: every coated instance, in study order).
+    """
+    if names is None:
+        names = [n for n in study.names if n in study.coatings]
+    names = list(names)
+    missing = [n for n in names if n not in study.coatings]
+    if missing:
+        raise InputError(f"model: instance(s) not coated yet: {', '.join(missing)}")
+    if len(names) < 2:
+        raise InputError(f"model: need at least 2 coated instances, have {len(names)}")
+    if study.template is None:
+        raise InputError("model: no template")
+    pts = np.stack([study.coatings[n].points_object for n in names])
+    world = np.stack([study.frame(n).to_world(study.coatings[n].points_object) for n in names])
+    common = ()
+    try:
+        common = common_landmark_names(study, names)
+    except InputError:
+        pass
+    params = study_parameters(study, common)
+    params["landmark_locations"] = template_landmark_locations(study).to_dict()
+    params["fit"] = {n: {k: v for k, v in study.coatings[n].fit.to_dict().items() if k != "time_s"} for n in names}
+    mp = study.params.model
+    return build_model(pts, study.template.faces, names, instance_points_world=world, alignment=mp.alignment,
+                       n_modes=mp.n_modes, variance_fraction=mp.variance_fraction, solver=mp.solver,
+                       precision=mp.precision, params=params, progress=progress, cancelled=cancelled)
+
+
+def evaluate_model(study: Study, *, progress: ProgressFn = None, cancelled: CancelledFn = None) -> ModelMetrics:
+    """Compactness, generalization and specificity of the study's model."""
+    from ..model import metrics
+
+    if study.model is None:
+        raise InputError("metrics: build the model first")
+    mp = study.params.model
+    return metrics.evaluate(study.model, n_samples=mp.specificity_samples, seed=mp.seed, max_loo=mp.max_loo,
+                            progress=progress, cancelled=cancelled)
+
+
+def import_result(study: Study, volumes: dict[str, ObjectVolume], seconds: float) -> StageResult:
+    """The import stage's result for ``volumes`` just imported: the import gates on them.
+
+    The volume-consistency gate compares every instance imported so far (``study.volumes``
+    and ``volumes``).
+    """
+    qp = study.params.quality
+    findings = [f for name, ov in volumes.items() for f in check_volume(name, ov, qp)]
+    every = {**study.volumes, **volumes}
+    findings += check_volumes_together({n: every[n].volume_mm3 for n in study.names if n in every}, qp)
+    names = [n for n in study.names if n in every]
+    findings += check_duplicate_instances(instance_sources(study, names),
+                                          {n: content_digest(every[n].mask, every[n].frame.matrix_world) for n in names})
+    return StageResult("import", {"volumes": dict(volumes), "frames": {n: v.frame for n, v in volumes.items()}},
+                       tuple(findings), {"import": seconds}, (f"import: {len(volumes)} instances in {seconds:.2f} s",))
+
+
+def import_stage(study: Study, *, names: Sequence[str] | None = None, jobs: int = 1, progress: ProgressFn = None,
+                 cancelled: CancelledFn = None) -> StageResult:
+    """Import (paper 2): :func:`import_instances` and the import gates."""
+    t0 = time.perf_counter()
+    volumes = import_instances(study, names=names, jobs=jobs, progress=progress, cancelled=cancelled)
+    return import_result(study, volumes, time.perf_counter() - t0)
+
+
+def template_stage(study: Study, *, progress: ProgressFn = None, cancelled: CancelledFn = None) -> StageResult:
+    """The template (paper 3): :func:`make_template` and its summary line."""
+    t0 = time.perf_counter()
+    t = make_template(study, progress=progress, cancelled=cancelled)
+    seconds = time.perf_counter() - t0
+    return StageResult("template", {"template": t}, (), {"template": seconds},
+                       (f"template: {len(t.points_object)} points, {len(t.faces)} triangles, "
+                        f"genus {genus(len(t.points_object), t.faces)} from {study.template_instance} in "
+                        f"{seconds:.2f} s",))
+
+
+def coating_result(study: Study, coated: dict[str, CoatingResult], starts: dict[str, str], seconds: float, *,
+                   template: Template | None = None, rounds: tuple = (), counts: str = "", check=None,
+                   extra_findings: tuple = ()) -> StageResult:
+    """The coating stage's result for ``coated`` instances: the coating gates and the summary.
+
+    ``template`` (the mean shape of the model method), ``rounds`` (its refinement rounds)
+    and ``check`` (the correspondence self-check, :func:`self_check`) join the product
+    when given; ``extra_findings`` (the self-check's and the rounds' gates) the findings.
+    """
+    findings = tuple(f for n, c in coated.items() for f in check_coating(n, c.fit, study.params.quality))
+    findings += tuple(extra_findings)
+    product = {"coatings": dict(coated), "coating_start": dict(starts)}
+    if template is not None:
+        product["template"] = template
+    if rounds:
+        product["correspondence_rounds"] = tuple(rounds)
+    if check is not None:
+        product["correspondence_check"] = check
+    every = {**study.coatings, **coated}
+    worst = max((c.fit.max_distance_mm for c in every.values()), default=float("nan"))
+    lines = [f"coating: {len(coated)} instances in {seconds:.2f} s ({counts}largest surface distance {worst:.2f} mm)"]
+    if check is not None and check.instance_mm:
+        worst_n = max(check.instance_mm, key=check.instance_mm.get)
+        lines.append(f"coating: correspondence self-check, landmark transfer error {check.study_mm:.2f} mm (mean over "
+                     f"{len(check.instance_mm)} landmarked instances; largest {worst_n} "
+                     f"{check.instance_mm[worst_n]:.2f} mm)")
+    return StageResult("coating", product, findings, {"coating": seconds}, tuple(lines))
+
+
+def self_check(study: Study, coatings: dict[str, CoatingResult], *, template: Template | None = None,
+               frames: dict | None = None, jobs: int = 1, executor=None, cancelled: CancelledFn = None):
+    """The correspondence self-check of the single pass (``[correspondence] self_check``):
+    :func:`ssm_addon.correspondence.rounds.check_correspondence` on every instance's coating.
+
+    Returns ``(CorrespondenceCheck, findings)``, or ``(None, ())`` when it does not apply
+    (switched off, fewer than 3 instances or instances not all coated, no landmarks).
+    """
+    from ..correspondence.rounds import check_correspondence, correspondence_fit_params
+
+    template = template or study.template
+    names = list(study.names)
+    if (not study.params.correspondence.self_check or len(names) < 3 or template is None
+            or any(n not in coatings for n in names)):
+        return None, ()
+    frames = {**study.frames, **(frames or {})}
+    given = {n: study.landmarks_object(n, frames.get(n)) for n in names}
+    fit = correspondence_fit_params(study.params.correspondence)
+    check = check_correspondence({n: coatings[n].points_object for n in names}, template.faces,
+                                 template.landmark_locations, given, fit=fit, executor=executor, jobs=jobs,
+                                 cancelled=cancelled)
+    return check, tuple(check_landmark_transfer(check, study.params.quality))
+
+
+def model_stage(study: Study, *, progress: ProgressFn = None, cancelled: CancelledFn = None) -> StageResult:
+    """The model (paper 5): :func:`make_model`, its leave-one-out outlier scores and the model gates."""
+    t0 = time.perf_counter()
+    model = make_model(study, progress=progress, cancelled=cancelled)
+    findings, scores = check_model(model, study.params.quality)
+    names = list(model.instance_names)
+    findings = check_frames(names, np.stack([study.coatings[n].points_object for n in names]),
+                            study.template_instance, study.params.model.alignment) + list(findings)
+    seconds = time.perf_counter() - t0
+    return StageResult("model", {"model": model, "outlier_scores": scores}, tuple(findings), {"model": seconds},
+                       (f"model: {model.n_modes} modes, {model.n_points} points in {seconds:.2f} s",))
+
+
+def metrics_stage(study: Study, *, progress: ProgressFn = None, cancelled: CancelledFn = None) -> StageResult:
+    """Compactness, generalization and specificity (:func:`evaluate_model`)."""
+    t0 = time.perf_counter()
+    metrics = evaluate_model(study, progress=progress, cancelled=cancelled)
+    seconds = time.perf_counter() - t0
+    return StageResult("metrics", {"metrics": metrics}, (), {"metrics": seconds},
+                       (f"metrics: compactness, generalization, specificity in {seconds:.2f} s",))
