@@ -19,6 +19,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components as _cc
 from scipy.spatial import cKDTree
+from skimage.measure import marching_cubes as _skimage_marching_cubes
 
 from .base.errors import InputError
 
@@ -643,8 +644,6 @@ def marching_cubes(mask, *, level: float = 0.5) -> tuple[np.ndarray, np.ndarray]
     InputError
         The mask is empty.
     """
-    from skimage.measure import marching_cubes as _skimage_marching_cubes
-
     m = np.asarray(mask, dtype=bool)
     occupied = [np.flatnonzero(m.any(axis=tuple(a for a in range(3) if a != d))) for d in range(3)]
     if any(o.size == 0 for o in occupied):

@@ -33,7 +33,7 @@ import numpy as np
 from ..base.records import jsonable
 from ..formats.vtk import write_vtp
 from ..model.files import write_npz
-from .shape_analysis import Analysis
+from .shape_analysis import Analysis, analyze
 
 __all__ = ["FDR_LEVEL", "SHAPE_KEY_PREFIXES", "analysis_arrays", "analysis_document", "analysis_map_picture",
            "analysis_shape_keys", "analysis_summary", "diverging_colours", "run_analysis", "scores_picture",
@@ -297,8 +297,6 @@ def run_analysis(model, attributes, params, out_dir=None, *, model_path: str | N
     its files written into ``out_dir`` (none when None): returns (the analysis, ``analysis.json``'s
     content, the files written). The one route of ``ssm analyze``, the build's ``[analysis]`` and
     Blender."""
-    from .shape_analysis import analyze
-
     result = analyze(model, attributes, group=params.group or None, covariates=params.covariates,
                      permutations=params.permutations, seed=params.seed, size_removed=params.size_removed,
                      reference=params.reference or None, lda_modes=params.lda_modes, progress=progress,

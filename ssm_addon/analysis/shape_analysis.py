@@ -24,8 +24,10 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.linalg import eigh
 
 from ..base.errors import InputError
+from ..meshutil import vertex_normals
 from .attributes import Attributes
 from .statistics import TermTest, centroid_size, term_test
 
@@ -238,8 +240,6 @@ def design_matrix(attrs: Attributes, *, group: str | None, covariates=(), sizes=
 def _discriminant(scores: np.ndarray, labels: np.ndarray, levels, modes: np.ndarray) -> dict:
     """Fisher's LDA on mode scores ``(m, k)``; the first discriminant as a shape (mm per
     within-group SD of the score) and the leave-one-out classification rate."""
-    from scipy.linalg import eigh
-
     m, k = scores.shape
     g = len(levels)
     means = np.stack([scores[labels == lv].mean(axis=0) for lv in levels])
@@ -308,8 +308,6 @@ def analyze(model, attributes: Attributes, *, group: str | None = None, covariat
         Unknown columns, a group of one, a constant or mostly missing covariate, no row
         naming an instance, fewer instances than the model has columns.
     """
-    from ..meshutil import vertex_normals
-
     if not group and not covariates:
         raise InputError("analysis: give a group column, covariates, or both")
     if int(permutations) < 99:

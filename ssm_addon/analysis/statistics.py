@@ -41,7 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..base.errors import InputError
+from ..base.errors import Cancelled, InputError
 
 __all__ = ["TermTest", "benjamini_hochberg", "centroid_size", "orthonormal_basis", "permutation_orders",
            "term_test"]
@@ -199,8 +199,6 @@ def term_test(points, reduced, term, *, permutations: int = 1000, seed: int = 0,
     -------
     TermTest
     """
-    from ..base.errors import Cancelled
-
     x = np.asarray(points, dtype=float)
     n, n_points = x.shape[0], x.shape[1]
     d0 = np.asarray(reduced, dtype=float).reshape(n, -1)

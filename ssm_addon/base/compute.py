@@ -21,11 +21,22 @@ need ``ssm_addon`` installed and the input paths readable under the same names.
 
 from __future__ import annotations
 
+import logging
+import multiprocessing
 import os
+import shutil
+import signal
+import socket
 import sys
+import tempfile
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from contextlib import contextmanager
+from multiprocessing import resource_tracker
+
+from threadpoolctl import threadpool_limits
 
 from .errors import Cancelled, InputError
 from .progress import CancelledFn, ProgressFn, report
@@ -84,8 +95,6 @@ def run_one_thread(fn: Callable, item):
     through here, which makes serial, processes and Dask results identical bit for bit
     (and process-level parallelism does not oversubscribe the cores).
     """
-    from threadpoolctl import threadpool_limits
-
     with threadpool_limits(limits=1, user_api="blas"):
         return fn(item)
 
@@ -95,8 +104,6 @@ def ignore_sigint() -> None:
 
     (A terminal sends both to every process of its foreground group, workers included.)
     """
-    import signal
-
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if hasattr(signal, "SIGHUP"):
         signal.signal(signal.SIGHUP, signal.SIG_IGN)
@@ -107,9 +114,6 @@ def dask_setup(worker=None) -> None:
     Ctrl-C and hang-ups to the main process, which closes the cluster, and logs nothing below
     CRITICAL: a task's error reaches the build through its future, and what a worker would log
     while the cluster shuts down under it (a heartbeat to a closed scheduler) is noise."""
-    import logging
-    import threading
-
     logging.getLogger("distributed").setLevel(logging.CRITICAL)
     if threading.current_thread() is threading.main_thread():
         ignore_sigint()
@@ -119,10 +123,6 @@ def start_resource_tracker() -> None:
     """Start multiprocessing's resource tracker with SIGHUP and SIGINT ignored (inherited across its
     exec), so a terminal's hang-up to the whole process group does not kill it mid-build (its
     successor would print a KeyError traceback per semaphore). The window is milliseconds."""
-    import signal
-    import threading
-    from multiprocessing import resource_tracker
-
     if threading.current_thread() is not threading.main_thread():  # only the main thread sets handlers
         resource_tracker.ensure_running()
         return
@@ -137,8 +137,6 @@ def start_resource_tracker() -> None:
 
 def stop_children(before: set) -> None:
     """Terminate the worker processes started since ``before`` (pids), killing those that linger."""
-    import multiprocessing
-
     children = [c for c in multiprocessing.active_children() if c.pid not in before]
     for child in children:
         child.terminate()
@@ -174,8 +172,6 @@ def probe_scheduler(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
     the dashboard on 8787 waits for a request) or other bytes are each an InputError that
     names the address and what answered. Interruptible: Ctrl-C stops the wait at once.
     """
-    import socket
-
     host, port = _host_port(address)
     deadline = time.monotonic() + float(timeout_s)
     try:
@@ -210,8 +206,6 @@ def probe_scheduler(address: str, timeout_s: float = CONNECT_TIMEOUT_S) -> None:
 def _client_within(client_cls, address: str, timeout_s: float):
     """``client_cls(address)`` in a helper thread, abandoned with an InputError after ``timeout_s``
     (a Client's own timeout does not hold against every server)."""
-    import threading
-
     box: dict = {}
 
     def connect():
@@ -284,14 +278,11 @@ class Executor:
     # ------------------------------------------------------------------ set-up
     def _start_dask(self) -> None:
         try:
-            import logging
-
             from distributed import Client, LocalCluster
         except ImportError:
             raise InputError(f"--scheduler {self.scheduler}: Dask is not installed; install it with "
                              "pip install \"ssm-builder[dask]\" (or use --scheduler processes)") from None
         if self.scheduler == "dask-local":
-            import tempfile
 
             # the workers' scratch space in a folder of our own, removed on close (not $TMPDIR/dask-scratch-space)
             import dask
@@ -336,7 +327,6 @@ class Executor:
             self._dask_config.__exit__(None, None, None)  # the caller's dask configuration again
             self._dask_config = None
         if getattr(self, "_scratch", None):
-            import shutil
 
             shutil.rmtree(self._scratch, ignore_errors=True)
             self._scratch = None
@@ -389,8 +379,6 @@ class Executor:
         return results
 
     def _map_processes(self, fn, items, arrived, cancelled) -> None:
-        import multiprocessing
-        from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
         before = {c.pid for c in multiprocessing.active_children()}
         if self._pool is None:

@@ -6,6 +6,8 @@ import platform
 from pathlib import Path
 
 import numpy as np
+import scipy
+import skimage
 
 from .. import __version__
 
@@ -14,9 +16,6 @@ __all__ = ["jsonable", "versions"]
 
 def versions() -> dict:
     """The versions of this package, Python and the numeric libraries (recorded in ``params_json``)."""
-    import scipy
-    import skimage
-
     return {"ssm_builder": __version__, "python": platform.python_version(), "numpy": np.__version__,
             "scipy": scipy.__version__, "scikit-image": skimage.__version__}
 

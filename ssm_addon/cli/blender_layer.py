@@ -9,11 +9,18 @@ source checkout the extension root next to this package is loaded as the package
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import importlib.util
 import os
+import shutil
+import subprocess
 import sys
+import tempfile
 from pathlib import Path
+
+from ..base.errors import SSMError
+from ..pipeline.store import load_study, save_study
 
 PACKAGE_NAME = "ssm"
 
@@ -69,13 +76,6 @@ def blend_writer_in_child():
         return None
 
     def write(study, output, out_dir, log=print):
-        import dataclasses
-        import shutil
-        import subprocess
-        import tempfile
-
-        from ..base.errors import SSMError
-        from ..pipeline.store import save_study
 
         out_dir = Path(out_dir)
         handover = Path(tempfile.mkdtemp(prefix="ssm-blender-step-"))
@@ -114,8 +114,6 @@ def blend_writer_in_child():
 
 def _child_main(argv) -> int:
     """``python -m ssm_addon.cli.blender_layer STUDY_DIR OUT_DIR [--quiet]``: the Blender step."""
-    from ..pipeline.store import load_study
-
     study, _extra = load_study(argv[0])
     writer = blend_writer()
     if writer is None:

@@ -22,11 +22,17 @@ build whose quality gates fail exits with 3; an interrupted one with 130 (SIGINT
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import os
 import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
+import numpy as np
+
+from ..base import params as P
 from ..base.errors import Cancelled, InputError, SSMError
 
 EXIT_INPUT = 2
@@ -47,8 +53,6 @@ class Interrupted(BaseException):
 def _catch_signals() -> dict:
     """SIGTERM and SIGHUP raise :class:`Interrupted` in the main thread (SIGINT raises
     KeyboardInterrupt already); returns the previous handlers."""
-    import threading
-
     if threading.current_thread() is not threading.main_thread():
         return {}
 
@@ -76,8 +80,6 @@ def _print_progress():
 
 def argument_parser() -> argparse.ArgumentParser:
     """The ``ssm`` command's parser: every subcommand, and every parameter as a ``--<table>-<key>`` option."""
-    from ..base import params as P
-
     parser = argparse.ArgumentParser(
         prog="ssm",
         description="SSM Builder: point-based 3D statistical shape models from segmented volumes (headless). "
@@ -169,7 +171,6 @@ def argument_parser() -> argparse.ArgumentParser:
 
 
 def cmd_info(args) -> int:
-    import numpy as np
     from nibabel.affines import voxel_sizes
 
     from ..formats import label_maps as imageio
@@ -191,7 +192,6 @@ def cmd_info(args) -> int:
 
 
 def cmd_template(args) -> int:
-    from ..base import params as P
     from ..formats.meshes import write_ply
     from ..instances.importing import load_object
     from ..meshutil import euler_characteristic, genus
@@ -219,10 +219,6 @@ def cmd_template(args) -> int:
 
 def with_overrides(project, args):
     """The project with the parameters given on the command line (``--coating-k1 0.3``)."""
-    import dataclasses
-
-    from ..base import params as P
-
     if args is None:
         return project
     changes = {}
@@ -253,8 +249,6 @@ def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> 
     print(f"project: {project.path} ({len(project.instances)} instances, {len(project.landmark_names)} landmarks)",
           flush=True)
     if args is not None and getattr(args, "strict", False) and not project.params.quality.strict:
-        import dataclasses
-
         strict = dataclasses.replace(project.params.quality, strict=True)
         project = dataclasses.replace(project, params=project.params.replace(quality=strict))
     result = build(project, out, jobs=jobs, progress=_print_progress(), log=lambda m: print(m, flush=True),
@@ -282,7 +276,6 @@ def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> 
 
 
 def cmd_fit(args) -> int:
-    from ..base import params as P
     from ..fitting import batch as apply
     from ..pipeline.project import targets_from_project
 
@@ -337,7 +330,6 @@ def cmd_fit(args) -> int:
 def cmd_analyze(args) -> int:
     from ..analysis.attributes import read_attributes
     from ..analysis.files import analysis_summary, run_analysis
-    from ..base import params as P
     from ..fitting.batch import load_model
     from .project_build import owned_output_folder
 
@@ -418,9 +410,7 @@ def main(argv=None, in_blender: bool = False, blend_writer=None) -> int:
         if args.command == "analyze":
             return cmd_analyze(args)
         if args.command == "params":
-            from ..base.params import markdown_tables
-
-            print(markdown_tables())
+            print(P.markdown_tables())
             return 0
     except Interrupted as sig:
         print(f"interrupted by {sig.name}: stopped; the output folder is as it was", file=sys.stderr)
@@ -448,8 +438,6 @@ def run() -> None:
         code = main()
         sys.stdout.flush()
     except BrokenPipeError:  # e.g. `ssm info FILE | head`: the reader left, that is fine
-        import os
-
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         code = 0
     sys.exit(code)

@@ -27,6 +27,7 @@ import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import nibabel as nib
 import numpy as np
 
 from ..formats.landmarks import LandmarkSet, write_landmarks
@@ -224,8 +225,6 @@ def make_demo_population(
         instance's shape parameters, pose (canonical -> world) and the modes' standard
         deviations.
     """
-    import nibabel as nib
-
     if n < 3:
         raise ValueError("the demo needs at least 3 instances")
     out = Path(out_dir)

@@ -24,6 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
+from ..analysis.attributes import write_attributes
+from ..analysis.files import analysis_summary, run_analysis
 from ..base.compute import Executor
 from ..base.errors import InputError, check_cancelled
 from ..base.params import OutputParams
@@ -35,6 +37,7 @@ from ..formats.meshes import write_ply
 from ..instances.importing import file_names
 from ..meshutil import genus
 from ..model.quality import QualityError, warnings_text
+from ..pipeline.cache import BuildCache
 from ..pipeline.project import Project, project_text, read_project, write_project  # noqa: F401 (the flat layout's imports)
 from ..pipeline.runner import run
 from ..pipeline.study import Study, carried_landmarks, landmark_distances, study_parameters
@@ -293,8 +296,6 @@ def write_analysis_files(project: Project, study: Study, folder: Path, doc: dict
     say = log or (lambda _msg: None)
     if project.attributes is None:
         return {}
-    from ..analysis.attributes import write_attributes
-    from ..analysis.files import analysis_summary, run_analysis
 
     names = [str(n) for n in study.model.instance_names]
     aligned, _ = project.attributes.aligned(names)
@@ -333,8 +334,6 @@ def open_cache(project: Project, out_dir: Path, cache=None):
         The cache folder is the output folder or inside it (a build replaces that
         folder), or it is an input file.
     """
-    from ..pipeline.cache import BuildCache
-
     setting = project.params.compute.cache if cache is None else str(cache)
     if setting == "off":
         return None

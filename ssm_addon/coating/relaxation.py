@@ -12,6 +12,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from ..base.errors import InputError, check_cancelled
 from ..base.params import CoatingParams
@@ -129,9 +131,6 @@ def _keep_improved(start, p, faces, e, distance_map, params):
     """Per connected region of moved vertices (edges between moved vertices): the untangled
     positions where no triangle touching the region is folded, else the start positions.
     Two regions share no triangle, so each region's folds depend on it alone."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     moved = np.any(p != start, axis=1)
     if not moved.any():
         return p

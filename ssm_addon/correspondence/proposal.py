@@ -11,11 +11,13 @@ object mm inside.
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..base.errors import InputError, check_cancelled
 from ..base.params import CoatingParams, TemplateParams
 from ..base.progress import CancelledFn, ProgressFn
 from ..coating.coating import coat_from_start, template_mesh
+from ..fitting.fit import Pose, Target, fit_any_pose
 from ..formats.landmarks import LandmarkSet
 from ..instances.resampling import resample
 from ..instances.volume import ObjectVolume
@@ -47,7 +49,6 @@ def surface_points_object(object_volume) -> np.ndarray:
 
 
 def _propose_by_frame(source_points_object, target_points_object):
-    from scipy.spatial import cKDTree
 
     _, idx = cKDTree(target_points_object).query(source_points_object)
     return target_points_object[idx]
@@ -298,8 +299,6 @@ def propose_by_model(model, target_frame, target_mesh_world, *, known: LandmarkS
     InputError
         The model carries no landmarks, or none of ``names``.
     """
-    from ..fitting.fit import Pose, Target, fit_any_pose
-
     located = model.landmark_locations
     model_names = located.names
     if not model_names:

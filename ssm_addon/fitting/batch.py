@@ -27,21 +27,29 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
+from ..base.compute import Executor
 from ..base.errors import InputError
 from ..base.params import FitParams, to_table
 from ..base.progress import CancelledFn, ProgressFn, report
+from ..coating.coating import CoatingStart, coat_from_start
 from ..fitting.fit import FitResult, Pose, Target, fit_any_pose, outlier_limit
+from ..formats.label_maps import file_stem, is_mesh_file, read_label_map, select_label
 from ..formats.landmarks import read_landmarks
-from ..formats.meshes import write_ply
+from ..formats.meshes import read_mesh, read_ply, write_ply
+from ..instances.frame import frame_axes_patient
+from ..instances.importing import InstanceSpec, file_names, import_instance, instance_frame
+from ..instances.volume import display_surface
+from ..instances.voxelize import voxelize_mesh
+from ..meshutil import Mesh
+from ..model.files import load_npz, load_statismo, write_npz
 
 __all__ = ["FitTarget", "fit_batch", "fit_to_folder", "load_model", "load_target"]
 
 
 def load_model(path):
     """A model from ``model.npz`` or a statismo HDF5 file (ours or another tool's)."""
-    from ..model.files import load_npz, load_statismo
-
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: model file not found")
@@ -66,7 +74,6 @@ class FitTarget:
 
 
 def _read_points(path: Path) -> np.ndarray:
-    from ..formats.meshes import read_ply
 
     if path.suffix.lower() == ".ply":
         v, _, _ = read_ply(path)
@@ -94,8 +101,6 @@ def _read_points(path: Path) -> np.ndarray:
 def pose_of_points(points: np.ndarray) -> Pose:
     """A start pose from a point set alone: its centroid and principal axes paired with the
     patient axes (R, A, S), as the object frame of an image (paper 2)."""
-    from ..instances.frame import frame_axes_patient
-
     pts = np.asarray(points, float)
     centre = pts.mean(axis=0)
     _, vecs = np.linalg.eigh(np.cov((pts - centre).T))
@@ -116,8 +121,6 @@ def _enough_points(points: np.ndarray, path, landmarks) -> None:
 def coverage(result, target: Target, within_mm: float) -> float:
     """Share of the fitted shape's points within ``within_mm`` of the target's points: how
     much of the model's surface the target covers (1 for a whole shape)."""
-    from scipy.spatial import cKDTree
-
     if not target.has_surface:
         return 0.0
     d, _ = cKDTree(np.asarray(target.samples, float)).query(np.asarray(result.points, float))
@@ -138,12 +141,6 @@ def load_target(t: FitTarget, model, *, spacing_mm: float | None = None,
         An open mesh without ``partial`` (the message says to give ``--partial``); a target
         of fewer than ``MIN_TARGET_POINTS`` points (too few to fix a pose and a shape).
     """
-    from ..formats.label_maps import read_label_map, select_label
-    from ..formats.meshes import read_mesh
-    from ..instances.importing import instance_frame
-    from ..instances.volume import display_surface
-    from ..instances.voxelize import voxelize_mesh
-
     params = model.params or {}
     method = params.get("frame_method", "auto")
     spacing = spacing_mm or float(params.get("spacing_mm", 1.0))
@@ -251,9 +248,6 @@ def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = No
                   free: bool = False, outlier_probability: float = 0.99, model_path: str = "",
                   progress: ProgressFn = None, cancelled: CancelledFn = None) -> dict:
     """Fit ``model`` to one target and write its files into ``out_dir``; returns ``fit.json``'s content."""
-
-    from ..model.files import write_npz
-
     params = FitParams() if params is None else params
     target, start = load_target(t, model, partial=partial)
     if partial and t.landmarks is not None:
@@ -312,10 +306,6 @@ def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = No
 def _free_fit(result, faces, t, model, path) -> dict:
     """The model fit relaxed freely onto the target's surface (the coating's projection and
     relaxation, paper 4.2), in the target's own object frame."""
-    from ..coating.coating import CoatingStart, coat_from_start
-    from ..instances.importing import InstanceSpec, import_instance
-    from ..meshutil import Mesh
-
     spacing = float((model.params or {}).get("spacing_mm", 1.0))
     spec = InstanceSpec(name=t.name, volume_path=t.volume, label=t.label, mesh_path=t.mesh)
     ov = import_instance(spec, spacing_mm=spacing, frame_method=(model.params or {}).get("frame_method", "auto"))
@@ -343,12 +333,9 @@ def fit_batch(model_path, targets: list[FitTarget], out_dir, *, params: FitParam
     reads the model and the target from their paths and writes the target's folder (on a
     remote cluster ``out_dir`` must be on a shared file system).
     """
-    from ..base.compute import Executor
-
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     names = [t.name for t in targets]
-    from ..instances.importing import file_names
 
     folders = file_names(names)
     args = [(str(model_path), t, out_dir / folders[t.name], params, partial, free, outlier_probability)
@@ -370,8 +357,6 @@ def fit_batch(model_path, targets: list[FitTarget], out_dir, *, params: FitParam
 
 def targets_from_glob(pattern: str, label: int | None = None) -> list[FitTarget]:
     """One target per file of a glob (label maps or meshes by extension)."""
-    from ..formats.label_maps import file_stem, is_mesh_file
-
     files = sorted(glob.glob(pattern))
     if not files:
         raise InputError(f"{pattern}: no file matches")

@@ -31,6 +31,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.special import chdtrc, chdtri
 
 from ..base.errors import InputError, check_cancelled
 from ..base.params import FitParams
@@ -487,8 +488,6 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
     -------
     FitResult
     """
-    from scipy.special import chdtrc
-
     params = FitParams() if params is None else params
     k = model.n_modes if params.n_modes is None else min(int(params.n_modes), model.n_modes)
     mean = np.asarray(model.mean, float)
@@ -637,8 +636,6 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
 def outlier_limit(n_modes: int, probability: float = 0.99) -> float:
     """The Mahalanobis distance above which a fit on ``n_modes`` modes is an outlier: the
     square root of the chi-square quantile ``probability`` (``inf`` without modes)."""
-    from scipy.special import chdtri
-
     return math.sqrt(float(chdtri(n_modes, 1.0 - probability))) if n_modes else math.inf
 
 

@@ -7,9 +7,13 @@ MetaImage LPS spaces are converted to RAS on load. Every reader returns a
 
 from __future__ import annotations
 
+import json
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
+import nibabel as nib
+import nrrd
 import numpy as np
 from nibabel.affines import apply_affine, voxel_sizes
 
@@ -180,7 +184,6 @@ def _as_labels(data: np.ndarray, path) -> np.ndarray:
 
 
 def _read_nifti(path: Path):
-    import nibabel as nib
 
     img = nib.load(str(path))
     with nib.openers.ImageOpener(str(path)) as f:  # the header as written (nibabel mends zero voxel sizes to 1)
@@ -211,7 +214,6 @@ def _anatomical_signs(space: str) -> np.ndarray | None:
 
 
 def _read_nrrd(path: Path):
-    import nrrd
 
     data, header = nrrd.read(str(path))
     ndim = data.ndim
@@ -316,8 +318,6 @@ def _floats(header, key, n, default, path):
 
 def _read_metaimage(path: Path):
     """A MetaImage (.mha / .mhd) reader: header keys of ITK's MetaIO, world LPS -> RAS."""
-    import zlib
-
     raw = path.read_bytes()
     header, offset = _read_metaimage_header(raw, path)
     if header.get("objecttype", "Image").lower() != "image":
@@ -423,7 +423,6 @@ def _numpy_geometry(path: Path, spacing_mm, affine, sidecar: dict | None):
 
 
 def _read_numpy(path: Path, ext: str, spacing_mm=None):
-    import json
 
     sidecar = None
     side = path.with_suffix(".json")
@@ -513,7 +512,6 @@ def write_label_map(path, labels: np.ndarray, affine: np.ndarray, compress: bool
     labels = np.asarray(labels)
     affine = np.asarray(affine, dtype=float)
     if ext in (".nii", ".nii.gz"):
-        import nibabel as nib
 
         if labels.dtype in (np.int64, np.uint64):
             labels = labels.astype(np.int32)
@@ -524,7 +522,6 @@ def write_label_map(path, labels: np.ndarray, affine: np.ndarray, compress: bool
         img.set_sform(affine, code=1)
         nib.save(img, str(path))
     elif ext in (".nrrd", ".nhdr"):
-        import nrrd
 
         lps = _LPS_TO_RAS @ affine
         header = {
@@ -536,7 +533,6 @@ def write_label_map(path, labels: np.ndarray, affine: np.ndarray, compress: bool
         }
         nrrd.write(str(path), labels, header, detached_header=ext == ".nhdr")
     elif ext in (".mha", ".mhd"):
-        import zlib
 
         lps = _LPS_TO_RAS @ affine
         spacing = np.linalg.norm(lps[:3, :3], axis=0)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 from nibabel.affines import apply_affine, voxel_sizes
+from scipy import ndimage
 
 from ..base.errors import InputError, check_cancelled
 from ..base.progress import report
@@ -38,8 +39,6 @@ def resample(
     -------
     ObjectVolume
     """
-    from scipy import ndimage
-
     h = float(spacing_mm)
     name = volume.source or "volume"
     if not np.isfinite(h) or h <= 0:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import datetime
+import io
 import json
 import os
 import zipfile
@@ -15,6 +16,8 @@ import numpy as np
 from .. import __version__
 from ..base.errors import InputError
 from ..base.records import jsonable
+from ..formats.gltf import write_glb
+from ..formats.vtk import write_vtk, write_vtp
 from ..model.pca import ShapeModel
 
 NPZ_KEYS = (
@@ -64,9 +67,6 @@ def write_npz(path, arrays: dict) -> Path:
     would differ; here each ``<key>.npy`` member has the zip epoch (1980-01-01). The file
     reads with ``np.load(path, allow_pickle=False)``.
     """
-    import io
-    import zipfile
-
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp")
     with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
@@ -329,9 +329,6 @@ def write_exchange_meshes(model: ShapeModel, out_dir, *, gltf: bool = True, vtk:
     SD along each of the first ``modes`` modes, as ShapeWorks' analysis writes them.
     Returns ``{name: path}``.
     """
-    from ..formats.gltf import write_glb
-    from ..formats.vtk import write_vtk, write_vtp
-
     out_dir = Path(out_dir)
     k = min(int(modes), model.n_modes)
     sd = model.standard_deviations

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.sparse.linalg import eigsh
 
 from ..base.errors import InputError, SSMError, check_cancelled
 from ..base.params import ALIGNMENTS
@@ -114,7 +115,6 @@ def _top_modes(data: np.ndarray, rows, mu: np.ndarray, gram_centred: np.ndarray,
     m = len(gram_centred)
     if kmax < m // 10:
         # a few leading eigenpairs: Lanczos is much cheaper than a dense n x n solve
-        from scipy.sparse.linalg import eigsh
 
         v0 = np.random.default_rng(0).standard_normal(m)
         w, v = eigsh(gram_centred, k=kmax, which="LA", v0=v0, tol=0)

@@ -23,6 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.linalg import cholesky, solve_triangular
 
 from ..base.errors import InputError, check_cancelled
 from ..base.params import ALIGNMENTS
@@ -361,7 +362,6 @@ def _orthonormalise_rows(modes: np.ndarray, tol: float = 1e-12) -> tuple[np.ndar
     """
     if modes.shape[0] == 0:
         return modes, 0.0
-    from scipy.linalg import cholesky, solve_triangular
 
     gram = modes @ modes.T
     err = float(np.abs(gram - np.eye(len(gram))).max())

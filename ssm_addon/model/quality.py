@@ -34,14 +34,20 @@ with ``strict`` a build with findings fails (:class:`QualityError`).
 
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+from scipy.special import fdtrc, stdtr  # F and t tails (scipy.stats costs 0.5 s to import)
 
 from ..base.errors import InputError, SSMError
 from ..base.params import QualityParams
+from ..meshutil import marching_cubes
+from ..model.pca import procrustes_fit
 
 __all__ = [
     "Finding",
@@ -119,8 +125,6 @@ def check_volume(name: str, object_volume, params: QualityParams) -> list[Findin
         The mask has fewer than ``params.min_voxels`` voxels (a wrong label or a stray
         fragment: nothing to model).
     """
-    from scipy import ndimage
-
     mask = np.asarray(object_volume.mask, dtype=bool)
     n = int(np.count_nonzero(mask))
     if n < params.min_voxels:
@@ -156,8 +160,6 @@ def check_volumes_together(volumes_mm3: dict[str, float], params: QualityParams)
 
 def content_digest(*arrays) -> str:
     """SHA-1 of arrays' bytes (shape and dtype included): equal for bit-identical content."""
-    import hashlib
-
     h = hashlib.sha1()
     for a in arrays:
         a = np.ascontiguousarray(a)
@@ -196,7 +198,6 @@ def check_duplicate_instances(sources: dict[str, tuple], digests: dict[str, str]
 
 
 def _surface_points_world(object_volume) -> np.ndarray:
-    from ..meshutil import marching_cubes
 
     verts, _ = marching_cubes(object_volume.mask)
     return object_volume.frame.to_world(object_volume.voxel_to_object(verts))
@@ -244,8 +245,6 @@ def check_landmarks_on_surface(name: str, object_volume, landmarks, params: Qual
     InputError
         Naming the instance, the landmark file, the farthest landmark and its distance.
     """
-    from scipy.spatial import cKDTree
-
     if landmarks is None or not len(landmarks):
         return np.zeros(0)
     pts = np.asarray(landmarks.points_world, dtype=float)
@@ -319,8 +318,6 @@ def check_frames(names, points: np.ndarray, reference: str, alignment: str,
     correspondence) is turned more than ``max_turn_deg`` against the template instance's
     had its frame's axes resolved otherwise (a near-symmetric shape whose moments frame
     flips): its turn would enter the model as shape variation."""
-    from ..model.pca import procrustes_fit
-
     names = list(names)
     if alignment != "none" or len(names) < 2 or reference not in names:
         return []
@@ -466,8 +463,6 @@ def check_model(model, params: QualityParams) -> tuple[list[Finding], dict]:
       of freedom, Bonferroni-corrected (× k): the F test has little power when many modes
       are kept and few shapes estimate them.
     """
-    from scipy.special import fdtrc, stdtr  # F and t tails (scipy.stats costs 0.5 s to import)
-
     names = [str(s) for s in model.instance_names]
     if len(names) > params.max_outlier_instances:
         return [], {}

@@ -22,6 +22,8 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -214,9 +216,6 @@ class BuildCache:
 
         ``shapes``: key -> expected shape (None for a free axis) of the arrays that must be there.
         """
-        import zipfile
-        import zlib
-
         if not path.exists():
             return None
         try:

@@ -13,7 +13,16 @@ from ..base.compute import executor_or_local
 from ..base.errors import InputError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn
 from ..coating.coating import CoatingResult
-from ..correspondence.rounds import Population
+from ..correspondence.rounds import (
+    CorrespondenceCheck,
+    Population,
+    aligned_to,
+    correspondence_fit_params,
+    refine_rounds,
+    round_fits,
+    round_helps,
+    starts_from_model,
+)
 from ..model.quality import (
     check_correspondence_rounds,
     check_landmark_transfer,
@@ -42,8 +51,6 @@ def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: in
         The template instance has no landmarks (they name the places carried to every
         instance).
     """
-    from ..correspondence.rounds import correspondence_fit_params, starts_from_model
-
     names = list(study.names if names is None else names)
     with_lm = [n for n in study.names if study.landmarks(n) is not None]
     if study.template_instance not in with_lm:
@@ -81,8 +88,6 @@ def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn =
     back as the coating stage's result (:func:`apply_stage` puts them into a study).
     ``on_coated(name)``: as each round's coating of an instance arrives.
     """
-    from ..correspondence.rounds import refine_rounds
-
     say = log or (lambda _m: None)
     t0 = time.perf_counter()
     missing = [n for n in study.names if n not in study.coatings]
@@ -132,8 +137,6 @@ def population_medoid(study: Study, candidates: Sequence[str]) -> tuple[str, dic
     -------
     (name, {instance: RMS distance from the mean, mm})
     """
-    from ..correspondence.rounds import aligned_to
-
     names = list(study.names)
     points = np.stack([study.coatings[n].points_object for n in names])
     aligned = aligned_to(points, points[names.index(study.template_instance)])
@@ -160,8 +163,6 @@ def medoid_template(study: Study, *, jobs: int = 1, executor=None, cancelled: Ca
     the landmarked instances' fits that judged the study returned
     (:func:`ssm_addon.correspondence.rounds.round_fits`), which are its first round's)
     """
-    from ..correspondence.rounds import CorrespondenceCheck, correspondence_fit_params, round_fits, round_helps
-
     say = log or (lambda _m: None)
     wanted = study.template.landmark_locations.names
     complete = [n for n in study.names if study.landmarks(n) is not None

@@ -45,6 +45,8 @@ from typing import Any
 
 import numpy as np
 
+from ..analysis.attributes import attributes_from_tables, read_attributes
+from ..analysis.shape_analysis import CENTROID_SIZE
 from ..base import params as P
 from ..base.errors import InputError
 from ..base.params import AnalysisParams, StudyParams
@@ -310,8 +312,6 @@ def _instances(doc: dict, ctx: _Context, base: Path, landmarks_required: bool = 
 def _attributes(doc: dict, ctx: _Context, base: Path, names) -> tuple[AnalysisParams, dict, Any]:
     """The [analysis] table (attributes path absolute), the instances' own attribute tables and
     the merged attribute table (None when there is none)."""
-    from ..analysis.attributes import attributes_from_tables, read_attributes
-
     study = doc.get("study", {})
     if not isinstance(study, dict):
         raise ctx.error(f"[study] must be a table, got {P.type_name(study)}", ctx.lines.key("study"))
@@ -345,7 +345,6 @@ def _attributes(doc: dict, ctx: _Context, base: Path, names) -> tuple[AnalysisPa
         raise ctx.error("[analysis] needs attributes: give each instance an attributes table or [analysis] "
                         "attributes = \"subjects.csv\"", ctx.lines.table("analysis"))
     if table is not None and analysis.requested:  # a typo is an error now; what the data allow, the build says
-        from ..analysis.shape_analysis import CENTROID_SIZE
 
         for column in ([analysis.group] if analysis.group else []) + list(analysis.covariates):
             if column != CENTROID_SIZE:

@@ -14,11 +14,13 @@ import numpy as np
 from ..base.compute import executor_or_local
 from ..base.errors import InputError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn, report
-from ..coating.coating import CoatingResult, coat_all
+from ..coating.coating import CoatingResult, coat_all, coat_from_start
+from ..correspondence.rounds import check_correspondence, correspondence_fit_params
 from ..formats.label_maps import read_label_map
 from ..instances.importing import InstanceSpec, import_instance
 from ..instances.volume import ObjectVolume
-from ..meshutil import genus
+from ..meshutil import Mesh, genus
+from ..model import metrics
 from ..model.metrics import ModelMetrics
 from ..model.pca import ShapeModel, build_model
 from ..model.quality import (
@@ -146,7 +148,6 @@ def coat_instances(study: Study, *, names: Sequence[str] | None = None, jobs: in
 
 
 def _coat_from_frames_job(args):
-    from ..coating.coating import coat_from_start
 
     template, target, params, name = args
     return coat_from_start(template, target, params=params, name=name)
@@ -157,8 +158,6 @@ def coat_from_frames(study: Study, names: Sequence[str], *, jobs: int = 1, cance
     """Coat the template onto instances from the object frames alone (no landmarks; paper 2's
     alignment, then the coating's registration, projection and relaxation), on ``executor``
     (default: ``jobs`` local processes)."""
-    from ..meshutil import Mesh
-
     mesh = Mesh(study.template.points_object, study.template.faces)
     args = [(mesh, study.volume(n), study.params.coating, n) for n in names]
     with executor_or_local(executor, jobs, len(args)) as pool:
@@ -202,8 +201,6 @@ def make_model(study: Study, *, names: Sequence[str] | None = None, progress: Pr
 
 def evaluate_model(study: Study, *, progress: ProgressFn = None, cancelled: CancelledFn = None) -> ModelMetrics:
     """Compactness, generalization and specificity of the study's model."""
-    from ..model import metrics
-
     if study.model is None:
         raise InputError("metrics: build the model first")
     mp = study.params.model
@@ -284,8 +281,6 @@ def self_check(study: Study, coatings: dict[str, CoatingResult], *, template: Te
     Returns ``(CorrespondenceCheck, findings)``, or ``(None, ())`` when it does not apply
     (switched off, fewer than 3 instances or instances not all coated, no landmarks).
     """
-    from ..correspondence.rounds import check_correspondence, correspondence_fit_params
-
     template = template or study.template
     names = list(study.names)
     if (not study.params.correspondence.self_check or len(names) < 3 or template is None

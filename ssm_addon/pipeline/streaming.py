@@ -14,9 +14,10 @@ import numpy as np
 from ..base.errors import InputError, check_cancelled
 from ..base.params import CoatingParams, QualityParams
 from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
+from ..coating.coating import coat
 from ..formats.label_maps import read_label_map
 from ..instances.importing import InstanceSpec, import_instance
-from ..meshutil import genus
+from ..meshutil import Mesh, genus
 from ..model.quality import (
     check_duplicate_instances,
     check_landmarks_on_surface,
@@ -24,6 +25,7 @@ from ..model.quality import (
     check_volumes_together,
     content_digest,
 )
+from ..pipeline.cache import InstanceProduct, digest, file_digest
 from .stages import coating_result, make_template, self_check
 from .study import Log, StageResult, Study, common_landmark_names, instance_sources
 
@@ -62,8 +64,6 @@ class InstanceJob:
 
     def key(self) -> str:
         """The cache key (:mod:`ssm_addon.pipeline.cache`): every input that determines the product."""
-        from ..pipeline.cache import digest, file_digest
-
         spec, qp = self.spec, self.quality_params
         lm = spec.landmarks.subset(self.landmark_names)
         return digest("instance", {"source": file_digest(spec.source), "kind": "volume" if spec.volume_path else "mesh",
@@ -98,10 +98,6 @@ def coat_from_source(job: InstanceJob):
     identical. Returns an :class:`~ssm_addon.pipeline.cache.InstanceProduct`; the volume is
     dropped when the function returns.
     """
-    from ..coating.coating import coat
-    from ..meshutil import Mesh
-    from ..pipeline.cache import InstanceProduct
-
     spec, qp = job.spec, job.quality_params
     label_map = None
     if job.shared_file and spec.volume_path is not None:
@@ -122,8 +118,6 @@ def coat_from_source(job: InstanceJob):
 
 def template_key(study: Study) -> str:
     """Cache key of the template: its instance's inputs, the import and template parameters."""
-    from ..pipeline.cache import digest, file_digest
-
     spec = study.instance(study.template_instance)
     lm = spec.landmarks
     return digest("template", {"source": file_digest(spec.source), "label": spec.label,

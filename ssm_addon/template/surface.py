@@ -77,6 +77,7 @@ them with the spacing to keep the same smoothing in mm).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from math import comb
 
 import numpy as np
 import scipy.fft
@@ -496,8 +497,6 @@ def _local_moments(points, normals, sums):
     (M,) sums of x^a y^b z^c for a + b + c <= 4. Arrays are kept feature-major
     (features, M) so that every operation runs over contiguous memory.
     """
-    from math import comb
-
     sums_t = np.ascontiguousarray(sums.T)
     neg = np.ascontiguousarray(-points.T)  # (3, M)
     pw = np.ones((5,) + neg.shape)

@@ -34,6 +34,7 @@ in mm.
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -48,6 +49,7 @@ from ..base.errors import InputError, SSMError, check_cancelled
 from ..base.params import TemplateParams
 from ..base.progress import report, sub_progress
 from ..instances.volume import ObjectFrame, ObjectVolume
+from ..template import surface
 
 __all__ = [
     "Template",
@@ -677,10 +679,6 @@ def build_template(object_volume: ObjectVolume, params: TemplateParams | None = 
         Vertices in object mm, curvature in 1/mm; ``params`` holds the parameters and
         figures (points selected and inserted, genus, timings in s).
     """
-    import time
-
-    from ..template import surface
-
     params = TemplateParams() if params is None else params
     ov = object_volume
     h = float(ov.spacing_mm)
