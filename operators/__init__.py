@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import importlib
 
+import bpy
+
 MODULES = (
     "properties",
     "instances",
@@ -27,8 +29,6 @@ def _modules():
 
 
 def register():
-    import bpy
-
     for module in _modules():
         for cls in getattr(module, "classes", ()):
             bpy.utils.register_class(cls)
@@ -37,8 +37,6 @@ def register():
 
 
 def unregister():
-    import bpy
-
     for module in reversed(_modules()):
         if hasattr(module, "unregister_properties"):
             module.unregister_properties()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import bpy
 import numpy as np
+from mathutils import Matrix, Vector
 
 INSTANCES_COLLECTION = "SSM Instances"
 
@@ -77,8 +78,6 @@ def object_world_vertices(obj: bpy.types.Object) -> np.ndarray:
 
 def set_matrix_world(obj: bpy.types.Object, matrix: np.ndarray) -> None:
     """Set ``obj.matrix_world`` from a (4, 4) numpy array."""
-    from mathutils import Matrix
-
     obj.matrix_world = Matrix(np.asarray(matrix, dtype=float).tolist())
 
 
@@ -363,8 +362,6 @@ def select_only(context, objects, *, active=None) -> None:
 
 def add_empty(context, name: str, location, parent=None, size: float = 1.5, collection=None) -> bpy.types.Object:
     """A sphere empty at a Blender-world location (mm), optionally parented keeping its place."""
-    from mathutils import Matrix, Vector
-
     emp = bpy.data.objects.new(name, None)
     emp.empty_display_type = "SPHERE"
     emp.empty_display_size = size

@@ -19,17 +19,20 @@ import numpy as np
 from bpy.props import BoolProperty, CollectionProperty, FloatProperty, IntProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
+from ssm_addon.base import params as P
 from ssm_addon.base.errors import InputError, check_cancelled
 from ssm_addon.base.progress import report, sub_progress
 from ssm_addon.formats import label_maps as imageio
 from ssm_addon.instances import importing as core
 from ssm_addon.instances.importing import InstanceSpec
 from ssm_addon.instances.volume import display_surface
+from ssm_addon.instances.voxelize import voxelize_mesh
 
 from . import bridge
 from .jobs import BackgroundJob
 from .properties import SSMPanel, scene_params
 from .scene import (
+    VolumeLoader,
     absolute_source_path,
     cache_volume,
     clear_volume_cache,
@@ -132,8 +135,6 @@ def add_instance_objects(context, items: list[dict]) -> list:
 
 def instance_object_volume(context, obj, progress=None, cancelled=None):
     """The resampled object volume of an instance (paper 2), reloaded from its source and cached."""
-    from .scene import VolumeLoader
-
     loader = VolumeLoader(context, [obj])
     ov = loader.load(progress, cancelled)[obj.name]
     loader.keep()
@@ -200,7 +201,6 @@ class SSM_OT_import_segmentation(BackgroundJob, bpy.types.Operator, ImportHelper
         spacing = float(self.spacing_mm) if self.spacing_mm > 0 else tp.spacing_mm
         self._set_spacing = None
         if self.spacing_mm > 0:
-            from ssm_addon.base import params as P
 
             P.from_table(type(tp), {**P.to_table(tp), "spacing": P.shortest_float32(spacing)}, where="import:")
             self._set_spacing = spacing
@@ -279,7 +279,6 @@ class SSM_OT_add_mesh_instances(BackgroundJob, bpy.types.Operator):
             out = []
             for n, (name, verts, faces) in enumerate(data):
                 report(progress, n / len(data), f"voxelizing {name}")
-                from ssm_addon.instances.voxelize import voxelize_mesh
 
                 vol = voxelize_mesh(verts, faces, mesh_spacing or tp.spacing_mm, source=name, cancelled=cancelled)
                 ov = core.object_from_volume(vol, spacing_mm=tp.spacing_mm, frame_method=method,

@@ -26,6 +26,7 @@ from bpy.props import (
     StringProperty,
 )
 from bpy_extras.io_utils import ExportHelper, ImportHelper
+from bpy_extras.view3d_utils import location_3d_to_region_2d, region_2d_to_origin_3d, region_2d_to_vector_3d
 from mathutils import Vector
 
 from ssm_addon.base.errors import InputError, SSMError
@@ -41,10 +42,12 @@ from .scene import (
     ORDER_PROP,
     VolumeLoader,
     blender_to_file_world,
+    find_model_object,
     find_template,
     instance_landmarks,
     is_instance,
     landmark_empties,
+    model_from_object,
     scene_instances,
     schema_names,
     set_landmark,
@@ -412,7 +415,6 @@ class SSM_OT_place_landmarks(bpy.types.Operator):
         return (x, y) if 0 <= x < r.width and 0 <= y < r.height else None
 
     def _landmark_under(self, coord):
-        from bpy_extras.view3d_utils import location_3d_to_region_2d
 
         screen = {
             name: location_3d_to_region_2d(self._region, self._rv3d, emp.matrix_world.translation)
@@ -421,7 +423,6 @@ class SSM_OT_place_landmarks(bpy.types.Operator):
         return pick_on_screen(screen, coord)
 
     def modal(self, context, event):
-        from bpy_extras.view3d_utils import region_2d_to_origin_3d, region_2d_to_vector_3d
 
         if event.type in {"ESC", "RIGHTMOUSE"} and event.value == "PRESS":
             self._end(context)
@@ -588,7 +589,6 @@ class SSM_OT_propose_landmarks(BackgroundJob, bpy.types.Operator):
         """The scene's model if it carries landmarks (``method`` auto or model), else None."""
         if self.method not in ("auto", "model"):
             return None
-        from .scene import find_model_object, model_from_object
 
         obj = find_model_object(context)
         model = model_from_object(obj) if obj is not None else None

@@ -21,7 +21,9 @@ import os
 import bpy
 import numpy as np
 from bpy.props import BoolProperty, FloatProperty, IntProperty, StringProperty
+from bpy_extras import anim_utils
 from bpy_extras.io_utils import ImportHelper
+from mathutils import Vector
 
 from ssm_addon.base.errors import InputError, SSMError
 from ssm_addon.base.params import ModelParams
@@ -72,8 +74,6 @@ def model_location(context, model: ShapeModel) -> np.ndarray:
     model width to the right (+x) of the instances' bounding box, at the height and depth
     of their centre, so the model is seen beside the population.
     """
-    from mathutils import Vector
-
     insts = scene_instances(context)
     width = float(np.ptp(model.mean[:, 0])) if model.n_points else 0.0
     if not insts:
@@ -172,7 +172,6 @@ class SSM_OT_build_model(BackgroundJob, bpy.types.Operator):
 
 
 def _channelbag(keys):
-    from bpy_extras import anim_utils
 
     ad = keys.animation_data
     if ad is None or ad.action is None:

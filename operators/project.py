@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from pathlib import Path
@@ -24,14 +25,20 @@ from bpy.props import StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
 from ssm_addon.base.errors import InputError, SSMError
-from ssm_addon.base.params import OutputParams
+from ssm_addon.base.params import OutputParams, QualityParams
 from ssm_addon.formats import landmarks as core_landmarks
 from ssm_addon.formats.meshes import write_ply
 from ssm_addon.instances.importing import InstanceSpec, file_names, import_instance
+from ssm_addon.instances.volume import display_surface
 from ssm_addon.pipeline import project as core
 
-from . import bridge
-from .properties import SSMPanel, set_scene_study_params
+from . import bridge, register
+from .coating import write_coated
+from .instances import add_instance_objects, import_items, write_instance
+from .landmarks import add_schema_name
+from .model import create_model_object
+from .properties import SSMPanel, draw_params, set_scene_study_params
+from .render import render_modes_figure
 from .scene import (
     INSTANCE_ATTRIBUTES_KEY,
     mesh_file_world,
@@ -49,8 +56,6 @@ from .scene import (
 def _ensure_registered() -> None:
     """Register the Blender layer in a bare ``bpy`` module (``ssm build`` without Blender)."""
     if not hasattr(bpy.types.Object, "ssm"):
-        from . import register
-
         register()
 
 
@@ -60,13 +65,6 @@ def show_study(context, study) -> dict:
     The same writers the operators use; instances show the display surface of their
     resampled volume.
     """
-    from ssm_addon.instances.volume import display_surface
-
-    from .coating import write_coated
-    from .instances import write_instance
-    from .landmarks import add_schema_name
-    from .model import create_model_object
-
     scene = context.scene
     bridge.ensure_mm_units(scene)
     set_scene_study_params(scene, study.params)
@@ -138,10 +136,6 @@ def write_build_outputs(study, output: OutputParams, out_dir: Path, log=print) -
 
     Returns ``{"picture": "modes.png", "blend": "model.blend"}`` (names inside ``out_dir``).
     """
-    import dataclasses
-
-    from .render import render_modes_figure
-
     _ensure_registered()
     out = {}
     if output.picture:
@@ -209,9 +203,6 @@ def load_project_into_scene(context, project: core.Project) -> list:
     The instances go through the same core import as File > Import; an error leaves
     the scene as it was (nothing is created before every instance has been read).
     """
-    from .instances import add_instance_objects, import_items
-    from .landmarks import add_schema_name
-
     scene = context.scene
     items = import_items(project.instances, spacing_mm=project.params.template.spacing_mm,
                          frame_method=project.params.template.frame)
@@ -300,7 +291,6 @@ class SSM_PT_project_output(SSMPanel, bpy.types.Panel):
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context):
-        from .properties import draw_params
 
         draw_params(self.layout, context.scene.ssm_output, OutputParams)
 
@@ -312,9 +302,6 @@ class SSM_PT_project_quality(SSMPanel, bpy.types.Panel):
     bl_options = {"DEFAULT_CLOSED"}
 
     def draw(self, context):
-        from ssm_addon.base.params import QualityParams
-
-        from .properties import draw_params
 
         draw_params(self.layout, context.scene.ssm_quality, QualityParams)
         draw_params(self.layout, context.scene.ssm_quality, QualityParams, advanced=True)

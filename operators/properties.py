@@ -24,6 +24,8 @@ from bpy.props import (
 from ssm_addon.base import params as P
 from ssm_addon.base.errors import InputError
 
+from . import bridge
+
 ROLES = [
     ("NONE", "None", "Not part of an SSM build"),
     ("INSTANCE", "Instance", "A segmented object of the training set"),
@@ -233,7 +235,6 @@ SSMComputeSettings = param_group(P.ComputeParams, "SSMComputeSettings")  # kept 
 
 
 def _recolour(self, context):
-    from . import bridge
 
     bridge.recolour_scene(context)
 

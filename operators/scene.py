@@ -34,6 +34,7 @@ from pathlib import Path
 
 import bpy
 import numpy as np
+from mathutils import Vector
 
 from ssm_addon.base.errors import InputError
 from ssm_addon.base.progress import report, sub_progress
@@ -248,8 +249,6 @@ def set_landmark(context, instance, name: str, *, file_world=None, blender_world
     Give its position in the instance's file world mm (``file_world``, kept exactly) or
     in Blender world mm (``blender_world``, e.g. a click).
     """
-    from mathutils import Vector
-
     if file_world is None:
         file_world = blender_to_file_world(instance, blender_world)[0]
     file_world = np.asarray(file_world, dtype=float).reshape(3)
@@ -560,7 +559,5 @@ INSTANCE_ATTRIBUTES_KEY = "ssm_instance_attributes"
 
 def scene_instance_attributes(context) -> dict:
     """``{instance name: {column: value}}`` of the project opened into the scene (empty if none)."""
-    import json
-
     raw = context.scene.get(INSTANCE_ATTRIBUTES_KEY)
     return json.loads(raw) if raw else {}

@@ -13,7 +13,23 @@ import importlib
 import sys
 from collections.abc import Callable, Mapping
 
-__all__ = ["lazy_exports"]
+__all__ = ["DEFERRED_IMPORTS", "DEFERRED_IN", "lazy_exports"]
+
+#: The only imports that stand inside functions: every other import is at the top of its module
+#: (``tests/test_structure.py`` holds it). Libraries the build needs only for one output, or only
+#: when asked for, and that cost time to import or may be missing:
+DEFERRED_IMPORTS = {
+    "matplotlib": "the plots and pictures (0.4 s to import; optional: plots are skipped with a note)",
+    "PIL": "the pictures of instances and fits (Pillow, which matplotlib brings)",
+    "h5py": "statismo files, read or written only when a model file is",
+    "dask": "the optional Dask scheduler (pip install \"ssm-builder[dask]\")",
+    "distributed": "the optional Dask scheduler",
+}
+#: Modules whose functions import the core modules they run, and why.
+DEFERRED_IN = {
+    "ssm_addon/cli/command.py": "each subcommand imports the stages it runs, so `ssm --help`, `ssm params` and "
+                                "`ssm info` import none of them",
+}
 
 
 def lazy_exports(package: str, modules: Mapping[str, tuple[str, ...]]) -> tuple[Callable, Callable, list[str]]:

@@ -334,3 +334,84 @@ def test_the_build_path_does_not_import_scipy_stats():
     proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
                           env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert proc.returncode == 0 and proc.stdout.strip() == "False", proc.stdout + proc.stderr
+
+
+#: The core's layers, bottom to top (docs/architecture.md). A package imports packages of the
+#: layers below it and, within its own layer, only packages that do not import it back.
+LAYERS = (
+    ("", "_lazy", "base", "meshutil"),  # foundation ("": the root package, whose names are lazy re-exports)
+    ("formats", "instances", "template", "coating", "model", "fitting", "correspondence", "analysis"),  # stages
+    ("pipeline",),  # orchestrator: the study, its stage functions, cache, project file
+    ("cli",),  # the command line
+)
+
+
+def _package_graph() -> dict[str, set[str]]:
+    """Imports between the core's top-level packages and modules (anywhere in a module)."""
+    graph: dict[str, set[str]] = {}
+    for m in _modules(CORE):
+        src = m.split(".")[0]
+        for d in _imported_modules(CORE, m):
+            dst = d.split(".")[0]
+            if dst != src:
+                graph.setdefault(src, set()).add(dst)
+    return graph
+
+
+def test_packages_form_layers_whose_imports_point_down():
+    """Foundation, stages, orchestrator, command line: no import runs from a lower layer to a
+    higher one, and the packages import each other without a cycle, so every package has a floor."""
+    graph = _package_graph()
+    layer = {p: i for i, names in enumerate(LAYERS) for p in names}
+    tops = {p.name.removesuffix(".py") for p in CORE.iterdir() if not p.name.startswith(("__", "."))} | {""}
+    assert tops <= set(layer) | {"__main__"}, f"packages without a layer: {sorted(tops - set(layer))}"
+    up = sorted(f"{a or 'ssm_addon'} -> {b}" for a, ds in graph.items() for b in ds if a in layer and layer[b] > layer[a])
+    assert not up, f"imports that run up a layer: {up}"
+    state: dict[str, int] = {}
+
+    def visit(p, path):
+        assert state.get(p) != 1, f"package import cycle: {' -> '.join([*path, p])}"
+        if state.get(p) == 2:
+            return
+        state[p] = 1
+        for d in sorted(graph.get(p, ())):
+            visit(d, [*path, p])
+        state[p] = 2
+
+    for p in sorted(graph):
+        visit(p, [])
+    foundation = {p for p in LAYERS[0]}
+    assert all(d in foundation for p in foundation for d in graph.get(p, ())), {p: graph.get(p) for p in foundation}
+
+
+def _function_local_imports(path: Path):
+    tree = ast.parse(path.read_text())
+    parents = {c: n for n in ast.walk(tree) for c in ast.iter_child_nodes(n)}
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Import | ast.ImportFrom):
+            continue
+        up = node
+        while up in parents and not isinstance(up, ast.FunctionDef | ast.AsyncFunctionDef):
+            up = parents[up]
+        if isinstance(up, ast.FunctionDef | ast.AsyncFunctionDef):
+            yield node
+
+
+def test_imports_stand_at_the_top_of_their_module():
+    """A function-local import hides a dependency and fails only when the function runs: the core and
+    the Blender layer import at the top, except the libraries and modules ``ssm_addon._lazy`` names."""
+    from ssm_addon._lazy import DEFERRED_IMPORTS, DEFERRED_IN
+
+    offenders = []
+    for folder in (CORE, OPERATORS):
+        for path in sorted(folder.rglob("*.py")):
+            rel = path.relative_to(ROOT).as_posix()
+            for node in _function_local_imports(path):
+                names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
+                own = isinstance(node, ast.ImportFrom) and node.level > 0
+                if not own and all(n.split(".")[0] in DEFERRED_IMPORTS for n in names):
+                    continue
+                if rel in DEFERRED_IN:
+                    continue
+                offenders.append(f"{rel}:{node.lineno}: {ast.unparse(node)}")
+    assert not offenders, offenders
