@@ -11,7 +11,6 @@ again replaces its coated mesh (found by the instance pointer, so renaming is sa
 
 from __future__ import annotations
 
-import json
 import time
 
 import bpy
@@ -39,9 +38,10 @@ from .scene import (
     find_template,
     instance_findings,
     object_to_blender_matrix,
-    record_findings,
+    record_stage,
     report_stage,
     scene_instances,
+    scene_records,
     study_from_scene,
     write_template_object,
 )
@@ -152,11 +152,10 @@ class SSM_OT_coat_template(BackgroundJob, bpy.types.Operator):
         self._loader.keep()
         imported, result, was_cancelled = outcome
         written = self._write(context, result.product["coatings"])
-        found = record_findings(context, imported) + record_findings(context, result)
+        found = record_stage(context, imported) + record_stage(context, result)
         msg = f"coated {len(written)} instance(s)"
         check = result.product.get("correspondence_check")
         if check is not None:
-            context.scene[CHECK_KEY] = json.dumps(check.to_dict())
             msg += f"; landmark transfer error {check.study_mm:.2f} mm"
         if was_cancelled:
             msg = f"cancelled: kept {len(written)} of {len(self._names)} coated instance(s)"
@@ -172,12 +171,6 @@ class SSM_OT_coat_template(BackgroundJob, bpy.types.Operator):
         if results:
             written = self._write(context, dict(zip(self._names, results)))
             self.report({"INFO"}, f"kept {len(written)} finished coated instance(s)")
-
-
-ROUNDS_KEY = "ssm_correspondence_rounds"
-#: Scene property: the model method's choice of the template's instance (JSON).
-TEMPLATE_CHOICE_KEY = "ssm_template_choice"
-CHECK_KEY = "ssm_correspondence_check"
 
 
 class SSM_OT_refine_correspondence(BackgroundJob, bpy.types.Operator):
@@ -242,8 +235,6 @@ def finish_refinement(op, context, outcome):
     coatings, starts = result.product["coatings"], result.product["coating_start"]
     rounds = list(result.product.get("correspondence_rounds", ()))
     mean_points = result.product["template"].points_object
-    if result.product.get("template_choice"):
-        context.scene[TEMPLATE_CHOICE_KEY] = json.dumps(result.product["template_choice"])
     medoid = result.product.get("template_instance")
     current = context.scene.ssm_display.template_instance
     if (medoid is not None and (current is None or current.name != medoid)
@@ -256,11 +247,7 @@ def finish_refinement(op, context, outcome):
             obj = write_coated(context, inst, coating, result.product["template"].faces, mean_points)
             obj["ssm_coating_start"] = starts.get(name, coating.fit.start)
             written.append(obj)
-    previous = [] if op._fresh else correspondence_rounds(context)
-    context.scene[ROUNDS_KEY] = json.dumps(previous + [r.to_dict() for r in rounds])
     check = result.product.get("correspondence_check")
-    if check is not None:
-        context.scene[CHECK_KEY] = json.dumps(check.to_dict())
     folds = sum(c.fit.folded_after for c in coatings.values())
     last = rounds[-1] if rounds else None
     msg = (f"refined {len(written)} instance(s) in {len(rounds)} round(s)"
@@ -268,25 +255,19 @@ def finish_refinement(op, context, outcome):
     if check is not None:
         kept = f"round {check.kept_round}'s coatings" if check.kept_round else "the start's coatings"
         msg += f"; {check.stop}: kept {kept}, landmark transfer error {check.study_mm:.2f} mm"
-    found = record_findings(context, imported) + record_findings(context, result)
+    found = record_stage(context, imported) + record_stage(context, result, fresh=op._fresh)
     report_stage(op, f"{msg}; {folds} folded triangle(s) left" if folds else msg, found)
     return {"FINISHED"}
 
 
 def correspondence_check(context) -> dict:
-    """The last correspondence self-check in this scene (``Scene["ssm_correspondence_check"]``)."""
-    try:
-        return json.loads(context.scene.get(CHECK_KEY, "{}"))
-    except ValueError:
-        return {}
+    """The correspondence self-check of the coatings in this scene (empty when none was run)."""
+    return scene_records(context).get("correspondence_check") or {}
 
 
 def correspondence_rounds(context) -> list[dict]:
-    """The refinement rounds run in this scene (``Scene["ssm_correspondence_rounds"]``)."""
-    try:
-        return json.loads(context.scene.get(ROUNDS_KEY, "[]"))
-    except ValueError:
-        return []
+    """The refinement rounds of the coatings in this scene."""
+    return list(scene_records(context).get("correspondence_rounds") or ())
 
 
 class SSM_PT_coating(SSMPanel, bpy.types.Panel):

@@ -27,11 +27,15 @@ from mathutils import Vector
 
 from ssm_addon.base.errors import InputError, SSMError
 from ssm_addon.base.params import ModelParams
-from ssm_addon.cli.report import write_outputs, write_report_html
+from ssm_addon.base.progress import sub_progress
 from ssm_addon.fitting.batch import load_model
 from ssm_addon.model import metrics as core_metrics
 from ssm_addon.model.pca import ShapeModel
-from ssm_addon.pipeline.stages import model_stage
+from ssm_addon.model.quality import check_model
+from ssm_addon.pipeline.outputs import owned_output_folder, save_study_outputs, write_outputs
+from ssm_addon.pipeline.report import Absent, write_report_html
+from ssm_addon.pipeline.stages import metrics_stage, model_stage
+from ssm_addon.pipeline.study import apply_stage
 
 from . import bridge
 from .jobs import BackgroundJob
@@ -44,7 +48,7 @@ from .scene import (
     find_model_object,
     mode_keys,
     model_from_object,
-    record_findings,
+    record_stage,
     report_stage,
     scene_findings,
     scene_instances,
@@ -160,7 +164,7 @@ class SSM_OT_build_model(BackgroundJob, bpy.types.Operator):
     def finish(self, context, result):
         model = result.product["model"]
         obj = create_model_object(context, model, template_points=self._template_points, activate=False)
-        found = record_findings(context, result)
+        found = record_stage(context, result)
         conc = model.variability_concentration()
         k3 = min(3, model.n_modes)
         share = conc[k3 - 1] * 100 if k3 else 0.0
@@ -352,17 +356,21 @@ class SSM_OT_reset_modes(bpy.types.Operator):
 
 
 class SSM_OT_save_model(BackgroundJob, bpy.types.Operator):
-    """Write model.npz, the statismo HDF5 file (model.h5), report.json and the plots into a folder"""
+    """Write the model's files and the build's report (report.json, report.html with the scene's findings) into a folder, as a headless build does"""
 
     bl_idname = "ssm.save_model"
     bl_label = "Save Model"
     bl_options = {"REGISTER"}
 
     directory: StringProperty(name="Directory", subtype="DIR_PATH")
-    metrics: BoolProperty(name="Quality metrics", description="Generalization and specificity (compactness always)", default=True)
+    metrics: BoolProperty(name="Quality metrics", description="Generalization and specificity when the scene has "
+                          "none yet (compactness always)", default=True)
     plots: BoolProperty(name="Plots", description="Spectrum and cumulative variance images (needs matplotlib)", default=True)
     n_samples: IntProperty(name="Specificity samples", default=500, min=1, options={"SKIP_SAVE"},
                            description="Random shapes of the specificity metric (default: the model settings')")
+    force: BoolProperty(name="Write beside other files", default=False, options={"SKIP_SAVE"},
+                        description="Write into a folder that holds files no SSM command wrote (they are kept, "
+                                    "never overwritten)")
 
     @classmethod
     def poll(cls, context):
@@ -381,38 +389,70 @@ class SSM_OT_save_model(BackgroundJob, bpy.types.Operator):
         obj = _require_model(context)
         model = model_from_object(obj)
         out_dir = bpy.path.abspath(self.directory)
-        per_instance = dict(model.params.get("fit") or {})
-        if not self.properties.is_property_set("n_samples"):
-            self.n_samples = context.scene.ssm_model.specificity_samples
-        mp = context.scene.ssm_model
-        with_metrics, plots, n_samples, seed, max_loo = self.metrics, self.plots, self.n_samples, mp.seed, mp.max_loo
-        extra = {"model_object": obj.name}  # read here: the worker thread must not touch bpy
+        samples = self.n_samples if self.properties.is_property_set("n_samples") else None
+        with_metrics, plots, force, title = self.metrics, self.plots, self.force, f"SSM Builder: {obj.name}"
         output = scene_params(context, "ssm_output")
-        files = {"statismo": output.statismo, "tables": output.scores, "gltf": output.gltf, "vtk": output.vtk,
-                 "exchange_modes": output.exchange_modes}
+        extra = {"model_object": obj.name, "blend_file": bpy.data.filepath or ""}
+        study, why = saved_study(context, model)  # read here: the worker thread must not touch bpy
+        mp = context.scene.ssm_model
+        context_samples, seed, max_loo = mp.specificity_samples, mp.seed, mp.max_loo
+        bpy_file = bpy.data.filepath
+        self._metrics_result = None
 
         def work(progress, cancelled):
-            if with_metrics:
-                mets = core_metrics.evaluate(model, n_samples=n_samples, seed=seed, max_loo=max_loo,
-                                             progress=progress, cancelled=cancelled)
-            else:
-                mets = core_metrics.ModelMetrics(compactness=core_metrics.compactness(model))
-            written = write_outputs(model, out_dir, metrics=mets, per_instance=per_instance, extra=extra, plots=plots,
-                                    **files)
-            written["html"] = str(write_report_html(out_dir, model, doc=written.pop("document"),
-                                                    title=f"SSM Builder: {extra['model_object']}"))
-            return written
+            if study is None:  # a model on its own (opened from a file): its files and what it knows
+                mets = core_metrics.evaluate(model, n_samples=samples or context_samples, seed=seed, max_loo=max_loo,
+                                             progress=progress, cancelled=cancelled) if with_metrics else \
+                    core_metrics.ModelMetrics(compactness=core_metrics.compactness(model))
+                with owned_output_folder(out_dir, [], force=force, what="saving") as tmp:
+                    written = write_outputs(model, tmp, metrics=mets, per_instance=dict(model.params.get("fit") or {}),
+                                            extra=extra, plots=plots, why=why, statismo=output.statismo,
+                                            tables=output.scores, gltf=output.gltf, vtk=output.vtk,
+                                            exchange_modes=output.exchange_modes)
+                    write_report_html(tmp, model, written["report_object"], title=title)
+                return out_dir, written.get("plots_skipped", "")
+            if study.metrics is None and with_metrics:
+                self._metrics_result = metrics_stage(study, progress=sub_progress(progress, 0.0, 0.8),
+                                                     cancelled=cancelled, specificity_samples=samples)
+                apply_stage(study, self._metrics_result)
+            unknown = {s: "not recorded in this scene (run in another session, or before the scene kept its "
+                          "records)" for s in ("import", "template", "coating", "model") if s not in study.timings_s}
+            folder, _files, _report = save_study_outputs(
+                study, out_dir, force=force, output=output, title=title, plots=plots, extra=extra,
+                project=Absent(f"built interactively in Blender ({bpy_file or 'an unsaved .blend'})"),
+                timings_unknown=unknown, metrics_absent="not computed (Save Model with Quality metrics off)",
+                progress=sub_progress(progress, 0.8, 1.0), cancelled=cancelled)
+            return str(folder), ""
 
         return work
 
-    def finish(self, context, written):
-        context.scene.ssm_model.last_directory = os.path.dirname(written["npz"])
-        msg = f"saved {os.path.dirname(written['npz'])}: model.npz, model.h5, report.json, report.html"
-        if written.get("plots_skipped"):
-            self.report({"WARNING"}, f"{msg}; {written['plots_skipped']}")
-        else:
-            self.report({"INFO"}, f"{msg}, {len(written['plots'])} plots")
+    def finish(self, context, outcome):
+        folder, skipped = outcome
+        if self._metrics_result is not None:
+            record_stage(context, self._metrics_result)
+        context.scene.ssm_model.last_directory = folder
+        msg = f"saved {folder}: model.npz, model.h5, report.json, report.html"
+        self.report({"WARNING"} if skipped else {"INFO"}, f"{msg}; {skipped}" if skipped else msg)
         return {"FINISHED"}
+
+
+def saved_study(context, model: ShapeModel):
+    """The scene's study for *Save Model*: its instances, template, coatings and records with
+    ``model``, or ``(None, why)`` when the scene does not hold the study the model came from
+    (a model opened from a file, or instances removed since)."""
+    try:
+        study = study_from_scene(context, records=True)
+    except InputError as err:
+        return None, f"a model without its study in this scene ({err})"
+    names = [str(n) for n in model.instance_names]
+    missing = [n for n in names if n not in study.coatings]
+    if study.template is None or missing or not names:
+        return None, ("a model without its study in this scene: " + (
+            f"no coated instance {', '.join(missing[:3])}" if missing else "no template"))
+    study.model = model
+    if not study.outlier_scores:  # a model built before the scene kept its records
+        study.outlier_scores = check_model(model, study.params.quality)[1]
+    return study, ""
 
 
 # ---------------------------------------------------------------------------------------

@@ -31,6 +31,7 @@ from ssm_addon.formats.meshes import write_ply
 from ssm_addon.instances.importing import InstanceSpec, file_names, import_instance
 from ssm_addon.instances.volume import display_surface
 from ssm_addon.pipeline import project as core
+from ssm_addon.pipeline.store import study_records
 
 from . import bridge, register
 from .coating import write_coated
@@ -46,7 +47,7 @@ from .scene import (
     scene_instances,
     set_landmark,
     study_from_scene,
-    write_findings,
+    write_records,
     write_template_object,
 )
 
@@ -97,7 +98,7 @@ def show_study(context, study) -> dict:
     if study.model is not None:
         out["model"] = create_model_object(context, study.model,
                                            template_points=study.template.points_object if study.template else None)
-    write_findings(scene, study.findings)  # what the panels show
+    write_records(scene, study_records(study))  # what the panels show and Save Model reports
     return out
 
 

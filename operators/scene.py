@@ -38,6 +38,7 @@ from mathutils import Vector
 
 from ssm_addon.base.errors import InputError
 from ssm_addon.base.progress import report, sub_progress
+from ssm_addon.base.records import jsonable
 from ssm_addon.coating.coating import CoatingResult, FitFigures
 from ssm_addon.formats.landmarks import LandmarkSet
 from ssm_addon.instances import importing as core_instances
@@ -46,7 +47,8 @@ from ssm_addon.instances.volume import ObjectFrame, ObjectVolume
 from ssm_addon.model.files import model_from_arrays
 from ssm_addon.model.pca import ShapeModel
 from ssm_addon.model.quality import Finding
-from ssm_addon.pipeline.study import Study, merge_findings
+from ssm_addon.pipeline.store import RECORD_FIELDS, apply_records, study_records
+from ssm_addon.pipeline.study import StageResult, Study, apply_stage, merge_findings
 from ssm_addon.template.template import Template
 
 from . import bridge
@@ -478,31 +480,80 @@ def find_model_object(context) -> bpy.types.Object | None:
 
 
 # ---------------------------------------------------------------------------------------
-# the quality findings of the stages run in this scene
+# the records of the stages run in this scene: findings, starts, rounds, self-check, timings
 # ---------------------------------------------------------------------------------------
-FINDINGS_KEY = "ssm_findings"
+RECORDS_KEY = "ssm_study_records"
+#: Keys of the scene's records before they were one record (read from older .blend files).
+_OLD_KEYS = {"findings": "ssm_findings", "correspondence_check": "ssm_correspondence_check",
+             "correspondence_rounds": "ssm_correspondence_rounds", "template_choice": "ssm_template_choice"}
+
+
+def scene_records(context) -> dict:
+    """The study records of the stages run in this scene (``Scene["ssm_study_records"]``,
+    :func:`ssm_addon.pipeline.store.study_records`' form): what *Save Model* writes into the
+    report beside the arrays, and what the panels draw."""
+    return records_of(context.scene)
+
+
+def records_of(scene) -> dict:
+    """:func:`scene_records` of ``scene``."""
+    raw = scene.get(RECORDS_KEY)
+    if raw is not None:
+        try:
+            return json.loads(raw)
+        except ValueError:
+            return {}
+    out = {}
+    for key, old in _OLD_KEYS.items():  # a .blend saved before the records were one
+        if old in scene:
+            try:
+                out[key] = json.loads(scene[old])
+            except ValueError:
+                pass
+    return out
+
+
+def write_records(scene, records: dict) -> None:
+    """Keep ``records`` (:func:`ssm_addon.pipeline.store.study_records`' form) in the scene."""
+    scene[RECORDS_KEY] = json.dumps(jsonable(records))
+    for old in _OLD_KEYS.values():
+        if old in scene:
+            del scene[old]
 
 
 def scene_findings(context) -> list[Finding]:
-    """The findings of the stages run in this scene (``Scene["ssm_findings"]``), in stage order:
-    the same findings (stage, gate, instance, figure) a headless build of the scene's project
-    writes into ``report.json``."""
+    """The findings of the stages run in this scene, in stage order: the same findings (stage,
+    gate, instance, figure) a headless build of the scene's project writes into ``report.json``."""
     try:
-        return [Finding.from_dict(d) for d in json.loads(context.scene.get(FINDINGS_KEY, "[]"))]
+        return [Finding.from_dict(d) for d in scene_records(context).get("findings") or ()]
     except (ValueError, KeyError, TypeError):
         return []
 
 
-def write_findings(scene, findings) -> None:
-    """Keep ``findings`` in the scene (as :meth:`Finding.to_dict`)."""
-    scene[FINDINGS_KEY] = json.dumps([f.to_dict() for f in findings])
+def record_stage(context, result, *, fresh: bool = True) -> list[Finding]:
+    """Keep a stage result's records in the scene; returns the stage's findings.
 
-
-def record_findings(context, result) -> list[Finding]:
-    """Keep a stage result's findings in the scene (:func:`ssm_addon.pipeline.study.merge_findings`)."""
-    merged = merge_findings(scene_findings(context), result)
-    write_findings(context.scene, merged)
-    return [f for f in merged if f.stage == result.stage]
+    Findings as :func:`ssm_addon.pipeline.study.merge_findings` (the stage's earlier findings
+    of the instances it covers replaced), the stage's wall times, and the records it made
+    (outlier scores, each coating's start, rounds, self-check, template choice, metrics). A
+    coating stage replaces the correspondence records (its self-check, or none, describes
+    the coatings now in the scene); one that continues the model method's rounds
+    (``fresh=False``) extends the rounds.
+    """
+    holder = apply_records(Study(instances=()), scene_records(context))
+    recorded = list(holder.findings)
+    product = {k: v for k, v in result.product.items() if k in RECORD_FIELDS}
+    if result.stage == "model":
+        holder.metrics = None  # the metrics described the model this one replaces
+    if result.stage == "coating":
+        if fresh:
+            holder.correspondence_rounds = []
+        holder.template_choice = {}
+        product.setdefault("correspondence_check", None)
+    apply_stage(holder, StageResult(result.stage, product, (), dict(result.timings_s)))
+    holder.findings = merge_findings(recorded, result)
+    write_records(context.scene, study_records(holder))
+    return [f for f in holder.findings if f.stage == result.stage]
 
 
 def report_stage(op, message: str, findings: list[Finding]) -> None:
@@ -519,8 +570,9 @@ def instance_findings(context, name: str, stage: str | None = None) -> list[Find
 
 
 def study_from_scene(context, *, template_instance: str | None = None, template: bool = True,
-                     coatings: bool = True) -> Study:
-    """The scene's study: instances (study order), parameters, frames, template, coatings.
+                     coatings: bool = True, records: bool = False) -> Study:
+    """The scene's study: instances (study order), parameters, frames, template, coatings, and
+    (``records``) the records of the stages run in the scene (:func:`scene_records`).
 
     Volumes are not loaded here (see :class:`VolumeLoader`).
     """
@@ -549,6 +601,8 @@ def study_from_scene(context, *, template_instance: str | None = None, template:
         for obj in coated_objects(context):
             if COATING_KEY in obj:
                 study.coatings[obj.ssm.instance.name] = coating_from_object(obj)
+    if records:
+        apply_records(study, scene_records(context))
     return study
 
 

@@ -31,7 +31,7 @@ from .scene import (
     VolumeLoader,
     find_template,
     is_instance,
-    record_findings,
+    record_stage,
     report_stage,
     study_from_scene,
     write_template_object,
@@ -88,7 +88,7 @@ class SSM_OT_build_template(BackgroundJob, bpy.types.Operator):
             return {"CANCELLED"}
         template = result.product["template"]
         obj = write_template_object(context, instance, template)
-        found = record_findings(context, imported) + record_findings(context, result)
+        found = record_stage(context, imported) + record_stage(context, result)
         msg = (f"template: {len(template.points_object)} points, {len(template.faces)} triangles, "
                f"genus {template.params.get('genus')} from {instance.name}")
         report_stage(self, msg, found)

@@ -56,7 +56,7 @@ MOVED_MODULES = {
     "imageio": "formats.label_maps", "landmarks": "formats.landmarks", "metrics": "model.metrics",
     "params": "base.params", "progress": "base.progress", "project": "cli.project_build",
     "proposal": "correspondence.proposal", "quality": "model.quality", "registration": "coating.registration",
-    "relaxation": "coating.relaxation", "report": "cli.report", "resample": "instances.resampling",
+    "relaxation": "coating.relaxation", "report": "pipeline.report", "resample": "instances.resampling",
     "resources": "base.resources", "store": "pipeline.store", "study": "pipeline.study",
     "surface": "template.surface", "volume": "instances.volume", "voxelize": "instances.voxelize",
     "warp": "coating.warp",
@@ -65,6 +65,7 @@ MOVED_MODULES = {
     "pipeline.progress": "base.progress", "pipeline.records": "base.records", "pipeline.resources": "base.resources",
     "formats.project_file": "pipeline.project", "formats.blender_store": "pipeline.store",
     "fitting.correspondence": "correspondence.rounds", "coating.proposal": "correspondence.proposal",
+    "cli.report": "pipeline.report",
 }
 
 

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import json
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
 from test_model import FACES, names, random_rotation, synthetic_population
 
 from ssm_addon.base.errors import InputError
-from ssm_addon.cli.report import write_outputs
 from ssm_addon.model.files import load_npz, load_statismo
 from ssm_addon.model.metrics import (
     ModelMetrics,
@@ -23,6 +23,7 @@ from ssm_addon.model.metrics import (
     write_report,
 )
 from ssm_addon.model.pca import build_model
+from ssm_addon.pipeline.outputs import write_outputs
 
 NOISE_MM = 0.02
 # mean length of 3D isotropic Gaussian noise: 2 sqrt(2/pi) sigma
@@ -152,7 +153,8 @@ def test_write_outputs_writes_every_file(tmp_path, population):
     assert load_npz(out["npz"]).n_modes == model.n_modes
     assert load_statismo(out["statismo"]).n_modes == model.n_modes
     assert out["plots"] == []
-    assert json.loads(open(out["report"]).read())["files"]["npz"] == out["npz"]
+    # report.json lists the files where they are, relative to the output folder
+    assert tmp_path / "out" / json.loads(open(out["report"]).read())["files"]["npz"] == Path(out["npz"])
 
 
 def test_plots_are_skipped_with_a_clear_message_without_matplotlib(tmp_path, population, monkeypatch):

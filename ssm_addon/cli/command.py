@@ -282,7 +282,7 @@ def cmd_fit(args) -> int:
     params = P.from_arguments(args, P.FitParams)
     if not 0.5 < args.outlier_probability < 1.0:
         raise InputError(f"--outlier-probability must be between 0.5 and 1, got {args.outlier_probability}")
-    from .project_build import owned_output_folder
+    from ..pipeline.outputs import owned_output_folder
 
     out = Path(args.out).expanduser().resolve()
     inputs = [args.model, args.volume, args.mesh, args.points, args.landmarks, args.project]
@@ -331,7 +331,7 @@ def cmd_analyze(args) -> int:
     from ..analysis.attributes import read_attributes
     from ..analysis.files import analysis_summary, run_analysis
     from ..fitting.batch import load_model
-    from .project_build import owned_output_folder
+    from ..pipeline.outputs import owned_output_folder
 
     source = Path(args.model).expanduser()
     model_path = source / "model.npz" if source.is_dir() else source

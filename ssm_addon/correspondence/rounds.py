@@ -54,7 +54,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 
 import numpy as np
 from scipy.special import stdtrit
@@ -170,6 +170,10 @@ class LandmarkNoise:
     def to_dict(self) -> dict:
         return asdict(self)
 
+    @classmethod
+    def from_dict(cls, d: dict) -> LandmarkNoise:
+        return cls(**{k: d[k] for k in ("model_mm", "click_mm", "shrink", "estimated") if k in d})
+
 
 def landmark_noise(differences: dict, template_instance: str, *, click_mm: float | None = None,
                    coating_differences: dict | None = None) -> LandmarkNoise:
@@ -278,6 +282,16 @@ class RoundFigures:
     def to_dict(self) -> dict:
         return asdict(self)
 
+    @classmethod
+    def from_dict(cls, d: dict) -> RoundFigures:
+        """From :meth:`to_dict`'s form (a value JSON wrote as null is NaN again)."""
+        known = {f.name for f in fields(cls)}
+        values = {k: v for k, v in d.items() if k in known}
+        values["landmark_noise"] = LandmarkNoise.from_dict(d.get("landmark_noise") or {})
+        for k in ("transfer_before_mm", "transfer_after_mm"):
+            values[k] = float("nan") if values.get(k) is None else float(values[k])
+        return cls(**values)
+
 
 @dataclass(frozen=True)
 class CorrespondenceCheck:
@@ -324,6 +338,14 @@ class CorrespondenceCheck:
         d = asdict(self)
         d["study_mm"] = None if not math.isfinite(self.study_mm) else self.study_mm
         return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> CorrespondenceCheck:
+        """From :meth:`to_dict`'s form."""
+        study_mm = d.get("study_mm")
+        return cls(landmark_mm=dict(d.get("landmark_mm") or {}), instance_mm=dict(d.get("instance_mm") or {}),
+                   study_mm=float("nan") if study_mm is None else float(study_mm), stop=str(d.get("stop", "")),
+                   kept_round=int(d.get("kept_round", 0)))
 
 
 def aligned_to(shapes: np.ndarray, reference: np.ndarray) -> np.ndarray:

@@ -199,13 +199,16 @@ def make_model(study: Study, *, names: Sequence[str] | None = None, progress: Pr
                        precision=mp.precision, params=params, progress=progress, cancelled=cancelled)
 
 
-def evaluate_model(study: Study, *, progress: ProgressFn = None, cancelled: CancelledFn = None) -> ModelMetrics:
-    """Compactness, generalization and specificity of the study's model."""
+def evaluate_model(study: Study, *, progress: ProgressFn = None, cancelled: CancelledFn = None,
+                   specificity_samples: int | None = None) -> ModelMetrics:
+    """Compactness, generalization and specificity of the study's model (``[model]``'s
+    samples, seed and leave-one-out limit; ``specificity_samples`` overrides the samples)."""
     if study.model is None:
         raise InputError("metrics: build the model first")
     mp = study.params.model
-    return metrics.evaluate(study.model, n_samples=mp.specificity_samples, seed=mp.seed, max_loo=mp.max_loo,
-                            progress=progress, cancelled=cancelled)
+    n = mp.specificity_samples if specificity_samples is None else int(specificity_samples)
+    return metrics.evaluate(study.model, n_samples=n, seed=mp.seed, max_loo=mp.max_loo, progress=progress,
+                            cancelled=cancelled)
 
 
 def import_result(study: Study, volumes: dict[str, ObjectVolume], seconds: float) -> StageResult:
@@ -308,10 +311,11 @@ def model_stage(study: Study, *, progress: ProgressFn = None, cancelled: Cancell
                        (f"model: {model.n_modes} modes, {model.n_points} points in {seconds:.2f} s",))
 
 
-def metrics_stage(study: Study, *, progress: ProgressFn = None, cancelled: CancelledFn = None) -> StageResult:
+def metrics_stage(study: Study, *, progress: ProgressFn = None, cancelled: CancelledFn = None,
+                  specificity_samples: int | None = None) -> StageResult:
     """Compactness, generalization and specificity (:func:`evaluate_model`)."""
     t0 = time.perf_counter()
-    metrics = evaluate_model(study, progress=progress, cancelled=cancelled)
+    metrics = evaluate_model(study, progress=progress, cancelled=cancelled, specificity_samples=specificity_samples)
     seconds = time.perf_counter() - t0
     return StageResult("metrics", {"metrics": metrics}, (), {"metrics": seconds},
                        (f"metrics: compactness, generalization, specificity in {seconds:.2f} s",))

@@ -4,7 +4,7 @@ Used to hand a finished study to another process (the Blender step of a headless
 runs in its own process) without pickling. Layout of the folder:
 
 * ``study.json`` — the instances (sources, labels, landmark names), the parameters of
-  every table, the template instance, metrics, findings, outlier scores;
+  every table, the template instance and the study's records (:func:`study_records`);
 * ``arrays.npz`` — landmarks (world mm), volumes (mask, spacing, origin, frame), frames,
   the template, the coatings and the model, keyed ``<kind>/<instance>/<field>``.
 """
@@ -19,7 +19,8 @@ import numpy as np
 from ..base import params as P
 from ..base.errors import InputError
 from ..base.records import jsonable
-from ..coating.coating import CoatingResult, FitFigures
+from ..coating.coating import CoatingResult, CoatingStart, FitFigures
+from ..correspondence.rounds import CorrespondenceCheck, RoundFigures
 from ..formats.landmarks import LandmarkSet
 from ..instances.importing import InstanceSpec
 from ..instances.volume import ObjectVolume, frame_from_arrays, frame_to_arrays
@@ -29,7 +30,52 @@ from ..model.quality import Finding
 from ..pipeline.study import Study
 from ..template.template import Template
 
-__all__ = ["load_study", "save_study"]
+__all__ = ["RECORD_FIELDS", "apply_records", "load_study", "save_study", "study_records"]
+
+#: The study's records beside its arrays: what its stages found, decided and took.
+RECORD_FIELDS = ("findings", "outlier_scores", "coating_start", "correspondence_rounds", "correspondence_check",
+                 "template_choice", "metrics", "timings_s")
+
+
+def study_records(study: Study) -> dict:
+    """The study's records as JSON-ready values (:data:`RECORD_FIELDS`): the findings, outlier
+    scores, each coating's start, the model method's rounds, the correspondence self-check,
+    the template choice, the metrics and the stages' wall times (s). What a report needs
+    besides the arrays; the Blender scene keeps them so *Save Model* writes the build's report."""
+    check = study.correspondence_check
+    return jsonable({
+        "findings": [f.to_dict() for f in study.findings],
+        "outlier_scores": study.outlier_scores,
+        "coating_start": {n: str(v) for n, v in study.coating_start.items()},
+        "correspondence_rounds": [r.to_dict() for r in study.correspondence_rounds],
+        "correspondence_check": check.to_dict() if check is not None else None,
+        "template_choice": study.template_choice,
+        "metrics": study.metrics.to_dict() if study.metrics is not None else None,
+        "timings_s": study.timings_s,
+    })
+
+
+def apply_records(study: Study, records: dict) -> Study:
+    """Put :func:`study_records`' values into ``study`` (in place) and return it; a field the
+    records lack is left as it is."""
+    if "findings" in records:
+        study.findings = [Finding.from_dict(f) for f in records["findings"]]
+    if "outlier_scores" in records:
+        study.outlier_scores = dict(records["outlier_scores"] or {})
+    if "coating_start" in records:
+        study.coating_start = {n: CoatingStart(v) for n, v in (records["coating_start"] or {}).items()}
+    if "correspondence_rounds" in records:
+        study.correspondence_rounds = [RoundFigures.from_dict(r) for r in records["correspondence_rounds"] or ()]
+    if "correspondence_check" in records:
+        check = records["correspondence_check"]
+        study.correspondence_check = CorrespondenceCheck.from_dict(check) if check else None
+    if "template_choice" in records:
+        study.template_choice = dict(records["template_choice"] or {})
+    if "metrics" in records:
+        study.metrics = ModelMetrics.from_dict(records["metrics"])
+    if "timings_s" in records:
+        study.timings_s = {k: float(v) for k, v in (records["timings_s"] or {}).items()}
+    return study
 
 
 def save_study(study: Study, folder, *, extra: dict | None = None) -> Path:
@@ -75,10 +121,7 @@ def save_study(study: Study, folder, *, extra: dict | None = None) -> Path:
         "instances": insts,
         "template_instance": study.template_instance,
         "parameters": study.params.to_tables(),
-        "metrics": study.metrics.to_dict() if study.metrics is not None else None,
-        "findings": [f.to_dict() for f in study.findings],
-        "outlier_scores": study.outlier_scores,
-        "timings_s": study.timings_s,
+        "records": study_records(study),
         "extra": extra or {},
     }
     (folder / "study.json").write_text(json.dumps(jsonable(doc)), encoding="utf-8")
@@ -126,8 +169,5 @@ def load_study(folder) -> tuple[Study, dict]:
         study.model = model_from_arrays({**{k: a[f"model/{k}"] for k in (
             "mean", "faces", "modes", "variances", "instance_names", "instance_points", "instance_points_world")},
             "params": json.loads(str(a["model/params_json"]))}, str(folder))
-    study.metrics = ModelMetrics.from_dict(doc["metrics"])
-    study.findings = [Finding.from_dict(f) for f in doc["findings"]]
-    study.outlier_scores = doc["outlier_scores"]
-    study.timings_s = doc["timings_s"]
+    apply_records(study, doc.get("records") or {})
     return study, doc.get("extra", {})

@@ -266,7 +266,7 @@ class StageResult:
 
     Both front ends apply the same result: the command line with :func:`apply_stage` and
     its log, Blender by writing the product into the scene and the findings into the
-    panel (``operators/scene.record_findings``), so both show the same findings.
+    panel (``operators/scene.record_stage``), so both show the same findings.
 
     Attributes
     ----------

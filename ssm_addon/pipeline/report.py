@@ -1,4 +1,11 @@
-"""``report.html``: one self-contained page a person reads (images embedded, works offline).
+"""The build's report: one type with its sections (``report.json``), and ``report.html``, the page a
+person reads (images embedded, works offline).
+
+:class:`Report` holds every section a reader relies on (project, parameters, model, template,
+correspondence, quality, metrics, instances, timings); a section is either there or
+explicitly :class:`Absent` with the reason, so no writer drops one silently and the page never
+says "passed" of a section it was not given. :func:`study_report` assembles it from a study:
+the headless build and Blender's *Save Model* call it on the same kind of study.
 
 The page shows what ``report.json`` holds, for a reader: the warnings first, then the
 project and its parameters, the model (variance per mode, paper fig. 9), the mode picture
@@ -11,17 +18,193 @@ highlighted. A short script checks that every picture decodes and says so on the
 from __future__ import annotations
 
 import base64
+import dataclasses
 import html
 import io
 import json
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from ..model.files import write_model_files
-from ..model.metrics import report_document, write_plots
+from ..base.records import jsonable
+from ..meshutil import genus
+from ..model.metrics import aggregate_fit, model_summary
+from .study import Study, carried_landmarks, landmark_distances, study_parameters
 
-__all__ = ["write_outputs", "write_report_html", "instance_thumbnails", "write_html_report"]
+__all__ = ["SECTIONS", "Absent", "Report", "instance_thumbnails", "model_report", "study_report", "write_html_report",
+           "write_report_html"]
+
+
+@dataclass(frozen=True)
+class Absent:
+    """A report section that is not there, and why (``report.json``: ``{"absent": reason}``)."""
+
+    reason: str
+
+    def to_dict(self) -> dict:
+        return {"absent": self.reason}
+
+
+#: The sections every report has, each present or :class:`Absent` with its reason.
+SECTIONS = ("project", "parameters", "model", "template", "correspondence", "quality", "metrics", "instances",
+            "timings_s")
+
+
+def _section(value):
+    return value.to_dict() if isinstance(value, Absent) else value
+
+
+@dataclass(frozen=True)
+class Report:
+    """The content of ``report.json``: every section required, present or :class:`Absent`.
+
+    Attributes
+    ----------
+    project : str or Absent
+        The project file the study came from.
+    parameters : dict or Absent
+        Every parameter, as ``model.npz`` records them (:func:`~ssm_addon.pipeline.study.study_parameters`).
+    model : dict
+        Sizes and spectrum of the model (paper 5, eq. 8).
+    template : dict or Absent
+        The template's instance, points, triangles and genus (paper 3).
+    correspondence : dict or Absent
+        How the coatings came about: method, starts, rounds, the self-check.
+    quality : dict or Absent
+        The quality gates' parameters, their findings and the outlier scores.
+    metrics : dict or Absent
+        Compactness, generalization, specificity.
+    instances : dict
+        Each instance's coating figures (mm).
+    timings_s : dict or Absent
+        Wall time per step (s); ``timings_unknown`` names steps whose time is not known.
+    fit_summary : dict
+        The instances' figures summarised.
+    timings_unknown : dict
+        Step -> why its time is not known (e.g. run in another Blender session).
+    extra : dict
+        Further entries (files, compute, peak memory, analysis, the Blender model object).
+    """
+
+    project: str | Absent
+    parameters: dict | Absent
+    model: dict
+    template: dict | Absent
+    correspondence: dict | Absent
+    quality: dict | Absent
+    metrics: dict | Absent
+    instances: dict
+    timings_s: dict | Absent
+    fit_summary: dict = field(default_factory=dict)
+    timings_unknown: dict = field(default_factory=dict)
+    extra: dict = field(default_factory=dict)
+
+    def section(self, name: str) -> dict | str | None:
+        """A section's content, or None when it is absent."""
+        value = getattr(self, name)
+        return None if isinstance(value, Absent) else value
+
+    def absent(self, name: str) -> str:
+        """Why a section is absent ("" when it is there)."""
+        value = getattr(self, name)
+        return value.reason if isinstance(value, Absent) else ""
+
+    def to_dict(self) -> dict:
+        """The JSON document (``report.json``); an absent section is ``{"absent": reason}``."""
+        doc = {name: _section(getattr(self, name)) for name in SECTIONS}
+        doc["fit_summary"] = self.fit_summary
+        if self.timings_unknown:
+            doc["timings_unknown"] = dict(self.timings_unknown)
+        doc.update(self.extra)
+        return jsonable(doc)
+
+    @classmethod
+    def from_dict(cls, doc: dict) -> Report:
+        """A report read back from ``report.json``; a section the document lacks (an older
+        writer) is absent with that reason."""
+        def get(name):
+            value = doc.get(name)
+            if isinstance(value, dict) and set(value) == {"absent"}:
+                return Absent(str(value["absent"]))
+            if value is None or (name != "project" and not value and not isinstance(value, dict)):
+                return Absent("not in this report (written without it)")
+            return value
+
+        known = set(SECTIONS) | {"fit_summary", "timings_unknown"}
+        values = {name: get(name) for name in SECTIONS}
+        for name in ("model", "instances"):
+            if isinstance(values[name], Absent):
+                values[name] = {}
+        return cls(**values, fit_summary=doc.get("fit_summary") or {}, timings_unknown=doc.get("timings_unknown") or {},
+                   extra={k: v for k, v in doc.items() if k not in known})
+
+    def replace(self, **changes) -> Report:
+        return dataclasses.replace(self, **changes)
+
+
+def model_report(model, *, metrics=None, per_instance: dict | None = None, why: str, extra: dict | None = None,
+                 project: str | Absent | None = None) -> Report:
+    """The report of a model without its study (a model file opened on its own): the model,
+    its instances' figures and metrics; every study section absent because ``why``."""
+    per = {str(k): (dataclasses.asdict(v) if dataclasses.is_dataclass(v) else dict(v))
+           for k, v in (per_instance or {}).items()}
+    return Report(project=project if project is not None else Absent(why), parameters=Absent(why),
+                  model=model_summary(model), template=Absent(why), correspondence=Absent(why), quality=Absent(why),
+                  metrics=metrics.to_dict() if metrics is not None else Absent("not computed"), instances=per,
+                  timings_s=Absent(why), fit_summary=aggregate_fit(per), extra=dict(extra or {}))
+
+
+def study_report(study: Study, *, project: str | Absent, timings_unknown: dict | None = None,
+                 metrics_absent: str = "not computed", extra: dict | None = None) -> Report:
+    """The report of a built study: what the headless build and Blender's *Save Model* write.
+
+    Parameters
+    ----------
+    study : Study
+        With its template, coatings and model; its findings, correspondence records,
+        outlier scores, metrics and timings as the stages left them.
+    project : str or Absent
+        The project file (or why there is none).
+    timings_unknown : dict step -> reason
+        Steps whose wall time is not known.
+    metrics_absent : str
+        Why the metrics section is absent when the study has no metrics.
+    extra : dict
+        Further entries (compute, peak memory, files, the Blender model object).
+    """
+    model, tpl = study.model, study.template
+    names = list(model.instance_names)
+    # one source for how each coating started: the study's record (a round's coating says
+    # "landmark warp" of its own warp, the study how the instance's correspondence began)
+    per_instance = {n: dataclasses.asdict(dataclasses.replace(
+        study.coatings[n].fit, start=study.coating_start.get(n, study.coatings[n].fit.start))) for n in names}
+    check = study.correspondence_check
+    correspondence = {
+        "method": study.params.correspondence.method,
+        "template_instance": study.template_instance,
+        "template_choice": jsonable(study.template_choice),
+        "start": {n: study.coating_start.get(n, study.coatings[n].fit.start) for n in names},
+        "rounds": [r.to_dict() for r in study.correspondence_rounds],
+        "stop": check.stop if check is not None else "",
+        "self_check": check.to_dict() if check is not None else None,
+        "carried_landmark_distance_mm": landmark_distances(study, carried_landmarks(study)),
+    }
+    return Report(
+        project=project,
+        parameters=study_parameters(study, model.params.get("landmarks", ())),
+        model=model_summary(model),
+        template={"instance": study.template_instance, "points": int(len(tpl.points_object)),
+                  "triangles": int(len(tpl.faces)), "genus": int(genus(len(tpl.points_object), tpl.faces))},
+        correspondence=correspondence,
+        quality={"parameters": dataclasses.asdict(study.params.quality),
+                 "findings": [f.to_dict() for f in study.findings], "outlier_scores": study.outlier_scores},
+        metrics=study.metrics.to_dict() if study.metrics is not None else Absent(metrics_absent),
+        instances=per_instance,
+        timings_s=dict(study.timings_s),
+        fit_summary=aggregate_fit(per_instance),
+        timings_unknown=dict(timings_unknown or {}),
+        extra=dict(extra or {}))
 
 THUMB_PX = 256
 #: Width (px) of one thumbnail view on the page.
@@ -195,40 +378,55 @@ def _analysis_section(a: dict, images: dict[str, bytes]) -> list[str]:
     return parts
 
 
-def write_html_report(path, doc: dict, *, images: dict[str, bytes] | None = None,
+def write_html_report(path, report: Report | dict, *, images: dict[str, bytes] | None = None,
                       thumbnails: dict[str, bytes] | None = None, title: str = "SSM Builder model report",
                       analysis_images: dict[str, bytes] | None = None) -> Path:
-    """Write ``report.html`` from a ``report.json`` document and the pictures (PNG bytes).
+    """Write ``report.html`` from a :class:`Report` (or a ``report.json`` document) and the pictures (PNG bytes).
+
+    A section the report does not have is said to be absent, with its reason: an absent
+    quality section is "not known", never "passed".
 
     Parameters
     ----------
-    doc : dict
-        The content of ``report.json``.
+    report : Report or dict
+        The report (a dict is read as ``report.json``: :meth:`Report.from_dict`).
     images : dict caption -> PNG bytes
         Figures shown in order (fig. 9 plots, metrics, fig. 10).
     thumbnails : dict instance -> PNG bytes
     """
+    report = report if isinstance(report, Report) else Report.from_dict(report)
+    doc = report.to_dict()
     images = images or {}
     thumbnails = thumbnails or {}
-    quality = doc.get("quality", {})
+    quality = report.section("quality") or {}
     findings = quality.get("findings", [])
     outliers = quality.get("outlier_scores", {})
-    model = doc.get("model", {})
+    model = report.model
     by_instance: dict[str, list] = {}
     for f in findings:
         by_instance.setdefault(f.get("instance", ""), []).append(f)
     parts = [f"<h1>{html.escape(title)}</h1>"]
-    project = doc.get("project") or ""
+    project = report.section("project") or ""
     if project:
         parts.append(f'<p class="muted">Project <code>{html.escape(str(project))}</code></p>')
+    elif report.absent("project"):
+        parts.append(f'<p class="muted">No project file: {html.escape(report.absent("project"))}</p>')
     parts.append('<div id="broken"></div>')
-    if findings:
+    if report.absent("quality"):
+        parts.append(f'<div class="warnings"><b>Quality gates: not known</b> — {html.escape(report.absent("quality"))}. '
+                     "Nothing here says the instances passed them.</div>")
+    elif findings:
         items = "".join(f"<li><b>{html.escape(f.get('instance') or 'study')}</b> [{html.escape(f['gate'])}]: "
                         f"{html.escape(f['message'])}</li>" for f in findings)
         parts.append(f'<div class="warnings"><b>Warnings ({len(findings)})</b> — thresholds in the '
                      f"<code>[quality]</code> table<ul>{items}</ul></div>")
     else:
         parts.append('<div class="ok">Every quality gate passed.</div>')
+    missing = [(name, report.absent(name)) for name in ("parameters", "template", "correspondence", "metrics",
+                                                         "timings_s") if report.absent(name)]
+    if missing:
+        parts.append('<p class="muted">Not in this report: ' + "; ".join(
+            f"{html.escape(name.removesuffix('_s'))} ({html.escape(why)})" for name, why in missing) + ".</p>")
 
     # model
     n, npts, k = model.get("n_instances"), model.get("n_points"), model.get("n_modes")
@@ -247,7 +445,7 @@ def write_html_report(path, doc: dict, *, images: dict[str, bytes] | None = None
         parts.append("</div>")
 
     # metrics
-    metrics = doc.get("metrics") or {}
+    metrics = report.section("metrics") or {}
     if metrics:
         parts.append("<h2>Compactness, generalization, specificity</h2>")
         comp = metrics.get("compactness", {})
@@ -265,7 +463,7 @@ def write_html_report(path, doc: dict, *, images: dict[str, bytes] | None = None
             parts.append(f'<p class="muted">Generalization by {html.escape(str(gen["method"]))}.</p>')
 
     # correspondence: how the coatings came about and the self-check
-    corr = doc.get("correspondence") or {}
+    corr = report.section("correspondence") or {}
     check = corr.get("self_check") or {}
     transfer = check.get("instance_mm") or {}
     if corr:
@@ -307,7 +505,7 @@ def write_html_report(path, doc: dict, *, images: dict[str, bytes] | None = None
                  "transfer after (mm)", "kept", "folds", "seconds"]))
 
     # instances
-    inst = doc.get("instances", {})
+    inst = report.instances
     if inst:
         parts.append("<h2>Instances</h2>")
         rows = []
@@ -332,7 +530,7 @@ def write_html_report(path, doc: dict, *, images: dict[str, bytes] | None = None
     parts += _analysis_section(doc.get("analysis") or {}, analysis_images or {})
 
     # parameters and timings
-    params = (doc.get("parameters") or {})
+    params = report.section("parameters") or {}
     if params:
         parts.append("<h2>Parameters</h2>")
         for section in ("template", "coating", "model"):
@@ -341,10 +539,12 @@ def write_html_report(path, doc: dict, *, images: dict[str, bytes] | None = None
                 parts.append(f"<h3>[{section}]</h3>")
                 parts.append(_table([[html.escape(str(k)), html.escape(json.dumps(v))] for k, v in table.items()],
                                     ["key", "value"]))
-    timings = doc.get("timings_s") or {}
-    if timings:
+    timings = report.section("timings_s") or {}
+    if timings or report.timings_unknown:
         parts.append("<h2>Timings</h2>")
-        parts.append(_table([[html.escape(k), f"{float(v):.2f} s"] for k, v in timings.items()], ["stage", "time"]))
+        parts.append(_table([[html.escape(k), f"{float(v):.2f} s"] for k, v in timings.items()]
+                            + [[html.escape(k), f"not known: {html.escape(why)}"] for k, why in report.timings_unknown.items()],
+                            ["stage", "time"]))
     page = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
             f"<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\"><title>{html.escape(title)}</title>"
             f"<style>{CSS}</style></head><body>\n" + "\n".join(parts) + f"\n<script>{SCRIPT}</script>\n</body></html>\n")
@@ -363,53 +563,16 @@ ANALYSIS_FIGURES = (("analysis_map.png", "Group difference along the surface nor
                     ("analysis_scores.png", "Mode scores of the instances by group (SD)"))
 
 
-def write_report_html(out_dir, model, *, doc: dict | None = None, title: str = "SSM Builder model report") -> Path:
-    """``report.html`` in ``out_dir`` from the report (``doc``, default ``out_dir/report.json``), the figures
+def write_report_html(out_dir, model, report: Report | dict | None = None, *,
+                      title: str = "SSM Builder model report") -> Path:
+    """``report.html`` in ``out_dir`` from the report (default ``out_dir/report.json``), the figures
     in ``out_dir`` and the model's shapes."""
     out_dir = Path(out_dir)
-    if doc is None:
-        doc = json.loads((out_dir / "report.json").read_text(encoding="utf-8"))
+    if report is None:
+        report = json.loads((out_dir / "report.json").read_text(encoding="utf-8"))
     images = {caption: (out_dir / name).read_bytes() for name, caption in FIGURES if (out_dir / name).is_file()}
     thumbs = instance_thumbnails(model.instance_points, model.faces, model.instance_names)
     analysis = {caption: (out_dir / "analysis" / name).read_bytes() for name, caption in ANALYSIS_FIGURES
                 if (out_dir / "analysis" / name).is_file()}
-    return write_html_report(out_dir / "report.html", doc, images=images, thumbnails=thumbs, title=title,
+    return write_html_report(out_dir / "report.html", report, images=images, thumbnails=thumbs, title=title,
                              analysis_images=analysis)
-
-
-def write_outputs(
-    model,
-    out_dir,
-    *, metrics=None,
-    per_instance: dict | None = None,
-    extra: dict | None = None,
-    plots: bool = True,
-    statismo: bool = True,
-    statismo_name: str = "model.h5",
-    report: bool = True,
-    tables: bool = True,
-    gltf: bool = True,
-    vtk: bool = True,
-    exchange_modes: int = 5,
-) -> dict:
-    """Write a model's outputs into ``out_dir``: its files, the plots and (``report``) ``report.json``.
-
-    ``model.npz`` and statismo (:func:`ssm_addon.model.files.write_model_files`), the fig. 9
-    plots and ``report.json`` (:func:`ssm_addon.model.metrics.report_document`, with the
-    written files listed). Returns the written paths (``plots_skipped`` when matplotlib is
-    missing) and the report under ``"document"`` (a build adds its timings and writes it once).
-    """
-    out_dir = Path(out_dir)
-    written = write_model_files(model, out_dir, statismo=statismo, statismo_name=statismo_name, tables=tables,
-                                gltf=gltf, vtk=vtk, exchange_modes=exchange_modes)
-    plot_info = write_plots(model, out_dir, metrics) if plots else {"files": []}
-    written["plots"] = plot_info["files"]
-    if "skipped" in plot_info:
-        written["plots_skipped"] = plot_info["skipped"]
-    doc = report_document(model, metrics=metrics, per_instance=per_instance,
-                          extra={**(extra or {}), "files": dict(written)})
-    if report:
-        (out_dir / "report.json").write_text(json.dumps(doc, indent=1))
-        written["report"] = str(out_dir / "report.json")
-    written["document"] = doc
-    return written

@@ -1,0 +1,312 @@
+"""A study's outputs in a folder the build owns: the build's writer, for both front ends.
+
+:func:`owned_output_folder` holds the rules of every command that writes a folder (refuse
+a folder holding inputs or files no SSM command wrote, write into a temporary folder beside
+it, move the result in whole, keep a manifest). :func:`write_study` writes everything a
+built study gives (template and coated meshes, carried landmarks, the model files, plots,
+tables, ``report.json`` from one :class:`~ssm_addon.pipeline.report.Report`, ``report.html``);
+:func:`save_study_outputs` is both together. ``ssm build`` and Blender's *Save Model* call
+them on their study, so the two reports differ only in what is genuinely Blender's.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import resource
+import shutil
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..base.errors import InputError, check_cancelled
+from ..base.params import OutputParams
+from ..base.progress import CancelledFn, ProgressFn, report
+from ..formats.landmarks import landmark_format, write_landmarks
+from ..formats.meshes import write_ply
+from ..instances.importing import file_names
+from ..model.files import write_model_files
+from ..model.metrics import write_plots
+from .report import Absent, Report, model_report, study_report, write_report_html
+from .study import Study, carried_landmarks
+
+__all__ = ["MANIFEST", "check_output_folder", "check_writable", "owned_output_folder", "peak_memory_mb",
+           "relative_files", "save_study_outputs", "study_inputs", "write_outputs", "write_study"]
+
+
+def peak_memory_mb() -> dict:
+    """Peak resident memory (MB) of this process and of its finished child processes."""
+    scale = 1.0 / 1024 if sys.platform != "darwin" else 1.0 / (1024 * 1024)
+    return {
+        "self_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * scale, 1),
+        "children_mb": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * scale, 1),
+    }
+
+
+MANIFEST = ".ssm-build.json"
+"""The list of files a build wrote into its output folder (so a rebuild knows what is its own)."""
+
+
+def _files_under(folder: Path) -> list[str]:
+    out = []
+    for dirpath, _dirs, files in os.walk(folder):
+        for f in files:
+            out.append((Path(dirpath) / f).relative_to(folder).as_posix())
+    return sorted(out)
+
+
+def _previous_outputs(out_dir: Path) -> set[str]:
+    """The files the previous build wrote into ``out_dir`` (its manifest), or none."""
+    path = out_dir / MANIFEST
+    if not path.is_file():
+        return set()
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        files = doc["files"]
+        if doc.get("tool") != "ssm-builder" or not all(isinstance(f, str) for f in files):
+            raise ValueError("not an SSM Builder manifest")
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise InputError(f"{path}: unreadable build manifest ({err}); give a new output folder") from None
+    return {f for f in files if not Path(f).is_absolute() and ".." not in Path(f).parts}
+
+
+def check_output_folder(out_dir: Path, inputs, *, force: bool = False) -> None:
+    """Refuse an output folder the build would not own, before any work.
+
+    * ``out_dir`` may not be, or contain, an input file (project, label maps, meshes,
+      landmarks): a build never writes where its inputs are;
+    * an existing ``out_dir`` holding files an earlier build did not write (no manifest
+      entry) is refused unless ``force``; even then those files are kept, never
+      overwritten or deleted.
+    """
+    for path in inputs:
+        path = Path(path).resolve()
+        if path == out_dir or out_dir in path.parents:
+            raise InputError(f"{out_dir}: the output folder holds an input of the build ({path}); choose another "
+                             "--out (a build never writes where its inputs are)")
+    if not out_dir.exists():
+        return
+    if not out_dir.is_dir():
+        raise InputError(f"{out_dir}: output path exists and is not a folder")
+    ours = _previous_outputs(out_dir) | {MANIFEST}
+    foreign = [f for f in _files_under(out_dir) if f not in ours]
+    if foreign and not force:
+        shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
+        raise InputError(f"{out_dir}: the output folder holds {len(foreign)} file(s) an SSM build did not write "
+                         f"({shown}); give a new or empty folder, or --force to write beside them (they are kept)")
+
+
+def _final_move(tmp: Path, out_dir: Path) -> None:
+    """Put the finished build in place: exactly this build's files, nothing else touched.
+
+    A new ``out_dir`` is the renamed temporary folder. In an existing one, the files of
+    the previous build (its manifest) are removed, the new ones moved in, and files the
+    build did not write stay; a new output that would replace such a file is refused.
+    """
+    new = _files_under(tmp)
+    (tmp / MANIFEST).write_text(json.dumps({"tool": "ssm-builder", "version": __version__, "files": new}, indent=1)
+                                + "\n", encoding="utf-8")
+    if not out_dir.exists():
+        os.replace(tmp, out_dir)
+        return
+    ours = _previous_outputs(out_dir)
+    clash = [f for f in new if (out_dir / f).exists() and f not in ours]
+    if clash:
+        raise InputError(f"{out_dir}: would replace {len(clash)} file(s) an SSM build did not write ({', '.join(clash[:3])}"
+                         f"{' ...' if len(clash) > 3 else ''}); they are kept: give another output folder")
+    for f in sorted(ours):
+        target = out_dir / f
+        if target.is_file() or target.is_symlink():
+            target.unlink()
+    for f in new + [MANIFEST]:
+        target = out_dir / f
+        target.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(tmp / f, target)
+    for dirpath, _dirs, _files in sorted(os.walk(out_dir), key=lambda e: -len(e[0])):  # empty folders we left
+        d = Path(dirpath)
+        if d != out_dir and not any(d.iterdir()) and any(Path(f).parent == d.relative_to(out_dir) for f in ours):
+            d.rmdir()
+    shutil.rmtree(tmp, ignore_errors=True)
+
+
+def check_writable(out_dir: Path) -> None:
+    """``out_dir``'s parent exists (made if need be) and the folder can be written, or a clear error."""
+    try:
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise InputError(f"{out_dir}: cannot create the output folder's parent ({err.strerror})") from None
+    if not os.access(out_dir.parent, os.W_OK) or (out_dir.exists() and not os.access(out_dir, os.W_OK)):
+        raise InputError(f"{out_dir}: not writable (check the folder's permissions)")
+
+
+@contextlib.contextmanager
+def owned_output_folder(out_dir: Path, inputs, *, force: bool = False, what: str = "building"):
+    """The output rules of every command that writes a folder, as one context manager.
+
+    Refuses ``out_dir`` before any work (:func:`check_output_folder`: it holds an input, or
+    files no SSM command wrote, unless ``force``); yields a temporary folder beside it to
+    write into; on success puts exactly those files in place (files it did not write are
+    kept, never replaced) with a manifest; on any error or cancel removes the temporary
+    folder and leaves ``out_dir`` as it was.
+    """
+    out_dir = Path(out_dir).expanduser().resolve()
+    check_output_folder(out_dir, [p for p in inputs if p], force=force)
+    check_writable(out_dir)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.{what}-", dir=out_dir.parent))
+    os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes it private; the output folder follows the umask
+    try:
+        yield tmp
+        _final_move(tmp, out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def relative_files(files: dict, folder: Path) -> dict:
+    """``files`` (output name -> path or list of paths) relative to ``folder`` (POSIX form), as
+    ``report.json`` lists them: where they are after the build's final move."""
+    folder = Path(folder)
+
+    def rel(p):
+        p = Path(p)
+        return (p.relative_to(folder) if p.is_absolute() and folder in p.parents else p).as_posix()
+
+    return {k: ([rel(x) for x in v] if isinstance(v, list | tuple) else rel(v)) for k, v in files.items()}
+
+
+def write_outputs(model, out_dir, *, metrics=None, per_instance: dict | None = None, extra: dict | None = None,
+                  plots: bool = True, statismo: bool = True, statismo_name: str = "model.h5", report: bool = True,
+                  tables: bool = True, gltf: bool = True, vtk: bool = True, exchange_modes: int = 5,
+                  why: str = "a model on its own, without the study it was built from") -> dict:
+    """Write a model's own outputs into ``out_dir``: its files, the plots and (``report``) ``report.json``.
+
+    For a model without its study (a model file): ``model.npz`` and statismo
+    (:func:`ssm_addon.model.files.write_model_files`), the fig. 9 plots and a report whose
+    study sections are absent because ``why``. Returns the written paths (``plots_skipped``
+    when matplotlib is missing) and the :class:`Report` under ``"report_object"``.
+    """
+    out_dir = Path(out_dir)
+    written = write_model_files(model, out_dir, statismo=statismo, statismo_name=statismo_name, tables=tables,
+                                gltf=gltf, vtk=vtk, exchange_modes=exchange_modes)
+    plot_info = write_plots(model, out_dir, metrics) if plots else {"files": []}
+    written["plots"] = plot_info["files"]
+    if "skipped" in plot_info:
+        written["plots_skipped"] = plot_info["skipped"]
+    files = relative_files({k: v for k, v in written.items() if k != "plots_skipped"}, out_dir)
+    if report:
+        files["report"] = "report.json"
+    doc = model_report(model, metrics=metrics, per_instance=per_instance, why=why,
+                       extra={**(extra or {}), "files": files})
+    if report:
+        (out_dir / "report.json").write_text(json.dumps(doc.to_dict(), indent=1))
+        written["report"] = str(out_dir / "report.json")
+    written["report_object"] = doc
+    return written
+
+
+def study_inputs(study: Study) -> list[Path]:
+    """The study's input files (label maps, meshes, landmark files): never written over."""
+    return [p for i in study.instances for p in (i.volume_path, i.mesh_path, i.landmarks_path) if p is not None]
+
+
+def write_study(study: Study, folder, *, output: OutputParams, project: str | Absent, title: str,
+                blender_hook: Callable | None = None, analysis: Callable | None = None, plots: bool = True,
+                timings_unknown: dict | None = None, metrics_absent: str = "not computed", extra: dict | None = None,
+                log: Callable[[str], None] | None = None, progress: ProgressFn = None,
+                cancelled: CancelledFn = None, t_start: float | None = None) -> tuple[dict, Report]:
+    """Write a built study's outputs into ``folder``: the build's writer, for ``ssm build`` and
+    Blender's *Save Model* alike.
+
+    ``template.ply``, ``coated/<name>.ply`` and ``landmarks/`` (world mm, each instance's input
+    frame), the model files and tables (``model.npz``, statismo, glTF, VTK), the fig. 9 plots,
+    ``model.blend`` and ``modes.png`` through ``blender_hook(study, output, folder, log)`` when
+    given, the analysis through ``analysis(folder) -> (files, report entry or None)`` when given, then ``report.json`` once (one
+    :class:`~ssm_addon.pipeline.report.Report`, with the final timings) and ``report.html``.
+
+    Returns
+    -------
+    (files, report)
+        ``{output name: path relative to folder}`` and the report written.
+    """
+    say = log or (lambda _msg: None)
+    folder = Path(folder)
+    t0 = time.perf_counter()
+    report(progress, 0.95, "writing outputs")
+    files: dict = {}
+    if blender_hook is not None:
+        t1 = time.perf_counter()
+        report(progress, 0.96, "Blender: model.blend and pictures")
+        files.update(blender_hook(study, output, folder, say) or {})
+        study.timings_s["blender"] = time.perf_counter() - t1
+    check_cancelled(cancelled)
+    tpl, model = study.template, study.model
+    tframe = study.frame(study.template_instance)
+    write_ply(folder / "template.ply", tframe.to_world(tpl.points_object), tpl.faces)
+    files["template"] = "template.ply"
+    names = list(model.instance_names)
+    safe = file_names(names)
+    if output.coated_meshes:
+        (folder / "coated").mkdir()
+        for name, pw in zip(names, model.instance_points_world):
+            write_ply(folder / "coated" / f"{safe[name]}.ply", np.asarray(pw, float), tpl.faces)
+        files["coated"] = "coated"
+    carried = carried_landmarks(study)
+    if output.landmarks and carried:
+        given = study.instance(study.template_instance).landmarks_path
+        ext = landmark_format(given) if given is not None else "fcsv"
+        (folder / "landmarks").mkdir()
+        for name in names:
+            write_landmarks(folder / "landmarks" / f"{safe[name]}.{ext}", carried[name])
+        files["landmarks"] = "landmarks"
+    written = write_model_files(model, folder, statismo=output.statismo, tables=output.scores, gltf=output.gltf,
+                                vtk=output.vtk, exchange_modes=output.exchange_modes)
+    plot_info = write_plots(model, folder, study.metrics) if plots else {"files": []}
+    written["plots"] = plot_info["files"]
+    if "skipped" in plot_info:
+        say(f"plots: {plot_info['skipped']}")
+    files.update(relative_files(written, folder))
+    entries = dict(extra or {})
+    if analysis is not None:
+        found, entry = analysis(folder)
+        files.update(found or {})
+        if entry is not None:
+            entries["analysis"] = entry
+    study.timings_s["write"] = time.perf_counter() - t0 - study.timings_s.get("blender", 0.0)
+    if t_start is not None:
+        study.timings_s["total"] = time.perf_counter() - t_start
+    t_html = time.perf_counter()
+    files["report"] = "report.json"
+    files["html"] = "report.html"
+    final = study_report(study, project=project, timings_unknown=timings_unknown, metrics_absent=metrics_absent,
+                         extra={**entries, "peak_memory": peak_memory_mb(), "files": dict(files)})
+    (folder / "report.json").write_text(json.dumps(final.to_dict(), indent=1))  # the one write, with the final timings
+    write_report_html(folder, model, final, title=title)
+    study.timings_s["report_html"] = time.perf_counter() - t_html
+    check_cancelled(cancelled)
+    return files, final
+
+
+def save_study_outputs(study: Study, out_dir, *, force: bool = False, inputs=(), **kw) -> tuple[Path, dict, Report]:
+    """:func:`write_study` into ``out_dir`` under the build's ownership rules
+    (:func:`owned_output_folder`): a folder holding inputs or files no SSM command wrote is
+    refused (unless ``force``: they are then kept), the outputs arrive whole or not at all.
+
+    Returns (the output folder, ``{output name: absolute path}``, the report).
+    """
+    out_dir = Path(out_dir).expanduser().resolve()
+    with owned_output_folder(out_dir, [*study_inputs(study), *inputs], force=force, what="saving") as tmp:
+        files, final = write_study(study, tmp, **kw)
+    absolute = {k: ([str(out_dir / x) for x in v] if isinstance(v, list) else str(out_dir / v)) for k, v in files.items()}
+    return out_dir, absolute, final
