@@ -19,7 +19,8 @@ from bpy.props import BoolProperty
 
 from ssm_addon.base.errors import InputError
 from ssm_addon.base.params import FitParams
-from ssm_addon.fitting.fit import Pose, Target, fit_any_pose, outlier_limit
+from ssm_addon.fitting.fit import Pose, Target, fit_any_pose
+from ssm_addon.fitting.verdict import judge_fit
 
 from . import bridge
 from .jobs import BackgroundJob
@@ -93,12 +94,12 @@ class SSM_OT_fit_model(BackgroundJob, bpy.types.Operator):
         def work(progress, cancelled):  # the pose search of ``ssm fit``, then the fit
             result, _search = fit_any_pose(model, tgt, params=params, frame_pose=frame, partial=partial,
                                            progress=progress, cancelled=cancelled)
-            return result, model.faces
+            return result, model.faces, judge_fit(result, tgt, model, params=params, partial=partial)
 
         return work
 
     def finish(self, context, outcome):
-        result, faces = outcome
+        result, faces, verdict = outcome
         model_obj, target = (bpy.data.objects.get(n) for n in self._names)
         if model_obj is None or target is None:
             self.report({"ERROR"}, "fit model: the model or the target was removed meanwhile")
@@ -116,13 +117,13 @@ class SSM_OT_fit_model(BackgroundJob, bpy.types.Operator):
         else:
             obj.data.materials[0] = mat
         obj.ssm.role = "SAMPLE"
-        obj["ssm_fit_json"] = json.dumps(result.to_dict())
-        outlier = result.mahalanobis > outlier_limit(result.n_modes)
-        self.report({"WARNING" if outlier else "INFO"},
-                    f"{target.name}: Mahalanobis distance {result.mahalanobis:.2f} on {result.n_modes} modes "
-                    f"(p = {result.p_value:.3g}){': an OUTLIER' if outlier else ''}; mean distance "
-                    f"{result.mean_distance_mm:.2f} mm; posterior SD up to {result.posterior_sd_mm.max():.2f} mm"
-                    + ("" if result.converged else "; the fit did NOT converge (iteration limit)"))
+        obj["ssm_fit_json"] = json.dumps({**result.to_dict(), **verdict.to_dict()})
+        message = (f"{target.name}: Mahalanobis distance {result.mahalanobis:.2f} on {result.n_modes} modes "
+                   f"(p = {result.p_value:.3g}); mean distance {result.mean_distance_mm:.2f} mm; posterior SD up to "
+                   f"{result.posterior_sd_mm.max():.2f} mm")
+        # the verdicts of ``ssm fit`` (one owner: ssm_addon.fitting.verdict), said the same way
+        self.report({"WARNING" if verdict.warnings else "INFO"},
+                    message + "".join(f"; {w}" for w in verdict.warnings.values()))
         return {"FINISHED"}
 
 

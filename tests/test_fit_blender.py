@@ -55,8 +55,7 @@ def test_edit_mode_selection_completes_the_shape_with_its_uncertainty(scene_with
     bpy, model_obj, model = scene_with_model
     target, shape = _target(bpy, model, [0.8, 0.4])
     keep = shape[:, 0] > np.quantile(shape[:, 0], 0.8)  # one end: 20 % of the vertices
-    target.data.vertices.foreach_set("select", keep)
-    bpy.ops.object.mode_set(mode="EDIT")
+    _select_vertices(bpy, target, keep)  # exactly these (a new mesh's faces are all selected)
     assert bpy.ops.ssm.fit_model() == {"FINISHED"}
     bpy.ops.object.mode_set(mode="OBJECT")
     from ssm.operators import bridge
@@ -114,3 +113,66 @@ def test_fit_model_gives_the_apis_fit_for_each_pose_step(scene_with_model, pose_
     assert bpy.ops.ssm.fit_model() == {"FINISHED"}
     fitted = bpy.data.objects[f"{target.name} fitted"]
     np.testing.assert_allclose(bridge.mesh_vertices(fitted.data), expected.points, atol=1e-6)
+
+
+def _select_vertices(bpy, obj, keep):
+    """Edit Mode on ``obj`` with exactly the vertices ``keep`` selected."""
+    import bmesh
+
+    bpy.ops.object.mode_set(mode="EDIT")
+    bm = bmesh.from_edit_mesh(obj.data)
+    bm.verts.ensure_lookup_table()
+    for f in bm.faces:
+        f.select_set(False)
+    for v in bm.verts:
+        v.select_set(bool(keep[v.index]))
+    bm.select_flush_mode()
+    bmesh.update_edit_mesh(obj.data)
+
+
+def _fit_json(bpy, name):
+    import json
+
+    return json.loads(bpy.data.objects[f"{name} fitted"]["ssm_fit_json"])
+
+
+def test_fit_model_says_the_warnings_of_ssm_fit(scene_with_model, tmp_path):
+    """One owner of a fit's verdicts (ssm_addon.fitting.verdict): Blender's Fit Model and ``ssm fit``
+    give the same warnings on the same target, a whole shape in metres and a partial one that
+    covers under a tenth of the model."""
+    from ssm.operators import bridge
+    from ssm.operators.properties import scene_params
+
+    from ssm_addon.fitting.batch import FitTarget, fit_to_folder
+    from ssm_addon.formats.meshes import write_ply
+
+    bpy, model_obj, model = scene_with_model
+    params = scene_params(bpy.context, "ssm_fit")
+    # a whole shape given in metres: fitted from the pose search, and said to be another unit
+    shape = model.generate(np.array([0.8, 0.4]) * model.standard_deviations[:2])
+    target = bridge.new_mesh_object(bpy.context, "In metres", shape / 1000.0, model.faces, matrix_world=np.eye(4))
+    for o in bpy.context.view_layer.objects:
+        o.select_set(o == target)
+    bpy.context.view_layer.objects.active = target
+    write_ply(tmp_path / "metres.ply", shape / 1000.0, model.faces)
+    headless = fit_to_folder(model, FitTarget("metres", mesh=tmp_path / "metres.ply"), tmp_path / "m", params=params)
+    assert bpy.ops.ssm.fit_model() == {"FINISHED"}
+    blender = _fit_json(bpy, target.name)
+    assert "unit" in headless["warning_kinds"] and "metres" not in headless["warnings"][0]
+    assert blender["warning_kinds"] == headless["warning_kinds"]
+    assert blender["warnings"] == headless["warnings"]
+    # a partial shape: ten vertices at one end, under a tenth of the model's points
+    target, shape = _target(bpy, model, [0.5, -0.3])
+    target.name = "partial"
+    keep = np.zeros(len(shape), bool)
+    keep[np.argsort(shape[:, 0])[-10:]] = True
+    _select_vertices(bpy, target, keep)
+    assert bpy.ops.ssm.fit_model() == {"FINISHED"}
+    bpy.ops.object.mode_set(mode="OBJECT")
+    (tmp_path / "partial.csv").write_text("".join(f"{x},{y},{z}\n" for x, y, z in shape[keep]))
+    headless = fit_to_folder(model, FitTarget("partial", points=tmp_path / "partial.csv"), tmp_path / "p",
+                             params=params, partial=True)
+    blender = _fit_json(bpy, "partial")
+    assert "coverage" in headless["warning_kinds"]
+    assert blender["warning_kinds"] == headless["warning_kinds"]
+    assert blender["coverage"] == pytest.approx(headless["coverage"], abs=0.05)

@@ -82,3 +82,38 @@ def test_report_opens_in_a_headless_browser_without_errors(built, tmp_path):
     assert img.std() > 0.05  # drawn, not blank
     warn = np.all(np.abs(img - np.array([0xFF, 0xF1, 0xE6]) / 255) < 0.02, axis=2)
     assert warn.sum() > 2000  # the warnings box is on the first screen
+
+
+def _small_model():
+    from ssm_addon.model.pca import build_model
+
+    rng = np.random.default_rng(4)
+    base = rng.normal(size=(12, 3)) * 10
+    shapes = base + rng.normal(scale=0.5, size=(6, 12, 3))
+    faces = np.array([[0, 1, 2], [0, 2, 3], [1, 3, 2], [0, 3, 1]])
+    return build_model(shapes, faces, [f"s{i}" for i in range(6)])
+
+
+def test_a_report_without_its_quality_section_never_says_passed(tmp_path):
+    """A section a writer was not given is absent with its reason: the page says the gates are
+    not known, and a report without the section cannot be made at all (the type requires it)."""
+    from ssm_addon.pipeline.report import Absent, Report, model_report, write_html_report
+
+    model = _small_model()
+    report = model_report(model, why="a model opened from a file")
+    assert isinstance(report.quality, Absent) and report.to_dict()["quality"] == {"absent": "a model opened from a file"}
+    page = write_html_report(tmp_path / "a.html", report).read_text()
+    assert "Every quality gate passed" not in page
+    assert "Quality gates: not known" in page and "a model opened from a file" in page
+    # a report.json from a writer that left the section out reads back as absent, not as passed
+    doc = report.to_dict()
+    del doc["quality"]
+    again = Report.from_dict(doc)
+    assert again.absent("quality") and "Every quality gate passed" not in write_html_report(
+        tmp_path / "b.html", doc).read_text()
+    with pytest.raises(TypeError, match="quality"):  # no writer can drop a section silently
+        Report(project="p", parameters={}, model={}, template={}, correspondence={}, metrics={}, instances={},
+               timings_s={})
+    # with the section and no findings, it does say so
+    passed = report.replace(quality={"parameters": {}, "findings": [], "outlier_scores": {}})
+    assert "Every quality gate passed" in write_html_report(tmp_path / "c.html", passed).read_text()

@@ -22,19 +22,18 @@ import csv
 import glob
 import io
 import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..base.compute import Executor
 from ..base.errors import InputError
 from ..base.params import FitParams, to_table
 from ..base.progress import CancelledFn, ProgressFn, report
 from ..coating.coating import CoatingStart, coat_from_start
-from ..fitting.fit import FitResult, Pose, Target, fit_any_pose, outlier_limit
+from ..fitting.fit import FitResult, Pose, Target, fit_any_pose
+from ..fitting.verdict import is_outlier, judge_fit, size_in_unit_range
 from ..formats.label_maps import file_stem, is_mesh_file, read_label_map, select_label
 from ..formats.landmarks import read_landmarks
 from ..formats.meshes import read_mesh, read_ply, write_ply
@@ -118,22 +117,14 @@ def _enough_points(points: np.ndarray, path, landmarks) -> None:
                          "and the shape (or give --landmarks)")
 
 
-def coverage(result, target: Target, within_mm: float) -> float:
-    """Share of the fitted shape's points within ``within_mm`` of the target's points: how
-    much of the model's surface the target covers (1 for a whole shape)."""
-    if not target.has_surface:
-        return 0.0
-    d, _ = cKDTree(np.asarray(target.samples, float)).query(np.asarray(result.points, float))
-    return float(np.mean(d <= within_mm))
-
-
 def load_target(t: FitTarget, model, *, spacing_mm: float | None = None,
                 partial: bool = False) -> tuple[Target, Pose | None]:
     """The fitting target of some files (world mm) and a start pose from its object frame.
 
     A label map or closed mesh gets the start pose of the training (its object frame,
-    paper 2, the model's frame method); a point cloud the frame of its points; an open
-    mesh (``partial``: a partial scan) and landmarks alone none (the pose search finds it).
+    paper 2, the model's frame method); a whole point cloud the frame of its points; a
+    partial target (``partial``: a scan or part of a shape), a mesh whose size is far from
+    the model's (another unit) and landmarks alone none (the pose search finds it).
 
     Raises
     ------
@@ -164,6 +155,8 @@ def load_target(t: FitTarget, model, *, spacing_mm: float | None = None,
         target = Target.from_mesh(verts, faces, source=str(t.mesh), landmarks=landmarks)
         if partial:  # a partial scan need not be closed; its pose comes from the search
             return target, None
+        if not size_in_unit_range(verts, model):  # metres or cm: the search fits it, the verdict says so
+            return target, None
         try:
             frame = instance_frame(voxelize_mesh(verts, faces, spacing, source=str(t.mesh)), method)
         except InputError as err:
@@ -172,7 +165,9 @@ def load_target(t: FitTarget, model, *, spacing_mm: float | None = None,
     if t.points is not None:
         pts = _read_points(t.points)
         _enough_points(pts, t.points, landmarks)
-        return Target.from_points(pts, source=str(t.points), landmarks=landmarks), pose_of_points(pts)
+        # a partial point set's own axes are not the shape's: its pose comes from the search
+        return (Target.from_points(pts, source=str(t.points), landmarks=landmarks),
+                None if partial else pose_of_points(pts))
     if landmarks is not None:
         return Target.from_landmarks(landmarks, source=str(t.landmarks)), None
     raise InputError(f"{t.name}: nothing to fit to: give --volume, --mesh, --points and/or --landmarks")
@@ -225,7 +220,7 @@ def fit_picture(result: FitResult, faces: np.ndarray, target: Target, size_px: i
         draw.text((6, 4), name, fill=(60, 60, 60))
         canvas.paste(img, (j * size_px, head))
     if outlier is None:
-        outlier = not math.isfinite(result.mahalanobis) or result.mahalanobis > outlier_limit(result.n_modes)
+        outlier = is_outlier(result.mahalanobis, result.n_modes)
     flag = "  OUTLIER" if outlier else ""
     draw_c.text((8, 6), f"{title or target.source or 'target'}: fit of the model", fill=(0, 0, 0))
     draw_c.text((8, 24), f"Mahalanobis distance {result.mahalanobis:.2f} on {result.n_modes} modes; mean distance "
@@ -260,39 +255,16 @@ def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = No
     write_ply(out_dir / "fitted.ply", result.points, faces, vertex_scalars={"posterior_sd_mm": result.posterior_sd_mm})
     write_npz(out_dir / "fit.npz", {"posterior_mean": result.points, "posterior_sd_mm": result.posterior_sd_mm,
                                     "coefficients": result.coefficients})
+    verdict = judge_fit(result, target, model, params=params, partial=partial, probability=outlier_probability)
     doc = result.to_dict()
-    limit = outlier_limit(result.n_modes, outlier_probability) ** 2
     doc.update({"name": t.name, "model": model_path, "partial": bool(partial),
                 "target": {k: (str(v) if v is not None else None) for k, v in
                            (("volume", t.volume), ("label", t.label), ("mesh", t.mesh), ("points", t.points),
                             ("landmarks", t.landmarks))},
-                "outlier": bool(result.mahalanobis ** 2 > limit),
-                "outlier_limit": {"probability": outlier_probability, "mahalanobis": math.sqrt(limit)},
+                **verdict.to_dict(),
                 "files": {"fitted": "fitted.ply", "npz": "fit.npz", "picture": "fit.png"},
                 "params": to_table(params), "pose_search": search})
-    # what the fit rests on, said rather than only stored
-    spacing = float((model.params or {}).get("spacing_mm", 1.0))
-    doc["coverage"] = coverage(result, target, max(2.0 * spacing, 3.0 * params.noise_mm))
-    warnings = []
-    if not result.converged:
-        warnings.append(f"the fit did not converge (stopped at {result.iterations} iterations)")
-    if doc["outlier"]:
-        warnings.append(f"Mahalanobis distance {result.mahalanobis:.2f} above the {100 * outlier_probability:g} % "
-                        f"limit {math.sqrt(limit):.2f}: an OUTLIER")
-    if partial and doc["coverage"] < 0.1:
-        warnings.append(f"the target covers {100 * doc['coverage']:.0f} % of the model's surface: the completion "
-                        "rests on the model's prior, not on the target")
-    size_t = float(np.ptp(np.asarray(target.samples, float), axis=0).max()) if target.has_surface else 0.0
-    size_m = float(np.ptp(np.asarray(model.mean, float), axis=0).max())
-    if size_t > 0 and not partial and not 0.2 < size_t / size_m < 5.0:
-        warnings.append(f"the target is {size_t / size_m:.3g} times the model's size ({size_t:.3g} against "
-                        f"{size_m:.3g} mm): another unit (m, cm)?")
-    labels = target.merged_labels
-    if len(labels) > 1:
-        warnings.append(f"{t.volume} holds {len(labels)} labels ({', '.join(str(x) for x in labels[:6])}"
-                        f"{' …' if len(labels) > 6 else ''}) and no --label was given: they were fitted merged")
     doc["landmarks_used"] = sorted(result.landmark_residuals_mm)
-    doc["warnings"] = warnings
     if free and target.locator is not None:
         doc["files"]["free"] = "fitted_free.ply"
         doc["free"] = _free_fit(result, faces, t, model, out_dir / "fitted_free.ply")
