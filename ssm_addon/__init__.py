@@ -2,16 +2,19 @@
 
 The subpackages follow the method (Lorenz & Krahnstöver):
 
-==============  =====================================================================
-``instances``   label maps and meshes as binary objects, object frame, resampling (2)
-``template``    surface voxels, curvature, point reduction, triangulation (3)
-``coating``     landmark warp, distance map, registration, relaxation (4)
-``model``       PCA, model files, metrics, quality gates (5)
-``fitting``     fitting a model to new data; model-guided correspondence rounds
-``formats``     label maps, landmark files, the project file, the Blender hand-over
-``pipeline``    the study and its stages, parameters, executors, cache, errors
-``cli``         ``ssm …``: the build with owned outputs, the report, the demo
-==============  =====================================================================
+==================  =================================================================
+``base``            the foundation: errors, parameters, progress, records, executors
+``formats``         files: label maps, meshes, landmark files, glTF, VTK
+``instances``       label maps and meshes as binary objects, object frame, resampling (2)
+``template``        surface voxels, curvature, point reduction, triangulation (3)
+``coating``         landmark warp, distance map, registration, relaxation (4)
+``model``           PCA, model files, metrics, quality gates (5)
+``fitting``         fitting a model to new data, the fit's verdicts, ``ssm fit``
+``correspondence``  the model method's rounds, the self-check, landmark proposals (3.3, 7)
+``analysis``        groups and covariates
+``pipeline``        the orchestrator: the study, its stages, cache, project file, outputs, report
+``cli``             ``ssm …``: the build of a project, the demo
+==================  =================================================================
 
 The names a notebook needs are re-exported here (imported on first use):
 

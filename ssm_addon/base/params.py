@@ -977,7 +977,7 @@ TABLES = {k: v for k, v in SECTIONS.items() if k != "analysis"}
 def markdown_tables() -> str:
     """The parameter reference (``docs/parameters.md``), generated from the definitions."""
     out = ["# Parameters", "",
-           "Generated from `ssm_addon/pipeline/params.py` (`python -m ssm_addon params`); the same names are the",
+           "Generated from `ssm_addon/base/params.py` (`python -m ssm_addon params`); the same names are the",
            "project file's keys, the `ssm build --<table>-<key>` options and the SSM sidebar's fields.", ""]
     for section, cls in SECTIONS.items():
         out += [f"## [{section}]", "", (cls.__doc__ or "").strip().splitlines()[0], "",
