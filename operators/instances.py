@@ -79,8 +79,8 @@ def write_instance(context, obj, spec: InstanceSpec, *, kind: str, frame, volume
     obj[VOXELS_PROP] = int(voxels)
 
 
-def import_items(specs, *, spacing_mm: float, frame_method: str, label_maps: dict | None = None, progress=None,
-                 cancelled=None) -> list[dict]:
+def import_items(specs, *, spacing_mm: float, frame_method: str, space: str = "auto", label_maps: dict | None = None,
+                 progress=None, cancelled=None) -> list[dict]:
     """Read, frame and resample instances with the core (no bpy: runs in a worker thread).
 
     Returns per instance what :func:`add_instance_objects` needs: the spec, the object
@@ -92,7 +92,7 @@ def import_items(specs, *, spacing_mm: float, frame_method: str, label_maps: dic
         prog = sub_progress(progress, k / len(specs), (k + 1) / len(specs), f"{spec.name}: ")
         report(prog, 0.0, "reading")
         label_map = (label_maps or {}).get(spec.volume_path)
-        vol = core.read_instance(spec, spacing_mm=spacing_mm, label_map=label_map, cancelled=cancelled)
+        vol = core.read_instance(spec, spacing_mm=spacing_mm, label_map=label_map, space=space, cancelled=cancelled)
         report(prog, 0.3, "object frame and resampling")
         ov = core.object_from_volume(vol, spacing_mm=spacing_mm, frame_method=frame_method, cancelled=cancelled)
         report(prog, 0.7, "surface")
@@ -201,10 +201,9 @@ class SSM_OT_import_segmentation(BackgroundJob, bpy.types.Operator, ImportHelper
         spacing = float(self.spacing_mm) if self.spacing_mm > 0 else tp.spacing_mm
         self._set_spacing = None
         if self.spacing_mm > 0:
-
             P.from_table(type(tp), {**P.to_table(tp), "spacing": P.shortest_float32(spacing)}, where="import:")
             self._set_spacing = spacing
-        frame_method = tp.frame
+        frame_method, space = tp.frame, tp.space
 
         def work(progress, cancelled):
             items = []
@@ -221,7 +220,7 @@ class SSM_OT_import_segmentation(BackgroundJob, bpy.types.Operator, ImportHelper
                         raise InputError(f"{path}: empty mask: the label map has no non-zero voxels")
                     specs = [InstanceSpec(name=instance_name(pattern, path, lab), volume_path=Path(path), label=lab)
                              for lab in labels]
-                items += import_items(specs, spacing_mm=spacing, frame_method=frame_method, label_maps=label_maps,
+                items += import_items(specs, spacing_mm=spacing, frame_method=frame_method, space=space, label_maps=label_maps,
                                       progress=sub_progress(prog, 0.2, 1.0), cancelled=cancelled)
             report(progress, 1.0, "done")
             return items

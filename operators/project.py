@@ -73,7 +73,7 @@ def show_study(context, study) -> dict:
     for order, spec in enumerate(study.instances):
         ov = study.volumes.get(spec.name)
         if ov is None:  # a streamed build keeps no volumes: read this one again (the same frame)
-            ov = import_instance(spec, spacing_mm=study.params.template.spacing_mm,
+            ov = import_instance(spec, spacing_mm=study.params.template.spacing_mm, space=study.params.template.space,
                                  frame_method=study.params.template.frame)
         verts, faces = display_surface(ov)
         obj = bridge.new_mesh_object(context, spec.name, verts, faces, collection_name=bridge.INSTANCES_COLLECTION,
@@ -206,7 +206,7 @@ def load_project_into_scene(context, project: core.Project) -> list:
     """
     scene = context.scene
     items = import_items(project.instances, spacing_mm=project.params.template.spacing_mm,
-                         frame_method=project.params.template.frame)
+                         frame_method=project.params.template.frame, space=project.params.template.space)
     set_scene_study_params(scene, project.params)
     scene[INSTANCE_ATTRIBUTES_KEY] = json.dumps(project.instance_attributes)
     created = add_instance_objects(context, items)

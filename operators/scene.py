@@ -275,7 +275,7 @@ def set_landmark(context, instance, name: str, *, file_world=None, blender_world
 def _volume_key(context, obj):
     tp = scene_params(context, "ssm_template")
     ssm = obj.ssm
-    base = (tp.spacing_mm, tp.frame, ssm.source_kind, ssm.label, float(ssm.mesh_spacing_mm))
+    base = (tp.spacing_mm, tp.frame, tp.space, ssm.source_kind, ssm.label, float(ssm.mesh_spacing_mm))
     if ssm.source_kind == "BLENDER_MESH":
         verts, faces = mesh_file_world(obj)
         digest = hashlib.sha1(verts.astype(np.float32).tobytes() + faces.astype(np.int32).tobytes()).hexdigest()
@@ -300,7 +300,7 @@ class VolumeLoader:
         self.keys: dict[str, tuple] = {}
         self.loaded: dict[str, ObjectVolume] = {}
         tp = scene_params(context, "ssm_template")
-        self.spacing, self.frame_method = tp.spacing_mm, tp.frame
+        self.spacing, self.frame_method, self.space = tp.spacing_mm, tp.frame, tp.space
         for obj in objs:
             key = _volume_key(context, obj)
             self.keys[obj.name] = key
@@ -325,6 +325,7 @@ class VolumeLoader:
                                                      cancelled=cancelled)
             else:
                 ov = core_instances.import_instance(spec, spacing_mm=self.spacing, frame_method=self.frame_method,
+                                                    space=self.space,
                                                     progress=prog, cancelled=cancelled)
             if frame is not None and not (np.allclose(ov.frame.origin_world, frame.origin_world, atol=1e-6)
                                           and np.allclose(ov.frame.axes_world, frame.axes_world, atol=1e-9)):

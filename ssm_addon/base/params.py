@@ -433,8 +433,13 @@ class TemplateParams:
                               help="isotropic resampling step of every instance along its object axes (paper 2)")
     frame: str = param("auto", choices=FRAME_METHODS, label="Frame",
                        help="object frame: 'patient' pairs the principal axes with R, A, S; 'moments' uses "
-                            "eigenvalue order and third-moment signs; 'auto' picks patient for images, moments "
-                            "for meshes")
+                            "eigenvalue order and third-moment signs; 'auto' picks patient for images and for "
+                            "meshes in a known convention (stated in the file, or 'space'), moments for others")
+    space: str = param("auto", choices=("auto", "RAS", "LPS"), label="Coordinates",
+                       help="coordinate convention of mesh files, and of landmark files (CSV, Scalismo JSON), that "
+                            "state none; 'auto': a mesh file's own statement (SPACE=LPS as 3D Slicer writes), a "
+                            "landmark file takes its instance's mesh's, and what states nothing is RAS. Files that "
+                            "state their convention are read in it; LPS is turned into RAS")
     normal_radius_mm: float = param(5.0, unit="mm", minimum=0.0, exclusive_minimum=True, maximum=100.0,
                                     label="Normal radius", advanced=True,
                                     help="sphere radius of the normal estimate (paper 3.2)")

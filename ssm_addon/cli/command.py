@@ -208,7 +208,7 @@ def cmd_template(args) -> int:
     if out.is_dir():
         raise InputError(f"{out}: --out is a folder; give the PLY file to write, e.g. {out / 'template.ply'}")
     out.parent.mkdir(parents=True, exist_ok=True)
-    write_ply(out, template.points_world, faces)
+    write_ply(out, template.points_world, faces, space="RAS")
     print(f"vertices: {n_v}")
     print(f"faces:    {len(faces)}")
     print(f"Euler characteristic: {euler_characteristic(n_v, faces)}")

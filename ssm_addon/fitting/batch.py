@@ -150,7 +150,8 @@ def load_target(t: FitTarget, model, *, spacing_mm: float | None = None,
             target.merged_labels = tuple(int(x) for x in labels[labels != 0])
         return target, Pose(frame.axes_world, frame.origin_world)
     if t.mesh is not None:
-        verts, faces = read_mesh(t.mesh)
+        given = (params.get("template") or {}).get("space", "auto")  # the study's convention for unstated files
+        verts, faces = read_mesh(t.mesh, space=None if given in (None, "auto") else given)
         _enough_points(verts, t.mesh, landmarks)
         target = Target.from_mesh(verts, faces, source=str(t.mesh), landmarks=landmarks)
         if partial:  # a partial scan need not be closed; its pose comes from the search
@@ -252,7 +253,8 @@ def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = No
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     faces = np.asarray(model.faces)
-    write_ply(out_dir / "fitted.ply", result.points, faces, vertex_scalars={"posterior_sd_mm": result.posterior_sd_mm})
+    write_ply(out_dir / "fitted.ply", result.points, faces, vertex_scalars={"posterior_sd_mm": result.posterior_sd_mm},
+              space="RAS")
     write_npz(out_dir / "fit.npz", {"posterior_mean": result.points, "posterior_sd_mm": result.posterior_sd_mm,
                                     "coefficients": result.coefficients})
     verdict = judge_fit(result, target, model, params=params, partial=partial, probability=outlier_probability)
@@ -283,7 +285,7 @@ def _free_fit(result, faces, t, model, path) -> dict:
     ov = import_instance(spec, spacing_mm=spacing, frame_method=(model.params or {}).get("frame_method", "auto"))
     start = ov.frame.to_object(result.points)
     coated = coat_from_start(Mesh(start, faces), ov, start=start, start_label=CoatingStart.MODEL_FIT, name=t.name)
-    write_ply(path, ov.frame.to_world(coated.points_object), faces)
+    write_ply(path, ov.frame.to_world(coated.points_object), faces, space="RAS")
     return {"mean_distance_mm": coated.fit.mean_distance_mm, "max_distance_mm": coated.fit.max_distance_mm,
             "folded": coated.fit.folded_after}
 

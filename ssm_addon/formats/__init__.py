@@ -6,9 +6,9 @@ Every public name of the subpackage's modules, imported on first use (:mod:`ssm_
 from .._lazy import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, {
-    "label_maps": ("IMAGE_EXTENSIONS", "LabelMap", "Volume", "MAX_DISTINCT_LABELS", "SUPPORTED_EXTENSIONS", "file_extension", "file_stem", "is_mesh_file", "label_counts", "load_volume", "read_label_map", "select_label", "write_label_map"),
+    "label_maps": ("IMAGE_EXTENSIONS", "LabelMap", "NIFTI_FORM_TOLERANCE_MM", "Volume", "label_map_coordinates", "nifti_affine", "MAX_DISTINCT_LABELS", "SUPPORTED_EXTENSIONS", "file_extension", "file_stem", "is_mesh_file", "label_counts", "load_volume", "read_label_map", "select_label", "write_label_map"),
     "landmarks": ("LANDMARK_PRESETS", "LandmarkSet", "landmark_format", "match_landmarks", "order_by_schema", "read_landmarks", "write_landmarks"),
-    "meshes": ("MESH_EXTENSIONS", "read_mesh", "read_ply", "write_ply"),
+    "meshes": ("MESH_EXTENSIONS", "SPACES", "mesh_space", "read_mesh", "read_ply", "to_ras", "write_ply"),
     "gltf": ("MM_TO_M", "read_glb", "write_glb"),
     "vtk": ("write_vtk", "write_vtp"),
 })

@@ -196,7 +196,59 @@ def _read_nifti(path: Path):
                              "positive number) and no orientation (qform and sform codes 0): the voxels have no size "
                              "in mm; fix the header (e.g. resave it from the segmentation tool)")
     data = np.asanyarray(img.dataobj)
-    return data, np.asarray(img.affine, dtype=float)
+    affine, _note = nifti_affine(img.header)
+    return data, affine
+
+
+def label_map_coordinates(path) -> str:
+    """How a label map's world coordinates are taken (read from its header alone), for the report."""
+    path = Path(path)
+    ext = file_extension(path)
+    try:
+        if ext in (".nii", ".nii.gz"):
+            return nifti_affine(nib.load(str(path)).header)[1]
+        if ext in (".nrrd", ".nhdr"):
+            space = str(nrrd.read_header(str(path)).get("space", "none stated: taken as RAS"))
+            return f"NRRD space {space}" + (", turned into RAS" if _anatomical_signs(space) is not None
+                                            and space.lower() not in ("ras", "right-anterior-superior") else "")
+        if ext in (".mha", ".mhd"):
+            return "MetaImage (LPS, as ITK writes it), turned into RAS"
+    except (OSError, ValueError, InputError) as err:
+        return f"header not read ({err})"
+    return "NumPy array: the spacing and affine given with it (RAS)"
+
+
+#: qform and sform that differ by less than this (mm, at the corners of a 100-voxel cube) are one transform.
+NIFTI_FORM_TOLERANCE_MM = 1e-3
+
+
+def nifti_affine(header) -> tuple[np.ndarray, str]:
+    """The voxel -> world (RAS mm) affine of a NIfTI header as 3D Slicer (ITK) reads it, and a note.
+
+    Both forms set: the sform when its code is 1 (scanner) or when it equals the qform,
+    else the qform (the scanner's: an sform coded 'aligned', 'Talairach' or 'MNI' maps to
+    another space). One set: that one. Neither: the voxel sizes alone. nibabel (and FSL)
+    take the sform whenever its code is set, so a file whose forms differ lands elsewhere
+    there: the note says which form was used and by how much they differ.
+    """
+    q_code, s_code = int(header["qform_code"]), int(header["sform_code"])
+    qform = np.asarray(header.get_qform(), float) if q_code > 0 else None
+    sform = np.asarray(header.get_sform(), float) if s_code > 0 else None
+    if qform is None and sform is None:
+        return np.asarray(header.get_best_affine(), float), "NIfTI without qform or sform: voxel sizes only"
+    if qform is None:
+        return sform, f"NIfTI sform (code {s_code})"
+    if sform is None:
+        return qform, f"NIfTI qform (code {q_code})"
+    corners = np.array([[i, j, k, 1.0] for i in (0, 100) for j in (0, 100) for k in (0, 100)])
+    differ = float(np.abs(corners @ (sform - qform).T)[:, :3].max())
+    if differ <= NIFTI_FORM_TOLERANCE_MM:
+        return sform, "NIfTI sform (equal to its qform)"
+    if s_code == 1:
+        return sform, (f"NIfTI sform (code 1, scanner), as 3D Slicer reads it; its qform differs by up to "
+                       f"{differ:.3g} mm")
+    return qform, (f"NIfTI qform, as 3D Slicer reads it: the sform (code {s_code}, not the scanner's) differs by up "
+                   f"to {differ:.3g} mm (nibabel and FSL would use the sform)")
 
 
 def _anatomical_signs(space: str) -> np.ndarray | None:

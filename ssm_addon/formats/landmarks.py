@@ -109,11 +109,15 @@ class LandmarkSet:
         Positions in world mm (RAS), row i belongs to ``names[i]``.
     source : str
         The file (or Blender object) the set came from, for messages.
+    coordinates : str
+        How the file's coordinates were taken ("LPS, stated in the file", "RAS, none
+        stated", ...); empty for sets not read from a file.
     """
 
     names: tuple[str, ...]
     points_world: np.ndarray
     source: str = ""
+    coordinates: str = ""
 
     def __post_init__(self):
         names = tuple(str(n) for n in self.names)
@@ -152,7 +156,7 @@ class LandmarkSet:
     def subset(self, names) -> LandmarkSet:
         """The landmarks ``names`` (all must be present), in that order."""
         idx = [self.index(n) for n in names]
-        return LandmarkSet(tuple(names), self.points_world[idx], self.source)
+        return LandmarkSet(tuple(names), self.points_world[idx], self.source, self.coordinates)
 
 
 def _duplicates(names) -> list[str]:
@@ -247,7 +251,8 @@ def _read_fcsv(path: Path, text: str) -> LandmarkSet:
     pts = np.array(points, dtype=float).reshape(-1, 3)
     if system == "LPS":
         pts = pts * _LPS_FLIP
-    return _finish(names, pts, path)
+    return _finish(names, pts, path, f"{system}, stated in the file" if saw_system else
+                   "RAS, as 3D Slicer before 4.11 wrote files without a CoordinateSystem line")
 
 
 def _json_load(path: Path, text: str):
@@ -284,7 +289,7 @@ def _read_slicer_json(path: Path, doc) -> LandmarkSet:
     pts = np.array(points, dtype=float).reshape(-1, 3)
     if system == "LPS":
         pts = pts * _LPS_FLIP
-    return _finish(names, pts, path)
+    return _finish(names, pts, path, f"{system}, stated in the file")
 
 
 def _read_scalismo_json(path: Path, doc) -> LandmarkSet:
@@ -337,13 +342,22 @@ def _read_csv(path: Path, text: str) -> LandmarkSet:
     return _finish(names, np.array(points, dtype=float).reshape(-1, 3), path)
 
 
-def _finish(names, pts, path) -> LandmarkSet:
+def _finish(names, pts, path, coordinates: str = "") -> LandmarkSet:
     if not names:
         raise InputError(f"{path}: the file holds no landmark points")
-    return LandmarkSet(tuple(names), pts, str(path))
+    return LandmarkSet(tuple(names), pts, str(path), coordinates)
 
 
-def read_landmarks(path) -> LandmarkSet:
+def _unstated(landmarks: LandmarkSet, space: str | None, why: str) -> LandmarkSet:
+    """A set read from a file that states no convention, taken in ``space`` (None: RAS)."""
+    space = (space or "RAS").upper()
+    if space not in ("LPS", "RAS"):
+        raise InputError(f"{landmarks.source}: unknown coordinate convention {space!r} (RAS or LPS)")
+    pts = landmarks.points_world * _LPS_FLIP if space == "LPS" else landmarks.points_world
+    return LandmarkSet(landmarks.names, pts, landmarks.source, f"{space}, none stated ({why})")
+
+
+def read_landmarks(path, *, space: str | None = None, why: str = "") -> LandmarkSet:
     """Read a landmark file; the format follows the extension.
 
     Parameters
@@ -352,11 +366,17 @@ def read_landmarks(path) -> LandmarkSet:
         A ``.fcsv`` / ``.mrk.json`` (3D Slicer markups, LPS or RAS as the file says),
         ``.csv`` (``name,x,y,z``, optional header) or ``.json`` (Scalismo-style list)
         file.
+    space : {"RAS", "LPS"}, optional
+        The convention of a file that states none (CSV, Scalismo JSON: they are in the frame
+        of the mesh or image they were clicked on); None takes them as RAS.
+    why : str
+        Where ``space`` came from, for the set's ``coordinates`` note.
 
     Returns
     -------
     LandmarkSet
-        Names in file order, ``points_world`` (L, 3) in world mm (RAS).
+        Names in file order, ``points_world`` (L, 3) in world mm (RAS), ``coordinates``
+        saying how the file's coordinates were taken.
 
     Raises
     ------
@@ -375,13 +395,13 @@ def read_landmarks(path) -> LandmarkSet:
     if fmt == "fcsv":
         return _read_fcsv(path, text)
     if fmt == "csv":
-        return _read_csv(path, text)
+        return _unstated(_read_csv(path, text), space, why or ("given" if space else "taken as RAS"))
     doc = _json_load(path, text)
     if isinstance(doc, dict) and "markups" in doc:
         return _read_slicer_json(path, doc)
     if fmt == "mrk.json":
         raise InputError(f"{path}: no 'markups' list in this Slicer markups file")
-    return _read_scalismo_json(path, doc)
+    return _unstated(_read_scalismo_json(path, doc), space, why or ("given" if space else "taken as RAS"))
 
 
 def _fmt(value: float) -> str:

@@ -1,7 +1,12 @@
 """Triangle mesh files: PLY (ASCII and binary), STL (ASCII and binary) and OBJ.
 
-Vertices are read and written as the file holds them (mm by convention, in the file's
-own frame); the mesh type and its geometry are :mod:`ssm_addon.meshutil`.
+Coordinates are mm. The world frame of the core is RAS (as for label maps); a file that
+states its convention is read in it: 3D Slicer (since 4.11) writes ``SPACE=LPS`` (or
+``SPACE=RAS``) as a comment in PLY and OBJ and in the STL header (``solid 3D Slicer output.
+SPACE=LPS``), and LPS coordinates are turned into RAS (x and y negated, a half turn about
+z, so triangles keep their orientation). A file that states nothing is taken in the
+convention the caller gives (a project's ``space``), else as RAS. The mesh type and its
+geometry are :mod:`ssm_addon.meshutil`.
 """
 
 from __future__ import annotations
@@ -14,11 +19,56 @@ import numpy as np
 from ..base.errors import InputError
 from ..meshutil import as_faces
 
-__all__ = ["MESH_EXTENSIONS", "read_mesh", "read_ply", "write_ply"]
+__all__ = ["MESH_EXTENSIONS", "SPACES", "mesh_space", "read_mesh", "read_ply", "to_ras", "write_ply"]
+
+#: Coordinate conventions a file can state (world mm): right-anterior-superior, left-posterior-superior.
+SPACES = ("RAS", "LPS")
+_LPS_TO_RAS = np.array([-1.0, -1.0, 1.0])
+_SPACE = re.compile(rb"SPACE\s*=\s*(LPS|RAS)\b", re.IGNORECASE)
+
+
+def to_ras(points, space: str | None):
+    """(..., 3) points in ``space`` ("LPS" or "RAS"; None is RAS) as RAS mm.
+
+    >>> to_ras(np.array([1.0, 2.0, 3.0]), "LPS").tolist()
+    [-1.0, -2.0, 3.0]
+    """
+    pts = np.asarray(points, dtype=float)
+    return pts * _LPS_TO_RAS if (space or "RAS").upper() == "LPS" else pts
+
+
+def _stated_space(head: bytes) -> str | None:
+    found = _SPACE.search(head)
+    return found.group(1).decode("ascii").upper() if found else None
+
+
+def mesh_space(path) -> str | None:
+    """The coordinate convention a mesh file states (``"LPS"`` or ``"RAS"``), or None.
+
+    Read where the tools write it: the header comments of a PLY, the 80-byte header (binary)
+    or the ``solid`` line (ASCII) of an STL, the comment lines of an OBJ.
+    """
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(65536)
+    except OSError as err:
+        raise InputError(f"{path}: cannot read ({err.strerror})") from None
+    ext = path.suffix.lower()
+    if ext == ".ply":
+        end = head.find(b"end_header")
+        return _stated_space(head[: end if end >= 0 else len(head)])
+    if ext == ".stl":
+        first = head[:80] if not head.lstrip().lower().startswith(b"solid") else head.split(b"\n", 1)[0]
+        return _stated_space(first)
+    if ext == ".obj":
+        return _stated_space(b"\n".join(line for line in head.splitlines() if line.lstrip().startswith(b"#")))
+    return None
 
 
 # --------------------------------------------------------------------------- PLY I/O
-def write_ply(path, vertices, faces, vertex_scalars: dict | None = None, binary: bool = True) -> None:
+def write_ply(path, vertices, faces, vertex_scalars: dict | None = None, binary: bool = True,
+              space: str | None = None) -> None:
     """Write a triangle mesh as PLY.
 
     Parameters
@@ -31,6 +81,9 @@ def write_ply(path, vertices, faces, vertex_scalars: dict | None = None, binary:
         Extra float32 vertex properties (e.g. ``{"curvature": c}``).
     binary : bool
         Binary little-endian (default) or ASCII.
+    space : {"RAS", "LPS"}, optional
+        The convention of world coordinates, stated as 3D Slicer does (``comment SPACE=RAS``)
+        so Slicer and this reader place the mesh right; None for other frames.
     """
     v = np.asarray(vertices, dtype=np.float32).reshape(-1, 3)
     f = as_faces(faces).astype(np.int32)
@@ -39,7 +92,7 @@ def write_ply(path, vertices, faces, vertex_scalars: dict | None = None, binary:
         if len(s) != len(v):
             raise InputError(f"{path}: vertex scalar '{k}' has {len(s)} values for {len(v)} vertices")
     header = ["ply", f"format {'binary_little_endian' if binary else 'ascii'} 1.0", "comment SSM Builder",
-              f"element vertex {len(v)}", "property float x", "property float y", "property float z"]
+              *([f"comment SPACE={space.upper()}"] if space else []), f"element vertex {len(v)}", "property float x", "property float y", "property float z"]
     header += [f"property float {k}" for k in scalars]
     header += [f"element face {len(f)}", "property list uchar int vertex_indices", "end_header"]
     vdtype = np.dtype([(n, "<f4") for n in ("x", "y", "z", *scalars)])
@@ -299,15 +352,22 @@ def _read_obj(path: Path):
     return np.array(vertices, dtype=np.float64), _fan(polys)
 
 
-def read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
-    """Read a triangle surface mesh (STL binary/ASCII, PLY ascii/binary, OBJ).
+def read_mesh(path, *, space: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Read a triangle surface mesh (STL binary/ASCII, PLY ascii/binary, OBJ) in RAS world mm.
 
     Polygons are fan-triangulated, OBJ negative indices resolved, STL duplicate vertices
-    merged; faces that repeat a vertex are dropped. Coordinates are taken as mm.
+    merged; faces that repeat a vertex are dropped. Coordinates are taken as mm, in the
+    convention the file states (:func:`mesh_space`), else in ``space``, else RAS; LPS
+    coordinates are turned into RAS.
+
+    Parameters
+    ----------
+    space : {"RAS", "LPS"}, optional
+        The convention of a file that states none.
 
     Returns
     -------
-    vertices_world : (V, 3) float ndarray, mm
+    vertices_world : (V, 3) float ndarray, mm (RAS)
     faces : (F, 3) int ndarray
     """
     path = Path(path)
@@ -334,4 +394,7 @@ def read_mesh(path) -> tuple[np.ndarray, np.ndarray]:
     if not np.all(np.isfinite(vertices)):
         raise InputError(f"{path}: the mesh has NaN or infinite vertex coordinates")
     keep = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])
-    return vertices, faces[keep]
+    stated = mesh_space(path)
+    if space is not None and str(space).upper() not in SPACES:
+        raise InputError(f"{path}: unknown coordinate convention {space!r} (RAS or LPS)")
+    return to_ras(vertices, stated or space), faces[keep]

@@ -20,13 +20,14 @@ from ..base.errors import InputError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..formats.label_maps import LabelMap, Volume, is_mesh_file, load_volume, select_label
 from ..formats.landmarks import LandmarkSet
+from ..formats.meshes import mesh_space
 from ..instances.frame import object_frame
 from ..instances.resampling import resample
 from ..instances.volume import ObjectFrame, ObjectVolume
 from ..instances.voxelize import load_mesh_volume, voxelize_mesh
 
 __all__ = ["InstanceSpec", "file_names", "import_instance", "instance_frame", "load_object", "object_from_mesh", "object_from_volume",
-           "read_instance", "safe_file_name"]
+           "landmark_space", "mesh_coordinates", "read_instance", "safe_file_name"]
 
 
 @dataclass(frozen=True)
@@ -49,6 +50,9 @@ class InstanceSpec:
     landmarks : LandmarkSet or None
         The landmarks as read (world mm of the instance's file), in the study's common
         name order.
+    space : {"RAS", "LPS"} or None
+        The coordinate convention of the instance's files that state none (a project's
+        per-instance ``space``); None: the study's ``[template] space``.
     """
 
     name: str
@@ -58,11 +62,47 @@ class InstanceSpec:
     mesh_path: Path | None = None
     mesh_spacing_mm: float | None = None
     landmarks: LandmarkSet | None = None
+    space: str | None = None
 
     @property
     def source(self) -> Path:
         """The label map or mesh file."""
         return self.volume_path if self.volume_path is not None else self.mesh_path
+
+    def given_space(self, study_space: str = "auto") -> str | None:
+        """The convention given for files that state none: this instance's, else the study's
+        (``[template] space``), or None ("auto")."""
+        if self.space is not None:
+            return self.space
+        return None if study_space in (None, "", "auto") else study_space
+
+
+def landmark_space(spec: InstanceSpec, study_space: str = "auto") -> tuple[str | None, str]:
+    """The convention of the instance's landmark file where the file states none (CSV,
+    Scalismo JSON): the one given (the instance's or the study's ``space``), else the one its
+    mesh file states (landmarks are in the frame of the mesh they were clicked on), else
+    None (RAS). Returns it and why."""
+    given = spec.given_space(study_space)
+    if given is not None:
+        return given, "given as space"
+    if spec.mesh_path is not None:
+        stated = mesh_space(spec.mesh_path)
+        if stated is not None:
+            return stated, f"its mesh {Path(spec.mesh_path).name} states {stated}"
+    return None, "taken as RAS"
+
+
+def mesh_coordinates(path, given: str | None) -> tuple[str | None, str]:
+    """The convention a mesh file is read in, and how it was decided.
+
+    Returns (``"LPS"``, ``"RAS"`` or None for a file taken as RAS with nothing said, the note).
+    """
+    stated = mesh_space(path)
+    if stated is not None:
+        return stated, f"{stated}, stated in the file"
+    if given is not None:
+        return given, f"{given}, none stated (given)"
+    return None, "RAS, none stated (taken as RAS; set space = \"LPS\" for a 3D Slicer file without a header)"
 
 
 def safe_file_name(name: str) -> str:
@@ -187,14 +227,19 @@ def object_from_mesh(vertices_world: np.ndarray, faces: np.ndarray, *, spacing_m
 
 
 def read_instance(spec: InstanceSpec, *, spacing_mm: float, label_map: LabelMap | None = None,
-                  cancelled: CancelledFn = None) -> Volume:
+                  space: str = "auto", cancelled: CancelledFn = None) -> Volume:
     """The read step of :func:`import_instance`: the instance's binary object in its input grid.
 
-    A mesh is voxelized at ``spec.mesh_spacing_mm`` (or ``spacing_mm``).
+    A mesh is voxelized at ``spec.mesh_spacing_mm`` (or ``spacing_mm``), in RAS world mm
+    (:func:`mesh_coordinates`: the convention its file states, else the instance's or the
+    study's ``space``); in a known convention it is patient-oriented (``frame = "auto"``
+    pairs its axes with R, A, S, as for an image).
     """
     try:
         if spec.mesh_path is not None:
-            return load_mesh_volume(spec.mesh_path, spec.mesh_spacing_mm or spacing_mm, cancelled=cancelled)
+            convention, _note = mesh_coordinates(spec.mesh_path, spec.given_space(space))
+            return load_mesh_volume(spec.mesh_path, spec.mesh_spacing_mm or spacing_mm, space=convention,
+                                    patient_oriented=convention is not None, cancelled=cancelled)
         if spec.volume_path is None:
             raise InputError("no source file (volume or mesh)")
         return select_label(label_map, spec.label) if label_map is not None else load_volume(spec.volume_path, spec.label)
@@ -203,7 +248,7 @@ def read_instance(spec: InstanceSpec, *, spacing_mm: float, label_map: LabelMap 
 
 
 def import_instance(spec: InstanceSpec, *, spacing_mm: float, frame_method: str = "auto",
-                    label_map: LabelMap | None = None, progress: ProgressFn = None,
+                    label_map: LabelMap | None = None, space: str = "auto", progress: ProgressFn = None,
                     cancelled: CancelledFn = None) -> ObjectVolume:
     """Import one instance of a study: read, object frame, resample (paper section 2).
 
@@ -213,7 +258,7 @@ def import_instance(spec: InstanceSpec, *, spacing_mm: float, frame_method: str 
         Naming the instance and the file.
     """
     report(progress, 0.0, f"reading {spec.name}")
-    vol = read_instance(spec, spacing_mm=spacing_mm, label_map=label_map, cancelled=cancelled)
+    vol = read_instance(spec, spacing_mm=spacing_mm, label_map=label_map, space=space, cancelled=cancelled)
     try:
         return object_from_volume(vol, spacing_mm=spacing_mm, frame_method=frame_method,
                                   progress=sub_progress(progress, 0.4, 1.0), cancelled=cancelled)

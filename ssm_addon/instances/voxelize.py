@@ -164,9 +164,11 @@ def voxelize_mesh(
     return Volume(mask=mask, affine=affine, source=source, label=None, patient_oriented=patient_oriented)
 
 
-def load_mesh_volume(path, spacing_mm: float, patient_oriented: bool = False, cancelled=None) -> Volume:
-    """Read a closed mesh (STL/PLY/OBJ) and voxelize it, see :func:`voxelize_mesh`."""
-    vertices, faces = read_mesh(path)
+def load_mesh_volume(path, spacing_mm: float, patient_oriented: bool = False, space: str | None = None,
+                     cancelled=None) -> Volume:
+    """Read a closed mesh (STL/PLY/OBJ) in RAS world mm (``space``: the convention of a file that
+    states none, :func:`ssm_addon.formats.meshes.read_mesh`) and voxelize it, see :func:`voxelize_mesh`."""
+    vertices, faces = read_mesh(path, space=space)
     return voxelize_mesh(
         vertices, faces, spacing_mm, source=str(path), patient_oriented=patient_oriented, cancelled=cancelled
     )

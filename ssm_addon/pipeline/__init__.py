@@ -15,5 +15,5 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "runner": ("coating_stage", "run"),
     "stages": ("coat_from_frames", "coat_instances", "coating_result", "evaluate_model", "import_instances", "import_result", "import_stage", "make_model", "make_template", "metrics_stage", "model_stage", "self_check", "template_stage"),
     "streaming": ("InstanceJob", "coat_from_source", "stream_instances", "template_key"),
-    "study": ("STAGES", "StageResult", "Study", "apply_stage", "carried_landmarks", "common_landmark_names", "instance_sources", "landmark_distances", "merge_findings", "study_parameters", "template_landmark_locations"),
+    "study": ("STAGES", "input_coordinates", "StageResult", "Study", "apply_stage", "carried_landmarks", "common_landmark_names", "instance_sources", "landmark_distances", "merge_findings", "study_parameters", "template_landmark_locations"),
 })

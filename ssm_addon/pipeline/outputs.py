@@ -253,14 +253,14 @@ def write_study(study: Study, folder, *, output: OutputParams, project: str | Ab
     check_cancelled(cancelled)
     tpl, model = study.template, study.model
     tframe = study.frame(study.template_instance)
-    write_ply(folder / "template.ply", tframe.to_world(tpl.points_object), tpl.faces)
+    write_ply(folder / "template.ply", tframe.to_world(tpl.points_object), tpl.faces, space="RAS")
     files["template"] = "template.ply"
     names = list(model.instance_names)
     safe = file_names(names)
     if output.coated_meshes:
         (folder / "coated").mkdir()
         for name, pw in zip(names, model.instance_points_world):
-            write_ply(folder / "coated" / f"{safe[name]}.ply", np.asarray(pw, float), tpl.faces)
+            write_ply(folder / "coated" / f"{safe[name]}.ply", np.asarray(pw, float), tpl.faces, space="RAS")
         files["coated"] = "coated"
     carried = carried_landmarks(study)
     if output.landmarks and carried:

@@ -52,7 +52,7 @@ from ..base.errors import InputError
 from ..base.params import AnalysisParams, StudyParams
 from ..fitting.batch import FitTarget
 from ..formats.landmarks import LandmarkSet, match_landmarks, read_landmarks
-from ..instances.importing import InstanceSpec, file_names
+from ..instances.importing import InstanceSpec, file_names, landmark_space
 
 __all__ = ["Project", "project_text", "read_project", "targets_from_project", "toml_value", "write_project"]
 
@@ -63,6 +63,7 @@ INSTANCE_KEYS = {
     "mesh": "a file path (string)",
     "mesh_spacing": "a number",
     "landmarks": "a file path (string)",
+    "space": "\"RAS\" or \"LPS\" (the convention of this instance's files that state none)",
     "attributes": "a table of attributes, e.g. { group = \"patient\", age = 63 }",
 }
 #: Longest instance name: it names output files (``coated/<name>.ply``, ``landmarks/<name>.mrk.json``),
@@ -230,7 +231,8 @@ def _params(cls, doc: dict, section: str, ctx: _Context, extra=()):
     return P.from_table(cls, values, where=f"{ctx.at(ctx.lines.table(section))}: [{section}]", lines=lines)
 
 
-def _instances(doc: dict, ctx: _Context, base: Path, landmarks_required: bool = True) -> list[InstanceSpec]:
+def _instances(doc: dict, ctx: _Context, base: Path, landmarks_required: bool = True,
+               study_space: str = "auto") -> list[InstanceSpec]:
     raw = doc.get("instances")
     if raw is None or (isinstance(raw, list) and not raw):
         raise ctx.error("no [[instances]]: a build needs at least 3 instances, each with name, volume (or mesh) "
@@ -285,16 +287,22 @@ def _instances(doc: dict, ctx: _Context, base: Path, landmarks_required: bool = 
         if mesh_spacing is not None and not (np.isfinite(mesh_spacing) and 0 < mesh_spacing <= 50):
             raise ctx.error(f"{what}: mesh_spacing must be a number > 0 mm and <= 50 mm, got {mesh_spacing!r}",
                             ctx.lines.key(*where, "mesh_spacing"))
+        space = table.get("space")
+        if space is not None and (not isinstance(space, str) or space.upper() not in ("RAS", "LPS")):
+            raise ctx.error(f"{what}: space must be \"RAS\" or \"LPS\", got {space!r}", ctx.lines.key(*where, "space"))
+        space = space.upper() if space is not None else None
         volume = _existing_file(table["volume"], "volume", what, ctx, where, base) if has_volume else None
         mesh = _existing_file(table["mesh"], "mesh", what, ctx, where, base) if has_mesh else None
         lm_path, lms = None, None
         if "landmarks" in table:
             lm_path = _existing_file(table["landmarks"], "landmarks", what, ctx, where, base)
+            lm_space, why = landmark_space(InstanceSpec(name=name, mesh_path=mesh, space=space), study_space)
             try:
-                lms = read_landmarks(lm_path)
+                lms = read_landmarks(lm_path, space=lm_space, why=why)
             except InputError as err:
                 raise ctx.error(f"{what}: {err}", ctx.lines.key(*where, "landmarks")) from None
-            lms = LandmarkSet(lms.names, lms.points_world, source=f"instance {name!r} ({lm_path.name})")
+            lms = LandmarkSet(lms.names, lms.points_world, source=f"instance {name!r} ({lm_path.name})",
+                              coordinates=lms.coordinates)
         if "attributes" in table:
             attrs = table["attributes"]
             line = ctx.lines.key(*where, "attributes")
@@ -305,7 +313,7 @@ def _instances(doc: dict, ctx: _Context, base: Path, landmarks_required: bool = 
                     raise ctx.error(f"{what}: attribute {k!r} must be a number or a string, got {P.type_name(v)} "
                                     f"{v!r}", line)
         out.append(InstanceSpec(name=name, landmarks_path=lm_path, volume_path=volume, label=table.get("label"), mesh_path=mesh,
-                                mesh_spacing_mm=mesh_spacing, landmarks=lms))
+                                mesh_spacing_mm=mesh_spacing, landmarks=lms, space=space))
     return out
 
 
@@ -404,7 +412,8 @@ def read_project(path) -> Project:
     if compute.cache not in ("auto", "off") and not Path(compute.cache).is_absolute():
         tables["compute"] = dataclasses.replace(compute, cache=str((path.parent / compute.cache).resolve()))
 
-    instances = _instances(doc, ctx, path.parent, landmarks_required=tables["correspondence"].method == "landmarks")
+    instances = _instances(doc, ctx, path.parent, landmarks_required=tables["correspondence"].method == "landmarks",
+                           study_space=tables["template"].space)
     if len(instances) < 2:
         raise ctx.error(f"only one instance ({instances[0].name!r}): a build needs at least 3 (a model with its "
                         "leave-one-out metrics)",
@@ -505,6 +514,8 @@ def project_text(project: Project, base: Path) -> str:
                 lines.append(f"mesh_spacing = {toml_value(float(inst.mesh_spacing_mm))}")
         if inst.landmarks_path is not None:
             lines.append(f"landmarks = {toml_value(_relative(inst.landmarks_path, base))}")
+        if inst.space is not None:
+            lines.append(f"space = {toml_value(inst.space)}")
         own = project.instance_attributes.get(inst.name)
         if own:
             lines.append("attributes = { " + ", ".join(f"{_key(k)} = {toml_value(v)}" for k, v in own.items()) + " }")

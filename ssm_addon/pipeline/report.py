@@ -30,7 +30,7 @@ import numpy as np
 from ..base.records import jsonable
 from ..meshutil import genus
 from ..model.metrics import aggregate_fit, model_summary
-from .study import Study, carried_landmarks, landmark_distances, study_parameters
+from .study import Study, carried_landmarks, input_coordinates, landmark_distances, study_parameters
 
 __all__ = ["SECTIONS", "Absent", "Report", "instance_thumbnails", "model_report", "study_report", "write_html_report",
            "write_report_html"]
@@ -204,7 +204,7 @@ def study_report(study: Study, *, project: str | Absent, timings_unknown: dict |
         timings_s=dict(study.timings_s),
         fit_summary=aggregate_fit(per_instance),
         timings_unknown=dict(timings_unknown or {}),
-        extra=dict(extra or {}))
+        extra={"inputs": input_coordinates(study), **dict(extra or {})})
 
 THUMB_PX = 256
 #: Width (px) of one thumbnail view on the page.
@@ -526,6 +526,15 @@ def write_html_report(path, report: Report | dict, *, images: dict[str, bytes] |
                                    "max landmark residual (mm)", "landmark transfer (mm)", "converged", "start",
                                    "Mahalanobis (LOO)", "p",
                                    "LOO error (mm)", "warnings"]))
+
+    inputs = doc.get("inputs") or {}
+    if inputs:
+        parts.append("<h2>Inputs</h2><p class=\"muted\">World coordinates are RAS mm; each file is read in the "
+                     "convention it states (3D Slicer's SPACE=LPS, a NIfTI's qform or sform), else the one given.</p>")
+        parts.append(_table([[f"<b>{html.escape(n)}</b>", html.escape(Path(d.get("source") or "").name),
+                              html.escape(d.get("coordinates", "")), html.escape(Path(d.get("landmarks") or "").name),
+                              html.escape(d.get("landmark_coordinates", ""))] for n, d in inputs.items()],
+                            ["instance", "file", "coordinates", "landmarks", "landmark coordinates"]))
 
     parts += _analysis_section(doc.get("analysis") or {}, analysis_images or {})
 

@@ -74,7 +74,7 @@ def import_instances(study: Study, *, names: Sequence[str] | None = None, jobs: 
 
     def one(inst: InstanceSpec) -> ObjectVolume:
         check_cancelled(cancelled)
-        ov = import_instance(inst, spacing_mm=tp.spacing_mm, frame_method=tp.frame,
+        ov = import_instance(inst, spacing_mm=tp.spacing_mm, frame_method=tp.frame, space=tp.space,
                              label_map=shared.get(inst.volume_path), cancelled=cancelled)
         done[0] += 1
         report(progress, done[0] / n, f"imported {inst.name} ({done[0]}/{n}): {ov.mask.shape} voxels at "

@@ -87,7 +87,7 @@ def save_study(study: Study, folder, *, extra: dict | None = None) -> Path:
     for i, spec in enumerate(study.instances):
         lm = spec.landmarks
         insts.append({"name": spec.name, "landmarks": spec.landmarks_path, "volume": spec.volume_path, "label": spec.label,
-                      "mesh": spec.mesh_path, "mesh_spacing": spec.mesh_spacing_mm,
+                      "mesh": spec.mesh_path, "mesh_spacing": spec.mesh_spacing_mm, "space": spec.space,
                       "landmark_names": list(lm.names) if lm is not None else None,
                       "landmark_source": lm.source if lm is not None else ""})
         if lm is not None:
@@ -146,6 +146,7 @@ def load_study(folder) -> tuple[Study, dict]:
         specs.append(InstanceSpec(name=d["name"], landmarks_path=Path(d["landmarks"]) if d["landmarks"] else None,
                                   volume_path=Path(d["volume"]) if d["volume"] else None, label=d["label"],
                                   mesh_path=Path(d["mesh"]) if d["mesh"] else None, mesh_spacing_mm=d["mesh_spacing"],
+                                  space=d.get("space"),
                                   landmarks=lm))
     par = doc["parameters"]
     study = Study(instances=tuple(specs), template_instance=doc["template_instance"],

@@ -42,7 +42,7 @@ class InstanceJob:
     ----------
     spec : InstanceSpec
         Source, label and landmarks (world mm).
-    spacing_mm, frame_method : import settings (paper 2).
+    spacing_mm, frame_method, space : import settings (paper 2; ``[template] space``).
     shared_file : bool
         The label map holds several instances (read once per worker process).
     template_points, template_faces : the template (object mm of its instance; paper 3).
@@ -61,13 +61,15 @@ class InstanceJob:
     landmark_names: tuple
     coating_params: CoatingParams
     quality_params: QualityParams
+    space: str = "auto"
 
     def key(self) -> str:
         """The cache key (:mod:`ssm_addon.pipeline.cache`): every input that determines the product."""
         spec, qp = self.spec, self.quality_params
         lm = spec.landmarks.subset(self.landmark_names)
         return digest("instance", {"source": file_digest(spec.source), "kind": "volume" if spec.volume_path else "mesh",
-                                   "label": spec.label, "mesh_spacing": spec.mesh_spacing_mm},
+                                   "label": spec.label, "mesh_spacing": spec.mesh_spacing_mm,
+                                   **({"space": spec.given_space(self.space)} if spec.mesh_path is not None else {})},
                       {"names": list(lm.names), "points_world": np.asarray(lm.points_world, float)},
                       {"spacing_mm": self.spacing_mm, "frame": self.frame_method},
                       np.asarray(self.template_points, float), np.asarray(self.template_faces, np.int64),
@@ -105,7 +107,8 @@ def coat_from_source(job: InstanceJob):
             label_map = _label_map_once(spec.volume_path)
         except InputError as err:
             raise InputError(f"instances using {spec.volume_path.name}: {err}") from None
-    ov = import_instance(spec, spacing_mm=job.spacing_mm, frame_method=job.frame_method, label_map=label_map)
+    ov = import_instance(spec, spacing_mm=job.spacing_mm, frame_method=job.frame_method, label_map=label_map,
+                         space=job.space)
     findings = check_volume(spec.name, ov, qp)
     check_landmarks_on_surface(spec.name, ov, spec.landmarks, qp,
                                source=str(spec.landmarks_path) if spec.landmarks_path is not None else "")
@@ -121,7 +124,7 @@ def template_key(study: Study) -> str:
     spec = study.instance(study.template_instance)
     lm = spec.landmarks
     return digest("template", {"source": file_digest(spec.source), "label": spec.label,
-                               "mesh_spacing": spec.mesh_spacing_mm},
+                               "mesh_spacing": spec.mesh_spacing_mm, **({"space": spec.space} if spec.space else {})},
                   {"names": list(lm.names), "points_world": np.asarray(lm.points_world, float)} if lm else None,
                   study.params.template.to_dict())
 
@@ -153,7 +156,8 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
         tspec = study.instance(tname)
         report(progress, 0.0, f"import: {tname} (template instance)")
         ov = import_instance(tspec, spacing_mm=study.params.template.spacing_mm,
-                             frame_method=study.params.template.frame, cancelled=cancelled)
+                             frame_method=study.params.template.frame, space=study.params.template.space,
+                             cancelled=cancelled)
         volumes[tname], frames[tname] = ov, ov.frame
         check_volume(tname, ov, study.params.quality)  # a few voxels is the cause, not the landmarks (its findings
         # are the worker's to report)
@@ -185,7 +189,7 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
                         shared_file=uses.get(study.instances[i].volume_path, 0) > 1,
                         template_points=template.points_object, template_faces=template.faces,
                         template_landmarks_object=src, landmark_names=common, coating_params=study.params.coating,
-                        quality_params=study.params.quality) for i in order]
+                        quality_params=study.params.quality, space=study.params.template.space) for i in order]
     products: dict = {}
     keys = [job.key() for job in jobs] if cache is not None else [None] * len(jobs)
     todo = []

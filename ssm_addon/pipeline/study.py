@@ -36,8 +36,9 @@ from ..base.errors import InputError
 from ..base.params import StudyParams
 from ..base.records import versions
 from ..coating.coating import CoatingResult, CoatingStart
+from ..formats.label_maps import label_map_coordinates
 from ..formats.landmarks import LandmarkSet
-from ..instances.importing import InstanceSpec
+from ..instances.importing import InstanceSpec, mesh_coordinates
 from ..instances.volume import ObjectFrame, ObjectVolume
 from ..meshutil import LandmarkLocations
 from ..model.metrics import ModelMetrics
@@ -47,7 +48,7 @@ from ..model.quality import (
 )
 from ..template.template import Template
 
-__all__ = ["STAGES", "StageResult", "Study", "apply_stage", "carried_landmarks", "common_landmark_names", "instance_sources", "landmark_distances", "merge_findings", "study_parameters", "template_landmark_locations"]
+__all__ = ["input_coordinates", "STAGES", "StageResult", "Study", "apply_stage", "carried_landmarks", "common_landmark_names", "instance_sources", "landmark_distances", "merge_findings", "study_parameters", "template_landmark_locations"]
 
 
 Log = Callable[[str], None] | None
@@ -245,6 +246,25 @@ def carried_landmarks(study: Study) -> dict[str, LandmarkSet]:
             continue
         pts = study.frame(name).to_world(loc.evaluate(study.coatings[name].points_object, study.template.faces))
         out[name] = LandmarkSet(loc.names, pts, f"{name} (carried over by the coating)")
+    return out
+
+
+def input_coordinates(study: Study) -> dict[str, dict]:
+    """Per instance: its source file, how that file's coordinates were taken (the convention it
+    states, or the one given, turned into RAS world mm) and its landmark file's (report.json's
+    ``inputs``)."""
+    out = {}
+    for spec in study.instances:
+        if spec.mesh_path is not None:
+            _space, note = mesh_coordinates(spec.mesh_path, spec.given_space(study.params.template.space))
+        elif spec.volume_path is not None:
+            note = label_map_coordinates(spec.volume_path)
+        else:
+            note = "a Blender mesh (Blender world mm)"
+        lm = spec.landmarks
+        out[spec.name] = {"source": str(spec.source) if spec.source is not None else "", "coordinates": note,
+                          "landmarks": str(spec.landmarks_path) if spec.landmarks_path is not None else "",
+                          "landmark_coordinates": lm.coordinates if lm is not None else ""}
     return out
 
 
