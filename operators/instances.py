@@ -94,7 +94,11 @@ def import_items(specs, *, spacing_mm: float, frame_method: str, space: str = "a
         label_map = (label_maps or {}).get(spec.volume_path)
         vol = core.read_instance(spec, spacing_mm=spacing_mm, label_map=label_map, space=space, cancelled=cancelled)
         report(prog, 0.3, "object frame and resampling")
-        ov = core.object_from_volume(vol, spacing_mm=spacing_mm, frame_method=frame_method, cancelled=cancelled)
+        if spec.mesh_path is not None:  # the core's mesh import: voxelized on its object grid
+            ov = core.mesh_instance(spec, spacing_mm=spacing_mm, frame_method=frame_method, space=space,
+                                    cancelled=cancelled)
+        else:
+            ov = core.object_from_volume(vol, spacing_mm=spacing_mm, frame_method=frame_method, cancelled=cancelled)
         report(prog, 0.7, "surface")
         verts_world, faces = display_surface(vol)
         items.append({"spec": spec, "kind": "MESH_FILE" if spec.mesh_path is not None else "VOLUME", "object_volume": ov,
@@ -278,10 +282,9 @@ class SSM_OT_add_mesh_instances(BackgroundJob, bpy.types.Operator):
             out = []
             for n, (name, verts, faces) in enumerate(data):
                 report(progress, n / len(data), f"voxelizing {name}")
-
                 vol = voxelize_mesh(verts, faces, mesh_spacing or tp.spacing_mm, source=name, cancelled=cancelled)
-                ov = core.object_from_volume(vol, spacing_mm=tp.spacing_mm, frame_method=method,
-                                             cancelled=cancelled)
+                ov = core.object_from_mesh(verts, faces, spacing_mm=tp.spacing_mm, frame_method=method, source=name,
+                                           frame=core.instance_frame(vol, method), cancelled=cancelled)
                 out.append((name, vol, ov))
             report(progress, 1.0, "done")
             return out

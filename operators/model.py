@@ -538,13 +538,15 @@ class SSM_OT_import_model(bpy.types.Operator, ImportHelper):
 
     def execute(self, context):
         try:
-            model = load_model(self.filepath)  # allow_pickle=False; errors name the file
+            notes = []
+            model = load_model(self.filepath, say=notes.append)  # allow_pickle=False; errors name the file
         except SSMError as err:
             self.report({"ERROR"}, str(err))
             return {"CANCELLED"}
         obj = create_model_object(context, model)
         self.report({"INFO"}, f"{os.path.basename(self.filepath)}: {model.n_modes} modes, {model.n_points} points"
-                              f"{f', from {model.n_instances} instances' if model.n_instances else ''} as {obj.name!r}")
+                              f"{f', from {model.n_instances} instances' if model.n_instances else ''} as {obj.name!r}"
+                              + "".join(f"; {n}" for n in notes))
         return {"FINISHED"}
 
 

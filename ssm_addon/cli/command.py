@@ -286,6 +286,7 @@ def cmd_fit(args) -> int:
 
     out = Path(args.out).expanduser().resolve()
     inputs = [args.model, args.volume, args.mesh, args.points, args.landmarks, args.project]
+    model = apply.load_model(args.model, say=lambda line: print(line, flush=True))  # says which modes are empty
     if args.project or args.glob:
         targets = targets_from_project(args.project, landmarks=not args.no_landmarks) if args.project else \
             apply.targets_from_glob(args.glob, args.label)
@@ -307,7 +308,6 @@ def cmd_fit(args) -> int:
                 print(f"WARNING {d['name']}: {w}", file=sys.stderr)
         print(f"coefficients: {out / 'coefficients.csv'}")
         return 0
-    model = apply.load_model(args.model)
     name = Path(args.volume or args.mesh or args.points or args.landmarks or "target").name
     t = apply.FitTarget(name=name, volume=Path(args.volume) if args.volume else None, label=args.label,
                         mesh=Path(args.mesh) if args.mesh else None, points=Path(args.points) if args.points else None,

@@ -43,21 +43,31 @@ from ..instances.volume import display_surface
 from ..instances.voxelize import voxelize_mesh
 from ..meshutil import Mesh
 from ..model.files import load_npz, load_statismo, write_npz
+from ..model.pca import EMPTY_MODE_SHARE, drop_empty_modes
 
 __all__ = ["FitTarget", "fit_batch", "fit_to_folder", "load_model", "load_target"]
 
 
-def load_model(path):
-    """A model from ``model.npz`` or a statismo HDF5 file (ours or another tool's)."""
+def load_model(path, *, say=None):
+    """A model from ``model.npz`` or a statismo HDF5 file (ours or another tool's), without its
+    modes of zero variance (:func:`~ssm_addon.model.pca.drop_empty_modes`: another tool may
+    keep n − 1 or more modes of which many are empty); ``say`` receives the line saying how
+    many were dropped."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: model file not found")
     head = path.read_bytes()[:8]
     if head.startswith(b"PK"):
-        return load_npz(path)
-    if head.startswith(b"\x89HDF"):
-        return load_statismo(path)
-    raise InputError(f"{path}: not a model (expected model.npz from `ssm build` or a statismo .h5 file)")
+        model = load_npz(path)
+    elif head.startswith(b"\x89HDF"):
+        model = load_statismo(path)
+    else:
+        raise InputError(f"{path}: not a model (expected model.npz from `ssm build` or a statismo .h5 file)")
+    model, dropped = drop_empty_modes(model)
+    if dropped and say is not None:
+        say(f"{path.name}: {dropped} of {model.n_modes + dropped} modes have zero variance (at most "
+            f"{EMPTY_MODE_SHARE:g} of the largest); dropped, {model.n_modes} modes left")
+    return model
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ from .._lazy import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "frame": ("SKEW_TIE", "frame_axes_moments", "frame_axes_patient", "object_frame"),
-    "importing": ("InstanceSpec", "file_names", "import_instance", "instance_frame", "landmark_space", "load_object", "mesh_coordinates", "object_from_mesh", "object_from_volume", "read_instance", "safe_file_name"),
+    "importing": ("InstanceSpec", "file_names", "import_instance", "instance_frame", "landmark_space", "load_object", "mesh_coordinates", "mesh_instance", "object_from_mesh", "object_from_volume", "read_instance", "safe_file_name"),
     "resampling": ("resample",),
     "volume": ("ObjectFrame", "ObjectVolume", "bounding_box", "display_surface", "frame_from_arrays", "frame_to_arrays", "summary"),
     "voxelize": ("load_mesh_volume", "mesh_edge_defects", "voxelize_mesh"),

@@ -20,14 +20,14 @@ from ..base.errors import InputError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..formats.label_maps import LabelMap, Volume, is_mesh_file, load_volume, select_label
 from ..formats.landmarks import LandmarkSet
-from ..formats.meshes import mesh_space
+from ..formats.meshes import mesh_space, read_mesh
 from ..instances.frame import object_frame
 from ..instances.resampling import resample
-from ..instances.volume import ObjectFrame, ObjectVolume
+from ..instances.volume import ObjectFrame, ObjectVolume, bounding_box
 from ..instances.voxelize import load_mesh_volume, voxelize_mesh
 
 __all__ = ["InstanceSpec", "file_names", "import_instance", "instance_frame", "load_object", "object_from_mesh", "object_from_volume",
-           "landmark_space", "mesh_coordinates", "read_instance", "safe_file_name"]
+           "landmark_space", "mesh_coordinates", "mesh_instance", "read_instance", "safe_file_name"]
 
 
 @dataclass(frozen=True)
@@ -207,8 +207,12 @@ def load_object(
     if mesh is None:
         mesh = is_mesh_file(path)
     if mesh:
-        vol = load_mesh_volume(path, mesh_spacing_mm or spacing_mm, patient_oriented=bool(patient_oriented),
-                               cancelled=cancelled)
+        stated = mesh_space(path)
+        vertices, faces = read_mesh(path)
+        oriented = stated is not None if patient_oriented is None else bool(patient_oriented)
+        return object_from_mesh(vertices, faces, spacing_mm=spacing_mm, mesh_spacing_mm=mesh_spacing_mm,
+                                frame_method=frame_method, source=str(path), patient_oriented=oriented,
+                                cancelled=cancelled)
     else:
         vol = select_label(label_map, label) if label_map is not None else load_volume(path, label)
         if patient_oriented is not None:
@@ -219,11 +223,46 @@ def load_object(
 
 def object_from_mesh(vertices_world: np.ndarray, faces: np.ndarray, *, spacing_mm: float,
                      mesh_spacing_mm: float | None = None, frame_method: str = "moments", source: str = "",
-                     patient_oriented: bool = False, cancelled: CancelledFn = None) -> ObjectVolume:
-    """A closed mesh given as arrays (world mm): voxelized, object frame, resampled."""
-    vol = voxelize_mesh(vertices_world, faces, mesh_spacing_mm or spacing_mm, source=source,
-                        patient_oriented=patient_oriented, cancelled=cancelled)
-    return object_from_volume(vol, spacing_mm=spacing_mm, frame_method=frame_method, cancelled=cancelled)
+                     patient_oriented: bool = False, frame: ObjectFrame | None = None,
+                     cancelled: CancelledFn = None) -> ObjectVolume:
+    """A closed mesh given as arrays (world mm) as an object of paper section 2.
+
+    The object frame comes from the mesh's voxelization at ``mesh_spacing_mm`` (default
+    ``spacing_mm``) on the world grid (or is ``frame``); then the mesh itself, in object mm, is
+    voxelized on the object grid at ``spacing_mm`` (voxel centres at multiples of the spacing,
+    two background voxels on every side: :func:`~ssm_addon.instances.resampling.resample`'s
+    grid). The surface is sampled once, as a label map's is by its resampling, not
+    voxelized and then resampled (which moved it by up to half a voxel).
+    """
+    if frame is None:
+        vol = voxelize_mesh(vertices_world, faces, mesh_spacing_mm or spacing_mm, source=source,
+                            patient_oriented=patient_oriented, cancelled=cancelled)
+        frame = instance_frame(vol, frame_method)
+        del vol
+    check_cancelled(cancelled)
+    grid = voxelize_mesh(frame.to_object(np.asarray(vertices_world, float)), faces, spacing_mm, source=source,
+                         cancelled=cancelled)
+    h = float(spacing_mm)
+    tight = bounding_box(grid.mask)
+    starts = np.array([max(s.start - 2, 0) for s in tight])
+    stops = np.array([min(s.stop + 2, n) for s, n in zip(tight, grid.mask.shape)])
+    mask = grid.mask[tuple(slice(a, z) for a, z in zip(starts, stops))]
+    return ObjectVolume(mask=np.ascontiguousarray(mask), spacing_mm=h,
+                        origin_object=grid.affine[:3, 3] + starts * h, frame=frame, source=source)
+
+
+def mesh_instance(spec: InstanceSpec, *, spacing_mm: float, frame_method: str = "auto", space: str = "auto",
+                  cancelled: CancelledFn = None) -> ObjectVolume:
+    """A mesh instance's object (:func:`object_from_mesh`), its file read in RAS world mm
+    (:func:`mesh_coordinates`); in a known convention it is patient-oriented."""
+    try:
+        convention, _note = mesh_coordinates(spec.mesh_path, spec.given_space(space))
+        vertices, faces = read_mesh(spec.mesh_path, space=convention)
+        return object_from_mesh(vertices, faces, spacing_mm=spacing_mm, mesh_spacing_mm=spec.mesh_spacing_mm,
+                                frame_method=frame_method, source=str(spec.mesh_path),
+                                patient_oriented=convention is not None, cancelled=cancelled)
+    except InputError as err:
+        raise InputError(f"instance {spec.name!r}: {err}") from None
 
 
 def read_instance(spec: InstanceSpec, *, spacing_mm: float, label_map: LabelMap | None = None,
@@ -252,12 +291,16 @@ def import_instance(spec: InstanceSpec, *, spacing_mm: float, frame_method: str 
                     cancelled: CancelledFn = None) -> ObjectVolume:
     """Import one instance of a study: read, object frame, resample (paper section 2).
 
+    A mesh instance is voxelized on its object grid directly (:func:`object_from_mesh`).
+
     Raises
     ------
     InputError
         Naming the instance and the file.
     """
     report(progress, 0.0, f"reading {spec.name}")
+    if spec.mesh_path is not None:
+        return mesh_instance(spec, spacing_mm=spacing_mm, frame_method=frame_method, space=space, cancelled=cancelled)
     vol = read_instance(spec, spacing_mm=spacing_mm, label_map=label_map, space=space, cancelled=cancelled)
     try:
         return object_from_volume(vol, spacing_mm=spacing_mm, frame_method=frame_method,

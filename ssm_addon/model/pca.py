@@ -20,6 +20,7 @@ is positive, which makes the model deterministic.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -31,10 +32,31 @@ from ..base.progress import report
 from ..base.records import jsonable, versions
 from ..meshutil import LandmarkLocations
 
-
 # ---------------------------------------------------------------------------------------
 # The model
 # ---------------------------------------------------------------------------------------
+#: A mode whose variance is at most this share of the largest is empty (numerically zero): float32
+#: files and rank-deficient covariances leave such modes, which move nothing.
+EMPTY_MODE_SHARE = 1e-7
+
+
+def drop_empty_modes(model: ShapeModel) -> tuple[ShapeModel, int]:
+    """The model without its modes of (numerically) zero variance, and how many there were.
+
+    A mode is empty when its variance λ_k is at most :data:`EMPTY_MODE_SHARE` of the largest:
+    its shape key would do nothing, and in a fit its weight would divide by zero (a
+    Mahalanobis distance counting it would say nothing). ``params`` records the count
+    (``dropped_empty_modes``).
+    """
+    lam = np.asarray(model.variances, float)
+    keep = lam > EMPTY_MODE_SHARE * max(float(lam.max(initial=0.0)), 0.0)
+    dropped = int((~keep).sum())
+    if not dropped:
+        return model, 0
+    params = {**model.params, "dropped_empty_modes": dropped}
+    return dataclasses.replace(model, modes=model.modes[keep], variances=lam[keep], params=params), dropped
+
+
 @dataclass(frozen=True, eq=False)
 class ShapeModel:
     """A point distribution model (paper section 5).
