@@ -126,7 +126,6 @@ def test_the_medoid_template_of_the_model_method_reaches_the_scene(bpy_clean, tm
     population's medoid when that lowers the self-check; Coat Template in Blender does what the
     headless build does: the same template instance (the template object follows it), the same
     coatings, the same record of the choice."""
-    import json
 
     bpy = bpy_clean
     from ssm.operators.scene import find_template
@@ -145,7 +144,9 @@ def test_the_medoid_template_of_the_model_method_reaches_the_scene(bpy_clean, tm
     assert bpy.ops.ssm.coat_template() == {"FINISHED"}
     assert find_template(bpy.context).ssm.instance.name == choice["medoid"]
     assert bpy.context.scene.ssm_display.template_instance.name == choice["medoid"]
-    assert json.loads(bpy.context.scene["ssm_template_choice"])["medoid"] == choice["medoid"]
+    from ssm.operators.scene import scene_records  # the scene's record of the stages, as a build's report
+
+    assert scene_records(bpy.context)["template_choice"]["medoid"] == choice["medoid"]
     for name, pts in _coatings(bpy).items():
         np.testing.assert_allclose(pts, headless.study.coatings[name].points_object, atol=1e-9, err_msg=name)
     assert bpy.ops.ssm.build_model() == {"FINISHED"}  # the model is built on the medoid's template
