@@ -136,17 +136,28 @@ def _fit_json(bpy, name):
     return json.loads(bpy.data.objects[f"{name} fitted"]["ssm_fit_json"])
 
 
-def test_fit_model_says_the_warnings_of_ssm_fit(scene_with_model, tmp_path):
+def test_fit_model_says_the_warnings_of_ssm_fit(bpy_clean, tmp_path):
     """One owner of a fit's verdicts (ssm_addon.fitting.verdict): Blender's Fit Model and ``ssm fit``
     give the same warnings on the same target, a whole shape in metres and a partial one that
     covers under a tenth of the model."""
+    from scipy.spatial import ConvexHull
     from ssm.operators import bridge
+    from ssm.operators import model as opmodel
     from ssm.operators.properties import scene_params
+    from test_model import random_rotation, synthetic_population
+    from test_model_blender import add_coated
 
     from ssm_addon.fitting.batch import FitTarget, fit_to_folder
     from ssm_addon.formats.meshes import write_ply
 
-    bpy, model_obj, model = scene_with_model
+    bpy = bpy_clean
+    shapes, mean, _fields, _lam = synthetic_population(n=10, n_points=300, noise_mm=0.2, seed=3)
+    rng = np.random.default_rng(0)
+    add_coated(bpy, (shapes, ConvexHull(mean).simplices,
+                     [(rng.normal(scale=50, size=3), random_rotation(rng)) for _ in range(10)]), n=10)
+    assert bpy.ops.ssm.build_model() == {"FINISHED"}
+    bpy.context.scene.ssm_fit.noise_mm = 0.05
+    model = opmodel.model_from_object(opmodel.find_model_object(bpy.context))
     params = scene_params(bpy.context, "ssm_fit")
     # a whole shape given in metres: fitted from the pose search, and said to be another unit
     shape = model.generate(np.array([0.8, 0.4]) * model.standard_deviations[:2])
@@ -161,7 +172,7 @@ def test_fit_model_says_the_warnings_of_ssm_fit(scene_with_model, tmp_path):
     assert "unit" in headless["warning_kinds"] and "metres" not in headless["warnings"][0]
     assert blender["warning_kinds"] == headless["warning_kinds"]
     assert blender["warnings"] == headless["warnings"]
-    # a partial shape: ten vertices at one end, under a tenth of the model's points
+    # a partial shape: ten vertices at one end, a thirtieth of the model's points
     target, shape = _target(bpy, model, [0.5, -0.3])
     target.name = "partial"
     keep = np.zeros(len(shape), bool)

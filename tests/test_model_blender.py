@@ -69,7 +69,8 @@ def test_build_model_from_coated_instances(built, population):
 
     bpy, obj, model = built
     shapes, faces, frames = population
-    ref = build_model(shapes, faces, [f"V{i:02d}" for i in range(N_INST)])
+    ref = build_model(shapes, faces, [f"V{i:02d}" for i in range(N_INST)],
+                      alignment=bpy.context.scene.ssm_model.alignment)  # the scene's parameters, as Build Model's
     assert obj.ssm.role == "MODEL"
     assert list(model.instance_names) == [f"V{i:02d}" for i in range(N_INST)]
     np.testing.assert_allclose(model.variances, ref.variances, rtol=1e-6)

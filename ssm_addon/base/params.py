@@ -638,9 +638,10 @@ class CoatingParams:
 class ModelParams:
     """Parameters of the model and its metrics (paper 5); the project's ``[model]`` table."""
 
-    alignment: str = param("none", choices=ALIGNMENTS, label="Alignment",
-                           help="'none': object frame only, as the paper; 'rigid' or 'similarity': generalized "
-                                "Procrustes")
+    alignment: str = param("rigid", choices=ALIGNMENTS, label="Alignment",
+                           help="'rigid': generalized Procrustes of the coatings, so object frames that disagree "
+                                "(a flip, a turn, another scanner's pose) never enter the model as shape; "
+                                "'similarity': also scale; 'none': the object frames only, as the paper")
     n_modes: int | None = param(None, kind="int", minimum=1, maximum=100000, none_means="every non-zero mode",
                                 label="Modes", help="number of modes kept")
     variance_fraction: float | None = param(None, kind="float", minimum=0.0, exclusive_minimum=True, maximum=1.0,

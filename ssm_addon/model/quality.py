@@ -325,8 +325,9 @@ def check_frames(names, points: np.ndarray, reference: str, alignment: str,
     _s, rot, _t = procrustes_fit(pts, pts[names.index(reference)], scale=False)
     turn = np.degrees(np.arccos(np.clip((np.trace(rot, axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)))
     return [Finding(n, "frame", f"its coating is turned {a:.0f}° against the template instance's {reference!r} in "
-                    f"the object frames (allowed {max_turn_deg:g}°): the frames disagree, and the turn would be "
-                    "modelled as shape; set [model] alignment = \"rigid\"", float(a), max_turn_deg)
+                    f"the object frames (allowed {max_turn_deg:g}°): the frames disagree, and with [model] "
+                    "alignment = \"none\" the turn IS modelled as shape (the model's first modes hold it); set "
+                    "alignment = \"rigid\" (the default)", float(a), max_turn_deg)
             for n, a in zip(names, turn) if a > max_turn_deg]
 
 
