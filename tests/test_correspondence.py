@@ -338,3 +338,40 @@ def test_a_swapped_landmark_is_named_although_the_model_corrects_it(population, 
     assert max(res) == pytest.approx(max(dist.values())) and max(res) > 0.5 * gap, (gap, dist)
     assert set(sorted(dist, key=dist.get)[-2:]) == {lm.names[0], lm.names[far]}, (gap, dist)
     assert re.search(rf"from given landmark '({lm.names[0]}|{lm.names[far]})'", named[0].message), named[0].message
+
+
+@pytest.mark.slow
+def test_an_optional_refinement_that_fails_falls_back_and_the_build_finishes(population, tmp_path, monkeypatch):
+    """The medoid's template is a refinement: when its triangulation fails (forced here), the build
+    keeps the given template, says so by name, and finishes; the same for rounds that fail."""
+    from ssm_addon.base.errors import SSMError
+    from ssm_addon.pipeline import model_method
+
+    project = _variant(population, "medoid.toml", correspondence='[correspondence]\nmethod = "model"\niterations = 1')
+    medoid = _template(project)  # this population's medoid gives the template: start from another instance
+    given = next(i.name for i in read_project(project).instances if i.name != medoid)
+    project.write_text(re.sub(r'instance = "[^"]+"', f'instance = "{given}"', project.read_text(), count=1))
+    real = model_method.make_template
+
+    def failing_for_others(study, **kw):
+        if study.template_instance != given:
+            raise SSMError("triangulation: cannot refine further (failing regions have no free vertex)")
+        return real(study, **kw)
+
+    monkeypatch.setattr(model_method, "make_template", failing_for_others)
+    result = build(read_project(project), tmp_path / "out", log=None)
+    choice = result.report["correspondence"]["template_choice"]
+    assert choice.get("medoid") and choice["medoid"] != given, choice  # the medoid was another instance: it was tried
+    assert choice["kept"] is False and "cannot refine further" in choice["failed"]
+    found = [f for f in result.report["quality"]["findings"] if f["gate"] == "fallback"]
+    assert found and found[0]["instance"] == choice["medoid"] and given in found[0]["message"]
+    assert result.study.template_instance == given and (tmp_path / "out" / "model.npz").is_file()
+
+    def failing_rounds(*_a, **_kw):
+        raise SSMError("model-guided correspondence diverged in round 1")
+
+    monkeypatch.setattr(model_method, "refine_rounds", failing_rounds)
+    result = build(read_project(project), tmp_path / "out2", log=None)
+    assert result.report["correspondence"]["stop"] == "failed"
+    assert any(f["gate"] == "fallback" and "rounds failed" in f["message"] for f in result.report["quality"]["findings"])
+    assert (tmp_path / "out2" / "model.npz").is_file()

@@ -10,7 +10,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from ..base.compute import executor_or_local
-from ..base.errors import InputError, check_cancelled
+from ..base.errors import Cancelled, InputError, SSMError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn
 from ..coating.coating import CoatingResult
 from ..correspondence.rounds import (
@@ -24,6 +24,7 @@ from ..correspondence.rounds import (
     starts_from_model,
 )
 from ..model.quality import (
+    Finding,
     check_correspondence_rounds,
     check_landmark_transfer,
 )
@@ -64,11 +65,18 @@ def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: in
     if rest and landmarked:
         cp = study.params.correspondence
         stack = np.stack([(coated.get(n) or study.coatings[n]).points_object for n in landmarked])
-        coated.update(starts_from_model(stack, study.template.faces, study.template.points_object,
-                                        template_landmark_locations(study), {n: study.volume(n) for n in rest},
-                                        fit=correspondence_fit_params(cp),
-                                        coating=study.params.coating, template_frame=study.frame(study.template_instance),
-                                        jobs=jobs, cancelled=cancelled, executor=executor))
+        try:
+            coated.update(starts_from_model(stack, study.template.faces, study.template.points_object,
+                                            template_landmark_locations(study), {n: study.volume(n) for n in rest},
+                                            fit=correspondence_fit_params(cp), coating=study.params.coating,
+                                            template_frame=study.frame(study.template_instance), jobs=jobs,
+                                            cancelled=cancelled, executor=executor))
+        except Cancelled:
+            raise
+        except SSMError as err:  # an optional refinement falls back, it does not fail the build
+            study.fallbacks.append(Finding("", "fallback", f"the starts from the landmarked instances' model failed "
+                                           f"({err}); {len(rest)} instance(s) start from the object frames"))
+            coated.update(coat_from_frames(study, rest, jobs=jobs, cancelled=cancelled, executor=executor))
     else:
         coated.update(coat_from_frames(study, rest, jobs=jobs, cancelled=cancelled, executor=executor))
     # each coating's own record: the landmark warp or the model fit, or the object frames
@@ -93,7 +101,7 @@ def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn =
     missing = [n for n in study.names if n not in study.coatings]
     work = dataclasses.replace(study, coatings=dict(study.coatings), coating_start=dict(study.coating_start),
                                volumes=dict(study.volumes), frames=dict(study.frames), findings=list(study.findings),
-                               correspondence_rounds=list(study.correspondence_rounds), timings_s={})
+                               correspondence_rounds=list(study.correspondence_rounds), timings_s={}, fallbacks=[])
     choice = {}
     # one pool of processes for every step (starts, template choice, rounds)
     with executor_or_local(executor, jobs, len(study.names)) as pool:
@@ -108,15 +116,26 @@ def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn =
         else:
             first_fits = {}
         refined = population(work)
-        rounds, check = refine_rounds(refined, study.params.correspondence, jobs=jobs, progress=progress,
-                                      cancelled=cancelled, log=say, executor=pool, on_coated=on_coated,
-                                      first_fits=first_fits)
-        work.coatings, work.template = refined.coatings, refined.template
+        try:
+            rounds, check = refine_rounds(refined, study.params.correspondence, jobs=jobs, progress=progress,
+                                          cancelled=cancelled, log=say, executor=pool, on_coated=on_coated,
+                                          first_fits=first_fits)
+            work.coatings, work.template = refined.coatings, refined.template
+        except Cancelled:
+            raise
+        except SSMError as err:  # the rounds are a refinement: the start's coatings stay
+            rounds, check = [], CorrespondenceCheck(stop="failed")
+            work.fallbacks.append(Finding("", "fallback", f"the model method's rounds failed ({err}); the start's "
+                                          "coatings are kept (where every instance has landmarks: the paper's single "
+                                          "pass)"))
+    for f in work.fallbacks:
+        say(f"WARNING {f.instance or 'study'} [{f.gate}]: {f.message}")
     coated = {n: work.coatings[n] for n in study.names}
     kept = "the start" if check.kept_round == 0 else f"round {check.kept_round}'s coatings"
     say(f"correspondence: {check.stop or 'no rounds'}; kept {kept}; landmark transfer error {check.study_mm:.3f} mm")
     findings = (check_landmark_transfer(check, study.params.quality)
-                + check_correspondence_rounds(rounds, check, study.params.correspondence.tolerance_mm))
+                + check_correspondence_rounds(rounds, check, study.params.correspondence.tolerance_mm)
+                + list(work.fallbacks))
     result = coating_result(study, coated, {n: work.coating_start.get(n, coated[n].fit.start) for n in coated},
                             time.perf_counter() - t0, template=work.template, rounds=tuple(rounds), check=check,
                             extra_findings=tuple(findings))
@@ -177,9 +196,17 @@ def medoid_template(study: Study, *, jobs: int = 1, executor=None, cancelled: Ca
         return study, {**record, "kept": True}, {}
     check_cancelled(cancelled)
     other = dataclasses.replace(study, template_instance=medoid, coatings={}, coating_start={},
-                                volumes=dict(study.volumes), frames=dict(study.frames))
-    other.template = make_template(other, cancelled=cancelled)
-    other.coatings.update(start_coatings(other, list(other.names), jobs=jobs, cancelled=cancelled, executor=executor))
+                                volumes=dict(study.volumes), frames=dict(study.frames), fallbacks=[])
+    try:
+        other.template = make_template(other, cancelled=cancelled)
+        other.coatings.update(start_coatings(other, list(other.names), jobs=jobs, cancelled=cancelled,
+                                             executor=executor))
+    except Cancelled:
+        raise
+    except SSMError as err:  # the medoid's template is a refinement: the given one stays
+        study.fallbacks.append(Finding(medoid, "fallback", f"the population's medoid {medoid!r} gave no template "
+                                       f"({err}); the given template of {study.template_instance!r} is kept"))
+        return study, {**record, "kept": False, "failed": str(err)}, {}
     fit = correspondence_fit_params(study.params.correspondence)
     landmarked = [n for n in study.names if study.landmarks_object(n)]
     fits = [round_fits(population(s), landmarked, fit=fit, jobs=jobs, executor=executor, cancelled=cancelled, verb="checked")

@@ -471,6 +471,7 @@ def write_html_report(path, report: Report | dict, *, images: dict[str, bytes] |
         stop = {"converged": "the rounds converged (the mean shape moved less than the tolerance)",
                 "criterion": "the rounds stopped when one did not lower the landmark transfer error (it was dropped)",
                 "limit": "the rounds stopped at their limit without settling",
+                "failed": "the rounds failed and the start's coatings were kept (see the warnings)",
                 }.get(corr.get("stop", ""), "the paper's single pass")
         kept = check.get("kept_round", 0)
         parts.append(f"<p>Method <code>{html.escape(str(corr.get('method', '')))}</code>: {html.escape(stop)}; "

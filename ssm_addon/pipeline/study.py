@@ -98,6 +98,9 @@ class Study:
     template_choice : dict
         The model method's choice of the template's instance (``template_choice =
         "medoid"``): ``given``, ``medoid``, their landmark transfer errors (mm) and ``kept``.
+    fallbacks : list of Finding
+        Optional refinements of the running stage that failed and fell back to what the study
+        had (the medoid's template, the model's starts, the rounds); the stage reports them.
     """
 
     instances: tuple[InstanceSpec, ...]
@@ -117,6 +120,7 @@ class Study:
     template_choice: dict = field(default_factory=dict)
     timings_s: dict[str, float] = field(default_factory=dict)
     streamed: dict = field(default_factory=dict)
+    fallbacks: list = field(default_factory=list)
 
     def __post_init__(self):
         self.instances = tuple(self.instances)

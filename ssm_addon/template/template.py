@@ -626,7 +626,16 @@ def triangulate(
         new = np.unique(far[bad])
         new = new[(new >= 0) & (dist[new] > 0)]
         if len(new) == 0:
-            raise SSMError("triangulation: cannot refine further (failing regions have no free vertex)")
+            # every failing region is its seed alone (squeezed between others, e.g. on a thin
+            # plate): refine the regions around it instead, so the squeeze opens
+            lab_e = labels[medges]
+            touching = np.isin(lab_e, bad)
+            around = np.setdiff1d(np.unique(lab_e[touching.any(axis=1)]), bad)
+            new = np.unique(far[around])
+            new = new[(new >= 0) & (dist[new] > 0)]
+        if len(new) == 0:
+            raise SSMError("triangulation: cannot refine further (failing regions and their neighbours have no "
+                           "free vertex)")
         seeds = np.concatenate([seeds, new])
         refinements += 1
     return Triangulation(
