@@ -25,6 +25,8 @@ from .base.errors import InputError
 
 __all__ = [
     "as_faces",
+    "distance_figures",
+    "two_way_distances",
     "unique_rows",
     "ManifoldReport",
     "LandmarkLocations",
@@ -447,6 +449,31 @@ class MeshLocator:
             out_t[s : s + len(q)] = tri[pick]
             out_b[s : s + len(q)] = bary[pick]
         return out_c, out_d, out_t, out_b
+
+
+def distance_figures(distances: np.ndarray) -> dict:
+    """Mean, 95th percentile and largest of distances (mm).
+
+    >>> distance_figures(np.arange(21.0))
+    {'mean_mm': 10.0, 'p95_mm': 19.0, 'max_mm': 20.0}
+    """
+    d = np.asarray(distances, float)
+    if not d.size:
+        return {"mean_mm": float("nan"), "p95_mm": float("nan"), "max_mm": float("nan")}
+    return {"mean_mm": float(d.mean()), "p95_mm": float(np.percentile(d, 95)), "max_mm": float(d.max())}
+
+
+def two_way_distances(points: np.ndarray, faces: np.ndarray, other_points: np.ndarray, other_faces: np.ndarray) -> dict:
+    """Surface distances between two meshes in one frame (mm), both ways.
+
+    ``"to_other"``: each vertex of the first to the second's surface; ``"from_other"``:
+    each vertex of the second to the first's surface (where the first, e.g. a coating with
+    a few hundred points, cuts off a thin process of the second, this is large). Each as
+    :func:`distance_figures`.
+    """
+    _c, to_other, _t, _b = MeshLocator(other_points, other_faces).query(points, k=12)
+    _c, from_other, _t, _b = MeshLocator(points, faces).query(other_points, k=12)
+    return {"to_other": distance_figures(to_other), "from_other": distance_figures(from_other)}
 
 
 @dataclass(frozen=True)

@@ -58,6 +58,13 @@ def figures(label: str, project: Path, out: Path, jobs: int) -> dict:
     frames = [f for f in result.report["quality"]["findings"] if f["gate"] == "frame"]
     print(f"{label:28s} mode 1 {100 * share:5.1f} %  generalization {' '.join(f'{g:.3f}' for g in gen)} mm  "
           f"specificity {' '.join(f'{s:.3f}' for s in spe)} mm  frame findings {len(frames)}  {seconds:.0f} s")
+    surf = {n: d["input_surface_mm"] for n, d in result.report["instances"].items() if "input_surface_mm" in d}
+    if surf:
+        to_in = [d["to_input"]["mean_mm"] for d in surf.values()]
+        from_in = [d["from_input"]["max_mm"] for d in surf.values()]
+        gated = [f["instance"] for f in result.report["quality"]["findings"] if f["gate"] == "input_surface"]
+        print(f"{'':28s} against the input meshes: coating to mesh mean {min(to_in):.2f}-{max(to_in):.2f} mm; mesh to "
+              f"coating max {min(from_in):.2f}-{max(from_in):.2f} mm; input_surface findings {len(gated)} {gated}")
     return {"share": share, "gen": np.array(gen), "spe": np.array(spe), "frames": len(frames)}
 
 

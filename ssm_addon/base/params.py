@@ -825,6 +825,11 @@ class QualityParams:
     max_surface_distance_vox: float = param(1.0, minimum=0.0, maximum=1000.0, label="Max surface distance (voxels)",
                                             help="largest distance of a coated vertex from the surface, in voxels "
                                                  "of the study's spacing")
+    max_input_distance_mm: float = param(3.0, unit="mm", minimum=0.0, exclusive_minimum=True, maximum=1000.0,
+                                         label="Max input distance",
+                                         help="largest distance of an input mesh's vertices from its coating: beyond "
+                                              "it, a part of the user's surface (a thin process) is cut off by the "
+                                              "template's points (use a denser template or a finer spacing)")
     require_convergence: bool = param(True, label="Require convergence", advanced=True,
                                       help="flag a relaxation that stopped at its iteration limit")
     outlier_probability: float = param(0.99, minimum=0.5, maximum=1.0, exclusive_minimum=True,

@@ -56,6 +56,7 @@ __all__ = [
     "check_correspondence_rounds",
     "check_duplicate_instances",
     "check_frames",
+    "check_input_surface",
     "check_landmark_transfer",
     "check_landmarks_on_surface",
     "check_model",
@@ -294,6 +295,23 @@ def check_coating(name: str, fit, params: QualityParams) -> list[Finding]:
         out.append(Finding(name, "convergence", f"the relaxation stopped at its limit of {fit.iterations} steps "
                            "before reaching its velocity tolerance", fit.iterations))
     return out
+
+
+def check_input_surface(name: str, distances: dict, params: QualityParams, template=None) -> list[Finding]:
+    """Gate on a mesh instance's coating against the user's own mesh (``from_input``: the mesh's
+    vertices to the coated surface, mm): far apart where the template's points do not reach a
+    thin part of the surface, which the model then does not hold. ``template``: the
+    ``[template]`` parameters, for the remedy."""
+    worst = float((distances.get("from_input") or {}).get("max_mm", float("nan")))
+    if not (math.isfinite(worst) and worst > params.max_input_distance_mm):
+        return []
+    mean = float(distances["from_input"]["mean_mm"])
+    remedy = ("use a denser template (smaller [template] r_min_mm and r_max_mm, now "
+              f"{template.r_min_mm:g} and {template.r_max_mm:g} mm) or a finer spacing (now {template.spacing_mm:g} mm)"
+              if template is not None else "use a denser template or a finer spacing")
+    return [Finding(name, "input_surface", f"its mesh lies up to {worst:.1f} mm from its coating (mean {mean:.2f} mm; "
+                    f"allowed {params.max_input_distance_mm:g} mm): a part of the surface, a thin process, is cut off "
+                    f"by the template's points; {remedy}", worst, params.max_input_distance_mm)]
 
 
 def check_landmark_transfer(check, params: QualityParams) -> list[Finding]:

@@ -179,6 +179,9 @@ def study_report(study: Study, *, project: str | Absent, timings_unknown: dict |
     # "landmark warp" of its own warp, the study how the instance's correspondence began)
     per_instance = {n: dataclasses.asdict(dataclasses.replace(
         study.coatings[n].fit, start=study.coating_start.get(n, study.coatings[n].fit.start))) for n in names}
+    for n in names:  # instances given as meshes: the coating against the user's own mesh, both ways
+        if n in study.input_distances:
+            per_instance[n]["input_surface_mm"] = study.input_distances[n]
     check = study.correspondence_check
     correspondence = {
         "method": study.params.correspondence.method,
@@ -518,12 +521,15 @@ def write_html_report(path, report: Report | dict, *, images: dict[str, bytes] |
             thumb = _img(thumbnails[name], name, THUMB_SHOWN_PX * 2) if name in thumbnails else ""
             rows.append({"_class": "warn" if flags else "", "cells": [
                 f"<b>{html.escape(name)}</b>", thumb, _num(fit.get("mean_distance_mm"), 3),
-                _num(fit.get("max_distance_mm"), 3), _num(fit.get("folded_after")),
+                _num(fit.get("max_distance_mm"), 3),
+                _num(((fit.get("input_surface_mm") or {}).get("from_input") or {}).get("max_mm"), 2),
+                _num(fit.get("folded_after")),
                 _num(max(res) if res else None, 1), _num(transfer.get(name), 2), _num(fit.get("converged")),
                 html.escape(str((corr.get("start") or {}).get(name, fit.get("start", "")))),
                 _num(o.get("mahalanobis"), 2), _num(o.get("p_value"), 2), _num(o.get("loo_error_mm"), 2),
                 "<br>".join(html.escape(f"[{f['gate']}] {f['message']}") for f in flags)]})
-        parts.append(_table(rows, ["instance", "coated", "mean dist. (mm)", "max dist. (mm)", "folds",
+        parts.append(_table(rows, ["instance", "coated", "mean dist. (mm)", "max dist. (mm)",
+                                   "input mesh to coating, max (mm)", "folds",
                                    "max landmark residual (mm)", "landmark transfer (mm)", "converged", "start",
                                    "Mahalanobis (LOO)", "p",
                                    "LOO error (mm)", "warnings"]))

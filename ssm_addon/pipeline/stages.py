@@ -17,9 +17,10 @@ from ..base.progress import CancelledFn, ProgressFn, report
 from ..coating.coating import CoatingResult, coat_all, coat_from_start
 from ..correspondence.rounds import check_correspondence, correspondence_fit_params
 from ..formats.label_maps import read_label_map
-from ..instances.importing import InstanceSpec, import_instance
+from ..formats.meshes import read_mesh
+from ..instances.importing import InstanceSpec, import_instance, mesh_coordinates
 from ..instances.volume import ObjectVolume
-from ..meshutil import Mesh, genus
+from ..meshutil import Mesh, genus, two_way_distances
 from ..model import metrics
 from ..model.metrics import ModelMetrics
 from ..model.pca import ShapeModel, build_model
@@ -27,6 +28,7 @@ from ..model.quality import (
     check_coating,
     check_duplicate_instances,
     check_frames,
+    check_input_surface,
     check_landmark_transfer,
     check_landmarks_on_surface,
     check_model,
@@ -247,18 +249,44 @@ def template_stage(study: Study, *, progress: ProgressFn = None, cancelled: Canc
                         f"{seconds:.2f} s",))
 
 
+def input_distances(study: Study, coated: dict[str, CoatingResult], faces: np.ndarray,
+                    frames: dict | None = None) -> dict[str, dict]:
+    """For every coated instance given as a mesh file: the coating against the user's own mesh
+    (world mm, the file read as the import reads it), both ways (:func:`~ssm_addon.meshutil.two_way_distances`:
+    ``to_input`` from the coated points to the mesh, ``from_input`` from the mesh's vertices to
+    the coated surface: large where the template's points do not reach a thin process)."""
+    frames = {**study.frames, **(frames or {})}
+    out = {}
+    for name, c in coated.items():
+        spec = study.instance(name)
+        if spec.mesh_path is None or name not in frames:
+            continue
+        convention, _note = mesh_coordinates(spec.mesh_path, spec.given_space(study.params.template.space))
+        vertices, mesh_faces = read_mesh(spec.mesh_path, space=convention)
+        d = two_way_distances(frames[name].to_world(c.points_object), faces, vertices, mesh_faces)
+        out[name] = {"to_input": d["to_other"], "from_input": d["from_other"]}
+    return out
+
+
 def coating_result(study: Study, coated: dict[str, CoatingResult], starts: dict[str, str], seconds: float, *,
                    template: Template | None = None, rounds: tuple = (), counts: str = "", check=None,
-                   extra_findings: tuple = ()) -> StageResult:
+                   extra_findings: tuple = (), frames: dict | None = None) -> StageResult:
     """The coating stage's result for ``coated`` instances: the coating gates and the summary.
 
     ``template`` (the mean shape of the model method), ``rounds`` (its refinement rounds)
     and ``check`` (the correspondence self-check, :func:`self_check`) join the product
     when given; ``extra_findings`` (the self-check's and the rounds' gates) the findings.
+    Instances given as meshes are also measured against their own mesh
+    (:func:`input_distances`, ``frames``: object frames the study does not hold yet) and gated
+    (:func:`~ssm_addon.model.quality.check_input_surface`).
     """
-    findings = tuple(f for n, c in coated.items() for f in check_coating(n, c.fit, study.params.quality))
+    qp = study.params.quality
+    findings = tuple(f for n, c in coated.items() for f in check_coating(n, c.fit, qp))
+    faces = (template if template is not None else study.template).faces
+    distances = input_distances(study, coated, faces, frames)
+    findings += tuple(f for n, d in distances.items() for f in check_input_surface(n, d, qp, study.params.template))
     findings += tuple(extra_findings)
-    product = {"coatings": dict(coated), "coating_start": dict(starts)}
+    product = {"coatings": dict(coated), "coating_start": dict(starts), "input_distances": distances}
     if template is not None:
         product["template"] = template
     if rounds:

@@ -34,7 +34,7 @@ __all__ = ["RECORD_FIELDS", "apply_records", "load_study", "save_study", "study_
 
 #: The study's records beside its arrays: what its stages found, decided and took.
 RECORD_FIELDS = ("findings", "outlier_scores", "coating_start", "correspondence_rounds", "correspondence_check",
-                 "template_choice", "metrics", "timings_s")
+                 "template_choice", "metrics", "timings_s", "input_distances")
 
 
 def study_records(study: Study) -> dict:
@@ -52,6 +52,7 @@ def study_records(study: Study) -> dict:
         "template_choice": study.template_choice,
         "metrics": study.metrics.to_dict() if study.metrics is not None else None,
         "timings_s": study.timings_s,
+        "input_distances": study.input_distances,
     })
 
 
@@ -73,6 +74,8 @@ def apply_records(study: Study, records: dict) -> Study:
         study.template_choice = dict(records["template_choice"] or {})
     if "metrics" in records:
         study.metrics = ModelMetrics.from_dict(records["metrics"])
+    if "input_distances" in records:
+        study.input_distances = dict(records["input_distances"] or {})
     if "timings_s" in records:
         study.timings_s = {k: float(v) for k, v in (records["timings_s"] or {}).items()}
     return study

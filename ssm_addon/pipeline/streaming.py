@@ -225,6 +225,7 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
     check, found = self_check(study, coatings, template=template, frames=frames, executor=executor,
                               cancelled=cancelled)
     result = coating_result(study, coatings, {n: c.fit.start for n, c in coatings.items()}, time.perf_counter() - t0,
+                            template=template, frames=frames,
                             counts=f"{len(todo)} coated, {cached} from the cache; ", check=check, extra_findings=found)
     counts = {"cached": cached, "computed": len(todo)}
     return dataclasses.replace(

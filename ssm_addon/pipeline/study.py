@@ -98,6 +98,9 @@ class Study:
     template_choice : dict
         The model method's choice of the template's instance (``template_choice =
         "medoid"``): ``given``, ``medoid``, their landmark transfer errors (mm) and ``kept``.
+    input_distances : dict name -> dict
+        Instances given as meshes: their coating against the mesh, both ways (mm:
+        ``to_input``, ``from_input``, each mean, p95 and max).
     fallbacks : list of Finding
         Optional refinements of the running stage that failed and fell back to what the study
         had (the medoid's template, the model's starts, the rounds); the stage reports them.
@@ -121,6 +124,7 @@ class Study:
     timings_s: dict[str, float] = field(default_factory=dict)
     streamed: dict = field(default_factory=dict)
     fallbacks: list = field(default_factory=list)
+    input_distances: dict = field(default_factory=dict)
 
     def __post_init__(self):
         self.instances = tuple(self.instances)
