@@ -293,3 +293,28 @@ def test_import_shape_model_opens_our_npz_and_a_foreign_statismo_file(bpy_clean,
     with pytest.raises(RuntimeError, match="bad.npz"):
         bpy.ops.ssm.import_model(filepath=str(tmp_path / "bad.npz"))
     assert len(bpy.data.objects) == n_objects
+
+
+def test_import_shape_model_drops_a_foreign_models_empty_modes(bpy_clean, population, tmp_path, capfd):
+    """A statismo model as another tool writes it, with 12 modes of zero variance after its real
+    ones: Import Shape Model makes shape keys of the real modes only and says how many it dropped."""
+    import dataclasses
+
+    from ssm.operators.scene import find_model_object, model_from_object
+    from test_fitting import write_foreign_statismo
+
+    from ssm_addon.model.pca import build_model
+
+    bpy = bpy_clean
+    shapes, faces, _frames = population
+    model = build_model(shapes, faces, [f"s{i}" for i in range(len(shapes))])
+    flat = model.modes.reshape(model.n_modes, -1).T
+    basis = np.linalg.qr(np.hstack([flat, np.random.default_rng(1).normal(size=(flat.shape[0], 12))]))[0]
+    padded = dataclasses.replace(model, modes=np.vstack([model.modes, basis[:, model.n_modes:].T.reshape(12, -1, 3)]),
+                                 variances=np.concatenate([model.variances, np.zeros(12)]))
+    path = write_foreign_statismo(padded, tmp_path / "padded.h5")
+    assert bpy.ops.ssm.import_model(filepath=str(path)) == {"FINISHED"}
+    obj = find_model_object(bpy.context)
+    assert model_from_object(obj).n_modes == model.n_modes
+    assert len(obj.data.shape_keys.key_blocks) == 1 + model.n_modes
+    assert f"12 of {model.n_modes + 12} modes have zero variance" in capfd.readouterr().out
