@@ -17,7 +17,13 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from ssm_addon.model.metrics import axis_letters, label_grid_picture, modes_figure_labels, view_orientation
+from ssm_addon.model.metrics import (
+    axis_letters,
+    label_grid_picture,
+    modes_figure_labels,
+    view_names,
+    view_orientation,
+)
 
 from . import bridge
 
@@ -143,7 +149,8 @@ def render_modes_figure(
 
         grid = mpimg.imread(str(raw))
         label_grid_picture(grid, path, row_labels=modes_figure_labels(model, n_modes, sigmas),
-                           column_labels=[f"{v}\n{view_orientation(VIEWS[v], axis_letters(model))}" for v in views],
+                           column_labels=[f"{name}\n{view_orientation(VIEWS[v], axis_letters(model))}"
+                                          for v, name in zip(views, view_names(model, views))],
                            title=f"Mean shape and the first {len(rows) - 1} modes (eq. 7, b = ±{sigmas:g}√λ)",
                            mm_per_px=cell / float(cell_px))
     finally:

@@ -195,3 +195,19 @@ def test_view_orientation_names_where_the_axes_point_and_the_scale_bar_is_round(
     assert view_orientation(coronal) == "L → · S ↑"
     assert view_orientation(coronal, AXIS_NAMES) == "−x → · +z ↑"
     assert scale_bar_mm(0.5, 320) == 50.0 and scale_bar_mm(0.1, 320) == 10.0
+
+
+def test_patient_planes_are_named_only_for_patient_oriented_frames(population):
+    """modes.png's columns say axial, sagittal, coronal (and R, A, S) only where every object frame
+    paired its axes with the patient axes; meshes whose convention nobody stated get 'view along z'."""
+    import dataclasses
+
+    from ssm_addon.model.metrics import AXIS_LETTERS, AXIS_NAMES, axis_letters, view_names
+
+    _, model = population
+    patient = dataclasses.replace(model, params={**model.params, "frame_methods": ["patient"]})
+    mixed = dataclasses.replace(model, params={**model.params, "frame_methods": ["moments", "patient"]})
+    views = ("axial", "sagittal", "coronal")
+    assert view_names(patient, views) == list(views) and axis_letters(patient) is AXIS_LETTERS
+    assert view_names(mixed, views) == ["view along z", "view along x", "view along y"]
+    assert axis_letters(mixed) is AXIS_NAMES

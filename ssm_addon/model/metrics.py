@@ -611,9 +611,26 @@ AXIS_LETTERS = (("R", "L"), ("A", "P"), ("S", "I"))
 AXIS_NAMES = (("+x", "−x"), ("+y", "−y"), ("+z", "−z"))
 
 
+def patient_oriented(model: ShapeModel) -> bool:
+    """Whether the model frame's axes are patient directions: every instance's object frame
+    paired its axes with R, A, S (``frame_methods``; a model written before they were recorded:
+    its frame setting was "auto" or "patient")."""
+    methods = model.params.get("frame_methods")
+    if methods is not None:
+        return list(methods) == ["patient"]
+    return model.params.get("frame_method") in ("auto", "patient")
+
+
 def axis_letters(model: ShapeModel):
     """:data:`AXIS_LETTERS` for a model whose frames follow the patient axes, else :data:`AXIS_NAMES`."""
-    return AXIS_LETTERS if model.params.get("frame_method") in ("auto", "patient") else AXIS_NAMES
+    return AXIS_LETTERS if patient_oriented(model) else AXIS_NAMES
+
+
+def view_names(model: ShapeModel, views) -> list[str]:
+    """The views' titles: the patient planes (axial, sagittal, coronal) where the model frame
+    follows the patient axes, else the axis a view looks along."""
+    along = {"axial": "view along z", "sagittal": "view along x", "coronal": "view along y"}
+    return [v if patient_oriented(model) else along.get(v, v) for v in views]
 
 
 def view_orientation(screen_from_model: np.ndarray, letters=AXIS_LETTERS) -> str:

@@ -194,6 +194,8 @@ def make_model(study: Study, *, names: Sequence[str] | None = None, progress: Pr
         pass
     params = study_parameters(study, common)
     params["landmark_locations"] = template_landmark_locations(study).to_dict()
+    # the frames' methods as resolved ("auto": patient for images and meshes in a known convention)
+    params["frame_methods"] = sorted({study.frame(n).method for n in names})
     params["fit"] = {n: {k: v for k, v in study.coatings[n].fit.to_dict().items() if k != "time_s"} for n in names}
     mp = study.params.model
     return build_model(pts, study.template.faces, names, instance_points_world=world, alignment=mp.alignment,
