@@ -30,9 +30,11 @@ import numpy as np
 from ..base.records import jsonable
 from ..meshutil import genus
 from ..model.metrics import aggregate_fit, model_summary
+from ..model.pca import procrustes_fit
 from .study import Study, carried_landmarks, input_coordinates, landmark_distances, study_parameters
 
-__all__ = ["SECTIONS", "Absent", "Report", "instance_thumbnails", "model_report", "study_report", "write_html_report",
+__all__ = ["SECTIONS", "Absent", "Report", "instance_thumbnails", "model_alignment", "model_report", "study_report",
+           "write_html_report",
            "write_report_html"]
 
 
@@ -155,6 +157,28 @@ def model_report(model, *, metrics=None, per_instance: dict | None = None, why: 
                   timings_s=Absent(why), fit_summary=aggregate_fit(per), extra=dict(extra or {}))
 
 
+def model_alignment(study: Study) -> dict[str, dict]:
+    """Per instance, what the model's alignment (``[model] alignment``) did to its coating in its
+    object frame: the turn (degrees), the shift (mm) and the scale onto the model frame. A turn
+    near 180° is an object frame the correspondence put right (a flip the paper's object-frame
+    alignment would model as shape). Empty for ``alignment = "none"``."""
+    model = study.model
+    if study.params.model.alignment == "none" or model is None or not model.n_instances:
+        return {}
+    names = [str(n) for n in model.instance_names]
+    if any(n not in study.coatings for n in names):
+        return {}
+    src = np.stack([study.coatings[n].points_object for n in names])
+    dst = np.asarray(model.instance_points, float)
+    out = {}
+    for i, n in enumerate(names):
+        s, rot, t = procrustes_fit(src[i][None], dst[i], scale=True)
+        turn = float(np.degrees(np.arccos(np.clip((np.trace(rot[0]) - 1.0) / 2.0, -1.0, 1.0))))
+        shift = float(np.linalg.norm(dst[i].mean(axis=0) - src[i].mean(axis=0)))
+        out[n] = {"turn_deg": turn, "shift_mm": shift, "scale": float(s[0])}
+    return out
+
+
 def study_report(study: Study, *, project: str | Absent, timings_unknown: dict | None = None,
                  metrics_absent: str = "not computed", extra: dict | None = None) -> Report:
     """The report of a built study: what the headless build and Blender's *Save Model* write.
@@ -182,6 +206,8 @@ def study_report(study: Study, *, project: str | Absent, timings_unknown: dict |
     for n in names:  # instances given as meshes: the coating against the user's own mesh, both ways
         if n in study.input_distances:
             per_instance[n]["input_surface_mm"] = study.input_distances[n]
+    for n, moved in model_alignment(study).items():  # what the model's alignment did to each object frame
+        per_instance[n]["alignment"] = moved
     check = study.correspondence_check
     correspondence = {
         "method": study.params.correspondence.method,
@@ -523,13 +549,14 @@ def write_html_report(path, report: Report | dict, *, images: dict[str, bytes] |
                 f"<b>{html.escape(name)}</b>", thumb, _num(fit.get("mean_distance_mm"), 3),
                 _num(fit.get("max_distance_mm"), 3),
                 _num(((fit.get("input_surface_mm") or {}).get("from_input") or {}).get("max_mm"), 2),
+                _num((fit.get("alignment") or {}).get("turn_deg"), 0),
                 _num(fit.get("folded_after")),
                 _num(max(res) if res else None, 1), _num(transfer.get(name), 2), _num(fit.get("converged")),
                 html.escape(str((corr.get("start") or {}).get(name, fit.get("start", "")))),
                 _num(o.get("mahalanobis"), 2), _num(o.get("p_value"), 2), _num(o.get("loo_error_mm"), 2),
                 "<br>".join(html.escape(f"[{f['gate']}] {f['message']}") for f in flags)]})
         parts.append(_table(rows, ["instance", "coated", "mean dist. (mm)", "max dist. (mm)",
-                                   "input mesh to coating, max (mm)", "folds",
+                                   "input mesh to coating, max (mm)", "alignment turn (°)", "folds",
                                    "max landmark residual (mm)", "landmark transfer (mm)", "converged", "start",
                                    "Mahalanobis (LOO)", "p",
                                    "LOO error (mm)", "warnings"]))
