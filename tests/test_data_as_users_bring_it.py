@@ -63,18 +63,18 @@ def test_a_mesh_file_is_read_in_the_convention_it_states(tmp_path, fmt):
     np.testing.assert_allclose(read_mesh(lps, space="RAS")[0], read_mesh(lps)[0])  # a statement wins
 
 
-def _three_meshes(tmp_path, centre, space):
+def _three_meshes(tmp_path, centre, space, fmt="ply"):
     lines = ["[template]", "spacing = 1.0", "r_min_mm = 4.0", "r_max_mm = 8.0", "", "[model]",
              "specificity_samples = 20", ""]
     shapes = {}
     for i, radii in enumerate(((30.0, 20.0, 14.0), (33.0, 19.0, 15.0), (28.0, 22.0, 13.0))):
         verts, faces = ellipsoid(radii, centre=centre)
         name = f"e{i}"
-        slicer_ply(tmp_path / f"{name}.ply", verts, faces, space=space)
+        (slicer_ply if fmt == "ply" else WRITERS[fmt])(tmp_path / f"{name}.{fmt}", verts, faces, space=space)
         tips = verts[[np.argmax(verts[:, 0]), np.argmin(verts[:, 0]), np.argmax(verts[:, 1]), np.argmin(verts[:, 1]),
                       np.argmax(verts[:, 2]), np.argmin(verts[:, 2])]]
         scalismo_landmarks(tmp_path / f"{name}.json", list("ABCDEF"), tips * (LPS if space == "LPS" else 1.0))
-        lines += ["[[instances]]", f'name = "{name}"', f'mesh = "{name}.ply"', f'landmarks = "{name}.json"', ""]
+        lines += ["[[instances]]", f'name = "{name}"', f'mesh = "{name}.{fmt}"', f'landmarks = "{name}.json"', ""]
         shapes[name] = (verts, faces)
     (tmp_path / "project.toml").write_text("\n".join(lines))
     return tmp_path / "project.toml", shapes
@@ -100,13 +100,14 @@ def test_mesh_instances_one_metre_from_the_origin_give_instance_points_world_on_
     assert not [f for f in result.report["quality"]["findings"] if f["gate"] in ("frame", "input_surface")]
 
 
-def test_the_same_surfaces_in_ras_and_in_lps_give_the_same_model(tmp_path):
+@pytest.mark.parametrize("fmt", ["ply", "stl", "obj"])
+def test_the_same_surfaces_in_ras_and_in_lps_give_the_same_model(tmp_path, fmt):
     """Each file says which convention it is in: the two builds give the same model in the same
-    RAS world frame."""
+    RAS world frame, for each mesh format."""
     (tmp_path / "lps").mkdir()
     (tmp_path / "ras").mkdir()
-    a, _ = _three_meshes(tmp_path / "lps", centre=(0.0, 100.0, -300.0), space="LPS")
-    b, _ = _three_meshes(tmp_path / "ras", centre=(0.0, 100.0, -300.0), space="RAS")
+    a, _ = _three_meshes(tmp_path / "lps", centre=(0.0, 100.0, -300.0), space="LPS", fmt=fmt)
+    b, _ = _three_meshes(tmp_path / "ras", centre=(0.0, 100.0, -300.0), space="RAS", fmt=fmt)
     ma = build(read_project(a), tmp_path / "out_lps", log=None).model
     mb = build(read_project(b), tmp_path / "out_ras", log=None).model
     np.testing.assert_allclose(ma.instance_points_world, mb.instance_points_world, atol=1e-6)
