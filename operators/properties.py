@@ -232,10 +232,10 @@ SSMFitSettings = param_group(P.FitParams, "SSMFitSettings")
 SSMCorrespondenceSettings = param_group(P.CorrespondenceParams, "SSMCorrespondenceSettings")
 SSMAnalysisSettings = param_group(P.AnalysisParams, "SSMAnalysisSettings")
 SSMComputeSettings = param_group(P.ComputeParams, "SSMComputeSettings")  # kept for Save Project; no panel
+SSMJointSettings = param_group(P.JointParams, "SSMJointSettings")  # kept for Save Project; no panel yet
 
 
 def _recolour(self, context):
-
     bridge.recolour_scene(context)
 
 
@@ -253,7 +253,7 @@ class SSMStudySettings(bpy.types.PropertyGroup):
 
 _GROUPS = {"template": SSMTemplateSettings, "coating": SSMCoatingSettings, "model": SSMModelSettings,
            "output": SSMOutputSettings, "quality": SSMQualitySettings, "correspondence": SSMCorrespondenceSettings,
-           "analysis": SSMAnalysisSettings, "compute": SSMComputeSettings}
+           "analysis": SSMAnalysisSettings, "compute": SSMComputeSettings, "joint": SSMJointSettings}
 #: Scene property name -> (group class, parameter class): ``Scene.ssm_<table>`` for every table of
 #: :class:`ssm_addon.base.params.StudyParams`, and ``Scene.ssm_fit`` (Fit Model's own).
 SCENE_GROUPS = {**{f"ssm_{section}": (_GROUPS[section], cls) for section, cls in P.SECTIONS.items()},
@@ -279,7 +279,7 @@ def set_scene_study_params(scene, params: P.StudyParams) -> None:
 
 classes = (SSMObjectProperties, SSMTemplateSettings, SSMCoatingSettings, SSMModelSettings, SSMOutputSettings,
            SSMQualitySettings, SSMFitSettings, SSMCorrespondenceSettings, SSMAnalysisSettings, SSMComputeSettings,
-           SSMStudySettings)
+           SSMJointSettings, SSMStudySettings)
 
 
 def register_properties():

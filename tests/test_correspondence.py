@@ -203,8 +203,10 @@ def test_landmarks_on_a_few_instances_start_the_rest_from_their_model(population
 
 
 @pytest.mark.slow
-def test_a_diverging_refinement_is_refused_and_writes_nothing(population, tmp_path, monkeypatch):
-    """A round whose mean shape jumps by more than the shapes' size stops the build by name."""
+def test_a_diverging_refinement_falls_back_to_the_start_and_says_so(population, tmp_path, monkeypatch):
+    """A round whose mean shape jumps by more than the shapes' size is refused by name; the rounds
+    are an optional refinement, so the build keeps the start's coatings and finishes, the
+    divergence a fallback finding (it used to stop the build and write nothing)."""
     import ssm_addon.correspondence.rounds as corr
 
     real = corr.coat_mean_shape
@@ -219,9 +221,11 @@ def test_a_diverging_refinement_is_refused_and_writes_nothing(population, tmp_pa
     proj = _variant(population, "diverge.toml",
                     correspondence='[correspondence]\nmethod = "model"\nround_template = "mean"')
     out = tmp_path / "out"
-    with pytest.raises(InputError, match=r"model-guided correspondence diverged in round 1"):
-        build(read_project(proj), out, log=None)
-    assert not out.exists()
+    result = build(read_project(proj), out, log=None)
+    assert result.report["correspondence"]["stop"] == "failed"
+    found = [f for f in result.report["quality"]["findings"] if f["gate"] == "fallback"]
+    assert found and "diverged in round 1" in found[0]["message"] and "start's coatings" in found[0]["message"]
+    assert (out / "model.npz").is_file() and result.study.template.is_mean_shape is False
 
 
 @pytest.mark.slow

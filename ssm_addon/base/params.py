@@ -44,6 +44,7 @@ ALIGNMENTS = ("none", "rigid", "similarity")
 
 __all__ = [
     "ALIGNMENTS",
+    "JointParams",
     "FRAME_METHODS",
     "type_name",
     "AnalysisParams",
@@ -882,6 +883,31 @@ class ComputeParams:
 
 
 @dataclass(frozen=True)
+class JointParams:
+    """A model of several structures per subject (a joint, a spine): the ``[joint]`` table.
+
+    Used only by projects whose instances hold several structures (``meshes = { … }`` or
+    ``labels = { … }``); see :mod:`ssm_addon.pipeline.joint`.
+    """
+
+    reference: str = param("", kind="str", label="Reference structure",
+                           help="the structure whose object frame holds the joint model (with [model] alignment = "
+                                "\"none\") and against which the others' relative pose is measured; empty: the first")
+    align_on: str = param("all", choices=("all", "reference"), label="Align on",
+                          help="[model] alignment of each subject computed on all structures together, or on the "
+                               "reference structure alone (the others follow it)")
+    collision_samples: int = param(200, minimum=0, maximum=100000, label="Collision samples", advanced=True,
+                                   help="random shapes of the model (besides ±3 SD along each mode) in which the "
+                                        "structures are checked for overlap")
+    penetration_mm: float = param(0.5, unit="mm", minimum=0.0, exclusive_minimum=True, maximum=100.0,
+                                  label="Penetration", advanced=True,
+                                  help="a structure reaching this far into another counts as a collision")
+    max_collision_excess: float = param(0.2, minimum=0.0, maximum=1.0, label="Max collision excess",
+                                        help="a pair of structures colliding in this share more of the model's "
+                                             "samples than of the training subjects is a finding")
+
+
+@dataclass(frozen=True)
 class AnalysisParams:
     """Shape analysis of the built model by groups and covariates; the ``[analysis]`` table.
 
@@ -943,6 +969,7 @@ class StudyParams:
     quality: QualityParams = field(default_factory=QualityParams)
     compute: ComputeParams = field(default_factory=ComputeParams)
     analysis: AnalysisParams = field(default_factory=AnalysisParams)
+    joint: JointParams = field(default_factory=JointParams)
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -980,7 +1007,7 @@ class StudyParams:
 #: Table name -> parameter class of every table of a study (the fields of :class:`StudyParams`).
 SECTIONS = {"template": TemplateParams, "coating": CoatingParams, "correspondence": CorrespondenceParams,
             "model": ModelParams, "output": OutputParams, "quality": QualityParams,
-            "compute": ComputeParams, "analysis": AnalysisParams}
+            "compute": ComputeParams, "analysis": AnalysisParams, "joint": JointParams}
 #: The tables ``ssm build`` takes as ``--<table>-<key>`` options (the analysis runs with ``ssm analyze``).
 TABLES = {k: v for k, v in SECTIONS.items() if k != "analysis"}
 

@@ -54,7 +54,17 @@ from ..fitting.batch import FitTarget
 from ..formats.landmarks import LandmarkSet, match_landmarks, read_landmarks
 from ..instances.importing import InstanceSpec, file_names, landmark_space
 
-__all__ = ["Project", "project_text", "read_project", "targets_from_project", "toml_value", "write_project"]
+__all__ = ["STRUCTURE_KEYS", "Project", "Structure", "project_text", "read_project", "targets_from_project", "toml_value", "write_project"]
+
+#: Keys of an instance that holds several structures: a table structure name -> file or label.
+STRUCTURE_KEYS = {
+    "meshes": "a table of structure name -> mesh file, e.g. { femur = \"S001_Femur.ply\" }",
+    "labels": "a table of structure name -> label of the instance's volume, e.g. { L1 = 20, L2 = 21 }",
+}
+#: Tables a [[structures]] entry may set over the project's, for that structure alone.
+STRUCTURE_TABLES = ("template", "coating", "correspondence")
+#: [study] keys: the attribute table may also be given there (the same as [analysis] attributes).
+STUDY_KEYS = ("attributes",)
 
 INSTANCE_KEYS = {
     "name": "a string",
@@ -64,6 +74,7 @@ INSTANCE_KEYS = {
     "mesh_spacing": "a number",
     "landmarks": "a file path (string)",
     "space": "\"RAS\" or \"LPS\" (the convention of this instance's files that state none)",
+    **STRUCTURE_KEYS,
     "attributes": "a table of attributes, e.g. { group = \"patient\", age = 63 }",
 }
 #: Longest instance name: it names output files (``coated/<name>.ply``, ``landmarks/<name>.mrk.json``),
@@ -71,9 +82,7 @@ INSTANCE_KEYS = {
 MAX_NAME_CHARS = 200
 #: [template] keys besides the TemplateParams fields.
 STUDY_TEMPLATE_KEYS = ("instance",)
-SECTIONS = ("instances", *P.SECTIONS, "study")
-#: [study] keys: the attribute table may also be given there (the same as [analysis] attributes).
-STUDY_KEYS = ("attributes",)
+SECTIONS = ("instances", *P.SECTIONS, "study", "structures")
 
 
 @dataclass(frozen=True)
@@ -98,6 +107,11 @@ class Project:
     attributes : Attributes or None
         The instances' attributes: their own tables, filled from the CSV file of
         ``[analysis]`` (or ``[study]``) ``attributes``; None when there are none.
+    structures : dict name -> Structure
+        A project whose instances hold several structures (``meshes = {femur = …, tibia =
+        …}``, or ``volume`` with ``labels = {L1 = 20, …}``): each structure's own study, its
+        instances named by subject, in the order of the structure names. Empty for a project
+        of one structure (then ``instances`` is that structure's).
     """
 
     path: Path
@@ -107,10 +121,30 @@ class Project:
     landmark_names: tuple[str, ...] = ()
     instance_attributes: dict = field(default_factory=dict)
     attributes: Any = None
+    structures: dict = field(default_factory=dict)
 
     @property
     def names(self) -> tuple[str, ...]:
         return tuple(i.name for i in self.instances)
+
+    @property
+    def input_files(self) -> list[Path]:
+        """Every file the project reads (label maps, meshes, landmark files), each structure's too."""
+        specs = [i for st in self.structures.values() for i in st.instances] or list(self.instances)
+        return [p for i in specs for p in (i.volume_path, i.mesh_path, i.landmarks_path) if p is not None]
+
+
+@dataclass(frozen=True)
+class Structure:
+    """One structure of a multi-structure project: its instances (one per subject, named by the
+    subject), the instance its template comes from, its parameters (the project's, with the
+    structure's own ``[[structures]]`` tables over them) and its landmark names."""
+
+    name: str
+    instances: tuple[InstanceSpec, ...]
+    template_instance: str
+    params: StudyParams
+    landmark_names: tuple[str, ...] = ()
 
 
 # --------------------------------------------------------------------------------------
@@ -412,6 +446,37 @@ def read_project(path) -> Project:
     if compute.cache not in ("auto", "off") and not Path(compute.cache).is_absolute():
         tables["compute"] = dataclasses.replace(compute, cache=str((path.parent / compute.cache).resolve()))
 
+    structures = _structure_names(doc, ctx)
+    if not structures:
+        instances, template_instance, lm_names = _study_instances(doc, ctx, path, tables)
+        per_structure = {}
+    else:
+        per_structure = {}
+        overrides = _structure_tables(doc, ctx, structures)
+        for st in structures:
+            sub = _structure_doc(doc, st, overrides.get(st, {}), ctx)
+            st_tables = {**tables, **{t: _params(P.TABLES[t], sub, t, ctx, extra=STUDY_TEMPLATE_KEYS if t == "template"
+                                                 else ()) for t in STRUCTURE_TABLES}}
+            specs, tpl, lm_names = _study_instances(sub, ctx, path, st_tables, structure=st)
+            per_structure[st] = Structure(name=st, instances=tuple(specs), template_instance=tpl,
+                                          params=StudyParams(**st_tables), landmark_names=lm_names)
+        first = per_structure[structures[0]]
+        instances, template_instance, lm_names = list(first.instances), first.template_instance, first.landmark_names
+    names = [i.name for i in instances]
+    analysis, inline_attributes, attributes = _attributes(doc, ctx, path.parent, names)
+
+    params = StudyParams(**tables, analysis=analysis)
+    per_structure = {st: dataclasses.replace(v, params=v.params.replace(analysis=analysis))
+                     for st, v in per_structure.items()}
+    return Project(path=path, instances=tuple(instances), template_instance=template_instance, params=params,
+                   landmark_names=lm_names, instance_attributes=inline_attributes, attributes=attributes,
+                   structures=per_structure)
+
+
+def _study_instances(doc: dict, ctx: _Context, path: Path, tables: dict, structure: str = ""):
+    """The instances of one structure's study (the project's, or a structure's of a multi-structure
+    project): validated, landmarks read and matched; with the template instance and the landmark names."""
+    what = f"structure {structure!r}: " if structure else ""
     instances = _instances(doc, ctx, path.parent, landmarks_required=tables["correspondence"].method == "landmarks",
                            study_space=tables["template"].space)
     if len(instances) < 2:
@@ -420,39 +485,117 @@ def read_project(path) -> Project:
                         ctx.lines.table("instances", 0))
     marked = [inst for inst in instances if inst.landmarks is not None]
     if not marked:
-        raise ctx.error("no instance has landmarks: the template instance needs them (they name the places "
+        raise ctx.error(f"{what}no instance has landmarks: the template instance needs them (they name the places "
                         "written for every instance)")
     try:
         matched = match_landmarks([inst.landmarks for inst in marked])
     except InputError as err:
-        raise ctx.error(f"landmark names differ between instances (reference: instance {marked[0].name!r}): "
+        raise ctx.error(f"{what}landmark names differ between instances (reference: instance {marked[0].name!r}): "
                         f"{err}") from None
     if len(matched[0]) < 4:
-        raise ctx.error(f"{len(matched[0])} landmarks: the landmark warp (eq. 2) needs at least 4 per instance")
+        raise ctx.error(f"{what}{len(matched[0])} landmarks: the landmark warp (eq. 2) needs at least 4 per instance")
     by_name = {inst.name: lm for inst, lm in zip(marked, matched)}
     instances = [dataclasses.replace(inst, landmarks=by_name.get(inst.name)) for inst in instances]
-
     names = [i.name for i in instances]
     try:
         file_names(names)
     except InputError as err:
         raise ctx.error(str(err), ctx.lines.table("instances", 0)) from None
-    analysis, inline_attributes, attributes = _attributes(doc, ctx, path.parent, names)
     template_instance = doc.get("template", {}).get("instance", names[0])
     line = ctx.lines.key("template", "instance")
     if not isinstance(template_instance, str):
-        raise _kind_error(ctx, "[template] instance", "a string", template_instance, line)
+        raise _kind_error(ctx, f"{what}[template] instance", "a string", template_instance, line)
     if template_instance not in names:
         close = difflib.get_close_matches(template_instance, names, n=1)
         hint = f" (did you mean {close[0]!r}?)" if close else ""
-        raise ctx.error(f"[template] instance {template_instance!r} is not an instance name{hint}", line)
+        raise ctx.error(f"{what}[template] instance {template_instance!r} is not an instance name{hint}", line)
     if by_name.get(template_instance) is None:
-        raise ctx.error(f"[template] instance {template_instance!r} has no landmarks; the template instance needs "
-                        "them", line)
+        raise ctx.error(f"{what}[template] instance {template_instance!r} has no landmarks; the template instance "
+                        "needs them", line)
+    return instances, template_instance, matched[0].names
 
-    params = StudyParams(**tables, analysis=analysis)
-    return Project(path=path, instances=tuple(instances), template_instance=template_instance, params=params,
-                   landmark_names=matched[0].names, instance_attributes=inline_attributes, attributes=attributes)
+
+def _structure_names(doc: dict, ctx: _Context) -> tuple[str, ...]:
+    """The structure names of a multi-structure project (the keys of its instances' ``meshes`` or
+    ``labels`` tables, in the order of the first instance), or () for a project of one structure."""
+    tables = doc.get("instances", [])
+    if not isinstance(tables, list):
+        return ()
+    multi = [i for i, t in enumerate(tables) if isinstance(t, dict) and any(k in t for k in STRUCTURE_KEYS)]
+    if not multi:
+        return ()
+    if len(multi) != len(tables):
+        single = next(i for i in range(len(tables)) if i not in multi)
+        raise ctx.error(f"[[instances]] #{single + 1}: every instance of a multi-structure project gives its structures "
+                        "as meshes = { … } or labels = { … }", ctx.lines.table("instances", single))
+    names: tuple[str, ...] = ()
+    for i, t in enumerate(tables):
+        key = "meshes" if "meshes" in t else "labels"
+        if "meshes" in t and ("labels" in t or "volume" in t or "mesh" in t):
+            raise ctx.error(f"[[instances]] #{i + 1}: meshes = {{ … }} stands alone (no volume, labels or mesh)",
+                            ctx.lines.key("instances", i, "meshes"))
+        if "labels" in t and "volume" not in t:
+            raise ctx.error(f"[[instances]] #{i + 1}: labels = {{ … }} needs the volume they label",
+                            ctx.lines.key("instances", i, "labels"))
+        value = t[key]
+        if not isinstance(value, dict) or not value:
+            raise _kind_error(ctx, f"[[instances]] #{i + 1}: {key}", STRUCTURE_KEYS[key], value,
+                              ctx.lines.key("instances", i, key))
+        these = tuple(str(k) for k in value)
+        if not names:
+            names = these
+        elif set(these) != set(names):
+            raise ctx.error(f"[[instances]] #{i + 1} ({t.get('name', '?')!r}): structures {', '.join(these)}; every "
+                            f"instance needs the same ({', '.join(names)})", ctx.lines.key("instances", i, key))
+    order = [s.get("name") for s in doc.get("structures", []) if isinstance(s, dict)]
+    return tuple(n for n in order if n in names) + tuple(n for n in names if n not in order)
+
+
+def _structure_tables(doc: dict, ctx: _Context, structures) -> dict:
+    """``{structure: {table: {key: value}}}`` of the ``[[structures]]`` entries."""
+    out = {}
+    entries = doc.get("structures", [])
+    if not isinstance(entries, list):
+        raise ctx.error("[[structures]] must be an array of tables", ctx.lines.key("structures"))
+    for i, entry in enumerate(entries):
+        where = ("structures", i)
+        if not isinstance(entry, dict) or "name" not in entry:
+            raise ctx.error(f"[[structures]] #{i + 1}: needs a name", ctx.lines.table(*where))
+        _check_keys(entry, ("name", *STRUCTURE_TABLES), f"[[structures]] #{i + 1}", ctx, where)
+        if entry["name"] not in structures:
+            raise ctx.error(f"[[structures]] #{i + 1}: {entry['name']!r} is not a structure of the instances "
+                            f"({', '.join(structures)})", ctx.lines.key(*where, "name"))
+        for t in STRUCTURE_TABLES:
+            if t in entry and not isinstance(entry[t], dict):
+                raise _kind_error(ctx, f"[[structures]] {entry['name']!r}: {t}", "a table", entry[t],
+                                  ctx.lines.key(*where, t))
+        out[entry["name"]] = {t: entry[t] for t in STRUCTURE_TABLES if t in entry}
+    return out
+
+
+def _structure_doc(doc: dict, structure: str, override: dict, ctx: _Context) -> dict:
+    """The project as a project of ``structure`` alone: each instance with that structure's mesh
+    (or its volume's label) and landmark file, the structure's tables over the project's."""
+    out = {k: v for k, v in doc.items() if k not in ("instances", "structures")}
+    for t, table in override.items():
+        out[t] = {**doc.get(t, {}), **table}
+    instances = []
+    for i, t in enumerate(doc["instances"]):
+        single = {k: v for k, v in t.items() if k not in ("meshes", "labels", "landmarks", "attributes")}
+        if "meshes" in t:
+            single["mesh"] = t["meshes"][structure]
+        else:
+            single["label"] = t["labels"][structure]
+        lm = t.get("landmarks")
+        if isinstance(lm, dict):
+            if structure in lm:
+                single["landmarks"] = lm[structure]
+        elif lm is not None:
+            raise ctx.error(f"[[instances]] #{i + 1}: landmarks of a multi-structure instance are a table per "
+                            "structure, e.g. { femur = \"lm/S001_femur.csv\" }", ctx.lines.key("instances", i, "landmarks"))
+        instances.append(single)
+    out["instances"] = instances
+    return out
 
 
 # --------------------------------------------------------------------------------------
