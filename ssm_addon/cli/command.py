@@ -121,7 +121,10 @@ def argument_parser() -> argparse.ArgumentParser:
     p.add_argument("model", help="model.npz (ssm build) or a statismo .h5 file")
     p.add_argument("--volume", help="label map of the target")
     p.add_argument("--label", type=int, default=None, help="label of the target in --volume")
-    p.add_argument("--mesh", help="closed surface mesh of the target (STL/PLY/OBJ, world mm)")
+    p.add_argument("--label-of", action="append", default=[], metavar="STRUCTURE=LABEL",
+                   help="for a joint model: the label of a structure in --volume, repeated")
+    p.add_argument("--mesh", action="append", help="closed surface mesh of the target (STL/PLY/OBJ, world mm); for a "
+                   "joint model STRUCTURE=FILE, repeated (the structures not given are predicted)")
     p.add_argument("--points", help="point cloud of the target (CSV x,y,z or PLY, world mm)")
     p.add_argument("--landmarks", help="landmarks of the target (matched by name to the model's)")
     p.add_argument("--partial", action="store_true",
@@ -285,8 +288,27 @@ def cmd_fit(args) -> int:
     from ..pipeline.outputs import owned_output_folder
 
     out = Path(args.out).expanduser().resolve()
-    inputs = [args.model, args.volume, args.mesh, args.points, args.landmarks, args.project]
+    meshes = args.mesh or []
+    named = dict(m.split("=", 1) for m in meshes if "=" in m)
+    if len(meshes) > 1 and len(named) != len(meshes):
+        raise InputError("--mesh: several meshes are STRUCTURE=FILE each (a joint model's structures)")
+    args.mesh = meshes[0] if meshes and not named else None
+    inputs = [args.model, args.volume, args.mesh, args.points, args.landmarks, args.project, *named.values()]
     model = apply.load_model(args.model, say=lambda line: print(line, flush=True))  # says which modes are empty
+    if named or args.label_of:
+        labels = dict(x.split("=", 1) for x in args.label_of)
+        targets = {n: apply.FitTarget(name=n, mesh=Path(f)) for n, f in named.items()}
+        targets.update({n: apply.FitTarget(name=n, volume=Path(args.volume), label=int(lab)) for n, lab in labels.items()})
+        with owned_output_folder(out, inputs, force=args.force, what="fitting") as tmp:
+            doc = apply.fit_structures_to_folder(model, targets, tmp, params=params, model_path=str(args.model),
+                                                 outlier_probability=args.outlier_probability,
+                                                 progress=_print_progress())
+        for n, d in doc["structures"].items():
+            print(f"{n}: {'fitted' if d['given'] else 'predicted'}, posterior SD {d['posterior_sd_mm']['mean']:.2f} mm "
+                  f"(up to {d['posterior_sd_mm']['max']:.2f}) -> {out / d['file']}")
+        for w in doc.get("warnings", []):
+            print(f"WARNING: {w}", file=sys.stderr)
+        return 0
     if args.project or args.glob:
         targets = targets_from_project(args.project, landmarks=not args.no_landmarks) if args.project else \
             apply.targets_from_glob(args.glob, args.label)

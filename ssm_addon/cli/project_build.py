@@ -21,7 +21,8 @@ from ..base.errors import InputError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..model.quality import QualityError, warnings_text
 from ..pipeline.cache import BuildCache
-from ..pipeline.outputs import check_output_folder, check_writable, owned_output_folder, write_study
+from ..pipeline.joint import JointStudy, run_joint
+from ..pipeline.outputs import check_output_folder, check_writable, owned_output_folder, write_joint, write_study
 from ..pipeline.project import Project, project_text, read_project, write_project  # noqa: F401 (the flat layout's imports)
 from ..pipeline.runner import run
 from ..pipeline.study import Study
@@ -42,6 +43,9 @@ class BuildResult:
         Output name -> path (final location).
     report : dict
         The content of ``report.json``.
+    joint : JointStudy or None
+        A multi-structure project's joint study (``study`` is then its first structure's, holding
+        the joint model).
     """
 
     out_dir: Path
@@ -49,6 +53,7 @@ class BuildResult:
     study: Study
     files: dict
     report: dict
+    joint: JointStudy | None = None
 
     @property
     def template(self):
@@ -185,6 +190,9 @@ def build(
     """
     say = log or (lambda _msg: None)
     out_dir = Path(out_dir).expanduser().resolve()
+    if project.structures:
+        return build_joint(project, out_dir, jobs=jobs, progress=progress, cancelled=cancelled, log=say, force=force,
+                           scheduler=scheduler, cache=cache)
     inputs = [project.path] + [p for i in project.instances for p in (i.volume_path, i.mesh_path, i.landmarks_path) if p is not None]
     if project.params.analysis.attributes:
         inputs.append(Path(project.params.analysis.attributes))
@@ -226,3 +234,47 @@ def build(
     report(progress, 1.0, f"done: {out_dir}")
     return dataclasses.replace(result, files=final, report=final_report.to_dict())
 
+
+def build_joint(project: Project, out_dir: Path, *, jobs: int = 1, progress: ProgressFn = None,
+                cancelled: CancelledFn = None, log: Callable[[str], None] | None = None, force: bool = False,
+                scheduler: str | None = None, cache=None) -> BuildResult:
+    """:func:`build` of a project whose instances hold several structures: every structure's study,
+    then the joint model (:mod:`ssm_addon.pipeline.joint`), with the same output rules. Writes
+    no ``model.blend`` yet (the Blender layer shows one structure per study)."""
+    say = log or (lambda _msg: None)
+    inputs = [project.path, *project.input_files]
+    if project.params.analysis.attributes:
+        inputs.append(Path(project.params.analysis.attributes))
+    check_output_folder(out_dir, inputs, force=force)
+    check_writable(out_dir)
+    t_total = time.perf_counter()
+    if len(project.instances) < 3:
+        raise InputError(f"{project.path}: {len(project.instances)} subjects; a model with its metrics (leave-one-out "
+                         "generalization) needs at least 3")
+    joint = JointStudy.from_project(project)
+    build_cache = open_cache(project, out_dir, cache)
+    if any(st.params.correspondence.method == "model" for st in project.structures.values()):
+        build_cache = None
+    with owned_output_folder(out_dir, inputs, force=force) as tmp:
+        with Executor(scheduler or project.params.compute.scheduler, jobs, tasks=len(project.instances),
+                      connect_timeout_s=project.params.compute.connect_timeout_s) as executor:
+            if executor.note:
+                say(f"compute: {executor.note}")
+            run_joint(joint, jobs=jobs, progress=sub_progress(progress, 0.0, 0.95), cancelled=cancelled, log=say,
+                      executor=executor, cache=build_cache)
+        check_cancelled(cancelled)
+        every = [f for study in joint.structures.values() for f in study.findings] + joint.findings
+        if project.params.quality.strict and every:
+            raise QualityError(f"{len(every)} quality gate(s) failed and [quality] strict is set; nothing was written "
+                               f"to {out_dir}:\n" + warnings_text(every))
+        files, final_report = write_joint(joint, tmp, output=project.params.output, project=str(project.path),
+                                          title=f"SSM Builder: {project.path.stem} (joint)", log=say,
+                                          progress=progress, cancelled=cancelled, t_start=t_total,
+                                          extra={"compute": {"scheduler": executor.scheduler, "workers": executor.jobs}})
+    final = {k: ([str(out_dir / x) for x in v] if isinstance(v, list) else str(out_dir / v)) for k, v in files.items()}
+    report(progress, 1.0, f"done: {out_dir}")
+    first = next(iter(joint.structures.values()))
+    first.model = joint.model
+    first.metrics = joint.metrics
+    return BuildResult(out_dir=out_dir, project=project, study=first, files=final, report=final_report.to_dict(),
+                       joint=joint)

@@ -45,7 +45,7 @@ from ..meshutil import Mesh
 from ..model.files import load_npz, load_statismo, write_npz
 from ..model.pca import EMPTY_MODE_SHARE, drop_empty_modes
 
-__all__ = ["FitTarget", "fit_batch", "fit_to_folder", "load_model", "load_target"]
+__all__ = ["FitTarget", "fit_batch", "fit_structures_to_folder", "fit_to_folder", "load_model", "load_target"]
 
 
 def load_model(path, *, say=None):
@@ -350,3 +350,70 @@ def targets_from_glob(pattern: str, label: int | None = None) -> list[FitTarget]
         out.append(FitTarget(name=file_stem(p), mesh=p) if is_mesh_file(p) else
                    FitTarget(name=file_stem(p), volume=p, label=label))
     return out
+
+
+def fit_structures_to_folder(model, targets: dict, out_dir, *, params: FitParams | None = None,
+                             outlier_probability: float = 0.99, model_path: str = "", progress: ProgressFn = None,
+                             cancelled: CancelledFn = None) -> dict:
+    """Fit a joint model (several structures) to the structures given and predict the others.
+
+    ``targets``: structure name -> :class:`FitTarget` (a closed mesh, or a label map with its
+    label), world mm. The model is matched to the given structures' surfaces alone (its points
+    of those structures, both ways; the pose search of :func:`~ssm_addon.fitting.fit.fit_any_pose`),
+    so every other structure comes out as the model's conditional prediction, its posterior
+    SD large where nothing constrains it. Writes ``fitted_<structure>.ply`` for every structure
+    (world mm, the template's connectivity, the posterior SD as a vertex property), ``fit.npz``
+    (``posterior_mean``, ``posterior_sd_mm`` of every point, ``coefficients``,
+    ``structure_names``, ``structure_offsets``) and ``fit.json``; returns ``fit.json``'s content.
+    """
+    params = FitParams() if params is None else params
+    names = list(model.structure_names)
+    if not names:
+        raise InputError(f"{model_path or 'model'}: not a joint model (no structures); give --mesh FILE")
+    unknown = [n for n in targets if n not in names]
+    if unknown:
+        raise InputError(f"{model_path or 'model'}: no structure {', '.join(map(repr, unknown))} (structures: "
+                         f"{', '.join(names)})")
+    verts, faces, shown, count = [], [], [], 0
+    for name, t in targets.items():
+        target, _start = load_target(t, model, partial=True)
+        if target.locator is None:
+            raise InputError(f"{t.name}: a structure to fit is a closed mesh or a label map (surface), not points")
+        v, f = np.asarray(target.locator.vertices, float), np.asarray(target.locator.faces)
+        verts.append(v)
+        faces.append(f + count)
+        count += len(v)
+        sl = model.structure_slice(name)
+        shown.append(np.arange(sl.start, sl.stop))
+    combined = Target.from_mesh(np.concatenate(verts), np.concatenate(faces), source=" + ".join(targets))
+    points = np.concatenate(shown)
+    result, search = fit_any_pose(model, combined, params=params, points=points, progress=progress,
+                                  cancelled=cancelled)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    model_faces = np.asarray(model.faces)
+    per = {}
+    for name in names:
+        sl = model.structure_slice(name)
+        inside = (model_faces >= sl.start).all(axis=1) & (model_faces < sl.stop).all(axis=1)
+        write_ply(out_dir / f"fitted_{name}.ply", result.points[sl], model_faces[inside] - sl.start,
+                  vertex_scalars={"posterior_sd_mm": result.posterior_sd_mm[sl]}, space="RAS")
+        sd = result.posterior_sd_mm[sl]
+        per[name] = {"given": name in targets, "file": f"fitted_{name}.ply", "posterior_sd_mm": {
+            "mean": float(sd.mean()), "max": float(sd.max())}}
+    write_npz(out_dir / "fit.npz", {"posterior_mean": result.points, "posterior_sd_mm": result.posterior_sd_mm,
+                                    "coefficients": result.coefficients,
+                                    "structure_names": np.asarray(names), "structure_offsets":
+                                    np.asarray(model.structure_offsets, np.int64)})
+    verdict = judge_fit(result, combined, model, params=params, partial=True, probability=outlier_probability)
+    doc = result.to_dict()
+    doc.update({"model": model_path, "given": {n: {k: (str(v) if v is not None else None) for k, v in
+                                                   (("volume", t.volume), ("label", t.label), ("mesh", t.mesh))}
+                                               for n, t in targets.items()},
+                "structures": per, **{k: v for k, v in verdict.to_dict().items() if k != "coverage"},
+                "files": {"npz": "fit.npz", **{n: d["file"] for n, d in per.items()}},
+                "params": to_table(params), "pose_search": search})
+    doc["warnings"] = [w for k, w in verdict.warnings.items() if k != "coverage"]
+    (out_dir / "fit.json").write_text(json.dumps(doc, indent=1), encoding="utf-8")
+    report(progress, 1.0, f"fitted {' + '.join(targets)}; predicted {', '.join(n for n in names if n not in targets)}")
+    return doc

@@ -472,8 +472,8 @@ def _joint_step(pose, b, shape, normals, q, lam, rows_v, y, w, lm_pairs, w_lm, s
 
 
 def fit_model(model, target: Target, *, params: FitParams | None = None, pose: Pose | None = None,
-              partial: bool = False, tangential_pull: float = TANGENTIAL_PULL, progress: ProgressFn = None,
-              cancelled: CancelledFn = None) -> FitResult:
+              partial: bool = False, tangential_pull: float = TANGENTIAL_PULL, points: np.ndarray | None = None,
+              progress: ProgressFn = None, cancelled: CancelledFn = None) -> FitResult:
     """Fit ``model`` to ``target``: pose and coefficients under the model's prior.
 
     Parameters
@@ -497,6 +497,11 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
     tangential_pull : float
         A partial target's pull on the pose along the surface, against 1 along the normal
         (1: point to point, fastest from a rough start; default ``TANGENTIAL_PULL``).
+    points : (M,) int array, optional
+        The model points the target shows (a joint model's structures given, e.g. the femur of
+        a knee model): the target is matched to these alone, both ways, and every other point
+        is predicted by the model (the posterior mean and SD hold them: a structure predicted
+        from the others).
 
     Returns
     -------
@@ -541,6 +546,7 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
     it, converged, last = 0, False, pose.apply(shape)
     w_lm = params.landmark_weight
     tree_model = None
+    shown = np.arange(npts) if points is None else np.unique(np.asarray(points, np.int64))
     # a whole surface with a rigid pose: pose and shape solved together, point to plane
     joint = (params.pose_step == "joint" and target.has_surface and not partial and not params.scale
              and len(model.faces) > 0)
@@ -549,16 +555,16 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
         x = pose.apply(shape)
         rows, ys, ws = [], [], []
         if target.has_surface:
-            tree_model = cKDTree(x)
+            tree_model = cKDTree(x[shown])
             _, nearest = tree_model.query(target.samples)  # target → model
-            rows.append(nearest)
+            rows.append(shown[nearest])
             ys.append(target.samples)
-            ws.append(np.full(len(nearest), 1.0 if partial else 0.5 * npts / max(len(nearest), 1)))
+            ws.append(np.full(len(nearest), 1.0 if partial else 0.5 * len(shown) / max(len(nearest), 1)))
             if not partial:  # model → target
-                c, _ = target.closest(x)
-                rows.append(np.arange(npts))
+                c, _ = target.closest(x[shown])
+                rows.append(shown)
                 ys.append(c)
-                ws.append(np.full(npts, 0.5))
+                ws.append(np.full(len(shown), 0.5))
         rows_v = np.concatenate(rows) if rows else np.zeros(0, int)
         y = np.concatenate(ys) if ys else np.zeros((0, 3))
         w = np.concatenate(ws) if ws else np.zeros(0)
@@ -625,9 +631,9 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
     x = pose.apply(shape)
     if target.has_surface:
         if partial:
-            dist = cKDTree(x).query(target.samples)[0]
+            dist = cKDTree(x[shown]).query(target.samples)[0]
         else:
-            dist = target.closest(x)[1]
+            dist = target.closest(x[shown])[1]
         mean_d, max_d = float(dist.mean()), float(dist.max())
     else:
         mean_d = max_d = float("nan")
@@ -669,7 +675,7 @@ def _axis_rotation(axis: np.ndarray, degrees: float) -> np.ndarray:
 
 
 def start_poses(model, target: Target, *, frame_pose: Pose | None = None, turns: int = 4,
-                partial: bool = False) -> list[tuple[str, Pose]]:
+                partial: bool = False, points: np.ndarray | None = None) -> list[tuple[str, Pose]]:
     """Candidate start poses (model frame -> target frame, mm) for a target in any coordinates.
 
     First the pose the target's object frame gives (``frame``), when known, and the model's
@@ -683,13 +689,14 @@ def start_poses(model, target: Target, *, frame_pose: Pose | None = None, turns:
     out = [("frame", frame_pose)] if frame_pose is not None else []
     if len(target.samples) < 4:
         return out
-    cm, am = _principal_axes(np.asarray(model.mean, float))
+    mean = np.asarray(model.mean, float) if points is None else np.asarray(model.mean, float)[points]
+    cm, am = _principal_axes(mean)
     ct, at = _principal_axes(np.asarray(target.samples, float))
     out.append(("model axes", Pose(np.eye(3), ct - cm)))  # the target in the model's axes, moved
     seen = [p.rotation for _n, p in out]
     slide = 0.0
     if partial:  # how far the part's middle can sit from the shape's, along the longest axes
-        extent_m = np.ptp((np.asarray(model.mean, float) - cm) @ am[:, 0])
+        extent_m = np.ptp((mean - cm) @ am[:, 0])
         extent_t = np.ptp((np.asarray(target.samples, float) - ct) @ at[:, 0])
         slide = max(0.0, 0.5 * float(extent_m - extent_t))
     shifts = (0.0, -slide, slide) if slide > 0 else (0.0,)
@@ -736,7 +743,7 @@ PRIORITY_TOLERANCE = 1.1
 
 
 def fit_any_pose(model, target: Target, *, params: FitParams | None = None, frame_pose: Pose | None = None,
-                 partial: bool = False, keep: int = 3, progress: ProgressFn = None,
+                 partial: bool = False, keep: int = 3, points: np.ndarray | None = None, progress: ProgressFn = None,
                  cancelled: CancelledFn = None) -> tuple[FitResult, dict]:
     """:func:`fit_model` for a target in any pose: the pose search, then the fit.
 
@@ -750,14 +757,14 @@ def fit_any_pose(model, target: Target, *, params: FitParams | None = None, fram
     where fitted; and ``chosen``: the winning start's name)
     """
     params = FitParams() if params is None else params
-    mean = np.asarray(model.mean, float)
-    starts = start_poses(model, target, frame_pose=frame_pose, partial=partial)
+    mean = np.asarray(model.mean, float) if points is None else np.asarray(model.mean, float)[points]
+    starts = start_poses(model, target, frame_pose=frame_pose, partial=partial, points=points)
     names = model.landmark_locations.names
     if target.landmarks is not None and len([n for n in target.landmarks.names if n in names]) >= 3:
         starts.insert(0, ("landmarks", None))
     if not target.has_surface or not starts:
-        result = fit_model(model, target, params=params, pose=frame_pose, partial=partial, progress=progress,
-                           cancelled=cancelled)
+        result = fit_model(model, target, params=params, pose=frame_pose, partial=partial, points=points,
+                           progress=progress, cancelled=cancelled)
         return result, {"starts": [], "chosen": "landmarks" if frame_pose is None else "frame"}
     # the starts the target's own coordinates give are fitted whatever the screening says,
     # and kept unless a searched pose fits PRIORITY_TOLERANCE times closer (a partial or
@@ -782,7 +789,7 @@ def fit_any_pose(model, target: Target, *, params: FitParams | None = None, fram
     for n, i in enumerate(order):
         name, pose, _d = screened[i]
         results[name] = fit_model(model, target, params=search, pose=pose, partial=partial, tangential_pull=1.0,
-                                  cancelled=cancelled)
+                                  points=points, cancelled=cancelled)
         report(progress, (n + 1) / len(order), f"start {name}: {results[name].mean_distance_mm:.3f} mm")
     fitted = {n: float(r.mean_distance_mm) for n, r in results.items()}
     chosen = min(fitted, key=lambda n: (fitted[n], list(fitted).index(n)))
@@ -793,7 +800,7 @@ def fit_any_pose(model, target: Target, *, params: FitParams | None = None, fram
             chosen = mine
     best = results[chosen]
     if partial:
-        best = fit_model(model, target, params=params, pose=best.pose, partial=True, cancelled=cancelled)
+        best = fit_model(model, target, params=params, pose=best.pose, partial=True, points=points, cancelled=cancelled)
     doc = {"starts": [{"name": n, "screened_mm": (None if not np.isfinite(d) else d), "fitted_mm": fitted.get(n)}
                       for n, _p, d in screened], "chosen": chosen}
     return best, doc

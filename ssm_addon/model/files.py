@@ -47,7 +47,7 @@ def save_npz(model: ShapeModel, path) -> Path:
     names = np.asarray([str(s) for s in model.instance_names])
     if names.size == 0:
         names = np.zeros(0, dtype="<U1")
-    write_npz(path, {
+    arrays = {
         "mean": np.asarray(model.mean, dtype=float),
         "faces": np.asarray(model.faces, dtype=np.int64),
         "modes": np.asarray(model.modes, dtype=float),
@@ -56,7 +56,11 @@ def save_npz(model: ShapeModel, path) -> Path:
         "instance_points": np.asarray(model.instance_points, dtype=float),
         "instance_points_world": np.asarray(model.instance_points_world, dtype=float),
         "params_json": np.asarray(json.dumps(jsonable(model.params), sort_keys=True)),
-    })
+    }
+    if model.structure_names:  # a joint model: its structures' point ranges
+        arrays["structure_names"] = np.asarray([str(s) for s in model.structure_names])
+        arrays["structure_offsets"] = np.asarray(model.structure_offsets, dtype=np.int64)
+    write_npz(path, arrays)
     return path
 
 
@@ -114,6 +118,14 @@ def model_from_arrays(arrays: dict, where: str = "model") -> ShapeModel:
             bad = int(np.sum(~np.isfinite(arr)))
             raise InputError(f"{where}: '{key}' holds {bad} NaN or infinite value(s); the model is damaged")
     params = arrays.get("params", {})
+    structures, offsets = (), None
+    if arrays.get("structure_names") is not None and len(arrays["structure_names"]):
+        structures = tuple(str(s) for s in np.asarray(arrays["structure_names"]).reshape(-1))
+        offsets = np.asarray(arrays.get("structure_offsets"), dtype=np.int64).reshape(-1)
+        if (len(offsets) != len(structures) + 1 or offsets[0] != 0 or offsets[-1] != npts
+                or np.any(np.diff(offsets) <= 0)):
+            raise InputError(f"{where}: 'structure_offsets' {offsets.tolist()} do not split the {npts} points into "
+                             f"the structures {', '.join(structures)}")
     return ShapeModel(
         mean=mean,
         faces=faces.astype(np.int64),
@@ -123,6 +135,8 @@ def model_from_arrays(arrays: dict, where: str = "model") -> ShapeModel:
         instance_points=pts,
         instance_points_world=world,
         params=params,
+        structure_names=structures,
+        structure_offsets=offsets,
     )
 
 
@@ -143,6 +157,9 @@ def load_npz(path) -> ShapeModel:
             if missing:
                 raise InputError(f"{path}: not a model.npz, missing keys {missing}")
             arrays = {k: data[k] for k in NPZ_KEYS}
+            for k in ("structure_names", "structure_offsets"):
+                if k in data.files:
+                    arrays[k] = data[k]
     except InputError:
         raise
     except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as err:
@@ -213,6 +230,10 @@ def save_statismo(model: ShapeModel, path, noise_variance: float = 0.0) -> Path:
         extra.create_dataset("instance_points", data=np.asarray(model.instance_points, dtype=float))
         extra.create_dataset("instance_points_world", data=np.asarray(model.instance_points_world, dtype=float))
         extra.create_dataset("params_json", data=json.dumps(jsonable(model.params)))
+        if model.structure_names:  # a joint model: one reference of disconnected parts, and which part is which
+            st = extra.create_group("structures")
+            st.create_dataset("names", data=np.asarray(model.structure_names, dtype=object), dtype=h5py.string_dtype())
+            st.create_dataset("offsets", data=np.asarray(model.structure_offsets, dtype=np.int64))
     return path
 
 
@@ -259,6 +280,12 @@ def load_statismo(path) -> ShapeModel:
                 world = np.asarray(f["ssm/instance_points_world"][()], dtype=float)
                 pj = f["ssm/params_json"][()]
                 params = json.loads(pj.decode() if isinstance(pj, bytes) else str(pj))
+                structure_arrays = {}
+                if "ssm/structures/names" in f and "ssm/structures/offsets" in f:
+                    structure_arrays = {
+                        "structure_names": np.asarray([s.decode() if isinstance(s, bytes) else str(s)
+                                                       for s in f["ssm/structures/names"][()]]),
+                        "structure_offsets": np.asarray(f["ssm/structures/offsets"][()])}
             except (ValueError, TypeError, UnicodeDecodeError) as err:
                 raise InputError(f"{path}: the /ssm group is damaged ({type(err).__name__}: {err})") from None
             if not isinstance(params, dict):
@@ -273,6 +300,7 @@ def load_statismo(path) -> ShapeModel:
             pts = np.zeros((0, npts, 3))
             world = np.zeros((0, npts, 3))
             params = {"source": str(path), "total_variance_mm2": float(variances.sum())}
+            structure_arrays = {}
     k = variances.size
     return model_from_arrays(
         {
@@ -284,6 +312,7 @@ def load_statismo(path) -> ShapeModel:
             "instance_points": pts,
             "instance_points_world": world,
             "params": params,
+            **structure_arrays,
         },
         str(path),
     )

@@ -80,6 +80,12 @@ class ShapeModel:
     params : dict
         JSON-serialisable parameters, versions, timings and derived numbers
         (``total_variance_mm2``: trace of S, the denominator of eq. 8).
+    structure_names : tuple of str
+        A joint model's structures (:mod:`ssm_addon.pipeline.joint`), in point order; empty for
+        a model of one structure.
+    structure_offsets : (S + 1,) int ndarray or None
+        Structure s holds points ``structure_offsets[s]:structure_offsets[s + 1]`` of ``mean``,
+        ``modes`` and the instance points; ``faces`` index the concatenated points.
 
     Equality is identity (the arrays make ``==`` ambiguous); compare arrays explicitly.
     """
@@ -92,6 +98,15 @@ class ShapeModel:
     instance_points: np.ndarray
     instance_points_world: np.ndarray
     params: dict = field(default_factory=dict)
+    structure_names: tuple = ()
+    structure_offsets: np.ndarray | None = None
+
+    def structure_slice(self, name: str) -> slice:
+        """The points of structure ``name`` (a joint model)."""
+        if name not in self.structure_names:
+            raise InputError(f"model: no structure {name!r} (structures: {', '.join(self.structure_names) or 'none'})")
+        i = list(self.structure_names).index(name)
+        return slice(int(self.structure_offsets[i]), int(self.structure_offsets[i + 1]))
 
     # -- sizes -------------------------------------------------------------------------
     @property

@@ -6,11 +6,12 @@ Every public name of the subpackage's modules, imported on first use (:mod:`ssm_
 from .._lazy import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, {
-    "outputs": ("MANIFEST", "check_output_folder", "check_writable", "owned_output_folder", "peak_memory_mb", "relative_files", "save_study_outputs", "study_inputs", "write_outputs", "write_study"),
-    "report": ("SECTIONS", "Absent", "Report", "instance_thumbnails", "model_alignment", "model_report", "study_report", "write_html_report", "write_report_html"),
+    "outputs": ("MANIFEST", "check_output_folder", "check_writable", "owned_output_folder", "peak_memory_mb", "relative_files", "save_study_outputs", "study_inputs", "write_joint", "write_outputs", "write_study"),
+    "report": ("SECTIONS", "Absent", "Report", "instance_thumbnails", "joint_report", "model_alignment", "model_report", "study_report", "write_html_report", "write_report_html"),
     "project": ("STRUCTURE_KEYS", "Project", "Structure", "project_text", "read_project", "targets_from_project", "toml_value", "write_project"),
     "store": ("RECORD_FIELDS", "apply_records", "load_study", "save_study", "study_records"),
     "cache": ("BuildCache", "InstanceProduct", "digest", "file_digest"),
+    "joint": ("JointStudy", "collisions", "joint_model", "relative_pose", "run_joint", "shape_and_pose", "structure_model"),
     "model_method": ("medoid_template", "population", "population_medoid", "refine_correspondence", "start_coatings"),
     "runner": ("coating_stage", "run"),
     "stages": ("coat_from_frames", "coat_instances", "coating_result", "evaluate_model", "import_instances", "import_result", "import_stage", "make_model", "make_template", "metrics_stage", "model_stage", "self_check", "template_stage"),

@@ -33,11 +33,11 @@ from ..formats.meshes import write_ply
 from ..instances.importing import file_names
 from ..model.files import write_model_files
 from ..model.metrics import write_plots
-from .report import Absent, Report, model_report, study_report, write_report_html
+from .report import Absent, Report, joint_report, model_report, study_report, write_report_html
 from .study import Study, carried_landmarks
 
 __all__ = ["MANIFEST", "check_output_folder", "check_writable", "owned_output_folder", "peak_memory_mb",
-           "relative_files", "save_study_outputs", "study_inputs", "write_outputs", "write_study"]
+           "relative_files", "save_study_outputs", "study_inputs", "write_joint", "write_outputs", "write_study"]
 
 
 def peak_memory_mb() -> dict:
@@ -310,3 +310,48 @@ def save_study_outputs(study: Study, out_dir, *, force: bool = False, inputs=(),
         files, final = write_study(study, tmp, **kw)
     absolute = {k: ([str(out_dir / x) for x in v] if isinstance(v, list) else str(out_dir / v)) for k, v in files.items()}
     return out_dir, absolute, final
+
+
+def write_joint(joint, folder, *, output: OutputParams, project: str | Absent, title: str, extra: dict | None = None,
+                log: Callable[[str], None] | None = None, progress: ProgressFn = None, cancelled: CancelledFn = None,
+                t_start: float | None = None) -> tuple[dict, Report]:
+    """Write a joint study's outputs into ``folder``: each structure's template and coated meshes
+    (``structures/<name>/``, world mm), the joint model's files (``model.npz`` with its
+    ``structure_names`` and ``structure_offsets``, statismo with its ``/ssm/structures`` group,
+    tables, glTF, VTK), the plots, ``report.json`` and ``report.html``."""
+    say = log or (lambda _msg: None)
+    folder = Path(folder)
+    t0 = time.perf_counter()
+    report(progress, 0.95, "writing outputs")
+    files: dict = {}
+    model = joint.model
+    for name, study in joint.structures.items():
+        base = folder / "structures" / file_names([name])[name]
+        (base / "coated").mkdir(parents=True)
+        tpl = study.template
+        write_ply(base / "template.ply", study.frame(study.template_instance).to_world(tpl.points_object), tpl.faces,
+                  space="RAS")
+        safe = file_names(joint.subjects)
+        sl = model.structure_slice(name)
+        for subject, pw in zip(model.instance_names, model.instance_points_world):
+            write_ply(base / "coated" / f"{safe[str(subject)]}.ply", np.asarray(pw[sl], float), tpl.faces, space="RAS")
+    files["structures"] = "structures"
+    check_cancelled(cancelled)
+    written = write_model_files(model, folder, statismo=output.statismo, tables=output.scores, gltf=output.gltf,
+                                vtk=output.vtk, exchange_modes=output.exchange_modes)
+    plot_info = write_plots(model, folder, joint.metrics)
+    written["plots"] = plot_info["files"]
+    if "skipped" in plot_info:
+        say(f"plots: {plot_info['skipped']}")
+    files.update(relative_files(written, folder))
+    joint.timings_s["write"] = time.perf_counter() - t0
+    if t_start is not None:
+        joint.timings_s["total"] = time.perf_counter() - t_start
+    files["report"] = "report.json"
+    files["html"] = "report.html"
+    final = joint_report(joint, project=project, extra={**dict(extra or {}), "peak_memory": peak_memory_mb(),
+                                                        "files": dict(files)})
+    (folder / "report.json").write_text(json.dumps(final.to_dict(), indent=1))
+    write_report_html(folder, model, final, title=title)
+    check_cancelled(cancelled)
+    return files, final

@@ -33,9 +33,8 @@ from ..model.metrics import aggregate_fit, model_summary
 from ..model.pca import procrustes_fit
 from .study import Study, carried_landmarks, input_coordinates, landmark_distances, study_parameters
 
-__all__ = ["SECTIONS", "Absent", "Report", "instance_thumbnails", "model_alignment", "model_report", "study_report",
-           "write_html_report",
-           "write_report_html"]
+__all__ = ["SECTIONS", "Absent", "Report", "instance_thumbnails", "joint_report", "model_alignment", "model_report",
+           "study_report", "write_html_report", "write_report_html"]
 
 
 @dataclass(frozen=True)
@@ -570,6 +569,7 @@ def write_html_report(path, report: Report | dict, *, images: dict[str, bytes] |
                               html.escape(d.get("landmark_coordinates", ""))] for n, d in inputs.items()],
                             ["instance", "file", "coordinates", "landmarks", "landmark coordinates"]))
 
+    parts += _joint_section(doc)
     parts += _analysis_section(doc.get("analysis") or {}, analysis_images or {})
 
     # parameters and timings
@@ -619,3 +619,91 @@ def write_report_html(out_dir, model, report: Report | dict | None = None, *,
                 if (out_dir / "analysis" / name).is_file()}
     return write_html_report(out_dir / "report.html", report, images=images, thumbnails=thumbs, title=title,
                              analysis_images=analysis)
+
+
+def joint_report(joint, *, project: str | Absent, extra: dict | None = None) -> Report:
+    """The report of a joint study (:class:`~ssm_addon.pipeline.joint.JointStudy`): the joint model,
+    its metrics and findings with every structure's (named ``structure/subject``), and under
+    ``joint`` each structure's template, correspondence and metrics, the shape-and-pose
+    figures and the collisions."""
+    model = joint.model
+    why = "a joint model: each structure's is under joint.structures"
+    findings = [dict(f.to_dict(), instance=f"{name}/{f.instance}" if f.instance else name)
+                for name, study in joint.structures.items() for f in study.findings]
+    findings += [f.to_dict() for f in joint.findings]
+    structures = {}
+    per_subject: dict[str, dict] = {str(s): {} for s in joint.subjects}
+    for name, study in joint.structures.items():
+        tpl = study.template
+        check = study.correspondence_check
+        structures[name] = {
+            "template": {"instance": study.template_instance, "points": int(len(tpl.points_object)),
+                         "triangles": int(len(tpl.faces)), "genus": int(genus(len(tpl.points_object), tpl.faces))},
+            "correspondence": {"method": study.params.correspondence.method,
+                               "start": {s: study.coating_start.get(s, study.coatings[s].fit.start)
+                                         for s in joint.subjects},
+                               "self_check": check.to_dict() if check is not None else None},
+            "metrics": joint.structure_metrics.get(name, {}),
+            "points": [int(model.structure_offsets[list(model.structure_names).index(name)]),
+                       int(model.structure_offsets[list(model.structure_names).index(name) + 1])],
+        }
+        for s in joint.subjects:
+            fit = study.coatings[s].fit
+            row = per_subject[str(s)]
+            row["mean_distance_mm"] = max(row.get("mean_distance_mm", 0.0), float(fit.mean_distance_mm))
+            row["max_distance_mm"] = max(row.get("max_distance_mm", 0.0), float(fit.max_distance_mm))
+            row["folded_after"] = row.get("folded_after", 0) + int(fit.folded_after)
+            row["converged"] = bool(row.get("converged", True) and fit.converged)
+    joint_doc = {"structures": structures, "reference": joint.reference, "align_on": joint.params.joint.align_on,
+                 "shape_pose": joint.shape_pose, "collisions": joint.collisions}
+    return Report(
+        project=project,
+        parameters={**study_parameters(next(iter(joint.structures.values()))), "joint": dataclasses.asdict(
+            joint.params.joint), "structures": {n: st.params.to_tables() for n, st in joint.structures.items()}},
+        model=model_summary(model), template=Absent(why), correspondence=Absent(why),
+        quality={"parameters": dataclasses.asdict(joint.params.quality), "findings": findings,
+                 "outlier_scores": joint.outlier_scores},
+        metrics=joint.metrics.to_dict() if joint.metrics is not None else Absent("not computed"),
+        instances=per_subject, timings_s=dict(joint.timings_s), fit_summary=aggregate_fit(per_subject),
+        extra={"joint": joint_doc, **dict(extra or {})})
+
+
+def _joint_section(doc: dict) -> list[str]:
+    """The joint model's section: structures, their metrics, shape and relative pose, collisions."""
+    j = doc.get("joint") or {}
+    if not j:
+        return []
+    parts = [f"<h2>Joint model: {len(j['structures'])} structures</h2>",
+             f"<p>Reference structure <b>{html.escape(str(j['reference']))}</b>; each subject aligned on "
+             f"{'all structures together' if j.get('align_on') == 'all' else 'the reference structure'}.</p>"]
+    rows = []
+    for name, st in j["structures"].items():
+        m = st.get("metrics") or {}
+
+        def g(which, key, m=m):
+            return _num(((m.get(which) or {}).get(key) or [None])[0], 3)
+        rows.append([f"<b>{html.escape(name)}</b>", _num(st["template"]["points"]), html.escape(st["template"]["instance"]),
+                     g("joint", "generalization_mm"), g("separate", "generalization_mm"),
+                     g("joint", "specificity_mm"), g("separate", "specificity_mm")])
+    parts.append(_table(rows, ["structure", "template points", "template instance", "generalization, joint rows (mm)",
+                               "generalization, own model (mm)", "specificity, joint rows (mm)",
+                               "specificity, own model (mm)"]))
+    sp = j.get("shape_pose") or {}
+    if sp:
+        shares = sp.get("modes_pose_share", [])[:8]
+        parts.append("<p>Shape and relative pose (" + html.escape(sp.get("weighting", "")) + "): share of each mode "
+                     "that is relative pose: " + ", ".join(f"{i + 1}: {100 * s:.0f} %" for i, s in enumerate(shares))
+                     + ".</p>")
+        parts.append(_table([[html.escape(pair), _num(f["data"]["turn_sd_deg"], 2), _num(f["model"]["turn_sd_deg"], 2),
+                              _num(f["data"]["shift_sd_mm"], 2), _num(f["model"]["shift_sd_mm"], 2)]
+                             for pair, f in sp.get("pairs", {}).items()],
+                            ["pair", "turn SD, data (°)", "turn SD, model (°)", "shift SD, data (mm)",
+                             "shift SD, model (mm)"]))
+    col = j.get("collisions") or {}
+    if col:
+        parts.append(_table([[html.escape(pair), _num(100 * f["data"]["colliding_share"], 0) + " %",
+                              _num(f["data"]["max_mm"], 2), _num(100 * f["model"]["colliding_share"], 0) + " %",
+                              _num(f["model"]["max_mm"], 2)] for pair, f in col.items()],
+                            ["pair", "subjects overlapping", "deepest, subjects (mm)", "model shapes overlapping",
+                             "deepest, model (mm)"]))
+    return parts
