@@ -258,7 +258,7 @@ def relative_pose(points: np.ndarray, reference: np.ndarray, mean_points: np.nda
     """
     s_r, r_r, t_r = procrustes_fit(reference[None], mean_reference, True)
     s_s, r_s, t_s = procrustes_fit(points[None], mean_points, True)
-    rel = r_r[0].T @ r_s[0]
+    rel = r_r[0] @ r_s[0].T  # the structure's pose (mean -> it) as the reference's alignment sees it
     in_ref = s_r[0] * points.mean(axis=0) @ r_r[0].T + t_r[0]  # the structure's centroid where the reference sits
     return _log_rotation(rel), in_ref - mean_points.mean(axis=0), float(np.log(s_s[0] / s_r[0]))
 
@@ -354,8 +354,8 @@ def _penetration(points: np.ndarray, other: np.ndarray, other_faces: np.ndarray)
 
 def collisions(model: ShapeModel, *, samples: int = 200, depth_mm: float = 0.5, seed: int = 0,
                cancelled: CancelledFn = None) -> dict:
-    """Per structure pair: how deep one reaches into the other (mm), in the training subjects and in
-    shapes the model draws (±3 SD along each mode, and ``samples`` random ones within 3 SD), and the
+    """Per structure pair: how deep one reaches into the other (mm), in the training subjects (as they
+    are: ``instance_points_world``) and in shapes the model draws (±3 SD along each mode, and ``samples`` random ones within 3 SD), and the
     share of each with a penetration beyond ``depth_mm``."""
     names = list(model.structure_names)
     if len(names) < 2:
@@ -369,7 +369,8 @@ def collisions(model: ShapeModel, *, samples: int = 200, depth_mm: float = 0.5, 
     sd = model.standard_deviations
     extremes = [model.mean + sign * 3.0 * sd[k] * model.modes[k] for k in range(model.n_modes) for sign in (-1.0, 1.0)]
     drawn = list(model.sample(samples, seed=seed, sd_limit=3.0)) if samples and model.n_modes else []
-    sets = {"data": list(np.asarray(model.instance_points, float)), "model": extremes + drawn}
+    # the subjects as they are (their world coordinates: every structure where the scanner saw it)
+    sets = {"data": list(np.asarray(model.instance_points_world, float)), "model": extremes + drawn}
     out = {}
     for a, b in itertools.combinations(names, 2):
         check_cancelled(cancelled)
