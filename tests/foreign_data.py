@@ -155,3 +155,79 @@ def knee30_in_scanner_poses(folder: Path, names, vertices, faces, *, landmarks: 
     path = folder / "project.toml"
     path.write_text("\n".join(lines))
     return path, moves
+
+
+def verse_spine_population(folder: Path, verse_file: Path, landmark_dir: Path, labels: dict, *, n: int = 8,
+                           seed: int = 0, turn_sd_deg: float = 3.0, shift_sd_mm: float = 1.0) -> tuple[Path, dict]:
+    """A lumbar spine population from one VerSe label map: in every subject but the first, each
+    vertebra turned about its centroid (``turn_sd_deg`` per axis) and moved (``shift_sd_mm``), so
+    the vertebrae's relative poses vary by known amounts. One label map per subject (``volume`` +
+    ``labels = { L1 = 20, … }``), landmarks per vertebra as CSV (RAS mm) moved alike. Returns the
+    project and ``{subject: {vertebra: (rotation, shift)}}``."""
+    import nibabel as nib
+    from scipy.ndimage import map_coordinates
+
+    from ssm_addon.formats.landmarks import read_landmarks
+
+    folder.mkdir(parents=True, exist_ok=True)
+    img = nib.load(str(verse_file))
+    data = np.asarray(img.dataobj).astype(np.int16)
+    keep = np.isin(data, list(labels.values()))
+    idx = np.argwhere(keep)
+    lo = np.maximum(idx.min(axis=0) - 8, 0)
+    hi = np.minimum(idx.max(axis=0) + 9, data.shape)
+    sub = np.where(keep, data, 0)[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    affine = img.affine.copy()
+    affine[:3, 3] = img.affine[:3, :3] @ lo + img.affine[:3, 3]
+    inv = np.linalg.inv(affine)
+    grid = np.stack(np.meshgrid(*[np.arange(s) for s in sub.shape], indexing="ij"), -1).reshape(-1, 3)
+    world = grid @ affine[:3, :3].T + affine[:3, 3]
+    given = {name: read_landmarks(landmark_dir / f"{name}.fcsv") for name in labels}
+    rng = np.random.default_rng(seed)
+    moves, lines = {}, []
+    for k in range(n):
+        subject = f"sub{k:02d}"
+        out = np.zeros(sub.shape, np.int16)
+        moves[subject] = {}
+        lm_lines = {}
+        for name, label in labels.items():
+            mask = (sub == label).astype(np.float32)
+            centre = (np.argwhere(sub == label) @ affine[:3, :3].T + affine[:3, 3]).mean(axis=0)
+            if k == 0:
+                rot, shift = np.eye(3), np.zeros(3)
+            else:
+                angles = np.radians(rng.normal(scale=turn_sd_deg, size=3))
+                rot = np.eye(3)
+                for axis, a in enumerate(angles):
+                    c, s = np.cos(a), np.sin(a)
+                    i, j = [(1, 2), (0, 2), (0, 1)][axis]
+                    r = np.eye(3)
+                    r[i, i], r[i, j], r[j, i], r[j, j] = c, -s, s, c
+                    rot = r @ rot
+                shift = rng.normal(scale=shift_sd_mm, size=3)
+            moves[subject][name] = (rot, shift)
+            src = (world - centre - shift) @ rot + centre  # the source point each target voxel shows
+            ijk = src @ inv[:3, :3].T + inv[:3, 3]
+            vals = map_coordinates(mask, ijk.T, order=1, mode="constant", cval=0.0).reshape(sub.shape)
+            out[(vals >= 0.5) & (out == 0)] = label
+            pts = (given[name].points_world - centre) @ rot.T + centre + shift
+            lm_path = folder / f"{subject}_{name}.csv"
+            lm_path.write_text("".join(f"{nm},{x!r},{y!r},{z!r}\n" for nm, (x, y, z) in zip(given[name].names, pts)))
+            lm_lines[name] = lm_path.name
+        path = folder / f"{subject}.nii.gz"
+        nib.save(nib.Nifti1Image(out, affine), str(path))
+        lines += ["[[instances]]", f'name = "{subject}"', f'volume = "{path.name}"',
+                  "labels = { " + ", ".join(f"{nm} = {lab}" for nm, lab in labels.items()) + " }",
+                  "landmarks = { " + ", ".join(f'{nm} = "{f}"' for nm, f in lm_lines.items()) + " }", ""]
+    project = folder / "project.toml"
+    project.write_text("\n".join(lines))
+    return project, moves
+
+
+def _log_rotation_for_tests(rot: np.ndarray) -> np.ndarray:
+    """The rotation vector of a rotation matrix (small turns), for the truth of a test."""
+    angle = float(np.arccos(np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0)))
+    if angle < 1e-12:
+        return np.zeros(3)
+    w = np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]])
+    return w / (2.0 * np.sin(angle)) * angle
