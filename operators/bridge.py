@@ -247,6 +247,16 @@ def set_point_attribute(mesh: bpy.types.Mesh, name: str, values: np.ndarray) -> 
     attr.data.foreach_set("value", np.ascontiguousarray(values, dtype=np.float32).ravel())
 
 
+def set_vertex_groups(obj: bpy.types.Object, groups: dict[str, np.ndarray]) -> None:
+    """Replace the object's vertex groups by ``{name: vertex indices}`` (weight 1), e.g. the
+    structures of a joint model, so each can be selected, hidden or separated."""
+    for vg in list(obj.vertex_groups):
+        obj.vertex_groups.remove(vg)
+    for name, idx in groups.items():
+        vg = obj.vertex_groups.new(name=str(name))
+        vg.add([int(i) for i in np.asarray(idx, dtype=np.int64).ravel()], 1.0, "REPLACE")
+
+
 def get_point_attribute(mesh: bpy.types.Mesh, name: str) -> np.ndarray | None:
     """Read a per-vertex float attribute, or None if absent."""
     attr = mesh.attributes.get(name)

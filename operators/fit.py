@@ -15,7 +15,7 @@ import json
 
 import bpy
 import numpy as np
-from bpy.props import BoolProperty
+from bpy.props import BoolProperty, StringProperty
 
 from ssm_addon.base.errors import InputError
 from ssm_addon.base.params import FitParams
@@ -25,7 +25,14 @@ from ssm_addon.fitting.verdict import judge_fit
 from . import bridge
 from .jobs import BackgroundJob
 from .properties import SSMPanel, draw_params, scene_params
-from .scene import find_model_object, is_instance, mode_keys, model_from_object, object_to_blender_matrix
+from .scene import (
+    find_model_object,
+    is_instance,
+    mode_keys,
+    model_from_object,
+    model_structures,
+    object_to_blender_matrix,
+)
 
 FIT_COLLECTION = "SSM Fits"
 
@@ -56,6 +63,9 @@ class SSM_OT_fit_model(BackgroundJob, bpy.types.Operator):
 
     partial: BoolProperty(name="Selected vertices only", default=False, options={"SKIP_SAVE"},
                           description="Fit to the selected vertices and complete the rest (default in Edit Mode)")
+    structures: StringProperty(name="Structures", default="",
+                               description="A joint model: the structures the mesh holds, comma-separated (the "
+                                           "others are predicted with their posterior SD); empty: all of them")
 
     @classmethod
     def poll(cls, context):
@@ -90,11 +100,18 @@ class SSM_OT_fit_model(BackgroundJob, bpy.types.Operator):
             frame = Pose(m[:3, :3], m[:3, 3])
         params = scene_params(context, "ssm_fit")
         self._names = (model_obj.name, target.name)
+        given = [n.strip() for n in self.structures.split(",") if n.strip()]
+        points = None
+        if given:
+            if not model.structure_names:
+                raise InputError(f"fit model: {model_obj.name!r} is not a joint model; leave Structures empty")
+            points = model.structure_points(given)  # names the model lacks: an error naming its structures
 
         def work(progress, cancelled):  # the pose search of ``ssm fit``, then the fit
             result, _search = fit_any_pose(model, tgt, params=params, frame_pose=frame, partial=partial,
-                                           progress=progress, cancelled=cancelled)
-            return result, model.faces, judge_fit(result, tgt, model, params=params, partial=partial)
+                                           points=points, progress=progress, cancelled=cancelled)
+            # the verdicts of ``ssm fit --mesh NAME=FILE``: coverage is not judged where structures are predicted
+            return result, model.faces, judge_fit(result, tgt, model, params=params, partial=partial or bool(given))
 
         return work
 
@@ -141,6 +158,9 @@ class SSM_PT_fit(SSMPanel, bpy.types.Panel):
             layout.label(text="Edit Mode: the selected vertices (completion)", icon="VERTEXSEL")
         draw_params(layout, context.scene.ssm_fit, FitParams)
         layout.operator(SSM_OT_fit_model.bl_idname, icon="MOD_SHRINKWRAP")
+        model_obj = find_model_object(context)
+        for name in model_structures(model_obj):  # a joint model: fit the structure the mesh is, predict the others
+            layout.operator(SSM_OT_fit_model.bl_idname, text=f"Fit as {name}", icon="GROUP_VERTEX").structures = name
         fitted = bpy.data.objects.get(f"{target.name} fitted") if target else None
         if fitted is not None and "ssm_fit_json" in fitted:
             d = json.loads(fitted["ssm_fit_json"])

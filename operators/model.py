@@ -48,6 +48,7 @@ from .scene import (
     find_model_object,
     mode_keys,
     model_from_object,
+    model_structures,
     record_stage,
     report_stage,
     scene_findings,
@@ -94,7 +95,9 @@ def create_model_object(context, model: ShapeModel, name: str = MODEL_NAME, n_ke
 
     Mean shape with the template faces and triangle-index colours, one shape key per mode
     (key = p̄ + √λ_k q_k, slider -3..3 = b_k / √λ_k), POINT attribute ``variance`` (mm²),
-    ``obj.ssm.role = "MODEL"`` and the model arrays in ``obj["ssm_model"]``.
+    ``obj.ssm.role = "MODEL"`` and the model arrays in ``obj["ssm_model"]``. A joint model is one
+    mesh whose parts are its structures (one vertex group each, named as the structure): one
+    slider moves every structure's shape and their relative pose together.
 
     Parameters
     ----------
@@ -124,6 +127,8 @@ def create_model_object(context, model: ShapeModel, name: str = MODEL_NAME, n_ke
     keys = {f"Mode {i + 1}": model.mean + sd[i] * model.modes[i] for i in range(k)}
     bridge.set_shape_keys(obj, keys, slider_min=-3.0, slider_max=3.0)
     bridge.set_point_attribute(mesh, "variance", model.point_variance)
+    bridge.set_vertex_groups(obj, {name: np.arange(model.n_points)[model.structure_slice(name)]
+                                   for name in model.structure_names})
     obj.ssm.role = "MODEL"
     obj.ssm.source = str(model.params.get("source", ""))
     store_model(obj, model)
@@ -478,6 +483,9 @@ class SSM_PT_model(SSMPanel, bpy.types.Panel):
         g = obj[MODEL_KEY]
         shp = json.loads(g["shape_json"])
         layout.label(text=f"{obj.name}: {shp['n']} instances, {shp['N']} points, {shp['K']} modes")
+        structures = model_structures(obj)
+        if structures:
+            layout.label(text="joint model: " + ", ".join(structures) + " (vertex groups)", icon="GROUP_VERTEX")
         loc = obj.matrix_world.translation
         layout.label(text=f"at ({loc[0]:.0f}, {loc[1]:.0f}, {loc[2]:.0f}) mm, right of the instances",
                      icon="OBJECT_ORIGIN")
@@ -546,6 +554,8 @@ class SSM_OT_import_model(bpy.types.Operator, ImportHelper):
         obj = create_model_object(context, model)
         self.report({"INFO"}, f"{os.path.basename(self.filepath)}: {model.n_modes} modes, {model.n_points} points"
                               f"{f', from {model.n_instances} instances' if model.n_instances else ''} as {obj.name!r}"
+                              + (f"; structures {', '.join(model.structure_names)} (vertex groups)"
+                                 if model.structure_names else "")
                               + "".join(f"; {n}" for n in notes))
         return {"FINISHED"}
 

@@ -427,6 +427,8 @@ def store_model(obj: bpy.types.Object, model: ShapeModel) -> None:
         "instance_points_world": np.ascontiguousarray(model.instance_points_world, dtype=np.float64).ravel(),
         "names_json": json.dumps([str(s) for s in model.instance_names]),
         "params_json": json.dumps(model.params),
+        "structures_json": json.dumps({"names": list(model.structure_names), "offsets": [
+            int(x) for x in (model.structure_offsets if model.structure_offsets is not None else ())]}),
     }
 
 
@@ -456,9 +458,20 @@ def model_from_object(obj: bpy.types.Object) -> ShapeModel:
             "instance_names": np.asarray(json.loads(g["names_json"]), dtype=str).reshape(n),
             "params": json.loads(g["params_json"]),
         }
+        structures = json.loads(g.get("structures_json", "{}") or "{}")
+        if structures.get("names"):
+            arrays["structure_names"] = np.asarray(structures["names"])
+            arrays["structure_offsets"] = np.asarray(structures["offsets"], dtype=np.int64)
     except (KeyError, ValueError, TypeError) as err:
         raise InputError(f"object '{obj.name}': the stored SSM model is damaged ({err})") from err
     return model_from_arrays(arrays, f"object '{obj.name}'")
+
+
+def model_structures(obj) -> list[str]:
+    """The structure names of a joint model object (empty for a model of one structure)."""
+    if obj is None or MODEL_KEY not in obj:
+        return []
+    return list(json.loads(obj[MODEL_KEY].get("structures_json", "{}") or "{}").get("names") or [])
 
 
 def mode_keys(obj) -> list:

@@ -374,8 +374,8 @@ def fit_structures_to_folder(model, targets: dict, out_dir, *, params: FitParams
     if unknown:
         raise InputError(f"{model_path or 'model'}: no structure {', '.join(map(repr, unknown))} (structures: "
                          f"{', '.join(names)})")
-    verts, faces, shown, count = [], [], [], 0
-    for name, t in targets.items():
+    verts, faces, count = [], [], 0
+    for t in targets.values():
         target, _start = load_target(t, model, partial=True)
         if target.locator is None:
             raise InputError(f"{t.name}: a structure to fit is a closed mesh or a label map (surface), not points")
@@ -383,10 +383,8 @@ def fit_structures_to_folder(model, targets: dict, out_dir, *, params: FitParams
         verts.append(v)
         faces.append(f + count)
         count += len(v)
-        sl = model.structure_slice(name)
-        shown.append(np.arange(sl.start, sl.stop))
     combined = Target.from_mesh(np.concatenate(verts), np.concatenate(faces), source=" + ".join(targets))
-    points = np.concatenate(shown)
+    points = model.structure_points(list(targets))
     result, search = fit_any_pose(model, combined, params=params, points=points, progress=progress,
                                   cancelled=cancelled)
     out_dir = Path(out_dir)

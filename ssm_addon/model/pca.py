@@ -108,6 +108,11 @@ class ShapeModel:
         i = list(self.structure_names).index(name)
         return slice(int(self.structure_offsets[i]), int(self.structure_offsets[i + 1]))
 
+    def structure_points(self, names) -> np.ndarray:
+        """Indices of the points of the structures ``names`` (a joint model), in model order."""
+        return np.concatenate([np.arange(self.n_points)[self.structure_slice(n)] for n in names]) \
+            if len(names) else np.zeros(0, dtype=np.int64)
+
     # -- sizes -------------------------------------------------------------------------
     @property
     def n_modes(self) -> int:
