@@ -225,3 +225,31 @@ def test_a_lumbar_spine_from_label_maps_gives_its_relative_pose_spread(verse_dir
         assert pair["model"]["turn_sd_deg"] == pytest.approx(pair["data"]["turn_sd_deg"], rel=0.25)
     assert result.report["joint"]["shape_pose"]["modes_pose_share"][0] > 0.8
     assert result.report["model"]["n_instances"] == 6
+
+
+def test_ssm_build_of_a_joint_project_says_each_structures_findings_last(tmp_path, capsys):
+    """``ssm build`` of a joint project: the joint model's files, the note that no model.blend is
+    written, and every structure's failed gates said by structure at the end."""
+    from foreign_data import scalismo_landmarks, slicer_ply
+
+    from ssm_addon.cli.command import main
+    from ssm_addon.model.files import load_npz
+
+    a, b, fa, fb, _t = _population(n=4)
+    lines = ["[template]", "spacing = 1.0", "", "[quality]", "max_input_distance_mm = 0.001", ""]
+    for i in range(4):
+        s = f"S{i}"
+        slicer_ply(tmp_path / f"{s}_a.ply", a[i], fa, space=None)
+        slicer_ply(tmp_path / f"{s}_b.ply", b[i], fb, space=None)
+        scalismo_landmarks(tmp_path / f"{s}_a.json", list("ABCD"), a[i][[0, 5, 40, 100]])
+        scalismo_landmarks(tmp_path / f"{s}_b.json", list("ABCD"), b[i][[0, 5, 30, 50]])
+        lines += ["[[instances]]", f'name = "{s}"', f'meshes = {{ a = "{s}_a.ply", b = "{s}_b.ply" }}',
+                  f'landmarks = {{ a = "{s}_a.json", b = "{s}_b.json" }}', ""]
+    (tmp_path / "joint.toml").write_text("\n".join(lines))
+    assert main(["build", str(tmp_path / "joint.toml"), "--out", str(tmp_path / "out")]) == 0
+    out = capsys.readouterr().out
+    assert load_npz(tmp_path / "out" / "model.npz").structure_names == ("a", "b")
+    tail = out[out.index("outputs in"):]
+    assert "structure a: WARNINGS (4 in 4" in tail and "structure b: WARNINGS (4 in 4" in tail
+    assert tail.index("structure a:") < tail.index("structure b:")
+    assert tail.count("[input_surface]") == 8

@@ -273,8 +273,13 @@ def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> 
         print(f"  {'analysis':11s} {result.files['analysis']}/ (analysis.json, analysis.npz, effects/*.vtp, maps)")
     from ..model.quality import warnings_text
 
-    if result.study.findings:  # said last, where a reader looks
-        print("\n" + warnings_text(result.study.findings), flush=True)
+    # said last, where a reader looks (a joint build: each structure's, then the joint model's)
+    groups = [("", result.study.findings)] if result.joint is None else (
+        [(f"structure {name}: ", study.findings) for name, study in result.joint.structures.items()]
+        + [("joint model: ", result.joint.findings)])
+    for heading, findings in groups:
+        if findings:
+            print("\n" + heading + warnings_text(findings), flush=True)
     return 0
 
 
