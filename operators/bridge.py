@@ -234,7 +234,7 @@ def recolour_scene(context) -> None:
     stored = load_arrays(template, "ssm_template") if template is not None else None
     points = stored["points_object"] if stored else None
     for obj in context.scene.objects:
-        if obj.type == "MESH" and obj.ssm.role in {"TEMPLATE", "COATED", "MODEL", "SAMPLE"}:
+        if obj.type == "MESH" and obj.ssm.role in {"TEMPLATE", "COATED", "MODEL", "MODEL_PART", "SAMPLE"}:
             pts = points if points is not None and len(points) == len(obj.data.vertices) else mesh_vertices(obj.data)
             colour_correspondence(obj, pts, mode)
 
@@ -245,16 +245,6 @@ def set_point_attribute(mesh: bpy.types.Mesh, name: str, values: np.ndarray) -> 
     if attr is None:
         attr = mesh.attributes.new(name=name, type="FLOAT", domain="POINT")
     attr.data.foreach_set("value", np.ascontiguousarray(values, dtype=np.float32).ravel())
-
-
-def set_vertex_groups(obj: bpy.types.Object, groups: dict[str, np.ndarray]) -> None:
-    """Replace the object's vertex groups by ``{name: vertex indices}`` (weight 1), e.g. the
-    structures of a joint model, so each can be selected, hidden or separated."""
-    for vg in list(obj.vertex_groups):
-        obj.vertex_groups.remove(vg)
-    for name, idx in groups.items():
-        vg = obj.vertex_groups.new(name=str(name))
-        vg.add([int(i) for i in np.asarray(idx, dtype=np.int64).ravel()], 1.0, "REPLACE")
 
 
 def get_point_attribute(mesh: bpy.types.Mesh, name: str) -> np.ndarray | None:

@@ -28,7 +28,7 @@ from .properties import SSMPanel, draw_params, scene_params
 from .scene import (
     find_model_object,
     is_instance,
-    mode_keys,
+    mode_sliders,
     model_from_object,
     model_structures,
     object_to_blender_matrix,
@@ -39,7 +39,7 @@ FIT_COLLECTION = "SSM Fits"
 
 def _target_object(context):
     obj = context.active_object
-    if obj is None or obj.type != "MESH" or obj.ssm.role in {"MODEL", "SAMPLE", "LANDMARK"}:
+    if obj is None or obj.type != "MESH" or obj.ssm.role in {"MODEL", "MODEL_PART", "SAMPLE", "LANDMARK"}:
         return None
     return obj
 
@@ -121,9 +121,9 @@ class SSM_OT_fit_model(BackgroundJob, bpy.types.Operator):
         if model_obj is None or target is None:
             self.report({"ERROR"}, "fit model: the model or the target was removed meanwhile")
             return {"CANCELLED"}
-        for kb, z in zip(mode_keys(model_obj), result.coefficients):
-            kb.slider_min, kb.slider_max = min(-3.0, float(z) - 0.5), max(3.0, float(z) + 0.5)
-            kb.value = float(z)
+        for slider, z in zip(mode_sliders(model_obj), result.coefficients):
+            slider.set_range(min(-3.0, float(z) - 0.5), max(3.0, float(z) + 0.5))
+            slider.value = float(z)
         obj = bridge.new_mesh_object(context, f"{target.name} fitted", result.points, faces,
                                      collection_name=FIT_COLLECTION, matrix_world=np.eye(4))
         bridge.set_vertex_colors(obj.data, sd_colours(result.posterior_sd_mm), name="posterior_sd")

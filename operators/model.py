@@ -11,6 +11,11 @@ instance points in the model and world frames, names and parameters) is kept in 
 object's ID property group ``obj["ssm_model"]`` as binary float64/int32 arrays (numpy
 buffers, no lists), so it survives save/reopen exactly and "Save Model" writes the same
 files as the command line. The shape keys are the editable view of it (float32).
+
+A joint model (several structures) is an empty holding the model and one custom property
+per mode ("Mode 1", ... in standard deviations), with one mesh per structure parented to
+it; each structure's shape key of a mode is driven by the empty's property, so one slider
+(and one animation channel) moves the whole joint.
 """
 
 from __future__ import annotations
@@ -44,9 +49,10 @@ from .scene import (
     MODEL_COLLECTION,
     MODEL_KEY,
     MODEL_NAME,
+    clear_mode_animation,
     coated_objects,
     find_model_object,
-    mode_keys,
+    mode_sliders,
     model_from_object,
     model_structures,
     record_stage,
@@ -89,15 +95,94 @@ def model_location(context, model: ShapeModel) -> np.ndarray:
     return np.array([hi[0] + 0.25 * width - float(model.mean[:, 0].min()), centre[1], centre[2]])
 
 
+def _remove_model_objects(name: str) -> None:
+    """Remove the model object ``name`` when it is a joint model's empty, with its structures."""
+    old = bpy.data.objects.get(name)
+    if old is None or old.type == "MESH":
+        return
+    for child in [c for c in old.children if c.ssm.role == "MODEL_PART"]:
+        mesh = child.data
+        bpy.data.objects.remove(child)
+        if mesh is not None and mesh.users == 0:
+            bpy.data.meshes.remove(mesh)
+    bpy.data.objects.remove(old)
+
+
+def _drive_by(key_block, owner, prop: str) -> None:
+    """Drive a shape key's value by the custom property ``prop`` of ``owner``."""
+    key_block.driver_remove("value")
+    fc = key_block.driver_add("value")
+    drv = fc.driver
+    drv.type = "AVERAGE"
+    var = drv.variables.new()
+    var.name, var.type = "v", "SINGLE_PROP"
+    var.targets[0].id_type = "OBJECT"
+    var.targets[0].id = owner
+    var.targets[0].data_path = f'["{prop}"]'
+
+
+def create_joint_model_object(context, model: ShapeModel, name: str = MODEL_NAME, n_keys: int | None = None,
+                              activate: bool = True):
+    """Create (or replace) a joint model's objects: an empty ``name`` (role MODEL, the model in
+    ``obj["ssm_model"]``, one custom property "Mode k" per mode in SD, soft range -3..3) and
+    one mesh per structure, ``"<name> <structure>"`` (role MODEL_PART, parented to the empty,
+    its points of the mean, its faces, a POINT attribute ``variance`` in mm²), whose shape key
+    "Mode k" (p̄ + √λ_k q_k on its rows, eq. 7) is driven by the empty's "Mode k".
+    """
+    scene = context.scene
+    bridge.ensure_mm_units(scene)
+    _remove_model_objects(name)
+    existing = bpy.data.objects.get(name)
+    if existing is not None:  # a mesh model of the same name: replaced by the joint one
+        bpy.data.objects.remove(existing)
+    empty = bpy.data.objects.new(name, None)
+    empty.empty_display_type = "PLAIN_AXES"
+    empty.empty_display_size = 0.1 * float(np.ptp(model.mean, axis=0).max()) if model.n_points else 1.0
+    bridge.ensure_collection(scene, MODEL_COLLECTION).objects.link(empty)
+    matrix = np.eye(4)
+    matrix[:3, 3] = model_location(context, model)
+    bridge.set_matrix_world(empty, matrix)
+    k = model.n_modes if n_keys is None else min(int(n_keys), model.n_modes)
+    for i in range(k):
+        prop = f"Mode {i + 1}"
+        empty[prop] = 0.0
+        empty.id_properties_ui(prop).update(min=-10.0, max=10.0, soft_min=-3.0, soft_max=3.0,
+                                            description=f"Mode {i + 1} of the joint model, in standard deviations")
+    empty.ssm.role = "MODEL"
+    empty.ssm.source = str(model.params.get("source", ""))
+    store_model(empty, model)
+    sd = model.standard_deviations
+    all_faces = np.asarray(model.faces)
+    variance = model.point_variance
+    for structure in model.structure_names:
+        sl = model.structure_slice(structure)
+        inside = (all_faces >= sl.start).all(axis=1) & (all_faces < sl.stop).all(axis=1)
+        part = bridge.new_mesh_object(context, f"{name} {structure}", model.mean[sl], all_faces[inside] - sl.start,
+                                      collection_name=MODEL_COLLECTION, matrix_world=np.eye(4), replace=False)
+        part.parent = empty
+        part.matrix_parent_inverse.identity()
+        part.matrix_basis.identity()
+        bridge.colour_correspondence(part, model.mean[sl], scene.ssm_display.colouring)
+        keys = {f"Mode {i + 1}": model.mean[sl] + sd[i] * model.modes[i][sl] for i in range(k)}
+        bridge.set_shape_keys(part, keys, slider_min=-10.0, slider_max=10.0)
+        for i in range(k):
+            _drive_by(part.data.shape_keys.key_blocks[f"Mode {i + 1}"], empty, f"Mode {i + 1}")
+        bridge.set_point_attribute(part.data, "variance", variance[sl])
+        part.ssm.role = "MODEL_PART"
+        part["ssm_structure"] = structure
+    if activate:
+        bridge.select_only(context, [empty], active=empty)
+    return empty
+
+
 def create_model_object(context, model: ShapeModel, name: str = MODEL_NAME, n_keys: int | None = None,
                         template_points: np.ndarray | None = None, activate: bool = True):
     """Create (or replace) the model mesh object from a ShapeModel.
 
     Mean shape with the template faces and triangle-index colours, one shape key per mode
     (key = p̄ + √λ_k q_k, slider -3..3 = b_k / √λ_k), POINT attribute ``variance`` (mm²),
-    ``obj.ssm.role = "MODEL"`` and the model arrays in ``obj["ssm_model"]``. A joint model is one
-    mesh whose parts are its structures (one vertex group each, named as the structure): one
-    slider moves every structure's shape and their relative pose together.
+    ``obj.ssm.role = "MODEL"`` and the model arrays in ``obj["ssm_model"]``. A joint model:
+    :func:`create_joint_model_object` (an empty with the sliders, a mesh per structure).
 
     Parameters
     ----------
@@ -111,8 +196,11 @@ def create_model_object(context, model: ShapeModel, name: str = MODEL_NAME, n_ke
     -------
     bpy.types.Object
     """
+    if model.structure_names:
+        return create_joint_model_object(context, model, name=name, n_keys=n_keys, activate=activate)
     scene = context.scene
     bridge.ensure_mm_units(scene)
+    _remove_model_objects(name)  # a joint model of the same name: replaced by the mesh
     matrix = np.eye(4)
     matrix[:3, 3] = model_location(context, model)
     obj = bridge.new_mesh_object(context, name, model.mean, model.faces, collection_name=MODEL_COLLECTION,
@@ -127,8 +215,6 @@ def create_model_object(context, model: ShapeModel, name: str = MODEL_NAME, n_ke
     keys = {f"Mode {i + 1}": model.mean + sd[i] * model.modes[i] for i in range(k)}
     bridge.set_shape_keys(obj, keys, slider_min=-3.0, slider_max=3.0)
     bridge.set_point_attribute(mesh, "variance", model.point_variance)
-    bridge.set_vertex_groups(obj, {name: np.arange(model.n_points)[model.structure_slice(name)]
-                                   for name in model.structure_names})
     obj.ssm.role = "MODEL"
     obj.ssm.source = str(model.params.get("source", ""))
     store_model(obj, model)
@@ -189,15 +275,17 @@ def _channelbag(keys):
 
 
 def mode_fcurves(obj) -> dict:
-    """{key name: F-curve} of the animated mode values of a model object."""
-    keys = obj.data.shape_keys
-    bag = _channelbag(keys) if keys is not None else None
+    """{mode name: F-curve} of the animated mode sliders of a model object (its shape keys'
+    values, or a joint model's custom properties)."""
+    owner = obj.data.shape_keys if obj.type == "MESH" else obj
+    bag = _channelbag(owner) if owner is not None else None
     out = {}
     if bag is None:
         return out
+    head, tail = ('key_blocks["', '"].value') if obj.type == "MESH" else ('["', '"]')
     for fc in bag.fcurves:
-        if fc.data_path.startswith('key_blocks["') and fc.data_path.endswith('"].value'):
-            out[fc.data_path[len('key_blocks["') : -len('"].value')]] = fc
+        if fc.data_path.startswith(head) and fc.data_path.endswith(tail):
+            out[fc.data_path[len(head) : -len(tail)]] = fc
     return out
 
 
@@ -252,25 +340,24 @@ class SSM_OT_animate_modes(bpy.types.Operator):
                               ("amplitude", "anim_amplitude")):
             if not self.properties.is_property_set(prop):
                 setattr(self, prop, getattr(s, setting))
-        kbs = mode_keys(obj)
-        m = min(self.n_modes, len(kbs))
+        sliders = mode_sliders(obj)
+        m = min(self.n_modes, len(sliders))
         if m == 0:
-            self.report({"ERROR"}, f"{obj.name}: no mode shape keys")
+            self.report({"ERROR"}, f"{obj.name}: no mode sliders")
             return {"CANCELLED"}
-        keys = obj.data.shape_keys
-        keys.animation_data_clear()
-        for kb in kbs:
-            kb.value = 0.0
+        clear_mode_animation(obj)
+        for slider in sliders:
+            slider.value = 0.0
         plan = sweep_keyframes(m, self.frames_per_mode, self.amplitude, start=1)
         for i in range(m):
-            kb = kbs[i]
+            slider = sliders[i]
             for frame, value in plan[i]:
-                kb.value = value
-                kb.keyframe_insert("value", frame=frame)
-            kb.value = 0.0
+                slider.value = value
+                slider.keyframe(frame)
+            slider.value = 0.0
         fcurves = mode_fcurves(obj)
         for i in range(m):
-            fc = fcurves.get(kbs[i].name)
+            fc = fcurves.get(sliders[i].name)
             if fc is None:
                 continue
             for mod in list(fc.modifiers):
@@ -352,11 +439,12 @@ class SSM_OT_reset_modes(bpy.types.Operator):
         except InputError as err:
             self.report({"ERROR"}, str(err))
             return {"CANCELLED"}
-        if self.clear_animation and obj.data.shape_keys is not None:
-            obj.data.shape_keys.animation_data_clear()
-        for kb in mode_keys(obj):
-            kb.value = 0.0
-        obj.data.update()
+        if self.clear_animation:
+            clear_mode_animation(obj)
+        for slider in mode_sliders(obj):
+            slider.value = 0.0
+        if obj.type == "MESH":
+            obj.data.update()
         return {"FINISHED"}
 
 
@@ -485,21 +573,22 @@ class SSM_PT_model(SSMPanel, bpy.types.Panel):
         layout.label(text=f"{obj.name}: {shp['n']} instances, {shp['N']} points, {shp['K']} modes")
         structures = model_structures(obj)
         if structures:
-            layout.label(text="joint model: " + ", ".join(structures) + " (vertex groups)", icon="GROUP_VERTEX")
+            layout.label(text="joint model: " + ", ".join(structures) + " (one mesh each, one slider per mode)",
+                         icon="GROUP_VERTEX")
         loc = obj.matrix_world.translation
         layout.label(text=f"at ({loc[0]:.0f}, {loc[1]:.0f}, {loc[2]:.0f}) mm, right of the instances",
                      icon="OBJECT_ORIGIN")
         fractions = np.asarray(g["fractions"])
         cum = np.cumsum(fractions)
         box = layout.box()
-        keys = mode_keys(obj)
-        for i, kb in enumerate(keys[: settings.show_modes]):
+        keys = mode_sliders(obj)
+        for i, slider in enumerate(keys[: settings.show_modes]):
             row = box.row(align=True)
             split = row.split(factor=0.45, align=True)
             pct = 100 * fractions[i] if i < len(fractions) else 0.0
             tot = 100 * cum[i] if i < len(cum) else 0.0
             split.progress(factor=float(fractions[i]) if i < len(fractions) else 0.0, type="BAR", text=f"{i + 1}: {pct:.1f} % (Σ {tot:.1f})")
-            split.prop(kb, "value", text="", slider=True)
+            slider.draw(split)
         if len(keys) > settings.show_modes:
             box.label(text=f"… {len(keys) - settings.show_modes} more modes")
         box.prop(settings, "show_modes")
@@ -554,7 +643,7 @@ class SSM_OT_import_model(bpy.types.Operator, ImportHelper):
         obj = create_model_object(context, model)
         self.report({"INFO"}, f"{os.path.basename(self.filepath)}: {model.n_modes} modes, {model.n_points} points"
                               f"{f', from {model.n_instances} instances' if model.n_instances else ''} as {obj.name!r}"
-                              + (f"; structures {', '.join(model.structure_names)} (vertex groups)"
+                              + (f"; structures {', '.join(model.structure_names)} (one mesh each)"
                                  if model.structure_names else "")
                               + "".join(f"; {n}" for n in notes))
         return {"FINISHED"}

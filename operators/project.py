@@ -208,7 +208,7 @@ def load_project_into_scene(context, project: core.Project) -> list:
     if len(project.structures) > 1:
         raise InputError(f"{project.path}: a joint project ({', '.join(project.structures)}); the scene holds one "
                          "structure's study, so build it headless (ssm build PROJECT --out DIR) and open its "
-                         "model.npz with File > Import > Shape Model (one vertex group per structure)")
+                         "model.npz with File > Import > Shape Model (one mesh per structure, one slider per mode)")
     items = import_items(project.instances, spacing_mm=project.params.template.spacing_mm,
                          frame_method=project.params.template.frame, space=project.params.template.space)
     set_scene_study_params(scene, project.params)

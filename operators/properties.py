@@ -33,6 +33,7 @@ ROLES = [
     ("TEMPLATE", "Template", "The triangulated point-distribution template (paper 3)"),
     ("COATED", "Coated instance", "The template coated onto an instance (paper 4)"),
     ("MODEL", "Model", "The mean shape with one shape key per mode (paper 5)"),
+    ("MODEL_PART", "Model structure", "One structure of a joint model: its shape keys follow the model's sliders"),
     ("SAMPLE", "Model sample", "A shape generated from the model (eq. 7)"),
 ]
 

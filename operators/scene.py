@@ -474,6 +474,72 @@ def model_structures(obj) -> list[str]:
     return list(json.loads(obj[MODEL_KEY].get("structures_json", "{}") or "{}").get("names") or [])
 
 
+class ModeSlider:
+    """One mode's slider of a model object, in standard deviations (b_k / √λ_k, eq. 7): a shape
+    key of the mean mesh, or (a joint model) the custom property ``"Mode k"`` of the model's
+    empty, which drives that mode's shape key of every structure."""
+
+    def __init__(self, owner, name: str, key=None):
+        self.owner, self.name, self.key = owner, name, key
+
+    @property
+    def value(self) -> float:
+        return float(self.key.value if self.key is not None else self.owner[self.name])
+
+    @value.setter
+    def value(self, v: float) -> None:
+        if self.key is not None:
+            self.key.value = float(v)
+        else:
+            self.owner[self.name] = float(v)
+            self.owner.update_tag()  # the structures' drivers read it on the next evaluation
+
+    def keyframe(self, frame: int) -> None:
+        if self.key is not None:
+            self.key.keyframe_insert("value", frame=frame)
+        else:
+            self.owner.keyframe_insert(f'["{self.name}"]', frame=frame)
+
+    def set_range(self, lo: float, hi: float) -> None:
+        if self.key is not None:
+            self.key.slider_min, self.key.slider_max = float(lo), float(hi)
+        else:
+            self.owner.id_properties_ui(self.name).update(soft_min=float(lo), soft_max=float(hi))
+
+    def draw(self, layout) -> None:
+        if self.key is not None:
+            layout.prop(self.key, "value", text="", slider=True)
+        else:
+            layout.prop(self.owner, f'["{self.name}"]', text="", slider=True)
+
+
+def mode_sliders(obj) -> list[ModeSlider]:
+    """The mode sliders ("Mode 1", ...) of a model object, in order: the shape keys of a mesh
+    model, the custom properties of a joint model's empty."""
+    if obj is None:
+        return []
+    if obj.type == "MESH":
+        return [ModeSlider(obj, kb.name, kb) for kb in mode_keys(obj)]
+    names = sorted((k for k in obj.keys() if k.startswith("Mode ") and k[5:].isdigit()), key=lambda k: int(k[5:]))
+    return [ModeSlider(obj, k) for k in names]
+
+
+def clear_mode_animation(obj) -> None:
+    """Remove the keyframes of a model object's mode sliders."""
+    owner = obj.data.shape_keys if obj.type == "MESH" else obj
+    if owner is not None:
+        owner.animation_data_clear()
+
+
+def model_parts(obj) -> list:
+    """The structure meshes of a joint model's empty (its MODEL_PART children), in structure order."""
+    if obj is None or obj.type == "MESH":
+        return []
+    order = {n: i for i, n in enumerate(model_structures(obj))}
+    parts = [c for c in obj.children if c.ssm.role == "MODEL_PART"]
+    return sorted(parts, key=lambda c: order.get(c.get("ssm_structure", ""), len(order)))
+
+
 def mode_keys(obj) -> list:
     """The mode shape keys ("Mode 1", ...) of a model object, in order."""
     keys = obj.data.shape_keys if obj is not None and obj.type == "MESH" else None
@@ -485,6 +551,8 @@ def mode_keys(obj) -> list:
 def find_model_object(context) -> bpy.types.Object | None:
     """The active object if it is a model, else the first model object in the scene."""
     obj = context.active_object
+    if obj is not None and obj.ssm.role == "MODEL_PART" and obj.parent is not None:
+        obj = obj.parent  # a structure of a joint model: the model is its empty
     if obj is not None and obj.ssm.role == "MODEL" and has_model(obj):
         return obj
     for ob in context.scene.objects:

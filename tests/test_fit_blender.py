@@ -39,7 +39,7 @@ def test_fit_model_sets_the_sliders_to_the_fitted_coefficients(scene_with_model)
     z = [1.2, -0.6, 0.3]
     target, shape = _target(bpy, model, z)
     assert bpy.ops.ssm.fit_model() == {"FINISHED"}
-    from ssm.operators.model import mode_keys
+    from ssm.operators.scene import mode_keys
 
     values = [kb.value for kb in mode_keys(model_obj)[:3]]
     np.testing.assert_allclose(values, z, atol=0.1)
@@ -84,7 +84,7 @@ def test_a_fitted_value_beyond_three_sd_is_shown_not_clamped(scene_with_model):
     bpy, model_obj, model = scene_with_model
     _target(bpy, model, [4.5, 0.0, 0.0])
     assert bpy.ops.ssm.fit_model() == {"FINISHED"}
-    from ssm.operators.model import mode_keys
+    from ssm.operators.scene import mode_keys
 
     keys = mode_keys(model_obj)
     assert abs(keys[0].value - 4.5) < 0.2 and keys[0].slider_max >= keys[0].value and keys[0].slider_max < 10

@@ -1,5 +1,5 @@
-"""A joint model in Blender: one mesh whose structures are vertex groups, one slider per mode
-moving every structure's shape and their relative pose together."""
+"""A joint model in Blender: an empty whose custom property per mode drives one mesh per structure,
+so one slider moves every structure's shape and their relative pose together."""
 
 from __future__ import annotations
 
@@ -10,9 +10,13 @@ from test_joint import _joint, _population
 pytestmark = pytest.mark.blender
 
 
-def test_import_shape_model_opens_a_joint_model_with_a_vertex_group_per_structure(bpy_clean, tmp_path):
+def test_import_shape_model_opens_a_joint_model_as_an_empty_driving_one_mesh_per_structure(bpy_clean, tmp_path):
+    """The model is an empty with one custom property per mode; each structure a mesh parented
+    to it whose mode shape keys follow that property: one slider (and one animation channel)
+    moves every structure, the evaluated meshes are the model's rows of mean + v √λ q (eq. 7)."""
     from ssm.operators import bridge
-    from ssm.operators.scene import find_model_object, model_from_object
+    from ssm.operators.model import mode_fcurves
+    from ssm.operators.scene import find_model_object, mode_sliders, model_from_object, model_parts
 
     from ssm_addon.model.files import load_npz, save_npz
 
@@ -21,28 +25,48 @@ def test_import_shape_model_opens_a_joint_model_with_a_vertex_group_per_structur
     model = _joint(a, b, fa, fb)
     save_npz(model, tmp_path / "joint.npz")
     assert bpy.ops.ssm.import_model(filepath=str(tmp_path / "joint.npz")) == {"FINISHED"}
-    obj = find_model_object(bpy.context)
-    assert [vg.name for vg in obj.vertex_groups] == ["a", "b"]
-    for vg in obj.vertex_groups:
-        members = [v.index for v in obj.data.vertices if any(g.group == vg.index and g.weight == 1.0 for g in v.groups)]
-        sl = model.structure_slice(vg.name)
-        assert members == list(range(sl.start, sl.stop))
-    opened = model_from_object(obj)  # the scene keeps the structures (Save Model, Fit Model read it)
+    empty = find_model_object(bpy.context)
+    assert empty.type == "EMPTY" and empty.ssm.role == "MODEL"
+    parts = model_parts(empty)
+    assert [p.name for p in parts] == ["SSM Model a", "SSM Model b"]
+    assert [len(p.data.vertices) for p in parts] == [a.shape[1], b.shape[1]]
+    assert [len(p.data.polygons) for p in parts] == [len(fa), len(fb)]
+    bpy.context.view_layer.objects.active = parts[1]  # a structure selected: its model is the empty
+    assert find_model_object(bpy.context) == empty
+    opened = model_from_object(empty)  # the scene keeps the structures (Save Model, Fit Model read it)
     assert opened.structure_names == ("a", "b")
     np.testing.assert_array_equal(opened.structure_offsets, model.structure_offsets)
-    obj.data.shape_keys.key_blocks["Mode 1"].value = 2.0  # one slider: both structures move
-    got = bridge.evaluated_vertices(bpy.context, obj)
-    expected = model.mean + 2.0 * model.standard_deviations[0] * model.modes[0]
-    np.testing.assert_allclose(got, expected, atol=1e-3 * np.abs(model.mean).max())
-    for name in ("a", "b"):
+    sliders = mode_sliders(empty)
+    assert [s.name for s in sliders] == [f"Mode {k + 1}" for k in range(model.n_modes)]
+    v = np.array([2.0, -1.0])
+    for slider, val in zip(sliders, v):
+        slider.value = val
+    bpy.context.view_layer.update()
+    expected = model.mean + np.tensordot(v * model.standard_deviations[:2], model.modes[:2], axes=1)
+    for part, name in zip(parts, ("a", "b")):
         sl = model.structure_slice(name)
-        assert np.abs(got[sl] - model.mean[sl]).max() > 0.05  # the mode moves this structure too
-    obj.data.shape_keys.key_blocks["Mode 1"].value = 0.0
+        got = np.asarray(part.matrix_world)[:3, :3] @ bridge.evaluated_vertices(bpy.context, part).T
+        got = got.T + np.asarray(part.matrix_world)[:3, 3] - np.asarray(empty.matrix_world)[:3, 3]
+        np.testing.assert_allclose(got, expected[sl], atol=1e-4 * np.abs(model.mean).max())
+        assert np.abs(expected[sl] - model.mean[sl]).max() > 0.05  # the modes move this structure too
+    assert bpy.ops.ssm.reset_modes() == {"FINISHED"}
+    assert all(s.value == 0.0 for s in mode_sliders(empty))
+    assert bpy.ops.ssm.animate_modes(n_modes=2, frames_per_mode=12, amplitude=2.0) == {"FINISHED"}
+    assert sorted(mode_fcurves(empty)) == ["Mode 1", "Mode 2"]  # one channel per mode, on the empty
+    bpy.context.scene.frame_set(1 + 6)  # half-way through mode 1's sweep: +2 SD
+    bpy.context.view_layer.update()
+    kb = parts[0].data.shape_keys.key_blocks["Mode 1"]
+    assert kb.value == pytest.approx(2.0, abs=1e-5) and empty["Mode 1"] == pytest.approx(2.0, abs=1e-5)
+    assert bpy.ops.ssm.reset_modes() == {"FINISHED"}
     out = tmp_path / "saved"
     assert bpy.ops.ssm.save_model(directory=str(out), metrics=False, plots=False) == {"FINISHED"}
     back = load_npz(out / "model.npz")
     assert back.structure_names == ("a", "b")
     np.testing.assert_allclose(back.modes, model.modes, atol=1e-6)
+    # importing again replaces the model, its structures with it
+    assert bpy.ops.ssm.import_model(filepath=str(tmp_path / "joint.npz")) == {"FINISHED"}
+    assert sorted(o.name for o in bpy.data.objects if o.name.startswith("SSM Model")) == [
+        "SSM Model", "SSM Model a", "SSM Model b"]
 
 
 def test_open_project_of_a_joint_project_says_where_it_is_built_and_changes_nothing(bpy_clean, tmp_path):
@@ -89,6 +113,9 @@ def test_fit_as_one_structure_predicts_the_others_as_ssm_fit_does(bpy_clean, tmp
     bridge.select_only(bpy.context, [obj], active=obj)
     assert bpy.ops.ssm.fit_model(structures="b") == {"FINISHED"}
     fitted = bpy.data.objects["Subject b fitted"]
+    from ssm.operators.scene import find_model_object, mode_sliders
+
+    z_fit = [sl.value for sl in mode_sliders(find_model_object(bpy.context))]
     got = bridge.mesh_vertices(fitted.data)
     scale = np.abs(model.mean).max()
     assert np.abs(got[sb] - shape[sb]).max() < 0.01 * scale
@@ -103,6 +130,7 @@ def test_fit_as_one_structure_predicts_the_others_as_ssm_fit_does(bpy_clean, tmp
                                    params=_scene_fit_params(bpy))
     blender = json.loads(fitted["ssm_fit_json"])
     np.testing.assert_allclose(blender["coefficients"], doc["coefficients"], atol=1e-3)
+    np.testing.assert_allclose(z_fit, blender["coefficients"], atol=1e-6)  # the sliders show the fit
     with pytest.raises(RuntimeError, match="no structure 'c'"):
         bpy.ops.ssm.fit_model(structures="c")
 

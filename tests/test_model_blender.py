@@ -203,7 +203,7 @@ def test_create_model_object_from_a_shape_model(bpy_clean, population):
     model = build_model(shapes, faces, [f"s{i}" for i in range(N_INST)], n_modes=4)
     obj = opmodel.create_model_object(bpy.context, model, name="Direct")
     assert obj.name == "Direct" and obj.ssm.role == "MODEL"
-    assert len(opmodel.mode_keys(obj)) == 4
+    assert len(opmodel.mode_sliders(obj)) == 4
     # calling it again replaces, not duplicates
     opmodel.create_model_object(bpy.context, model, name="Direct")
     assert sum(1 for ob in bpy.data.objects if ob.name.startswith("Direct")) == 1

@@ -193,7 +193,7 @@ def build(
     if project.structures:
         if blender_hook is not None:
             say("model.blend and modes.png: not written for a joint model (open its model.npz in Blender with "
-                "File > Import > Shape Model: one vertex group per structure)")
+                "File > Import > Shape Model: one mesh per structure, one slider per mode)")
         return build_joint(project, out_dir, jobs=jobs, progress=progress, cancelled=cancelled, log=say, force=force,
                            scheduler=scheduler, cache=cache)
     inputs = [project.path] + [p for i in project.instances for p in (i.volume_path, i.mesh_path, i.landmarks_path) if p is not None]
@@ -243,8 +243,8 @@ def build_joint(project: Project, out_dir: Path, *, jobs: int = 1, progress: Pro
                 scheduler: str | None = None, cache=None) -> BuildResult:
     """:func:`build` of a project whose instances hold several structures: every structure's study,
     then the joint model (:mod:`ssm_addon.pipeline.joint`), with the same output rules. Writes
-    no ``model.blend`` (Blender opens the joint ``model.npz`` as one mesh, a vertex group per
-    structure)."""
+    no ``model.blend`` (Blender opens the joint ``model.npz`` as an empty with one slider per
+    mode driving one mesh per structure)."""
     say = log or (lambda _msg: None)
     inputs = [project.path, *project.input_files]
     if project.params.analysis.attributes:
