@@ -253,3 +253,44 @@ def test_ssm_build_of_a_joint_project_says_each_structures_findings_last(tmp_pat
     assert "structure a: WARNINGS (4 in 4" in tail and "structure b: WARNINGS (4 in 4" in tail
     assert tail.index("structure a:") < tail.index("structure b:")
     assert tail.count("[input_surface]") == 8
+
+
+def test_a_joint_models_exchange_meshes_keep_each_structure(tmp_path):
+    """model.glb: one primitive per structure (its own vertices, triangles, morph targets and a
+    material of its name) under the mesh's one set of morph weights, so a viewer's slider moves
+    the whole joint; vtk/<structure>/ the structure's own mean and mode shapes."""
+    import xml.etree.ElementTree as ET
+
+    from ssm_addon.formats.gltf import read_glb
+    from ssm_addon.model.files import write_exchange_meshes
+
+    a, b, fa, fb, _t = _population(n=8)
+    model = _joint(a, b, fa, fb)
+    written = write_exchange_meshes(model, tmp_path, modes=3)
+    doc, binary = read_glb(written["gltf"])
+
+    def floats(index):
+        acc = doc["accessors"][index]
+        view = doc["bufferViews"][acc["bufferView"]]
+        return np.frombuffer(binary[view["byteOffset"]:view["byteOffset"] + view["byteLength"]], np.float32)
+
+    mesh = doc["meshes"][0]
+    assert len(doc["meshes"]) == 1 and mesh["weights"] == [0.0, 0.0, 0.0]
+    assert [m["name"] for m in doc["materials"]] == ["a", "b"]
+    for prim, name, faces in zip(mesh["primitives"], ("a", "b"), (fa, fb)):
+        sl = model.structure_slice(name)
+        assert prim["extras"]["structure"] == name and doc["materials"][prim["material"]]["name"] == name
+        np.testing.assert_allclose(floats(prim["attributes"]["POSITION"]).reshape(-1, 3), model.mean[sl] / 1000,
+                                   rtol=1e-6, atol=1e-7)
+        acc = doc["accessors"][prim["indices"]]
+        view = doc["bufferViews"][acc["bufferView"]]
+        tris = np.frombuffer(binary[view["byteOffset"]:view["byteOffset"] + acc["count"] * 4], np.uint32)
+        np.testing.assert_array_equal(tris.reshape(-1, 3), faces)
+        assert len(prim["targets"]) == 3
+        np.testing.assert_allclose(floats(prim["targets"][1]["POSITION"]).reshape(-1, 3),
+                                   model.standard_deviations[1] * model.modes[1][sl] / 1000, atol=1e-7)
+    plus = ET.parse(tmp_path / "vtk" / "b" / "mode_1_plus2sd.vtp").getroot().find("PolyData/Piece/Points/DataArray")
+    sl = model.structure_slice("b")
+    np.testing.assert_allclose(np.array(plus.text.split(), float).reshape(-1, 3),
+                               model.mean[sl] + 2 * model.standard_deviations[0] * model.modes[0][sl], atol=1e-6)
+    assert (tmp_path / "vtk" / "mean.vtp").is_file() and (tmp_path / "vtk" / "a" / "mean.vtk").is_file()

@@ -139,3 +139,20 @@ def _scene_fit_params(bpy):
     from ssm.operators.properties import scene_params
 
     return scene_params(bpy.context, "ssm_fit")
+
+
+def test_blenders_gltf_importer_opens_a_joint_model_glb_with_shared_mode_keys(bpy_clean, tmp_path):
+    """Blender's own glTF importer: one object whose shape keys (the modes) move both structures,
+    a material per structure (Separate by Material gives one object each)."""
+    from ssm_addon.model.files import write_exchange_meshes
+
+    bpy = bpy_clean
+    a, b, fa, fb, _t = _population(n=8)
+    model = _joint(a, b, fa, fb)
+    written = write_exchange_meshes(model, tmp_path, modes=3, vtk=False)
+    assert bpy.ops.import_scene.gltf(filepath=written["gltf"]) == {"FINISHED"}
+    obj = next(o for o in bpy.data.objects if o.type == "MESH")
+    assert len(obj.data.vertices) == model.n_points and [m.name for m in obj.data.materials] == ["a", "b"]
+    assert [k.name for k in obj.data.shape_keys.key_blocks][1:] == [f"Mode {i} (+1 SD)" for i in (1, 2, 3)]
+    by_material = np.array([p.material_index for p in obj.data.polygons])
+    assert np.bincount(by_material).tolist() == [len(fa), len(fb)]

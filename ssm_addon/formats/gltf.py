@@ -27,7 +27,8 @@ _FLOAT, _UINT32 = 5126, 5125
 _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
 
 
-def write_glb(path, points_mm, faces, morph_targets_mm: dict | None = None, *, name: str = "SSM model") -> Path:
+def write_glb(path, points_mm, faces, morph_targets_mm: dict | None = None, *, name: str = "SSM model",
+              parts: dict | None = None) -> Path:
     """Write a mesh and its morph targets as a binary glTF file, coordinates in metres.
 
     Parameters
@@ -42,6 +43,11 @@ def write_glb(path, points_mm, faces, morph_targets_mm: dict | None = None, *, n
         Displacements (mm) of every vertex, one morph target each (e.g. +1 SD of a mode).
     name : str
         Mesh and node name.
+    parts : dict name -> slice, optional
+        The structures of a joint model (their vertex ranges): each becomes one primitive of
+        the mesh, with its own vertices, triangles (those wholly inside it) and morph targets
+        and a material named after it, so the mesh's morph weights, one per target, move every
+        structure together, and an importer keeps them apart (Blender: *Separate by Material*).
     """
     pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3) * MM_TO_M
     tris = np.asarray(faces, dtype=np.uint32).reshape(-1, 3)
@@ -64,14 +70,25 @@ def write_glb(path, points_mm, faces, morph_targets_mm: dict | None = None, *, n
         accessors.append(acc)
         return len(accessors) - 1
 
-    position = add(pts.astype(np.float32), _FLOAT, "VEC3", _ARRAY_BUFFER, bounds=True)
-    indices = add(tris.reshape(-1, 1), _UINT32, "SCALAR", _ELEMENT_ARRAY_BUFFER)
-    accessors[indices]["count"] = int(tris.size)
-    primitive = {"attributes": {"POSITION": position}, "indices": indices, "mode": 4}
-    mesh = {"name": name, "primitives": [primitive]}
+    ranges = {None: slice(0, len(pts))} if not parts else dict(parts)
+    primitives, materials = [], []
+    for part, sl in ranges.items():
+        inside = (tris >= sl.start).all(axis=1) & (tris < sl.stop).all(axis=1) if part is not None else slice(None)
+        position = add(pts[sl].astype(np.float32), _FLOAT, "VEC3", _ARRAY_BUFFER, bounds=True)
+        these = tris[inside] - np.uint32(sl.start)
+        indices = add(these.reshape(-1, 1), _UINT32, "SCALAR", _ELEMENT_ARRAY_BUFFER)
+        accessors[indices]["count"] = int(these.size)
+        primitive = {"attributes": {"POSITION": position}, "indices": indices, "mode": 4}
+        if part is not None:
+            primitive["material"] = len(materials)
+            primitive["extras"] = {"structure": str(part)}
+            materials.append({"name": str(part)})
+        if targets:
+            primitive["targets"] = [{"POSITION": add(t[sl].astype(np.float32), _FLOAT, "VEC3", _ARRAY_BUFFER,
+                                                     bounds=True)} for t in targets.values()]
+        primitives.append(primitive)
+    mesh = {"name": name, "primitives": primitives}
     if targets:
-        primitive["targets"] = [{"POSITION": add(t.astype(np.float32), _FLOAT, "VEC3", _ARRAY_BUFFER, bounds=True)}
-                                for t in targets.values()]
         mesh["weights"] = [0.0] * len(targets)
         mesh["extras"] = {"targetNames": list(targets)}  # the names viewers show on the sliders
     binary = b"".join(blobs)
@@ -79,6 +96,8 @@ def write_glb(path, points_mm, faces, morph_targets_mm: dict | None = None, *, n
            "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0, "name": name}], "meshes": [mesh],
            "accessors": accessors, "bufferViews": views, "buffers": [{"byteLength": len(binary)}],
            "extras": {"unit": "metre (the model's mm times 0.001)"}}
+    if materials:
+        doc["materials"] = materials
     text = json.dumps(doc, separators=(",", ":")).encode()
     text += b" " * (-len(text) % 4)
     out = struct.pack("<III", 0x46546C67, 2, 12 + 8 + len(text) + 8 + len(binary))

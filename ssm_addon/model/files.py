@@ -355,7 +355,9 @@ def write_exchange_meshes(model: ShapeModel, out_dir, *, gltf: bool = True, vtk:
     each +1 SD (√λ_k q_k), named ``Mode k (+1 SD)``. ``vtk/mean.vtp`` (and legacy
     ``vtk/mean.vtk``): the mean with the per-point variance (mm²) and the first mode's
     displacement; ``vtk/mode_<k>_minus<s>sd.vtp`` / ``_plus<s>sd.vtp``: the mean ∓ ``sigmas``
-    SD along each of the first ``modes`` modes, as ShapeWorks' analysis writes them.
+    SD along each of the first ``modes`` modes, as ShapeWorks' analysis writes them. A joint
+    model: ``model.glb`` holds one primitive per structure sharing the mesh's morph weights,
+    and ``vtk/<structure>/`` the same set for each structure's rows.
     Returns ``{name: path}``.
     """
     out_dir = Path(out_dir)
@@ -364,23 +366,34 @@ def write_exchange_meshes(model: ShapeModel, out_dir, *, gltf: bool = True, vtk:
     written = {}
     if gltf:
         targets = {f"Mode {i + 1} (+1 SD)": sd[i] * model.modes[i] for i in range(k)}
-        written["gltf"] = str(write_glb(out_dir / "model.glb", model.mean, model.faces, targets))
+        parts = {n: model.structure_slice(n) for n in model.structure_names} or None
+        written["gltf"] = str(write_glb(out_dir / "model.glb", model.mean, model.faces, targets, parts=parts))
     if vtk:
         folder = out_dir / "vtk"
-        folder.mkdir(exist_ok=True)
-        fields = {"variance_mm2": model.point_variance}
-        if k:
-            fields["mode_1_sd_mm"] = sd[0] * model.modes[0]
-        write_vtp(folder / "mean.vtp", model.mean, model.faces, fields)
-        write_vtk(folder / "mean.vtk", model.mean, model.faces, fields, title="SSM Builder mean shape (mm)")
-        tag = f"{sigmas:g}".replace(".", "p")
-        for i in range(k):
-            for sign, word in ((-1, "minus"), (1, "plus")):
-                shift = sign * sigmas * sd[i] * model.modes[i]
-                write_vtp(folder / f"mode_{i + 1}_{word}{tag}sd.vtp", model.mean + shift, model.faces,
-                          {"displacement_mm": shift})
+        _write_vtk_set(folder, model.mean, model.faces, model.point_variance, sd[:k], model.modes[:k], sigmas)
+        faces = np.asarray(model.faces)
+        for name in model.structure_names:  # a joint model: each structure's own set besides
+            sl = model.structure_slice(name)
+            inside = (faces >= sl.start).all(axis=1) & (faces < sl.stop).all(axis=1)
+            _write_vtk_set(folder / str(name), model.mean[sl], faces[inside] - sl.start, model.point_variance[sl],
+                           sd[:k], model.modes[:k, sl], sigmas)
         written["vtk"] = str(folder)
     return written
+
+
+def _write_vtk_set(folder: Path, mean, faces, variance, sd, modes, sigmas: float) -> None:
+    """``mean.vtp``/``mean.vtk`` and the ∓ ``sigmas`` SD shapes of each mode into ``folder``."""
+    folder.mkdir(exist_ok=True)
+    fields = {"variance_mm2": variance}
+    if len(sd):
+        fields["mode_1_sd_mm"] = sd[0] * modes[0]
+    write_vtp(folder / "mean.vtp", mean, faces, fields)
+    write_vtk(folder / "mean.vtk", mean, faces, fields, title="SSM Builder mean shape (mm)")
+    tag = f"{sigmas:g}".replace(".", "p")
+    for i in range(len(sd)):
+        for sign, word in ((-1, "minus"), (1, "plus")):
+            shift = sign * sigmas * sd[i] * modes[i]
+            write_vtp(folder / f"mode_{i + 1}_{word}{tag}sd.vtp", mean + shift, faces, {"displacement_mm": shift})
 
 
 def write_model_files(model: ShapeModel, out_dir, *, statismo: bool = True, statismo_name: str = "model.h5",
