@@ -70,6 +70,9 @@ class BuildResult:
 
     @property
     def timings_s(self) -> dict:
+        """Seconds per stage (a joint build: per structure, then the joint model's stages)."""
+        if self.joint is not None:
+            return dict(self.report.get("timings_s") or {})
         return self.study.timings_s
 
 

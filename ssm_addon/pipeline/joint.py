@@ -345,7 +345,12 @@ def shape_and_pose(model: ShapeModel, *, reference: str, samples: int = 300, see
 # ----------------------------------------------------------------------------- collisions
 def _penetration(points: np.ndarray, other: np.ndarray, other_faces: np.ndarray) -> float:
     """How deep points reach into the closed surface ``other`` (mm; 0 when none is inside): a point
-    is inside when it lies behind the outward normal of its closest triangle."""
+    is inside when it lies behind the outward normal of its closest triangle. Only the points
+    within ``other``'s bounding box can be inside it, so only they are queried."""
+    lo, hi = other.min(axis=0), other.max(axis=0)
+    points = points[((points >= lo) & (points <= hi)).all(axis=1)]
+    if not len(points):
+        return 0.0
     closest, dist, tri, _b = MeshLocator(other, other_faces).query(points, k=12)
     normals = face_normals(other, other_faces)[tri]
     inside = np.einsum("ij,ij->i", points - closest, normals) < 0.0
