@@ -10,8 +10,8 @@ import pytest
 from test_data_as_users_bring_it import ellipsoid
 
 from ssm_addon.base.errors import InputError
+from ssm_addon.model.joint import collision_findings, collisions, relative_pose, shape_and_pose, structure_model
 from ssm_addon.model.pca import build_model
-from ssm_addon.pipeline.joint import collision_findings, collisions, relative_pose, shape_and_pose, structure_model
 from ssm_addon.pipeline.project import read_project
 
 
