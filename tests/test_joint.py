@@ -236,7 +236,8 @@ def test_ssm_build_of_a_joint_project_says_each_structures_findings_last(tmp_pat
     from ssm_addon.model.files import load_npz
 
     a, b, fa, fb, _t = _population(n=4)
-    lines = ["[template]", "spacing = 1.0", "", "[quality]", "max_input_distance_mm = 0.001", ""]
+    lines = ["[template]", "spacing = 1.0", "", "[quality]", "max_input_distance_mm = 0.001", "",
+             "[analysis]", 'covariates = ["age"]', "permutations = 99", ""]
     for i in range(4):
         s = f"S{i}"
         slicer_ply(tmp_path / f"{s}_a.ply", a[i], fa, space=None)
@@ -244,7 +245,8 @@ def test_ssm_build_of_a_joint_project_says_each_structures_findings_last(tmp_pat
         scalismo_landmarks(tmp_path / f"{s}_a.json", list("ABCD"), a[i][[0, 5, 40, 100]])
         scalismo_landmarks(tmp_path / f"{s}_b.json", list("ABCD"), b[i][[0, 5, 30, 50]])
         lines += ["[[instances]]", f'name = "{s}"', f'meshes = {{ a = "{s}_a.ply", b = "{s}_b.ply" }}',
-                  f'landmarks = {{ a = "{s}_a.json", b = "{s}_b.json" }}', ""]
+                  f'landmarks = {{ a = "{s}_a.json", b = "{s}_b.json" }}', f"attributes = {{ age = {30 + 7 * i} }}",
+                  ""]
     (tmp_path / "joint.toml").write_text("\n".join(lines))
     assert main(["build", str(tmp_path / "joint.toml"), "--out", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
@@ -253,6 +255,23 @@ def test_ssm_build_of_a_joint_project_says_each_structures_findings_last(tmp_pat
     assert "structure a: WARNINGS (4 in 4" in tail and "structure b: WARNINGS (4 in 4" in tail
     assert tail.index("structure a:") < tail.index("structure b:")
     assert tail.count("[input_surface]") == 8
+    # the [analysis] of a joint model: the covariate's effect on the relative pose too
+    analysis = json.loads((tmp_path / "out" / "analysis" / "analysis.json").read_text())
+    assert set(analysis["relative_pose"]["a-b"]["tests"]) == {"age"}
+    assert "relative pose a-b, age: turn p = " in out
+    assert "Relative pose" in (tmp_path / "out" / "report.html").read_text()
+    assert (tmp_path / "out" / "attributes.csv").is_file()
+    # ssm analyze --structure: one structure's exact sub-model, its own effects
+    assert main(["analyze", str(tmp_path / "out"), "--covariate", "age", "--permutations", "99", "--structure", "b",
+                 "--out", str(tmp_path / "b")]) == 0
+    with np.load(tmp_path / "b" / "analysis.npz", allow_pickle=False) as z:
+        sl = load_npz(tmp_path / "out" / "model.npz").structure_slice("b")
+        assert z["mean"].shape == (sl.stop - sl.start, 3)
+    assert "relative_pose" not in json.loads((tmp_path / "b" / "analysis.json").read_text())
+    capsys.readouterr()
+    assert main(["analyze", str(tmp_path / "out"), "--covariate", "age", "--structure", "c", "--out",
+                 str(tmp_path / "c")]) != 0
+    assert "no structure 'c' (structures: a, b)" in capsys.readouterr().err and not (tmp_path / "c").exists()
 
 
 def test_a_joint_models_exchange_meshes_keep_each_structure(tmp_path):
@@ -294,3 +313,31 @@ def test_a_joint_models_exchange_meshes_keep_each_structure(tmp_path):
     np.testing.assert_allclose(np.array(plus.text.split(), float).reshape(-1, 3),
                                model.mean[sl] + 2 * model.standard_deviations[0] * model.modes[0][sl], atol=1e-6)
     assert (tmp_path / "vtk" / "mean.vtp").is_file() and (tmp_path / "vtk" / "a" / "mean.vtk").is_file()
+
+
+def test_analysis_of_a_joint_model_finds_a_group_turning_one_structure_on_the_other():
+    """Group "B" has structure b turned 8° further about z on a: the analysis gives the effect on
+    the relative pose as that turn (degrees, about z), significant, and no shift or scale."""
+    from ssm_addon.analysis import analysis_summary, attributes_from_tables
+    from ssm_addon.analysis.shape_analysis import analyze
+
+    rng = np.random.default_rng(5)
+    va, fa = ellipsoid((20.0, 12.0, 10.0), n=16)
+    vb, fb = ellipsoid((10.0, 8.0, 8.0), n=12)
+    a, b, groups = [], [], {}
+    for i in range(20):
+        group = "B" if i % 2 else "A"
+        rot = _rotation([0, 0, 1], 2.0 * rng.normal() + (8.0 if group == "B" else 0.0))
+        a.append(va * (1.0 + 0.03 * rng.normal()))
+        b.append(vb @ rot.T + [32.0 + 0.3 * rng.normal(), 0.0, 0.0])
+        groups[f"s{i}"] = {"group": group, "age": float(rng.uniform(20, 80))}
+    model = _joint(np.stack(a), np.stack(b), fa, fb)
+    result = analyze(model, attributes_from_tables(groups), group="group", covariates=("age",), permutations=199)
+    pose = result.relative_pose["a-b"]
+    e = pose["effects"]["group: B"]
+    assert e["turn_deg_size"] == pytest.approx(8.0, abs=1.5)
+    assert abs(e["turn_deg"][2]) > 0.95 * e["turn_deg_size"]  # about z
+    assert e["shift_mm_size"] < 0.5 and abs(e["scale_percent"]) < 1.0
+    assert pose["tests"]["group"]["turn_p"] <= 0.01
+    assert pose["tests"]["age"]["turn_p"] > 0.01
+    assert any(line.startswith("relative pose a-b, group: turn p = ") for line in analysis_summary(result))

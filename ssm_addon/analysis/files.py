@@ -91,6 +91,12 @@ def analysis_document(result: Analysis, *, model_path: str | None = None) -> dic
                          "T^2); permutation p-values, Benjamini-Hochberg FDR and max-statistic FWER across points",
         },
     }
+    if result.relative_pose:
+        doc["relative_pose"] = result.relative_pose
+        doc["method"]["relative_pose"] = (
+            "each structure's pose relative to the reference structure (rotation vector in degrees and "
+            "translation in mm, in the reference's frame; log scale) regressed on the same design; turn and "
+            "shift tested by Pillai's trace of the 3-D vector, scale by F, Freedman-Lane permutations")
     if result.group:
         doc["group_test"] = doc["tests"][result.group]
     if result.discriminant:
@@ -322,6 +328,13 @@ def analysis_summary(result: Analysis) -> list[str]:
     for e in result.effects:
         lines.append(f"  effect {e.name} ({e.unit}): largest {np.linalg.norm(e.displacement, axis=1).max():.3g} mm, "
                      f"normal {e.normal.min():.3g} to {e.normal.max():.3g} mm")
+    for pair, figures in result.relative_pose.items():
+        for term, t in figures["tests"].items():
+            lines.append(f"relative pose {pair}, {term}: turn p = {t['turn_p']:.3g}, shift p = {t['shift_p']:.3g}, "
+                         f"scale p = {t['scale_p']:.3g}")
+        for name, e in figures["effects"].items():
+            lines.append(f"  {pair} effect {name} ({e['unit']}): turn {e['turn_deg_size']:.3g}°, shift "
+                         f"{e['shift_mm_size']:.3g} mm, scale {e['scale_percent']:+.3g} %")
     return lines
 
 

@@ -28,6 +28,7 @@ from scipy.linalg import eigh
 
 from ..base.errors import InputError
 from ..meshutil import vertex_normals
+from ..model.joint import relative_poses
 from .attributes import Attributes
 from .statistics import TermTest, centroid_size, term_test
 
@@ -110,6 +111,9 @@ class Analysis:
     warnings : tuple of str
         What a reader must know (exclusions, unknown names, small groups).
     permutations, seed : int
+    relative_pose : dict
+        A joint model: per structure pair ``"reference-structure"`` the effect of every term on
+        the structure's pose relative to the reference (:func:`relative_pose_effects`).
     """
 
     names: tuple[str, ...]
@@ -133,6 +137,7 @@ class Analysis:
     permutations: int = 1000
     seed: int = 0
     units: dict = field(default_factory=dict)
+    relative_pose: dict = field(default_factory=dict)
 
     @property
     def group_test(self) -> TermTest | None:
@@ -403,6 +408,8 @@ def analyze(model, attributes: Attributes, *, group: str | None = None, covariat
         else:
             warnings.append("the groups are too small for a discriminant direction (needs more instances than "
                             "groups + 1)")
+    pose = relative_pose_effects(model, rows, columns, labels, units, permutations=permutations, seed=seed,
+                                 cancelled=cancelled) if len(model.structure_names) > 1 else {}
     say(1.0, "analysis: done")
     used = ([group] if group else []) + list(covariates)
     attr_out = {}
@@ -416,4 +423,51 @@ def analyze(model, attributes: Attributes, *, group: str | None = None, covariat
                     counts=counts, covariates=covariates, size_removed=bool(size_removed), mean=mean, faces=faces,
                     group_means=group_means, effects=tuple(effects), tests=tests, pairwise=pairwise,
                     discriminant=discriminant, r_squared=r_squared, centroid_sizes=sizes, attributes=attr_out,
-                    warnings=tuple(warnings), permutations=int(permutations), seed=int(seed), units=units)
+                    warnings=tuple(warnings), permutations=int(permutations), seed=int(seed), units=units,
+                    relative_pose=pose)
+
+
+def relative_pose_effects(model, rows: np.ndarray, columns: dict, labels: dict, units: dict, *,
+                          permutations: int = 1000, seed: int = 0, cancelled=None) -> dict:
+    """How each term moves a joint model's structures relative to its reference structure.
+
+    The relative pose of every analysed subject (:func:`~ssm_addon.model.joint.relative_poses`:
+    the rotation vector in degrees, the translation in mm, both in the reference's frame, and
+    the log scale) is regressed on the same design as the shape. Per structure pair and effect:
+    the turn (deg per unit, its vector and size), the shift (mm per unit) and the scale change
+    (% per unit); per term the Freedman–Lane permutation p-values of the turn and of the shift
+    (Pillai's trace of the 3-D vector) and of the log scale.
+
+    Returns ``{"reference-structure": {"effects": {effect: {...}}, "tests": {term: {...}}}}``.
+    """
+    poses = relative_poses(model)
+    reference = model.params.get("reference") or model.structure_names[0]
+    m = rows.size
+    terms = list(columns)
+    full = np.concatenate([np.ones((m, 1))] + [columns[t] for t in terms], axis=1)
+    qm, rm = np.linalg.qr(full)
+    out = {}
+    for name, arr in poses.items():
+        p = np.asarray(arr, float)[rows]
+        turn, shift = np.degrees(p[:, :3]), p[:, 3:6]
+        scale = np.c_[p[:, 6], np.zeros((m, 2))]
+        beta = np.linalg.solve(rm, qm.T @ np.c_[turn, shift, p[:, 6]])
+        effects, col = {}, 1
+        for t in terms:
+            for lab in labels[t]:
+                b = beta[col]
+                effects[lab] = {"unit": units.get(lab, ""), "turn_deg": [float(x) for x in b[:3]],
+                                "turn_deg_size": float(np.linalg.norm(b[:3])), "shift_mm": [float(x) for x in b[3:6]],
+                                "shift_mm_size": float(np.linalg.norm(b[3:6])),
+                                "scale_percent": float(100.0 * np.expm1(b[6]))}
+                col += 1
+        tests = {}
+        for t in terms:
+            reduced = np.concatenate([np.ones((m, 1))] + [columns[o] for o in terms if o != t], axis=1)
+            kw = {"permutations": permutations, "seed": seed, "cancelled": cancelled}
+            tests[t] = {"turn_p": float(term_test(turn[:, None], reduced, columns[t], **kw).p_point[0]),
+                        "shift_p": float(term_test(shift[:, None], reduced, columns[t], **kw).p_point[0]),
+                        "scale_p": float(term_test(scale[:, None], reduced, columns[t], per_point=False,
+                                                   **kw).p_value_f)}
+        out[f"{reference}-{name}"] = {"effects": effects, "tests": tests}
+    return out

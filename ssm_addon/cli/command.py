@@ -161,6 +161,8 @@ def argument_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=None, help="seed of the permutations (default 0)")
     p.add_argument("--size-removed", action="store_true", default=None,
                    help="scale every shape to the mean centroid size first (shape without size)")
+    p.add_argument("--structure", help="a joint model: analyse this structure's rows alone (its exact sub-model); "
+                                       "default: the whole joint model, with the effects on the relative pose")
     p.add_argument("--out", required=True, help="output folder (written whole at the end)")
     p.add_argument("--force", action="store_true", help="write into a folder holding other files (they are kept)")
 
@@ -365,6 +367,12 @@ def cmd_analyze(args) -> int:
     if source.is_dir() and not model_path.is_file():
         raise InputError(f"{source}: no model.npz in this folder (give a build's output folder or a model file)")
     model = load_model(model_path)
+    if args.structure:
+        from ..model.joint import structure_model
+
+        if not model.structure_names:
+            raise InputError(f"{model_path}: --structure {args.structure}: not a joint model (no structures)")
+        model = structure_model(model, args.structure)  # an unknown name: an error naming the structures
     attributes_path = Path(args.attributes).expanduser() if args.attributes else model_path.parent / "attributes.csv"
     if not args.attributes and not attributes_path.is_file():
         raise InputError(f"{model_path.parent}: no attributes.csv (the build's project had no attributes); give "

@@ -76,17 +76,18 @@ class BuildResult:
         return self.study.timings_s
 
 
-def write_analysis_files(project: Project, study: Study, folder: Path, *, log=None, progress=None,
-                         cancelled=None) -> tuple[dict, dict | None]:
+def write_analysis_files(project: Project, model, folder: Path, *, timings: dict | None = None, log=None,
+                         progress=None, cancelled=None) -> tuple[dict, dict | None]:
     """The project's attributes (``attributes.csv``) and, with an ``[analysis]`` group or
-    covariates, the analysis of the built model (``analysis/``). Returns the files written and
-    ``report.json``'s ``analysis`` entry (None without an analysis). An analysis that fails is a
-    loud warning: the model stays."""
+    covariates, the analysis of the built ``model`` (``analysis/``; a joint model's with the
+    effects on the structures' relative pose). Returns the files written and ``report.json``'s
+    ``analysis`` entry (None without an analysis); its time goes into ``timings["analysis"]``.
+    An analysis that fails is a loud warning: the model stays."""
     say = log or (lambda _msg: None)
     if project.attributes is None:
         return {}, None
 
-    names = [str(n) for n in study.model.instance_names]
+    names = [str(n) for n in model.instance_names]
     aligned, _ = project.attributes.aligned(names)
     write_attributes(aligned, folder / "attributes.csv")
     files = {"attributes": "attributes.csv"}
@@ -95,7 +96,7 @@ def write_analysis_files(project: Project, study: Study, folder: Path, *, log=No
     t0 = time.perf_counter()
     report(progress, 0.97, "analysis: groups and covariates")
     try:
-        result, adoc, _ = run_analysis(study.model, project.attributes, project.params.analysis, folder / "analysis",
+        result, adoc, _ = run_analysis(model, project.attributes, project.params.analysis, folder / "analysis",
                                        model_path="model.npz", cancelled=cancelled)
     except InputError as err:
         say(f"WARNING analysis: not run: {err}")
@@ -105,7 +106,8 @@ def write_analysis_files(project: Project, study: Study, folder: Path, *, log=No
     for w in result.warnings:
         say(f"WARNING analysis: {w}")
     files["analysis"] = "analysis"
-    study.timings_s["analysis"] = time.perf_counter() - t0
+    if timings is not None:
+        timings["analysis"] = time.perf_counter() - t0
     return files, adoc
 
 
@@ -232,7 +234,8 @@ def build(
         files, final_report = write_study(
             study, tmp, output=project.params.output, project=str(project.path),
             title=f"SSM Builder: {project.path.stem}", blender_hook=blender_hook if use_blend else None,
-            analysis=lambda folder: write_analysis_files(project, study, folder, log=say, progress=progress,
+            analysis=lambda folder: write_analysis_files(project, study.model, folder, timings=study.timings_s,
+                                                         log=say, progress=progress,
                                                          cancelled=cancelled),
             extra={"compute": compute}, log=say, progress=progress, cancelled=cancelled, t_start=t_total)
         result = BuildResult(out_dir=out_dir, project=project, study=study, files={}, report={})
@@ -277,6 +280,9 @@ def build_joint(project: Project, out_dir: Path, *, jobs: int = 1, progress: Pro
         files, final_report = write_joint(joint, tmp, output=project.params.output, project=str(project.path),
                                           title=f"SSM Builder: {project.path.stem} (joint)", log=say,
                                           progress=progress, cancelled=cancelled, t_start=t_total,
+                                          analysis=lambda folder: write_analysis_files(
+                                              project, joint.model, folder, timings=joint.timings_s, log=say,
+                                              progress=progress, cancelled=cancelled),
                                           extra={"compute": {"scheduler": executor.scheduler, "workers": executor.jobs}})
     final = {k: ([str(out_dir / x) for x in v] if isinstance(v, list) else str(out_dir / v)) for k, v in files.items()}
     report(progress, 1.0, f"done: {out_dir}")

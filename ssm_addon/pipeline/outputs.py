@@ -314,11 +314,12 @@ def save_study_outputs(study: Study, out_dir, *, force: bool = False, inputs=(),
 
 def write_joint(joint, folder, *, output: OutputParams, project: str | Absent, title: str, extra: dict | None = None,
                 log: Callable[[str], None] | None = None, progress: ProgressFn = None, cancelled: CancelledFn = None,
-                t_start: float | None = None) -> tuple[dict, Report]:
+                t_start: float | None = None, analysis: Callable | None = None) -> tuple[dict, Report]:
     """Write a joint study's outputs into ``folder``: each structure's template and coated meshes
     (``structures/<name>/``, world mm), the joint model's files (``model.npz`` with its
     ``structure_names`` and ``structure_offsets``, statismo with its ``/ssm/structures`` group,
-    tables, glTF, VTK), the plots, ``report.json`` and ``report.html``."""
+    tables, glTF, VTK), the plots, the analysis through ``analysis(folder) -> (files, report
+    entry or None)`` when given (as :func:`write_study`), ``report.json`` and ``report.html``."""
     say = log or (lambda _msg: None)
     folder = Path(folder)
     t0 = time.perf_counter()
@@ -344,12 +345,18 @@ def write_joint(joint, folder, *, output: OutputParams, project: str | Absent, t
     if "skipped" in plot_info:
         say(f"plots: {plot_info['skipped']}")
     files.update(relative_files(written, folder))
-    joint.timings_s["write"] = time.perf_counter() - t0
+    entries = dict(extra or {})
+    if analysis is not None:
+        found, entry = analysis(folder)
+        files.update(found or {})
+        if entry is not None:
+            entries["analysis"] = entry
+    joint.timings_s["write"] = time.perf_counter() - t0 - joint.timings_s.get("analysis", 0.0)
     if t_start is not None:
         joint.timings_s["total"] = time.perf_counter() - t_start
     files["report"] = "report.json"
     files["html"] = "report.html"
-    final = joint_report(joint, project=project, extra={**dict(extra or {}), "peak_memory": peak_memory_mb(),
+    final = joint_report(joint, project=project, extra={**entries, "peak_memory": peak_memory_mb(),
                                                         "files": dict(files)})
     (folder / "report.json").write_text(json.dumps(final.to_dict(), indent=1))
     write_report_html(folder, model, final, title=title)

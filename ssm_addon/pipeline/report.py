@@ -393,6 +393,22 @@ def _analysis_section(a: dict, images: dict[str, bytes]) -> list[str]:
     parts.append(_table([[html.escape(e["name"]), html.escape(e["unit"]), _num(e["max_mm"], 3), _num(e["rms_mm"], 3),
                           _num(e["normal_min_mm"], 3), _num(e["normal_max_mm"], 3)] for e in a.get("effects", [])],
                         ["effect", "per", "largest (mm)", "RMS (mm)", "normal min (mm)", "normal max (mm)"]))
+    pose_rows = []
+    for pair, figures in (a.get("relative_pose") or {}).items():
+        tests = figures.get("tests") or {}
+        for name, e in (figures.get("effects") or {}).items():
+            term = next((t for t in tests if name == t or name.startswith(f"{t}: ")), None)
+            t = tests.get(term, {})
+            small = min(t.get("turn_p", 1.0), t.get("shift_p", 1.0), t.get("scale_p", 1.0)) <= 0.05
+            pose_rows.append({"_class": "warn" if small else "", "cells": [
+                html.escape(pair), html.escape(name), html.escape(e["unit"]),
+                f"{_num(e['turn_deg_size'], 3)} (p {_num(t.get('turn_p'), 3)})",
+                f"{_num(e['shift_mm_size'], 3)} (p {_num(t.get('shift_p'), 3)})",
+                f"{_num(e['scale_percent'], 3)} (p {_num(t.get('scale_p'), 3)})"]})
+    if pose_rows:
+        parts.append("<p>Relative pose: how each effect turns, shifts and scales a structure on the reference "
+                     "structure (in the reference's frame; p: permutation tests of the term).</p>")
+        parts.append(_table(pose_rows, ["structures", "effect", "per", "turn (°)", "shift (mm)", "scale (%)"]))
     d = a.get("discriminant")
     if d:
         scores = ", ".join(f"{html.escape(str(k))} {v:+.2f}" for k, v in d["group_scores_sd"].items())
