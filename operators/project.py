@@ -121,6 +121,18 @@ def write_model_blend(study, path) -> str:
     return path
 
 
+def write_joint_model_blend(model, path) -> str:
+    """Write ``model.blend`` for a joint model: an empty file plus the joint model's objects (the
+    empty with one slider per mode, one mesh per structure)."""
+    _ensure_registered()
+    bpy.ops.wm.read_homefile(use_empty=True)
+    bridge.ensure_mm_units(bpy.context.scene)
+    create_model_object(bpy.context, model)
+    path = str(Path(path).resolve())
+    bpy.ops.wm.save_as_mainfile(filepath=path, check_existing=False, copy=True)
+    return path
+
+
 def write_build_outputs(study, output: OutputParams, out_dir: Path, log=print) -> dict:
     """The Blender part of a headless build: ``modes.png`` (paper fig. 10) and ``model.blend``.
 
@@ -135,6 +147,9 @@ def write_build_outputs(study, output: OutputParams, out_dir: Path, log=print) -
     log : callable or None
         Gets one line per file written.
 
+    A study whose model is a joint model (``structure_names``) gets ``modes.png`` of the joint
+    model and a ``model.blend`` of the joint model's objects alone.
+
     Returns ``{"picture": "modes.png", "blend": "model.blend"}`` (names inside ``out_dir``).
     """
     _ensure_registered()
@@ -144,11 +159,17 @@ def write_build_outputs(study, output: OutputParams, out_dir: Path, log=print) -
         out["picture"] = "modes.png"
         if log:
             log("picture: modes.png (mean and ±2σ of the first modes, axial / sagittal / coronal)")
-    write_model_blend(dataclasses.replace(study, params=study.params.replace(output=output)),
-                      Path(out_dir) / "model.blend")
+    if study.model.structure_names:  # a joint model: its objects alone
+        write_joint_model_blend(study.model, Path(out_dir) / "model.blend")
+        if log:
+            log("blend: model.blend (the joint model: an empty with one slider per mode driving a mesh per "
+                "structure)")
+    else:
+        write_model_blend(dataclasses.replace(study, params=study.params.replace(output=output)),
+                          Path(out_dir) / "model.blend")
+        if log:
+            log("blend: model.blend (instances, landmarks, template, coated instances, model with shape keys)")
     out["blend"] = "model.blend"
-    if log:
-        log("blend: model.blend (instances, landmarks, template, coated instances, model with shape keys)")
     return out
 
 

@@ -261,6 +261,12 @@ def test_ssm_build_of_a_joint_project_says_each_structures_findings_last(tmp_pat
     assert "relative pose a-b, age: turn p = " in out
     assert "Relative pose" in (tmp_path / "out" / "report.html").read_text()
     assert (tmp_path / "out" / "attributes.csv").is_file()
+    from ssm_addon.cli.blender_layer import bpy_available
+
+    if bpy_available():  # the Blender step: modes.png of the joint model and its objects in model.blend
+        files = json.loads((tmp_path / "out" / "report.json").read_text())["files"]
+        assert files["blend"] == "model.blend" and files["picture"] == "modes.png"
+        assert (tmp_path / "out" / "model.blend").is_file() and (tmp_path / "out" / "modes.png").is_file()
     # ssm analyze --structure: one structure's exact sub-model, its own effects
     assert main(["analyze", str(tmp_path / "out"), "--covariate", "age", "--permutations", "99", "--structure", "b",
                  "--out", str(tmp_path / "b")]) == 0

@@ -156,3 +156,27 @@ def test_blenders_gltf_importer_opens_a_joint_model_glb_with_shared_mode_keys(bp
     assert [k.name for k in obj.data.shape_keys.key_blocks][1:] == [f"Mode {i} (+1 SD)" for i in (1, 2, 3)]
     by_material = np.array([p.material_index for p in obj.data.polygons])
     assert np.bincount(by_material).tolist() == [len(fa), len(fb)]
+
+
+def test_a_joint_models_blend_file_keeps_its_sliders_driving_every_structure(bpy_clean, tmp_path):
+    """model.blend of a joint build, reopened: the empty, a mesh per structure, and the drivers
+    (one slider moves both structures)."""
+    from ssm.operators import bridge
+    from ssm.operators.project import write_joint_model_blend
+    from ssm.operators.scene import find_model_object, mode_sliders, model_parts
+
+    bpy = bpy_clean
+    a, b, fa, fb, _t = _population(n=8)
+    model = _joint(a, b, fa, fb)
+    write_joint_model_blend(model, tmp_path / "model.blend")
+    bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "model.blend"))
+    empty = find_model_object(bpy.context)
+    parts = model_parts(empty)
+    assert [p.name for p in parts] == ["SSM Model a", "SSM Model b"]
+    mode_sliders(empty)[0].value = 1.5
+    bpy.context.view_layer.update()
+    for part, name in zip(parts, ("a", "b")):
+        sl = model.structure_slice(name)
+        got = bridge.evaluated_vertices(bpy.context, part)
+        np.testing.assert_allclose(got, model.mean[sl] + 1.5 * model.standard_deviations[0] * model.modes[0][sl],
+                                   atol=1e-4 * np.abs(model.mean).max())

@@ -196,11 +196,8 @@ def build(
     say = log or (lambda _msg: None)
     out_dir = Path(out_dir).expanduser().resolve()
     if project.structures:
-        if blender_hook is not None:
-            say("model.blend and modes.png: not written for a joint model (open its model.npz in Blender with "
-                "File > Import > Shape Model: one mesh per structure, one slider per mode)")
         return build_joint(project, out_dir, jobs=jobs, progress=progress, cancelled=cancelled, log=say, force=force,
-                           scheduler=scheduler, cache=cache)
+                           scheduler=scheduler, cache=cache, blender_hook=blender_hook)
     inputs = [project.path] + [p for i in project.instances for p in (i.volume_path, i.mesh_path, i.landmarks_path) if p is not None]
     if project.params.analysis.attributes:
         inputs.append(Path(project.params.analysis.attributes))
@@ -246,11 +243,11 @@ def build(
 
 def build_joint(project: Project, out_dir: Path, *, jobs: int = 1, progress: ProgressFn = None,
                 cancelled: CancelledFn = None, log: Callable[[str], None] | None = None, force: bool = False,
-                scheduler: str | None = None, cache=None) -> BuildResult:
+                scheduler: str | None = None, cache=None, blender_hook: Callable | None = None) -> BuildResult:
     """:func:`build` of a project whose instances hold several structures: every structure's study,
-    then the joint model (:mod:`ssm_addon.pipeline.joint`), with the same output rules. Writes
-    no ``model.blend`` (Blender opens the joint ``model.npz`` as an empty with one slider per
-    mode driving one mesh per structure)."""
+    then the joint model (:mod:`ssm_addon.pipeline.joint`), with the same output rules.
+    ``blender_hook`` writes ``modes.png`` of the joint model and a ``model.blend`` of its
+    objects (an empty with one slider per mode driving a mesh per structure)."""
     say = log or (lambda _msg: None)
     inputs = [project.path, *project.input_files]
     if project.params.analysis.attributes:
@@ -277,7 +274,16 @@ def build_joint(project: Project, out_dir: Path, *, jobs: int = 1, progress: Pro
         if project.params.quality.strict and every:
             raise QualityError(f"{len(every)} quality gate(s) failed and [quality] strict is set; nothing was written "
                                f"to {out_dir}:\n" + warnings_text(every))
+        blender_files = {}
+        if blender_hook is not None:  # the first structure's study carries the joint model over
+            t_blender = time.perf_counter()
+            report(progress, 0.95, "Blender: model.blend and pictures")
+            first = next(iter(joint.structures.values()))
+            blender_files = blender_hook(dataclasses.replace(first, model=joint.model), project.params.output, tmp,
+                                         say) or {}
+            joint.timings_s["blender"] = time.perf_counter() - t_blender
         files, final_report = write_joint(joint, tmp, output=project.params.output, project=str(project.path),
+                                          files=blender_files,
                                           title=f"SSM Builder: {project.path.stem} (joint)", log=say,
                                           progress=progress, cancelled=cancelled, t_start=t_total,
                                           analysis=lambda folder: write_analysis_files(

@@ -120,6 +120,9 @@ def save_study(study: Study, folder, *, extra: dict | None = None) -> Path:
             arrays[f"model/{key}"] = np.asarray(getattr(m, key))
         arrays["model/instance_names"] = np.asarray([str(s) for s in m.instance_names])
         arrays["model/params_json"] = np.asarray(json.dumps(jsonable(m.params)))
+        if m.structure_names:  # a joint model
+            arrays["model/structure_names"] = np.asarray([str(s) for s in m.structure_names])
+            arrays["model/structure_offsets"] = np.asarray(m.structure_offsets, np.int64)
     doc = {
         "instances": insts,
         "template_instance": study.template_instance,
@@ -170,8 +173,9 @@ def load_study(folder) -> tuple[Study, dict]:
         study.template = Template.from_arrays({k.removeprefix("template/"): v for k, v in a.items()
                                                if k.startswith("template/")}, frame_from_arrays("template/frame", a))
     if "model/mean" in a:
-        study.model = model_from_arrays({**{k: a[f"model/{k}"] for k in (
-            "mean", "faces", "modes", "variances", "instance_names", "instance_points", "instance_points_world")},
-            "params": json.loads(str(a["model/params_json"]))}, str(folder))
+        keys = ("mean", "faces", "modes", "variances", "instance_names", "instance_points", "instance_points_world",
+                "structure_names", "structure_offsets")
+        study.model = model_from_arrays({**{k: a[f"model/{k}"] for k in keys if f"model/{k}" in a},
+                                         "params": json.loads(str(a["model/params_json"]))}, str(folder))
     apply_records(study, doc.get("records") or {})
     return study, doc.get("extra", {})
