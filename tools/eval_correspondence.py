@@ -41,6 +41,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import tempfile
 import time
@@ -60,7 +61,7 @@ from ssm_addon.instances.importing import InstanceSpec  # noqa: E402
 from ssm_addon.pipeline.runner import run  # noqa: E402
 from ssm_addon.pipeline.study import Study  # noqa: E402
 
-DATA = ROOT.parent / "shared" / "data"
+DATA = Path(os.environ.get("SSM_SHARED_DATA") or ROOT.parent / "shared" / "data")
 MESH_SETS = {"femur10": ("femur10", "femur*.ply"), "knee30-femur": ("knee30", "*_Femur.ply"),
              "knee30-tibia": ("knee30", "*_Tibia.ply"), "knee30-patella": ("knee30", "*_Patella.ply")}
 

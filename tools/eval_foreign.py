@@ -17,6 +17,7 @@ the frame findings and the seconds; then the relative differences of the foreign
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import tempfile
 import time
@@ -33,7 +34,7 @@ from ssm_addon.cli.project_build import build  # noqa: E402
 from ssm_addon.formats.meshes import read_mesh  # noqa: E402
 from ssm_addon.pipeline.project import read_project  # noqa: E402
 
-DATA = ROOT.parent / "shared" / "data"
+DATA = Path(os.environ.get("SSM_SHARED_DATA") or ROOT.parent / "shared" / "data")
 VERSE = {"T9": 16, "T10": 17, "T11": 18, "T12": 19, "L1": 20, "L2": 21, "L3": 22, "L4": 23, "L5": 24}
 
 

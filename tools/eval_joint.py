@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import sys
 import tempfile
 import time
@@ -40,7 +41,7 @@ from ssm_addon.model.pca import build_model, procrustes_fit  # noqa: E402
 from ssm_addon.pipeline.joint import JointStudy, joint_model  # noqa: E402
 from ssm_addon.pipeline.project import read_project  # noqa: E402
 
-DATA = ROOT.parent / "shared" / "data" / "knee30"
+DATA = Path(os.environ.get("SSM_SHARED_DATA") or ROOT.parent / "shared" / "data") / "knee30"
 
 
 def knee_project(folder: Path, n: int, landmarks: int) -> Path:
