@@ -46,23 +46,34 @@ def _population(n=12, seed=0, turn_sd=6.0):
     return np.stack(a), np.stack(b), fa, fb, np.array(turns)
 
 
+def joint_project(folder, n, header=(), *, ages=False, name="project.toml"):
+    """A joint project of ``n`` subjects of :func:`_population` as other tools write them: each
+    structure a Slicer PLY, four landmarks A-D per structure in Scalismo JSON; ``header``: the
+    project's tables; ``ages``: an ``age`` attribute per subject. Returns its path."""
+    from foreign_data import scalismo_landmarks, slicer_ply
+
+    a, b, fa, fb, _t = _population(n=n)
+    lines = list(header)
+    for i in range(n):
+        s = f"S{i}"
+        slicer_ply(folder / f"{s}_a.ply", a[i], fa, space=None)
+        slicer_ply(folder / f"{s}_b.ply", b[i], fb, space=None)
+        scalismo_landmarks(folder / f"{s}_a.json", list("ABCD"), a[i][[0, 5, 40, 100]])
+        scalismo_landmarks(folder / f"{s}_b.json", list("ABCD"), b[i][[0, 5, 30, 50]])
+        lines += ["[[instances]]", f'name = "{s}"', f'meshes = {{ a = "{s}_a.ply", b = "{s}_b.ply" }}',
+                  f'landmarks = {{ a = "{s}_a.json", b = "{s}_b.json" }}']
+        lines += [f"attributes = {{ age = {30 + 7 * i} }}"] if ages else []
+        lines.append("")
+    path = folder / name
+    path.write_text("\n".join(lines))
+    return path
+
+
 def test_a_multi_structure_project_reads_each_structure_as_its_own_study(tmp_path):
     """meshes = {…} and landmarks = {…} per instance, a [[structures]] table over the project's:
     each structure a study of its own, instances named by subject, in the structure order."""
-    from foreign_data import scalismo_landmarks, slicer_ply
-
-    lines = ["[template]", "spacing = 1.0", "", "[[structures]]", 'name = "b"', "template = { r_min_mm = 3.0 }", ""]
-    a, b, fa, fb, _t = _population(n=3)
-    for i in range(3):
-        s = f"S{i}"
-        slicer_ply(tmp_path / f"{s}_a.ply", a[i], fa, space=None)
-        slicer_ply(tmp_path / f"{s}_b.ply", b[i], fb, space=None)
-        scalismo_landmarks(tmp_path / f"{s}_a.json", list("ABCD"), a[i][:4])
-        scalismo_landmarks(tmp_path / f"{s}_b.json", list("ABCD"), b[i][:4])
-        lines += ["[[instances]]", f'name = "{s}"', f'meshes = {{ a = "{s}_a.ply", b = "{s}_b.ply" }}',
-                  f'landmarks = {{ a = "{s}_a.json", b = "{s}_b.json" }}', ""]
-    path = tmp_path / "project.toml"
-    path.write_text("\n".join(lines))
+    path = joint_project(tmp_path, 3, ["[template]", "spacing = 1.0", "", "[[structures]]", 'name = "b"',
+                                       "template = { r_min_mm = 3.0 }", ""])
     project = read_project(path)
     assert list(project.structures) == ["b", "a"]  # [[structures]] first, then the instances' order
     assert project.names == ("S0", "S1", "S2")
@@ -230,24 +241,12 @@ def test_a_lumbar_spine_from_label_maps_gives_its_relative_pose_spread(verse_dir
 def test_ssm_build_of_a_joint_project_says_each_structures_findings_last(tmp_path, capsys):
     """``ssm build`` of a joint project: the joint model's files, the note that no model.blend is
     written, and every structure's failed gates said by structure at the end."""
-    from foreign_data import scalismo_landmarks, slicer_ply
-
     from ssm_addon.cli.command import main
     from ssm_addon.model.files import load_npz
 
-    a, b, fa, fb, _t = _population(n=4)
-    lines = ["[template]", "spacing = 1.0", "", "[quality]", "max_input_distance_mm = 0.001", "",
-             "[analysis]", 'covariates = ["age"]', "permutations = 99", ""]
-    for i in range(4):
-        s = f"S{i}"
-        slicer_ply(tmp_path / f"{s}_a.ply", a[i], fa, space=None)
-        slicer_ply(tmp_path / f"{s}_b.ply", b[i], fb, space=None)
-        scalismo_landmarks(tmp_path / f"{s}_a.json", list("ABCD"), a[i][[0, 5, 40, 100]])
-        scalismo_landmarks(tmp_path / f"{s}_b.json", list("ABCD"), b[i][[0, 5, 30, 50]])
-        lines += ["[[instances]]", f'name = "{s}"', f'meshes = {{ a = "{s}_a.ply", b = "{s}_b.ply" }}',
-                  f'landmarks = {{ a = "{s}_a.json", b = "{s}_b.json" }}', f"attributes = {{ age = {30 + 7 * i} }}",
-                  ""]
-    (tmp_path / "joint.toml").write_text("\n".join(lines))
+    joint_project(tmp_path, 4, ["[template]", "spacing = 1.0", "", "[quality]", "max_input_distance_mm = 0.001", "",
+                                "[analysis]", 'covariates = ["age"]', "permutations = 99", ""], ages=True,
+                  name="joint.toml")
     assert main(["build", str(tmp_path / "joint.toml"), "--out", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
     assert load_npz(tmp_path / "out" / "model.npz").structure_names == ("a", "b")

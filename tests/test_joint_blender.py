@@ -70,19 +70,10 @@ def test_import_shape_model_opens_a_joint_model_as_an_empty_driving_one_mesh_per
 
 
 def test_open_project_of_a_joint_project_says_where_it_is_built_and_changes_nothing(bpy_clean, tmp_path):
-    from foreign_data import scalismo_landmarks, slicer_ply
+    from test_joint import joint_project
 
     bpy = bpy_clean
-    a, b, fa, fb, _t = _population(n=3)
-    lines = ["[template]", "spacing = 1.0", ""]
-    for i in range(3):
-        slicer_ply(tmp_path / f"S{i}_a.ply", a[i], fa, space=None)
-        slicer_ply(tmp_path / f"S{i}_b.ply", b[i], fb, space=None)
-        scalismo_landmarks(tmp_path / f"S{i}_a.json", list("ABCD"), a[i][:4])
-        scalismo_landmarks(tmp_path / f"S{i}_b.json", list("ABCD"), b[i][:4])
-        lines += ["[[instances]]", f'name = "S{i}"', f'meshes = {{ a = "S{i}_a.ply", b = "S{i}_b.ply" }}',
-                  f'landmarks = {{ a = "S{i}_a.json", b = "S{i}_b.json" }}', ""]
-    (tmp_path / "joint.toml").write_text("\n".join(lines))
+    joint_project(tmp_path, 3, ["[template]", "spacing = 1.0", ""], name="joint.toml")
     before = sorted(o.name for o in bpy.data.objects)
     with pytest.raises(RuntimeError, match=r"joint project \(a, b\).*ssm build.*Import > Shape Model"):
         bpy.ops.ssm.open_project(filepath=str(tmp_path / "joint.toml"))

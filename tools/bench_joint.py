@@ -15,18 +15,16 @@ build does both structures' work, then one PCA, its metrics, shape and pose and 
 from __future__ import annotations
 
 import argparse
-import os
 import re
 import shutil
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tools"))
 
+from bench_build import run_build  # noqa: E402
 from eval_joint import DATA, knee_project  # noqa: E402
 
 
@@ -49,19 +47,6 @@ def single_projects(joint: Path) -> dict:
     return out
 
 
-def run(project: Path, out: Path, jobs: int) -> float:
-    cmd = [sys.executable, "-m", "ssm_addon", "build", str(project), "--out", str(out), "--jobs", str(jobs),
-           "--no-blend", "--cache", "off", "--force"]
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
-    t0 = time.perf_counter()
-    proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True)
-    wall = time.perf_counter() - t0
-    if proc.returncode != 0:
-        print(proc.stdout[-3000:], proc.stderr[-3000:], sep="\n")
-        raise SystemExit(f"build of {project} failed (exit {proc.returncode})")
-    return wall
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--n", type=int, default=30, help="subjects (default 30)")
@@ -82,7 +67,7 @@ def main(argv=None) -> int:
                 out = tmp / f"out_{name}"
                 if out.exists():
                     shutil.rmtree(out)
-                times[name].append(run(project, out, args.jobs))
+                times[name].append(run_build(project, out, args.jobs, False, ("--cache", "off"))["wall_s"])
                 print(f"run {r + 1} {name:6s} {times[name][-1]:7.2f} s", flush=True)
     med = {k: float(sorted(v)[len(v) // 2]) for k, v in times.items()}
     separate = med["femur"] + med["tibia"]

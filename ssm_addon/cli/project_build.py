@@ -111,6 +111,21 @@ def write_analysis_files(project: Project, model, folder: Path, *, timings: dict
     return files, adoc
 
 
+def _check_before_build(project: Project, out_dir: Path, *, force: bool, what: str) -> list[Path]:
+    """The checks before any work: the output folder (never an input, never another tool's files
+    unless forced, writable) and enough ``what`` (instances, subjects) for a model with its
+    metrics. Returns the project's input files."""
+    inputs = [project.path, *project.input_files]
+    if project.params.analysis.attributes:
+        inputs.append(Path(project.params.analysis.attributes))
+    check_output_folder(out_dir, inputs, force=force)
+    check_writable(out_dir)
+    if len(project.instances) < 3:
+        raise InputError(f"{project.path}: {len(project.instances)} {what}; a model with its metrics (leave-one-out "
+                         "generalization) needs at least 3")
+    return inputs
+
+
 def open_cache(project: Project, out_dir: Path, cache=None):
     """The build's :class:`~ssm_addon.pipeline.cache.BuildCache`, or None when it is off.
 
@@ -198,15 +213,8 @@ def build(
     if project.structures:
         return build_joint(project, out_dir, jobs=jobs, progress=progress, cancelled=cancelled, log=say, force=force,
                            scheduler=scheduler, cache=cache, blender_hook=blender_hook)
-    inputs = [project.path] + [p for i in project.instances for p in (i.volume_path, i.mesh_path, i.landmarks_path) if p is not None]
-    if project.params.analysis.attributes:
-        inputs.append(Path(project.params.analysis.attributes))
-    check_output_folder(out_dir, inputs, force=force)
-    check_writable(out_dir)
+    inputs = _check_before_build(project, out_dir, force=force, what="instances")
     t_total = time.perf_counter()
-    if len(project.instances) < 3:
-        raise InputError(f"{project.path}: {len(project.instances)} instances; a model with its metrics (leave-one-out "
-                         "generalization) needs at least 3")
     study = Study.from_project(project)
     build_cache = open_cache(project, out_dir, cache)
     if project.params.correspondence.method == "model" and build_cache is not None:
@@ -249,15 +257,8 @@ def build_joint(project: Project, out_dir: Path, *, jobs: int = 1, progress: Pro
     ``blender_hook`` writes ``modes.png`` of the joint model and a ``model.blend`` of its
     objects (an empty with one slider per mode driving a mesh per structure)."""
     say = log or (lambda _msg: None)
-    inputs = [project.path, *project.input_files]
-    if project.params.analysis.attributes:
-        inputs.append(Path(project.params.analysis.attributes))
-    check_output_folder(out_dir, inputs, force=force)
-    check_writable(out_dir)
+    inputs = _check_before_build(project, out_dir, force=force, what="subjects")
     t_total = time.perf_counter()
-    if len(project.instances) < 3:
-        raise InputError(f"{project.path}: {len(project.instances)} subjects; a model with its metrics (leave-one-out "
-                         "generalization) needs at least 3")
     joint = JointStudy.from_project(project)
     build_cache = open_cache(project, out_dir, cache)
     if any(st.params.correspondence.method == "model" for st in project.structures.values()):

@@ -221,6 +221,26 @@ def study_inputs(study: Study) -> list[Path]:
     return [p for i in study.instances for p in (i.volume_path, i.mesh_path, i.landmarks_path) if p is not None]
 
 
+def _write_model_outputs(model, metrics, folder: Path, files: dict, *, output: OutputParams, plots: bool, say,
+                         analysis: Callable | None, extra: dict | None) -> dict:
+    """The model's files and tables, the plots and the analysis into ``folder``; adds what it wrote
+    to ``files`` and returns the report's further entries (``extra`` with the analysis's)."""
+    written = write_model_files(model, folder, statismo=output.statismo, tables=output.scores, gltf=output.gltf,
+                                vtk=output.vtk, exchange_modes=output.exchange_modes)
+    plot_info = write_plots(model, folder, metrics) if plots else {"files": []}
+    written["plots"] = plot_info["files"]
+    if "skipped" in plot_info:
+        say(f"plots: {plot_info['skipped']}")
+    files.update(relative_files(written, folder))
+    entries = dict(extra or {})
+    if analysis is not None:
+        found, entry = analysis(folder)
+        files.update(found or {})
+        if entry is not None:
+            entries["analysis"] = entry
+    return entries
+
+
 def write_study(study: Study, folder, *, output: OutputParams, project: str | Absent, title: str,
                 blender_hook: Callable | None = None, analysis: Callable | None = None, plots: bool = True,
                 timings_unknown: dict | None = None, metrics_absent: str = "not computed", extra: dict | None = None,
@@ -270,19 +290,8 @@ def write_study(study: Study, folder, *, output: OutputParams, project: str | Ab
         for name in names:
             write_landmarks(folder / "landmarks" / f"{safe[name]}.{ext}", carried[name])
         files["landmarks"] = "landmarks"
-    written = write_model_files(model, folder, statismo=output.statismo, tables=output.scores, gltf=output.gltf,
-                                vtk=output.vtk, exchange_modes=output.exchange_modes)
-    plot_info = write_plots(model, folder, study.metrics) if plots else {"files": []}
-    written["plots"] = plot_info["files"]
-    if "skipped" in plot_info:
-        say(f"plots: {plot_info['skipped']}")
-    files.update(relative_files(written, folder))
-    entries = dict(extra or {})
-    if analysis is not None:
-        found, entry = analysis(folder)
-        files.update(found or {})
-        if entry is not None:
-            entries["analysis"] = entry
+    entries = _write_model_outputs(model, study.metrics, folder, files, output=output, plots=plots, say=say,
+                                   analysis=analysis, extra=extra)
     study.timings_s["write"] = time.perf_counter() - t0 - study.timings_s.get("blender", 0.0)
     if t_start is not None:
         study.timings_s["total"] = time.perf_counter() - t_start
@@ -340,19 +349,8 @@ def write_joint(joint, folder, *, output: OutputParams, project: str | Absent, t
             write_ply(base / "coated" / f"{safe[str(subject)]}.ply", np.asarray(pw[sl], float), tpl.faces, space="RAS")
     files["structures"] = "structures"
     check_cancelled(cancelled)
-    written = write_model_files(model, folder, statismo=output.statismo, tables=output.scores, gltf=output.gltf,
-                                vtk=output.vtk, exchange_modes=output.exchange_modes)
-    plot_info = write_plots(model, folder, joint.metrics)
-    written["plots"] = plot_info["files"]
-    if "skipped" in plot_info:
-        say(f"plots: {plot_info['skipped']}")
-    files.update(relative_files(written, folder))
-    entries = dict(extra or {})
-    if analysis is not None:
-        found, entry = analysis(folder)
-        files.update(found or {})
-        if entry is not None:
-            entries["analysis"] = entry
+    entries = _write_model_outputs(model, joint.metrics, folder, files, output=output, plots=True, say=say,
+                                   analysis=analysis, extra=extra)
     joint.timings_s["write"] = time.perf_counter() - t0 - joint.timings_s.get("analysis", 0.0)
     if t_start is not None:
         joint.timings_s["total"] = time.perf_counter() - t_start
