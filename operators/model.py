@@ -46,6 +46,7 @@ from . import bridge
 from .jobs import BackgroundJob
 from .properties import SSMPanel, draw_params, scene_params
 from .scene import (
+    JOINT_FINDINGS_KEY,
     MODEL_COLLECTION,
     MODEL_KEY,
     MODEL_NAME,
@@ -59,6 +60,7 @@ from .scene import (
     report_stage,
     scene_findings,
     scene_instances,
+    scene_structures,
     store_model,
     study_from_scene,
 )
@@ -235,6 +237,9 @@ class SSM_OT_build_model(BackgroundJob, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
+        if scene_structures(context):
+            cls.poll_message_set("The scene holds a joint study: Build Joint Model")
+            return False
         n = len(coated_objects(context))
         if n < 2:
             cls.poll_message_set(f"Coat the template onto at least 2 instances first ({n} coated)")
@@ -562,8 +567,13 @@ class SSM_PT_model(SSMPanel, bpy.types.Panel):
         layout = self.layout
         settings = context.scene.ssm_model
         draw_params(layout, settings, ModelParams)
-        n_coated = len(coated_objects(context))
-        layout.operator("ssm.build_model", text=f"Build Model ({n_coated} coated)", icon="MOD_MESHDEFORM")
+        structures = scene_structures(context)
+        if structures:  # a joint study: its one build
+            layout.operator("ssm.build_joint_model", text=f"Build Joint Model ({', '.join(structures)})",
+                            icon="MOD_MESHDEFORM")
+        else:
+            n_coated = len(coated_objects(context))
+            layout.operator("ssm.build_model", text=f"Build Model ({n_coated} coated)", icon="MOD_MESHDEFORM")
         obj = find_model_object(context)
         if obj is None:
             layout.label(text="No model yet", icon="INFO")
@@ -604,12 +614,14 @@ class SSM_PT_model(SSMPanel, bpy.types.Panel):
         row.prop(settings, "sample_seed")
         row.operator("ssm.random_shape", icon="MOD_NOISE")
         layout.operator("ssm.save_model", icon="EXPORT")
-        findings = scene_findings(context)
+        lines = [f"{f.instance or 'study'} [{f.gate}]: {f.message}" for f in scene_findings(context)]
+        if structures:  # the last joint build's, by structure
+            lines = json.loads(context.scene.get(JOINT_FINDINGS_KEY, "[]"))
         box = layout.box()
-        box.label(text=f"Quality: {len(findings)} finding(s)" if findings else "Quality: every gate passed",
-                  icon="ERROR" if findings else "CHECKMARK")
-        for f in findings:
-            box.label(text=f"{f.instance or 'study'} [{f.gate}]: {f.message}")
+        box.label(text=f"Quality: {len(lines)} finding(s)" if lines else "Quality: every gate passed",
+                  icon="ERROR" if lines else "CHECKMARK")
+        for line in lines:
+            box.label(text=line)
 
 
 class SSM_PT_model_advanced(SSMPanel, bpy.types.Panel):

@@ -7,7 +7,11 @@
   parameter of the scene (the same numbers the operators use). Saving, opening and
   saving again gives the same bytes.
 * ``ssm.open_project`` imports the instances of a project with their landmarks and
-  parameters (the same core import as File > Import).
+  parameters (the same core import as File > Import); a joint project's, one object per
+  structure per subject.
+* ``ssm.build_joint_model`` builds a joint study from the scene (each structure's instances
+  and landmarks as the scene holds them) with the build's computation
+  (:func:`~ssm_addon.pipeline.joint.run_joint`) and shows the coated meshes and the joint model.
 * :func:`write_build_outputs` is what ``build`` calls when ``bpy`` is available:
   ``modes.png`` (paper fig. 10) and ``model.blend`` with the study's objects.
 """
@@ -24,6 +28,7 @@ import numpy as np
 from bpy.props import StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
+from ssm_addon.base import params as P
 from ssm_addon.base.errors import InputError, SSMError
 from ssm_addon.base.params import OutputParams, QualityParams
 from ssm_addon.formats import landmarks as core_landmarks
@@ -31,20 +36,26 @@ from ssm_addon.formats.meshes import write_ply
 from ssm_addon.instances.importing import InstanceSpec, file_names, import_instance
 from ssm_addon.instances.volume import display_surface
 from ssm_addon.pipeline import project as core
+from ssm_addon.pipeline.joint import run_joint
 from ssm_addon.pipeline.store import study_records
 
 from . import bridge, register
 from .coating import write_coated
 from .instances import add_instance_objects, import_items, write_instance
+from .jobs import BackgroundJob
 from .landmarks import add_schema_name
 from .model import create_model_object
 from .properties import SSMPanel, draw_params, set_scene_study_params
 from .render import render_modes_figure
 from .scene import (
     INSTANCE_ATTRIBUTES_KEY,
+    JOINT_FINDINGS_KEY,
+    JOINT_KEY,
+    joint_study_from_scene,
     mesh_file_world,
     scene_instance_attributes,
     scene_instances,
+    scene_structures,
     set_landmark,
     study_from_scene,
     write_records,
@@ -184,6 +195,9 @@ def project_from_scene(context, path) -> core.Project:
     """
     path = Path(path).resolve()
     folder = path.parent
+    if scene_structures(context):
+        raise InputError("Save Project: the scene holds a joint study; saving one is not supported yet (its project "
+                         "file is the one it was opened from)")
     study = study_from_scene(context, coatings=False)
     if len(study.instances) < 2:
         raise InputError(f"the scene has {len(study.instances)} SSM instance(s); a project needs at least two")
@@ -226,10 +240,8 @@ def load_project_into_scene(context, project: core.Project) -> list:
     the scene as it was (nothing is created before every instance has been read).
     """
     scene = context.scene
-    if len(project.structures) > 1:
-        raise InputError(f"{project.path}: a joint project ({', '.join(project.structures)}); the scene holds one "
-                         "structure's study, so build it headless (ssm build PROJECT --out DIR) and open its "
-                         "model.npz with File > Import > Shape Model (one mesh per structure, one slider per mode)")
+    if project.structures:
+        return load_joint_project_into_scene(context, project)
     items = import_items(project.instances, spacing_mm=project.params.template.spacing_mm,
                          frame_method=project.params.template.frame, space=project.params.template.space)
     set_scene_study_params(scene, project.params)
@@ -250,6 +262,96 @@ def load_project_into_scene(context, project: core.Project) -> list:
     scene.ssm_display.template_instance = template
     bridge.select_only(context, created, active=template)
     return created
+
+
+def load_joint_project_into_scene(context, project: core.Project) -> list:
+    """Import every structure's instances of a joint project: one object per structure per
+    subject (``"<subject> <structure>"``, ``obj.ssm.structure`` and ``obj.ssm.subject`` set) with
+    its landmarks, the project's parameters into the scene and each structure's own tables
+    (``[[structures]]``) into ``Scene["ssm_joint"]``, so *Build Joint Model* runs what ``ssm build``
+    runs. An error leaves the scene as it was (every instance is read first)."""
+    scene = context.scene
+    per_structure = {}
+    for name, st in project.structures.items():  # read everything before the scene changes
+        tp = st.params.template
+        per_structure[name] = import_items(st.instances, spacing_mm=tp.spacing_mm, frame_method=tp.frame,
+                                           space=tp.space)
+    if any(o.ssm.structure == "" for o in scene_instances(context)):
+        raise InputError(f"{project.path}: the scene holds a study of one structure; open the joint project in a new "
+                         "file (File > New) so the two studies do not mix")
+    set_scene_study_params(scene, project.params)
+    scene[INSTANCE_ATTRIBUTES_KEY] = json.dumps(project.instance_attributes)
+    tables = {}
+    for name, st in project.structures.items():
+        own = {t: {k: v for k, v in P.to_table(getattr(st.params, t)).items()
+                   if P.to_table(getattr(project.params, t)).get(k) != v} for t in core.STRUCTURE_TABLES}
+        tables[name] = {t: d for t, d in own.items() if d}
+    scene[JOINT_KEY] = json.dumps({"tables": tables, "template_instances": {
+        name: st.template_instance for name, st in project.structures.items()}})
+    created = []
+    for name, st in project.structures.items():
+        objs = add_instance_objects(context, per_structure[name])
+        for obj, spec in zip(objs, st.instances):
+            wanted = f"{spec.name} {name}"
+            if obj.name != wanted and bpy.data.objects.get(wanted) is None:
+                obj.name = wanted
+            obj.ssm.structure, obj.ssm.subject = name, spec.name
+            lm = spec.landmarks
+            if lm is not None:
+                for lname in lm.names:
+                    if lname not in {i.name for i in scene.ssm_landmarks.names}:
+                        add_schema_name(scene.ssm_landmarks, lname)
+                for i, (lname, p) in enumerate(zip(lm.names, lm.points_world)):
+                    set_landmark(context, obj, lname, file_world=p, order=i)
+        created += objs
+    first = project.structures[next(iter(project.structures))]
+    template = next((o for o in created if o.ssm.subject == first.template_instance), created[0] if created else None)
+    scene.ssm_display.template_instance = template
+    bridge.select_only(context, created, active=template)
+    return created
+
+
+class SSM_OT_build_joint_model(BackgroundJob, bpy.types.Operator):
+    """Build the joint model of the scene's structures: each structure's template, coating and gates, then one model of their shapes and relative poses (what ssm build runs on a joint project)"""
+
+    bl_idname = "ssm.build_joint_model"
+    bl_label = "Build Joint Model"
+    bl_options = {"REGISTER", "UNDO"}
+
+    @classmethod
+    def poll(cls, context):
+        if len(scene_structures(context)) < 2:
+            cls.poll_message_set("Open a joint project first (instances of several structures)")
+            return False
+        return True
+
+    def prepare(self, context):
+        joint = joint_study_from_scene(context)  # read here: the worker thread must not touch bpy
+        self._lines = []
+
+        def work(progress, cancelled):
+            return run_joint(joint, progress=progress, cancelled=cancelled, log=self._lines.append)
+
+        return work
+
+    def finish(self, context, joint):
+        objs = {(o.ssm.structure, o.ssm.subject or o.name): o for o in scene_instances(context)}
+        for name, study in joint.structures.items():
+            for subject, coating in study.coatings.items():
+                inst = objs.get((name, subject))
+                if inst is not None:
+                    write_coated(context, inst, coating, study.template.faces, study.template.points_object)
+        obj = create_model_object(context, joint.model, activate=False)
+        findings = [f"{name}/{f.instance or 'study'} [{f.gate}]: {f.message}" for name, study in
+                    joint.structures.items() for f in study.findings]
+        findings += [f"joint model [{f.gate}]: {f.message}" for f in joint.findings]
+        context.scene[JOINT_FINDINGS_KEY] = json.dumps(findings)
+        share = joint.model.variability_concentration()
+        k3 = min(3, joint.model.n_modes)
+        msg = (f"{obj.name}: joint model of {', '.join(joint.names)}: {joint.model.n_modes} modes from "
+               f"{joint.model.n_instances} subjects; first {k3}: {100 * share[k3 - 1] if k3 else 0.0:.1f} %")
+        self.report({"WARNING"} if findings else {"INFO"}, msg + "".join(f"; {f}" for f in findings))
+        return {"FINISHED"}
 
 
 class SSM_OT_save_project(bpy.types.Operator, ExportHelper):
@@ -291,7 +393,10 @@ class SSM_OT_open_project(bpy.types.Operator, ImportHelper):
         except SSMError as err:
             self.report({"ERROR"}, str(err))
             return {"CANCELLED"}
-        self.report({"INFO"}, f"Opened {os.path.basename(self.filepath)}: {len(created)} instances")
+        structures = scene_structures(context)
+        self.report({"INFO"}, f"Opened {os.path.basename(self.filepath)}: {len(created)} instances"
+                              + (f" of {len(structures)} structures ({', '.join(structures)}); Model panel: Build "
+                                 "Joint Model" if structures else ""))
         return {"FINISHED"}
 
 
@@ -333,4 +438,4 @@ class SSM_PT_project_quality(SSMPanel, bpy.types.Panel):
         draw_params(self.layout, context.scene.ssm_quality, QualityParams, advanced=True)
 
 
-classes = (SSM_OT_save_project, SSM_OT_open_project, SSM_PT_project, SSM_PT_project_output, SSM_PT_project_quality)
+classes = (SSM_OT_save_project, SSM_OT_open_project, SSM_OT_build_joint_model, SSM_PT_project, SSM_PT_project_output, SSM_PT_project_quality)

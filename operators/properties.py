@@ -64,6 +64,10 @@ class SSMObjectProperties(bpy.types.PropertyGroup):
     mesh_spacing_mm: FloatProperty(name="Mesh spacing", description="Voxelization step of a mesh instance in mm "
                                    "(0: the study's spacing)", default=0.0, min=0.0)
     order: IntProperty(name="Order", description="Position of the instance in the study", default=0)
+    structure: StringProperty(name="Structure", description="The structure this instance is, in a joint study "
+                              "(several structures per subject); empty in a study of one structure")
+    subject: StringProperty(name="Subject", description="The subject this instance belongs to, in a joint study "
+                            "(its name in the joint model)")
     volume_mm3: FloatProperty(name="Volume", description="Object volume in mm³", default=0.0)
     instance: PointerProperty(name="Instance", type=bpy.types.Object, description="The instance this object belongs to")
     fit_json: StringProperty(name="Fit", description="Fit figures of a coated instance (JSON)")

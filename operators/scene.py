@@ -27,6 +27,7 @@ files are where the instances say.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -36,6 +37,7 @@ import bpy
 import numpy as np
 from mathutils import Vector
 
+from ssm_addon.base import params as P
 from ssm_addon.base.errors import InputError
 from ssm_addon.base.progress import report, sub_progress
 from ssm_addon.base.records import jsonable
@@ -47,6 +49,7 @@ from ssm_addon.instances.volume import ObjectFrame, ObjectVolume
 from ssm_addon.model.files import model_from_arrays
 from ssm_addon.model.pca import ShapeModel
 from ssm_addon.model.quality import Finding
+from ssm_addon.pipeline.joint import JointStudy
 from ssm_addon.pipeline.store import RECORD_FIELDS, apply_records, study_records
 from ssm_addon.pipeline.study import StageResult, Study, apply_stage, merge_findings
 from ssm_addon.template.template import Template
@@ -686,6 +689,55 @@ def study_from_scene(context, *, template_instance: str | None = None, template:
     if records:
         apply_records(study, scene_records(context))
     return study
+
+
+#: Scene property (JSON) of a joint study opened from a project: each structure's tables that
+#: differ from the scene's (``{"tables": {structure: {table: {key: value}}}}``) and the subject
+#: its template comes from (``{"template_instances": {structure: subject}}``).
+JOINT_KEY = "ssm_joint"
+#: Scene property (JSON list of lines) of the last joint build's failed gates, for the Model panel.
+JOINT_FINDINGS_KEY = "ssm_joint_findings"
+
+
+def scene_structures(context) -> list[str]:
+    """The structures of the scene's instances, in study order (empty: a study of one structure)."""
+    out = []
+    for o in scene_instances(context):
+        if o.ssm.structure and o.ssm.structure not in out:
+            out.append(o.ssm.structure)
+    return out
+
+
+def joint_study_from_scene(context) -> JointStudy:
+    """The scene's joint study: each structure's instances as the scene holds them (sources and
+    landmarks, named by subject), the scene's parameters with each structure's own tables over
+    them, the subjects in study order. What a joint project's build runs on
+    (:meth:`~ssm_addon.pipeline.joint.JointStudy.from_project`), read from the scene."""
+    names = scene_structures(context)
+    if len(names) < 2:
+        raise InputError("the scene holds no joint study (its instances are of one structure): open a project whose "
+                         "instances hold several structures (meshes = { … } or labels = { … })")
+    doc = json.loads(context.scene.get(JOINT_KEY, "") or "{}")
+    base = scene_study_params(context)
+    objs = scene_instances(context)
+    stray = [o.name for o in objs if not o.ssm.structure]
+    if stray:
+        raise InputError(f"instance(s) {', '.join(stray[:5])} belong to no structure of the scene's joint study "
+                         f"({', '.join(names)}): remove them or set their structure")
+    subjects = list(dict.fromkeys(o.ssm.subject or o.name for o in objs))
+    studies = {}
+    for name in names:
+        mine = {o.ssm.subject or o.name: o for o in objs if o.ssm.structure == name}
+        missing = [s for s in subjects if s not in mine]
+        if missing:
+            raise InputError(f"structure {name!r}: no instance of subject(s) {', '.join(missing[:5])}")
+        specs = tuple(dataclasses.replace(instance_spec(context, mine[s]), name=s) for s in subjects)
+        over = (doc.get("tables") or {}).get(name, {})
+        tables = {t: P.from_table(P.TABLES[t], {**P.to_table(getattr(base, t)), **over.get(t, {})},
+                                  where=f"structure {name} [{t}]:") for t in over}
+        template_instance = (doc.get("template_instances") or {}).get(name) or subjects[0]
+        studies[name] = Study(instances=specs, template_instance=template_instance, params=base.replace(**tables))
+    return JointStudy(subjects=tuple(subjects), structures=studies, params=base)
 
 
 #: Scene property holding the instances' own attribute tables of an opened project (JSON), written

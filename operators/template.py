@@ -33,6 +33,7 @@ from .scene import (
     is_instance,
     record_stage,
     report_stage,
+    scene_structures,
     study_from_scene,
     write_template_object,
 )
@@ -57,6 +58,10 @@ class SSM_OT_build_template(BackgroundJob, bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
+        if scene_structures(context):  # each structure's template comes with its joint build
+            cls.poll_message_set("The scene holds a joint study: Build Joint Model (Model panel) builds each "
+                                 "structure's template")
+            return False
         if source_instance(context) is None:
             cls.poll_message_set("Make the instance the template is built from active (import one first)")
             return False

@@ -69,14 +69,21 @@ def test_import_shape_model_opens_a_joint_model_as_an_empty_driving_one_mesh_per
         "SSM Model", "SSM Model a", "SSM Model b"]
 
 
-def test_open_project_of_a_joint_project_says_where_it_is_built_and_changes_nothing(bpy_clean, tmp_path):
+def test_a_joint_project_does_not_mix_into_a_scene_of_one_structure(bpy_clean, tmp_path):
+    """Open Project of a joint project into a scene holding a one-structure study refuses, says
+    why, and changes nothing."""
     from test_joint import joint_project
 
     bpy = bpy_clean
-    joint_project(tmp_path, 3, ["[template]", "spacing = 1.0", ""], name="joint.toml")
+    joint = joint_project(tmp_path, 3, ["[template]", "spacing = 1.0", ""], name="joint.toml")
+    single = tmp_path / "single.toml"
+    single.write_text("\n".join(["[template]", "spacing = 1.0", ""] + [
+        line for i in range(2) for line in ("[[instances]]", f'name = "S{i}"', f'mesh = "S{i}_a.ply"',
+                                            f'landmarks = "S{i}_a.json"', "")]))
+    assert bpy.ops.ssm.open_project(filepath=str(single)) == {"FINISHED"}
     before = sorted(o.name for o in bpy.data.objects)
-    with pytest.raises(RuntimeError, match=r"joint project \(a, b\).*ssm build.*Import > Shape Model"):
-        bpy.ops.ssm.open_project(filepath=str(tmp_path / "joint.toml"))
+    with pytest.raises(RuntimeError, match=r"holds a study of one structure.*new"):
+        bpy.ops.ssm.open_project(filepath=str(joint))
     assert sorted(o.name for o in bpy.data.objects) == before
 
 
@@ -171,3 +178,47 @@ def test_a_joint_models_blend_file_keeps_its_sliders_driving_every_structure(bpy
         got = bridge.evaluated_vertices(bpy.context, part)
         np.testing.assert_allclose(got, model.mean[sl] + 1.5 * model.standard_deviations[0] * model.modes[0][sl],
                                    atol=1e-4 * np.abs(model.mean).max())
+
+
+def test_a_joint_project_opened_and_built_in_blender_gives_the_headless_model(bpy_clean, tmp_path):
+    """Open Project of a joint project makes one object per structure per subject with its
+    landmarks; Build Joint Model runs the build's computation on what the scene holds: the same
+    joint model as ``ssm build`` of the project, and each structure's coated meshes in the scene.
+    The single-structure operators step aside."""
+    from ssm.operators.scene import find_model_object, model_from_object, scene_instances, scene_structures
+    from test_joint import joint_project
+
+    from ssm_addon.cli.project_build import build
+    from ssm_addon.model.files import load_npz
+    from ssm_addon.pipeline.project import read_project
+
+    bpy = bpy_clean
+    path = joint_project(tmp_path, 4, ["[template]", "spacing = 1.0", "", "[[structures]]", 'name = "b"',
+                                       "template = { r_min_mm = 3.0 }", ""])
+    assert bpy.ops.ssm.open_project(filepath=str(path)) == {"FINISHED"}
+    assert scene_structures(bpy.context) == list(read_project(path).structures) == ["b", "a"]  # the project's order
+    objs = scene_instances(bpy.context)
+    assert sorted(o.name for o in objs) == sorted(f"S{i} {s}" for i in range(4) for s in "ab")
+    assert all(len([c for c in o.children if c.ssm.role == "LANDMARK"]) == 4 for o in objs)
+    assert not bpy.ops.ssm.build_template.poll() and not bpy.ops.ssm.build_model.poll()
+    assert bpy.ops.ssm.build_joint_model() == {"FINISHED"}
+    blender = model_from_object(find_model_object(bpy.context))
+    build(read_project(path), tmp_path / "out", jobs=2, log=None, blender_hook=None)
+    headless = load_npz(tmp_path / "out" / "model.npz")
+    assert blender.structure_names == headless.structure_names == ("b", "a")
+    np.testing.assert_array_equal(blender.structure_offsets, headless.structure_offsets)
+    for key in ("mean", "modes", "variances", "instance_points_world"):
+        np.testing.assert_array_equal(getattr(blender, key), getattr(headless, key), err_msg=key)
+    coated = [o for o in bpy.data.objects if o.ssm.role == "COATED"]
+    assert len(coated) == 8
+    sl = headless.structure_slice("b")
+    b_coated = next(o for o in coated if o.ssm.instance.ssm.structure == "b")
+    assert len(b_coated.data.vertices) == sl.stop - sl.start
+    # the build reads the scene, not the file: a landmark moved in the viewport changes the model
+    inst = bpy.data.objects["S1 a"]
+    emp = next(c for c in inst.children if c.ssm.role == "LANDMARK")
+    emp.location.x += 3.0
+    bpy.context.view_layer.update()
+    assert bpy.ops.ssm.build_joint_model() == {"FINISHED"}
+    moved = model_from_object(find_model_object(bpy.context))
+    assert not np.array_equal(moved.mean, headless.mean)
