@@ -346,3 +346,33 @@ def test_analysis_of_a_joint_model_finds_a_group_turning_one_structure_on_the_ot
     assert pose["tests"]["group"]["turn_p"] <= 0.01
     assert pose["tests"]["age"]["turn_p"] > 0.01
     assert any(line.startswith("relative pose a-b, group: turn p = ") for line in analysis_summary(result))
+
+
+def test_another_tools_joined_model_opens_as_a_joint_model_of_its_parts(tmp_path):
+    """A statismo file as another tool writes several structures joined into one reference (no
+    structure group): its disconnected parts, each a contiguous range of points, become the
+    structures "part 1", "part 2"; a part's points out of order, or one connected reference,
+    stay a model of one structure."""
+    import dataclasses as dc
+
+    from test_fitting import write_foreign_statismo
+
+    from ssm_addon.fitting.batch import load_model
+    from ssm_addon.model.joint import joined_parts
+
+    a, b, fa, fb, _t = _population(n=8)
+    model = _joint(a, b, fa, fb)
+    said = []
+    opened = load_model(write_foreign_statismo(model, tmp_path / "joined.h5"), say=said.append)
+    assert opened.structure_names == ("part 1", "part 2")
+    np.testing.assert_array_equal(opened.structure_offsets, model.structure_offsets)
+    assert any("2 disconnected parts" in line for line in said)
+    single = dc.replace(model, structure_names=(), structure_offsets=None)
+    assert joined_parts(dc.replace(single, faces=fa)) is None  # one part (b's points unreferenced are not a part)
+    shuffled = np.r_[np.arange(0, 10), np.arange(a.shape[1], a.shape[1] + 10), np.arange(10, a.shape[1]),
+                     np.arange(a.shape[1] + 10, single.n_points)]
+    inverse = np.argsort(shuffled)
+    mixed = dc.replace(single, mean=single.mean[shuffled], modes=single.modes[:, shuffled],
+                       instance_points=single.instance_points[:, shuffled],
+                       instance_points_world=single.instance_points_world[:, shuffled], faces=inverse[single.faces])
+    assert joined_parts(mixed) is None  # the parts interleave: not a joined model

@@ -67,6 +67,11 @@ def test_import_shape_model_opens_a_joint_model_as_an_empty_driving_one_mesh_per
     assert bpy.ops.ssm.import_model(filepath=str(tmp_path / "joint.npz")) == {"FINISHED"}
     assert sorted(o.name for o in bpy.data.objects if o.name.startswith("SSM Model")) == [
         "SSM Model", "SSM Model a", "SSM Model b"]
+    # another tool's joined statismo file: its parts become the structures
+    from test_fitting import write_foreign_statismo
+
+    assert bpy.ops.ssm.import_model(filepath=str(write_foreign_statismo(model, tmp_path / "j.h5"))) == {"FINISHED"}
+    assert [p.name for p in model_parts(find_model_object(bpy.context))] == ["SSM Model part 1", "SSM Model part 2"]
 
 
 def test_a_joint_project_does_not_mix_into_a_scene_of_one_structure(bpy_clean, tmp_path):

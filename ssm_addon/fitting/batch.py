@@ -43,6 +43,7 @@ from ..instances.volume import display_surface
 from ..instances.voxelize import voxelize_mesh
 from ..meshutil import Mesh
 from ..model.files import load_npz, load_statismo, write_npz
+from ..model.joint import joined_parts
 from ..model.pca import EMPTY_MODE_SHARE, drop_empty_modes
 
 __all__ = ["FitTarget", "fit_batch", "fit_structures_to_folder", "fit_to_folder", "load_model", "load_target"]
@@ -51,8 +52,9 @@ __all__ = ["FitTarget", "fit_batch", "fit_structures_to_folder", "fit_to_folder"
 def load_model(path, *, say=None):
     """A model from ``model.npz`` or a statismo HDF5 file (ours or another tool's), without its
     modes of zero variance (:func:`~ssm_addon.model.pca.drop_empty_modes`: another tool may
-    keep n − 1 or more modes of which many are empty); ``say`` receives the line saying how
-    many were dropped."""
+    keep n − 1 or more modes of which many are empty); a statismo file whose reference is
+    several disconnected parts, each a contiguous range of points, opens as a joint model of its
+    parts (:func:`~ssm_addon.model.joint.joined_parts`). ``say`` receives the lines saying so."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: model file not found")
@@ -61,6 +63,13 @@ def load_model(path, *, say=None):
         model = load_npz(path)
     elif head.startswith(b"\x89HDF"):
         model = load_statismo(path)
+        joined = joined_parts(model)  # another tool's joined model: its parts as structures
+        if joined is not None:
+            model = joined
+            if say is not None:
+                say(f"{path.name}: its reference is {len(joined.structure_names)} disconnected parts, each a "
+                    "contiguous range of points (several structures joined into one model): opened as a joint "
+                    f"model of {', '.join(joined.structure_names)}")
     else:
         raise InputError(f"{path}: not a model (expected model.npz from `ssm build` or a statismo .h5 file)")
     model, dropped = drop_empty_modes(model)

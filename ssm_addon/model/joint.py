@@ -15,18 +15,43 @@ multi-vertebrae anatomical shape+pose model. IEEE TMI 32(10), 2013.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import numpy as np
 
 from ..base.errors import check_cancelled
 from ..base.progress import CancelledFn
-from ..meshutil import MeshLocator, face_normals
+from ..meshutil import MeshLocator, connected_components, face_normals
 from .pca import ShapeModel, procrustes_fit
 from .quality import Finding
 
-__all__ = ["collision_findings", "collisions", "relative_pose", "relative_poses", "shape_and_pose",
+__all__ = ["collision_findings", "collisions", "joined_parts", "relative_pose", "relative_poses", "shape_and_pose",
            "structure_model"]
+
+#: A part of a joined reference needs at least this many points to count as a structure.
+MIN_PART_POINTS = 4
+
+
+def joined_parts(model: ShapeModel) -> ShapeModel | None:
+    """A model of one structure whose reference is several disconnected parts, each a contiguous
+    range of points (a joined model, as users of tools without multi-object models write
+    several structures into one statismo file), as a joint model of structures ``"part 1"``,
+    ``"part 2"`` … in point order; None when the reference is one part, when a part's points
+    are not one contiguous range, or when a part has fewer than :data:`MIN_PART_POINTS` points."""
+    if model.structure_names or not len(model.faces):
+        return None
+    n, labels = connected_components(np.asarray(model.faces), model.n_points)
+    if n < 2:
+        return None
+    starts = np.flatnonzero(np.r_[True, labels[1:] != labels[:-1]])
+    if len(starts) != n:  # some part's points are not one contiguous range
+        return None
+    offsets = np.r_[starts, model.n_points].astype(np.int64)
+    if np.diff(offsets).min() < MIN_PART_POINTS:
+        return None
+    return dataclasses.replace(model, structure_names=tuple(f"part {k + 1}" for k in range(n)),
+                               structure_offsets=offsets)
 
 
 def structure_model(model: ShapeModel, name: str) -> ShapeModel:
