@@ -187,50 +187,78 @@ def write_build_outputs(study, output: OutputParams, out_dir: Path, log=print) -
 # ------------------------------------------------------------------------ save / open
 
 
+def _saved_spec(spec: InstanceSpec, obj, folder: Path, stem: str) -> InstanceSpec:
+    """``spec`` as a project file states it: its landmarks written to ``landmarks/<stem>.fcsv``
+    (LPS, file world mm, full precision), a Blender mesh to ``meshes/<stem>.ply``."""
+    lm_path = None
+    if spec.landmarks is not None:
+        (folder / "landmarks").mkdir(parents=True, exist_ok=True)
+        lm_path = folder / "landmarks" / f"{stem}.fcsv"
+        core_landmarks.write_landmarks(lm_path, spec.landmarks)
+    mesh_path = spec.mesh_path
+    if spec.source is None:  # a Blender mesh: written out
+        (folder / "meshes").mkdir(parents=True, exist_ok=True)
+        mesh_path = folder / "meshes" / f"{stem}.ply"
+        verts, faces = mesh_file_world(obj)
+        write_ply(mesh_path, verts, faces)
+    return InstanceSpec(name=spec.name, landmarks_path=lm_path, volume_path=spec.volume_path, label=spec.label,
+                        mesh_path=mesh_path, mesh_spacing_mm=spec.mesh_spacing_mm, landmarks=spec.landmarks)
+
+
 def project_from_scene(context, path) -> core.Project:
     """The scene's study as a Project for ``path``, writing its landmark (and mesh) files.
 
     Landmarks go to ``<folder>/landmarks/<instance>.fcsv`` (LPS, file world mm, full
     precision); instances made from Blender meshes to ``<folder>/meshes/<instance>.ply``.
+    A joint study's files are named ``<subject>_<structure>``.
     """
     path = Path(path).resolve()
     folder = path.parent
     if scene_structures(context):
-        raise InputError("Save Project: the scene holds a joint study; saving one is not supported yet (its project "
-                         "file is the one it was opened from)")
+        return _joint_project_from_scene(context, path)
     study = study_from_scene(context, coatings=False)
     if len(study.instances) < 2:
         raise InputError(f"the scene has {len(study.instances)} SSM instance(s); a project needs at least two")
-    missing = [i.name for i in study.instances if i.landmarks is None]
-    model_method = study.params.correspondence.method == "model"
-    if missing and not model_method:
-        raise InputError(f"no landmarks on instance(s) {', '.join(missing)}: place or import them first (or set "
-                         "the correspondence method to Model, which needs them on the template instance only)")
-    if study.template_instance in missing:
-        raise InputError(f"no landmarks on the template instance {study.template_instance}: place or import them "
-                         "first")
+    _check_landmarks(study, "")
     files = file_names(i.name for i in study.instances)
-    (folder / "landmarks").mkdir(parents=True, exist_ok=True)
     objs = {o.name: o for o in scene_instances(context)}
-    specs = []
-    for spec in study.instances:
-        lm_path = None
-        if spec.landmarks is not None:
-            lm_path = folder / "landmarks" / f"{files[spec.name]}.fcsv"
-            core_landmarks.write_landmarks(lm_path, spec.landmarks)
-        if spec.source is None:  # a Blender mesh: written out
-            (folder / "meshes").mkdir(exist_ok=True)
-            mesh_path = folder / "meshes" / f"{files[spec.name]}.ply"
-            verts, faces = mesh_file_world(objs[spec.name])
-            write_ply(mesh_path, verts, faces)
-            spec = InstanceSpec(name=spec.name, mesh_path=mesh_path, mesh_spacing_mm=spec.mesh_spacing_mm,
-                                landmarks=spec.landmarks)
-        specs.append(InstanceSpec(name=spec.name, landmarks_path=lm_path, volume_path=spec.volume_path, label=spec.label,
-                                  mesh_path=spec.mesh_path, mesh_spacing_mm=spec.mesh_spacing_mm, landmarks=spec.landmarks))
+    specs = [_saved_spec(spec, objs[spec.name], folder, files[spec.name]) for spec in study.instances]
     return core.Project(path=path, instances=tuple(specs), template_instance=study.template_instance,
                         params=study.params, landmark_names=study.landmarks(study.template_instance).names,
                         instance_attributes={n: a for n, a in scene_instance_attributes(context).items()
                                              if n in {i.name for i in specs}})
+
+
+def _check_landmarks(study, where: str) -> None:
+    """Landmarks on every instance (on the template instance alone for the model method)."""
+    missing = [i.name for i in study.instances if i.landmarks is None]
+    if missing and study.params.correspondence.method != "model":
+        raise InputError(f"{where}no landmarks on instance(s) {', '.join(missing)}: place or import them first (or "
+                         "set the correspondence method to Model, which needs them on the template instance only)")
+    if study.template_instance in missing:
+        raise InputError(f"{where}no landmarks on the template instance {study.template_instance}: place or import "
+                         "them first")
+
+
+def _joint_project_from_scene(context, path: Path) -> core.Project:
+    """:func:`project_from_scene` of a joint study: each structure's instances (named by subject)
+    with its own tables, as *Build Joint Model* reads them."""
+    joint = joint_study_from_scene(context)
+    objs = {(o.ssm.structure, o.ssm.subject or o.name): o for o in scene_instances(context)}
+    files = file_names(joint.subjects)
+    structures = {}
+    for name, study in joint.structures.items():
+        _check_landmarks(study, f"structure {name}: ")
+        specs = tuple(_saved_spec(spec, objs[(name, spec.name)], path.parent, f"{files[spec.name]}_{name}")
+                      for spec in study.instances)
+        structures[name] = core.Structure(name=name, instances=specs, template_instance=study.template_instance,
+                                          params=study.params,
+                                          landmark_names=study.landmarks(study.template_instance).names)
+    first = structures[next(iter(structures))]
+    return core.Project(path=path, instances=first.instances, template_instance=first.template_instance,
+                        params=joint.params, landmark_names=first.landmark_names,
+                        instance_attributes={n: a for n, a in scene_instance_attributes(context).items()
+                                             if n in joint.subjects}, structures=structures)
 
 
 def load_project_into_scene(context, project: core.Project) -> list:

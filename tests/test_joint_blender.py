@@ -227,3 +227,31 @@ def test_a_joint_project_opened_and_built_in_blender_gives_the_headless_model(bp
     assert bpy.ops.ssm.build_joint_model() == {"FINISHED"}
     moved = model_from_object(find_model_object(bpy.context))
     assert not np.array_equal(moved.mean, headless.mean)
+
+
+def test_save_project_of_a_joint_scene_reads_back_as_the_same_joint_project(bpy_clean, tmp_path):
+    """Save Project of a joint scene: each structure's instances, landmarks (full precision) and
+    own tables as the project had them; saving, opening and saving again gives the same bytes."""
+    from test_joint import joint_project
+
+    from ssm_addon.pipeline.project import read_project
+
+    bpy = bpy_clean
+    path = joint_project(tmp_path, 3, ["[template]", "spacing = 1.0", "", "[[structures]]", 'name = "b"',
+                                       "template = { r_min_mm = 3.0 }", ""])
+    assert bpy.ops.ssm.open_project(filepath=str(path)) == {"FINISHED"}
+    saved = tmp_path / "saved" / "joint.toml"
+    assert bpy.ops.ssm.save_project(filepath=str(saved)) == {"FINISHED"}
+    before, after = read_project(path), read_project(saved)
+    assert list(after.structures) == list(before.structures) == ["b", "a"]
+    for name in before.structures:
+        a, b = before.structures[name], after.structures[name]
+        assert b.params == a.params and b.template_instance == a.template_instance
+        for x, y in zip(a.instances, b.instances):
+            assert (x.name, x.mesh_path) == (y.name, y.mesh_path)
+            np.testing.assert_array_equal(x.landmarks.points_world, y.landmarks.points_world)
+    text = saved.read_text()
+    bpy.ops.wm.read_homefile(use_empty=True)
+    assert bpy.ops.ssm.open_project(filepath=str(saved)) == {"FINISHED"}
+    assert bpy.ops.ssm.save_project(filepath=str(saved)) == {"FINISHED"}
+    assert saved.read_text() == text

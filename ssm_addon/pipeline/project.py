@@ -645,6 +645,8 @@ def project_text(project: Project, base: Path) -> str:
         if analysis.get("attributes"):
             analysis["attributes"] = _relative(Path(analysis["attributes"]), base)
         lines += ["", "[analysis]"] + [f"{k} = {toml_value(v)}" for k, v in analysis.items()]
+    if project.structures:
+        return "\n".join(lines + _joint_text(project, base)) + "\n"
     for inst in project.instances:
         lines += ["", "[[instances]]", f"name = {toml_value(inst.name)}"]
         if inst.volume_path is not None:
@@ -663,6 +665,45 @@ def project_text(project: Project, base: Path) -> str:
         if own:
             lines.append("attributes = { " + ", ".join(f"{_key(k)} = {toml_value(v)}" for k, v in own.items()) + " }")
     return "\n".join(lines) + "\n"
+
+
+def _joint_text(project: Project, base: Path) -> list[str]:
+    """The ``[[structures]]`` entries (each structure's tables that differ from the project's, its
+    template's subject when not the project's) and the ``[[instances]]`` of a joint project:
+    ``meshes = { … }``, or one ``volume`` with ``labels = { … }``, and ``landmarks = { … }``."""
+    lines = []
+    for name, st in project.structures.items():
+        own = []
+        for t in STRUCTURE_TABLES:
+            mine, theirs = P.to_table(getattr(st.params, t)), P.to_table(getattr(project.params, t))
+            diff = {k: v for k, v in mine.items() if theirs.get(k) != v}
+            if t == "template" and st.template_instance != project.template_instance:
+                diff = {"instance": st.template_instance, **diff}
+            if diff:
+                own.append(f"{t} = {{ " + ", ".join(f"{k} = {toml_value(v)}" for k, v in diff.items()) + " }")
+        lines += ["", "[[structures]]", f"name = {toml_value(name)}", *own]
+    by_structure = {name: {i.name: i for i in st.instances} for name, st in project.structures.items()}
+    for subject in project.names:
+        specs = {name: by_structure[name][subject] for name in project.structures}
+        lines += ["", "[[instances]]", f"name = {toml_value(subject)}"]
+        volumes = {i.volume_path for i in specs.values()}
+        if all(i.mesh_path is not None for i in specs.values()):
+            lines.append("meshes = { " + ", ".join(f"{_key(n)} = {toml_value(_relative(i.mesh_path, base))}"
+                                                   for n, i in specs.items()) + " }")
+        elif len(volumes) == 1 and None not in volumes and all(i.label is not None for i in specs.values()):
+            lines.append(f"volume = {toml_value(_relative(volumes.pop(), base))}")
+            lines.append("labels = { " + ", ".join(f"{_key(n)} = {int(i.label)}" for n, i in specs.items()) + " }")
+        else:
+            raise InputError(f"{project.path}: subject {subject!r}: its structures are neither all meshes nor labels "
+                             "of one volume, which a joint project cannot state")
+        if any(i.landmarks_path is not None for i in specs.values()):
+            lines.append("landmarks = { " + ", ".join(f"{_key(n)} = {toml_value(_relative(i.landmarks_path, base))}"
+                                                      for n, i in specs.items() if i.landmarks_path is not None)
+                         + " }")
+        own = project.instance_attributes.get(subject)
+        if own:
+            lines.append("attributes = { " + ", ".join(f"{_key(k)} = {toml_value(v)}" for k, v in own.items()) + " }")
+    return lines
 
 
 def _key(name: str) -> str:
