@@ -37,7 +37,7 @@ from ssm_addon.fitting.batch import load_model
 from ssm_addon.model import metrics as core_metrics
 from ssm_addon.model.pca import ShapeModel
 from ssm_addon.model.quality import check_model
-from ssm_addon.pipeline.outputs import owned_output_folder, save_study_outputs, write_outputs
+from ssm_addon.pipeline.outputs import owned_output_folder, save_study_outputs, write_joint, write_outputs
 from ssm_addon.pipeline.report import Absent, write_report_html
 from ssm_addon.pipeline.stages import metrics_stage, model_stage
 from ssm_addon.pipeline.study import apply_stage
@@ -53,6 +53,7 @@ from .scene import (
     clear_mode_animation,
     coated_objects,
     find_model_object,
+    joint_study_of,
     mode_sliders,
     model_from_object,
     model_structures,
@@ -491,13 +492,20 @@ class SSM_OT_save_model(BackgroundJob, bpy.types.Operator):
         with_metrics, plots, force, title = self.metrics, self.plots, self.force, f"SSM Builder: {obj.name}"
         output = scene_params(context, "ssm_output")
         extra = {"model_object": obj.name, "blend_file": bpy.data.filepath or ""}
-        study, why = saved_study(context, model)  # read here: the worker thread must not touch bpy
+        joint = joint_study_of(obj, model) if model.structure_names else None
+        study, why = (None, "") if joint is not None else saved_study(context, model)  # read here, not in the worker
         mp = context.scene.ssm_model
         context_samples, seed, max_loo = mp.specificity_samples, mp.seed, mp.max_loo
         bpy_file = bpy.data.filepath
         self._metrics_result = None
 
         def work(progress, cancelled):
+            if joint is not None:  # built in this session: the joint build's writer
+                with owned_output_folder(out_dir, [], force=force, what="saving") as tmp:
+                    write_joint(joint, tmp, output=output, title=title, extra=extra, progress=progress,
+                                cancelled=cancelled, project=Absent(
+                                    f"built interactively in Blender ({bpy_file or 'an unsaved .blend'})"))
+                return out_dir, ""
             if study is None:  # a model on its own (opened from a file): its files and what it knows
                 mets = core_metrics.evaluate(model, n_samples=samples or context_samples, seed=seed, max_loo=max_loo,
                                              progress=progress, cancelled=cancelled) if with_metrics else \

@@ -53,6 +53,7 @@ from .scene import (
     JOINT_KEY,
     joint_study_from_scene,
     mesh_file_world,
+    remember_joint_study,
     scene_instance_attributes,
     scene_instances,
     scene_structures,
@@ -370,6 +371,7 @@ class SSM_OT_build_joint_model(BackgroundJob, bpy.types.Operator):
                 if inst is not None:
                     write_coated(context, inst, coating, study.template.faces, study.template.points_object)
         obj = create_model_object(context, joint.model, activate=False)
+        remember_joint_study(obj, joint)  # Save Model writes it as ssm build does
         findings = [f"{name}/{f.instance or 'study'} [{f.gate}]: {f.message}" for name, study in
                     joint.structures.items() for f in study.findings]
         findings += [f"joint model [{f.gate}]: {f.message}" for f in joint.findings]

@@ -699,6 +699,27 @@ JOINT_KEY = "ssm_joint"
 JOINT_FINDINGS_KEY = "ssm_joint_findings"
 
 
+#: The joint studies built in this Blender session, by the model object's session id: what *Save
+#: Model* writes through the build's writer. Not kept in the .blend (a reopened file's joint
+#: model saves its own files, saying the study is not in the session).
+_JOINT_BUILDS: dict = {}
+
+
+def remember_joint_study(obj, joint: JointStudy) -> None:
+    """Keep the joint study a *Build Joint Model* made ``obj`` from, for this session."""
+    _JOINT_BUILDS[obj.session_uid] = joint
+
+
+def joint_study_of(obj, model: ShapeModel) -> JointStudy | None:
+    """The joint study ``obj``'s model was built from in this session, when its model is still
+    that study's (the same arrays), else None."""
+    joint = _JOINT_BUILDS.get(obj.session_uid)
+    if joint is None or joint.model is None:
+        return None
+    same = all(np.array_equal(getattr(joint.model, k), getattr(model, k)) for k in ("mean", "modes", "variances"))
+    return joint if same else None
+
+
 def scene_structures(context) -> list[str]:
     """The structures of the scene's instances, in study order (empty: a study of one structure)."""
     out = []

@@ -219,6 +219,17 @@ def test_a_joint_project_opened_and_built_in_blender_gives_the_headless_model(bp
     sl = headless.structure_slice("b")
     b_coated = next(o for o in coated if o.ssm.instance.ssm.structure == "b")
     assert len(b_coated.data.vertices) == sl.stop - sl.start
+    # Save Model of the joint model built in this session: the joint build's writer and report
+    import json
+
+    assert bpy.ops.ssm.save_model(directory=str(tmp_path / "saved")) == {"FINISHED"}
+    saved = json.loads((tmp_path / "saved" / "report.json").read_text())
+    built = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert saved["joint"]["structures"].keys() == built["joint"]["structures"].keys()
+    assert saved["joint"]["shape_pose"] == built["joint"]["shape_pose"]
+    assert sorted((f["instance"], f["gate"]) for f in saved["quality"]["findings"]) == sorted(
+        (f["instance"], f["gate"]) for f in built["quality"]["findings"])
+    assert (tmp_path / "saved" / "structures" / "b" / "template.ply").is_file()
     # the build reads the scene, not the file: a landmark moved in the viewport changes the model
     inst = bpy.data.objects["S1 a"]
     emp = next(c for c in inst.children if c.ssm.role == "LANDMARK")
