@@ -493,7 +493,11 @@ class SSM_OT_save_model(BackgroundJob, bpy.types.Operator):
         output = scene_params(context, "ssm_output")
         extra = {"model_object": obj.name, "blend_file": bpy.data.filepath or ""}
         joint = joint_study_of(obj, model) if model.structure_names else None
-        study, why = (None, "") if joint is not None else saved_study(context, model)  # read here, not in the worker
+        if model.structure_names:  # a joint model: its build's study lives in this session only
+            study, why = None, ("" if joint is not None else "a joint model whose build is not in this Blender "
+                                "session (a reopened file or an imported model): the model's own files")
+        else:
+            study, why = saved_study(context, model)  # read here: the worker thread must not touch bpy
         mp = context.scene.ssm_model
         context_samples, seed, max_loo = mp.specificity_samples, mp.seed, mp.max_loo
         bpy_file = bpy.data.filepath
