@@ -295,10 +295,11 @@ def instance_thumbnails(points: np.ndarray, faces: np.ndarray, names, *, size_px
             xy[:, :, 0] += j * size
             xy[:, :, 1] = size - xy[:, :, 1]  # screen y runs down
             fill = (np.clip(rgba[:, :3], 0, 1) * 255).astype(np.uint8)
-            for tri, col in zip(xy.tolist(), fill.tolist()):
-                draw.polygon([tuple(v) for v in tri], fill=tuple(col))
+            for tri, col in zip(xy.reshape(len(xy), -1).tolist(), map(tuple, fill.tolist())):
+                draw.polygon(tri, fill=col)  # a flat [x0, y0, x1, y1, x2, y2]
         buf = io.BytesIO()
-        img.resize((2 * size_px, size_px), Image.LANCZOS).save(buf, format="PNG")
+        # the supersampled picture averaged over ss × ss pixels; a quick PNG compression level
+        img.reduce(ss).save(buf, format="PNG", compress_level=3)
         out[str(name)] = buf.getvalue()
     return out
 
