@@ -1,16 +1,25 @@
-"""Benchmark of the headless build: time per stage and peak memory.
+"""Benchmark of the headless build: time per stage and peak memory, alone or paired against an
+earlier commit.
 
-Usage: ``.venv/bin/python tools/bench_build.py [--jobs N] [--blend] [--n 31] [--skip-demo] [--skip-verse]``
+Usage::
 
-Cases, each run as ``python -m ssm_addon build`` in a fresh process:
+    .venv/bin/python tools/bench_build.py [--jobs N] [--blend] [--n 31] [--cases demo,verse,femur10,femur10-model]
+                                          [--against REV --runs 3]
 
-* the synthetic demo population at paper scale (31 instances, default template: about
-  600 points; paper section 6) — target: under 30 s on 2 cores;
-* the nine real VerSe vertebrae (T9..L5 of sub-verse004, ``../shared/data/verse004``),
-  when present.
+Cases, each run as ``python -m ssm_addon build`` in a fresh process (``--cache off``):
 
-Prints wall time per stage (import, template, coating, model, metrics, write[, blender])
-from ``report.json`` and the peak resident memory of the build process and its workers.
+* ``demo``: the synthetic demo population at paper scale (31 instances, default template: about
+  600 points; paper section 6);
+* ``verse``: the nine real VerSe vertebrae (T9..L5 of sub-verse004, ``verse004`` of the shared
+  data), when present;
+* ``femur10``, ``femur10-model``: the ten femurs of ``femur10`` (meshes; 15 landmarks at farthest
+  points of femur00, the same vertices on the others: the data's dense correspondence), by the
+  single pass and by the model method, when present.
+
+Alone: wall time per stage (import, template, coating, model, metrics, write[, blender]) from
+``report.json`` and the peak resident memory of the build process and its workers. With
+``--against REV``: REV checked out in a temporary worktree, every case built ``--runs`` times by
+both, alternating; the median of each stage for both and their ratio (this / REV).
 """
 
 from __future__ import annotations
@@ -18,6 +27,8 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -29,15 +40,17 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 
-def run_build(project: Path, out: Path, jobs: int, blend: bool, extra=()) -> dict:
-    """``python -m ssm_addon build`` in a fresh process (``extra``: further arguments): its
-    ``report.json`` with the command's wall time under ``wall_s``."""
+def run_build(project: Path, out: Path, jobs: int, blend: bool, extra=(), root: Path = ROOT) -> dict:
+    """``python -m ssm_addon build`` of the checkout ``root`` in a fresh process (``extra``: further
+    arguments): its ``report.json`` with the command's wall time under ``wall_s``."""
     cmd = [sys.executable, "-m", "ssm_addon", "build", str(project), "--out", str(out), "--jobs", str(jobs), *extra]
     if not blend:
         cmd.append("--no-blend")
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))}
+    if out.exists():
+        shutil.rmtree(out)
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True)
+    proc = subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         print(proc.stdout[-3000:], proc.stderr[-3000:], sep="\n")
@@ -55,7 +68,7 @@ def _print(case: str, report: dict) -> None:
     print(f"\n{case}: {n} instances, template {tpl.get('points')} points / {tpl.get('triangles')} triangles "
           f"(genus {tpl.get('genus')})")
     print(f"  {'stage':10s} {'time (s)':>9s}")
-    for key in ("import", "template", "coating", "model", "metrics", "blender", "write", "total"):
+    for key in STAGES:
         if key in t:
             print(f"  {key:10s} {t[key]:9.2f}")
     print(f"  {'process':10s} {report['wall_s']:9.2f}  (wall time of the whole command, incl. interpreter start)")
@@ -67,33 +80,109 @@ def _print(case: str, report: dict) -> None:
         print(f"  fit: mean surface distance {mean:.3f} mm, largest {worst:.2f} mm")
 
 
+STAGES = ("import", "template", "coating", "model", "metrics", "blender", "write", "report_html", "total")
+
+
+def femur10_project(folder: Path, data: Path, method: str, landmarks: int = 15) -> Path:
+    """femur10's meshes with ``landmarks`` at farthest points of femur00 (the same vertices on
+    every femur: the data's dense correspondence), by ``method``."""
+    import numpy as np
+    from foreign_data import scalismo_landmarks
+
+    from ssm_addon.formats.meshes import read_mesh
+
+    folder.mkdir(parents=True, exist_ok=True)
+    files = sorted(data.glob("femur*.ply"))
+    v0, _f = read_mesh(files[0])
+    chosen, d = [0], np.linalg.norm(v0 - v0[0], axis=1)
+    for _ in range(landmarks - 1):
+        chosen.append(int(np.argmax(d)))
+        d = np.minimum(d, np.linalg.norm(v0 - v0[chosen[-1]], axis=1))
+    lines = ["[correspondence]", f'method = "{method}"', ""]
+    for f in files:
+        v, _f = read_mesh(f)
+        lm = scalismo_landmarks(folder / f"{f.stem}.json", [f"P{k}" for k in range(landmarks)], v[chosen])
+        lines += ["[[instances]]", f'name = "{f.stem}"', f'mesh = "{f.as_posix()}"', f'landmarks = "{lm.name}"', ""]
+    path = folder / f"femur10_{method}.toml"
+    path.write_text("\n".join(lines))
+    return path
+
+
+def make_cases(tmp: Path, names, n: int) -> dict:
+    """``{case: project file}`` of the cases asked for whose data are present."""
+    from conftest import VERSE_DIR, VERSE_FILE, shared_data_dir
+
+    from ssm_addon.cli.demo import make_demo_population
+
+    cases = {}
+    for name in names:
+        if name == "demo":
+            t0 = time.perf_counter()
+            cases[name] = make_demo_population(tmp / "demo", n=n, seed=0)
+            print(f"demo population: {n} label maps + landmark files in {time.perf_counter() - t0:.2f} s")
+        elif name == "verse":
+            if not VERSE_FILE.exists():
+                print(f"VerSe: skipped ({VERSE_DIR} not found)")
+                continue
+            from test_build_verse import write_verse_project
+
+            cases[name] = write_verse_project(tmp, VERSE_DIR)
+        elif name in ("femur10", "femur10-model"):
+            data = shared_data_dir() / "femur10"
+            if not data.is_dir():
+                print(f"{name}: skipped ({data} not found)")
+                continue
+            cases[name] = femur10_project(tmp / name, data, "model" if name.endswith("model") else "landmarks")
+        else:
+            raise SystemExit(f"unknown case {name!r} (demo, verse, femur10, femur10-model)")
+    return cases
+
+
+def paired(cases: dict, rev: str, tmp: Path, *, jobs: int, blend: bool, runs: int) -> None:
+    """Every case built ``runs`` times by this checkout and by ``rev``, alternating; the medians."""
+    other = tmp / "against"
+    subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(other), rev], check=True,
+                   capture_output=True)
+    try:
+        label = subprocess.run(["git", "-C", str(other), "log", "-1", "--format=%h %s"], capture_output=True,
+                               text=True).stdout.strip()
+        print(f"against {label}")
+        for case, project in cases.items():
+            got = {"this": [], "rev": []}
+            for r in range(runs):
+                for who, root in (("this", ROOT), ("rev", other)):
+                    report = run_build(project, tmp / f"out_{case}_{who}", jobs, blend, ("--cache", "off"), root=root)
+                    got[who].append({**report["timings_s"], "process": report["wall_s"]})
+                    print(f"  {case} run {r + 1} {who:4s} {report['wall_s']:7.2f} s", flush=True)
+            print(f"\n{case}: median of {runs} runs (s), this / {rev}")
+            for stage in (*STAGES, "process"):
+                a = [t[stage] for t in got["this"] if stage in t]
+                b = [t[stage] for t in got["rev"] if stage in t]
+                if a and b:
+                    ma, mb = statistics.median(a), statistics.median(b)
+                    print(f"  {stage:12s} {ma:8.2f} {mb:8.2f}   {ma / mb if mb else float('nan'):6.3f}")
+    finally:
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(other)], capture_output=True)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--n", type=int, default=31, help="demo instances (paper: 31)")
     parser.add_argument("--blend", action="store_true", help="also write model.blend and modes.png (needs bpy)")
-    parser.add_argument("--skip-demo", action="store_true")
-    parser.add_argument("--skip-verse", action="store_true")
+    parser.add_argument("--cases", default="demo,verse", help="comma-separated: demo, verse, femur10, femur10-model")
+    parser.add_argument("--against", metavar="REV", help="an earlier commit to pair every case against")
+    parser.add_argument("--runs", type=int, default=3, help="runs of each case and side with --against (default 3)")
     args = parser.parse_args(argv)
-    from conftest import VERSE_DIR, VERSE_FILE
-
-    from ssm_addon.cli.demo import make_demo_population
-
     with tempfile.TemporaryDirectory(prefix="ssm-bench-build-") as tmp:
         tmp = Path(tmp)
-        if not args.skip_demo:
-            t0 = time.perf_counter()
-            project = make_demo_population(tmp / "demo", n=args.n, seed=0)
-            print(f"demo population: {args.n} label maps + landmark files in {time.perf_counter() - t0:.2f} s")
-            _print(f"demo (n={args.n}, jobs={args.jobs})", run_build(project, tmp / "demo_out", args.jobs, args.blend))
-        if not args.skip_verse:
-            if not VERSE_FILE.exists():
-                print(f"\nVerSe: skipped ({VERSE_DIR} not found)")
-            else:
-                from test_build_verse import write_verse_project
-
-                project = write_verse_project(tmp, VERSE_DIR)
-                _print(f"VerSe (9 vertebrae, jobs={args.jobs})", run_build(project, tmp / "verse_out", args.jobs, args.blend))
+        cases = make_cases(tmp, [c.strip() for c in args.cases.split(",") if c.strip()], args.n)
+        if args.against:
+            paired(cases, args.against, tmp, jobs=args.jobs, blend=args.blend, runs=args.runs)
+            return 0
+        for case, project in cases.items():
+            _print(f"{case} (jobs={args.jobs})", run_build(project, tmp / f"out_{case}", args.jobs, args.blend,
+                                                           ("--cache", "off")))
     return 0
 
 
