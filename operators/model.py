@@ -593,9 +593,9 @@ class SSM_PT_model(SSMPanel, bpy.types.Panel):
         g = obj[MODEL_KEY]
         shp = json.loads(g["shape_json"])
         layout.label(text=f"{obj.name}: {shp['n']} instances, {shp['N']} points, {shp['K']} modes")
-        structures = model_structures(obj)
-        if structures:
-            layout.label(text="joint model: " + ", ".join(structures) + " (one mesh each, one slider per mode)",
+        parts = model_structures(obj)
+        if parts:
+            layout.label(text="joint model: " + ", ".join(parts) + " (one mesh each, one slider per mode)",
                          icon="GROUP_VERTEX")
         loc = obj.matrix_world.translation
         layout.label(text=f"at ({loc[0]:.0f}, {loc[1]:.0f}, {loc[2]:.0f}) mm, right of the instances",

@@ -123,7 +123,10 @@ class RecordingLayout:
         self.log.append(("label", text))
 
     def prop(self, data, prop, **kw):
-        assert prop in data.bl_rna.properties, f"{type(data).__name__}.{prop}"
+        if prop.startswith('["') and prop.endswith('"]'):  # an ID property (a joint model's mode slider)
+            assert prop[2:-2] in data.keys(), f"{data.name}{prop}"
+        else:
+            assert prop in data.bl_rna.properties, f"{type(data).__name__}.{prop}"
         self.log.append(("prop", prop))
 
     def operator(self, idname, **kw):

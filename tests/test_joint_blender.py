@@ -185,7 +185,7 @@ def test_a_joint_models_blend_file_keeps_its_sliders_driving_every_structure(bpy
                                    atol=1e-4 * np.abs(model.mean).max())
 
 
-def test_a_joint_project_opened_and_built_in_blender_gives_the_headless_model(bpy_clean, tmp_path):
+def test_a_joint_project_opened_and_built_in_blender_gives_the_headless_model(bpy_clean, tmp_path, layout_recorder):
     """Open Project of a joint project makes one object per structure per subject with its
     landmarks; Build Joint Model runs the build's computation on what the scene holds: the same
     joint model as ``ssm build`` of the project, and each structure's coated meshes in the scene.
@@ -230,6 +230,15 @@ def test_a_joint_project_opened_and_built_in_blender_gives_the_headless_model(bp
     assert sorted((f["instance"], f["gate"]) for f in saved["quality"]["findings"]) == sorted(
         (f["instance"], f["gate"]) for f in built["quality"]["findings"])
     assert (tmp_path / "saved" / "structures" / "b" / "template.ply").is_file()
+    # the Model panel of a joint scene: its one build, the joint model's sliders and the build's findings
+    log = []
+    from ssm.operators.model import SSM_PT_model
+
+    SSM_PT_model.draw(type("P", (), {"layout": layout_recorder(log)})(), bpy.context)
+    ops = [x[1] for x in log if x[0] == "operator"]
+    assert "ssm.build_joint_model" in ops and "ssm.build_model" not in ops
+    assert ("prop", '["Mode 1"]') in log
+    assert any(x[0] == "label" and x[1].startswith("joint model: b, a") for x in log)
     # the build reads the scene, not the file: a landmark moved in the viewport changes the model
     inst = bpy.data.objects["S1 a"]
     emp = next(c for c in inst.children if c.ssm.role == "LANDMARK")
