@@ -72,6 +72,19 @@ def _ensure_registered() -> None:
         register()
 
 
+def place_landmarks(context, obj, landmarks) -> None:
+    """Put an instance's landmarks (file world mm) on it as empties, their names in the scene's
+    schema (in their order), nothing when ``landmarks`` is None."""
+    if landmarks is None:
+        return
+    schema = context.scene.ssm_landmarks
+    for name in landmarks.names:
+        if name not in {i.name for i in schema.names}:
+            add_schema_name(schema, name)
+    for i, (name, p) in enumerate(zip(landmarks.names, landmarks.points_world)):
+        set_landmark(context, obj, name, file_world=p, order=i)
+
+
 def show_study(context, study) -> dict:
     """Put a study's products into the scene: instances, landmarks, template, coatings, model.
 
@@ -94,13 +107,7 @@ def show_study(context, study) -> dict:
         write_instance(context, obj, spec, kind="VOLUME" if spec.volume_path is not None else "MESH_FILE", frame=ov.frame,
                        volume_mm3=ov.volume_mm3, voxels=int(np.count_nonzero(ov.mask)))
         objs[spec.name] = obj
-        lm = spec.landmarks
-        if lm is not None:
-            for name in lm.names:
-                if name not in {i.name for i in scene.ssm_landmarks.names}:
-                    add_schema_name(scene.ssm_landmarks, name)
-            for i, (name, p) in enumerate(zip(lm.names, lm.points_world)):
-                set_landmark(context, obj, name, file_world=p, order=i)
+        place_landmarks(context, obj, spec.landmarks)
     scene.ssm_display.template_instance = objs[study.template_instance]
     out = {}
     if study.template is not None:
@@ -279,14 +286,7 @@ def load_project_into_scene(context, project: core.Project) -> list:
     for obj, spec in zip(created, project.instances):
         if obj.name != spec.name and bpy.data.objects.get(spec.name) is None:
             obj.name = spec.name
-        lm = spec.landmarks
-        if lm is None:
-            continue
-        for name in lm.names:
-            if name not in {i.name for i in scene.ssm_landmarks.names}:
-                add_schema_name(scene.ssm_landmarks, name)
-        for i, (name, p) in enumerate(zip(lm.names, lm.points_world)):
-            set_landmark(context, obj, name, file_world=p, order=i)
+        place_landmarks(context, obj, spec.landmarks)
     template = next((o for o in created if o.name == project.template_instance), created[0] if created else None)
     scene.ssm_display.template_instance = template
     bridge.select_only(context, created, active=template)
@@ -325,13 +325,7 @@ def load_joint_project_into_scene(context, project: core.Project) -> list:
             if obj.name != wanted and bpy.data.objects.get(wanted) is None:
                 obj.name = wanted
             obj.ssm.structure, obj.ssm.subject = name, spec.name
-            lm = spec.landmarks
-            if lm is not None:
-                for lname in lm.names:
-                    if lname not in {i.name for i in scene.ssm_landmarks.names}:
-                        add_schema_name(scene.ssm_landmarks, lname)
-                for i, (lname, p) in enumerate(zip(lm.names, lm.points_world)):
-                    set_landmark(context, obj, lname, file_world=p, order=i)
+            place_landmarks(context, obj, spec.landmarks)
         created += objs
     first = project.structures[next(iter(project.structures))]
     template = next((o for o in created if o.ssm.subject == first.template_instance), created[0] if created else None)
