@@ -155,12 +155,10 @@ def create_joint_model_object(context, model: ShapeModel, name: str = MODEL_NAME
     empty.ssm.source = str(model.params.get("source", ""))
     store_model(empty, model)
     sd = model.standard_deviations
-    all_faces = np.asarray(model.faces)
     variance = model.point_variance
     for structure in model.structure_names:
         sl = model.structure_slice(structure)
-        inside = (all_faces >= sl.start).all(axis=1) & (all_faces < sl.stop).all(axis=1)
-        part = bridge.new_mesh_object(context, f"{name} {structure}", model.mean[sl], all_faces[inside] - sl.start,
+        part = bridge.new_mesh_object(context, f"{name} {structure}", model.mean[sl], model.structure_faces(structure),
                                       collection_name=MODEL_COLLECTION, matrix_world=np.eye(4), replace=False)
         part.parent = empty
         part.matrix_parent_inverse.identity()

@@ -398,12 +398,10 @@ def fit_structures_to_folder(model, targets: dict, out_dir, *, params: FitParams
                                   cancelled=cancelled)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    model_faces = np.asarray(model.faces)
     per = {}
     for name in names:
         sl = model.structure_slice(name)
-        inside = (model_faces >= sl.start).all(axis=1) & (model_faces < sl.stop).all(axis=1)
-        write_ply(out_dir / f"fitted_{name}.ply", result.points[sl], model_faces[inside] - sl.start,
+        write_ply(out_dir / f"fitted_{name}.ply", result.points[sl], model.structure_faces(name),
                   vertex_scalars={"posterior_sd_mm": result.posterior_sd_mm[sl]}, space="RAS")
         sd = result.posterior_sd_mm[sl]
         per[name] = {"given": name in targets, "file": f"fitted_{name}.ply", "posterior_sd_mm": {

@@ -371,11 +371,9 @@ def write_exchange_meshes(model: ShapeModel, out_dir, *, gltf: bool = True, vtk:
     if vtk:
         folder = out_dir / "vtk"
         _write_vtk_set(folder, model.mean, model.faces, model.point_variance, sd[:k], model.modes[:k], sigmas)
-        faces = np.asarray(model.faces)
         for name in model.structure_names:  # a joint model: each structure's own set besides
             sl = model.structure_slice(name)
-            inside = (faces >= sl.start).all(axis=1) & (faces < sl.stop).all(axis=1)
-            _write_vtk_set(folder / str(name), model.mean[sl], faces[inside] - sl.start, model.point_variance[sl],
+            _write_vtk_set(folder / str(name), model.mean[sl], model.structure_faces(name), model.point_variance[sl],
                            sd[:k], model.modes[:k, sl], sigmas)
         written["vtk"] = str(folder)
     return written

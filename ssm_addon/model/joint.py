@@ -64,9 +64,7 @@ def structure_model(model: ShapeModel, name: str) -> ShapeModel:
               * np.sqrt(np.asarray(model.variances, float))[:, None])  # (K, 3 n_s): rows of Q_s √Λ, transposed
     u, sv, vt = np.linalg.svd(scaled, full_matrices=False)
     keep = sv > 1e-9 * max(float(sv.max(initial=0.0)), 1e-300)
-    faces = np.asarray(model.faces)
-    inside = (faces >= sl.start).all(axis=1) & (faces < sl.stop).all(axis=1)
-    return ShapeModel(mean=np.asarray(model.mean[sl], float), faces=faces[inside] - sl.start,
+    return ShapeModel(mean=np.asarray(model.mean[sl], float), faces=model.structure_faces(name),
                       modes=vt[keep].reshape(-1, npts, 3), variances=sv[keep] ** 2,
                       instance_names=np.asarray(model.instance_names),
                       instance_points=np.asarray(model.instance_points[:, sl], float),
@@ -206,12 +204,7 @@ def collisions(model: ShapeModel, *, samples: int = 200, depth_mm: float = 0.5, 
     names = list(model.structure_names)
     if len(names) < 2:
         return {}
-    faces = np.asarray(model.faces)
-    parts = {}
-    for n in names:
-        sl = model.structure_slice(n)
-        inside = (faces >= sl.start).all(axis=1) & (faces < sl.stop).all(axis=1)
-        parts[n] = (sl, faces[inside] - sl.start)
+    parts = {n: (model.structure_slice(n), model.structure_faces(n)) for n in names}
     sd = model.standard_deviations
     extremes = [model.mean + sign * 3.0 * sd[k] * model.modes[k] for k in range(model.n_modes) for sign in (-1.0, 1.0)]
     drawn = list(model.sample(samples, seed=seed, sd_limit=3.0)) if samples and model.n_modes else []

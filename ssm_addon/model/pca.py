@@ -108,6 +108,13 @@ class ShapeModel:
         i = list(self.structure_names).index(name)
         return slice(int(self.structure_offsets[i]), int(self.structure_offsets[i + 1]))
 
+    def structure_faces(self, name: str) -> np.ndarray:
+        """The triangles of structure ``name`` (a joint model), indexing its own points
+        (``structure_slice``): those of ``faces`` wholly inside it, shifted to start at 0."""
+        sl = self.structure_slice(name)
+        faces = np.asarray(self.faces)
+        return faces[(faces >= sl.start).all(axis=1) & (faces < sl.stop).all(axis=1)] - sl.start
+
     def structure_points(self, names) -> np.ndarray:
         """Indices of the points of the structures ``names`` (a joint model), in model order."""
         return np.concatenate([np.arange(self.n_points)[self.structure_slice(n)] for n in names]) \
