@@ -82,8 +82,14 @@ def relative_pose(points: np.ndarray, reference: np.ndarray, mean_points: np.nda
     radians), t the structure's centroid in the reference's aligned frame minus the mean's
     (mm), and the log of the scale ratio. Returns (rotation vector (3,), translation (3,), log scale).
     """
-    s_r, r_r, t_r = procrustes_fit(reference[None], mean_reference, True)
-    s_s, r_s, t_s = procrustes_fit(points[None], mean_points, True)
+    return _pose_from_fits(procrustes_fit(points[None], mean_points, True),
+                           procrustes_fit(reference[None], mean_reference, True), points, mean_points)
+
+
+def _pose_from_fits(fit, fit_ref, points: np.ndarray, mean_points: np.ndarray):
+    """:func:`relative_pose` from the structure's and the reference's Procrustes fits onto their means."""
+    s_s, r_s, _t_s = fit
+    s_r, r_r, t_r = fit_ref
     rel = r_r[0] @ r_s[0].T  # the structure's pose (mean -> it) as the reference's alignment sees it
     in_ref = s_r[0] * points.mean(axis=0) @ r_r[0].T + t_r[0]  # the structure's centroid where the reference sits
     return _log_rotation(rel), in_ref - mean_points.mean(axis=0), float(np.log(s_s[0] / s_r[0]))
@@ -105,18 +111,15 @@ def _log_rotation(rot: np.ndarray) -> np.ndarray:
 def _decompose(model: ShapeModel, shapes: np.ndarray, reference: str) -> tuple[np.ndarray, dict]:
     """Per shape: each structure's aligned shape (mm) and its pose relative to the reference."""
     names = list(model.structure_names)
-    ref = model.structure_slice(reference)
+    slices = {n: model.structure_slice(n) for n in names}
     mean = np.asarray(model.mean, float)
     rows, poses = [], {n: [] for n in names if n != reference}
     for shape in shapes:
-        parts = []
-        for n in names:
-            sl = model.structure_slice(n)
-            _s, rot, t = procrustes_fit(shape[sl][None], mean[sl], True)
-            parts.append((_s[0] * shape[sl] @ rot[0].T + t[0]).ravel())
-            if n != reference:
-                poses[n].append(relative_pose(shape[sl], shape[ref], mean[sl], mean[ref]))
-        rows.append(np.concatenate(parts))
+        fits = {n: procrustes_fit(shape[sl][None], mean[sl], True) for n, sl in slices.items()}  # each once
+        rows.append(np.concatenate([(f[0][0] * shape[slices[n]] @ f[1][0].T + f[2][0]).ravel()
+                                    for n, f in fits.items()]))
+        for n in poses:
+            poses[n].append(_pose_from_fits(fits[n], fits[reference], shape[slices[n]], mean[slices[n]]))
     return np.stack(rows), poses
 
 
