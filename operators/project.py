@@ -28,7 +28,6 @@ import numpy as np
 from bpy.props import StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
-from ssm_addon.base import params as P
 from ssm_addon.base.errors import InputError, SSMError
 from ssm_addon.base.params import OutputParams, QualityParams
 from ssm_addon.formats import landmarks as core_landmarks
@@ -300,22 +299,17 @@ def load_joint_project_into_scene(context, project: core.Project) -> list:
     (``[[structures]]``) into ``Scene["ssm_joint"]``, so *Build Joint Model* runs what ``ssm build``
     runs. An error leaves the scene as it was (every instance is read first)."""
     scene = context.scene
+    if any(o.ssm.structure == "" for o in scene_instances(context)):  # before reading any file
+        raise InputError(f"{project.path}: the scene holds a study of one structure; open the joint project in a new "
+                         "file (File > New) so the two studies do not mix")
     per_structure = {}
     for name, st in project.structures.items():  # read everything before the scene changes
         tp = st.params.template
         per_structure[name] = import_items(st.instances, spacing_mm=tp.spacing_mm, frame_method=tp.frame,
                                            space=tp.space)
-    if any(o.ssm.structure == "" for o in scene_instances(context)):
-        raise InputError(f"{project.path}: the scene holds a study of one structure; open the joint project in a new "
-                         "file (File > New) so the two studies do not mix")
     set_scene_study_params(scene, project.params)
     scene[INSTANCE_ATTRIBUTES_KEY] = json.dumps(project.instance_attributes)
-    tables = {}
-    for name, st in project.structures.items():
-        own = {t: {k: v for k, v in P.to_table(getattr(st.params, t)).items()
-                   if P.to_table(getattr(project.params, t)).get(k) != v} for t in core.STRUCTURE_TABLES}
-        tables[name] = {t: d for t, d in own.items() if d}
-    scene[JOINT_KEY] = json.dumps({"tables": tables, "template_instances": {
+    scene[JOINT_KEY] = json.dumps({"tables": core.structure_overrides(project), "template_instances": {
         name: st.template_instance for name, st in project.structures.items()}})
     created = []
     for name, st in project.structures.items():

@@ -699,14 +699,18 @@ JOINT_KEY = "ssm_joint"
 JOINT_FINDINGS_KEY = "ssm_joint_findings"
 
 
-#: The joint studies built in this Blender session, by the model object's session id: what *Save
-#: Model* writes through the build's writer. Not kept in the .blend (a reopened file's joint
+#: The joint study last built in this Blender session, by its model object's session id: what
+#: *Save Model* writes through the build's writer. Not kept in the .blend (a reopened file's joint
 #: model saves its own files, saying the study is not in the session).
 _JOINT_BUILDS: dict = {}
 
 
 def remember_joint_study(obj, joint: JointStudy) -> None:
-    """Keep the joint study a *Build Joint Model* made ``obj`` from, for this session."""
+    """Keep the joint study a *Build Joint Model* made ``obj`` from, for this session: the last
+    build only, without its resampled volumes (its writer needs frames, templates and coatings)."""
+    for study in joint.structures.values():
+        study.volumes.clear()
+    _JOINT_BUILDS.clear()
     _JOINT_BUILDS[obj.session_uid] = joint
 
 

@@ -54,7 +54,8 @@ from ..fitting.batch import FitTarget
 from ..formats.landmarks import LandmarkSet, match_landmarks, read_landmarks
 from ..instances.importing import InstanceSpec, file_names, landmark_space
 
-__all__ = ["STRUCTURE_KEYS", "Project", "Structure", "project_text", "read_project", "targets_from_project", "toml_value", "write_project"]
+__all__ = ["STRUCTURE_KEYS", "Project", "Structure", "project_text", "read_project", "structure_overrides",
+           "targets_from_project", "toml_value", "write_project"]
 
 #: Keys of an instance that holds several structures: a table structure name -> file or label.
 STRUCTURE_KEYS = {
@@ -667,16 +668,31 @@ def project_text(project: Project, base: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
+def structure_overrides(project: Project) -> dict:
+    """``{structure: {table: {key: value}}}``: each structure's tables (``STRUCTURE_TABLES``)
+    where they differ from the project's, as a ``[[structures]]`` entry states them."""
+    out = {}
+    for name, st in project.structures.items():
+        own = {}
+        for t in STRUCTURE_TABLES:
+            theirs = P.to_table(getattr(project.params, t))
+            diff = {k: v for k, v in P.to_table(getattr(st.params, t)).items() if theirs.get(k) != v}
+            if diff:
+                own[t] = diff
+        out[name] = own
+    return out
+
+
 def _joint_text(project: Project, base: Path) -> list[str]:
     """The ``[[structures]]`` entries (each structure's tables that differ from the project's, its
     template's subject when not the project's) and the ``[[instances]]`` of a joint project:
     ``meshes = { … }``, or one ``volume`` with ``labels = { … }``, and ``landmarks = { … }``."""
     lines = []
+    overrides = structure_overrides(project)
     for name, st in project.structures.items():
         own = []
         for t in STRUCTURE_TABLES:
-            mine, theirs = P.to_table(getattr(st.params, t)), P.to_table(getattr(project.params, t))
-            diff = {k: v for k, v in mine.items() if theirs.get(k) != v}
+            diff = overrides[name].get(t, {})
             if t == "template" and st.template_instance != project.template_instance:
                 diff = {"instance": st.template_instance, **diff}
             if diff:
