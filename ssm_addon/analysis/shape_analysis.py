@@ -374,8 +374,7 @@ def analyze(model, attributes: Attributes, *, group: str | None = None, covariat
     tests = {}
     for k, t in enumerate(terms):
         say(k / max(len(terms), 1), f"analysis: testing {t} ({permutations} permutations)")
-        reduced = np.concatenate([np.ones((m, 1))] + [columns[o] for o in terms if o != t], axis=1)
-        tests[t] = term_test(points, reduced, columns[t], permutations=permutations, seed=seed,
+        tests[t] = term_test(points, _reduced(columns, t, m), columns[t], permutations=permutations, seed=seed,
                              cancelled=cancelled)
     levels, counts, group_means, pairwise, discriminant = (), {}, {}, {}, None
     if group:
@@ -408,8 +407,8 @@ def analyze(model, attributes: Attributes, *, group: str | None = None, covariat
         else:
             warnings.append("the groups are too small for a discriminant direction (needs more instances than "
                             "groups + 1)")
-    pose = relative_pose_effects(model, rows, columns, labels, units, permutations=permutations, seed=seed,
-                                 cancelled=cancelled) if len(model.structure_names) > 1 else {}
+    pose = relative_pose_effects(model, rows, columns, labels, units, qr=(qm, rm), permutations=permutations,
+                                 seed=seed, cancelled=cancelled) if len(model.structure_names) > 1 else {}
     say(1.0, "analysis: done")
     used = ([group] if group else []) + list(covariates)
     attr_out = {}
@@ -427,7 +426,12 @@ def analyze(model, attributes: Attributes, *, group: str | None = None, covariat
                     relative_pose=pose)
 
 
-def relative_pose_effects(model, rows: np.ndarray, columns: dict, labels: dict, units: dict, *,
+def _reduced(columns: dict, term: str, m: int) -> np.ndarray:
+    """The design without ``term``: the intercept and every other term's columns."""
+    return np.concatenate([np.ones((m, 1))] + [c for t, c in columns.items() if t != term], axis=1)
+
+
+def relative_pose_effects(model, rows: np.ndarray, columns: dict, labels: dict, units: dict, *, qr=None,
                           permutations: int = 1000, seed: int = 0, cancelled=None) -> dict:
     """How each term moves a joint model's structures relative to its reference structure.
 
@@ -438,14 +442,17 @@ def relative_pose_effects(model, rows: np.ndarray, columns: dict, labels: dict, 
     (% per unit); per term the Freedman–Lane permutation p-values of the turn and of the shift
     (Pillai's trace of the 3-D vector) and of the log scale.
 
+    ``qr``: the QR factors of the full design (intercept, then the terms' columns), when the
+    caller has them.
+
     Returns ``{"reference-structure": {"effects": {effect: {...}}, "tests": {term: {...}}}}``.
     """
     poses = relative_poses(model)
     reference = model.params.get("reference") or model.structure_names[0]
     m = rows.size
     terms = list(columns)
-    full = np.concatenate([np.ones((m, 1))] + [columns[t] for t in terms], axis=1)
-    qm, rm = np.linalg.qr(full)
+    qm, rm = qr if qr is not None else np.linalg.qr(
+        np.concatenate([np.ones((m, 1))] + [columns[t] for t in terms], axis=1))
     out = {}
     for name, arr in poses.items():
         p = np.asarray(arr, float)[rows]
@@ -463,7 +470,7 @@ def relative_pose_effects(model, rows: np.ndarray, columns: dict, labels: dict, 
                 col += 1
         tests = {}
         for t in terms:
-            reduced = np.concatenate([np.ones((m, 1))] + [columns[o] for o in terms if o != t], axis=1)
+            reduced = _reduced(columns, t, m)
             kw = {"permutations": permutations, "seed": seed, "cancelled": cancelled}
             tests[t] = {"turn_p": float(term_test(turn[:, None], reduced, columns[t], **kw).p_point[0]),
                         "shift_p": float(term_test(shift[:, None], reduced, columns[t], **kw).p_point[0]),
