@@ -111,6 +111,11 @@ def write_analysis_files(project: Project, model, folder: Path, *, timings: dict
     return files, adoc
 
 
+def _absolute_files(files: dict, out_dir: Path) -> dict:
+    """``files`` (names relative to the output folder, or lists of them) as full paths."""
+    return {k: ([str(out_dir / x) for x in v] if isinstance(v, list) else str(out_dir / v)) for k, v in files.items()}
+
+
 def _check_before_build(project: Project, out_dir: Path, *, force: bool, what: str) -> list[Path]:
     """The checks before any work: the output folder (never an input, never another tool's files
     unless forced, writable) and enough ``what`` (instances, subjects) for a model with its
@@ -244,7 +249,7 @@ def build(
                                                          cancelled=cancelled),
             extra={"compute": compute}, log=say, progress=progress, cancelled=cancelled, t_start=t_total)
         result = BuildResult(out_dir=out_dir, project=project, study=study, files={}, report={})
-    final = {k: ([str(out_dir / x) for x in v] if isinstance(v, list) else str(out_dir / v)) for k, v in files.items()}
+    final = _absolute_files(files, out_dir)
     report(progress, 1.0, f"done: {out_dir}")
     return dataclasses.replace(result, files=final, report=final_report.to_dict())
 
@@ -275,11 +280,11 @@ def build_joint(project: Project, out_dir: Path, *, jobs: int = 1, progress: Pro
         if project.params.quality.strict and every:
             raise QualityError(f"{len(every)} quality gate(s) failed and [quality] strict is set; nothing was written "
                                f"to {out_dir}:\n" + warnings_text(every))
+        first = next(iter(joint.structures.values()))
         blender_files = {}
         if blender_hook is not None:  # the first structure's study carries the joint model over
             t_blender = time.perf_counter()
             report(progress, 0.95, "Blender: model.blend and pictures")
-            first = next(iter(joint.structures.values()))
             blender_files = blender_hook(dataclasses.replace(first, model=joint.model), project.params.output, tmp,
                                          say) or {}
             joint.timings_s["blender"] = time.perf_counter() - t_blender
@@ -291,9 +296,8 @@ def build_joint(project: Project, out_dir: Path, *, jobs: int = 1, progress: Pro
                                               project, joint.model, folder, timings=joint.timings_s, log=say,
                                               progress=progress, cancelled=cancelled),
                                           extra={"compute": {"scheduler": executor.scheduler, "workers": executor.jobs}})
-    final = {k: ([str(out_dir / x) for x in v] if isinstance(v, list) else str(out_dir / v)) for k, v in files.items()}
+    final = _absolute_files(files, out_dir)
     report(progress, 1.0, f"done: {out_dir}")
-    first = next(iter(joint.structures.values()))
     first.model = joint.model
     first.metrics = joint.metrics
     return BuildResult(out_dir=out_dir, project=project, study=first, files=final, report=final_report.to_dict(),
