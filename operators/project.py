@@ -120,35 +120,43 @@ def show_study(context, study) -> dict:
     return out
 
 
-def write_model_blend(study, path) -> str:
-    """Write ``model.blend`` for a built study: an empty file plus the study's objects."""
+def _write_blend(path, fill) -> str:
+    """An empty file, ``fill(context)``'s objects in it, saved as a copy at ``path``."""
     _ensure_registered()
     bpy.ops.wm.read_homefile(use_empty=True)
-    show_study(bpy.context, study)
-    # opened as saved: the correspondence colours in Solid shading (set when show_study coloured the
-    # meshes), and the coated meshes not hidden by the voxel surfaces they sit on (the instances are
-    # hidden, Alt+H shows them)
-    coated = {o.ssm.instance.name for o in bpy.data.objects if o.ssm.role == "COATED" and o.ssm.instance}
-    for layer in bpy.context.scene.view_layers:
-        layer.update()  # synced with the collections the objects were just linked to
-        for obj in layer.objects:
-            if obj.ssm.role == "INSTANCE" and obj.name in coated:
-                obj.hide_set(True, view_layer=layer)
+    fill(bpy.context)
     path = str(Path(path).resolve())
     bpy.ops.wm.save_as_mainfile(filepath=path, check_existing=False, copy=True)
     return path
+
+
+def write_model_blend(study, path) -> str:
+    """Write ``model.blend`` for a built study: an empty file plus the study's objects."""
+
+    def fill(context):
+        show_study(context, study)
+        # opened as saved: the correspondence colours in Solid shading (set when show_study coloured the
+        # meshes), and the coated meshes not hidden by the voxel surfaces they sit on (the instances are
+        # hidden, Alt+H shows them)
+        coated = {o.ssm.instance.name for o in bpy.data.objects if o.ssm.role == "COATED" and o.ssm.instance}
+        for layer in context.scene.view_layers:
+            layer.update()  # synced with the collections the objects were just linked to
+            for obj in layer.objects:
+                if obj.ssm.role == "INSTANCE" and obj.name in coated:
+                    obj.hide_set(True, view_layer=layer)
+
+    return _write_blend(path, fill)
 
 
 def write_joint_model_blend(model, path) -> str:
     """Write ``model.blend`` for a joint model: an empty file plus the joint model's objects (the
     empty with one slider per mode, one mesh per structure)."""
-    _ensure_registered()
-    bpy.ops.wm.read_homefile(use_empty=True)
-    bridge.ensure_mm_units(bpy.context.scene)
-    create_model_object(bpy.context, model)
-    path = str(Path(path).resolve())
-    bpy.ops.wm.save_as_mainfile(filepath=path, check_existing=False, copy=True)
-    return path
+
+    def fill(context):
+        bridge.ensure_mm_units(context.scene)
+        create_model_object(context, model)
+
+    return _write_blend(path, fill)
 
 
 def write_build_outputs(study, output: OutputParams, out_dir: Path, log=print) -> dict:
