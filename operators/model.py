@@ -56,6 +56,7 @@ from .scene import (
     joint_study_of,
     mode_sliders,
     model_from_object,
+    model_parts,
     model_structures,
     record_stage,
     report_stage,
@@ -103,7 +104,7 @@ def _remove_model_objects(name: str) -> None:
     old = bpy.data.objects.get(name)
     if old is None or old.type == "MESH":
         return
-    for child in [c for c in old.children if c.ssm.role == "MODEL_PART"]:
+    for child in model_parts(old):
         mesh = child.data
         bpy.data.objects.remove(child)
         if mesh is not None and mesh.users == 0:
