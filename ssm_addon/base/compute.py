@@ -42,7 +42,7 @@ from .errors import Cancelled, InputError
 from .progress import CancelledFn, ProgressFn, report
 
 __all__ = ["CONNECT_TIMEOUT_S", "SCHEDULERS", "Executor", "check_scheduler", "dask_setup", "executor_or_local",
-           "ignore_sigint", "probe_scheduler", "run_one_thread", "start_resource_tracker", "stop_children", "time_left_text",
+           "ignore_sigint", "probe_scheduler", "run_one_thread", "signals_deferred", "start_resource_tracker", "stop_children", "time_left_text",
            "usable_cores"]
 
 SCHEDULERS = ("serial", "processes", "dask-local")
@@ -107,6 +107,8 @@ def ignore_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if hasattr(signal, "SIGHUP"):
         signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    if hasattr(signal, "pthread_sigmask"):  # started inside signals_deferred: a SIGTERM held since then ends it now
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, _DEFERRED_SIGNALS)
 
 
 def dask_setup(worker=None) -> None:
@@ -133,6 +135,38 @@ def start_resource_tracker() -> None:
     finally:
         for n, handler in previous.items():
             signal.signal(n, handler)
+
+
+_DEFERRED_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n))
+
+
+@contextmanager
+def signals_deferred() -> Iterator[None]:
+    """Hold SIGINT, SIGTERM and SIGHUP until the block ends, then act on the first that came.
+
+    Starting a worker process writes its start-up data down a pipe; a signal that unwound the
+    main thread in the middle of that write left a worker that printed ``EOFError: Ran out of
+    input`` with a traceback. The three signals are also blocked in the main thread, whose
+    mask a worker started here inherits: a terminal's Ctrl-C to the whole process group cannot
+    reach the worker while its interpreter starts (:func:`ignore_sigint` unblocks them). Only
+    the main thread handles signals; elsewhere this does nothing.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    arrived: list = []
+    previous = {n: signal.signal(n, lambda signum, _frame: arrived.append(signum)) for n in _DEFERRED_SIGNALS}
+    mask = getattr(signal, "pthread_sigmask", None)
+    before = mask(signal.SIG_BLOCK, _DEFERRED_SIGNALS) if mask is not None else None
+    try:
+        yield
+    finally:
+        if mask is not None:
+            mask(signal.SIG_SETMASK, before)
+        for n, handler in previous.items():
+            signal.signal(n, signal.SIG_DFL if handler is None else handler)
+        if arrived:
+            signal.raise_signal(arrived[0])  # now handled as it would have been (an exception, or the default)
 
 
 def stop_children(before: set) -> None:
@@ -394,7 +428,8 @@ class Executor:
             while queue or pending:
                 while queue and len(pending) < ahead:
                     i = queue.pop(0)
-                    pending[pool.submit(run_one_thread, fn, items[i])] = i
+                    with signals_deferred():  # the submit may start a worker process
+                        pending[pool.submit(run_one_thread, fn, items[i])] = i
                 finished, _ = wait(list(pending), timeout=0.2, return_when=FIRST_COMPLETED)
                 for fut in finished:
                     arrived(pending.pop(fut), fut.result())
