@@ -78,6 +78,34 @@ def verse_dir() -> Path:
     return VERSE_DIR
 
 
+@functools.cache
+def build_tool():
+    """``tools/build_extension.py`` as a module (it is a script, not part of the package)."""
+    spec = importlib.util.spec_from_file_location("build_extension", ROOT / "tools" / "build_extension.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("build_extension", module)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="session")
+def zip_wheels() -> Path:
+    """``wheels_cache/linux-x64``: the wheels the linux-x64 extension zip bundles, resolved and
+    downloaded here when the cache lacks them (a warm cache needs no index), so a test that
+    needs them runs alone as in the full suite. Skips where they cannot be had (no network)."""
+    bx = build_tool()
+    cache = ROOT / "wheels_cache"
+    requirements = bx.runtime_requirements()
+    try:
+        bx.download_wheels("linux-x64", requirements, cache, offline=True, log=lambda *a: None)
+    except bx.BuildError:
+        try:
+            bx.download_wheels("linux-x64", requirements, cache, offline=False, log=print)
+        except bx.BuildError as err:
+            pytest.skip(f"the zip's wheels cannot be downloaded here: {err}")
+    return cache / "linux-x64"
+
+
 def load_extension_package(name: str = "ssm"):
     """Import the repo root as the package ``name`` (as Blender imports an extension)."""
     if name in sys.modules:

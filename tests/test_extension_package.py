@@ -22,19 +22,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import build_tool
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _load_build_tool():
-    spec = importlib.util.spec_from_file_location("build_extension", ROOT / "tools" / "build_extension.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules.setdefault("build_extension", module)
-    spec.loader.exec_module(module)
-    return module
-
-
-bx = _load_build_tool()
+bx = build_tool()
 
 
 def _has_bpy() -> bool:

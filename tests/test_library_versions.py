@@ -22,7 +22,6 @@ from conftest import ROOT, VERSE_FILE, VERSE_LABELS, shared_data_dir
 
 from ssm_addon.cli import demo
 
-WHEELS = ROOT / "wheels_cache" / "linux-x64"
 ARRAYS = ("mean", "faces", "modes", "variances", "instance_points", "instance_points_world")
 PACKAGES = ("scipy", "scikit-image", "nibabel", "pynrrd", "h5py", "matplotlib", "threadpoolctl")
 
@@ -36,11 +35,9 @@ def _pins() -> dict:
     return pins
 
 
-def test_the_constraints_file_states_the_versions_the_zip_bundles():
+def test_the_constraints_file_states_the_versions_the_zip_bundles(zip_wheels):
     pins = _pins()
-    if not (WHEELS / "resolved.json").exists():  # the full suite builds it first (test_extension_package)
-        pytest.skip(f"no {WHEELS / 'resolved.json'}: build the zip first (tools/build_extension.py)")
-    resolved = json.loads((WHEELS / "resolved.json").read_text())["wheels"]
+    resolved = json.loads((zip_wheels / "resolved.json").read_text())["wheels"]
     bundled = {w.split("-")[0].lower(): w.split("-")[1] for w in resolved}
     assert pins and "numpy" not in pins  # Blender's own numpy
     for name, version in pins.items():
@@ -48,18 +45,18 @@ def test_the_constraints_file_states_the_versions_the_zip_bundles():
 
 
 @pytest.fixture(scope="module")
-def constraints_env(tmp_path_factory):
+def constraints_env(tmp_path_factory, zip_wheels):
     """A copy of this venv with the constraints' versions installed from wheels_cache (no network)."""
     import scipy
 
-    if sys.prefix == sys.base_prefix or not sys.platform.startswith("linux") or not WHEELS.is_dir():
-        pytest.skip("needs this test run's venv on Linux and wheels_cache/linux-x64 (the zip's wheels)")
+    if sys.prefix == sys.base_prefix or not sys.platform.startswith("linux"):
+        pytest.skip("needs this test run's venv on Linux")
     if scipy.__version__ == _pins()["scipy"]:
         pytest.skip(f"this environment already has the zip's scipy {scipy.__version__}")
     copy = tmp_path_factory.mktemp("constraints") / "venv"
     shutil.copytree(sys.prefix, copy, symlinks=True)
     py = copy / "bin" / "python"
-    proc = subprocess.run([str(py), "-m", "pip", "install", "-q", "--no-index", "--find-links", str(WHEELS), "-c",
+    proc = subprocess.run([str(py), "-m", "pip", "install", "-q", "--no-index", "--find-links", str(zip_wheels), "-c",
                            str(ROOT / "constraints.txt"), *PACKAGES], capture_output=True, text=True)
     if proc.returncode:
         pytest.skip(f"cannot install the constraints' versions from wheels_cache: {proc.stderr[-300:]}")
