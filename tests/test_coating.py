@@ -236,13 +236,48 @@ def test_smooth_deformation_is_recovered(deformed_pair):
     assert err_full <= rows[0][1] + 0.05
 
 
+def _brute_force_distance(points: np.ndarray, verts: np.ndarray, faces: np.ndarray, k: int = 40) -> np.ndarray:
+    """Exact distance (mm) of each point to a triangle mesh, by another route than the package's
+    locator: each of the ``k`` triangles with the nearest centroids, its plane when the foot
+    falls inside, else its three edges as segments."""
+    from scipy.spatial import cKDTree
+
+    tri = verts[faces]
+    _, idx = cKDTree(tri.mean(axis=1)).query(points, k=k)
+    A, B, C = (tri[idx][:, :, j] for j in range(3))
+    P = points[:, None, :]
+    n = np.cross(B - A, C - A)
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    h = ((P - A) * n).sum(axis=2)
+    foot = P - h[..., None] * n
+    inside = np.ones(h.shape, bool)
+    for U, V in ((A, B), (B, C), (C, A)):
+        inside &= (np.cross(V - U, foot - U) * n).sum(axis=2) >= 0
+    best = np.where(inside, np.abs(h), np.inf)
+    for U, V in ((A, B), (B, C), (C, A)):
+        e = V - U
+        t = np.clip(((P - U) * e).sum(axis=2) / (e * e).sum(axis=2), 0.0, 1.0)
+        best = np.minimum(best, np.linalg.norm(P - (U + t[..., None] * e), axis=2))
+    return best.min(axis=1)
+
+
 def test_fit_figures_are_measured_against_the_surface(ellipsoid_pair):
+    """The figures are distances in mm to the target's surface as the coating sees it (the
+    0.5 isosurface of its mask), checked by brute force on scikit-image's own marching
+    cubes of the mask; and within the voxel's reach of the analytic ellipsoid."""
+    from skimage.measure import marching_cubes as skimage_marching_cubes
+
     a, b, _, ovb, template = ellipsoid_pair
     result = C.coat(template, ellipsoid_landmarks(a), ovb, ellipsoid_landmarks(a) * b / a)
-    dm = DM.DistanceMap.from_object_volume(ovb)
-    d = dm.surface_distance(result.points_object)
-    assert result.fit.mean_distance_mm == pytest.approx(d.mean())
-    assert result.fit.max_distance_mm == pytest.approx(d.max())
+    verts, faces, _n, _v = skimage_marching_cubes(np.pad(np.asarray(ovb.mask, np.float32), 1), 0.5)
+    verts = (verts - 1.0) * ovb.spacing_mm + np.asarray(ovb.origin_object, float)
+    d = _brute_force_distance(np.asarray(result.points_object, float), verts, faces)
+    assert result.fit.mean_distance_mm == pytest.approx(d.mean(), rel=1e-6, abs=1e-9)
+    assert result.fit.max_distance_mm == pytest.approx(d.max(), rel=1e-6, abs=1e-9)
+    # the analytic ellipsoid (semi-axes b mm) lies within a voxel of that surface
+    p = np.asarray(result.points_object, float)
+    radial = 1.0 - 1.0 / np.sqrt(((p / b) ** 2).sum(axis=1))  # fraction of the radius outside the ellipsoid
+    assert np.abs(radial * np.linalg.norm(p, axis=1)).max() < ovb.spacing_mm
     assert len(result.fit.landmark_residuals_mm) == 14
     assert C.FitFigures.from_json(result.fit.to_json()) == result.fit
 
@@ -257,10 +292,16 @@ def batch(ellipsoid_pair):
     return a, template, [ellipsoid_volume(x) for x in axes], [ellipsoid_landmarks(a) * x / a for x in axes]
 
 
-def test_batch_results_identical_serial_and_parallel(batch):
+def test_batch_results_identical_serial_and_parallel(batch, monkeypatch):
+    from ssm_addon.base import compute
+
     a, template, targets, lms = batch
     serial = C.coat_all(template, ellipsoid_landmarks(a), targets, lms, jobs=1)
-    parallel = C.coat_all(template, ellipsoid_landmarks(a), targets, lms, jobs=2)
+    # two worker processes even on a one-core runner (where --jobs 2 would be capped to one)
+    monkeypatch.setattr(compute, "usable_cores", lambda: 2)
+    with compute.Executor("processes", jobs=2) as executor:
+        assert executor.jobs == 2 and executor.describe() == "2 local processes"
+        parallel = C.coat_all(template, ellipsoid_landmarks(a), targets, lms, jobs=2, executor=executor)
     for s, p in zip(serial, parallel):
         assert np.array_equal(s.points_object, p.points_object)
         assert s.fit.iterations == p.fit.iterations

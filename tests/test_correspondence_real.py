@@ -85,19 +85,23 @@ def test_model_method_at_its_defaults_is_no_worse_than_the_single_pass_on_femur1
           f"{np.percentile(b, 95):.2f} mm; stop {model.correspondence_check.stop}, kept round "
           f"{model.correspondence_check.kept_round}")
     assert b.mean() <= a.mean() + 0.01 and np.percentile(b, 95) <= np.percentile(a, 95) + 0.05
+    # absolute too (a frame bug that ruined both would pass the comparison): measured 2.341 / 6.90 mm and
+    # 1.710 / 4.12 mm, landmarks of 15 exact points on every femur
+    assert a.mean() < 2.6 and np.percentile(a, 95) < 7.6
+    assert b.mean() < 1.9 and np.percentile(b, 95) < 4.6
     # femur00 is farther from the mean femur than femur07, whose template takes its place (paper 3.3)
     assert model.template_instance != files[0].stem and b.mean() < 0.85 * a.mean()
     check = model.correspondence_check
-    assert check.stop in ("converged", "criterion", "limit")
-    assert (check.stop == "limit") == any(f.gate == "rounds" for f in model.findings)
+    assert check.stop in ("converged", "criterion"), check.stop  # at the defaults the rounds end by themselves
+    assert not any(f.gate == "rounds" for f in model.findings)
     # the single pass measured the same self-check; it ranks the instances by their true error
     from scipy.stats import spearmanr
 
     assert single.correspondence_check is not None and set(single.correspondence_check.instance_mm) == set(e_single)
     names = [n for n in e_single if n != single.template_instance]
-    rho = spearmanr([e_single[n].mean() for n in names], [single.correspondence_check.instance_mm[n] for n in names])[0]
-    print(f"self-check rank correlation with the true error across instances: {rho:.2f}")
-    assert rho > 0.0
+    rho, p = spearmanr([e_single[n].mean() for n in names], [single.correspondence_check.instance_mm[n] for n in names])
+    print(f"self-check rank correlation with the true error across instances: {rho:.2f} (p = {p:.3f})")
+    assert rho >= 0.55  # measured 0.62 over 9 instances; a self-check blind to the error gives this 6 % of the time
 
 
 def test_knee30_patellas_frames_and_landmarks_on_three(tmp_path):

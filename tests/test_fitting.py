@@ -566,14 +566,17 @@ def test_a_partial_femur_in_any_pose_is_found_by_sliding_starts():
     of the other nine with the pose search: the starts slid along the longest axis put
     the half at either end of the mean shape. Measured on femur00 and femur05 (the two
     worst of three tried): the missing half 31.3 and 19.2 mm from its true place; with the
-    unslid starts 130–414 mm (femur00, 03, 05); from the true pose 7.3 and 3.8 mm."""
+    unslid starts 130–414 mm (femur00, 03, 05); from the true pose 5.9 and 2.9 mm. The search's
+    fit is as close to the seen half as the true pose's (0.865 and 0.876 mm against 0.862 and
+    0.863 mm): the half leaves the turn about the shaft nearly free, and the search ends in a
+    neighbouring basin."""
     from ssm_addon.fitting.fit import fit_any_pose
 
     if not FEMUR10_DIR.exists():
         pytest.skip(f"femur10 not found at {FEMUR10_DIR} (set SSM_SHARED_DATA or place ../shared/data)")
     files, verts, faces = femur10_meshes(FEMUR10_DIR)
     rng = np.random.default_rng(1)
-    errors = []
+    errors, truth_errors = [], []
     for i in (0, 5):
         others = [j for j in range(len(files)) if j != i]
         m = build_model(verts[others], faces, [files[j].stem for j in others], alignment="rigid")
@@ -584,5 +587,11 @@ def test_a_partial_femur_in_any_pose_is_found_by_sliding_starts():
         assert " slid " in search["chosen"]
         err = np.linalg.norm((res.points - shift) @ rot - verts[i], axis=1)
         errors.append(err[~seen].mean())
-    print(f"\npartial femurs in any pose: missing half {np.round(errors, 1)} mm")
-    assert max(errors) < 40.0 and np.mean(errors) < 30.0
+        # the same fit from the true pose (the model's mean placed on the whole femur as given)
+        _s, r, t = procrustes_fit(np.asarray(m.mean)[None], verts[i] @ rot.T + shift, scale=False)
+        truth = fit_model(m, target, pose=Pose(r[0], t[0]), partial=True)
+        truth_errors.append(np.linalg.norm((truth.points - shift) @ rot - verts[i], axis=1)[~seen].mean())
+        assert res.mean_distance_mm <= 1.03 * truth.mean_distance_mm, (res.mean_distance_mm, truth.mean_distance_mm)
+    print(f"\npartial femurs in any pose: missing half {np.round(errors, 1)} mm (true pose {np.round(truth_errors, 1)})")
+    assert max(truth_errors) < 8.0
+    assert max(errors) < 34.0 and np.mean(errors) < 27.0

@@ -44,7 +44,33 @@ def test_compactness_reaches_99_percent_at_three_modes(population):
     assert c["modes_for"]["0.99"] == 3
     assert c["cumulative"][-1] == pytest.approx(1.0)
     assert np.all(np.diff(c["cumulative"]) >= 0)
-    np.testing.assert_allclose(c["cumulative_std"], np.sqrt(2 / 40) * np.array(c["cumulative"]))
+
+
+def test_compactness_standard_error_matches_the_spread_over_populations():
+    """Davies' standard error of C(k) against its Monte Carlo truth: 300 populations of 40
+    Gaussian shapes with variances 25, 9, 4 mm² along known fields. For k = 1 the spread of
+    λ̂₁ over the populations is sqrt(2/n) λ₁ (the first entry); for k = 3 the spread of the
+    sum is at most Davies' sum (an upper bound, the λ̂ being nearly independent)."""
+    from test_model import smooth_fields, sphere_points
+
+    rng = np.random.default_rng(11)
+    base = sphere_points(60)
+    fields = smooth_fields(base)
+    lam = np.array([25.0, 9.0, 4.0])
+    n = 40
+    got, reported = [], []
+    for _ in range(300):
+        b = rng.standard_normal((n, 3)) * np.sqrt(lam)
+        shapes = base[None] + np.tensordot(b, fields, axes=1)
+        model = build_model(shapes, FACES, names(n), alignment="none")
+        c = compactness(model)
+        total = model.total_variance
+        got.append(np.cumsum(c["variance_mm2"][:3]) / lam.sum())  # the share of the true total
+        reported.append(np.array(c["cumulative_std"][:3]) * total / lam.sum())
+    spread, davies = np.std(got, axis=0, ddof=1), np.mean(reported, axis=0)
+    print(f"\nC(1..3) spread {np.round(spread, 4)}, Davies {np.round(davies, 4)}")
+    assert davies[0] == pytest.approx(spread[0], rel=0.15), (davies, spread)
+    assert spread[2] <= davies[2] * 1.05 and spread[2] > 0.5 * davies[2], (davies, spread)
 
 
 def test_generalization_decreases_to_noise_level_at_three_modes(population):
@@ -105,18 +131,29 @@ def test_specificity_increases_then_flattens_after_three_modes(population):
     assert again["mean_mm"] == s["mean_mm"]
 
 
-def test_specificity_nearest_shape_is_the_true_nearest(population):
-    _, model = population
-    s = specificity(model, ks=[2], n_samples=20, seed=5)
-    rng = np.random.default_rng(5)
-    z = rng.standard_normal((20, 2))
-    errs = []
-    for zi in z:
-        shape = model.generate_sd(zi)
-        d = ((model.instance_points - shape) ** 2).sum(axis=(1, 2))
-        nearest = model.instance_points[np.argmin(d)]
-        errs.append(np.linalg.norm(shape - nearest, axis=1).mean())
-    assert s["mean_mm"][0] == pytest.approx(np.mean(errs), rel=1e-9)
+def test_specificity_equals_its_integral_on_a_one_mode_population():
+    """Three training shapes at -d, 0 and +d along one field f: the mode's SD is
+    σ = d sqrt(2/3) (S = P Pᵀ / n, eq. 5), so they sit at z_i = 0, ±d/σ. A sample at z lies
+    |z - z_i| σ mean|f_p| from training shape i, so specificity at one mode is
+    σ mean|f_p| E[min_i |z - z_i|], the expectation over z ~ N(0, 1) integrated
+    numerically. The Monte Carlo estimate lies within 4 of its standard errors."""
+    from scipy import integrate, stats
+    from test_model import smooth_fields, sphere_points
+
+    base = sphere_points(50)
+    f = smooth_fields(base)[1]  # unit as a 3N vector
+    d = 3.0
+    shapes = np.stack([base - d * f, base, base + d * f])
+    model = build_model(shapes, FACES, names(3), alignment="none")
+    sigma = d * np.sqrt(2 / 3)
+    assert model.standard_deviations[0] == pytest.approx(sigma, rel=1e-12)
+    s = specificity(model, ks=[1], n_samples=4000, seed=3)
+    zi = d / sigma
+    expected_z = integrate.quad(lambda z: min(abs(z + zi), abs(z), abs(z - zi)) * stats.norm.pdf(z), -12, 12,
+                                points=[-zi, -zi / 2, 0.0, zi / 2, zi])[0]
+    expected = sigma * np.linalg.norm(f, axis=1).mean() * expected_z
+    se = s["std_mm"][0] / np.sqrt(4000)
+    assert abs(s["mean_mm"][0] - expected) < 4 * se, (s["mean_mm"][0], expected, se)
 
 
 def test_aggregate_fit_summarises_numeric_figures():

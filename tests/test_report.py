@@ -24,8 +24,13 @@ def built(tmp_path_factory):
     folder = tmp_path_factory.mktemp("report")
     path = demo.make_demo_population(folder / "population", n=5, seed=8)
     path.write_text(path.read_text().replace("spacing = 1.0", "spacing = 1.0\nr_min_mm = 4.0\nr_max_mm = 8.0")
-                    .replace("[model]", "[model]\nspecificity_samples = 50")
-                    + "\n[quality]\nmax_surface_distance_vox = 0.12\n")  # some instances fail a gate
+                    .replace("[model]", "[model]\nspecificity_samples = 50"))
+    # one instance with a landmark clicked 25 mm off: its gates fail, the others' do not
+    csv = folder / "population" / "demo_02.csv"
+    rows = csv.read_text().splitlines()
+    name, x, y, z = rows[1].split(",")
+    rows[1] = ",".join([name, repr(float(x) + 25.0), y, z])
+    csv.write_text("\n".join(rows) + "\n")
     result = build(read_project(path), folder / "out", log=None)
     return folder / "out", result
 
@@ -41,9 +46,12 @@ def test_report_is_one_self_contained_file(built):
     names = list(result.study.names)
     for name in names:  # a row, with its picture, per instance
         assert f"<b>{name}</b>" in page and f'alt="{name}"' in page
+    flagged = {f.instance for f in result.study.findings if f.instance}
+    assert flagged == {"demo_02"}, flagged  # the instance with the landmark 25 mm off, and only it
+    assert {f.gate for f in result.study.findings} >= {"landmark_transfer"}
     for f in result.study.findings:
         assert f.message.split(" (")[0][:40] in page.replace("&#x27;", "'")
-    assert page.count('<tr class="warn">') == len({f.instance for f in result.study.findings if f.instance})
+    assert page.count('<tr class="warn">') == len(flagged)
     for fig in ("paper fig. 9", "Compactness, generalization and specificity by number of modes"):
         assert fig in page
     # the demo's [analysis]: its section with the tests of both terms and the map
