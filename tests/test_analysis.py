@@ -7,8 +7,7 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 import pytest
-from conftest import shared_data_dir
-from test_coating import icosphere
+from conftest import BUMP_MM, analysis_population, shared_data_dir
 
 from ssm_addon.analysis import (
     analyze,
@@ -20,39 +19,11 @@ from ssm_addon.analysis import (
     write_analysis,
 )
 from ssm_addon.base.errors import InputError
-from ssm_addon.model.pca import build_model
-
-RADIUS = 20.0
-NOISE_MM = 0.3
-BUMP_MM = 2.0
-AGE_STRETCH = 0.002  # relative x stretch per year: 0.04 mm/year at x = 20 mm
-
-
-def population(n=30, seed=0, bump=BUMP_MM, stretch=AGE_STRETCH):
-    """Spheres (R = 20 mm) with a known group displacement (an outward bump of ``bump`` mm on the
-    cap z > 0.8 R for 'patient') and a known linear age effect (x scaled by 1 + stretch (age − 60)),
-    plus independent noise of NOISE_MM per coordinate."""
-    v, f = icosphere(3)
-    v = v * RADIUS
-    rng = np.random.default_rng(seed)
-    groups = np.array(["control", "patient"] * (n // 2))
-    age = rng.uniform(40, 80, n)
-    cap = v[:, 2] > 0.8 * RADIUS
-    bump_field = np.where(cap, bump, 0.0)[:, None] * v / RADIUS
-    pts = np.repeat(v[None], n, axis=0)
-    pts[:, :, 0] *= 1 + stretch * (age[:, None] - 60)
-    pts[groups == "patient"] += bump_field
-    pts += rng.normal(scale=NOISE_MM, size=pts.shape)
-    names = [f"s{i:02d}" for i in range(n)]
-    model = build_model(pts, f, names)
-    attrs = attributes_from_tables({nm: {"group": g, "age": a} for nm, g, a in zip(names, groups, age)})
-    return model, attrs, {"cap": cap, "bump": bump_field, "age_effect": np.c_[stretch * v[:, 0], 0 * v[:, :2]],
-                          "age": age, "groups": groups, "sphere": v}
 
 
 @pytest.fixture(scope="module")
 def known():
-    model, attrs, truth = population()
+    model, attrs, truth = analysis_population()
     result = analyze(model, attrs, group="group", covariates=["age"], permutations=999)
     return model, attrs, truth, result
 
@@ -90,7 +61,7 @@ def test_affected_points_are_found_at_fdr_5_percent_with_few_outside(known):
 
 
 def test_two_group_statistic_is_hotellings_t2():
-    model, attrs, truth = population(n=20, seed=3)
+    model, attrs, truth = analysis_population(n=20, seed=3)
     result = analyze(model, attrs, group="group", permutations=99)
     x = model.instance_points
     a, b = x[truth["groups"] == "control"], x[truth["groups"] == "patient"]
@@ -105,7 +76,7 @@ def test_two_group_statistic_is_hotellings_t2():
 
 
 def test_same_seed_same_p_values_and_three_groups_are_tested_pairwise():
-    model, attrs, truth = population(n=24, seed=4)
+    model, attrs, truth = analysis_population(n=24, seed=4)
     three = {n: {"site": "abc"[i % 3], "age": a} for i, (n, a) in enumerate(zip(attrs.names, truth["age"]))}
     t = attributes_from_tables(three)
     r1 = analyze(model, t, group="site", permutations=199, seed=7)
@@ -126,7 +97,7 @@ def test_benjamini_hochberg_matches_the_step_up_rule():
 
 
 def test_centroid_size_and_size_removed_analysis():
-    model, attrs, truth = population(n=20, seed=5)
+    model, attrs, truth = analysis_population(n=20, seed=5)
     sizes = centroid_size(model.instance_points_world)
     np.testing.assert_allclose(sizes[0], np.sqrt(np.sum((model.instance_points_world[0]
                                                          - model.instance_points_world[0].mean(0)) ** 2)))
@@ -225,7 +196,7 @@ def test_bad_attribute_tables_name_the_file_and_line(tmp_path, text, message):
 
 
 def test_bad_analysis_inputs_say_what_is_wrong():
-    model, attrs, truth = population(n=12, seed=6)
+    model, attrs, truth = analysis_population(n=12, seed=6)
     names = attrs.names
 
     def table(**cols):
@@ -273,7 +244,7 @@ def test_ssm_analyze_writes_the_files_and_refuses_bad_input(tmp_path, capsys):
     from ssm_addon.cli.command import main
     from ssm_addon.model.files import save_npz
 
-    model, attrs, _ = population(n=20, seed=8)
+    model, attrs, _ = analysis_population(n=20, seed=8)
     build = tmp_path / "build"
     build.mkdir()
     save_npz(model, build / "model.npz")

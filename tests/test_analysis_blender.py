@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from test_analysis import population
+from conftest import analysis_population
 
 from ssm_addon.analysis import analyze, write_attributes
 from ssm_addon.model.files import save_npz
@@ -17,7 +17,7 @@ pytestmark = pytest.mark.blender
 @pytest.fixture()
 def scene_with_model(bpy_clean, tmp_path):
     bpy = bpy_clean
-    model, attrs, truth = population(n=20, seed=2)
+    model, attrs, truth = analysis_population(n=20, seed=2)
     save_npz(model, tmp_path / "model.npz")
     write_attributes(attrs, tmp_path / "subjects.csv")
     assert bpy.ops.ssm.import_model(filepath=str(tmp_path / "model.npz")) == {"FINISHED"}

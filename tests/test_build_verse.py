@@ -12,28 +12,10 @@ import os
 import re
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import ROOT, VERSE_FILE, VERSE_LABELS
-
-
-def write_verse_project(folder: Path, verse_dir: Path, template: str = "L1") -> Path:
-    """A project file with absolute paths to the VerSe label map and landmark files."""
-    lines = ["[template]", f'instance = "{template}"', "spacing = 1.0", "", "[model]", 'alignment = "none"', ""]
-    for name, label in VERSE_LABELS.items():
-        lines += [
-            "[[instances]]",
-            f'name = "{name}"',
-            f'volume = "{(verse_dir / VERSE_FILE.name).as_posix()}"',
-            f"label = {label}",
-            f'landmarks = "{(verse_dir / "landmarks" / f"{name}.fcsv").as_posix()}"',
-            "",
-        ]
-    path = folder / "verse.toml"
-    path.write_text("\n".join(lines))
-    return path
+from conftest import ROOT, VERSE_FILE, VERSE_LABELS, write_verse_project
 
 
 def run_cli(*args, timeout=300) -> subprocess.CompletedProcess:

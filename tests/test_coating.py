@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
+from conftest import ellipsoid_landmarks
 
 from ssm_addon import meshutil as mu
 from ssm_addon.base import params as P
@@ -21,14 +24,6 @@ try:  # the template stage (paper 3); the tests fall back to an icosphere until 
 except ImportError:  # pragma: no cover - only while template.py is being written
     build_template = None
 
-# 14 landmark directions: the six axes and the eight diagonals (like the VerSe files)
-DIRECTIONS = np.array(
-    [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]]
-    + [[sx, sy, sz] for sx in (1, -1) for sy in (1, -1) for sz in (1, -1)],
-    dtype=float,
-)
-DIRECTIONS /= np.linalg.norm(DIRECTIONS, axis=1, keepdims=True)
-
 
 # ---------------------------------------------------------------------------------------
 # synthetic shapes with known answers
@@ -45,11 +40,6 @@ def object_volume(inside, half_extent_mm, spacing_mm=1.0, source="synthetic") ->
 def ellipsoid_volume(axes_mm, spacing_mm=1.0):
     axes_mm = np.asarray(axes_mm, float)
     return object_volume(lambda p: ((p / axes_mm) ** 2).sum(1) <= 1.0, axes_mm.max(), spacing_mm, f"ellipsoid {axes_mm}")
-
-
-def ellipsoid_landmarks(axes_mm):
-    """(14, 3) points of the ellipsoid surface along DIRECTIONS."""
-    return DIRECTIONS / np.sqrt(((DIRECTIONS / np.asarray(axes_mm, float)) ** 2).sum(1, keepdims=True))
 
 
 def icosphere(subdiv):
@@ -85,7 +75,7 @@ def make_template(ov: ObjectVolume, axes_mm=None):
     """The template of an instance: build_template (paper 3) when available."""
     if build_template is not None:
         return build_template(ov, TemplateParams())
-    v, f = icosphere(3)  # 642 vertices
+    v, f = icosphere(subdivisions=3)  # 642 vertices
     dm = DM.DistanceMap.from_object_volume(ov)
     return _Mesh(dm.project(v * np.asarray(axes_mm, float), 3), f)
 
@@ -297,8 +287,10 @@ def test_batch_results_identical_serial_and_parallel(batch, monkeypatch):
 
     a, template, targets, lms = batch
     serial = C.coat_all(template, ellipsoid_landmarks(a), targets, lms, jobs=1)
-    # two worker processes even on a one-core runner (where --jobs 2 would be capped to one)
+    # two worker processes even on a one-core runner (where --jobs 2 would be capped to one) and
+    # after a Blender test imported bpy in this process (where processes would run serially)
     monkeypatch.setattr(compute, "usable_cores", lambda: 2)
+    monkeypatch.delitem(sys.modules, "bpy", raising=False)
     with compute.Executor("processes", jobs=2) as executor:
         assert executor.jobs == 2 and executor.describe() == "2 local processes"
         parallel = C.coat_all(template, ellipsoid_landmarks(a), targets, lms, jobs=2, executor=executor)

@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from test_coating import ellipsoid_landmarks, icosphere
+from conftest import ellipsoid_landmarks, icosphere
 
 from ssm_addon.coating import distance_map as DM
 from ssm_addon.formats import label_maps as IO
@@ -44,7 +44,7 @@ def _scene(bpy, tmp_path):
         for name, p in zip(names, world):
             set_landmark(bpy.context, obj, name, file_world=p)
     ov = instance_object_volume(bpy.context, inst[1])
-    v, f = icosphere(3)
+    v, f = icosphere(subdivisions=3)
     pts = DM.DistanceMap.from_object_volume(ov).project(v * AXES[1], 3)
     template = Template(points_object=pts, faces=f, curvature=np.zeros(len(pts)), frame=ov.frame)
     tpl = write_template_object(bpy.context, inst[1], template)

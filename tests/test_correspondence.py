@@ -10,6 +10,7 @@ import re
 
 import numpy as np
 import pytest
+from conftest import project_variant, template_of
 
 from ssm_addon.base.errors import InputError
 from ssm_addon.cli import demo
@@ -34,26 +35,6 @@ def population(tmp_path_factory):
     return path
 
 
-def _variant(path, name: str, *, correspondence: str = "", keep_landmarks=None):
-    """The project with a [correspondence] table and landmarks kept on ``keep_landmarks`` only."""
-    text = path.read_text()
-    if keep_landmarks is not None:
-        blocks = text.split("[[instances]]")
-        for i, block in enumerate(blocks[1:], start=1):
-            inst = re.search(r'name = "([^"]+)"', block).group(1)
-            if inst not in keep_landmarks:
-                blocks[i] = re.sub(r'landmarks = "[^"]+"\n', "", block)
-        text = "[[instances]]".join(blocks)
-    text = text.replace("[coating]", f"{correspondence}\n\n[coating]") if correspondence else text
-    out = path.with_name(name)
-    out.write_text(text)
-    return out
-
-
-def _template(path) -> str:
-    return read_project(path).template_instance
-
-
 def _landmark_ext(path) -> str:
     """The extension of the template instance's landmark file (e.g. ``mrk.json``)."""
     project = read_project(path)
@@ -66,7 +47,7 @@ def _swap_two_landmarks(population, prefix: str):
     (instance, its landmarks, the swapped points, the far index, the project text)."""
     from ssm_addon.formats.landmarks import LandmarkSet, write_landmarks
 
-    tpl = _template(population)
+    tpl = template_of(population)
     victim = "demo_00" if tpl != "demo_00" else "demo_01"
     project = read_project(population)
     spec = next(i for i in project.instances if i.name == victim)
@@ -88,7 +69,7 @@ def _sha(path):
 def test_landmarks_method_is_the_single_pass(population, tmp_path):
     """method = "landmarks" (the default) builds exactly what a project without the table builds."""
     build(read_project(population), tmp_path / "a", log=None)
-    explicit = _variant(population, "explicit.toml", correspondence='[correspondence]\nmethod = "landmarks"')
+    explicit = project_variant(population, "explicit.toml", correspondence='[correspondence]\nmethod = "landmarks"')
     build(read_project(explicit), tmp_path / "b", log=None)
     assert _sha(tmp_path / "a" / "model.npz") == _sha(tmp_path / "b" / "model.npz")
     doc = json.loads((tmp_path / "a" / "report.json").read_text())
@@ -100,7 +81,7 @@ def test_landmarks_method_is_the_single_pass(population, tmp_path):
     ext = _landmark_ext(population)
     assert written == [f"demo_{i:02d}.{ext}" for i in range(6)]
     # on the template instance they are its own landmarks, located on the template (< 1 voxel off)
-    d = doc["correspondence"]["carried_landmark_distance_mm"][_template(population)]
+    d = doc["correspondence"]["carried_landmark_distance_mm"][template_of(population)]
     assert max(d.values()) < 1.0, d
 
 
@@ -108,8 +89,8 @@ def test_landmarks_method_is_the_single_pass(population, tmp_path):
 def test_model_method_with_landmarks_on_the_template_only(population, tmp_path):
     """Only the template instance is landmarked: every other instance starts from the object
     frames, is refined with the model, and gets landmarks near its true (unused) ones."""
-    tpl = _template(population)
-    proj = _variant(population, "light.toml", correspondence='[correspondence]\nmethod = "model"\niterations = 2',
+    tpl = template_of(population)
+    proj = project_variant(population, "light.toml", correspondence='[correspondence]\nmethod = "model"\niterations = 2',
                     keep_landmarks={tpl})
     lines = []
     result = build(read_project(proj), tmp_path / "out", log=lines.append)
@@ -145,8 +126,8 @@ def test_model_method_with_landmarks_on_the_template_only(population, tmp_path):
 
 
 def test_model_method_needs_landmarks_on_the_template_instance(population, tmp_path):
-    tpl = _template(population)
-    proj = _variant(population, "nolm.toml", correspondence='[correspondence]\nmethod = "model"',
+    tpl = template_of(population)
+    proj = project_variant(population, "nolm.toml", correspondence='[correspondence]\nmethod = "model"',
                     keep_landmarks={f"demo_{i:02d}" for i in range(6)} - {tpl})
     out = tmp_path / "out"
     with pytest.raises(InputError, match=rf"nolm.toml:\d+: \[template\] instance '{tpl}' has no landmarks"):
@@ -156,8 +137,8 @@ def test_model_method_needs_landmarks_on_the_template_instance(population, tmp_p
 
 
 def test_landmarks_method_still_needs_landmarks_everywhere(population):
-    tpl = _template(population)
-    proj = _variant(population, "missing.toml", keep_landmarks={tpl})
+    tpl = template_of(population)
+    proj = project_variant(population, "missing.toml", keep_landmarks={tpl})
     other = "demo_00" if tpl != "demo_00" else "demo_02"
     with pytest.raises(InputError, match=rf"missing.toml.*{other}.*landmarks"):
         read_project(proj)
@@ -168,9 +149,9 @@ def test_landmarks_on_a_few_instances_start_the_rest_from_their_model(population
     """Landmarks on the template instance and one other: the other four start from the
     model of those two coatings fitted to their surface (``start = "model fit"``), and
     their landmarks are carried near the true (unused) ones."""
-    tpl = _template(population)
+    tpl = template_of(population)
     other = "demo_00" if tpl != "demo_00" else "demo_01"
-    proj = _variant(population, "few.toml", correspondence='[correspondence]\nmethod = "model"\niterations = 2',
+    proj = project_variant(population, "few.toml", correspondence='[correspondence]\nmethod = "model"\niterations = 2',
                     keep_landmarks={tpl, other})
     lines = []
     result = build(read_project(proj), tmp_path / "out", log=lines.append)
@@ -218,7 +199,7 @@ def test_a_diverging_refinement_falls_back_to_the_start_and_says_so(population, 
         return replace(coated, points_object=coated.points_object * 50.0)
 
     monkeypatch.setattr(corr, "coat_mean_shape", runaway)
-    proj = _variant(population, "diverge.toml",
+    proj = project_variant(population, "diverge.toml",
                     correspondence='[correspondence]\nmethod = "model"\nround_template = "mean"')
     out = tmp_path / "out"
     result = build(read_project(proj), out, log=None)
@@ -241,7 +222,7 @@ def test_model_method_keeps_the_template_points_on_the_template_instance(populat
 
     monkeypatch.setattr(corr, "round_helps", lambda *args, **kwargs: True)
 
-    proj = _variant(population, "keep.toml",
+    proj = project_variant(population, "keep.toml",
                     correspondence='[correspondence]\nmethod = "model"\niterations = 2\nround_template = "mean"')
     study = Study.from_project(read_project(proj))
     run(study, stages=("import", "template"), jobs=2)
@@ -351,8 +332,8 @@ def test_an_optional_refinement_that_fails_falls_back_and_the_build_finishes(pop
     from ssm_addon.base.errors import SSMError
     from ssm_addon.pipeline import model_method
 
-    project = _variant(population, "medoid.toml", correspondence='[correspondence]\nmethod = "model"\niterations = 1')
-    medoid = _template(project)  # this population's medoid gives the template: start from another instance
+    project = project_variant(population, "medoid.toml", correspondence='[correspondence]\nmethod = "model"\niterations = 1')
+    medoid = template_of(project)  # this population's medoid gives the template: start from another instance
     given = next(i.name for i in read_project(project).instances if i.name != medoid)
     project.write_text(re.sub(r'instance = "[^"]+"', f'instance = "{given}"', project.read_text(), count=1))
     real = model_method.make_template

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_correspondence import _template, _variant
+from conftest import project_variant, template_of
 
 from ssm_addon.cli import demo
 from ssm_addon.cli.project_build import build
@@ -23,8 +23,8 @@ def light_project(tmp_path_factory):
     path = demo.make_demo_population(folder / "population", n=5, seed=9)
     path.write_text(path.read_text().replace("spacing = 1.0", "spacing = 1.0\nr_min_mm = 4.0\nr_max_mm = 8.0")
                     .replace("[model]", "[model]\nspecificity_samples = 50"))
-    tpl = _template(path)
-    return _variant(path, "light.toml", correspondence='[correspondence]\nmethod = "model"\niterations = 2',
+    tpl = template_of(path)
+    return project_variant(path, "light.toml", correspondence='[correspondence]\nmethod = "model"\niterations = 2',
                     keep_landmarks={tpl})
 
 
@@ -99,7 +99,7 @@ def test_propose_landmarks_fits_the_scene_model(bpy_clean, light_project):
     assert bpy.ops.ssm.build_template() == {"FINISHED"}
     assert bpy.ops.ssm.coat_template() == {"FINISHED"}
     assert bpy.ops.ssm.build_model() == {"FINISHED"}
-    tpl = _template(light_project)
+    tpl = template_of(light_project)
     others = [o for o in scene_instances(bpy.context) if o.name != tpl]
     errors = []
     for obj in others:

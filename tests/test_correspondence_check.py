@@ -13,7 +13,7 @@ import json
 
 import numpy as np
 import pytest
-from test_coating import icosphere
+from conftest import icosphere
 
 from ssm_addon.base.params import FitParams, QualityParams
 from ssm_addon.correspondence.rounds import CorrespondenceCheck, RoundFigures, check_correspondence
@@ -24,7 +24,7 @@ LANDMARKS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11)  # the icosahedron's corners
 
 
 def _population(n=7, seed=3):
-    v, f = icosphere(3)
+    v, f = icosphere(subdivisions=3)
     rng = np.random.default_rng(seed)
     axes = np.array([40.0, 25.0, 15.0]) * (1 + 0.15 * rng.standard_normal((n, 3)))
     points = {f"e{k}": v * axes[k] for k in range(n)}

@@ -12,6 +12,7 @@ import json
 import nibabel as nib
 import numpy as np
 import pytest
+from conftest import ellipsoid_mesh, synthetic_population
 from foreign_data import LPS, knee30_in_scanner_poses, scalismo_landmarks, slicer_obj, slicer_ply, slicer_stl
 
 from ssm_addon.cli.project_build import build
@@ -23,31 +24,11 @@ from ssm_addon.pipeline.project import read_project
 WRITERS = {"ply": slicer_ply, "stl": slicer_stl, "obj": slicer_obj}
 
 
-def ellipsoid(radii=(30.0, 20.0, 14.0), n=24, centre=(0.0, 0.0, 0.0)):
-    """A closed, outward triangle mesh of an ellipsoid (mm)."""
-    u, v = np.meshgrid(np.linspace(0, 2 * np.pi, n, endpoint=False), np.linspace(0, np.pi, n // 2 + 1)[1:-1])
-    ring = np.stack([np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v)], axis=-1).reshape(-1, 3)
-    pts = np.vstack([[0, 0, 1], ring, [0, 0, -1]]) * np.asarray(radii) + np.asarray(centre)
-    rows, cols = n // 2 - 1, n
-    idx = lambda r, c: 1 + r * cols + c % cols  # noqa: E731
-    faces = [[0, idx(0, c), idx(0, c + 1)] for c in range(cols)]
-    for r in range(rows - 1):
-        for c in range(cols):
-            faces += [[idx(r, c), idx(r + 1, c), idx(r + 1, c + 1)], [idx(r, c), idx(r + 1, c + 1), idx(r, c + 1)]]
-    last = len(pts) - 1
-    faces += [[last, idx(rows - 1, c + 1), idx(rows - 1, c)] for c in range(cols)]
-    faces = np.array(faces)
-    tri = pts[faces]
-    if np.einsum("ij,ij->i", np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), tri.mean(1) - pts.mean(0)).sum() < 0:
-        faces = faces[:, ::-1]
-    return pts, faces
-
-
 @pytest.mark.parametrize("fmt", ["ply", "stl", "obj"])
 def test_a_mesh_file_is_read_in_the_convention_it_states(tmp_path, fmt):
     """The same surface written in LPS and in RAS, each file saying which (as 3D Slicer writes
     them), reads as the same RAS coordinates; a file that states nothing is taken as given."""
-    verts, faces = ellipsoid(centre=(120.0, -80.0, 900.0))
+    verts, faces = ellipsoid_mesh(centre=(120.0, -80.0, 900.0))
     lps = WRITERS[fmt](tmp_path / f"lps.{fmt}", verts, faces, space="LPS")
     ras = WRITERS[fmt](tmp_path / f"ras.{fmt}", verts, faces, space="RAS")
     assert mesh_space(lps) == "LPS" and mesh_space(ras) == "RAS"
@@ -68,7 +49,7 @@ def _three_meshes(tmp_path, centre, space, fmt="ply"):
              "specificity_samples = 20", ""]
     shapes = {}
     for i, radii in enumerate(((30.0, 20.0, 14.0), (33.0, 19.0, 15.0), (28.0, 22.0, 13.0))):
-        verts, faces = ellipsoid(radii, centre=centre)
+        verts, faces = ellipsoid_mesh(radii, centre=centre)
         name = f"e{i}"
         (slicer_ply if fmt == "ply" else WRITERS[fmt])(tmp_path / f"{name}.{fmt}", verts, faces, space=space)
         tips = verts[[np.argmax(verts[:, 0]), np.argmin(verts[:, 0]), np.argmax(verts[:, 1]), np.argmin(verts[:, 1]),
@@ -164,7 +145,6 @@ def test_a_foreign_statismo_model_loses_its_empty_modes(tmp_path):
     n - 1 modes, many of them empty): they are dropped on load, with one line saying how many, and
     a fit counts only the real modes."""
     import h5py
-    from test_model import synthetic_population
 
     from ssm_addon.fitting.batch import load_model
     from ssm_addon.fitting.fit import Target, fit_any_pose
@@ -199,8 +179,8 @@ def test_a_template_too_coarse_for_a_thin_process_is_named(tmp_path):
              "specificity_samples = 20", ""]
     for i, (length, radii) in enumerate(((26.0, (24.0, 20.0, 16.0)), (28.0, (25.0, 19.0, 16.0)),
                                          (25.0, (23.0, 21.0, 15.0)))):
-        body, bf = ellipsoid(radii, n=32)
-        spike, sf = ellipsoid((length, 1.6, 1.6), n=16, centre=(radii[0] + length - 3.0, 0.0, 0.0))
+        body, bf = ellipsoid_mesh(radii, n=32)
+        spike, sf = ellipsoid_mesh((length, 1.6, 1.6), n=16, centre=(radii[0] + length - 3.0, 0.0, 0.0))
         verts = np.vstack([body, spike])
         # one closed surface: the voxelized union's marching cubes (the spike fused to the body)
         from ssm_addon.instances.voxelize import voxelize_mesh

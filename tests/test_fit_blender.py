@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_model_blender import add_coated
-from test_model_blender import population as population_fixture
+from conftest import add_coated, coated_population, random_rotation, synthetic_population
 
 pytestmark = pytest.mark.blender
 
@@ -13,7 +12,7 @@ pytestmark = pytest.mark.blender
 @pytest.fixture()
 def scene_with_model(bpy_clean):
     bpy = bpy_clean
-    population = population_fixture.__wrapped__()
+    population = coated_population()
     add_coated(bpy, population)
     assert bpy.ops.ssm.build_model() == {"FINISHED"}
     bpy.context.scene.ssm_fit.noise_mm = 0.05  # the targets below are exact model shapes
@@ -144,8 +143,6 @@ def test_fit_model_says_the_warnings_of_ssm_fit(bpy_clean, tmp_path):
     from ssm.operators import bridge
     from ssm.operators import model as opmodel
     from ssm.operators.properties import scene_params
-    from test_model import random_rotation, synthetic_population
-    from test_model_blender import add_coated
 
     from ssm_addon.fitting.batch import FitTarget, fit_to_folder
     from ssm_addon.formats.meshes import write_ply

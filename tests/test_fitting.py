@@ -8,12 +8,18 @@ import json
 import re
 from pathlib import Path
 
-import h5py
 import numpy as np
 import pytest
-from conftest import FEMUR10_DIR, knee30_bone
+from conftest import (
+    FEMUR10_DIR,
+    femur10_meshes,
+    knee30_bone,
+    random_rotation,
+    synthetic_population,
+    write_foreign_statismo,
+    write_verse_project,
+)
 from scipy.spatial import ConvexHull
-from test_model import random_rotation, synthetic_population
 
 from ssm_addon import meshutil
 from ssm_addon.__main__ import main
@@ -22,7 +28,6 @@ from ssm_addon.base.params import FitParams
 from ssm_addon.fitting import batch as apply
 from ssm_addon.fitting.fit import Pose, Target, fit_model
 from ssm_addon.formats.landmarks import LandmarkSet, write_landmarks
-from ssm_addon.formats.meshes import read_mesh
 from ssm_addon.model.files import load_statismo, save_npz, save_statismo
 from ssm_addon.model.pca import build_model, procrustes_fit
 
@@ -130,25 +135,6 @@ def test_completion_predicts_the_missing_part_and_its_uncertainty_is_calibrated(
     assert np.mean(errors) < 0.5 * np.mean(model.standard_deviations[:2])
 
 
-def write_foreign_statismo(model, path):
-    """``model`` as another tool writes a statismo file (the 0.9 layout, float32, no SSM
-    extras and no training instances); returns ``path``."""
-    with h5py.File(path, "w") as f:
-        f.create_group("version")
-        f["version/majorVersion"], f["version/minorVersion"] = np.int32(0), np.int32(9)
-        f["model/mean"] = model.mean.reshape(-1).astype(np.float32)
-        f["model/pcaBasis"] = model.modes.reshape(model.n_modes, -1).T.astype(np.float32)
-        f["model/pcaVariance"] = model.variances.astype(np.float32)
-        f["model/noiseVariance"] = np.float32(0.0)
-        rep = f.create_group("representer")
-        rep.attrs["name"] = "itkStandardMeshRepresenter"
-        rep.attrs["datasetType"] = "POLYGON_MESH"
-        rep["points"] = model.mean.T.astype(np.float32)
-        rep["cells"] = np.asarray(model.faces, np.int32).T
-        f.create_group("modelinfo")["build-time"] = "2026-01-01"
-    return path
-
-
 def test_our_statismo_file_and_another_tools_fit_identically(model, tmp_path):
     ours = tmp_path / "ours.h5"
     save_statismo(model, ours)
@@ -179,7 +165,6 @@ def test_bad_inputs_are_named(model, tmp_path):
 @pytest.fixture(scope="module")
 def verse_models(verse_dir, tmp_path_factory):
     """The nine VerSe vertebrae built into a model (landmarks known), for leave-one-out fits."""
-    from test_build_verse import write_verse_project
 
     from ssm_addon.cli.project_build import build
     from ssm_addon.pipeline.project import read_project
@@ -484,13 +469,6 @@ def test_a_foreign_statismo_model_fits_a_target_anywhere_as_in_its_own_coordinat
         res, search = fit_any_pose(foreign, Target.from_mesh(moved, foreign.faces), params=params)
         assert abs(res.mean_distance_mm - home.mean_distance_mm) < 0.1, search
         np.testing.assert_allclose(res.coefficients[:3], home.coefficients[:3], atol=0.1)
-
-
-def femur10_meshes(folder: Path) -> tuple[list[Path], np.ndarray, np.ndarray]:
-    """femur10's files, vertices (10, N, 3) mm and their shared faces."""
-    files = sorted(folder.glob("femur*.ply"))
-    meshes = [read_mesh(f) for f in files]
-    return files, np.stack([np.asarray(v, float) for v, _f in meshes]), np.asarray(meshes[0][1])
 
 
 def femur10_completion(folder: Path, *, step: int = 1, params: FitParams | None = None, foreign: bool = False,

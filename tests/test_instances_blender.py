@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import VERSE_FILE, VERSE_LABELS
+from conftest import VERSE_FILE, VERSE_LABELS, icosphere, write_stl_binary
 
 from ssm_addon import meshutil as mu
 from ssm_addon.formats import label_maps as IO
@@ -196,7 +196,6 @@ def test_failed_import_leaves_the_scene_unchanged(bpy_clean, tmp_path):
 
 def test_import_mesh_file_and_multiple_files(bpy_clean, tmp_path):
     bpy = bpy_clean
-    from test_volume import icosphere, write_stl_binary
 
     v, f = icosphere(15.0, 2)
     write_stl_binary(tmp_path / "ball.stl", v, f)

@@ -7,66 +7,11 @@ import json
 
 import numpy as np
 import pytest
-from test_data_as_users_bring_it import ellipsoid
+from conftest import axis_rotation, ellipsoid_mesh, joint_model, joint_population, joint_project, write_foreign_statismo
 
 from ssm_addon.base.errors import InputError
 from ssm_addon.model.joint import collision_findings, collisions, relative_pose, shape_and_pose, structure_model
-from ssm_addon.model.pca import build_model
 from ssm_addon.pipeline.project import read_project
-
-
-def _rotation(axis, degrees):
-    a = np.asarray(axis, float) / np.linalg.norm(axis)
-    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    t = np.radians(degrees)
-    return np.eye(3) + np.sin(t) * k + (1 - np.cos(t)) * k @ k
-
-
-def _joint(shapes_a, shapes_b, faces_a, faces_b, *, alignment="none"):
-    pts = np.concatenate([shapes_a, shapes_b], axis=1)
-    faces = np.concatenate([faces_a, faces_b + shapes_a.shape[1]])
-    model = build_model(pts, faces, [f"s{i}" for i in range(len(pts))], alignment=alignment)
-    return dataclasses.replace(model, structure_names=("a", "b"),
-                               structure_offsets=np.array([0, shapes_a.shape[1], pts.shape[1]]))
-
-
-def _population(n=12, seed=0, turn_sd=6.0):
-    """Two ellipsoids per subject: ``b`` beside ``a``, turned about z and moved by a known amount."""
-    rng = np.random.default_rng(seed)
-    va, fa = ellipsoid((20.0, 12.0, 10.0), n=16)
-    vb, fb = ellipsoid((10.0, 8.0, 8.0), n=12)
-    a, b, turns = [], [], []
-    for _ in range(n):
-        scale = 1.0 + 0.05 * rng.normal()
-        turn = turn_sd * rng.normal()
-        rot = _rotation([0, 0, 1], turn)
-        a.append(va * scale)
-        b.append((vb * (1.0 + 0.05 * rng.normal())) @ rot.T + [32.0 + rng.normal(), 0.0, 0.0])
-        turns.append(turn)
-    return np.stack(a), np.stack(b), fa, fb, np.array(turns)
-
-
-def joint_project(folder, n, header=(), *, ages=False, name="project.toml"):
-    """A joint project of ``n`` subjects of :func:`_population` as other tools write them: each
-    structure a Slicer PLY, four landmarks A-D per structure in Scalismo JSON; ``header``: the
-    project's tables; ``ages``: an ``age`` attribute per subject. Returns its path."""
-    from foreign_data import scalismo_landmarks, slicer_ply
-
-    a, b, fa, fb, _t = _population(n=n)
-    lines = list(header)
-    for i in range(n):
-        s = f"S{i}"
-        slicer_ply(folder / f"{s}_a.ply", a[i], fa, space=None)
-        slicer_ply(folder / f"{s}_b.ply", b[i], fb, space=None)
-        scalismo_landmarks(folder / f"{s}_a.json", list("ABCD"), a[i][[0, 5, 40, 100]])
-        scalismo_landmarks(folder / f"{s}_b.json", list("ABCD"), b[i][[0, 5, 30, 50]])
-        lines += ["[[instances]]", f'name = "{s}"', f'meshes = {{ a = "{s}_a.ply", b = "{s}_b.ply" }}',
-                  f'landmarks = {{ a = "{s}_a.json", b = "{s}_b.json" }}']
-        lines += [f"attributes = {{ age = {30 + 7 * i} }}"] if ages else []
-        lines.append("")
-    path = folder / name
-    path.write_text("\n".join(lines))
-    return path
 
 
 def test_a_multi_structure_project_reads_each_structure_as_its_own_study(tmp_path):
@@ -89,8 +34,8 @@ def test_a_multi_structure_project_reads_each_structure_as_its_own_study(tmp_pat
 
 
 def test_a_structures_rows_of_the_joint_model_are_its_exact_marginal():
-    a, b, fa, fb, _t = _population()
-    model = _joint(a, b, fa, fb)
+    a, b, fa, fb, _t = joint_population()
+    model = joint_model(a, b, fa, fb)
     sub = structure_model(model, "b")
     sl = model.structure_slice("b")
     q = model.modes[:, sl].reshape(model.n_modes, -1)
@@ -105,13 +50,13 @@ def test_a_structures_rows_of_the_joint_model_are_its_exact_marginal():
 def test_relative_pose_recovers_a_known_turn_and_shift():
     """The pose of a structure relative to the reference: a rotation vector (the log map) and the
     translation in the reference's frame, whatever the subject's own pose."""
-    _a, _b, fa, fb, _t = _population(n=2)
-    va, _ = ellipsoid((20.0, 12.0, 10.0), n=16)
-    vb, _ = ellipsoid((10.0, 8.0, 8.0), n=12)
+    _a, _b, fa, fb, _t = joint_population(n=2)
+    va, _ = ellipsoid_mesh((20.0, 12.0, 10.0), n=16)
+    vb, _ = ellipsoid_mesh((10.0, 8.0, 8.0), n=12)
     vb = vb + [32.0, 0, 0]
-    turn = _rotation([0.2, 0.3, 1.0], 25.0)
+    turn = axis_rotation([0.2, 0.3, 1.0], 25.0)
     moved_b = (vb - vb.mean(0)) @ turn.T + vb.mean(0) + [0.0, 4.0, 0.0]
-    subject = _rotation([1, 1, 0], 70.0)  # the whole subject turned and moved: changes nothing relative
+    subject = axis_rotation([1, 1, 0], 70.0)  # the whole subject turned and moved: changes nothing relative
     rv, t, logs = relative_pose(moved_b @ subject.T + 100.0, va @ subject.T + 100.0, vb, va)
     assert np.degrees(np.linalg.norm(rv)) == pytest.approx(25.0, abs=1e-6)
     np.testing.assert_allclose(rv / np.linalg.norm(rv), np.array([0.2, 0.3, 1.0]) / np.linalg.norm([0.2, 0.3, 1.0]),
@@ -121,8 +66,8 @@ def test_relative_pose_recovers_a_known_turn_and_shift():
 
 
 def test_shape_and_pose_finds_the_relative_turn_in_the_data_and_the_model():
-    a, b, fa, fb, turns = _population(n=16, turn_sd=8.0)
-    model = _joint(a, b, fa, fb)
+    a, b, fa, fb, turns = joint_population(n=16, turn_sd=8.0)
+    model = joint_model(a, b, fa, fb)
     sp = shape_and_pose(model, reference="a", samples=200)
     pair = sp["pairs"]["a-b"]
     assert pair["data"]["turn_sd_deg"] == pytest.approx(np.sqrt(np.mean((turns - turns.mean()) ** 2)), rel=0.05)
@@ -133,14 +78,14 @@ def test_shape_and_pose_finds_the_relative_turn_in_the_data_and_the_model():
 def test_a_model_without_the_relative_pose_collides_and_is_named():
     """Aligning each structure on its own (as per-domain Procrustes does) drops their relative pose:
     the model's shapes overlap where no subject does, a collision finding."""
-    a, b, fa, fb, _t = _population(n=12)
-    joint = _joint(a, b, fa, fb, alignment="rigid")
+    a, b, fa, fb, _t = joint_population(n=12)
+    joint = joint_model(a, b, fa, fb, alignment="rigid")
     ok = collisions(joint, samples=60, depth_mm=0.5)
     assert ok["a-b"]["data"]["colliding_share"] == 0.0 and not collision_findings(ok, 0.2)
     rng = np.random.default_rng(3)
     # per-structure alignment: each structure centred on its own, their placement lost
     centred_b = b - b.mean(axis=1, keepdims=True) + rng.normal(scale=[8.0, 4.0, 4.0], size=(len(b), 1, 3)) + [18, 0, 0]
-    lost = _joint(a, centred_b, fa, fb, alignment="rigid")
+    lost = joint_model(a, centred_b, fa, fb, alignment="rigid")
     lost = dataclasses.replace(lost, instance_points_world=np.concatenate([a, b], axis=1))  # the subjects as they are
     bad = collisions(lost, samples=60, depth_mm=0.5)
     found = collision_findings(bad, 0.2)
@@ -154,8 +99,8 @@ def test_a_joint_model_file_keeps_its_structures(tmp_path):
 
     from ssm_addon.model.files import load_npz, load_statismo, save_npz, save_statismo
 
-    a, b, fa, fb, _t = _population(n=6)
-    model = _joint(a, b, fa, fb)
+    a, b, fa, fb, _t = joint_population(n=6)
+    model = joint_model(a, b, fa, fb)
     save_npz(model, tmp_path / "m.npz")
     save_statismo(model, tmp_path / "m.h5")
     for back in (load_npz(tmp_path / "m.npz"), load_statismo(tmp_path / "m.h5")):
@@ -288,8 +233,8 @@ def test_a_joint_models_exchange_meshes_keep_each_structure(tmp_path):
     from ssm_addon.formats.gltf import read_glb
     from ssm_addon.model.files import write_exchange_meshes
 
-    a, b, fa, fb, _t = _population(n=8)
-    model = _joint(a, b, fa, fb)
+    a, b, fa, fb, _t = joint_population(n=8)
+    model = joint_model(a, b, fa, fb)
     written = write_exchange_meshes(model, tmp_path, modes=3)
     doc, binary = read_glb(written["gltf"])
 
@@ -327,16 +272,16 @@ def test_analysis_of_a_joint_model_finds_a_group_turning_one_structure_on_the_ot
     from ssm_addon.analysis.shape_analysis import analyze
 
     rng = np.random.default_rng(5)
-    va, fa = ellipsoid((20.0, 12.0, 10.0), n=16)
-    vb, fb = ellipsoid((10.0, 8.0, 8.0), n=12)
+    va, fa = ellipsoid_mesh((20.0, 12.0, 10.0), n=16)
+    vb, fb = ellipsoid_mesh((10.0, 8.0, 8.0), n=12)
     a, b, groups = [], [], {}
     for i in range(20):
         group = "B" if i % 2 else "A"
-        rot = _rotation([0, 0, 1], 2.0 * rng.normal() + (8.0 if group == "B" else 0.0))
+        rot = axis_rotation([0, 0, 1], 2.0 * rng.normal() + (8.0 if group == "B" else 0.0))
         a.append(va * (1.0 + 0.03 * rng.normal()))
         b.append(vb @ rot.T + [32.0 + 0.3 * rng.normal(), 0.0, 0.0])
         groups[f"s{i}"] = {"group": group, "age": float(rng.uniform(20, 80))}
-    model = _joint(np.stack(a), np.stack(b), fa, fb)
+    model = joint_model(np.stack(a), np.stack(b), fa, fb)
     result = analyze(model, attributes_from_tables(groups), group="group", covariates=("age",), permutations=199)
     pose = result.relative_pose["a-b"]
     e = pose["effects"]["group: B"]
@@ -355,13 +300,11 @@ def test_another_tools_joined_model_opens_as_a_joint_model_of_its_parts(tmp_path
     stay a model of one structure."""
     import dataclasses as dc
 
-    from test_fitting import write_foreign_statismo
-
     from ssm_addon.fitting.batch import load_model
     from ssm_addon.model.joint import joined_parts
 
-    a, b, fa, fb, _t = _population(n=8)
-    model = _joint(a, b, fa, fb)
+    a, b, fa, fb, _t = joint_population(n=8)
+    model = joint_model(a, b, fa, fb)
     said = []
     opened = load_model(write_foreign_statismo(model, tmp_path / "joined.h5"), say=said.append)
     assert opened.structure_names == ("part 1", "part 2")

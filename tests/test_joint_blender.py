@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_joint import _joint, _population
+from conftest import joint_model, joint_population, joint_project, write_foreign_statismo
 
 pytestmark = pytest.mark.blender
 
@@ -21,8 +21,8 @@ def test_import_shape_model_opens_a_joint_model_as_an_empty_driving_one_mesh_per
     from ssm_addon.model.files import load_npz, save_npz
 
     bpy = bpy_clean
-    a, b, fa, fb, _t = _population(n=10)
-    model = _joint(a, b, fa, fb)
+    a, b, fa, fb, _t = joint_population(n=10)
+    model = joint_model(a, b, fa, fb)
     save_npz(model, tmp_path / "joint.npz")
     assert bpy.ops.ssm.import_model(filepath=str(tmp_path / "joint.npz")) == {"FINISHED"}
     empty = find_model_object(bpy.context)
@@ -68,7 +68,6 @@ def test_import_shape_model_opens_a_joint_model_as_an_empty_driving_one_mesh_per
     assert sorted(o.name for o in bpy.data.objects if o.name.startswith("SSM Model")) == [
         "SSM Model", "SSM Model a", "SSM Model b"]
     # another tool's joined statismo file: its parts become the structures
-    from test_fitting import write_foreign_statismo
 
     assert bpy.ops.ssm.import_model(filepath=str(write_foreign_statismo(model, tmp_path / "j.h5"))) == {"FINISHED"}
     assert [p.name for p in model_parts(find_model_object(bpy.context))] == ["SSM Model part 1", "SSM Model part 2"]
@@ -77,7 +76,6 @@ def test_import_shape_model_opens_a_joint_model_as_an_empty_driving_one_mesh_per
 def test_a_joint_project_does_not_mix_into_a_scene_of_one_structure(bpy_clean, tmp_path):
     """Open Project of a joint project into a scene holding a one-structure study refuses, says
     why, and changes nothing."""
-    from test_joint import joint_project
 
     bpy = bpy_clean
     joint = joint_project(tmp_path, 3, ["[template]", "spacing = 1.0", ""], name="joint.toml")
@@ -104,8 +102,8 @@ def test_fit_as_one_structure_predicts_the_others_as_ssm_fit_does(bpy_clean, tmp
     from ssm_addon.model.files import save_npz
 
     bpy = bpy_clean
-    a, b, fa, fb, _t = _population(n=10)
-    model = _joint(a, b, fa, fb)
+    a, b, fa, fb, _t = joint_population(n=10)
+    model = joint_model(a, b, fa, fb)
     save_npz(model, tmp_path / "joint.npz")
     assert bpy.ops.ssm.import_model(filepath=str(tmp_path / "joint.npz")) == {"FINISHED"}
     bpy.context.scene.ssm_fit.noise_mm = 0.05  # the target is an exact model shape
@@ -150,8 +148,8 @@ def test_blenders_gltf_importer_opens_a_joint_model_glb_with_shared_mode_keys(bp
     from ssm_addon.model.files import write_exchange_meshes
 
     bpy = bpy_clean
-    a, b, fa, fb, _t = _population(n=8)
-    model = _joint(a, b, fa, fb)
+    a, b, fa, fb, _t = joint_population(n=8)
+    model = joint_model(a, b, fa, fb)
     written = write_exchange_meshes(model, tmp_path, modes=3, vtk=False)
     assert bpy.ops.import_scene.gltf(filepath=written["gltf"]) == {"FINISHED"}
     obj = next(o for o in bpy.data.objects if o.type == "MESH")
@@ -169,8 +167,8 @@ def test_a_joint_models_blend_file_keeps_its_sliders_driving_every_structure(bpy
     from ssm.operators.scene import find_model_object, mode_sliders, model_parts
 
     bpy = bpy_clean
-    a, b, fa, fb, _t = _population(n=8)
-    model = _joint(a, b, fa, fb)
+    a, b, fa, fb, _t = joint_population(n=8)
+    model = joint_model(a, b, fa, fb)
     write_joint_model_blend(model, tmp_path / "model.blend")
     bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "model.blend"))
     empty = find_model_object(bpy.context)
@@ -191,7 +189,6 @@ def test_a_joint_project_opened_and_built_in_blender_gives_the_headless_model(bp
     joint model as ``ssm build`` of the project, and each structure's coated meshes in the scene.
     The single-structure operators step aside."""
     from ssm.operators.scene import find_model_object, model_from_object, scene_instances, scene_structures
-    from test_joint import joint_project
 
     from ssm_addon.cli.project_build import build
     from ssm_addon.model.files import load_npz
@@ -252,7 +249,6 @@ def test_a_joint_project_opened_and_built_in_blender_gives_the_headless_model(bp
 def test_save_project_of_a_joint_scene_reads_back_as_the_same_joint_project(bpy_clean, tmp_path):
     """Save Project of a joint scene: each structure's instances, landmarks (full precision) and
     own tables as the project had them; saving, opening and saving again gives the same bytes."""
-    from test_joint import joint_project
 
     from ssm_addon.pipeline.project import read_project
 

@@ -8,7 +8,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from conftest import VERSE_FILE, VERSE_LABELS, knee30_bone
+from conftest import VERSE_FILE, VERSE_LABELS, icosphere, knee30_bone, object_frame_of
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
@@ -19,7 +19,6 @@ from ssm_addon.correspondence.proposal import (
     surface_points_object,
     transfer_landmarks,
 )
-from ssm_addon.formats.label_maps import Volume
 from ssm_addon.formats.landmarks import (
     LANDMARK_PRESETS,
     LandmarkSet,
@@ -29,7 +28,6 @@ from ssm_addon.formats.landmarks import (
     read_landmarks,
     write_landmarks,
 )
-from ssm_addon.instances import frame as FR
 from ssm_addon.instances import volume as vol
 
 
@@ -229,32 +227,6 @@ def test_presets():
 # ---------------------------------------------------------------------------- proposal
 
 
-def _ico_sphere(radius=10.0, subdivisions=4):
-    """Vertices and faces of an ico-sphere (numpy), radius in mm."""
-    t = (1 + 5**0.5) / 2
-    v = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t], [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]], float)
-    f = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2], [10, 7, 6], [7, 1, 8],
-                  [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]])
-    for _ in range(subdivisions):
-        verts = list(v)
-        cache = {}
-
-        def mid(a, b, verts=verts, cache=cache):
-            key = (min(a, b), max(a, b))
-            if key not in cache:
-                verts.append((verts[a] + verts[b]) / 2)
-                cache[key] = len(verts) - 1
-            return cache[key]
-
-        nf = []
-        for a, b, c in f:
-            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
-            nf += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
-        v, f = np.array(verts), np.array(nf)
-    v = v / np.linalg.norm(v, axis=1, keepdims=True) * radius
-    return v, f
-
-
 def _rotation(seed):
     q, _ = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
     return q * np.sign(np.linalg.det(q))
@@ -295,7 +267,7 @@ def test_proposal_onto_object_volume_lands_on_its_surface():
 def test_coating_proposal_hook_lands_on_an_ellipsoid_target():
     # source: a sphere of radius 10 (the template's surface); target: a voxel ellipsoid
     # with semi-axes 8, 11, 9 mm; landmarks at the sphere's poles go to the ellipsoid's
-    v, f = _ico_sphere(10.0, 2)
+    v, f = icosphere(10.0, 2)
     template = SimpleNamespace(points_object=v, faces=f)
     ijk = np.indices((31, 31, 31)).reshape(3, -1).T
     semi = np.array([8.0, 11.0, 9.0])
@@ -335,11 +307,6 @@ def _surface_voxel_centres_world(mask, affine):
     return np.argwhere(surf) @ affine[:3, :3].T + affine[:3, 3]
 
 
-def _frame(mask, affine):
-    """The object frame of paper section 2 (volume.object_frame, patient axes)."""
-    return FR.object_frame(Volume(mask, affine, "verse", None, True))
-
-
 def test_verse_lps_landmarks_land_on_the_l1_surface(verse_dir, verse_labels):
     labels, affine = verse_labels
     surface = cKDTree(_surface_voxel_centres_world(labels == VERSE_LABELS["L1"], affine))
@@ -362,7 +329,7 @@ def test_verse_proposal_of_l2_from_l1_lies_on_l2_surface(verse_dir, verse_labels
     f2 = np.pad(m2, 1).astype(np.float32)
     verts, _, _, _ = marching_cubes(f2, 0.5)
     surface_world = (verts - 1.0) @ affine[:3, :3].T + affine[:3, 3]
-    out = transfer_landmarks(lm1, _frame(m1, affine), _frame(m2, affine), surface_world, source="L2")
+    out = transfer_landmarks(lm1, object_frame_of(m1, affine), object_frame_of(m2, affine), surface_world, source="L2")
     assert out.names == lm2.names
     # on L2's surface: the linearly interpolated L2 mask is 0.5 at each proposed point
     inv = np.linalg.inv(affine)
@@ -391,7 +358,7 @@ def test_order_by_schema_keeps_a_partial_set_and_lists_unknown_names():
 def test_proposal_from_meshes_puts_landmarks_on_the_target_mesh(method):
     # a sphere (radius 10) at one place and an ellipsoid (semi-axes 8, 11, 9 mm) rotated
     # and translated elsewhere: pole landmarks of the sphere go to the ellipsoid's poles
-    v, f = _ico_sphere(10.0, 3)
+    v, f = icosphere(10.0, 3)
     semi = np.array([8.0, 11.0, 9.0])
     src_frame = vol.ObjectFrame(np.array([5.0, -3.0, 2.0]), _rotation(1))
     tgt_frame = vol.ObjectFrame(np.array([100.0, 40.0, -700.0]), _rotation(2))

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import VERSE_FILE, VERSE_LABELS
-from test_landmarks import _frame, _ico_sphere
+from conftest import VERSE_FILE, VERSE_LABELS, icosphere, object_frame_of
 
 from ssm_addon.formats.landmarks import LANDMARK_PRESETS, LandmarkSet, read_landmarks, write_landmarks
 from ssm_addon.instances import volume as vol
@@ -69,7 +68,7 @@ def _world(emp):
 @pytest.fixture()
 def sphere(bpy_clean):
     bpy = bpy_clean
-    v, f = _ico_sphere()
+    v, f = icosphere(10.0, 4)
     m = _matrix(_rotation(4), [50.0, -20.0, 300.0])
     obj = _make_instance(bpy, "Ball", v, f, m, vol.ObjectFrame(m[:3, 3], m[:3, :3]))
     return bpy, obj
@@ -206,7 +205,7 @@ def verse_meshes(verse_dir):
         mask = labels == VERSE_LABELS[name]
         verts, faces, _, _ = marching_cubes(np.pad(mask, 1).astype(np.float32), 0.5)
         world = (verts - 1.0) @ affine[:3, :3].T + affine[:3, 3]
-        frame = _frame(mask, affine)
+        frame = object_frame_of(mask, affine)
         out[name] = (frame.to_object(world), faces[:, ::-1], frame)
     return out
 
@@ -372,7 +371,7 @@ def test_panel_and_list_draw_the_status(sphere, layout_recorder):
 def test_propose_by_coating_in_blender(bpy_clean):
     bpy = bpy_clean
     lm = _ops()
-    v, f = _ico_sphere(10.0, 3)
+    v, f = icosphere(10.0, 3)
     semi = np.array([8.0, 11.0, 9.0])
     m_src = _matrix(_rotation(1), [5.0, -3.0, 2.0])
     m_tgt = _matrix(_rotation(2), [100.0, 40.0, -70.0])

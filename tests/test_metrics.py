@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_model import FACES, names, random_rotation, synthetic_population
+from conftest import FACES, names, random_rotation, smooth_fields, sphere_points, synthetic_population
 
 from ssm_addon.base.errors import InputError
 from ssm_addon.model.files import load_npz, load_statismo
@@ -51,7 +51,6 @@ def test_compactness_standard_error_matches_the_spread_over_populations():
     Gaussian shapes with variances 25, 9, 4 mm² along known fields. For k = 1 the spread of
     λ̂₁ over the populations is sqrt(2/n) λ₁ (the first entry); for k = 3 the spread of the
     sum is at most Davies' sum (an upper bound, the λ̂ being nearly independent)."""
-    from test_model import smooth_fields, sphere_points
 
     rng = np.random.default_rng(11)
     base = sphere_points(60)
@@ -138,7 +137,6 @@ def test_specificity_equals_its_integral_on_a_one_mode_population():
     σ mean|f_p| E[min_i |z - z_i|], the expectation over z ~ N(0, 1) integrated
     numerically. The Monte Carlo estimate lies within 4 of its standard errors."""
     from scipy import integrate, stats
-    from test_model import smooth_fields, sphere_points
 
     base = sphere_points(50)
     f = smooth_fields(base)[1]  # unit as a 3N vector

@@ -7,72 +7,17 @@ import json
 import h5py
 import numpy as np
 import pytest
+from conftest import FACES, names, random_rotation, sphere_points, synthetic_population
 
 from ssm_addon.base.errors import InputError
 from ssm_addon.model.files import load_npz, load_statismo, save_npz, save_statismo
 from ssm_addon.model.pca import ShapeModel, build_model, generalized_procrustes
 
 
-# ---------------------------------------------------------------------------------------
-# synthetic shapes with known answers
-# ---------------------------------------------------------------------------------------
-def sphere_points(n_points: int = 200, radius_mm: float = 20.0) -> np.ndarray:
-    """Fibonacci points on a sphere: (N, 3) mm."""
-    i = np.arange(n_points) + 0.5
-    phi = np.arccos(1 - 2 * i / n_points)
-    theta = np.pi * (1 + 5**0.5) * i
-    return radius_mm * np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], axis=1)
-
-
-def smooth_fields(base: np.ndarray) -> np.ndarray:
-    """Three orthonormal (as 3N vectors) smooth displacement fields on ``base``: (3, N, 3).
-
-    Radial growth, an x stretch and a bend of z with x²; Gram-Schmidt orthonormalised.
-    """
-    r = base / np.linalg.norm(base, axis=1, keepdims=True)
-    stretch = np.zeros_like(base)
-    stretch[:, 0] = base[:, 0]
-    bend = np.zeros_like(base)
-    bend[:, 2] = base[:, 0] ** 2
-    q, _ = np.linalg.qr(np.stack([r.ravel(), stretch.ravel(), bend.ravel()], axis=1))
-    return q.T.reshape(3, -1, 3)
-
-
-def synthetic_population(n=60, n_points=200, variances=(25.0, 9.0, 4.0), noise_mm=0.01, seed=1):
-    """Shapes = mean + Σ b_k f_k + noise with known fields f_k and exact sample variances λ_k.
-
-    Returns (shapes (n, N, 3), mean (N, 3), fields (3, N, 3), variances (3,)).
-    """
-    rng = np.random.default_rng(seed)
-    mean = sphere_points(n_points)
-    fields = smooth_fields(mean)
-    coeff = rng.standard_normal((n, 3))
-    coeff -= coeff.mean(axis=0)
-    q, _ = np.linalg.qr(coeff)  # zero-mean, orthonormal columns: exact, uncorrelated sample variances
-    b = q * np.sqrt(n * np.asarray(variances))[None]
-    shapes = mean[None] + np.tensordot(b, fields, axes=1) + noise_mm * rng.standard_normal((n, n_points, 3))
-    return shapes, mean, fields, np.asarray(variances, float)
-
-
 def small_random(n=7, n_points=12, seed=0):
     rng = np.random.default_rng(seed)
     base = sphere_points(n_points, 10.0)
     return base[None] + rng.normal(scale=[2.0, 1.0, 0.5], size=(n, n_points, 3))
-
-
-FACES = np.array([[0, 1, 2], [0, 2, 3], [1, 2, 3]])
-
-
-def names(n):
-    return [f"inst{i:02d}" for i in range(n)]
-
-
-def random_rotation(rng) -> np.ndarray:
-    q, r = np.linalg.qr(rng.standard_normal((3, 3)))
-    q = q * np.sign(np.diag(r))
-    if np.linalg.det(q) < 0:
-        q[:, 0] = -q[:, 0]
-    return q
 
 
 # ---------------------------------------------------------------------------------------

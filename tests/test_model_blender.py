@@ -6,47 +6,9 @@ import json
 
 import numpy as np
 import pytest
-from scipy.spatial import ConvexHull
-from test_model import random_rotation, synthetic_population
+from conftest import N_INST, add_coated, coated_population, write_foreign_statismo
 
 pytestmark = pytest.mark.blender
-
-N_INST = 10
-
-
-@pytest.fixture(scope="module")
-def population():
-    shapes, mean, fields, lam = synthetic_population(n=N_INST, n_points=120, noise_mm=0.2, seed=3)
-    faces = ConvexHull(mean).simplices
-    rng = np.random.default_rng(0)
-    frames = [(rng.normal(scale=50, size=3), random_rotation(rng)) for _ in range(N_INST)]
-    return shapes, faces, frames
-
-
-def add_coated(bpy, population, n=N_INST):
-    """Coated instances as the coating stage leaves them: object-frame points, an instance with a frame."""
-    from ssm.operators import bridge, scene
-    from ssm.operators.coating import write_coated
-    from ssm.operators.template import write_template_object
-
-    from ssm_addon.coating.coating import CoatingResult, FitFigures
-    from ssm_addon.instances.volume import ObjectFrame
-    from ssm_addon.template.template import Template
-
-    shapes, faces, frames = population
-    ctx = bpy.context
-    for i in range(n):
-        inst = bridge.new_mesh_object(ctx, f"V{i:02d}", np.zeros((0, 3)), np.zeros((0, 3), int), "SSM Instances")
-        inst.ssm.role = "INSTANCE"
-        inst.ssm.order = i
-        frame = ObjectFrame(np.asarray(frames[i][0], float), np.asarray(frames[i][1], float))
-        scene.write_frame(inst, frame, frame.matrix_world)
-        bridge.set_matrix_world(inst, frame.matrix_world)
-        if i == 0:
-            write_template_object(ctx, inst, Template(shapes[0], faces, np.zeros(len(shapes[0])), frame))
-        fit = FitFigures(mean_distance_mm=0.1 * i, max_distance_mm=0.2 * i, folded_before=0, folded_after=0,
-                         iterations=10)
-        write_coated(ctx, inst, CoatingResult(shapes[i], shapes[i], fit, f"V{i:02d}"), faces, shapes[0])
 
 
 @pytest.fixture()
@@ -62,6 +24,11 @@ def built(bpy_clean, population):
 
     obj = bpy.data.objects["SSM Model"]
     return bpy, obj, opmodel.model_from_object(obj)
+
+
+@pytest.fixture(scope="module")
+def population():
+    return coated_population()
 
 
 def test_build_model_from_coated_instances(built, population):
@@ -265,7 +232,6 @@ def test_import_shape_model_opens_our_npz_and_a_foreign_statismo_file(bpy_clean,
     mode values v is mean + Σ v_k √λ_k q_k (float32 meshes), and the Model panel's object."""
     from ssm.operators import bridge
     from ssm.operators.scene import find_model_object, model_from_object
-    from test_fitting import write_foreign_statismo
 
     from ssm_addon.model.files import save_npz
     from ssm_addon.model.pca import build_model
@@ -301,7 +267,6 @@ def test_import_shape_model_drops_a_foreign_models_empty_modes(bpy_clean, popula
     import dataclasses
 
     from ssm.operators.scene import find_model_object, model_from_object
-    from test_fitting import write_foreign_statismo
 
     from ssm_addon.model.pca import build_model
 

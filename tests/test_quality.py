@@ -8,8 +8,7 @@ import shutil
 import nibabel as nib
 import numpy as np
 import pytest
-from conftest import VERSE_FILE
-from test_model import synthetic_population
+from conftest import VERSE_FILE, synthetic_population
 
 from ssm_addon.__main__ import main
 from ssm_addon.base.errors import InputError

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import VERSE_FILE, VERSE_LABELS
+from conftest import VERSE_FILE, VERSE_LABELS, add_coated, coated_population
 
 from ssm_addon.base import params as P
 from ssm_addon.cli.project_build import build
@@ -172,11 +172,9 @@ def test_disabled_buttons_say_why(bpy_clean):
 
 
 def test_reset_clears_the_animation_and_script_calls_use_the_panel_settings(bpy_clean):
-    from test_model_blender import add_coated
-    from test_model_blender import population as population_fixture
 
     bpy = bpy_clean
-    add_coated(bpy, population_fixture.__wrapped__())
+    add_coated(bpy, coated_population())
     assert bpy.ops.ssm.build_model() == {"FINISHED"}
     model = next(o for o in bpy.data.objects if o.ssm.role == "MODEL")
     settings = bpy.context.scene.ssm_model

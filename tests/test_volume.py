@@ -5,13 +5,12 @@ from __future__ import annotations
 import gzip
 import json
 import re
-import struct
 import subprocess
 import sys
 
 import numpy as np
 import pytest
-from conftest import ROOT, VERSE_FILE, VERSE_LABELS
+from conftest import ROOT, VERSE_FILE, VERSE_LABELS, icosphere, write_stl_binary
 
 from ssm_addon import meshutil as mu
 from ssm_addon.base.errors import InputError
@@ -65,43 +64,6 @@ def ellipsoid_mask(affine, shape=(46, 42, 30), rot=OBJ_ROT, semi=SEMI_AXES, cent
 def ellipsoid():
     A = ellipsoid_affine()
     return V.Volume(mask=ellipsoid_mask(A), affine=A, source="ellipsoid")
-
-
-def icosphere(radius: float = 20.0, subdivisions: int = 3):
-    """Outward-oriented icosphere: (V, 3) vertices, (F, 3) faces."""
-    t = (1 + 5**0.5) / 2
-    v = np.array(
-        [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
-         [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]], float
-    )  # fmt: skip
-    f = np.array(
-        [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2],
-         [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5],
-         [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]]
-    )  # fmt: skip
-    v /= np.linalg.norm(v, axis=1)[:, None]
-    for _ in range(subdivisions):
-        e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-        ue, inv = np.unique(e, axis=0, return_inverse=True)
-        mid = v[ue].mean(axis=1)
-        mid /= np.linalg.norm(mid, axis=1)[:, None]
-        m = inv.reshape(3, -1).T + len(v)
-        v = np.vstack([v, mid])
-        a, b, c = f.T
-        ab, bc, ca = m.T
-        f = np.concatenate(
-            [np.stack([a, ab, ca], 1), np.stack([b, bc, ab], 1), np.stack([c, ca, bc], 1), np.stack([ab, bc, ca], 1)]
-        )
-    return v * radius, f
-
-
-def write_stl_binary(path, v, f):
-    tri = v[f].astype("<f4")
-    with open(path, "wb") as fh:
-        fh.write(b"binary stl".ljust(80, b" ") + struct.pack("<I", len(f)))
-        rec = np.zeros(len(f), dtype=[("n", "<f4", 3), ("v", "<f4", (3, 3)), ("a", "<u2")])
-        rec["v"] = tri
-        fh.write(rec.tobytes())
 
 
 def write_stl_ascii(path, v, f):
