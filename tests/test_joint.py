@@ -230,7 +230,7 @@ def test_a_joint_models_exchange_meshes_keep_each_structure(tmp_path):
     the whole joint; vtk/<structure>/ the structure's own mean and mode shapes."""
     import xml.etree.ElementTree as ET
 
-    from ssm_addon.formats.gltf import read_glb
+    from ssm_addon.formats.gltf import Z_UP_TO_Y_UP, read_glb
     from ssm_addon.model.files import write_exchange_meshes
 
     a, b, fa, fb, _t = joint_population(n=8)
@@ -249,15 +249,15 @@ def test_a_joint_models_exchange_meshes_keep_each_structure(tmp_path):
     for prim, name, faces in zip(mesh["primitives"], ("a", "b"), (fa, fb)):
         sl = model.structure_slice(name)
         assert prim["extras"]["structure"] == name and doc["materials"][prim["material"]]["name"] == name
-        np.testing.assert_allclose(floats(prim["attributes"]["POSITION"]).reshape(-1, 3), model.mean[sl] / 1000,
-                                   rtol=1e-6, atol=1e-7)
+        np.testing.assert_allclose(floats(prim["attributes"]["POSITION"]).reshape(-1, 3),
+                                   model.mean[sl] @ Z_UP_TO_Y_UP.T / 1000, rtol=1e-6, atol=1e-7)
         acc = doc["accessors"][prim["indices"]]
         view = doc["bufferViews"][acc["bufferView"]]
         tris = np.frombuffer(binary[view["byteOffset"]:view["byteOffset"] + acc["count"] * 4], np.uint32)
         np.testing.assert_array_equal(tris.reshape(-1, 3), faces)
         assert len(prim["targets"]) == 3
         np.testing.assert_allclose(floats(prim["targets"][1]["POSITION"]).reshape(-1, 3),
-                                   model.standard_deviations[1] * model.modes[1][sl] / 1000, atol=1e-7)
+                                   model.standard_deviations[1] * model.modes[1][sl] @ Z_UP_TO_Y_UP.T / 1000, atol=1e-7)
     plus = ET.parse(tmp_path / "vtk" / "b" / "mode_1_plus2sd.vtp").getroot().find("PolyData/Piece/Points/DataArray")
     sl = model.structure_slice("b")
     np.testing.assert_allclose(np.array(plus.text.split(), float).reshape(-1, 3),

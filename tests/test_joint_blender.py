@@ -157,6 +157,11 @@ def test_blenders_gltf_importer_opens_a_joint_model_glb_with_shared_mode_keys(bp
     assert [k.name for k in obj.data.shape_keys.key_blocks][1:] == [f"Mode {i} (+1 SD)" for i in (1, 2, 3)]
     by_material = np.array([p.material_index for p in obj.data.polygons])
     assert np.bincount(by_material).tolist() == [len(fa), len(fb)]
+    # Blender's importer turns glTF's +Y up back to its +Z up: the model stands as it was built (m)
+    m = np.array(obj.matrix_world)
+    got = np.array([v.co for v in obj.data.vertices]) @ m[:3, :3].T + m[:3, 3]
+    np.testing.assert_allclose(got.min(axis=0), model.mean.min(axis=0) / 1000, atol=1e-6)
+    np.testing.assert_allclose(got.max(axis=0), model.mean.max(axis=0) / 1000, atol=1e-6)
 
 
 def test_a_joint_models_blend_file_keeps_its_sliders_driving_every_structure(bpy_clean, tmp_path):

@@ -157,7 +157,7 @@ def test_exchange_meshes_open_at_their_real_size(tmp_path):
     and the mean ±2 SD per mode in mm."""
     import xml.etree.ElementTree as ET
 
-    from ssm_addon.formats.gltf import read_glb
+    from ssm_addon.formats.gltf import Z_UP_TO_Y_UP, read_glb, read_glb_mesh
     from ssm_addon.model.files import write_exchange_meshes
     from ssm_addon.model.pca import build_model
 
@@ -170,21 +170,30 @@ def test_exchange_meshes_open_at_their_real_size(tmp_path):
     written = write_exchange_meshes(model, tmp_path, modes=3)
     doc, binary = read_glb(written["gltf"])
     pos = doc["accessors"][doc["meshes"][0]["primitives"][0]["attributes"]["POSITION"]]
-    np.testing.assert_allclose(pos["max"], model.mean.max(axis=0) / 1000, rtol=1e-6)  # metres
+    # metres, and glTF's +Y up: the model's +Z (superior) is the file's +Y, its +Y the file's -Z
+    up = model.mean @ Z_UP_TO_Y_UP.T
+    np.testing.assert_allclose(up[:, 1], model.mean[:, 2])
+    np.testing.assert_allclose(up[:, 2], -model.mean[:, 1])
+    np.testing.assert_allclose(pos["max"], up.max(axis=0) / 1000, rtol=1e-6)
     view = doc["bufferViews"][pos["bufferView"]]
     stored = np.frombuffer(binary[view["byteOffset"]:view["byteOffset"] + view["byteLength"]], np.float32)
-    np.testing.assert_allclose(stored.reshape(-1, 3), model.mean / 1000, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(stored.reshape(-1, 3), up / 1000, rtol=1e-6, atol=1e-7)
+    assert doc["extras"]["up"].startswith("+Y")
+    back, back_faces, back_targets = read_glb_mesh(written["gltf"])  # and back, mm, +Z up
+    np.testing.assert_allclose(back, model.mean, atol=1e-3)
+    np.testing.assert_array_equal(back_faces, faces)
+    np.testing.assert_allclose(back_targets["Mode 1 (+1 SD)"], model.standard_deviations[0] * model.modes[0], atol=1e-3)
     targets = doc["meshes"][0]["primitives"][0]["targets"]
     assert len(targets) == 3 and doc["meshes"][0]["extras"]["targetNames"][0] == "Mode 1 (+1 SD)"
     t = doc["accessors"][targets[0]["POSITION"]]
     tv = doc["bufferViews"][t["bufferView"]]
     shift = np.frombuffer(binary[tv["byteOffset"]:tv["byteOffset"] + tv["byteLength"]], np.float32).reshape(-1, 3)
-    np.testing.assert_allclose(shift, model.standard_deviations[0] * model.modes[0] / 1000, atol=1e-7)
+    np.testing.assert_allclose(shift, model.standard_deviations[0] * model.modes[0] @ Z_UP_TO_Y_UP.T / 1000, atol=1e-7)
     plus = ET.parse(tmp_path / "vtk" / "mode_2_plus2sd.vtp").getroot().find("PolyData/Piece/Points/DataArray")
     pts = np.array(plus.text.split(), float).reshape(-1, 3)
     np.testing.assert_allclose(pts, model.mean + 2 * model.standard_deviations[1] * model.modes[1], atol=1e-6)
     extent = np.array(pos["max"]) - np.array(pos["min"])
-    np.testing.assert_allclose(extent, np.ptp(model.mean, axis=0) / 1000, rtol=1e-6)  # 80 mm wide: 0.08 m
+    np.testing.assert_allclose(extent, np.ptp(up, axis=0) / 1000, rtol=1e-6)  # 80 mm wide: 0.08 m
     assert abs(extent[0] - 0.08) < 0.01
     # VTK's own readers (vtk is in requirements-dev.txt, so this runs in CI; only its I/O modules, no OpenGL)
     io_xml = pytest.importorskip("vtkmodules.vtkIOXML", reason="VTK's readers: pip install -r requirements-dev.txt")

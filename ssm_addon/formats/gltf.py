@@ -5,6 +5,11 @@ are written scaled by 0.001 and a viewer shows the model at its real size. Each 
 target is a displacement of every vertex (``POSITION`` of the target); its default weight
 is 0, so the file opens on the mean shape and a viewer's morph sliders play the modes.
 
+glTF's up axis is +Y (spec 3.4); the model's frames, like Blender's and the scanner's
+patient frames, have +Z up (superior). The writer turns the model by -90° about X,
+``(x, y, z) -> (x, z, -y)`` (what Blender's own glTF exporter does), so a viewer shows a
+vertebra standing as it stands in the body; :func:`read_glb_mesh` turns it back.
+
 References
 ----------
 .. [1] Khronos Group, "glTF 2.0 Specification" (2021): GLB container (chapter 4), meshes
@@ -19,9 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["MM_TO_M", "read_glb", "write_glb"]
+__all__ = ["MM_TO_M", "Z_UP_TO_Y_UP", "read_glb", "read_glb_mesh", "write_glb"]
 
 MM_TO_M = 0.001
+
+Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+"""The rotation from the model's frame (+Z up) to glTF's (+Y up): ``p_gltf = Z_UP_TO_Y_UP @ p``."""
 
 _FLOAT, _UINT32 = 5126, 5125
 _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
@@ -36,7 +44,8 @@ def write_glb(path, points_mm, faces, morph_targets_mm: dict | None = None, *, n
     path : path
         The ``.glb`` file.
     points_mm : (N, 3) array_like
-        Vertex positions, mm (any right-handed frame; written as they are, times 0.001).
+        Vertex positions, mm, in a right-handed frame with +Z up (written in metres, turned
+        by :data:`Z_UP_TO_Y_UP` into glTF's +Y up).
     faces : (F, 3) int array_like
         Triangles, counter-clockwise seen from outside.
     morph_targets_mm : dict name -> (N, 3) array_like, optional
@@ -49,9 +58,10 @@ def write_glb(path, points_mm, faces, morph_targets_mm: dict | None = None, *, n
         and a material named after it, so the mesh's morph weights, one per target, move every
         structure together, and an importer keeps them apart (Blender: *Separate by Material*).
     """
-    pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3) * MM_TO_M
+    pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3) @ Z_UP_TO_Y_UP.T * MM_TO_M
     tris = np.asarray(faces, dtype=np.uint32).reshape(-1, 3)
-    targets = {k: np.asarray(v, dtype=np.float64).reshape(-1, 3) * MM_TO_M for k, v in (morph_targets_mm or {}).items()}
+    targets = {k: np.asarray(v, dtype=np.float64).reshape(-1, 3) @ Z_UP_TO_Y_UP.T * MM_TO_M
+               for k, v in (morph_targets_mm or {}).items()}
     blobs, views, accessors = [], [], []
 
     def add(array: np.ndarray, component: int, kind: str, target=None, bounds=False) -> int:
@@ -95,7 +105,8 @@ def write_glb(path, points_mm, faces, morph_targets_mm: dict | None = None, *, n
     doc = {"asset": {"version": "2.0", "generator": "SSM Builder"}, "scene": 0,
            "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0, "name": name}], "meshes": [mesh],
            "accessors": accessors, "bufferViews": views, "buffers": [{"byteLength": len(binary)}],
-           "extras": {"unit": "metre (the model's mm times 0.001)"}}
+           "extras": {"unit": "metre (the model's mm times 0.001)",
+                      "up": "+Y, glTF's (the model's +Z: (x, y, z) written as (x, z, -y))"}}
     if materials:
         doc["materials"] = materials
     text = json.dumps(doc, separators=(",", ":")).encode()
@@ -117,3 +128,38 @@ def read_glb(path) -> tuple[dict, bytes]:
     doc = json.loads(raw[20:20 + n])
     m, _ = struct.unpack_from("<II", raw, 20 + n)
     return doc, raw[28 + n:28 + n + m]
+
+
+def read_glb_mesh(path) -> tuple[np.ndarray, np.ndarray, dict]:
+    """A ``.glb`` written by :func:`write_glb` back in the model's frame and unit.
+
+    Returns
+    -------
+    points_mm : (N, 3) float ndarray
+        Vertices, mm, +Z up (every primitive's, in order).
+    faces : (F, 3) int ndarray
+        Triangles, indexing ``points_mm``.
+    morph_targets_mm : dict name -> (N, 3) float ndarray
+        Displacements, mm, +Z up, by the names of ``extras.targetNames``.
+    """
+    doc, binary = read_glb(path)
+
+    def array(index: int, width: int, dtype) -> np.ndarray:
+        acc = doc["accessors"][index]
+        view = doc["bufferViews"][acc["bufferView"]]
+        start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+        return np.frombuffer(binary, dtype, acc["count"] * width, start).reshape(-1, width) if width > 1 else \
+            np.frombuffer(binary, dtype, acc["count"], start)
+
+    mesh = doc["meshes"][0]
+    names = mesh.get("extras", {}).get("targetNames", [])
+    to_model = Z_UP_TO_Y_UP / MM_TO_M  # p_model = p_gltf @ (Z_UP_TO_Y_UP / 0.001), the transpose of the inverse
+    points, faces, targets, offset = [], [], {n: [] for n in names}, 0
+    for prim in mesh["primitives"]:
+        pos = array(prim["attributes"]["POSITION"], 3, "<f4").astype(np.float64)
+        points.append(pos @ to_model)
+        faces.append(array(prim["indices"], 1, "<u4").astype(np.int64).reshape(-1, 3) + offset)
+        for name, t in zip(names, prim.get("targets", [])):
+            targets[name].append(array(t["POSITION"], 3, "<f4").astype(np.float64) @ to_model)
+        offset += len(pos)
+    return np.concatenate(points), np.concatenate(faces), {n: np.concatenate(v) for n, v in targets.items() if v}
