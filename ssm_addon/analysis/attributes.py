@@ -17,6 +17,7 @@ from __future__ import annotations
 import csv
 import difflib
 import math
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,6 +31,8 @@ __all__ = ["MISSING_TOKENS", "NAME_COLUMNS", "Attributes", "attributes_from_tabl
 
 #: Cell texts read as a missing value (case-insensitive).
 MISSING_TOKENS = frozenset({"", "na", "n/a", "nan", "null", "none", "."})
+_DECIMAL_COMMA = re.compile(r"^([+-]?\d+),(\d+)$")
+
 #: Header names taken as the instance-name column (case-insensitive); otherwise the first column.
 NAME_COLUMNS = ("name", "instance", "subject", "id")
 
@@ -168,6 +171,9 @@ def attributes_from_tables(tables: Mapping[str, Mapping], *, source: str = "attr
 def read_attributes(path) -> Attributes:
     """Read a CSV attribute table (comma, semicolon or tab separated; a header row).
 
+    In a semicolon- or tab-separated file a cell such as ``51,5`` is the number 51.5 (the
+    decimal comma of the spreadsheets that write such files).
+
     The instance names are the column called ``name``, ``instance``, ``subject`` or ``id``
     (case-insensitive), else the first column.
 
@@ -179,6 +185,8 @@ def read_attributes(path) -> Attributes:
         file and the line.
     """
     path = Path(path).expanduser()
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder, not an attribute table (give the CSV file)")
     if not path.is_file():
         raise InputError(f"{path}: attribute table not found")
     try:
@@ -199,6 +207,8 @@ def read_attributes(path) -> Attributes:
         raise InputError(f"{path}: column {twice[0]!r} appears twice in the header")
     lower = [h.lower() for h in header]
     key = next((lower.index(c) for c in NAME_COLUMNS if c in lower), 0)
+    if delimiter != ",":  # a decimal comma (51,5) where the comma does not separate cells
+        rows = [rows[0]] + [[_DECIMAL_COMMA.sub(r"\1.\2", c.strip()) for c in row] for row in rows[1:]]
     tables: dict[str, dict] = {}
     for lineno, row in enumerate(rows[1:], start=2):
         if len(row) != len(header):

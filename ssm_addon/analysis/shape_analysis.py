@@ -157,6 +157,27 @@ def _column_values(attrs: Attributes, name: str, sizes: np.ndarray):
     return attrs.kinds[name], attrs.column(name)
 
 
+def _text_covariate(attrs: Attributes, column: str) -> str:
+    """A covariate column that is not all numbers: an error naming the cells that are not
+    numbers when most are, else the note that it is used as a group (said once)."""
+    cells = [(n, v) for n, v in zip(attrs.names, attrs.values[column]) if v is not None]
+    words = [(n, v) for n, v in cells if _as_number(v) is None]
+    if len(words) < len(cells) / 2:
+        shown = ", ".join(f"{v!r} ({n})" for n, v in words[:6]) + (" …" if len(words) > 6 else "")
+        raise InputError(f"{attrs.source}: covariate {column!r} has cells that are not numbers: {shown}; write them "
+                         "as numbers (a decimal point, or a decimal comma in a semicolon-separated file) or leave "
+                         "them empty (missing)")
+    return f"covariate {column!r} holds text, not numbers: used as a group (its values are categories)"
+
+
+def _as_number(text: str) -> float | None:
+    try:
+        x = float(str(text).strip())
+    except ValueError:
+        return None
+    return x if np.isfinite(x) else None
+
+
 def design_matrix(attrs: Attributes, *, group: str | None, covariates=(), sizes=None, reference: str | None = None):
     """The model's design on the rows of ``attrs`` with every used value given.
 
@@ -329,6 +350,9 @@ def analyze(model, attributes: Attributes, *, group: str | None = None, covariat
     if unknown:
         warnings.append(f"{len(unknown)} attribute rows name no instance of the model and were ignored: "
                         f"{', '.join(map(repr, unknown[:8]))}{' …' if len(unknown) > 8 else ''}")
+    for c in covariates:
+        if c in attrs.values and attrs.kinds[c] == "category":
+            warnings.append(_text_covariate(attrs, c))
     sizes_all = centroid_size(np.asarray(model.instance_points_world, float))
     rows, columns, labels, levels_of, excluded_rows = design_matrix(attrs, group=group, covariates=covariates,
                                                                     sizes=sizes_all, reference=reference)

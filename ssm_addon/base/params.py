@@ -404,7 +404,8 @@ def add_arguments(parser: argparse.ArgumentParser | argparse._ArgumentGroup, cls
             parser.add_argument(_flag(prefix, s), dest=dest, choices=s.choices, default=None, help=text)
         else:
             typ = {"int": int, "float": float, "str": str}[s.kind]
-            parser.add_argument(_flag(prefix, s), dest=dest, type=typ, default=None, help=text)
+            metavar = "MM" if s.unit == "mm" else {"int": "N", "float": "X", "str": "TEXT"}[s.kind]
+            parser.add_argument(_flag(prefix, s), dest=dest, type=typ, default=None, metavar=metavar, help=text)
 
 
 def from_arguments(args: argparse.Namespace, cls, *, prefix: str = "", base=None):

@@ -26,6 +26,7 @@ import dataclasses
 import os
 import signal
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -196,6 +197,22 @@ def cmd_info(args) -> int:
     return 0
 
 
+def _writable_folder(folder: Path, option: str) -> None:
+    """Create ``folder`` if needed and check that files can be written in it: a refusal naming
+    it, before any work."""
+    existing = folder
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if existing.exists() and not existing.is_dir():
+        raise InputError(f"{option}: {existing} is a file, not a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):  # what writing will meet (a read-only mount, permissions)
+            pass
+    except OSError as err:
+        raise InputError(f"{option}: cannot write in {folder}: {err.strerror or err}") from None
+
+
 def cmd_template(args) -> int:
     from ..formats.meshes import write_ply
     from ..instances.importing import load_object
@@ -203,16 +220,16 @@ def cmd_template(args) -> int:
     from ..template.template import build_template
 
     params = P.from_arguments(args, P.TemplateParams)
+    out = Path(args.out)
+    if out.is_dir():
+        raise InputError(f"{out}: --out is a folder; give the PLY file to write, e.g. {out / 'template.ply'}")
+    _writable_folder(out.parent, "--out")  # before the work, not after it
     progress = _print_progress()
     t0 = time.perf_counter()
     ov = load_object(args.volume, label=args.label, spacing_mm=params.spacing_mm, frame_method=params.frame,
                      progress=progress)
     template = build_template(ov, params, progress=progress)
     n_v, faces = len(template.points_object), template.faces
-    out = Path(args.out)
-    if out.is_dir():
-        raise InputError(f"{out}: --out is a folder; give the PLY file to write, e.g. {out / 'template.ply'}")
-    out.parent.mkdir(parents=True, exist_ok=True)
     write_ply(out, template.points_world, faces, space="RAS")
     print(f"vertices: {n_v}")
     print(f"faces:    {len(faces)}")
@@ -242,6 +259,9 @@ def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> 
     from ..cli import blender_layer
     from ..cli.project_build import build, read_project
 
+    if jobs is not None and jobs < 1:
+        print(f"note: --jobs {jobs} is not a number of workers; used 1", flush=True)
+        jobs = 1
     project = with_overrides(read_project(project_path), args)
     hook = None
     if blend and project.params.output.blend:
@@ -270,7 +290,8 @@ def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> 
     if "coated" in result.files:
         print(f"  {'coated':11s} {result.files['coated']}/<name>.ply")
     if "vtk" in result.files:
-        print(f"  {'vtk':11s} {result.files['vtk']}/ (mean, ±2 SD per mode, coated/<name>.vtp)")
+        coated = ", coated/<name>.vtp" if (Path(result.out_dir) / "vtk" / "coated").is_dir() else ""
+        print(f"  {'vtk':11s} {result.files['vtk']}/ (mean, ±2 SD per mode{coated})")
     if "analysis" in result.files:
         print(f"  {'analysis':11s} {result.files['analysis']}/ (analysis.json, analysis.npz, effects/*.vtp, maps)")
     from ..model.quality import warnings_text
@@ -283,6 +304,20 @@ def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> 
         if findings:
             print("\n" + heading + warnings_text(findings), flush=True)
     return 0
+
+
+def _one_target(args, named: dict) -> None:
+    """Refuse two targets at once (a batch and a single target, two batches, two single
+    targets), naming them: one of them would otherwise be left out without a word."""
+    single = [f"--{k} {v}" for k, v in (("volume", args.volume), ("mesh", args.mesh), ("points", args.points)) if v]
+    single += [f"--mesh {k}={v}" for k, v in named.items()]
+    batch = [f"--{k} {v}" for k, v in (("project", args.project), ("glob", args.glob)) if v]
+    structures = bool(named or args.label_of)  # a joint model's structures: --volume with --label-of, --mesh S=F
+    if structures and not batch and not args.points and not (args.mesh and not named):
+        return
+    if len(batch) + len(single) > 1:
+        raise InputError(f"{' and '.join(batch + single)}: two targets at once; give one target, or one batch "
+                         "(--project or --glob)")
 
 
 def cmd_fit(args) -> int:
@@ -300,8 +335,15 @@ def cmd_fit(args) -> int:
     if len(meshes) > 1 and len(named) != len(meshes):
         raise InputError("--mesh: several meshes are STRUCTURE=FILE each (a joint model's structures)")
     args.mesh = meshes[0] if meshes and not named else None
+    _one_target(args, named)
+    if args.jobs < 1:
+        print(f"note: --jobs {args.jobs} is not a number of workers; used 1", flush=True)
+        args.jobs = 1
     inputs = [args.model, args.volume, args.mesh, args.points, args.landmarks, args.project, *named.values()]
     model = apply.load_model(args.model, say=lambda line: print(line, flush=True))  # says which modes are empty
+    if params.n_modes is not None and params.n_modes > model.n_modes:
+        print(f"note: --n-modes {params.n_modes}: the model has {model.n_modes} modes; used {model.n_modes}",
+              flush=True)
     if named or args.label_of:
         labels = dict(x.split("=", 1) for x in args.label_of)
         targets = {n: apply.FitTarget(name=n, mesh=Path(f)) for n, f in named.items()}
@@ -406,6 +448,12 @@ def cmd_demo(args, writer) -> int:
     from ..cli.demo import make_demo_population
 
     out = Path(args.out)
+    if args.n < 3:
+        raise InputError(f"--n {args.n}: the demo needs at least 3 instances (a model of fewer has no variance "
+                         "to speak of)")
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out}: is a file, not a folder; the demo writes a folder (population/, model/)")
+    _writable_folder(out, "--out")
     t0 = time.perf_counter()
     project = make_demo_population(out / "population", n=args.n, seed=args.seed)
     print(f"demo population: {args.n} synthetic vertebrae in {out / 'population'} ({time.perf_counter() - t0:.1f} s)",

@@ -11,6 +11,7 @@ gives the same :class:`~ssm_addon.instances.volume.ObjectVolume` in both, bit fo
 
 from __future__ import annotations
 
+import unicodedata
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -106,15 +107,17 @@ def mesh_coordinates(path, given: str | None) -> tuple[str | None, str]:
 
 
 def safe_file_name(name: str) -> str:
-    """An instance name as a file name: letters, digits and ``._-`` kept, the rest ``_``.
+    """An instance name as a file name: letters and digits of any script and ``._-`` kept
+    (Unicode NFC), the rest ``_``.
 
     Output files of an instance (``coated/<file name>.ply``, ``landmarks/<file name>.fcsv``)
-    use this, so a name like ``../../x`` or ``L1/L2`` cannot leave the output folder.
+    use this, so a name like ``../../x`` or ``L1/L2`` cannot leave the output folder, and
+    names in Cyrillic or Chinese keep their letters (file systems take them).
 
-    >>> safe_file_name("../../escaped"), safe_file_name("L1 (left)")
-    ('escaped', 'L1_left')
+    >>> safe_file_name("../../escaped"), safe_file_name("L1 (left)"), safe_file_name("позвонок 2")
+    ('escaped', 'L1_left', 'позвонок_2')
     """
-    cleaned = "".join(c if c.isascii() and (c.isalnum() or c in "._-") else "_" for c in name)
+    cleaned = "".join(c if c.isalnum() or c in "._-" else "_" for c in unicodedata.normalize("NFC", name))
     return "_".join(part for part in cleaned.split("_") if part).strip("._") or "instance"
 
 

@@ -158,7 +158,12 @@ def voxelize_mesh(
     parity = np.cumsum(counts.reshape(nx, ny, nz + 1)[:, :, :nz], axis=2, dtype=np.uint8) & 1
     mask = parity.astype(bool)
     if not mask.any():
-        raise InputError(f"{name}: empty mask: the mesh encloses no voxel centre at {h} mm spacing")
+        extent = float(np.ptp(np.asarray(vertices_world, float), axis=0).max()) if len(vertices_world) else 0.0
+        unit = ""
+        if 0.0 < extent < 2.0 * h:  # an anatomical object of a few mm or less: another unit
+            unit = (f"; it is {extent:.3g} units across, so it looks like metres (× 1000 for mm)" if extent < 0.5 else
+                    f"; it is {extent:.3g} units across, so it looks like centimetres (× 10 for mm)")
+        raise InputError(f"{name}: empty mask: the mesh encloses no voxel centre at {h} mm spacing{unit}")
     affine = np.diag([h, h, h, 1.0])
     affine[:3, 3] = origin
     return Volume(mask=mask, affine=affine, source=source, label=None, patient_oriented=patient_oriented)

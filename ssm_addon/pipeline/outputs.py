@@ -30,6 +30,7 @@ from ..base.params import OutputParams
 from ..base.progress import CancelledFn, ProgressFn, report
 from ..formats.landmarks import landmark_format, write_landmarks
 from ..formats.meshes import write_ply
+from ..formats.vtk import write_vtp
 from ..instances.importing import file_names
 from ..model.files import write_model_files
 from ..model.metrics import write_plots
@@ -158,14 +159,66 @@ def owned_output_folder(out_dir: Path, inputs, *, force: bool = False, what: str
     out_dir = Path(out_dir).expanduser().resolve()
     check_output_folder(out_dir, [p for p in inputs if p], force=force)
     check_writable(out_dir)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.{what}-", dir=out_dir.parent))
-    os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes it private; the output folder follows the umask
+    with output_lock(out_dir):
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.{what}-", dir=out_dir.parent))
+        os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes it private; the output folder follows the umask
+        try:
+            yield tmp
+            _final_move(tmp, out_dir)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+
+
+@contextlib.contextmanager
+def output_lock(out_dir: Path):
+    """Hold ``.<name>.lock`` beside ``out_dir`` while a command writes it: a second command
+    given the same folder is refused at once, naming the first one's process, instead of both
+    saying "done" with the later one's files left. The lock is the operating system's (it ends
+    with the process, however that ends); the file is removed when the writing ends."""
+    path = out_dir.parent / f".{out_dir.name}.lock"
     try:
-        yield tmp
-        _final_move(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        import fcntl
+    except ImportError:  # Windows: an exclusive create stands in (a crash can leave the file: its message says so)
+        fcntl = None
+    while True:
+        if fcntl is None:
+            try:
+                fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_RDWR, 0o644)
+            except FileExistsError:
+                raise InputError(f"{out_dir}: another SSM command is writing it now ({_lock_owner(path)}); wait "
+                                 f"for it to end or give another output folder (a crashed one's lock: delete "
+                                 f"{path})") from None
+            break
+        fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            raise InputError(f"{out_dir}: another SSM command is writing it now ({_lock_owner(path)}); wait for "
+                             "it to end or give another output folder") from None
+        try:  # the file may have been removed by the holder between our open and our lock: lock the new one
+            same = os.fstat(fd).st_ino == os.stat(path).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
+        os.ftruncate(fd, 0)
+        os.write(fd, f"pid {os.getpid()}\n".encode())
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(path)
+        os.close(fd)
+
+
+def _lock_owner(path: Path) -> str:
+    try:
+        return path.read_text().strip() or "process unknown"
+    except OSError:
+        return "process unknown"
 
 
 def _umask() -> int:
@@ -225,6 +278,9 @@ def _write_model_outputs(model, metrics, folder: Path, files: dict, *, output: O
                          analysis: Callable | None, extra: dict | None) -> dict:
     """The model's files and tables, the plots and the analysis into ``folder``; adds what it wrote
     to ``files`` and returns the report's further entries (``extra`` with the analysis's)."""
+    if (output.gltf or output.vtk) and output.exchange_modes > model.n_modes:
+        say(f"note: [output] exchange_modes = {output.exchange_modes}: the model has {model.n_modes} modes; "
+            f"model.glb and vtk/ hold {model.n_modes}")
     written = write_model_files(model, folder, statismo=output.statismo, tables=output.scores, gltf=output.gltf,
                                 vtk=output.vtk, exchange_modes=output.exchange_modes)
     plot_info = write_plots(model, folder, metrics) if plots else {"files": []}
@@ -282,6 +338,10 @@ def write_study(study: Study, folder, *, output: OutputParams, project: str | Ab
         for name, pw in zip(names, model.instance_points_world):
             write_ply(folder / "coated" / f"{safe[name]}.ply", np.asarray(pw, float), tpl.faces, space="RAS")
         files["coated"] = "coated"
+        if output.vtk:  # the same coatings for VTK readers (ParaView, 3D Slicer, ShapeWorks Studio)
+            (folder / "vtk" / "coated").mkdir(parents=True)
+            for name, pw in zip(names, model.instance_points_world):
+                write_vtp(folder / "vtk" / "coated" / f"{safe[name]}.vtp", np.asarray(pw, float), tpl.faces, {})
     carried = carried_landmarks(study)
     if output.landmarks and carried:
         given = study.instance(study.template_instance).landmarks_path
