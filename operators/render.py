@@ -17,6 +17,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 
+from ssm_addon.model.figures import FIGURE_COLOURS, FIGURE_VIEWS, mode_shapes
 from ssm_addon.model.metrics import (
     axis_letters,
     label_grid_picture,
@@ -27,26 +28,8 @@ from ssm_addon.model.metrics import (
 
 from . import bridge
 
-#: Object frame -> camera frame (camera looks down -Z, screen x right, screen y up).
-#: axial: seen from superior (object x right, y up); sagittal: seen from the object's +x
-#: side with z up; coronal: seen from the object's +y side with z up.
-VIEWS = {
-    "axial": np.eye(3),
-    "sagittal": np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]),
-    "coronal": np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]]),
-}
-COLOURS = {"mean": (0.9, 0.9, 0.88, 1.0), "minus": (0.1, 0.3, 1.0, 1.0), "plus": (1.0, 0.15, 0.1, 1.0)}
-
-
-def _shapes(model, n_modes: int, sigmas: float):
-    """Rows of (label, [(kind, (N, 3) points)]): the mean, then mean ∓ sigmas·√λ_k q_k (eq. 7)."""
-    mean = np.asarray(model.mean, float)
-    rows = [("mean", [("mean", mean)])]
-    k_max = min(int(n_modes), len(model.variances))
-    for k in range(k_max):
-        step = sigmas * np.sqrt(float(model.variances[k])) * np.asarray(model.modes[k], float)
-        rows.append((f"mode {k + 1}", [("minus", mean - step), ("plus", mean + step)]))
-    return rows
+VIEWS = FIGURE_VIEWS  # camera looks down -Z: screen x right, screen y up (the core's figure uses the same)
+COLOURS = FIGURE_COLOURS
 
 
 def render_modes_figure(
@@ -80,7 +63,7 @@ def render_modes_figure(
     str
         The PNG written.
     """
-    rows = _shapes(model, n_modes, sigmas)
+    rows = mode_shapes(model, n_modes, sigmas)
     faces = np.asarray(model.faces)
     centre = np.asarray(model.mean, float).mean(axis=0)
     all_pts = np.concatenate([p for _, shapes in rows for _, p in shapes]) - centre

@@ -270,7 +270,7 @@ def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> 
             why = ("bpy is not importable (pip install bpy==5.0.1)" if not blender_layer.bpy_available() else
                    "the Blender layer is not installed with this core (run `blender -b --command ssm build ...` "
                    "with the extension, or from a source checkout)")
-            print(f"skipping model.blend and modes.png: {why}", flush=True)
+            print(f"skipping model.blend: {why}; modes.png is drawn without Blender", flush=True)
     print(f"project: {project.path} ({len(project.instances)} instances, {len(project.landmark_names)} landmarks)",
           flush=True)
     if args is not None and getattr(args, "strict", False) and not project.params.quality.strict:

@@ -32,6 +32,7 @@ from ..formats.landmarks import landmark_format, write_landmarks
 from ..formats.meshes import write_ply
 from ..formats.vtk import write_vtp
 from ..instances.importing import file_names
+from ..model.figures import render_modes_figure
 from ..model.files import write_model_files
 from ..model.metrics import write_plots
 from .report import Absent, Report, joint_report, model_report, study_report, write_report_html
@@ -269,6 +270,20 @@ def write_outputs(model, out_dir, *, metrics=None, per_instance: dict | None = N
     return written
 
 
+def picture_without_blender(model, output: OutputParams, folder: Path, files: dict, say) -> None:
+    """``modes.png`` (paper fig. 10) drawn by the core when no Blender step wrote it (a
+    ``pip install .`` core, ``--no-blend``): the same layout, labels and scale bar."""
+    if not output.picture or "picture" in files or model.n_modes == 0:
+        return
+    try:
+        render_modes_figure(model, Path(folder) / "modes.png", n_modes=int(output.picture_modes))
+    except ImportError as err:  # matplotlib draws the labels
+        say(f"picture: modes.png skipped ({err})")
+        return
+    files["picture"] = "modes.png"
+    say("picture: modes.png (mean and ±2σ of the first modes, axial / sagittal / coronal; drawn without Blender)")
+
+
 def study_inputs(study: Study) -> list[Path]:
     """The study's input files (label maps, meshes, landmark files): never written over."""
     return [p for i in study.instances for p in (i.volume_path, i.mesh_path, i.landmarks_path) if p is not None]
@@ -327,6 +342,7 @@ def write_study(study: Study, folder, *, output: OutputParams, project: str | Ab
         files.update(blender_hook(study, output, folder, say) or {})
         study.timings_s["blender"] = time.perf_counter() - t1
     check_cancelled(cancelled)
+    picture_without_blender(study.model, output, folder, files, say)
     tpl, model = study.template, study.model
     tframe = study.frame(study.template_instance)
     write_ply(folder / "template.ply", tframe.to_world(tpl.points_object), tpl.faces, space="RAS")
@@ -397,6 +413,7 @@ def write_joint(joint, folder, *, output: OutputParams, project: str | Absent, t
     report(progress, 0.95, "writing outputs")
     files = dict(files or {})
     model = joint.model
+    picture_without_blender(model, output, folder, files, say)
     for name, study in joint.structures.items():
         base = folder / "structures" / file_names([name])[name]
         (base / "coated").mkdir(parents=True)

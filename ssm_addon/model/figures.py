@@ -1,0 +1,178 @@
+"""The paper's fig. 10 without Blender: the mean and ±2σ of the first modes in three views.
+
+The layout, colours and labels are those of the Blender picture (``operators/render.py``):
+columns axial, sagittal, coronal (or the axes a view looks along, for frames that are not
+patient axes); rows the mean (grey), then one row per mode with the shapes
+b_k = -2√λ_k (blue) and +2√λ_k (red) of eq. (7) overlaid, opaque, so each colour shows
+where its shape reaches further. Here the shapes are drawn by an orthographic z-buffer
+rasterizer of our own (numpy), with two-sided Lambert shading and silhouette outlines, so
+a ``pip install .`` core writes the figure too.
+
+References
+----------
+.. [1] "Generation of point based 3D statistical shape models for anatomical objects",
+   fig. 10: the mean shape in axial, sagittal and coronal views; the first eigenmode as an
+   overlay of the mean and the two shapes deformed along it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .metrics import axis_letters, label_grid_picture, modes_figure_labels, view_names, view_orientation
+from .pca import ShapeModel
+
+__all__ = ["FIGURE_COLOURS", "FIGURE_VIEWS", "mode_shapes", "rasterize_meshes", "render_modes_figure"]
+
+#: Model frame -> screen frame (rows: screen x right, screen y up, towards the viewer).
+#: axial: seen from superior (x right, y up); sagittal: from the +x side with z up;
+#: coronal: from the +y side with z up.
+FIGURE_VIEWS = {
+    "axial": np.eye(3),
+    "sagittal": np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]),
+    "coronal": np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]]),
+}
+#: RGBA of the mean and of the shapes at -σ and +σ.
+FIGURE_COLOURS = {"mean": (0.9, 0.9, 0.88, 1.0), "minus": (0.1, 0.3, 1.0, 1.0), "plus": (1.0, 0.15, 0.1, 1.0)}
+
+
+def mode_shapes(model: ShapeModel, n_modes: int, sigmas: float) -> list:
+    """Rows of (label, [(kind, (N, 3) points mm)]): the mean, then mean ∓ sigmas·√λ_k q_k (eq. 7)."""
+    mean = np.asarray(model.mean, float)
+    rows = [("mean", [("mean", mean)])]
+    for k in range(min(int(n_modes), len(model.variances))):
+        step = sigmas * np.sqrt(float(model.variances[k])) * np.asarray(model.modes[k], float)
+        rows.append((f"mode {k + 1}", [("minus", mean - step), ("plus", mean + step)]))
+    return rows
+
+
+def rasterize_meshes(meshes, size_px: tuple[int, int], *, background=(1.0, 1.0, 1.0),
+                     outline=(0.15, 0.15, 0.15)) -> np.ndarray:
+    """Draw triangle meshes given in pixel coordinates with an orthographic z-buffer.
+
+    Parameters
+    ----------
+    meshes : sequence of (points (N, 3), faces (F, 3), rgb)
+        ``points[:, 0]`` pixels right, ``[:, 1]`` pixels down, ``[:, 2]`` depth (larger is
+        nearer the viewer).
+    size_px : (height, width)
+
+    Returns
+    -------
+    (height, width, 3) float ndarray in [0, 1]
+        Each pixel the nearest triangle covering its centre, shaded 0.35 + 0.65 |n_z|
+        (two-sided Lambert, light from the viewer), ``outline`` where the mesh changes
+        between neighbouring pixels (None: no outlines).
+        Ties in depth go to the earlier mesh and triangle (a stable order, the same on every
+        numpy version).
+    """
+    h, w = int(size_px[0]), int(size_px[1])
+    img = np.empty((h, w, 3))
+    img[:] = background
+    depth_all, key_all, shade_all, owner_all = [], [], [], []
+    for m, (pts, faces, _rgb) in enumerate(meshes):
+        tri = np.asarray(pts, float)[np.asarray(faces, np.int64)]  # (F, 3, 3)
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        norm = np.linalg.norm(n, axis=1)
+        ok = norm > 1e-12
+        tri, n, norm = tri[ok], n[ok], norm[ok]
+        shade = 0.35 + 0.65 * np.abs(n[:, 2]) / norm
+        x0 = np.clip(np.floor(tri[:, :, 0].min(axis=1)).astype(np.int64), 0, w)
+        x1 = np.clip(np.ceil(tri[:, :, 0].max(axis=1)).astype(np.int64), 0, w)
+        y0 = np.clip(np.floor(tri[:, :, 1].min(axis=1)).astype(np.int64), 0, h)
+        y1 = np.clip(np.ceil(tri[:, :, 1].max(axis=1)).astype(np.int64), 0, h)
+        bw, bh = x1 - x0, y1 - y0
+        count = bw * bh
+        keep = count > 0
+        for chunk in np.array_split(np.flatnonzero(keep), max(1, int(count[keep].sum() // 4_000_000) + 1)):
+            if not len(chunk):
+                continue
+            c = count[chunk]
+            t = np.repeat(chunk, c)
+            off = np.arange(int(c.sum())) - np.repeat(np.cumsum(c) - c, c)
+            px = x0[t] + off % bw[t]
+            py = y0[t] + off // bw[t]
+            cx, cy = px + 0.5, py + 0.5
+            a, b, d = tri[t, 0], tri[t, 1], tri[t, 2]
+            den = (b[:, 1] - d[:, 1]) * (a[:, 0] - d[:, 0]) + (d[:, 0] - b[:, 0]) * (a[:, 1] - d[:, 1])
+            safe = np.where(den != 0, den, 1.0)  # edge-on triangles (den 0) cover no pixel
+            l1 = ((b[:, 1] - d[:, 1]) * (cx - d[:, 0]) + (d[:, 0] - b[:, 0]) * (cy - d[:, 1])) / safe
+            l2 = ((d[:, 1] - a[:, 1]) * (cx - d[:, 0]) + (a[:, 0] - d[:, 0]) * (cy - d[:, 1])) / safe
+            l3 = 1.0 - l1 - l2
+            inside = (den != 0) & (l1 >= -1e-9) & (l2 >= -1e-9) & (l3 >= -1e-9)
+            if not inside.any():
+                continue
+            z = l1 * a[:, 2] + l2 * b[:, 2] + l3 * d[:, 2]
+            depth_all.append(z[inside])
+            key_all.append(py[inside] * w + px[inside])
+            shade_all.append(shade[t[inside]])
+            owner_all.append(np.full(int(inside.sum()), m))
+    if not depth_all:
+        return img
+    depth, key = np.concatenate(depth_all), np.concatenate(key_all)
+    shade, which = np.concatenate(shade_all), np.concatenate(owner_all)
+    order = np.lexsort((np.arange(len(depth)), -depth, key))  # per pixel: nearest first, then the earlier
+    first = np.ones(len(order), bool)
+    first[1:] = key[order][1:] != key[order][:-1]
+    win = order[first]
+    colours = np.array([rgb[:3] for _p, _f, rgb in meshes], float)
+    flat = img.reshape(-1, 3)
+    flat[key[win]] = colours[which[win]] * shade[win, None]
+    if outline is None:
+        return img
+    owner = np.full(h * w, -1)
+    owner[key[win]] = which[win]
+    owner = owner.reshape(h, w)
+    edge = np.zeros((h, w), bool)
+    edge[:, 1:] |= owner[:, 1:] != owner[:, :-1]
+    edge[1:, :] |= owner[1:, :] != owner[:-1, :]
+    img[edge] = outline
+    return img
+
+
+def render_modes_figure(model: ShapeModel, path, n_modes: int = 2, sigmas: float = 2.0, cell_px: int = 320,
+                        views=("axial", "sagittal", "coronal")) -> Path:
+    """The mean and ±``sigmas``·√λ of the first modes in three views into one PNG (fig. 10).
+
+    Parameters
+    ----------
+    model : ShapeModel
+        ``mean`` and ``modes`` in the model frame (mm), ``faces``, ``variances`` (mm²).
+    path : path
+        Output PNG.
+    n_modes : int
+        Rows of modes below the mean row (paper: 2).
+    sigmas : float
+        b_k = ±sigmas √λ_k (paper: 2).
+    cell_px : int
+        Pixels per view cell.
+
+    Returns
+    -------
+    Path
+        The PNG written; its picture has the same labels, title and scale bar as Blender's.
+    """
+    rows = mode_shapes(model, n_modes, sigmas)
+    faces = np.asarray(model.faces)
+    centre = np.asarray(model.mean, float).mean(axis=0)
+    all_pts = np.concatenate([p for _, shapes in rows for _, p in shapes]) - centre
+    cell = 1.15 * 2.0 * float(np.linalg.norm(all_pts, axis=1).max())  # mm per cell, as Blender's camera
+    px_per_mm = cell_px / cell
+    n_rows, n_cols = len(rows), len(views)
+    meshes = []
+    for r, (_label, shapes) in enumerate(rows):
+        for c, view in enumerate(views):
+            rot = FIGURE_VIEWS[view]
+            for kind, pts in shapes:
+                q = (pts - centre) @ rot.T
+                screen = np.c_[(c + 0.5) * cell_px + q[:, 0] * px_per_mm, (r + 0.5) * cell_px - q[:, 1] * px_per_mm,
+                               q[:, 2]]
+                meshes.append((screen, faces, FIGURE_COLOURS[kind]))
+    grid = rasterize_meshes(meshes, (n_rows * cell_px, n_cols * cell_px))
+    return label_grid_picture(grid, path, row_labels=modes_figure_labels(model, n_modes, sigmas),
+                              column_labels=[f"{name}\n{view_orientation(FIGURE_VIEWS[v], axis_letters(model))}"
+                                             for v, name in zip(views, view_names(model, views))],
+                              title=f"Mean shape and the first {len(rows) - 1} modes (eq. 7, b = ±{sigmas:g}√λ)",
+                              mm_per_px=cell / float(cell_px))
