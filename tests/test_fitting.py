@@ -431,10 +431,8 @@ def test_batches_say_their_landmarks_and_merged_labels_are_named(demo_build, cap
 
 
 def test_fit_picture_has_a_title_views_and_a_colour_bar(model, tmp_path):
-    """fit.png: a title band, two named views and a colour bar of the posterior SD (the
-    bar runs from the smallest SD's colour to the largest's)."""
-    import io
-
+    """fit.png: large enough to read (two 420 px views and their text), a title band, a colour
+    bar of the posterior SD (viridis: dark for the smallest SD, yellow for the largest)."""
     from PIL import Image
 
     from ssm_addon.fitting.batch import fit_picture
@@ -442,11 +440,30 @@ def test_fit_picture_has_a_title_views_and_a_colour_bar(model, tmp_path):
     pts, _ = _posed(model, [0.5, -0.5], seed=9, rotate=False)
     target = Target.from_points(pts, source="target.csv")
     result = fit_model(model, target, params=FitParams(noise_mm=0.1))
-    img = np.asarray(Image.open(io.BytesIO(fit_picture(result, model.faces, target, size_px=200, title="bone 7"))))
-    assert img.shape == (200 + 44 + 48, 400, 3)
-    assert (img[:40] < 128).any()  # the title's text
-    bar = img[200 + 44 + 8 + 6, 8:200 - 8].astype(int)
-    assert bar[0, 2] > bar[-1, 2] and bar[0, 0] < bar[-1, 0]  # blue (smallest SD) to red (largest)
+    path = fit_picture(result, model.faces, target, tmp_path / "fit.png", title="bone 7")
+    img = np.asarray(Image.open(path).convert("RGB")).astype(int)
+    h, w, _ = img.shape
+    assert w >= 1000 and h >= 540
+    assert (img[: h // 12] < 100).any()  # the title's text
+    bar_row = img[int(0.885 * h)]  # inside the colour bar (at 8.5-11.5 % from the bottom)
+    bar = bar_row[(bar_row.sum(axis=1) < 700) & (bar_row.sum(axis=1) > 0)][2:-2]  # inside its black frame
+    assert len(bar) > 0.6 * w and bar[0].sum() < 200 and bar[-1][0] > 200 and bar[-1][2] < 80  # purple to yellow
+
+
+def test_fit_views_look_along_the_principal_axes():
+    """A cigar along (1, 1, 0) mm: both views show it lying across the screen (its long axis is
+    the screen's x), and the rotations are proper."""
+    from ssm_addon.model.figures import p_value_text, principal_views
+
+    rng = np.random.default_rng(2)
+    pts = rng.normal(size=(500, 3)) * [40.0, 10.0, 3.0]
+    turn = np.array([[1, -1, 0], [1, 1, 0], [0, 0, np.sqrt(2)]]) / np.sqrt(2)
+    views = principal_views(pts @ turn.T)
+    for _name, rot in views:
+        assert abs(np.linalg.det(rot) - 1) < 1e-9
+        assert abs(abs(rot[0] @ (turn @ [1, 0, 0])) - 1) < 0.01  # screen x along the long axis
+    assert abs(abs(views[0][1][2] @ (turn @ [0, 0, 1])) - 1) < 0.01  # first view along the least axis
+    assert [p_value_text(p) for p in (1.0, 0.5, 0.01234, 0.0004)] == ["p = 1.0", "p = 0.5", "p = 0.012", "p < 0.001"]
 
 
 @pytest.mark.slow

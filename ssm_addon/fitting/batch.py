@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import csv
 import glob
-import io
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,6 +41,7 @@ from ..instances.importing import InstanceSpec, file_names, import_instance, ins
 from ..instances.volume import display_surface
 from ..instances.voxelize import voxelize_mesh
 from ..meshutil import Mesh
+from ..model.figures import fit_figure, p_value_text
 from ..model.files import load_npz, load_statismo, write_npz
 from ..model.joint import joined_parts
 from ..model.pca import EMPTY_MODE_SHARE, drop_empty_modes
@@ -195,70 +195,22 @@ def load_target(t: FitTarget, model, *, spacing_mm: float | None = None,
     raise InputError(f"{t.name}: nothing to fit to: give --volume, --mesh, --points and/or --landmarks")
 
 
-def fit_picture(result: FitResult, faces: np.ndarray, target: Target, size_px: int = 360, *,
-                title: str = "", outlier: bool | None = None) -> bytes:
-    """Two views (along the model frame's z and x axes) of the fit over the target's points (PNG).
-
-    Labelled: a title (``title``, the Mahalanobis distance, the mean distance, an outlier
-    flag), the views' names, a colour bar of the posterior SD in mm, and what the surface
-    (the fitted shape) and the dots (the target's points) are. ``outlier``: the caller's
-    decision (default: the 99 % limit of :func:`~ssm_addon.fitting.fit.outlier_limit`).
-    """
-    from PIL import Image, ImageDraw
-
+def fit_picture(result: FitResult, faces: np.ndarray, target: Target, path, *, title: str = "",
+                outlier: bool | None = None) -> Path:
+    """``fit.png``: the fit over the target in two views along the fitted shape's principal axes
+    (model frame), coloured by the posterior SD with its colour bar, with scale bars, the
+    Mahalanobis distance, its p-value (two significant figures, or "< 0.001"), the distances
+    and an outlier flag. ``outlier``: the caller's decision (default: the 99 % limit of
+    :func:`~ssm_addon.fitting.fit.outlier_limit`)."""
     pts = result.pose.inverse(result.points)  # model frame: a stable view
     tgt = result.pose.inverse(target.samples[:: max(1, len(target.samples) // 4000)]) if target.has_surface else None
-    sd = result.posterior_sd_mm
-    lo, hi = float(sd.min()), float(sd.max())
-
-    def colour(rel):
-        rel = np.asarray(rel, float)
-        return np.stack([0.35 + 0.6 * rel, 0.55 - 0.2 * rel, 0.85 - 0.6 * rel], axis=-1)
-
-    colours = colour((sd - lo) / max(hi - lo, 1e-9))
-    head, foot = 44, 48
-    canvas = Image.new("RGB", (2 * size_px, size_px + head + foot), (255, 255, 255))
-    draw_c = ImageDraw.Draw(canvas)
-    centre = pts.mean(axis=0)
-    half = 0.6 * float(np.max(np.ptp(pts, axis=0)))
-    for j, (view, name) in enumerate(((np.eye(3), "view along the model's z axis"),
-                                      (np.eye(3)[[1, 2, 0]], "view along the model's x axis"))):
-        p = (pts - centre) @ view.T
-        tri = p[faces]
-        order = np.argsort(tri[:, :, 2].mean(axis=1))
-        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        light = 0.35 + 0.65 * np.abs(n[:, 2]) / np.maximum(np.linalg.norm(n, axis=1), 1e-12)
-        fill = (np.clip(colours[faces].mean(axis=1) * light[:, None], 0, 1) * 255).astype(int)
-        img = Image.new("RGB", (size_px, size_px), (255, 255, 255))
-        draw = ImageDraw.Draw(img)
-        xy = (tri[:, :, :2] / (2 * half) + 0.5) * size_px
-        xy[:, :, 1] = size_px - xy[:, :, 1]
-        for f in order:
-            draw.polygon([tuple(v) for v in xy[f].tolist()], fill=tuple(fill[f].tolist()))
-        if tgt is not None:
-            q = ((tgt - centre) @ view.T)[:, :2] / (2 * half) + 0.5
-            for x, y in (q * size_px).tolist():
-                draw.point((x, size_px - y), fill=(20, 20, 20))
-        draw.text((6, 4), name, fill=(60, 60, 60))
-        canvas.paste(img, (j * size_px, head))
     if outlier is None:
         outlier = is_outlier(result.mahalanobis, result.n_modes)
-    flag = "  OUTLIER" if outlier else ""
-    draw_c.text((8, 6), f"{title or target.source or 'target'}: fit of the model", fill=(0, 0, 0))
-    draw_c.text((8, 24), f"Mahalanobis distance {result.mahalanobis:.2f} on {result.n_modes} modes; mean distance "
-                         f"{result.mean_distance_mm:.2f} mm, largest {result.max_distance_mm:.2f} mm{flag}",
-                fill=(160, 0, 0) if flag else (0, 0, 0))
-    # the colour bar: posterior SD (mm) from its smallest to its largest value
-    y0, x0, width = size_px + head + 8, 8, size_px - 16
-    bar = (colour(np.linspace(0.0, 1.0, width)) * 255).astype(np.uint8)
-    canvas.paste(Image.fromarray(np.repeat(bar[None], 12, axis=0), "RGB"), (x0, y0))
-    draw_c.text((x0, y0 + 15), f"posterior SD {lo:.2f} mm", fill=(0, 0, 0))
-    draw_c.text((x0 + width - 70, y0 + 15), f"{hi:.2f} mm", fill=(0, 0, 0))
-    draw_c.text((size_px + 8, y0), "surface: the fitted shape, coloured by its posterior SD", fill=(0, 0, 0))
-    draw_c.text((size_px + 8, y0 + 16), "black dots: the target's points", fill=(0, 0, 0))
-    buf = io.BytesIO()
-    canvas.save(buf, format="PNG")
-    return buf.getvalue()
+    summary = (f"Mahalanobis distance {result.mahalanobis:.2f} on {result.n_modes} modes "
+               f"({p_value_text(result.p_value)}){':  OUTLIER' if outlier else ''};   mean distance "
+               f"{result.mean_distance_mm:.2f} mm, largest {result.max_distance_mm:.2f} mm")
+    return fit_figure(pts, faces, result.posterior_sd_mm, tgt, path,
+                      title=f"{title or target.source or 'target'}: fit of the model", summary=summary, flagged=outlier)
 
 
 def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = None, partial: bool = False,
@@ -291,7 +243,7 @@ def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = No
     if free and target.locator is not None:
         doc["files"]["free"] = "fitted_free.ply"
         doc["free"] = _free_fit(result, faces, t, model, out_dir / "fitted_free.ply")
-    (out_dir / "fit.png").write_bytes(fit_picture(result, faces, target, title=t.name, outlier=doc["outlier"]))
+    fit_picture(result, faces, target, out_dir / "fit.png", title=t.name, outlier=doc["outlier"])
     (out_dir / "fit.json").write_text(json.dumps(doc, indent=1), encoding="utf-8")
     report(progress, 1.0, f"fitted {t.name}: Mahalanobis {result.mahalanobis:.2f}, mean distance "
                            f"{result.mean_distance_mm:.2f} mm")

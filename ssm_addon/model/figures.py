@@ -21,10 +21,19 @@ from pathlib import Path
 
 import numpy as np
 
-from .metrics import axis_letters, label_grid_picture, modes_figure_labels, view_names, view_orientation
+from .metrics import (
+    _figure,
+    axis_letters,
+    label_grid_picture,
+    modes_figure_labels,
+    scale_bar_mm,
+    view_names,
+    view_orientation,
+)
 from .pca import ShapeModel
 
-__all__ = ["FIGURE_COLOURS", "FIGURE_VIEWS", "mode_shapes", "rasterize_meshes", "render_modes_figure"]
+__all__ = ["FIGURE_COLOURS", "FIGURE_VIEWS", "fit_figure", "mode_shapes", "p_value_text", "principal_views",
+           "rasterize_meshes", "render_modes_figure"]
 
 #: Model frame -> screen frame (rows: screen x right, screen y up, towards the viewer).
 #: axial: seen from superior (x right, y up); sagittal: from the +x side with z up;
@@ -56,7 +65,7 @@ def rasterize_meshes(meshes, size_px: tuple[int, int], *, background=(1.0, 1.0, 
     ----------
     meshes : sequence of (points (N, 3), faces (F, 3), rgb)
         ``points[:, 0]`` pixels right, ``[:, 1]`` pixels down, ``[:, 2]`` depth (larger is
-        nearer the viewer).
+        nearer the viewer); ``rgb`` one colour (3 or 4 values in [0, 1]) or one per face (F, 3).
     size_px : (height, width)
 
     Returns
@@ -71,13 +80,15 @@ def rasterize_meshes(meshes, size_px: tuple[int, int], *, background=(1.0, 1.0, 
     h, w = int(size_px[0]), int(size_px[1])
     img = np.empty((h, w, 3))
     img[:] = background
-    depth_all, key_all, shade_all, owner_all = [], [], [], []
-    for m, (pts, faces, _rgb) in enumerate(meshes):
+    depth_all, key_all, shade_all, owner_all, colour_all = [], [], [], [], []
+    for m, (pts, faces, rgb) in enumerate(meshes):
         tri = np.asarray(pts, float)[np.asarray(faces, np.int64)]  # (F, 3, 3)
+        face_rgb = np.asarray(rgb, float)
+        face_rgb = np.broadcast_to(face_rgb[:3] if face_rgb.ndim == 1 else face_rgb[:, :3], (len(tri), 3))
         n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         norm = np.linalg.norm(n, axis=1)
         ok = norm > 1e-12
-        tri, n, norm = tri[ok], n[ok], norm[ok]
+        tri, n, norm, face_rgb = tri[ok], n[ok], norm[ok], face_rgb[ok]
         shade = 0.35 + 0.65 * np.abs(n[:, 2]) / norm
         x0 = np.clip(np.floor(tri[:, :, 0].min(axis=1)).astype(np.int64), 0, w)
         x1 = np.clip(np.ceil(tri[:, :, 0].max(axis=1)).astype(np.int64), 0, w)
@@ -108,18 +119,18 @@ def rasterize_meshes(meshes, size_px: tuple[int, int], *, background=(1.0, 1.0, 
             depth_all.append(z[inside])
             key_all.append(py[inside] * w + px[inside])
             shade_all.append(shade[t[inside]])
+            colour_all.append(face_rgb[t[inside]])
             owner_all.append(np.full(int(inside.sum()), m))
     if not depth_all:
         return img
     depth, key = np.concatenate(depth_all), np.concatenate(key_all)
-    shade, which = np.concatenate(shade_all), np.concatenate(owner_all)
+    shade, which, rgb_all = np.concatenate(shade_all), np.concatenate(owner_all), np.concatenate(colour_all)
     order = np.lexsort((np.arange(len(depth)), -depth, key))  # per pixel: nearest first, then the earlier
     first = np.ones(len(order), bool)
     first[1:] = key[order][1:] != key[order][:-1]
     win = order[first]
-    colours = np.array([rgb[:3] for _p, _f, rgb in meshes], float)
     flat = img.reshape(-1, 3)
-    flat[key[win]] = colours[which[win]] * shade[win, None]
+    flat[key[win]] = rgb_all[win] * shade[win, None]
     if outline is None:
         return img
     owner = np.full(h * w, -1)
@@ -176,3 +187,88 @@ def render_modes_figure(model: ShapeModel, path, n_modes: int = 2, sigmas: float
                                              for v, name in zip(views, view_names(model, views))],
                               title=f"Mean shape and the first {len(rows) - 1} modes (eq. 7, b = ±{sigmas:g}√λ)",
                               mm_per_px=cell / float(cell_px))
+
+
+def p_value_text(p: float) -> str:
+    """A p-value as a paper prints it: two significant figures, or ``< 0.001``.
+
+    >>> p_value_text(0.04321), p_value_text(1.0), p_value_text(2e-226)
+    ('p = 0.043', 'p = 1.0', 'p < 0.001')
+    """
+    if not np.isfinite(p):
+        return "p unknown"
+    return "p < 0.001" if p < 0.001 else f"p = {float(f'{p:.2g}'):g}" if p < 1 else "p = 1.0"
+
+
+def principal_views(points: np.ndarray) -> list[tuple[str, np.ndarray]]:
+    """Two views of a shape along its principal axes: ``[(name, screen_from_frame (3, 3))]``.
+
+    The first looks along the axis of least extent, the second along the middle axis; in
+    both the longest axis runs across the screen (a long bone lies side-on), and each
+    rotation is proper (determinant +1). Signs follow the frame's own axes where they can
+    (each principal axis points into the frame's half-space of its largest component), so
+    the same shape gives the same views on every library version.
+    """
+    pts = np.asarray(points, float)
+    _w, vecs = np.linalg.eigh(np.cov((pts - pts.mean(axis=0)).T))  # ascending: vecs[:, 0] the least extent
+    vecs = vecs * np.sign(vecs[np.argmax(np.abs(vecs), axis=0), np.arange(3)])  # eigh's signs are arbitrary
+    long_, mid, least = vecs[:, 2], vecs[:, 1], vecs[:, 0]
+    return [("along the least axis", np.stack([long_, mid, np.cross(long_, mid)])),
+            ("along the middle axis", np.stack([long_, least, np.cross(long_, least)]))]
+
+
+def fit_figure(points_mm: np.ndarray, faces: np.ndarray, sd_mm: np.ndarray, target_mm: np.ndarray | None, path, *,
+               title: str, summary: str, flagged: bool = False, cell_px: int = 420) -> Path:
+    """A fitted shape over its target, in two views along its principal axes (PNG, for a paper).
+
+    The views look along the shape's axis of least extent (its broadest silhouette) and
+    along its middle axis, so a long bone is seen side-on in both; the surface is coloured
+    by ``sd_mm`` (the posterior SD, mm, with its colour bar), the target's points are
+    black dots, and each view has a scale bar.
+
+    Parameters
+    ----------
+    points_mm : (N, 3) the fitted shape (any frame, mm); faces : (F, 3)
+    sd_mm : (N,) posterior SD per point (mm)
+    target_mm : (M, 3) or None, the target's points in the same frame
+    title, summary : the headline and the line of figures below it (red when ``flagged``)
+    """
+    import matplotlib
+    from matplotlib import cm, colors
+
+    pts = np.asarray(points_mm, float)
+    centre = pts.mean(axis=0)
+    views = principal_views(pts)
+    extent = float(np.linalg.norm(pts - centre, axis=1).max())
+    px_per_mm = 0.42 * cell_px / max(extent, 1e-9)
+    norm = colors.Normalize(vmin=float(np.min(sd_mm)), vmax=max(float(np.max(sd_mm)), float(np.min(sd_mm)) + 1e-9))
+    cmap = matplotlib.colormaps["viridis"]
+    face_rgb = cmap(norm(np.asarray(sd_mm, float)[np.asarray(faces)].mean(axis=1)))[:, :3]
+    fig, axes = _figure(width=5.2, height=5.6, ncols=2)
+    fig.subplots_adjust(left=0.02, right=0.98, bottom=0.2, top=0.8, wspace=0.04)
+    for ax, (name, rot) in zip(axes, views):
+        q = (pts - centre) @ rot.T
+        screen = np.c_[cell_px / 2 + q[:, 0] * px_per_mm, cell_px / 2 - q[:, 1] * px_per_mm, q[:, 2]]
+        img = rasterize_meshes([(screen, faces, face_rgb)], (cell_px, cell_px))
+        ax.imshow(img, interpolation="lanczos")
+        if target_mm is not None and len(target_mm):
+            t = (np.asarray(target_mm, float) - centre) @ rot.T
+            ax.scatter(cell_px / 2 + t[:, 0] * px_per_mm, cell_px / 2 - t[:, 1] * px_per_mm, s=1.5, c="black",
+                       linewidths=0, alpha=0.6)
+        bar = scale_bar_mm(1.0 / px_per_mm, cell_px)
+        x0, y0 = 0.06 * cell_px, 0.94 * cell_px
+        ax.plot([x0, x0 + bar * px_per_mm], [y0, y0], color="black", lw=3, solid_capstyle="butt")
+        ax.text(x0, y0 - 0.02 * cell_px, f"{bar:g} mm", fontsize=10, va="bottom")
+        ax.set_title(f"view {name}", fontsize=11)
+        ax.set_xlim(0, cell_px)
+        ax.set_ylim(cell_px, 0)
+        ax.set_axis_off()
+    fig.suptitle(title, fontsize=13, y=0.97)
+    fig.text(0.5, 0.875, summary, ha="center", fontsize=10.5, color="#b00000" if flagged else "black")
+    bar_ax = fig.add_axes([0.12, 0.1, 0.76, 0.03])
+    fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), cax=bar_ax, orientation="horizontal")
+    bar_ax.set_xlabel("posterior SD of the fitted surface (mm); black dots: the target's points", fontsize=10)
+    path = Path(path)
+    fig.savefig(path)
+    return path
+
