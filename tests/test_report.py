@@ -54,6 +54,12 @@ def test_report_is_one_self_contained_file(built):
     assert page.count('<tr class="warn">') == len(flagged)
     for fig in ("paper fig. 9", "Compactness, generalization and specificity by number of modes"):
         assert fig in page
+    # σ = √λ is the whole shape's spread; the RMS per point √(λ/N) stands beside it
+    lam, n_points = result.study.model.variances[0], result.study.model.n_points
+    row = re.search(r"<tr class=\"\"><td>1</td><td>[^<]*</td><td>([^<]*)</td><td>([^<]*)</td>", page)
+    assert float(row.group(1).replace(",", "")) == pytest.approx(np.sqrt(lam), abs=1e-3)
+    assert float(row.group(2).replace(",", "")) == pytest.approx(np.sqrt(lam / n_points), abs=1e-3)
+    assert "RMS per point at 1σ (mm)" in page and "over all" in page
     # the demo's [analysis]: its section with the tests of both terms and the map
     analysis = json.loads((out / "analysis" / "analysis.json").read_text())
     assert "Analysis: groups and covariates" in page and "Group difference along the surface normal" in page
@@ -77,8 +83,15 @@ def test_report_opens_in_a_headless_browser_without_errors(built, tmp_path):
     assert console == [], console  # the page logs nothing, and raises nothing
     total = int(re.search(r'data-images="(\d+)"', dom.stdout).group(1))
     decoded = int(re.search(r'data-images-decoded="(\d+)"', dom.stdout).group(1))
-    # every picture decodes: the instances', fig. 9, metrics and (the demo has [analysis]) the analysis map and scores
-    assert total == len(result.study.names) + 2 + 2 and decoded == total
+    # every picture decodes: the instances', fig. 9, fig. 10 (drawn without Blender), metrics and (the demo has
+    # [analysis]) the analysis map and scores
+    assert total == len(result.study.names) + 3 + 2 and decoded == total
+    # at 1,300 px every table fits the window, the Instances table with its warnings included
+    narrow = _chromium(f"--user-data-dir={tmp_path / 'profile3'}", "--window-size=1300,1600",
+                       "--virtual-time-budget=5000", "--dump-dom", url)
+    assert re.search(r'data-tables-past-the-window="0"', narrow.stdout), narrow.stdout[-500:]
+    assert "⚠ demo_02: [landmark_transfer]" in narrow.stdout or "&#9888; demo_02" in narrow.stdout or \
+        "\u26a0 demo_02" in narrow.stdout
     shot = tmp_path / "report.png"
     cap = _chromium(f"--user-data-dir={tmp_path / 'profile2'}", "--window-size=1200,1600",
                     f"--screenshot={shot}", url)

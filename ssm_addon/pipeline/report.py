@@ -236,7 +236,7 @@ def study_report(study: Study, *, project: str | Absent, timings_unknown: dict |
 
 THUMB_PX = 256
 #: Width (px) of one thumbnail view on the page.
-THUMB_SHOWN_PX = 160
+THUMB_SHOWN_PX = 128
 
 
 def _shade(points: np.ndarray, faces: np.ndarray, colours: np.ndarray, view: np.ndarray):
@@ -323,22 +323,26 @@ def _num(v, digits=2) -> str:
 
 
 def _table(rows, header) -> str:
+    """An HTML table; a row given as a dict may carry a ``note`` (HTML): a row of its own below
+    it, across every column (an instance's warnings, readable at any width)."""
     out = ["<table>", "<tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in header) + "</tr>"]
     for row in rows:
         cls = row.get("_class", "") if isinstance(row, dict) else ""
         cells = row["cells"] if isinstance(row, dict) else row
         out.append(f'<tr class="{cls}">' + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
+        if isinstance(row, dict) and row.get("note"):
+            out.append(f'<tr class="{cls} note"><td colspan="{len(header)}">{row["note"]}</td></tr>')
     out.append("</table>")
     return "\n".join(out)
 
 
 CSS = """
-body{font:15px/1.45 system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:2em auto;max-width:1100px;color:#222;
+body{font:15px/1.45 system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:2em auto;max-width:1240px;color:#222;
 padding:0 1em}
 h1{font-size:1.6em;margin-bottom:.2em}h2{font-size:1.25em;margin-top:1.8em;border-bottom:1px solid #ddd}
-table{border-collapse:collapse;margin:.6em 0;font-size:.92em}td,th{border:1px solid #ddd;padding:.25em .55em;
+table{border-collapse:collapse;margin:.6em 0;font-size:.88em}td,th{border:1px solid #ddd;padding:.25em .45em;
 text-align:right;vertical-align:middle}th{background:#f3f3f3}td:first-child,th:first-child{text-align:left}
-tr.warn td{background:#fff1e6}.warnings{background:#fff1e6;border:1px solid #f0a060;padding:.6em 1em;border-radius:4px}
+tr.warn td{background:#fff1e6}tr.note td{text-align:left;font-size:.95em;border-top:none}th{white-space:normal}.warnings{background:#fff1e6;border:1px solid #f0a060;padding:.6em 1em;border-radius:4px}
 .ok{background:#eef8ee;border:1px solid #8c8;padding:.6em 1em;border-radius:4px}
 .figs img{max-width:100%;border:1px solid #eee;margin:.3em}.muted{color:#777}code{background:#f6f6f6;padding:0 .2em}
 #broken{display:none;background:#fdd;border:1px solid #c44;padding:.6em 1em}
@@ -349,6 +353,9 @@ window.addEventListener('load', function () {
   var imgs = document.images, ok = 0;
   for (var i = 0; i < imgs.length; i++) { if (imgs[i].complete && imgs[i].naturalWidth > 0) ok++; }
   document.body.setAttribute('data-images', imgs.length);
+  var tables = document.getElementsByTagName('table'), wide = 0;
+  for (var t = 0; t < tables.length; t++) { if (tables[t].getBoundingClientRect().right > window.innerWidth + 1) wide++; }
+  document.body.setAttribute('data-tables-past-the-window', wide);
   document.body.setAttribute('data-images-decoded', ok);
   if (ok < imgs.length) {
     var b = document.getElementById('broken');
@@ -480,9 +487,15 @@ def write_html_report(path, report: Report | dict, *, images: dict[str, bytes] |
                  f"modes; total variance {_num(model.get('total_variance_mm2'))} mm².</p>")
     var = model.get("variances_mm2", [])[:12]
     conc = model.get("concentration_eigen", [])[:12]
+    per_point = max(int(npts or 1), 1)
     parts.append(_table([[str(i + 1), _num(float(v), 3), _num(float(np.sqrt(max(v, 0))), 3),
-                          f"{100 * float(c):.1f} %"] for i, (v, c) in enumerate(zip(var, conc))],
-                        ["mode", "variance λ (mm²)", "σ (mm)", "cumulative (eq. 8)"]))
+                          _num(float(np.sqrt(max(v, 0) / per_point)), 3), f"{100 * float(c):.1f} %"]
+                         for i, (v, c) in enumerate(zip(var, conc))],
+                        ["mode", "variance λ (mm²)", "σ = √λ, whole shape (mm)", "RMS per point at 1σ (mm)",
+                         "cumulative (eq. 8)"]))
+    parts.append(f'<p class="muted">σ = √λ is the length of the whole shape\'s displacement at one standard '
+                 f'deviation, over all {_num(npts)} × 3 coordinates (the mode is a unit vector of them); a point '
+                 f'moves √(λ/N) on average (root mean square), the column beside it.</p>')
     if images:
         parts.append('<h2>Figures</h2><div class="figs">')
         for caption, data in images.items():
@@ -559,7 +572,7 @@ def write_html_report(path, report: Report | dict, *, images: dict[str, bytes] |
             res = fit.get("landmark_residuals_mm") or []
             o = outliers.get(name, {})
             flags = by_instance.get(name, [])
-            # drawn at 256 px per view, shown at 160 (the page's zoom shows the rest) so the table fits 1300 px
+            # drawn at 256 px per view, shown at 128 (the page's zoom shows the rest) so the table fits 1,300 px
             thumb = _img(thumbnails[name], name, THUMB_SHOWN_PX * 2) if name in thumbnails else ""
             rows.append({"_class": "warn" if flags else "", "cells": [
                 f"<b>{html.escape(name)}</b>", thumb, _num(fit.get("mean_distance_mm"), 3),
@@ -569,13 +582,14 @@ def write_html_report(path, report: Report | dict, *, images: dict[str, bytes] |
                 _num(fit.get("folded_after")),
                 _num(max(res) if res else None, 1), _num(transfer.get(name), 2), _num(fit.get("converged")),
                 html.escape(str((corr.get("start") or {}).get(name, fit.get("start", "")))),
-                _num(o.get("mahalanobis"), 2), _num(o.get("p_value"), 2), _num(o.get("loo_error_mm"), 2),
-                "<br>".join(html.escape(f"[{f['gate']}] {f['message']}") for f in flags)]})
+                _num(o.get("mahalanobis"), 2), _num(o.get("p_value"), 2), _num(o.get("loo_error_mm"), 2)],
+                "note": "<br>".join(f"&#9888; {html.escape(name)}: [{html.escape(f['gate'])}] "
+                                    f"{html.escape(f['message'])}" for f in flags)})
         parts.append(_table(rows, ["instance", "coated", "mean dist. (mm)", "max dist. (mm)",
                                    "input mesh to coating, max (mm)", "alignment turn (°)", "folds",
                                    "max landmark residual (mm)", "landmark transfer (mm)", "converged", "start",
                                    "Mahalanobis (LOO)", "p",
-                                   "LOO error (mm)", "warnings"]))
+                                   "LOO error (mm)"]))
 
     inputs = doc.get("inputs") or {}
     if inputs:
