@@ -168,13 +168,36 @@ def test_files_hold_the_tests_maps_and_meshes(known, tmp_path):
     assert "analysis_map.png" in written and (tmp_path / "analysis_map.png").stat().st_size > 10_000
 
 
+def test_the_map_says_where_its_colours_are_clipped(known, tmp_path, monkeypatch):
+    """analysis_map.png: the colour bar spans the 99th percentile; where the displacement reaches
+    beyond it, the bar's arrows (extend) and its label say so with the extremes."""
+    from matplotlib.figure import Figure
+
+    from ssm_addon.analysis.files import analysis_map_picture
+
+    _model, _, _truth, result = known
+    saved, real = [], Figure.savefig
+    monkeypatch.setattr(Figure, "savefig", lambda self, *a, **k: (saved.append(self), real(self, *a, **k))[1])
+    analysis_map_picture(result, tmp_path / "map.png")
+    e = result.effects[0]
+    lim = float(np.percentile(np.abs(e.normal), 99))
+    bar = saved[0].axes[-1]
+    label = bar.get_ylabel()
+    assert e.normal.max() > lim or e.normal.min() < -lim  # a few points beyond the 99th percentile
+    assert "clipped at ±" in label and f"{e.normal.min():.2f} to {e.normal.max():.2f}" in label
+    expected = {(True, True): "both", (True, False): "min", (False, True): "max"}[(e.normal.min() < -lim,
+                                                                                  e.normal.max() > lim)]
+    assert bar._colorbar.extend == expected  # the arrows at the clipped end(s)
+
+
 # ------------------------------------------------------------------------------- attributes
 def test_attribute_csv_reads_names_kinds_and_missing_values(tmp_path):
     p = tmp_path / "subjects.csv"
     p.write_text("Subject;group;age;sex\nL1;lumbar;63;F\nL2;lumbar;NA;M\nT9;thoracic;55,5;\n")
     t = read_attributes(p)
     assert t.names == ("L1", "L2", "T9")
-    assert t.kinds == {"group": "category", "age": "category", "sex": "category"}  # "55,5" is not a number
+    # a semicolon file's decimal comma: "55,5" is 55.5
+    assert t.kinds == {"group": "category", "age": "number", "sex": "category"} and t.column("age")[2] == 55.5
     p.write_text("Subject;group;age;sex\nL1;lumbar;63;F\nL2;lumbar;NA;M\nT9;thoracic;55.5;\n")
     t = read_attributes(p)
     assert t.kinds["age"] == "number" and np.isnan(t.column("age")[1]) and t.values["sex"][2] is None

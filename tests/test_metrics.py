@@ -246,3 +246,40 @@ def test_patient_planes_are_named_only_for_patient_oriented_frames(population):
     assert view_names(patient, views) == list(views) and axis_letters(patient) is AXIS_LETTERS
     assert view_names(mixed, views) == ["view along z", "view along x", "view along y"]
     assert axis_letters(mixed) is AXIS_NAMES
+
+
+def _saved_figures(monkeypatch) -> list:
+    """Every matplotlib figure saved from here on (the figure objects, for their geometry)."""
+    from matplotlib.figure import Figure
+
+    saved, real = [], Figure.savefig
+
+    def keep(self, *args, **kwargs):
+        saved.append(self)
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", keep)
+    return saved
+
+
+def test_legends_stand_clear_of_the_curves(tmp_path, population, monkeypatch):
+    """metrics.png and variability.png: every legend lies outside its axes (it covers no curve), and
+    the error bars are said to be ± SD over what they are over."""
+    _shapes, model = population
+    metrics = evaluate(model, ks=range(1, 6), n_samples=50)
+    saved = _saved_figures(monkeypatch)
+    write_plots(model, tmp_path, metrics)
+    legends = 0
+    for fig in saved:
+        fig.canvas.draw()
+        for ax in fig.axes:
+            leg = ax.get_legend()
+            if leg is None:
+                continue
+            legends += 1
+            box, area = leg.get_window_extent(), ax.get_window_extent()
+            assert box.y1 <= area.y0, (fig, [t.get_text() for t in leg.get_texts()])
+    assert legends >= 3  # cumulative_variance.png, variability.png, metrics.png
+    texts = [t.get_text() for fig in saved for ax in fig.axes if ax.get_legend() for t in ax.get_legend().get_texts()]
+    assert "generalization: mean ± SD over the left-out instances" in texts
+    assert "specificity: mean ± SD over the random model shapes" in texts

@@ -42,7 +42,9 @@ __all__ = ["FDR_LEVEL", "SHAPE_KEY_PREFIXES", "analysis_arrays", "analysis_docum
 #: The FDR level of the maps' significance masks and the counts in analysis.json.
 FDR_LEVEL = 0.05
 #: How much of its colour a point not significant keeps in the maps (the rest is grey).
-GREY_MIX = 0.3
+GREY_MIX = 0.12
+#: The grey a point not significant is drawn in (its colour kept at GREY_MIX).
+NOT_SIGNIFICANT_GREY = 0.8
 
 
 def _term_doc(test, adjusted_for) -> dict:
@@ -149,8 +151,10 @@ def _mesh_view(points: np.ndarray):
 
 def analysis_map_picture(result: Analysis, path, *, effect: str | None = None) -> Path:
     """The normal component of an effect on the mean surface (mm, diverging blue–red scale with
-    its legend, clipped at the 99th percentile); points not significant at FDR 5 % of the effect's term
-    are faded towards grey (when any point is significant)."""
+    its legend, clipped at the 99th percentile: the colour bar's arrows and its label say so,
+    with the extremes); points not significant at FDR 5 % of the effect's term are drawn in
+    flat grey without shading of their colour (when any point is significant), with a legend
+    patch."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.collections import PolyCollection
     from matplotlib.colors import TwoSlopeNorm
@@ -179,7 +183,7 @@ def analysis_map_picture(result: Analysis, path, *, effect: str | None = None) -
         rgba = cmap(norm(value[faces].mean(axis=1)))
         if significant.any():  # with none significant, fading everything would hide where the estimate lies
             grey = significant[faces].sum(axis=1) < 2
-            rgba[grey, :3] = GREY_MIX * rgba[grey, :3] + (1 - GREY_MIX) * 0.78
+            rgba[grey, :3] = GREY_MIX * rgba[grey, :3] + (1 - GREY_MIX) * NOT_SIGNIFICANT_GREY
         rgba[:, :3] *= light[:, None]
         ax.add_collection(PolyCollection(tri[order, :, :2], facecolors=rgba[order], edgecolors="none"))
         half = 0.55 * float(np.max(np.ptp(p[:, :2], axis=0)))
@@ -194,10 +198,22 @@ def analysis_map_picture(result: Analysis, path, *, effect: str | None = None) -
     cax = fig.add_axes([0.88, 0.15, 0.025, 0.7])
     from matplotlib.cm import ScalarMappable
 
-    fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), cax=cax, label=f"normal displacement, {e.unit} (mm)")
+    low, high = float(value.min()), float(value.max())
+    extend = {(False, False): "neither", (True, False): "min", (False, True): "max", (True, True): "both"}[
+        (low < -lim, high > lim)]
+    label = f"normal displacement, {e.unit} (mm)"
+    if extend != "neither":
+        label += f"\nclipped at ±{lim:.2g} (99th pct.); extremes {low:.2f} to {high:.2f}"
+    fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), cax=cax, label=label, extend=extend)
     t = test
-    where = (f"{int(significant.sum())} of {len(significant)} points significant at FDR {FDR_LEVEL:g} (faded: not)"
+    where = (f"{int(significant.sum())} of {len(significant)} points significant at FDR {FDR_LEVEL:g}"
              if significant.any() else f"no point significant at FDR {FDR_LEVEL:g} (colours: the estimate)")
+    if significant.any():
+        from matplotlib.patches import Patch
+
+        fig.legend(handles=[Patch(facecolor=str(GREY_MIX * 0.5 + (1 - GREY_MIX) * NOT_SIGNIFICANT_GREY),
+                                  edgecolor="0.5", label=f"grey: not significant (FDR {FDR_LEVEL:g})")],
+                   loc="lower center", ncol=1, fontsize=9, frameon=False)
     fig.suptitle(f"{e.name} ({e.unit}): global p = {t.p_value:.3g}; {where}", fontsize=10)
     path = Path(path)
     fig.savefig(path)

@@ -584,7 +584,13 @@ def _draw_cumulative(ax, model):
     ax.set_ylabel("variability captured (%)")
     ax.set_title("Concentration of variability (eq. 8)")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(loc="lower right", fontsize="small")
+    _legend_below(ax)
+
+
+def _legend_below(ax) -> None:
+    """The legend under the axes (below the x label), never over a curve."""
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.2), fontsize="small", frameon=False)
+    ax.figure.subplots_adjust(bottom=0.34)
 
 
 def _save(fig, path):
@@ -712,7 +718,7 @@ def plot_cumulative_variance(model: ShapeModel, path_png):
 
 def plot_model_figure(model: ShapeModel, path_png):
     """Both panels of paper fig. 9 side by side. Returns the PNG path."""
-    fig, (a, b) = _figure(ncols=2)
+    fig, (a, b) = _figure(ncols=2, height=4.6)
     _draw_spectrum(a, model)
     _draw_cumulative(b, model)
     return _save(fig, path_png)
@@ -721,7 +727,7 @@ def plot_model_figure(model: ShapeModel, path_png):
 def plot_metrics(metrics: ModelMetrics, path_png):
     """Compactness (cumulative share of the variance, %) and generalization and specificity (mean
     ± std, mm) over the number of modes k, side by side. Returns the PNG path."""
-    fig, (left, right) = _figure(ncols=2)
+    fig, (left, right) = _figure(ncols=2, height=4.6)
     comp = (metrics.compactness or {}).get("cumulative")
     if comp:
         k = np.arange(1, len(comp) + 1)
@@ -731,16 +737,17 @@ def plot_metrics(metrics: ModelMetrics, path_png):
     left.set_ylabel("variance captured (%)")
     left.set_title("Compactness")
     left.grid(True, alpha=0.3)
-    for key, colour in (("generalization", "#228833"), ("specificity", "#ee6677")):
+    for key, colour, label in (("generalization", "#228833", "generalization: mean ± SD over the left-out instances"),
+                               ("specificity", "#ee6677", "specificity: mean ± SD over the random model shapes")):
         m = getattr(metrics, key)
         if m:
             right.errorbar(m["k"], m["mean_mm"], yerr=m["std_mm"], fmt="o-", ms=3, capsize=2, color=colour,
-                           label=key)
+                           label=label)
     right.set_xlabel("number of modes k")
     right.set_ylabel("mean point distance (mm)")
     right.set_title("Generalization and specificity")
     if right.get_legend_handles_labels()[0]:
-        right.legend()
+        _legend_below(right)
     right.grid(True, alpha=0.3)
     return _save(fig, path_png)
 
