@@ -14,15 +14,21 @@ import importlib
 import importlib.util
 import os
 import shutil
+import re
 import subprocess
 import sys
 import tempfile
+import threading
 from pathlib import Path
 
 from ..base.errors import SSMError
 from ..pipeline.store import load_study, save_study
 
 PACKAGE_NAME = "ssm"
+
+#: What Blender's offscreen GPU set-up prints on machines without a display although it draws:
+#: not an error a user can act on.
+EGL_NOISE = re.compile(r"^EGL Error \(0x[0-9A-Fa-f]+\): ")
 
 
 def bpy_available() -> bool:
@@ -86,13 +92,18 @@ def blend_writer_in_child():
                 cmd.append("--quiet")
             env = {**os.environ, "PYTHONPATH": os.pathsep.join(
                 filter(None, [str(Path(__file__).resolve().parents[2]), os.environ.get("PYTHONPATH")]))}
-            child = subprocess.Popen(cmd, start_new_session=True, env=env)
+            child = subprocess.Popen(cmd, start_new_session=True, env=env, stderr=subprocess.PIPE, text=True,
+                                     errors="replace")
+            said: list[str] = []
+            reader = threading.Thread(target=lambda: said.extend(child.stderr), daemon=True)
+            reader.start()
             try:
                 while child.poll() is None:
                     try:
                         child.wait(0.1)
                     except subprocess.TimeoutExpired:
                         pass
+                reader.join(10.0)
             except BaseException:
                 child.terminate()
                 try:
@@ -103,6 +114,10 @@ def blend_writer_in_child():
                 raise
         finally:
             shutil.rmtree(handover, ignore_errors=True)
+        # Blender's offscreen GPU set-up says "EGL Error (0x3009): EGL_BAD_MATCH …" while the pictures are
+        # drawn all the same: not shown when the step succeeded; everything it said is shown when it failed
+        shown = said if child.returncode != 0 else [ln for ln in said if not EGL_NOISE.match(ln)]
+        sys.stderr.write("".join(shown))
         if child.returncode != 0:
             raise SSMError(f"the Blender step (model.blend, modes.png) failed in its process (exit "
                            f"{child.returncode}); rerun with --no-blend to build without it")
