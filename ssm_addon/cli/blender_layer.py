@@ -13,8 +13,8 @@ import dataclasses
 import importlib
 import importlib.util
 import os
-import shutil
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
