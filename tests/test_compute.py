@@ -378,3 +378,21 @@ def test_ctrl_c_stops_a_build_waiting_for_a_scheduler_at_once(population, tmp_pa
         close()
     assert proc.returncode == 130 and took < 60, (took, err[-1500:])
     assert err.strip().splitlines() == ["interrupted by SIGINT: stopped; the output folder is as it was"]
+
+
+def _inner_threads_here(_item):
+    from ssm_addon.base.compute import inner_threads
+
+    return inner_threads(2)
+
+
+def test_inner_threads_are_one_in_a_worker_process_and_up_to_two_here(monkeypatch):
+    """A k-d tree search may use two threads in the main process (one instance at a time), one in
+    a worker process (its siblings keep the cores busy); the search's result is the same."""
+    from ssm_addon.base import compute
+
+    monkeypatch.setattr(compute, "usable_cores", lambda: 2)
+    assert compute.inner_threads(2) == 2 and compute.inner_threads(8) == 2
+    monkeypatch.delitem(sys.modules, "bpy", raising=False)
+    with compute.Executor("processes", jobs=2) as ex:
+        assert ex.map(_inner_threads_here, [0, 1]) == [1, 1]

@@ -42,7 +42,7 @@ from .errors import Cancelled, InputError
 from .progress import CancelledFn, ProgressFn, report
 
 __all__ = ["CONNECT_TIMEOUT_S", "SCHEDULERS", "Executor", "check_scheduler", "dask_setup", "executor_or_local",
-           "ignore_sigint", "probe_scheduler", "run_one_thread", "signals_deferred", "start_resource_tracker", "stop_children", "time_left_text",
+           "ignore_sigint", "inner_threads", "probe_scheduler", "run_one_thread", "signals_deferred", "start_resource_tracker", "stop_children", "time_left_text",
            "usable_cores"]
 
 SCHEDULERS = ("serial", "processes", "dask-local")
@@ -97,6 +97,16 @@ def run_one_thread(fn: Callable, item):
     """
     with threadpool_limits(limits=1, user_api="blas"):
         return fn(item)
+
+
+def inner_threads(wanted: int = 2) -> int:
+    """Threads a step may use inside one instance's work (a k-d tree search, say): ``wanted``
+    in the main process (one instance at a time: Blender, a serial build), 1 in a worker
+    process, whose siblings already keep the cores busy (a thread per call there cost more to
+    start than it saved). Only for work whose result does not depend on its thread count."""
+    if multiprocessing.parent_process() is not None:
+        return 1
+    return max(1, min(int(wanted), usable_cores()))
 
 
 def ignore_sigint() -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..base.compute import inner_threads
 from ..base.errors import check_cancelled
 from ..base.progress import CancelledFn
 from ..coating.distance_map import DistanceMap
@@ -19,7 +20,7 @@ from ..meshutil import vertex_normals
 
 __all__ = ["register_to_surface"]
 
-QUERY_WORKERS = 2  # threads of the registration's k-d tree search (identical results)
+QUERY_WORKERS = 2  # threads of the registration's k-d tree search in the main process (identical results)
 
 
 def _gaussian_smooth(
@@ -127,6 +128,7 @@ def register_to_surface(
     stride = max(1, len(targets) // (target_density * n)) if target_density > 0 else 1
     targets, target_normals = distance_map.surface_samples(stride)
     cos_min = 0.3
+    workers = inner_threads(QUERY_WORKERS)
     for sigma in sigmas_mm:
         for _ in range(iterations):
             check_cancelled(cancelled)
@@ -135,7 +137,7 @@ def register_to_surface(
             w_fwd = (np.einsum("ij,ij->i", vn, distance_map.normals(near)) > cos_min).astype(float)
             # the search over ~5,000 surface points was 40 % of an iteration: both cores
             # (the same result as one; workers only splits the query points)
-            _, j = cKDTree(p, leafsize=16).query(targets, workers=QUERY_WORKERS)
+            _, j = cKDTree(p, leafsize=16).query(targets, workers=workers)
             ok = np.einsum("ij,ij->i", vn[j], target_normals) > cos_min
             jj = j[ok]
             count = np.bincount(jj, minlength=n).astype(float)
