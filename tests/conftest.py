@@ -84,6 +84,18 @@ def verse_dir() -> Path:
     return VERSE_DIR
 
 
+def as_from_a_terminal() -> None:
+    """``preexec_fn`` of a child the tests interrupt: SIGINT and SIGQUIT at their defaults, as a
+    terminal starts a command. A shell without job control starts background commands with
+    both ignored (POSIX), and a Python started so never raises KeyboardInterrupt: a suite run
+    in the background (``nohup``, some CI runners) would otherwise test nothing of Ctrl-C."""
+    import signal
+
+    for name in ("SIGINT", "SIGQUIT"):
+        if hasattr(signal, name):
+            signal.signal(getattr(signal, name), signal.SIG_DFL)
+
+
 @functools.cache
 def build_tool():
     """``tools/build_extension.py`` as a module (it is a script, not part of the package)."""

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import as_from_a_terminal
 
 from ssm_addon.base.compute import Executor, check_scheduler, time_left_text
 from ssm_addon.base.errors import InputError
@@ -364,7 +365,7 @@ def test_ctrl_c_stops_a_build_waiting_for_a_scheduler_at_once(population, tmp_pa
         proc = subprocess.Popen([sys.executable, "-u", "-m", "ssm_addon", "build", str(proj), "--out",
                                  str(tmp_path / "out"), "--scheduler", address, "--no-blend"], cwd=ROOT,
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                env={**os.environ, "PYTHONPATH": str(ROOT)})
+                                env={**os.environ, "PYTHONPATH": str(ROOT)}, preexec_fn=as_from_a_terminal)
         for line in proc.stdout:
             if line.startswith("project:"):
                 break

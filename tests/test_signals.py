@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import ROOT
+from conftest import ROOT, as_from_a_terminal
 
 from ssm_addon.cli import demo
 
@@ -72,7 +72,7 @@ def _interrupt(project: Path, out: Path, signum: int, when: str, extra=()):
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen([sys.executable, "-u", "-m", "ssm_addon", "build", str(project), "--out", str(out),
                              "--jobs", "2", *extra], cwd=out.parent, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True, preexec_fn=as_from_a_terminal)
     seen = []
     deadline = time.monotonic() + 240
     for line in proc.stdout:
@@ -141,7 +141,8 @@ def test_a_signal_to_the_whole_process_group_ends_with_one_line(project, tmp_pat
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen([sys.executable, "-u", "-m", "ssm_addon", "build", str(project), "--out", str(out),
                              "--jobs", "2", "--no-blend", "--scheduler", scheduler], cwd=tmp_path, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=as_from_a_terminal)
     seen = []
     for line in proc.stdout:
         seen.append(line)
