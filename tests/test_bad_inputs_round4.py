@@ -153,16 +153,16 @@ def test_fit_help_shows_no_internal_names():
     assert proc.returncode == 0 and "__" not in proc.stdout and "--n-modes N" in proc.stdout
 
 
-def test_exchange_modes_beyond_the_model_are_said(tmp_path):
-    from ssm_addon.base.params import OutputParams
-    from ssm_addon.pipeline.outputs import _write_model_outputs
-
-    model, _p = _model(tmp_path, n=4)
-    said = []
-    _write_model_outputs(model, None, tmp_path, {}, output=OutputParams(exchange_modes=100), plots=False,
-                         say=said.append, analysis=None, extra=None)
-    assert said == [f"note: [output] exchange_modes = 100: the model has {model.n_modes} modes; model.glb and vtk/ "
-                    f"hold {model.n_modes}"]
+def test_exchange_modes_beyond_the_model_are_said(population, tmp_path, capsys):
+    """A build of 4 instances (3 modes) asked for 100 exchange modes says what it wrote, once."""
+    text = (population / "project.toml").read_text()
+    project = population / "exchange.toml"
+    project.write_text(text.replace("[analysis]", "[output]\nexchange_modes = 100\n\n[analysis]", 1))
+    assert main(["build", str(project), "--out", str(tmp_path / "out"), "--no-blend"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("note: [output] exchange_modes = 100: the model has 3 modes; model.glb and vtk/ hold 3") == 1
+    assert sorted(p.name for p in (tmp_path / "out" / "vtk").glob("mode_*_plus2sd.vtp")) == [
+        f"mode_{k}_plus2sd.vtp" for k in (1, 2, 3)]
 
 
 # ------------------------------------------------------------------------ names in any script

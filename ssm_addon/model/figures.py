@@ -22,7 +22,6 @@ from pathlib import Path
 import numpy as np
 
 from .metrics import (
-    _figure,
     axis_letters,
     label_grid_picture,
     modes_figure_labels,
@@ -235,6 +234,8 @@ def fit_figure(points_mm: np.ndarray, faces: np.ndarray, sd_mm: np.ndarray, targ
     """
     import matplotlib
     from matplotlib import cm, colors
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
 
     pts = np.asarray(points_mm, float)
     centre = pts.mean(axis=0)
@@ -244,7 +245,9 @@ def fit_figure(points_mm: np.ndarray, faces: np.ndarray, sd_mm: np.ndarray, targ
     norm = colors.Normalize(vmin=float(np.min(sd_mm)), vmax=max(float(np.max(sd_mm)), float(np.min(sd_mm)) + 1e-9))
     cmap = matplotlib.colormaps["viridis"]
     face_rgb = cmap(norm(np.asarray(sd_mm, float)[np.asarray(faces)].mean(axis=1)))[:, :3]
-    fig, axes = _figure(width=5.2, height=5.6, ncols=2)
+    fig = Figure(figsize=(10.4, 5.6), dpi=100)
+    FigureCanvasAgg(fig)
+    axes = [fig.add_subplot(1, 2, i + 1) for i in range(2)]
     fig.subplots_adjust(left=0.02, right=0.98, bottom=0.2, top=0.8, wspace=0.04)
     for ax, (name, rot) in zip(axes, views):
         q = (pts - centre) @ rot.T

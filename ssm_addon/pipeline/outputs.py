@@ -24,6 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
+try:  # the output folder's lock (output_lock); Windows: an exclusive create stands in
+    import fcntl
+except ImportError:  # pragma: no cover - Windows
+    fcntl = None
+
 from .. import __version__
 from ..base.errors import InputError, check_cancelled
 from ..base.params import OutputParams
@@ -178,10 +183,6 @@ def output_lock(out_dir: Path):
     saying "done" with the later one's files left. The lock is the operating system's (it ends
     with the process, however that ends); the file is removed when the writing ends."""
     path = out_dir.parent / f".{out_dir.name}.lock"
-    try:
-        import fcntl
-    except ImportError:  # Windows: an exclusive create stands in (a crash can leave the file: its message says so)
-        fcntl = None
     while True:
         if fcntl is None:
             try:
