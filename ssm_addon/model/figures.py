@@ -124,7 +124,11 @@ def rasterize_meshes(meshes, size_px: tuple[int, int], *, background=(1.0, 1.0, 
         return img
     depth, key = np.concatenate(depth_all), np.concatenate(key_all)
     shade, which, rgb_all = np.concatenate(shade_all), np.concatenate(owner_all), np.concatenate(colour_all)
-    order = np.lexsort((np.arange(len(depth)), -depth, key))  # per pixel: nearest first, then the earlier
+    # per pixel: nearest first, then the earlier fragment (a stable sort of one key: the pixel in
+    # the integer part, the depth, scaled into [0, 1), below it; float64 keeps 1e-7 of the depth range)
+    near = depth.max()
+    span = max(float(near - depth.min()), 1e-12)
+    order = np.argsort(key + (near - depth) / (span * (1.0 + 1e-9)), kind="stable")
     first = np.ones(len(order), bool)
     first[1:] = key[order][1:] != key[order][:-1]
     win = order[first]
