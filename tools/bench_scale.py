@@ -33,7 +33,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ssm_addon import demo  # noqa: E402
+from ssm_addon.cli import demo  # noqa: E402
 from ssm_addon.cli.project_build import build  # noqa: E402
 from ssm_addon.pipeline.project import read_project  # noqa: E402
 
