@@ -201,3 +201,23 @@ def test_the_population_medoid_is_the_instance_nearest_the_mean_shape_whatever_i
     medoid, distance = population_medoid(study, list(scale))
     assert medoid == "e" and distance["e"] < distance["c"] < distance["b"]  # mean scale 1.044: e (turned), then c
     assert population_medoid(study, ["a", "b", "d"])[0] == "b"
+
+
+def test_a_large_study_checks_a_bounded_evenly_spaced_part():
+    """Above the bounds the self-check checks evenly spaced instances, each against a model of
+    evenly spaced others (its cost stops growing with the study); its jobs are made when the
+    executor takes them, so a 1,000-instance study does not hold 1,000 copies of the others
+    (15 GB). Below the bounds it is the whole check."""
+    from ssm_addon.correspondence.rounds import evenly_spaced
+
+    v, f, _axes, points, locations, given = _population(n=12)
+    fit = FitParams(noise_mm=0.5, tolerance_mm=0.001)
+    bounded = check_correspondence(points, f, locations, given, fit=fit, max_instances=4, max_others=5)
+    assert list(bounded.instance_mm) == ["e0", "e4", "e7", "e11"] == evenly_spaced(list(points), 4)
+    whole = check_correspondence(points, f, locations, given, fit=fit)
+    assert set(whole.instance_mm) == set(points)
+    # the linear population: a model of 5 others still carries the landmarks
+    assert bounded.study_mm < 0.5 and whole.study_mm < 0.5
+    # a model of 2 others cannot hold the 3 axes' variation: the bound is used, not ignored
+    two = check_correspondence(points, f, locations, given, fit=fit, max_instances=4, max_others=2)
+    assert list(two.instance_mm) == list(bounded.instance_mm) and two.study_mm > bounded.study_mm

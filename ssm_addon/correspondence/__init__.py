@@ -12,5 +12,5 @@ from .._lazy import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "proposal": ("PROPOSAL_METHODS", "propose_by_model", "propose_from_meshes", "propose_landmarks", "propose_landmarks_by_coating", "surface_points_object", "transfer_landmarks"),
-    "rounds": ("AXIS_TURNS", "Population", "WORLD_POSE_TOLERANCE", "CorrespondenceCheck", "LandmarkNoise", "RoundFigures", "RoundLandmarks", "aligned_to", "check_correspondence", "coat_mean_shape", "correspondence_fit_params", "landmark_noise", "landmark_transfer", "refine_instance", "refine_rounds", "resample_instance", "round_fits", "round_helps", "round_landmarks", "start_from_model", "starts_from_model"),
+    "rounds": ("SELF_CHECK_INSTANCES", "SELF_CHECK_OTHERS", "evenly_spaced", "AXIS_TURNS", "Population", "WORLD_POSE_TOLERANCE", "CorrespondenceCheck", "LandmarkNoise", "RoundFigures", "RoundLandmarks", "aligned_to", "check_correspondence", "coat_mean_shape", "correspondence_fit_params", "landmark_noise", "landmark_transfer", "refine_instance", "refine_rounds", "resample_instance", "round_fits", "round_helps", "round_landmarks", "start_from_model", "starts_from_model"),
 })

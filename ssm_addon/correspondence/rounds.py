@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, fields, replace
 
 import numpy as np
@@ -85,7 +86,8 @@ SCREEN_SAMPLES = 500
 __all__ = ["AXIS_TURNS", "Population", "WORLD_POSE_TOLERANCE", "CorrespondenceCheck", "LandmarkNoise", "RoundFigures",
            "RoundLandmarks", "aligned_to", "landmark_noise", "round_helps", "round_landmarks", "coat_mean_shape",
            "correspondence_fit_params", "check_correspondence", "landmark_transfer", "refine_instance",
-           "refine_rounds", "resample_instance", "round_fits", "start_from_model", "starts_from_model"]
+           "refine_rounds", "resample_instance", "round_fits", "start_from_model", "starts_from_model",
+           "SELF_CHECK_INSTANCES", "SELF_CHECK_OTHERS", "evenly_spaced"]
 
 
 @dataclass
@@ -434,8 +436,47 @@ def _transfer_job(args):
     return landmark_transfer(others, faces, surface, locations, given, fit=fit)[2]
 
 
+#: The self-check of a large study: at most this many landmarked instances are checked (evenly
+#: spaced in the study's order), each against a model of at most twice as many others (evenly
+#: spaced), so its cost stops growing with the study (all of them up to these sizes).
+SELF_CHECK_INSTANCES = 100
+SELF_CHECK_OTHERS = 2 * SELF_CHECK_INSTANCES
+
+
+def evenly_spaced(items: Sequence, k: int) -> list:
+    """At most ``k`` of ``items`` spread evenly over them, in their order (all when they are
+    ``k`` or fewer): the same choice on every library version.
+
+    >>> evenly_spaced(list("abcdefghij"), 4)
+    ['a', 'd', 'g', 'j']
+    """
+    items = list(items)
+    if len(items) <= k:
+        return items
+    return [items[i] for i in np.unique(np.round(np.linspace(0, len(items) - 1, k)).astype(int))]
+
+
+class _TransferJobs(Sequence):
+    """The self-check's jobs, made when the executor takes them (only those in flight are in
+    memory: a list of them held n - 1 coatings per instance at once, 15 GB at 1,000 instances)."""
+
+    def __init__(self, stack, names, checked, faces, locations, given, fit, others: int):
+        self.stack, self.names, self.checked = stack, names, checked
+        self.faces, self.locations, self.given, self.fit, self.others = faces, locations, given, fit, others
+
+    def __len__(self) -> int:
+        return len(self.checked)
+
+    def __getitem__(self, i):
+        n = self.checked[i]
+        me = self.names.index(n)
+        rest = evenly_spaced([j for j in range(len(self.names)) if j != me], self.others)
+        return (self.stack[rest], self.faces, self.stack[me], self.locations, self.given[n], self.fit)
+
+
 def check_correspondence(points: dict, faces: np.ndarray, landmark_locations: LandmarkLocations, landmarks_object: dict, *,
                          fit: FitParams, executor=None, jobs: int = 1, cancelled: CancelledFn = None,
+                         max_instances: int = SELF_CHECK_INSTANCES, max_others: int = SELF_CHECK_OTHERS,
                          **kw) -> CorrespondenceCheck:
     """The landmark transfer error of a coated study (:class:`CorrespondenceCheck`).
 
@@ -450,15 +491,18 @@ def check_correspondence(points: dict, faces: np.ndarray, landmark_locations: La
         Given landmarks; instances without any are not checked.
     executor : Executor, optional
         Where the fits run (default: ``jobs`` local processes).
+    max_instances, max_others : int
+        At most ``max_instances`` landmarked instances are checked, each against a model of at
+        most ``max_others`` others (both evenly spaced, :func:`evenly_spaced`): the cost is
+        bounded for a biobank-sized study, and unchanged below these sizes.
     """
     names = list(points)
-    checked = [n for n in names if landmarks_object.get(n)]
+    checked = evenly_spaced([n for n in names if landmarks_object.get(n)], max_instances)
     if len(names) < 3 or not checked or not len(landmark_locations):
         return CorrespondenceCheck(**kw)
     stack = np.stack([np.asarray(points[n], float) for n in names])
-    f = np.asarray(faces, np.int64)
-    args = [(np.delete(stack, names.index(n), axis=0), f, stack[names.index(n)], landmark_locations,
-             landmarks_object[n], fit) for n in checked]
+    args = _TransferJobs(stack, names, checked, np.asarray(faces, np.int64), landmark_locations, landmarks_object, fit,
+                         max_others)
     with executor_or_local(executor, jobs, len(args)) as pool:
         found = pool.map(_transfer_job, args, labels=checked, verb="checked", cancelled=cancelled)
     return CorrespondenceCheck.from_landmarks(dict(zip(checked, found)), **kw)
