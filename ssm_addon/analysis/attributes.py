@@ -77,6 +77,12 @@ class Attributes:
             have = ", ".join(repr(c) for c in self.columns) or "none"
             raise InputError(f"{self.source}: no attribute column {name!r}{hint}; columns: {have}")
 
+    def not_numbers(self, name: str) -> list[tuple[str, str]]:
+        """``(instance, cell)`` of column ``name``'s given cells that are not numbers (words,
+        ``inf``): what keeps a mostly numeric column from being a covariate."""
+        self.require(name)
+        return [(n, v) for n, v in zip(self.names, self.values[name]) if not _is_missing(v) and _number(v) is None]
+
     def missing(self, name: str) -> np.ndarray:
         """(n,) bool: where column ``name`` has no value."""
         col = self.column(name)

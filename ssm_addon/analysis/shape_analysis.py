@@ -160,22 +160,14 @@ def _column_values(attrs: Attributes, name: str, sizes: np.ndarray):
 def _text_covariate(attrs: Attributes, column: str) -> str:
     """A covariate column that is not all numbers: an error naming the cells that are not
     numbers when most are, else the note that it is used as a group (said once)."""
-    cells = [(n, v) for n, v in zip(attrs.names, attrs.values[column]) if v is not None]
-    words = [(n, v) for n, v in cells if _as_number(v) is None]
-    if len(words) < len(cells) / 2:
+    given = int((~attrs.missing(column)).sum())
+    words = attrs.not_numbers(column)
+    if len(words) < given / 2:
         shown = ", ".join(f"{v!r} ({n})" for n, v in words[:6]) + (" …" if len(words) > 6 else "")
         raise InputError(f"{attrs.source}: covariate {column!r} has cells that are not numbers: {shown}; write them "
                          "as numbers (a decimal point, or a decimal comma in a semicolon-separated file) or leave "
                          "them empty (missing)")
     return f"covariate {column!r} holds text, not numbers: used as a group (its values are categories)"
-
-
-def _as_number(text: str) -> float | None:
-    try:
-        x = float(str(text).strip())
-    except ValueError:
-        return None
-    return x if np.isfinite(x) else None
 
 
 def design_matrix(attrs: Attributes, *, group: str | None, covariates=(), sizes=None, reference: str | None = None):
