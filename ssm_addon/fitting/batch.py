@@ -180,8 +180,6 @@ def load_target(t: FitTarget, model, *, spacing_mm: float | None = None,
         try:
             frame = instance_frame(voxelize_mesh(verts, faces, spacing, source=str(t.mesh)), method)
         except InputError as err:
-            if "looks like" in str(err):  # another unit, not a partial scan
-                raise
             raise InputError(f"{err}; if it is a partial scan, fit it with --partial") from None
         return target, Pose(frame.axes_world, frame.origin_world)
     if t.points is not None:
