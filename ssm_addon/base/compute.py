@@ -132,22 +132,14 @@ def dask_setup(worker=None) -> None:
 
 
 def start_resource_tracker() -> None:
-    """Start multiprocessing's resource tracker with SIGHUP blocked (a mask its exec inherits and
-    it never lifts), so a terminal's hang-up to the whole process group does not kill it
-    mid-build (its successor would print a KeyError traceback per semaphore); it ignores
-    SIGINT and SIGTERM itself. Blocking, unlike ignoring, loses nothing here: a hang-up or
-    Ctrl-C that comes meanwhile is acted on when the block ends (with SIGINT ignored for those
-    milliseconds, a Ctrl-C to the group was lost and the build went on)."""
-    mask = getattr(signal, "pthread_sigmask", None)
-    if mask is None or threading.current_thread() is not threading.main_thread():
+    """Start multiprocessing's resource tracker inside :func:`signals_deferred`: it inherits
+    SIGHUP blocked (a mask it never lifts), so a terminal's hang-up to the whole process group
+    does not kill it mid-build (its successor would print a KeyError traceback per
+    semaphore); it ignores SIGINT and SIGTERM itself. A signal that comes meanwhile is acted on
+    when the block ends (with SIGINT ignored for those milliseconds, a Ctrl-C to the group was
+    lost and the build went on)."""
+    with signals_deferred():
         resource_tracker.ensure_running()
-        return
-    held = [getattr(signal, n) for n in ("SIGHUP", "SIGINT") if hasattr(signal, n)]
-    before = mask(signal.SIG_BLOCK, held)
-    try:
-        resource_tracker.ensure_running()
-    finally:
-        mask(signal.SIG_SETMASK, before)
 
 
 _DEFERRED_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n))
