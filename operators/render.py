@@ -17,14 +17,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 
-from ssm_addon.model.figures import FIGURE_COLOURS, FIGURE_VIEWS, mode_shapes
-from ssm_addon.model.metrics import (
-    axis_letters,
-    label_grid_picture,
-    modes_figure_labels,
-    view_names,
-    view_orientation,
-)
+from ssm_addon.model.figures import FIGURE_COLOURS, FIGURE_VIEWS, label_modes_figure, mode_shapes, modes_figure_cell
 
 from . import bridge
 
@@ -65,9 +58,7 @@ def render_modes_figure(
     """
     rows = mode_shapes(model, n_modes, sigmas)
     faces = np.asarray(model.faces)
-    centre = np.asarray(model.mean, float).mean(axis=0)
-    all_pts = np.concatenate([p for _, shapes in rows for _, p in shapes]) - centre
-    cell = 1.15 * 2.0 * float(np.linalg.norm(all_pts, axis=1).max())
+    centre, cell = modes_figure_cell(model, rows)
     n_rows, n_cols = len(rows), len(views)
 
     scene = bpy.data.scenes.new("SSM Modes Figure")
@@ -131,10 +122,7 @@ def render_modes_figure(
         import matplotlib.image as mpimg
 
         grid = mpimg.imread(str(raw))
-        label_grid_picture(grid, path, row_labels=modes_figure_labels(model, n_modes, sigmas),
-                           column_labels=[f"{name}\n{view_orientation(VIEWS[v], axis_letters(model))}"
-                                          for v, name in zip(views, view_names(model, views))],
-                           title=f"Mean shape and the first {len(rows) - 1} modes (eq. 7, b = ±{sigmas:g}√λ)",
+        label_modes_figure(grid, path, model, n_modes=n_modes, sigmas=sigmas, views=views,
                            mm_per_px=cell / float(cell_px))
     finally:
         shutil.rmtree(raw.parent, ignore_errors=True)

@@ -31,8 +31,8 @@ from .metrics import (
 )
 from .pca import ShapeModel
 
-__all__ = ["FIGURE_COLOURS", "FIGURE_VIEWS", "fit_figure", "mode_shapes", "p_value_text", "principal_views",
-           "rasterize_meshes", "render_modes_figure"]
+__all__ = ["FIGURE_COLOURS", "FIGURE_VIEWS", "fit_figure", "label_modes_figure", "mode_shapes", "modes_figure_cell",
+           "p_value_text", "principal_views", "rasterize_meshes", "render_modes_figure"]
 
 #: Model frame -> screen frame (rows: screen x right, screen y up, towards the viewer).
 #: axial: seen from superior (x right, y up); sagittal: from the +x side with z up;
@@ -170,9 +170,7 @@ def render_modes_figure(model: ShapeModel, path, n_modes: int = 2, sigmas: float
     """
     rows = mode_shapes(model, n_modes, sigmas)
     faces = np.asarray(model.faces)
-    centre = np.asarray(model.mean, float).mean(axis=0)
-    all_pts = np.concatenate([p for _, shapes in rows for _, p in shapes]) - centre
-    cell = 1.15 * 2.0 * float(np.linalg.norm(all_pts, axis=1).max())  # mm per cell, as Blender's camera
+    centre, cell = modes_figure_cell(model, rows)
     px_per_mm = cell_px / cell
     n_rows, n_cols = len(rows), len(views)
     meshes = []
@@ -185,11 +183,29 @@ def render_modes_figure(model: ShapeModel, path, n_modes: int = 2, sigmas: float
                                q[:, 2]]
                 meshes.append((screen, faces, FIGURE_COLOURS[kind]))
     grid = rasterize_meshes(meshes, (n_rows * cell_px, n_cols * cell_px))
+    return label_modes_figure(grid, path, model, n_modes=n_modes, sigmas=sigmas, views=views,
+                              mm_per_px=cell / float(cell_px))
+
+
+def modes_figure_cell(model: ShapeModel, rows) -> tuple[np.ndarray, float]:
+    """The fig-10 grid's centre (the mean's centroid, model frame mm) and the side of one view
+    cell (mm): 1.15 × the diameter of the largest shape drawn (rows of :func:`mode_shapes`)."""
+    centre = np.asarray(model.mean, float).mean(axis=0)
+    all_pts = np.concatenate([p for _, shapes in rows for _, p in shapes]) - centre
+    return centre, 1.15 * 2.0 * float(np.linalg.norm(all_pts, axis=1).max())
+
+
+def label_modes_figure(grid: np.ndarray, path, model: ShapeModel, *, n_modes: int, sigmas: float, views,
+                       mm_per_px: float) -> Path:
+    """The fig-10 picture from its drawn grid (Blender's render or :func:`rasterize_meshes`):
+    row labels (the mean; each mode's share and colours), column labels (the views and where
+    the model's axes point), the title and a scale bar."""
+    n_rows = 1 + min(int(n_modes), len(model.variances))
     return label_grid_picture(grid, path, row_labels=modes_figure_labels(model, n_modes, sigmas),
                               column_labels=[f"{name}\n{view_orientation(FIGURE_VIEWS[v], axis_letters(model))}"
                                              for v, name in zip(views, view_names(model, views))],
-                              title=f"Mean shape and the first {len(rows) - 1} modes (eq. 7, b = ±{sigmas:g}√λ)",
-                              mm_per_px=cell / float(cell_px))
+                              title=f"Mean shape and the first {n_rows - 1} modes (eq. 7, b = ±{sigmas:g}√λ)",
+                              mm_per_px=mm_per_px)
 
 
 def p_value_text(p: float) -> str:
