@@ -259,9 +259,7 @@ def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> 
     from ..cli import blender_layer
     from ..cli.project_build import build, read_project
 
-    if jobs is not None and jobs < 1:
-        print(f"note: --jobs {jobs} is not a number of workers; used 1", flush=True)
-        jobs = 1
+    jobs = _workers(jobs)
     project = with_overrides(read_project(project_path), args)
     hook = None
     if blend and project.params.output.blend:
@@ -306,14 +304,22 @@ def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> 
     return 0
 
 
+def _workers(jobs):
+    """``--jobs`` as a number of workers: below 1 it is 1, said once."""
+    if jobs is not None and jobs < 1:
+        print(f"note: --jobs {jobs} is not a number of workers; used 1", flush=True)
+        return 1
+    return jobs
+
+
 def _one_target(args, named: dict) -> None:
     """Refuse two targets at once (a batch and a single target, two batches, two single
     targets), naming them: one of them would otherwise be left out without a word."""
     single = [f"--{k} {v}" for k, v in (("volume", args.volume), ("mesh", args.mesh), ("points", args.points)) if v]
     single += [f"--mesh {k}={v}" for k, v in named.items()]
     batch = [f"--{k} {v}" for k, v in (("project", args.project), ("glob", args.glob)) if v]
-    structures = bool(named or args.label_of)  # a joint model's structures: --volume with --label-of, --mesh S=F
-    if structures and not batch and not args.points and not (args.mesh and not named):
+    # a joint model's structures (--volume with --label-of, --mesh S=F; args.mesh is then None) are one target
+    if (named or args.label_of) and not (batch or args.points or args.mesh):
         return
     if len(batch) + len(single) > 1:
         raise InputError(f"{' and '.join(batch + single)}: two targets at once; give one target, or one batch "
@@ -336,9 +342,7 @@ def cmd_fit(args) -> int:
         raise InputError("--mesh: several meshes are STRUCTURE=FILE each (a joint model's structures)")
     args.mesh = meshes[0] if meshes and not named else None
     _one_target(args, named)
-    if args.jobs < 1:
-        print(f"note: --jobs {args.jobs} is not a number of workers; used 1", flush=True)
-        args.jobs = 1
+    args.jobs = _workers(args.jobs)
     inputs = [args.model, args.volume, args.mesh, args.points, args.landmarks, args.project, *named.values()]
     model = apply.load_model(args.model, say=lambda line: print(line, flush=True))  # says which modes are empty
     if params.n_modes is not None and params.n_modes > model.n_modes:
