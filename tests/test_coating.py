@@ -7,6 +7,7 @@ import sys
 import numpy as np
 import pytest
 from conftest import ellipsoid_landmarks
+from scipy import ndimage
 
 from ssm_addon import meshutil as mu
 from ssm_addon.base import params as P
@@ -146,6 +147,33 @@ def test_warp_rejects_mismatched_landmark_counts():
 # ---------------------------------------------------------------------------------------
 # 4.2 distance map
 # ---------------------------------------------------------------------------------------
+@pytest.mark.parametrize("shape", [(2, 3, 4), (5, 7, 9), (31, 2, 40)])
+@pytest.mark.parametrize("spacing", [1.0, 0.5, 0.3, 1.7])
+def test_gradient_written_in_place_equals_numpy_gradient_bit_for_bit(shape, spacing):
+    f = np.random.default_rng(7).normal(scale=10.0, size=shape)
+    out = np.full((3, *shape), np.nan)
+    assert DM.gradient_into(f, spacing, out) is out
+    for mine, numpys in zip(out, np.gradient(f, spacing)):
+        assert np.array_equal(mine, numpys)
+
+
+def test_distance_map_fields_are_the_distance_and_its_numpy_gradient():
+    g = np.mgrid[-9:10, -8:9, -7:8]
+    ov = ObjectVolume((g[0] ** 2 / 49 + g[1] ** 2 / 25 + g[2] ** 2 / 16) <= 1, 0.8, np.array([-7.2, -6.4, -5.6]),
+                      ObjectFrame(np.zeros(3), np.eye(3)))
+    dm = DM.DistanceMap.from_object_volume(ov)
+    fields = dm._fields_flat.reshape(4, *ov.mask.shape)
+    assert np.shares_memory(dm.sdf_mm, dm._fields_flat) and np.array_equal(fields[0], dm.sdf_mm)
+    for mine, numpys in zip(fields[1:], np.gradient(np.array(dm.sdf_mm), 0.8)):
+        assert np.array_equal(mine, numpys)
+    dm.smooth_normals(np.zeros((1, 3)), 2.0)
+    smoothed = dm._smooth_cache[2.0].reshape(4, *ov.mask.shape)
+    sm = ndimage.gaussian_filter(np.array(dm.sdf_mm), 2.0 / 0.8, mode="nearest")
+    assert np.array_equal(smoothed[0], sm)
+    for mine, numpys in zip(smoothed[1:], np.gradient(sm, 0.8)):
+        assert np.array_equal(mine, numpys)
+
+
 def test_projection_lands_on_marching_cubes_surface_at_subvoxel_accuracy():
     axes = np.array([18.0, 12.0, 9.0])
     ov = ellipsoid_volume(axes)
