@@ -14,6 +14,7 @@ from ssm_addon.base import params as P
 from ssm_addon.base.errors import InputError
 from ssm_addon.coating import coating as C
 from ssm_addon.coating import distance_map as DM
+from ssm_addon.coating import registration as RG
 from ssm_addon.coating import relaxation as RX
 from ssm_addon.coating import warp as W
 from ssm_addon.correspondence import proposal as PR
@@ -172,6 +173,28 @@ def test_distance_map_fields_are_the_distance_and_its_numpy_gradient():
     assert np.array_equal(smoothed[0], sm)
     for mine, numpys in zip(smoothed[1:], np.gradient(sm, 0.8)):
         assert np.array_equal(mine, numpys)
+
+
+def test_registration_does_not_leave_exact_ties_to_the_k_d_tree(monkeypatch):
+    # a mesh on a 2 mm lattice registered to a surface sampled on a 1 mm lattice: 968 of the
+    # 2,054 surface points are exactly as near two vertices as one; the first step's pull must
+    # not depend on which of them the k-d tree's traversal meets first
+    fine, coarse = ellipsoid_volume([14.0, 10.0, 8.0], 1.0), ellipsoid_volume([14.0, 10.0, 8.0], 2.0)
+    dm, cm = DM.DistanceMap.from_object_volume(fine), DM.DistanceMap.from_object_volume(coarse)
+    args = (cm.surface_vertices, cm.surface_faces, dm)
+    balanced = RG.register_to_surface(*args, sigmas_mm=(8.0, 4.0), iterations=3)
+
+    class OtherTree(RG.cKDTree):  # another tree over the same points: another traversal order
+        def __init__(self, data, leafsize=16, **_kw):
+            super().__init__(data[::-1], leafsize=3, balanced_tree=False, compact_nodes=False)
+            self.flip = len(data) - 1
+
+        def query(self, x, k=1, **kw):
+            d, i = super().query(x, k=k, **kw)
+            return d, np.where(i < self.n, self.flip - i, i)
+
+    monkeypatch.setattr(RG, "cKDTree", OtherTree)
+    assert np.array_equal(RG.register_to_surface(*args, sigmas_mm=(8.0, 4.0), iterations=3), balanced)
 
 
 def test_projection_lands_on_marching_cubes_surface_at_subvoxel_accuracy():

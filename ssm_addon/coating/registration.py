@@ -83,6 +83,28 @@ def _gaussian_smooth_pooled(points, values, weights, sigma_mm, dense_max):
     return acc[:, :3] / np.maximum(acc[:, 3:], 1e-12)
 
 
+#: Candidates searched for exact ties in the first step (:func:`_nearest_vertex`).
+TIE_CANDIDATES = 4
+
+
+def _nearest_vertex(tree: cKDTree, targets: np.ndarray, workers: int, *, ties: bool) -> np.ndarray:
+    """Index of the nearest mesh vertex of every target point.
+
+    With ``ties``, of the vertices at exactly the nearest distance (among the
+    ``TIE_CANDIDATES`` nearest) the lowest index, so that the k-d tree's traversal order
+    does not choose. A registration's first step needs it: a mesh that starts on the
+    surface's own voxel lattice (the template on its own instance, or placed by the object
+    frames alone) has targets equidistant from two or more vertices (up to 81 of ~5,000 on a
+    knee30 patella); once the smooth displacement has moved it, exact ties do not occur.
+    """
+    if not ties:
+        return tree.query(targets, workers=workers)[1]
+    k = min(TIE_CANDIDATES, tree.n)
+    d, idx = tree.query(targets, k=k, workers=workers)
+    d, idx = d.reshape(len(targets), k), idx.reshape(len(targets), k)
+    return np.where(d == d[:, :1], idx, tree.n).min(axis=1)
+
+
 def register_to_surface(
     points: np.ndarray,
     faces: np.ndarray,
@@ -129,6 +151,7 @@ def register_to_surface(
     targets, target_normals = distance_map.surface_samples(stride)
     cos_min = 0.3
     workers = inner_threads(QUERY_WORKERS)
+    first = True
     for sigma in sigmas_mm:
         for _ in range(iterations):
             check_cancelled(cancelled)
@@ -137,7 +160,8 @@ def register_to_surface(
             w_fwd = (np.einsum("ij,ij->i", vn, distance_map.normals(near)) > cos_min).astype(float)
             # the search over ~5,000 surface points was 40 % of an iteration: both cores
             # (the same result as one; workers only splits the query points)
-            _, j = cKDTree(p, leafsize=16).query(targets, workers=workers)
+            j = _nearest_vertex(cKDTree(p, leafsize=16), targets, workers, ties=first)
+            first = False
             ok = np.einsum("ij,ij->i", vn[j], target_normals) > cos_min
             jj = j[ok]
             count = np.bincount(jj, minlength=n).astype(float)
