@@ -5,6 +5,7 @@ Usage::
 
     .venv/bin/python tools/bench_build.py [--jobs N] [--blend] [--n 31] [--cases demo,verse,femur10,femur10-model]
                                           [--against REV --runs 3]
+    .venv/bin/python tools/bench_build.py --cases dense-truth --ratio   # model method / single pass
 
 Cases, each run as ``python -m ssm_addon build`` in a fresh process (``--cache off``):
 
@@ -14,7 +15,13 @@ Cases, each run as ``python -m ssm_addon build`` in a fresh process (``--cache o
   data), when present;
 * ``femur10``, ``femur10-model``: the ten femurs of ``femur10`` (meshes; 15 landmarks at farthest
   points of femur00, the same vertices on the others: the data's dense correspondence), by the
-  single pass and by the model method, when present.
+  single pass and by the model method, when present;
+* ``knee30-femur``, ``knee30-tibia``, ``knee30-patella`` (and ``…-model``): each bone of ``knee30``
+  (30 meshes) the same way;
+* ``dense-truth``: all eight of the above.
+
+``--ratio``: for each set built both ways, the model method's time over the single pass's
+(coating stage and whole command, medians of ``--runs``).
 
 Alone: wall time per stage (import, template, coating, model, metrics, write[, blender]) from
 ``report.json`` and the peak resident memory of the build process and its workers. With
@@ -83,16 +90,22 @@ def _print(case: str, report: dict) -> None:
 STAGES = ("import", "template", "coating", "model", "metrics", "blender", "write", "report_html", "total")
 
 
-def femur10_project(folder: Path, data: Path, method: str, landmarks: int = 15) -> Path:
-    """femur10's meshes with ``landmarks`` at farthest points of femur00 (the same vertices on
-    every femur: the data's dense correspondence), by ``method``."""
+#: The dense-truth sets: (folder under the shared data, file pattern).
+MESH_SETS = {"femur10": ("femur10", "femur*.ply"), "knee30-femur": ("knee30", "*_Femur.ply"),
+             "knee30-tibia": ("knee30", "*_Tibia.ply"), "knee30-patella": ("knee30", "*_Patella.ply")}
+
+
+def mesh_set_project(folder: Path, data: Path, pattern: str, method: str, landmarks: int = 15) -> Path:
+    """A folder of meshes sharing one connectivity (``pattern``) with ``landmarks`` at farthest
+    points of the first (the same vertices on every mesh: the data's dense correspondence), by
+    ``method``."""
     import numpy as np
     from foreign_data import scalismo_landmarks
 
     from ssm_addon.formats.meshes import read_mesh
 
     folder.mkdir(parents=True, exist_ok=True)
-    files = sorted(data.glob("femur*.ply"))
+    files = sorted(data.glob(pattern))
     v0, _f = read_mesh(files[0])
     chosen, d = [0], np.linalg.norm(v0 - v0[0], axis=1)
     for _ in range(landmarks - 1):
@@ -103,7 +116,7 @@ def femur10_project(folder: Path, data: Path, method: str, landmarks: int = 15) 
         v, _f = read_mesh(f)
         lm = scalismo_landmarks(folder / f"{f.stem}.json", [f"P{k}" for k in range(landmarks)], v[chosen])
         lines += ["[[instances]]", f'name = "{f.stem}"', f'mesh = "{f.as_posix()}"', f'landmarks = "{lm.name}"', ""]
-    path = folder / f"femur10_{method}.toml"
+    path = folder / f"{folder.name}_{method}.toml"
     path.write_text("\n".join(lines))
     return path
 
@@ -115,6 +128,7 @@ def make_cases(tmp: Path, names, n: int) -> dict:
     from ssm_addon.cli.demo import make_demo_population
 
     cases = {}
+    names = [m for n in names for m in ([s + t for s in MESH_SETS for t in ("", "-model")] if n == "dense-truth" else [n])]
     for name in names:
         if name == "demo":
             t0 = time.perf_counter()
@@ -127,14 +141,16 @@ def make_cases(tmp: Path, names, n: int) -> dict:
             from test_build_verse import write_verse_project
 
             cases[name] = write_verse_project(tmp, VERSE_DIR)
-        elif name in ("femur10", "femur10-model"):
-            data = shared_data_dir() / "femur10"
+        elif name.removesuffix("-model") in MESH_SETS:
+            sub, pattern = MESH_SETS[name.removesuffix("-model")]
+            data = shared_data_dir() / sub
             if not data.is_dir():
                 print(f"{name}: skipped ({data} not found)")
                 continue
-            cases[name] = femur10_project(tmp / name, data, "model" if name.endswith("model") else "landmarks")
+            cases[name] = mesh_set_project(tmp / name, data, pattern, "model" if name.endswith("-model") else "landmarks")
         else:
-            raise SystemExit(f"unknown case {name!r} (demo, verse, femur10, femur10-model)")
+            raise SystemExit(f"unknown case {name!r} (demo, verse, dense-truth, or a set of {', '.join(MESH_SETS)} "
+                             "with or without -model)")
     return cases
 
 
@@ -165,20 +181,50 @@ def paired(cases: dict, rev: str, tmp: Path, *, jobs: int, blend: bool, runs: in
         subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(other)], capture_output=True)
 
 
+def ratio(cases: dict, tmp: Path, *, jobs: int, runs: int) -> None:
+    """Each set built by the single pass and by the model method ``runs`` times, alternating; the
+    medians and the model method's ratio (coating stage, whole command)."""
+    rows = []
+    for case in [c for c in cases if not c.endswith("-model") and f"{c}-model" in cases]:
+        got = {"single": [], "model": []}
+        for r in range(runs):
+            for who, key in (("single", case), ("model", f"{case}-model")):
+                report = run_build(cases[key], tmp / f"out_{key}", jobs, False, ("--cache", "off"))
+                got[who].append({**report["timings_s"], "process": report["wall_s"]})
+                print(f"  {key} run {r + 1} {report['wall_s']:7.2f} s (coating {report['timings_s']['coating']:.2f} s)",
+                      flush=True)
+        med = {who: {k: statistics.median(t[k] for t in got[who]) for k in ("coating", "process")} for who in got}
+        rows.append((case, med))
+    print(f"\nmodel method / single pass, median of {runs} runs, --jobs {jobs} (s)")
+    print(f"  {'set':16s} {'coating':>22s} {'whole command':>22s}")
+    for case, med in rows:
+        c = med["model"]["coating"], med["single"]["coating"]
+        w = med["model"]["process"], med["single"]["process"]
+        print(f"  {case:16s} {c[0]:6.2f} / {c[1]:6.2f} = {c[0] / c[1]:4.2f}   {w[0]:6.2f} / {w[1]:6.2f} = {w[0] / w[1]:4.2f}")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--n", type=int, default=31, help="demo instances (paper: 31)")
     parser.add_argument("--blend", action="store_true", help="also write model.blend and modes.png (needs bpy)")
-    parser.add_argument("--cases", default="demo,verse", help="comma-separated: demo, verse, femur10, femur10-model")
+    parser.add_argument("--cases", default="demo,verse",
+                        help="comma-separated: demo, verse, dense-truth, femur10, knee30-femur, knee30-tibia, "
+                             "knee30-patella (each also with -model)")
     parser.add_argument("--against", metavar="REV", help="an earlier commit to pair every case against")
-    parser.add_argument("--runs", type=int, default=3, help="runs of each case and side with --against (default 3)")
+    parser.add_argument("--runs", type=int, default=3, help="runs of each case and side with --against or --ratio "
+                                                            "(default 3)")
+    parser.add_argument("--ratio", action="store_true",
+                        help="the model method's time over the single pass's, for every set given both ways")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="ssm-bench-build-") as tmp:
         tmp = Path(tmp)
         cases = make_cases(tmp, [c.strip() for c in args.cases.split(",") if c.strip()], args.n)
         if args.against:
             paired(cases, args.against, tmp, jobs=args.jobs, blend=args.blend, runs=args.runs)
+            return 0
+        if args.ratio:
+            ratio(cases, tmp, jobs=args.jobs, runs=args.runs)
             return 0
         for case, project in cases.items():
             _print(f"{case} (jobs={args.jobs})", run_build(project, tmp / f"out_{case}", args.jobs, args.blend,
