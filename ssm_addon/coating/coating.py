@@ -59,7 +59,7 @@ from enum import StrEnum
 
 import numpy as np
 
-from ..base.compute import executor_or_local, run_one_thread
+from ..base.compute import executor_or_local, inner_threads, run_one_thread
 from ..base.errors import Cancelled, InputError, check_cancelled
 from ..base.params import CoatingParams
 from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
@@ -263,14 +263,18 @@ def coat_from_start(
 
     # the smoothed field of the fold test (a Gaussian filter of the whole grid; scipy
     # releases the GIL) and the fit figures' triangle search tree are built on a
-    # second thread while the registration runs
-    pool = ThreadPoolExecutor(max_workers=1)
-    smoothed = pool.submit(dm.smooth_normals, np.zeros((1, 3)), params.fold_normal_sigma_mm)
-    located = pool.submit(lambda: dm.locator)
-    pool.shutdown(wait=False)
+    # second thread while the registration runs (in the main process; a worker process
+    # builds them when first needed, :func:`~ssm_addon.base.compute.inner_threads`)
+    side = []
+    if inner_threads(2) > 1:
+        pool = ThreadPoolExecutor(max_workers=1)
+        side = [pool.submit(dm.smooth_normals, np.zeros((1, 3)), params.fold_normal_sigma_mm),
+                pool.submit(lambda: dm.locator)]
+        pool.shutdown(wait=False)
 
     def folds(p):
-        smoothed.result()
+        for built in side[:1]:
+            built.result()
         return int(folded_triangles(p, faces, dm, params.fold_angle_deg, params.fold_normal_sigma_mm).sum())
 
     report(progress, 0.1, "surface registration")
@@ -303,7 +307,8 @@ def coat_from_start(
         projected, faces, d0, dm, params=params, edges=e, cancelled=cancelled,
         progress=sub_progress(progress, 0.25, 0.95, "coating: "))
     folded_after = folds(coated)
-    located.result()
+    for built in side:
+        built.result()
     dist = dm.surface_distance(coated)
     residuals = ()
     if template_location is not None and target_landmarks is not None:

@@ -14,6 +14,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from scipy import ndimage
 
+from ..base.compute import inner_threads
 from ..base.errors import InputError
 from ..instances.volume import ObjectVolume
 from ..meshutil import MeshLocator, marching_cubes
@@ -105,15 +106,21 @@ class DistanceMap:
         hi = np.minimum(np.array([o[-1] for o in occupied]) + 2, mask.shape)
         box = tuple(slice(a, b) for a, b in zip(lo, hi))
         sub = mask[box]
-        # the two EDTs (scipy releases the GIL in them) run side by side on two threads,
-        # the marching cubes (holds the GIL) after the inside one: the same arrays as
-        # serially, ~1/3 less time
-        with ThreadPoolExecutor(max_workers=2) as pool:
-            outside = pool.submit(ndimage.distance_transform_edt, ~mask)  # voxels, to nearest inside centre
-            inside = pool.submit(ndimage.distance_transform_edt, sub)
+        # the two EDTs (scipy releases the GIL in them) run side by side on two threads in
+        # the main process (Blender, a serial build), the marching cubes (holds the GIL)
+        # after the inside one; in a worker process, whose siblings keep the cores busy, one
+        # after the other (:func:`~ssm_addon.base.compute.inner_threads`). The same arrays
+        if inner_threads(2) > 1:
+            with ThreadPoolExecutor(max_workers=2) as pool:
+                outside = pool.submit(ndimage.distance_transform_edt, ~mask)  # voxels, to nearest inside centre
+                inside = pool.submit(ndimage.distance_transform_edt, sub)
+                verts, faces = marching_cubes(mask)
+                sdf = outside.result()
+                inside = inside.result()
+        else:
+            sdf = ndimage.distance_transform_edt(~mask)
+            inside = ndimage.distance_transform_edt(sub)
             verts, faces = marching_cubes(mask)
-            sdf = outside.result()
-            inside = inside.result()
         verts = ov.voxel_to_object(verts)
         sdf -= 0.5
         sdf_box = sdf[box]
