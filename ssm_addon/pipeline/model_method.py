@@ -128,17 +128,18 @@ def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn =
             work.fallbacks.append(Finding("", "fallback", f"the model method's rounds failed ({err}); the start's "
                                           "coatings are kept (where every instance has landmarks: the paper's single "
                                           "pass)"))
-    for f in work.fallbacks:
-        say(f"WARNING {f.instance or 'study'} [{f.gate}]: {f.message}")
-    coated = {n: work.coatings[n] for n in study.names}
-    kept = "the start" if check.kept_round == 0 else f"round {check.kept_round}'s coatings"
-    say(f"correspondence: {check.stop or 'no rounds'}; kept {kept}; landmark transfer error {check.study_mm:.3f} mm")
-    findings = (check_landmark_transfer(check, study.params.quality)
-                + check_correspondence_rounds(rounds, check, study.params.correspondence.tolerance_mm)
-                + list(work.fallbacks))
-    result = coating_result(study, coated, {n: work.coating_start.get(n, coated[n].fit.start) for n in coated},
-                            time.perf_counter() - t0, template=work.template, rounds=tuple(rounds), check=check,
-                            extra_findings=tuple(findings))
+        for f in work.fallbacks:
+            say(f"WARNING {f.instance or 'study'} [{f.gate}]: {f.message}")
+        coated = {n: work.coatings[n] for n in study.names}
+        kept = "the start" if check.kept_round == 0 else f"round {check.kept_round}'s coatings"
+        say(f"correspondence: {check.stop or 'no rounds'}; kept {kept}; landmark transfer error {check.study_mm:.3f} mm")
+        findings = (check_landmark_transfer(check, study.params.quality)
+                    + check_correspondence_rounds(rounds, check, study.params.correspondence.tolerance_mm)
+                    + list(work.fallbacks))
+        # (the input meshes are measured against their coatings on the same pool)
+        result = coating_result(study, coated, {n: work.coating_start.get(n, coated[n].fit.start) for n in coated},
+                                time.perf_counter() - t0, template=work.template, rounds=tuple(rounds), check=check,
+                                extra_findings=tuple(findings), executor=pool, cancelled=cancelled)
     if choice:
         result.product["template_choice"] = choice
         result.product["template_instance"] = work.template_instance

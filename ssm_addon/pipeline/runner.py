@@ -34,8 +34,7 @@ def coating_stage(study: Study, *, names: Sequence[str] | None = None, jobs: int
                             on_coated=on_coated)
     check, found = self_check(study, {**study.coatings, **coated}, jobs=jobs, executor=executor, cancelled=cancelled)
     return coating_result(study, coated, {n: c.fit.start for n, c in coated.items()}, time.perf_counter() - t0,
-                          check=check,
-                          extra_findings=found)
+                          check=check, extra_findings=found, executor=executor, cancelled=cancelled)
 
 
 def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress: ProgressFn = None,

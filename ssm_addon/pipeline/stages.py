@@ -251,41 +251,55 @@ def template_stage(study: Study, *, progress: ProgressFn = None, cancelled: Canc
                         f"{seconds:.2f} s",))
 
 
+def _input_distance_job(args):
+    path, convention, points_world, faces = args
+    vertices, mesh_faces = read_mesh(path, space=convention)
+    d = two_way_distances(points_world, faces, vertices, mesh_faces)
+    return {"to_input": d["to_other"], "from_input": d["from_other"]}
+
+
 def input_distances(study: Study, coated: dict[str, CoatingResult], faces: np.ndarray,
-                    frames: dict | None = None) -> dict[str, dict]:
+                    frames: dict | None = None, *, executor=None, cancelled: CancelledFn = None) -> dict[str, dict]:
     """For every coated instance given as a mesh file: the coating against the user's own mesh
     (world mm, the file read as the import reads it), both ways (:func:`~ssm_addon.meshutil.two_way_distances`:
     ``to_input`` from the coated points to the mesh, ``from_input`` from the mesh's vertices to
-    the coated surface: large where the template's points do not reach a thin process)."""
+    the coated surface: large where the template's points do not reach a thin process).
+
+    ``executor``: where the instances are measured (the build's workers; default this process).
+    """
     frames = {**study.frames, **(frames or {})}
-    out = {}
+    names, args = [], []
     for name, c in coated.items():
         spec = study.instance(name)
         if spec.mesh_path is None or name not in frames:
             continue
         convention, _note = mesh_coordinates(spec.mesh_path, spec.given_space(study.params.template.space))
-        vertices, mesh_faces = read_mesh(spec.mesh_path, space=convention)
-        d = two_way_distances(frames[name].to_world(c.points_object), faces, vertices, mesh_faces)
-        out[name] = {"to_input": d["to_other"], "from_input": d["from_other"]}
-    return out
+        names.append(name)
+        args.append((spec.mesh_path, convention, frames[name].to_world(c.points_object), np.asarray(faces)))
+    if not args:
+        return {}
+    with executor_or_local(executor, 1) as pool:
+        found = pool.map(_input_distance_job, args, labels=names, verb="measured against its mesh", cancelled=cancelled)
+    return dict(zip(names, found))
 
 
 def coating_result(study: Study, coated: dict[str, CoatingResult], starts: dict[str, str], seconds: float, *,
                    template: Template | None = None, rounds: tuple = (), counts: str = "", check=None,
-                   extra_findings: tuple = (), frames: dict | None = None) -> StageResult:
+                   extra_findings: tuple = (), frames: dict | None = None, executor=None,
+                   cancelled: CancelledFn = None) -> StageResult:
     """The coating stage's result for ``coated`` instances: the coating gates and the summary.
 
     ``template`` (the mean shape of the model method), ``rounds`` (its refinement rounds)
     and ``check`` (the correspondence self-check, :func:`self_check`) join the product
     when given; ``extra_findings`` (the self-check's and the rounds' gates) the findings.
     Instances given as meshes are also measured against their own mesh
-    (:func:`input_distances`, ``frames``: object frames the study does not hold yet) and gated
-    (:func:`~ssm_addon.model.quality.check_input_surface`).
+    (:func:`input_distances` on ``executor``, ``frames``: object frames the study does not hold
+    yet) and gated (:func:`~ssm_addon.model.quality.check_input_surface`).
     """
     qp = study.params.quality
     findings = tuple(f for n, c in coated.items() for f in check_coating(n, c.fit, qp))
     faces = (template if template is not None else study.template).faces
-    distances = input_distances(study, coated, faces, frames)
+    distances = input_distances(study, coated, faces, frames, executor=executor, cancelled=cancelled)
     findings += tuple(f for n, d in distances.items() for f in check_input_surface(n, d, qp, study.params.template))
     findings += tuple(extra_findings)
     product = {"coatings": dict(coated), "coating_start": dict(starts), "input_distances": distances}

@@ -226,7 +226,8 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
                               cancelled=cancelled)
     result = coating_result(study, coatings, {n: c.fit.start for n, c in coatings.items()}, time.perf_counter() - t0,
                             template=template, frames=frames,
-                            counts=f"{len(todo)} coated, {cached} from the cache; ", check=check, extra_findings=found)
+                            counts=f"{len(todo)} coated, {cached} from the cache; ", check=check, extra_findings=found,
+                            executor=executor, cancelled=cancelled)
     counts = {"cached": cached, "computed": len(todo)}
     return dataclasses.replace(
         result, product={**result.product, "template": template, "volumes": volumes, "frames": frames,
