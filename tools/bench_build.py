@@ -74,11 +74,11 @@ def _print(case: str, report: dict) -> None:
     n = len(report.get("instances", {}))
     print(f"\n{case}: {n} instances, template {tpl.get('points')} points / {tpl.get('triangles')} triangles "
           f"(genus {tpl.get('genus')})")
-    print(f"  {'stage':10s} {'time (s)':>9s}")
+    print(f"  {'stage':18s} {'time (s)':>9s}")
     for key in STAGES:
         if key in t:
-            print(f"  {key:10s} {t[key]:9.2f}")
-    print(f"  {'process':10s} {report['wall_s']:9.2f}  (wall time of the whole command, incl. interpreter start)")
+            print(f"  {key:18s} {t[key]:9.2f}")
+    print(f"  {'process':18s} {report['wall_s']:9.2f}  (wall time of the whole command, incl. interpreter start)")
     print(f"  peak memory: build process {mem['self_mb']:.0f} MB, largest worker {mem['children_mb']:.0f} MB")
     fits = report.get("instances", {}).values()
     if fits:
@@ -87,7 +87,8 @@ def _print(case: str, report: dict) -> None:
         print(f"  fit: mean surface distance {mean:.3f} mm, largest {worst:.2f} mm")
 
 
-STAGES = ("import", "template", "coating", "model", "metrics", "blender", "write", "report_html", "total")
+STAGES = ("import", "template", "coating", "coating_self_check", "model", "metrics", "blender", "write", "report_html",
+          "total")
 
 
 #: The dense-truth sets: (folder under the shared data, file pattern).
@@ -176,7 +177,7 @@ def paired(cases: dict, rev: str, tmp: Path, *, jobs: int, blend: bool, runs: in
                 b = [t[stage] for t in got["rev"] if stage in t]
                 if a and b:
                     ma, mb = statistics.median(a), statistics.median(b)
-                    print(f"  {stage:12s} {ma:8.2f} {mb:8.2f}   {ma / mb if mb else float('nan'):6.3f}")
+                    print(f"  {stage:18s} {ma:8.2f} {mb:8.2f}   {ma / mb if mb else float('nan'):6.3f}")
     finally:
         subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(other)], capture_output=True)
 

@@ -222,8 +222,10 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
     findings = [dataclasses.replace(f, stage="import") for f in findings]
     frames.update({n: products[n].frame for n in names})
     coatings = {n: products[n].coating for n in names}
+    t_check = time.perf_counter()
     check, found = self_check(study, coatings, template=template, frames=frames, executor=executor,
                               cancelled=cancelled)
+    timings["coating_self_check"] = time.perf_counter() - t_check  # a part of "coating"
     result = coating_result(study, coatings, {n: c.fit.start for n, c in coatings.items()}, time.perf_counter() - t0,
                             template=template, frames=frames,
                             counts=f"{len(todo)} coated, {cached} from the cache; ", check=check, extra_findings=found,
