@@ -283,3 +283,15 @@ def test_legends_stand_clear_of_the_curves(tmp_path, population, monkeypatch):
     texts = [t.get_text() for fig in saved for ax in fig.axes if ax.get_legend() for t in ax.get_legend().get_texts()]
     assert "generalization: mean ± SD over the left-out instances" in texts
     assert "specificity: mean ± SD over the random model shapes" in texts
+
+
+@pytest.mark.parametrize("alignment", ["none", "rigid"])
+def test_folds_with_more_shapes_than_coordinates_use_the_covariance_and_equal_the_gram_route(alignment):
+    # 150 shapes of 10 points, 10 folds: 135 training shapes against 30 coordinates
+    shapes, _mean, _fields, _var = synthetic_population(n=150, n_points=10, variances=(25.0, 9.0, 4.0),
+                                                         noise_mm=0.05, seed=5)
+    auto = generalization(shapes, ks=[1, 2, 3, 5, 8], folds=10, alignment=alignment)
+    gram = generalization(shapes, ks=[1, 2, 3, 5, 8], folds=10, alignment=alignment, solver="gram")
+    assert "3N × 3N" in auto["method"] and "3N × 3N" not in gram["method"]
+    np.testing.assert_allclose(auto["per_instance_mm"], gram["per_instance_mm"], rtol=1e-7, atol=1e-10)
+    assert auto["mean_mm"][2] < 0.2 < auto["mean_mm"][0]  # three modes hold the population

@@ -363,3 +363,20 @@ def test_randomized_solver_agrees_with_exact():
     f32 = build_model(x, np.zeros((0, 3), int), [str(i) for i in range(n)], n_modes=k, precision="float32")
     assert f32.instance_points.dtype == np.float32
     np.testing.assert_allclose(f32.variances, exact.variances, rtol=1e-5)
+
+
+def test_more_instances_than_coordinates_uses_the_covariance_and_equals_the_gram_route():
+    # 150 shapes of 12 points (36 coordinates): eq. 5's 36 × 36 covariance, not a 150 × 150 Gram matrix
+    shapes, _mean, _fields, variances = synthetic_population(n=150, n_points=12, variances=(25.0, 9.0, 4.0),
+                                                              noise_mm=0.01, seed=3)
+    auto = build_model(shapes, FACES, names(150))
+    gram = build_model(shapes, FACES, names(150), solver="exact")
+    assert auto.params["eigensolver"].startswith("covariance") and gram.params["eigensolver"].startswith("Gram")
+    assert auto.n_modes == gram.n_modes == 36  # rank min(n - 1, 3N)
+    np.testing.assert_allclose(auto.variances, gram.variances, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(auto.variances[:3], variances, rtol=1e-3)  # the population's, plus 0.01 mm noise
+    np.testing.assert_allclose(auto.modes[:3], gram.modes[:3], atol=1e-8)  # the same signs (largest component +)
+    m = auto.modes.reshape(auto.n_modes, -1)
+    np.testing.assert_allclose(m @ m.T, np.eye(auto.n_modes), atol=1e-12)
+    for shape in shapes[:5]:  # every mode: the training shapes themselves
+        assert np.abs(auto.reconstruct(shape) - shape).max() < 1e-8

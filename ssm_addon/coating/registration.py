@@ -40,7 +40,7 @@ def _gaussian_smooth(
 
 
 #: Float32 kernel entries per row chunk of the dense Gaussian sum (4 MB: the chunk's five passes
-#: stay in the processor's cache; 2,048 rows of 3,000 sources, 24 MB, took twice as long)
+#: stay in the processor's cache; docs/speed.md)
 KERNEL_CHUNK_ENTRIES = 1 << 20
 
 
@@ -108,8 +108,8 @@ def _nearest_vertex(tree: cKDTree, targets: np.ndarray, workers: int, *, ties: b
     ``TIE_CANDIDATES`` nearest) the lowest index, so that the k-d tree's traversal order
     does not choose. A registration's first step needs it: a mesh that starts on the
     surface's own voxel lattice (the template on its own instance, or placed by the object
-    frames alone) has targets equidistant from two or more vertices (up to 81 of ~5,000 on a
-    knee30 patella); once the smooth displacement has moved it, exact ties do not occur.
+    frames alone) has targets equidistant from two or more vertices; once the smooth
+    displacement has moved it, exact ties do not occur (docs/speed.md).
     """
     if not ties:
         return tree.query(targets, workers=workers)[1]

@@ -130,6 +130,23 @@ def _top_modes(data: np.ndarray, rows, mu: np.ndarray, gram_centred: np.ndarray,
     return full.T @ data - np.outer(coeff.sum(axis=0), mu)
 
 
+def _top_modes_from_covariance(covariance: np.ndarray, kmax: int) -> np.ndarray:
+    """First ``kmax`` orthonormal modes (rows, (kmax, 3N)) from the 3N × 3N matrix of the
+    centred training vectors' products (eq. 5): the smaller problem when a fold has more
+    training shapes than coordinates."""
+    d = len(covariance)
+    if kmax < d // 10:
+        v0 = np.random.default_rng(0).standard_normal(d)
+        w, v = eigsh(covariance, k=kmax, which="LA", v0=v0, tol=0)
+    else:
+        w, v = np.linalg.eigh(covariance)
+    order = np.argsort(w)[::-1]
+    w, v = w[order], v[:, order]
+    tol = max(w[0], 0.0) * d * 64 * np.finfo(float).eps
+    k = int(min(kmax, np.count_nonzero(w > tol)))
+    return np.ascontiguousarray(v[:, :k].T)
+
+
 def generalization(
     instance_points,
     *, faces=None,
@@ -162,8 +179,10 @@ def generalization(
         How each fold's modes are found. ``"gram"``: exactly, from one n × n Gram matrix of
         all shapes. ``"randomized"``: a randomized SVD of each fold's training rows, without
         the Gram matrix (bounded memory; k-fold without alignment only; the errors agree
-        with ``"gram"`` to float32 precision). ``"auto"``: randomized for k-fold studies of at
-        least ``RANDOMIZED_MIN_ELEMENTS`` shape-vector entries, else the Gram route.
+        with ``"gram"`` to float32 precision). ``"auto"``: exactly from the 3N × 3N products
+        (eq. 5) when every fold trains on more shapes than coordinates; else randomized for
+        k-fold studies of at least ``RANDOMIZED_MIN_ELEMENTS`` shape-vector entries, else the
+        Gram route.
 
     Returns
     -------
@@ -202,19 +221,28 @@ def generalization(
     if solver == "randomized" and (alignment != "none" or folds == n):
         raise InputError("generalization: the randomized solver is for k-fold studies without alignment")
     flat = x.reshape(n, -1)
-    raw_gram = None
+    raw_gram = raw_cov = None
     large = folds < n and flat.size >= RANDOMIZED_MIN_ELEMENTS
-    if alignment == "none" and (solver == "randomized" or (solver == "auto" and large)):
+    # a fold with more training shapes than coordinates: its modes from the 3N × 3N products
+    # (eq. 5), not from an n × n Gram matrix (docs/measurements.md, "Scale")
+    by_covariance = solver == "auto" and n_train_min > flat.shape[1]
+    if alignment == "none" and (solver == "randomized" or (solver == "auto" and large and not by_covariance)):
         errors = _generalization_randomized(flat, fold_of, folds, ks, progress=progress, cancelled=cancelled)
         method += ", leading modes of each fold by randomized SVD"
     elif alignment == "none":
         flat = flat - flat.mean(axis=0)  # shifts cancel in centred products; better rounding
-        report(progress, 0.0, "Gram matrix")
-        raw_gram = flat @ flat.T
+        report(progress, 0.0, "covariance matrix" if by_covariance else "Gram matrix")
+        if by_covariance:
+            raw_cov = flat.T @ flat
+            method += ", each fold's modes from its 3N × 3N products (more shapes than coordinates)"
+        else:
+            raw_gram = flat @ flat.T
         total = flat.sum(axis=0)
-    if raw_gram is not None or alignment != "none":
-        errors = _generalization_folds(x, flat, raw_gram, total if raw_gram is not None else None, fold_of, ks,
-                                       alignment, progress, cancelled)
+    elif by_covariance:
+        method += ", each fold's modes from its 3N × 3N products (more shapes than coordinates)"
+    if raw_gram is not None or raw_cov is not None or alignment != "none":
+        errors = _generalization_folds(x, flat, raw_gram, total if alignment == "none" else None, fold_of, ks,
+                                       alignment, progress, cancelled, raw_cov=raw_cov, by_covariance=by_covariance)
     report(progress, 1.0, "generalization done")
     return {
         "k": ks,
@@ -286,8 +314,9 @@ def _reconstruction_errors(y: np.ndarray, modes: np.ndarray, ks) -> np.ndarray:
     return out
 
 
-def _generalization_folds(x, flat, raw_gram, total, fold_of, ks, alignment, progress, cancelled):
-    """The exact folds (Gram route, or Procrustes per fold): errors (n, len(ks))."""
+def _generalization_folds(x, flat, raw_gram, total, fold_of, ks, alignment, progress, cancelled, *, raw_cov=None,
+                          by_covariance=False):
+    """The exact folds (Gram route, the covariance route, or Procrustes per fold): errors (n, len(ks))."""
     n = x.shape[0]
     folds = int(fold_of.max()) + 1
     kmax = ks[-1]
@@ -298,6 +327,12 @@ def _generalization_folds(x, flat, raw_gram, total, fold_of, ks, alignment, prog
         test = np.flatnonzero(fold_of == f)
         train = np.flatnonzero(fold_of != f)
         scale = np.ones(len(test))
+        if raw_cov is not None:
+            # the training products: all shapes' less the test shapes', centred on the training mean
+            mu = (total - flat[test].sum(axis=0)) / len(train)
+            cov = raw_cov - flat[test].T @ flat[test] - len(train) * np.outer(mu, mu)
+            errors[test] = _reconstruction_errors(flat[test] - mu, _top_modes_from_covariance(cov, kmax), ks)
+            continue
         if raw_gram is not None:
             mu = (total - flat[test].sum(axis=0)) / len(train)  # no copy of the training block
             data, rows = flat, train
@@ -315,8 +350,12 @@ def _generalization_folds(x, flat, raw_gram, total, fold_of, ks, alignment, prog
             y = ya.reshape(len(test), -1) - mu
             data, rows = xt - mu, slice(None)
             mu = np.zeros_like(mu)
-            g = data @ data.T
             scale = s
+            if by_covariance:
+                errors[test] = _reconstruction_errors(y.copy(), _top_modes_from_covariance(data.T @ data, kmax),
+                                                      ks) / scale[:, None]
+                continue
+            g = data @ data.T
         modes = _top_modes(data, rows, mu, g, kmax)
         errors[test] = _reconstruction_errors(y.copy(), modes, ks) / scale[:, None]
     return errors

@@ -11,7 +11,9 @@ of eq. (5) is S = P P^T / n. Its non-zero eigenpairs are obtained from the n x n
 problem of eq. (6): S~ = P^T P / n has the same non-zero eigenvalues, and the
 eigenvectors are q_i = P q~_i / |P q~_i|. This costs O(n^2 3N) instead of O((3N)^3)
 and is the natural choice for n << 3N (31 vertebrae of ~600 points in the paper, up to
-1,000 instances of 5,000 points here); the raw Gram matrix is also what makes
+1,000 instances of 5,000 points here); with more instances than coordinates (a biobank
+of 10,000 shapes of 600 points) the 3N x 3N covariance itself is the smaller problem and is
+used instead (``solver="auto"``); the raw Gram matrix is also what makes
 leave-one-out generalization cheap (see :mod:`ssm_addon.model.metrics`). At most n - 1
 eigenvalues are non-zero (the data are centred); modes whose eigenvalue is zero to
 rounding are dropped. Each mode's sign is fixed so that its largest-magnitude component
@@ -448,6 +450,28 @@ def _modes_from_gram(centred: np.ndarray, gram: np.ndarray, n_norm: float, n_mod
     return w / n_norm, modes, ortho_err
 
 
+def _modes_from_covariance(covariance: np.ndarray, n_norm: float, n_modes: int | None, n: int):
+    """Eigenpairs of S = P Pᵀ / n_norm from the 3N × 3N matrix P Pᵀ itself (eq. 5): the
+    smaller problem when there are more instances than coordinates (n > 3N; eq. 6's Gram
+    matrix would be n × n).
+
+    Returns
+    -------
+    variances (K,), modes (K, 3N), orthogonality error of the modes.
+    """
+    w, v = np.linalg.eigh(covariance)
+    order = np.argsort(w)[::-1]
+    w, v = w[order], v[:, order]
+    d = covariance.shape[0]
+    tol = max(w[0], 0.0) * max(d, 1) * 64 * np.finfo(float).eps if d else 0.0
+    keep = np.flatnonzero(w > tol)[: max(n - 1, 0)]
+    if n_modes is not None:
+        keep = keep[: int(n_modes)]
+    modes = np.ascontiguousarray(v[:, keep].T)
+    ortho_err = float(np.abs(modes @ modes.T - np.eye(len(modes))).max()) if len(modes) else 0.0
+    return w[keep] / n_norm, modes, ortho_err
+
+
 RANDOMIZED_MIN_ELEMENTS = 20_000_000
 """n·3N (shape-vector entries) from which ``solver="auto"`` uses the randomized SVD (160 MB in float64)."""
 
@@ -533,7 +557,9 @@ def build_model(
         ``"exact"``: the Gram eigenproblem (eq. 6). ``"randomized"``: a randomized SVD
         of the centred data for the leading modes only (needs ``n_modes`` or
         ``variance_fraction``). ``"auto"``: randomized when n·3N ≥
-        :data:`RANDOMIZED_MIN_ELEMENTS` and a mode limit below n/4 is given, else exact.
+        :data:`RANDOMIZED_MIN_ELEMENTS` and a mode limit below n/4 is given; else the
+        3N × 3N covariance of eq. 5 itself when there are more instances than coordinates
+        (n > 3N), else exact.
     precision : {"float64", "float32"}
         ``"float32"`` halves the memory of the instance points and of the solver for very
         large studies (mean, modes and variances stay float64; about 7 significant digits).
@@ -606,6 +632,18 @@ def build_model(
             k = int(min(2 * k, n - 1))  # the fraction needs more modes than computed: double
         ortho_err = float(np.abs(modes @ modes.T - np.eye(len(modes))).max()) if len(modes) else 0.0
         eigensolver = "randomized SVD of the centred shape vectors (Halko et al. 2011), 4 power iterations"
+    elif solver == "auto" and n > centred.shape[1]:
+        # more instances than coordinates (a biobank of small templates): the 3N × 3N
+        # covariance is the smaller eigenproblem (docs/measurements.md, "Scale")
+        report(progress, 0.2, "covariance matrix (eq. 5)")
+        c64 = centred.astype(np.float64, copy=False)
+        covariance = c64.T @ c64
+        total_var = float(np.trace(covariance)) / n_norm
+        check_cancelled(cancelled)
+        report(progress, 0.6, "eigen-decomposition")
+        variances, modes, ortho_err = _modes_from_covariance(covariance, n_norm, n_modes, n)
+        eigensolver = "covariance matrix P P^T (3N x 3N, eq. 5): more instances than coordinates"
+        del covariance, c64
     else:
         report(progress, 0.2, "Gram matrix (eq. 6)")
         gram = (centred @ centred.T).astype(np.float64)
