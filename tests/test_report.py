@@ -12,6 +12,7 @@ import pytest
 
 from ssm_addon.cli import demo
 from ssm_addon.cli.project_build import build
+from ssm_addon.pipeline import report as report_module
 from ssm_addon.pipeline.project import read_project
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -66,6 +67,19 @@ def test_report_is_one_self_contained_file(built):
     for term in ("group", "age"):
         assert f"<b>{term}</b>" in page and term in analysis["tests"]
     assert result.report["analysis"]["group_test"]["p_value"] == analysis["group_test"]["p_value"]
+
+
+@pytest.mark.slow
+def test_a_large_study_pictures_its_flagged_instances_and_a_spread_of_the_rest(built, tmp_path, monkeypatch):
+    out, result = built
+    monkeypatch.setattr(report_module, "MAX_THUMBNAILS", 3)
+    shutil.copytree(out, tmp_path / "out")
+    page = report_module.write_report_html(tmp_path / "out", result.study.model).read_text()
+    pictured = re.findall(r'<img[^>]* alt="(demo_\d\d)"', page)
+    assert pictured == ["demo_00", "demo_02", "demo_04"]  # the flagged demo_02, the others evenly spaced
+    assert "Pictures of 3 of the 5 instances" in page
+    for name in result.study.names:  # every instance keeps its row
+        assert f"<b>{name}</b>" in page
 
 
 def _chromium(*args, timeout=120):

@@ -28,13 +28,14 @@ from pathlib import Path
 import numpy as np
 
 from ..base.records import jsonable
+from ..correspondence.rounds import evenly_spaced
 from ..meshutil import genus
 from ..model.metrics import aggregate_fit, model_summary
 from ..model.pca import procrustes_fit
 from .study import Study, carried_landmarks, input_coordinates, landmark_distances, study_parameters
 
-__all__ = ["SECTIONS", "Absent", "Report", "instance_thumbnails", "joint_report", "model_alignment", "model_report",
-           "study_report", "write_html_report", "write_report_html"]
+__all__ = ["MAX_THUMBNAILS", "SECTIONS", "Absent", "Report", "instance_thumbnails", "joint_report", "model_alignment",
+           "model_report", "study_report", "thumbnail_names", "write_html_report", "write_report_html"]
 
 
 @dataclass(frozen=True)
@@ -237,6 +238,26 @@ def study_report(study: Study, *, project: str | Absent, timings_unknown: dict |
 THUMB_PX = 256
 #: Width (px) of one thumbnail view on the page.
 THUMB_SHOWN_PX = 128
+#: Instances drawn in ``report.html`` at most: every flagged one, the rest evenly spaced in study
+#: order (:func:`thumbnail_names`); a biobank's page stays small and quick to write.
+MAX_THUMBNAILS = 200
+
+
+def thumbnail_names(names, flagged=()) -> list[str]:
+    """The instances ``report.html`` draws: all of them up to :data:`MAX_THUMBNAILS`; above, every
+    ``flagged`` instance and the others evenly spaced in their order up to that many (the same
+    choice on every library version).
+
+    >>> thumbnail_names([f"s{i}" for i in range(1000)], ["s7"])[:3], len(thumbnail_names([f"s{i}" for i in range(1000)]))
+    (['s0', 's5', 's7'], 200)
+    """
+    names = [str(n) for n in names]
+    if len(names) <= MAX_THUMBNAILS:
+        return names
+    flagged = set(map(str, flagged)) & set(names)
+    rest = [n for n in names if n not in flagged]
+    chosen = flagged | set(evenly_spaced(rest, max(MAX_THUMBNAILS - len(flagged), 0)))
+    return [n for n in names if n in chosen]
 
 
 def _shade(points: np.ndarray, faces: np.ndarray, colours: np.ndarray, view: np.ndarray):
@@ -567,6 +588,10 @@ def write_html_report(path, report: Report | dict, *, images: dict[str, bytes] |
     inst = report.instances
     if inst:
         parts.append("<h2>Instances</h2>")
+        if thumbnails and len(thumbnails) < len(inst):
+            parts.append(f'<p class="muted">Pictures of {len(thumbnails)} of the {len(inst)} instances: every '
+                         "flagged one, the others evenly spaced in study order (at most "
+                         f"{MAX_THUMBNAILS}).</p>")
         rows = []
         for name, fit in inst.items():
             res = fit.get("landmark_residuals_mm") or []
@@ -645,7 +670,12 @@ def write_report_html(out_dir, model, report: Report | dict | None = None, *,
     if report is None:
         report = json.loads((out_dir / "report.json").read_text(encoding="utf-8"))
     images = {caption: (out_dir / name).read_bytes() for name, caption in FIGURES if (out_dir / name).is_file()}
-    thumbs = instance_thumbnails(model.instance_points, model.faces, model.instance_names)
+    doc = report.to_dict() if isinstance(report, Report) else report
+    flagged = {f.get("instance") for f in ((doc.get("quality") or {}).get("findings") or []) if f.get("instance")}
+    names = [str(n) for n in model.instance_names]
+    drawn = thumbnail_names(names, flagged)
+    index = [names.index(n) for n in drawn] if len(drawn) < len(names) else slice(None)
+    thumbs = instance_thumbnails(np.asarray(model.instance_points)[index], model.faces, drawn)
     analysis = {caption: (out_dir / "analysis" / name).read_bytes() for name, caption in ANALYSIS_FIGURES
                 if (out_dir / "analysis" / name).is_file()}
     return write_html_report(out_dir / "report.html", report, images=images, thumbnails=thumbs, title=title,
