@@ -36,7 +36,8 @@ def _numbers(a: np.ndarray, fmt: str = "%.9g") -> str:
     a = np.asarray(a)
     if a.ndim == 1:
         a = a[:, None]
-    return "\n".join(" ".join(fmt % v for v in row) for row in a.tolist())
+    row = " ".join([fmt] * a.shape[1])  # one formatting call per row, the same text as per value
+    return "\n".join(row % tuple(r) for r in a.tolist())
 
 
 def write_vtp(path, points, faces, point_data: dict | None = None) -> Path:
