@@ -10,7 +10,8 @@ For each set: the import and template stages as a build runs them, then ``--inst
 one thread for the k-d tree searches and for BLAS (a worker process's conditions), under
 :mod:`cProfile`. Printed per set: the template's points, the relaxation steps, and for each step
 its milliseconds per instance, per 1,000 template points and its share of the coating. Steps
-nest (the registration holds its Gaussian smoothing and its nearest-vertex search).
+nest (the registration holds its Gaussian smoothing and its nearest-vertex search); the distance
+map's sampling is counted in every step that samples it (registration, relaxation, fold test).
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ STEPS = (
     ("registration", "register_to_surface", 1),
     ("Gaussian smoothing", "_gaussian_smooth", 2),
     ("nearest vertex (k-d tree)", "_nearest_vertex", 2),
-    ("distance map sampling", "_sample_fields", 2),
+    ("distance map sampling (every step)", "_sample_fields", 1),
     ("fold test (smoothed field)", "folded_triangles", 1),
     ("relaxation (eq. 3)", "relax", 1),
     ("untangling", "untangle", 1),
