@@ -106,26 +106,32 @@ def _point_errors(residual: np.ndarray) -> np.ndarray:
     return np.sqrt(np.einsum("ijk,ijk->ij", r, r)).mean(axis=1)
 
 
+def _leading_eigenpairs(mat: np.ndarray, kmax: int) -> tuple[np.ndarray, np.ndarray]:
+    """The first ``kmax`` eigenpairs of a symmetric positive semi-definite matrix, largest first,
+    without the numerically zero ones: (w (k,), v (m, k))."""
+    m = len(mat)
+    if kmax < m // 10:
+        # a few leading eigenpairs: Lanczos is much cheaper than a dense m x m solve
+        v0 = np.random.default_rng(0).standard_normal(m)
+        w, v = eigsh(mat, k=kmax, which="LA", v0=v0, tol=0)
+    else:
+        w, v = np.linalg.eigh(mat)
+    order = np.argsort(w)[::-1]
+    w, v = w[order], v[:, order]
+    tol = max(w[0], 0.0) * m * 64 * np.finfo(float).eps
+    k = int(min(kmax, np.count_nonzero(w > tol)))
+    return w[:k], v[:, :k]
+
+
 def _top_modes(data: np.ndarray, rows, mu: np.ndarray, gram_centred: np.ndarray, kmax: int) -> np.ndarray:
     """First ``kmax`` orthonormal modes (rows, (kmax, 3N)) via the Gram matrix (eq. 6).
 
     The centred training vectors are ``data[rows] - mu``; the modes are formed as
     Cᵀ data[rows] - (Σ C) mu without copying the training block.
     """
-    m = len(gram_centred)
-    if kmax < m // 10:
-        # a few leading eigenpairs: Lanczos is much cheaper than a dense n x n solve
-
-        v0 = np.random.default_rng(0).standard_normal(m)
-        w, v = eigsh(gram_centred, k=kmax, which="LA", v0=v0, tol=0)
-    else:
-        w, v = np.linalg.eigh(gram_centred)
-    order = np.argsort(w)[::-1]
-    w, v = w[order], v[:, order]
-    tol = max(w[0], 0.0) * m * 64 * np.finfo(float).eps
-    k = int(min(kmax, np.count_nonzero(w > tol)))
-    coeff = v[:, :k] / np.sqrt(w[:k])
-    full = np.zeros((len(data), k))
+    w, v = _leading_eigenpairs(gram_centred, kmax)
+    coeff = v / np.sqrt(w)
+    full = np.zeros((len(data), len(w)))
     full[rows] = coeff
     return full.T @ data - np.outer(coeff.sum(axis=0), mu)
 
@@ -134,17 +140,7 @@ def _top_modes_from_covariance(covariance: np.ndarray, kmax: int) -> np.ndarray:
     """First ``kmax`` orthonormal modes (rows, (kmax, 3N)) from the 3N × 3N matrix of the
     centred training vectors' products (eq. 5): the smaller problem when a fold has more
     training shapes than coordinates."""
-    d = len(covariance)
-    if kmax < d // 10:
-        v0 = np.random.default_rng(0).standard_normal(d)
-        w, v = eigsh(covariance, k=kmax, which="LA", v0=v0, tol=0)
-    else:
-        w, v = np.linalg.eigh(covariance)
-    order = np.argsort(w)[::-1]
-    w, v = w[order], v[:, order]
-    tol = max(w[0], 0.0) * d * 64 * np.finfo(float).eps
-    k = int(min(kmax, np.count_nonzero(w > tol)))
-    return np.ascontiguousarray(v[:, :k].T)
+    return np.ascontiguousarray(_leading_eigenpairs(covariance, kmax)[1].T)
 
 
 def generalization(
