@@ -45,6 +45,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "tools"))
+
+from eval_correspondence import MESH_SETS, farthest_points  # noqa: E402  (the dense-truth sets, one definition)
 
 
 def run_build(project: Path, out: Path, jobs: int, blend: bool, extra=(), root: Path = ROOT) -> dict:
@@ -91,27 +94,17 @@ STAGES = ("import", "template", "coating", "coating_self_check", "model", "metri
           "total")
 
 
-#: The dense-truth sets: (folder under the shared data, file pattern).
-MESH_SETS = {"femur10": ("femur10", "femur*.ply"), "knee30-femur": ("knee30", "*_Femur.ply"),
-             "knee30-tibia": ("knee30", "*_Tibia.ply"), "knee30-patella": ("knee30", "*_Patella.ply")}
-
-
 def mesh_set_project(folder: Path, data: Path, pattern: str, method: str, landmarks: int = 15) -> Path:
     """A folder of meshes sharing one connectivity (``pattern``) with ``landmarks`` at farthest
     points of the first (the same vertices on every mesh: the data's dense correspondence), by
     ``method``."""
-    import numpy as np
     from foreign_data import scalismo_landmarks
 
     from ssm_addon.formats.meshes import read_mesh
 
     folder.mkdir(parents=True, exist_ok=True)
     files = sorted(data.glob(pattern))
-    v0, _f = read_mesh(files[0])
-    chosen, d = [0], np.linalg.norm(v0 - v0[0], axis=1)
-    for _ in range(landmarks - 1):
-        chosen.append(int(np.argmax(d)))
-        d = np.minimum(d, np.linalg.norm(v0 - v0[chosen[-1]], axis=1))
+    chosen = farthest_points(read_mesh(files[0])[0], landmarks, 0)
     lines = ["[correspondence]", f'method = "{method}"', ""]
     for f in files:
         v, _f = read_mesh(f)

@@ -33,8 +33,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
-from bench_build import MESH_SETS, mesh_set_project  # noqa: E402
+from bench_build import mesh_set_project  # noqa: E402
 from conftest import VERSE_DIR, VERSE_FILE, shared_data_dir, write_verse_project  # noqa: E402
+from eval_correspondence import MESH_SETS  # noqa: E402
 
 from ssm_addon.cli.demo import make_demo_population  # noqa: E402
 from ssm_addon.coating import coating as C  # noqa: E402
