@@ -422,6 +422,21 @@ def _orthonormalise_rows(modes: np.ndarray, tol: float = 1e-12) -> tuple[np.ndar
     return modes, err
 
 
+def _nonzero_eigenpairs(mat: np.ndarray, n: int, n_modes: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenpairs of the symmetric product matrix of ``n`` centred shapes (their n × n Gram
+    matrix or their 3N × 3N covariance), largest first: at most n - 1 (centring), none zero to
+    rounding, at most ``n_modes``."""
+    w, v = np.linalg.eigh(mat)
+    order = np.argsort(w)[::-1]
+    w, v = w[order], v[:, order]
+    d = mat.shape[0]
+    tol = max(w[0], 0.0) * max(d, 1) * 64 * np.finfo(float).eps if d else 0.0
+    keep = np.flatnonzero(w > tol)[: max(n - 1, 0)]
+    if n_modes is not None:
+        keep = keep[: int(n_modes)]
+    return w[keep], v[:, keep]
+
+
 def _modes_from_gram(centred: np.ndarray, gram: np.ndarray, n_norm: float, n_modes: int | None):
     """Eigenpairs of S = P Pᵀ / n_norm via the Gram matrix Pᵀ P (eq. 6).
 
@@ -434,16 +449,7 @@ def _modes_from_gram(centred: np.ndarray, gram: np.ndarray, n_norm: float, n_mod
     -------
     variances (K,), modes (K, 3N), orthogonality error before re-orthonormalisation.
     """
-    w, v = np.linalg.eigh(gram)
-    order = np.argsort(w)[::-1]
-    w, v = w[order], v[:, order]
-    n = gram.shape[0]
-    # at most n - 1 non-zero eigenvalues after centring; drop rounding-level ones
-    tol = max(w[0], 0.0) * max(gram.shape[0], 1) * 64 * np.finfo(float).eps if n else 0.0
-    keep = np.flatnonzero(w > tol)[: max(n - 1, 0)]
-    if n_modes is not None:
-        keep = keep[: int(n_modes)]
-    w, v = w[keep], v[:, keep]
+    w, v = _nonzero_eigenpairs(gram, gram.shape[0], n_modes)
     # q_i = P q~_i / |P q~_i|, and |P q~_i|² = q~_iᵀ Pᵀ P q~_i = w_i
     modes = (v / np.sqrt(w)[None]).T @ centred
     modes, ortho_err = _orthonormalise_rows(modes)
@@ -459,17 +465,10 @@ def _modes_from_covariance(covariance: np.ndarray, n_norm: float, n_modes: int |
     -------
     variances (K,), modes (K, 3N), orthogonality error of the modes.
     """
-    w, v = np.linalg.eigh(covariance)
-    order = np.argsort(w)[::-1]
-    w, v = w[order], v[:, order]
-    d = covariance.shape[0]
-    tol = max(w[0], 0.0) * max(d, 1) * 64 * np.finfo(float).eps if d else 0.0
-    keep = np.flatnonzero(w > tol)[: max(n - 1, 0)]
-    if n_modes is not None:
-        keep = keep[: int(n_modes)]
-    modes = np.ascontiguousarray(v[:, keep].T)
+    w, v = _nonzero_eigenpairs(covariance, n, n_modes)
+    modes = np.ascontiguousarray(v.T)
     ortho_err = float(np.abs(modes @ modes.T - np.eye(len(modes))).max()) if len(modes) else 0.0
-    return w[keep] / n_norm, modes, ortho_err
+    return w / n_norm, modes, ortho_err
 
 
 RANDOMIZED_MIN_ELEMENTS = 20_000_000
