@@ -32,9 +32,11 @@ def coating_stage(study: Study, *, names: Sequence[str] | None = None, jobs: int
     t0 = time.perf_counter()
     coated = coat_instances(study, names=names, jobs=jobs, progress=progress, cancelled=cancelled,
                             on_coated=on_coated)
+    t_check = time.perf_counter()
     check, found = self_check(study, {**study.coatings, **coated}, jobs=jobs, executor=executor, cancelled=cancelled)
     return coating_result(study, coated, {n: c.fit.start for n, c in coated.items()}, time.perf_counter() - t0,
-                          check=check, extra_findings=found, executor=executor, cancelled=cancelled)
+                          check=check, extra_findings=found, executor=executor, cancelled=cancelled,
+                          check_seconds=time.perf_counter() - t_check)
 
 
 def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress: ProgressFn = None,

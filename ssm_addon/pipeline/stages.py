@@ -286,7 +286,7 @@ def input_distances(study: Study, coated: dict[str, CoatingResult], faces: np.nd
 def coating_result(study: Study, coated: dict[str, CoatingResult], starts: dict[str, str], seconds: float, *,
                    template: Template | None = None, rounds: tuple = (), counts: str = "", check=None,
                    extra_findings: tuple = (), frames: dict | None = None, executor=None,
-                   cancelled: CancelledFn = None) -> StageResult:
+                   cancelled: CancelledFn = None, check_seconds: float | None = None) -> StageResult:
     """The coating stage's result for ``coated`` instances: the coating gates and the summary.
 
     ``template`` (the mean shape of the model method), ``rounds`` (its refinement rounds)
@@ -294,7 +294,8 @@ def coating_result(study: Study, coated: dict[str, CoatingResult], starts: dict[
     when given; ``extra_findings`` (the self-check's and the rounds' gates) the findings.
     Instances given as meshes are also measured against their own mesh
     (:func:`input_distances` on ``executor``, ``frames``: object frames the study does not hold
-    yet) and gated (:func:`~ssm_addon.model.quality.check_input_surface`).
+    yet) and gated (:func:`~ssm_addon.model.quality.check_input_surface`). ``check_seconds``:
+    the self-check's part of ``seconds``, reported as ``coating_self_check``.
     """
     qp = study.params.quality
     findings = tuple(f for n, c in coated.items() for f in check_coating(n, c.fit, qp))
@@ -317,7 +318,8 @@ def coating_result(study: Study, coated: dict[str, CoatingResult], starts: dict[
         lines.append(f"coating: correspondence self-check, landmark transfer error {check.study_mm:.2f} mm (mean over "
                      f"{len(check.instance_mm)} landmarked instances; largest {worst_n} "
                      f"{check.instance_mm[worst_n]:.2f} mm)")
-    return StageResult("coating", product, findings, {"coating": seconds}, tuple(lines))
+    timings = {"coating": seconds} | ({} if check_seconds is None else {"coating_self_check": check_seconds})
+    return StageResult("coating", product, findings, timings, tuple(lines))
 
 
 def self_check(study: Study, coatings: dict[str, CoatingResult], *, template: Template | None = None,

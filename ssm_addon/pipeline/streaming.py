@@ -225,11 +225,10 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
     t_check = time.perf_counter()
     check, found = self_check(study, coatings, template=template, frames=frames, executor=executor,
                               cancelled=cancelled)
-    timings["coating_self_check"] = time.perf_counter() - t_check  # a part of "coating"
     result = coating_result(study, coatings, {n: c.fit.start for n, c in coatings.items()}, time.perf_counter() - t0,
                             template=template, frames=frames,
                             counts=f"{len(todo)} coated, {cached} from the cache; ", check=check, extra_findings=found,
-                            executor=executor, cancelled=cancelled)
+                            executor=executor, cancelled=cancelled, check_seconds=time.perf_counter() - t_check)
     counts = {"cached": cached, "computed": len(todo)}
     return dataclasses.replace(
         result, product={**result.product, "template": template, "volumes": volumes, "frames": frames,
