@@ -670,12 +670,11 @@ def write_report_html(out_dir, model, report: Report | dict | None = None, *,
     if report is None:
         report = json.loads((out_dir / "report.json").read_text(encoding="utf-8"))
     images = {caption: (out_dir / name).read_bytes() for name, caption in FIGURES if (out_dir / name).is_file()}
-    doc = report.to_dict() if isinstance(report, Report) else report
-    flagged = {f.get("instance") for f in ((doc.get("quality") or {}).get("findings") or []) if f.get("instance")}
-    names = [str(n) for n in model.instance_names]
-    drawn = thumbnail_names(names, flagged)
-    index = [names.index(n) for n in drawn] if len(drawn) < len(names) else slice(None)
-    thumbs = instance_thumbnails(np.asarray(model.instance_points)[index], model.faces, drawn)
+    report = report if isinstance(report, Report) else Report.from_dict(report)
+    flagged = {f.get("instance") for f in (report.section("quality") or {}).get("findings", []) if f.get("instance")}
+    position = {str(n): i for i, n in enumerate(model.instance_names)}
+    drawn = thumbnail_names(position, flagged)
+    thumbs = instance_thumbnails(np.asarray(model.instance_points)[[position[n] for n in drawn]], model.faces, drawn)
     analysis = {caption: (out_dir / "analysis" / name).read_bytes() for name, caption in ANALYSIS_FIGURES
                 if (out_dir / "analysis" / name).is_file()}
     return write_html_report(out_dir / "report.html", report, images=images, thumbnails=thumbs, title=title,
