@@ -175,6 +175,64 @@ def test_distance_map_fields_are_the_distance_and_its_numpy_gradient():
         assert np.array_equal(mine, numpys)
 
 
+def _ellipsoid_volume(shift=0.0, store=""):
+    g = np.mgrid[-9:10, -8:9, -7:8]
+    mask = ((g[0] - shift) ** 2 / 49 + g[1] ** 2 / 25 + g[2] ** 2 / 16) <= 1
+    return ObjectVolume(mask, 0.8, np.array([-7.2, -6.4, -5.6]), ObjectFrame(np.zeros(3), np.eye(3)),
+                        distance_map_store=str(store))
+
+
+def _same_map(a, b):
+    assert np.array_equal(a._fields_flat, b._fields_flat) and np.array_equal(a.sdf_mm, b.sdf_mm)
+    assert np.array_equal(a.surface_vertices, b.surface_vertices) and np.array_equal(a.surface_faces, b.surface_faces)
+    pts = np.random.default_rng(3).uniform(-8, 8, size=(200, 3))
+    for x, y in zip(a.sample(pts), b.sample(pts)):
+        assert np.array_equal(x, y)
+    assert np.array_equal(a.surface_distance(pts), b.surface_distance(pts))
+    assert np.array_equal(a.smooth_normals(pts, 2.0), b.smooth_normals(pts, 2.0))
+
+
+def test_a_stored_distance_map_is_read_back_as_the_same_arrays(tmp_path, monkeypatch):
+    built = []
+    real_build = DM.DistanceMap._build.__func__
+    monkeypatch.setattr(DM.DistanceMap, "_build", classmethod(lambda cls, ov, band: built.append(1) or
+                                                            real_build(cls, ov, band)))
+    plain = DM.DistanceMap.from_object_volume(_ellipsoid_volume())
+    first = DM.DistanceMap.from_object_volume(_ellipsoid_volume(store=tmp_path))
+    assert len(built) == 2 and len(list(tmp_path.iterdir())) == 1
+    again = DM.DistanceMap.from_object_volume(_ellipsoid_volume(store=tmp_path))
+    assert len(built) == 2  # read, not built
+    _same_map(plain, first)
+    _same_map(plain, again)
+    # another mask, another grid or another band: another map
+    DM.DistanceMap.from_object_volume(_ellipsoid_volume(shift=1.0, store=tmp_path))
+    DM.DistanceMap.from_object_volume(_ellipsoid_volume(store=tmp_path), band_vox=1.5)
+    assert len(built) == 4 and len(list(tmp_path.iterdir())) == 3
+
+
+def test_a_distance_map_store_that_is_absent_full_or_damaged_changes_only_the_time(tmp_path, monkeypatch):
+    plain = DM.DistanceMap.from_object_volume(_ellipsoid_volume())
+    # a folder this machine does not have (a Dask worker elsewhere): built, nothing written
+    _same_map(plain, DM.DistanceMap.from_object_volume(_ellipsoid_volume(store=tmp_path / "elsewhere")))
+    assert not (tmp_path / "elsewhere").exists()
+    # a full store: built, not kept
+    monkeypatch.setattr(DM, "STORE_BUDGET_BYTES", plain._fields_flat.nbytes // 2)
+    _same_map(plain, DM.DistanceMap.from_object_volume(_ellipsoid_volume(store=tmp_path)))
+    assert not any(tmp_path.iterdir())
+    monkeypatch.undo()
+    # a damaged file (cut short, or another array): built again and the same
+    DM.DistanceMap.from_object_volume(_ellipsoid_volume(store=tmp_path))
+    (kept,) = tmp_path.glob("*.npy")
+    whole = kept.read_bytes()
+    for damaged in (whole[: len(whole) // 2], whole[:200], b""):
+        kept.write_bytes(damaged)
+        _same_map(plain, DM.DistanceMap.from_object_volume(_ellipsoid_volume(store=tmp_path)))
+    with open(kept, "wb") as f:  # a map of another grid under this name
+        for a in (np.zeros((4, 7)), plain.surface_vertices, plain.surface_faces):
+            np.save(f, a)
+    _same_map(plain, DM.DistanceMap.from_object_volume(_ellipsoid_volume(store=tmp_path)))
+
+
 def test_registration_does_not_leave_exact_ties_to_the_k_d_tree(monkeypatch):
     # a mesh on a 2 mm lattice registered to a surface sampled on a 1 mm lattice: 968 of the
     # 2,054 surface points are exactly as near two vertices as one; the first step's pull must

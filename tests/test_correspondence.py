@@ -7,6 +7,7 @@ import hashlib
 import json
 import math
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -332,7 +333,8 @@ def test_an_optional_refinement_that_fails_falls_back_and_the_build_finishes(pop
     from ssm_addon.base.errors import SSMError
     from ssm_addon.pipeline import model_method
 
-    project = project_variant(population, "medoid.toml", correspondence='[correspondence]\nmethod = "model"\niterations = 1')
+    project = project_variant(population, "medoid.toml", correspondence=('[correspondence]\nmethod = "model"\n'
+                                                                      'iterations = 1\nround_template = "mean"'))
     medoid = template_of(project)  # this population's medoid gives the template: start from another instance
     given = next(i.name for i in read_project(project).instances if i.name != medoid)
     project.write_text(re.sub(r'instance = "[^"]+"', f'instance = "{given}"', project.read_text(), count=1))
@@ -360,3 +362,43 @@ def test_an_optional_refinement_that_fails_falls_back_and_the_build_finishes(pop
     assert result.report["correspondence"]["stop"] == "failed"
     assert any(f["gate"] == "fallback" and "rounds failed" in f["message"] for f in result.report["quality"]["findings"])
     assert (tmp_path / "out2" / "model.npz").is_file()
+
+
+def test_the_model_method_computes_each_distance_map_once_and_gives_the_same_coatings(population, monkeypatch):
+    """The start, the medoid's template and the rounds coat every instance again; each
+    instance's distance map is computed once (kept in the build's scratch folder) and the
+    coatings are those of computing it every time, bit for bit. The folder goes with the
+    build and the study keeps its own volumes."""
+    import contextlib
+    import tempfile
+
+    import ssm_addon.pipeline.model_method as mm
+    from ssm_addon.coating.distance_map import DistanceMap
+    from ssm_addon.pipeline.runner import run
+    from ssm_addon.pipeline.study import Study
+
+    built = []
+    real_build = DistanceMap._build.__func__
+    monkeypatch.setattr(DistanceMap, "_build", classmethod(lambda cls, ov, band: built.append(ov.source) or
+                                                           real_build(cls, ov, band)))
+    proj = project_variant(population, "kept.toml", correspondence=('[correspondence]\nmethod = "model"\n'
+                                                                      'iterations = 1\nround_template = "mean"'))
+    scratch = set(Path(tempfile.gettempdir()).glob("ssm-distance-maps-*"))
+
+    def coat(study):
+        run(study, stages=("import", "template"), jobs=1)
+        volumes = dict(study.volumes)
+        del built[:]
+        run(study, stages=("coating",), jobs=1)
+        assert all(study.volumes[n] is v for n, v in volumes.items())
+        return {n: c.points_object for n, c in study.coatings.items()}, list(built)
+
+    kept, kept_builds = coat(Study.from_project(read_project(proj)))
+    assert set(Path(tempfile.gettempdir()).glob("ssm-distance-maps-*")) == scratch
+    monkeypatch.setattr(mm, "distance_maps_kept", lambda _study: contextlib.nullcontext(""))
+    every_time, builds = coat(Study.from_project(read_project(proj)))
+    print(f"distance maps computed: {len(kept_builds)} kept, {len(builds)} without")
+    assert sorted(kept_builds) == sorted(set(builds)) and len(set(kept_builds)) == 6
+    assert len(builds) >= 2 * len(kept_builds)
+    assert kept.keys() == every_time.keys()
+    assert all(np.array_equal(kept[n], every_time[n]) for n in kept)

@@ -9,7 +9,12 @@ point-to-triangle distances for fit figures.
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
+import os
+import shutil
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
@@ -20,6 +25,12 @@ from ..instances.volume import ObjectVolume
 from ..meshutil import MeshLocator, marching_cubes
 
 __all__ = ["DistanceMap", "gradient_into"]
+
+# a store (ObjectVolume.distance_map_store) keeps at most this many bytes of maps, and leaves
+# this much of its disk free: beyond either, maps are computed each time as without a store
+STORE_BUDGET_BYTES = 4 << 30
+STORE_KEEP_FREE_BYTES = 2 << 30
+STORE_FORMAT = 1
 
 
 def gradient_into(f: np.ndarray, spacing: float, out: np.ndarray) -> np.ndarray:
@@ -71,19 +82,25 @@ class DistanceMap:
 
     def __init__(self, sdf_mm, spacing_mm, origin_object, surface_vertices, surface_faces, mask, source="", locator=None):
         sdf = np.asarray(sdf_mm, dtype=np.float64)
+        # field-major (4, voxels): value and gradient; sampling gathers (4, 8 corners, M)
+        # so the trilinear lerps run over long contiguous rows (M points), not (M, 8, 4).
+        # The rows are written in place (``sdf_mm`` is a view of the first): no stacked copy
+        fields = np.empty((4, sdf.size))
+        fields[0].reshape(sdf.shape)[...] = sdf
+        gradient_into(fields[0].reshape(sdf.shape), float(spacing_mm), fields[1:].reshape(3, *sdf.shape))
+        self._set_up(fields, sdf.shape, spacing_mm, origin_object, surface_vertices, surface_faces, mask, source,
+                     locator)
+
+    def _set_up(self, fields, shape, spacing_mm, origin_object, surface_vertices, surface_faces, mask, source,
+                locator) -> None:
         self.spacing_mm = float(spacing_mm)
         self.origin_object = np.asarray(origin_object, float)
         self.surface_vertices = surface_vertices
         self.surface_faces = surface_faces
         self.mask = mask
         self.source = source
-        # field-major (4, voxels): value and gradient; sampling gathers (4, 8 corners, M)
-        # so the trilinear lerps run over long contiguous rows (M points), not (M, 8, 4).
-        # The rows are written in place (``sdf_mm`` is a view of the first): no stacked copy
-        self._fields_flat = np.empty((4, sdf.size))
-        self.sdf_mm = self._fields_flat[0].reshape(sdf.shape)
-        self.sdf_mm[...] = sdf
-        gradient_into(self.sdf_mm, self.spacing_mm, self._fields_flat[1:].reshape(3, *sdf.shape))
+        self._fields_flat = fields
+        self.sdf_mm = fields[0].reshape(shape)
         self._shape = np.array(self.sdf_mm.shape)
         self._hi_vox = self._shape - 1.0
         self._hi_base = self._shape - 2
@@ -94,7 +111,26 @@ class DistanceMap:
 
     @classmethod
     def from_object_volume(cls, ov: ObjectVolume, band_vox: float = 0.0) -> DistanceMap:
-        """Build the distance map of an :class:`ObjectVolume` (its grid is already cropped)."""
+        """Build the distance map of an :class:`ObjectVolume` (its grid is already cropped).
+
+        When the volume names a store (``ov.distance_map_store``, a folder of this machine),
+        a map kept there for the same mask, grid and ``band_vox`` is read instead (the same
+        arrays), and a map built here is kept there for the next coating of the instance,
+        within the store's budget (``STORE_BUDGET_BYTES``; ``STORE_KEEP_FREE_BYTES`` of the
+        disk left free). A store that is absent, full or unreadable changes nothing but time.
+        """
+        store = Path(ov.distance_map_store) if ov.distance_map_store else None
+        key = _store_key(ov, band_vox) if store is not None else ""
+        kept = _read_kept(store, key, ov) if store is not None else None
+        if kept is not None:
+            return kept
+        dm = cls._build(ov, band_vox)
+        if store is not None:
+            _keep(dm, store, key)
+        return dm
+
+    @classmethod
+    def _build(cls, ov: ObjectVolume, band_vox: float) -> DistanceMap:
         mask = np.asarray(ov.mask, dtype=bool)
         if mask.ndim != 3 or not mask.any():
             raise InputError(f"distance map: the object volume of {ov.source or 'an instance'} is empty")
@@ -272,3 +308,50 @@ class DistanceMap:
     def closest_surface_points(self, points: np.ndarray) -> np.ndarray:
         """(M, 3) exact nearest points on the marching-cubes surface."""
         return self.locator.query(points, k=12)[0]
+
+
+def _store_key(ov: ObjectVolume, band_vox: float) -> str:
+    """The name of a volume's map in a store: a digest of what the map is computed from."""
+    mask = np.asarray(ov.mask, dtype=bool)
+    h = hashlib.sha256(f"ssm distance map {STORE_FORMAT} {mask.shape} {float(ov.spacing_mm)!r} "
+                       f"{float(band_vox)!r}".encode())
+    h.update(np.asarray(ov.origin_object, dtype=np.float64).tobytes())
+    h.update(np.packbits(mask).tobytes())
+    return h.hexdigest()[:40]
+
+
+def _read_kept(store: Path, key: str, ov: ObjectVolume) -> DistanceMap | None:
+    """The map kept in ``store`` under ``key``, or None (not kept, or not readable as one)."""
+    mask = np.asarray(ov.mask, dtype=bool)
+    try:
+        with open(store / f"{key}.npy", "rb") as f:
+            fields, vertices, faces = (np.load(f, allow_pickle=False) for _ in range(3))
+    except (OSError, ValueError, EOFError):
+        return None
+    if (fields.shape != (4, mask.size) or fields.dtype != np.float64 or vertices.ndim != 2 or faces.ndim != 2
+            or vertices.shape[1:] != (3,) or faces.shape[1:] != (3,)):
+        return None
+    dm = DistanceMap.__new__(DistanceMap)
+    dm._set_up(fields, mask.shape, ov.spacing_mm, ov.origin_object, vertices, faces, mask, ov.source, None)
+    return dm
+
+
+def _keep(dm: DistanceMap, store: Path, key: str) -> None:
+    """Write ``dm`` into ``store`` under ``key`` when the store exists here and has room.
+
+    Written to a file of this process and renamed, so a reader sees a whole map or none."""
+    size = dm._fields_flat.nbytes + dm.surface_vertices.nbytes + dm.surface_faces.nbytes
+    part = store / f"{key}.{os.getpid()}.part"
+    try:
+        if not store.is_dir():
+            return
+        used = sum(e.stat().st_size for e in os.scandir(store) if e.is_file())
+        if used + size > STORE_BUDGET_BYTES or shutil.disk_usage(store).free < size + STORE_KEEP_FREE_BYTES:
+            return
+        with open(part, "wb") as f:
+            for a in (dm._fields_flat, dm.surface_vertices, dm.surface_faces):
+                np.save(f, np.ascontiguousarray(a), allow_pickle=False)
+        os.replace(part, store / f"{key}.npy")
+    except OSError:
+        with contextlib.suppress(OSError):
+            part.unlink(missing_ok=True)

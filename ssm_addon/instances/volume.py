@@ -100,6 +100,10 @@ class ObjectVolume:
         The frame that maps object coordinates to world.
     source : str
         Where the object came from (for messages).
+    distance_map_store : str
+        A folder where the object's distance map may be kept between the coatings of one
+        build (:mod:`ssm_addon.coating.distance_map`); empty: none. Set only for the time of
+        a build that coats the instance more than once.
     """
 
     mask: np.ndarray
@@ -107,6 +111,7 @@ class ObjectVolume:
     origin_object: np.ndarray
     frame: ObjectFrame
     source: str = ""
+    distance_map_store: str = ""
 
     def voxel_to_object(self, ijk: np.ndarray) -> np.ndarray:
         """(M, 3) voxel coordinates -> (M, 3) object mm."""

@@ -4,8 +4,11 @@ the medoid template and the rounds of :mod:`ssm_addon.correspondence` on a study
 from __future__ import annotations
 
 import dataclasses
+import shutil
+import tempfile
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -31,7 +34,8 @@ from ..model.quality import (
 from .stages import coat_from_frames, coat_instances, coating_result, make_template
 from .study import Log, StageResult, Study, template_landmark_locations
 
-__all__ = ["medoid_template", "population", "population_medoid", "refine_correspondence", "start_coatings"]
+__all__ = ["distance_maps_kept", "medoid_template", "population", "population_medoid", "refine_correspondence",
+           "start_coatings"]
 
 
 def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: int = 1,
@@ -103,8 +107,9 @@ def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn =
                                volumes=dict(study.volumes), frames=dict(study.frames), findings=list(study.findings),
                                correspondence_rounds=list(study.correspondence_rounds), timings_s={}, fallbacks=[])
     choice = {}
-    # one pool of processes for every step (starts, template choice, rounds)
-    with executor_or_local(executor, jobs, len(study.names)) as pool:
+    # one pool of processes for every step (starts, template choice, rounds); each instance's
+    # distance map computed once and read by its later coatings
+    with executor_or_local(executor, jobs, len(study.names)) as pool, distance_maps_kept(work):
         if missing:
             work.coatings.update(start_coatings(work, missing, jobs=jobs, cancelled=cancelled, executor=pool))
             starts = [work.coating_start[n] for n in missing]
@@ -144,6 +149,28 @@ def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn =
         result.product["template_choice"] = choice
         result.product["template_instance"] = work.template_instance
     return result
+
+
+@contextmanager
+def distance_maps_kept(study: Study) -> Iterator[str]:
+    """For the time of the block, the study's volumes name a new scratch folder (yielded) in
+    which each instance's distance map is kept when first computed and read by the
+    instance's later coatings (the model method coats every instance two or three times:
+    the start, the medoid's template, the rounds). After the block the study has its own
+    volumes back and the folder is removed with the maps in it.
+
+    The maps read back are the arrays computed (:meth:`~ssm_addon.coating.distance_map.DistanceMap.from_object_volume`),
+    so the coatings are the same as without the folder; a worker on another machine
+    (Dask) does not see the folder and computes its maps as before.
+    """
+    folder = tempfile.mkdtemp(prefix="ssm-distance-maps-")
+    given = dict(study.volumes)
+    study.volumes.update({n: dataclasses.replace(v, distance_map_store=folder) for n, v in given.items()})
+    try:
+        yield folder
+    finally:
+        study.volumes.update(given)
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def population_medoid(study: Study, candidates: Sequence[str]) -> tuple[str, dict[str, float]]:
