@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -82,3 +83,40 @@ def test_a_build_writes_report_json_once_from_its_in_memory_report(project, tmp_
     result = build(read_project(project), tmp_path / "out", log=None)
     assert len(writes) == 1
     assert json.loads((tmp_path / "out" / "report.json").read_text()) == result.report
+
+
+def test_import_on_worker_processes_gives_the_volumes_of_the_import_here(project, tmp_path):
+    """The model method's import runs on the build's workers (each reads a label map shared by
+    several instances once); the volumes are those of the import in this process."""
+    import nibabel as nib
+
+    from ssm_addon.base.compute import Executor
+    from ssm_addon.pipeline.stages import import_instances
+
+    folder = project.parent
+    first, second = (nib.load(folder / f"demo_0{i}.nii.gz") for i in (0, 1))
+    a, b = np.asarray(first.dataobj), np.asarray(second.dataobj)
+    shape = np.maximum(a.shape, b.shape)
+    both = np.zeros((2 * shape[0], shape[1], shape[2]), a.dtype)
+    both[: a.shape[0], : a.shape[1], : a.shape[2]] = a
+    both[shape[0]: shape[0] + b.shape[0], : b.shape[1], : b.shape[2]] = np.where(b > 0, b + 1, 0)
+    nib.save(nib.Nifti1Image(both, first.affine), tmp_path / "both.nii.gz")
+    text = re.sub(r"\n(group|covariates) = [^\n]*", "", project.read_text().split("[[instances]]")[0])
+    for name, volume, label in (("demo_00", folder / "demo_00.nii.gz", 20), ("left", tmp_path / "both.nii.gz", 20),
+                                ("right", tmp_path / "both.nii.gz", 21), ("demo_02", folder / "demo_02.nii.gz", 20)):
+        text += f'[[instances]]\nname = "{name}"\nvolume = "{volume.as_posix()}"\nlabel = {label}\n'
+        text += f'landmarks = "{next(folder.glob("demo_00.*csv")).as_posix()}"\n\n' if name == "demo_00" else "\n"
+    text = re.sub(r'instance = "[^"]+"', 'instance = "demo_00"', text).replace(
+        "[coating]", '[correspondence]\nmethod = "model"\n\n[coating]')
+    variant = tmp_path / "shared.toml"
+    variant.write_text(text)
+    study = Study.from_project(read_project(variant))
+    here = import_instances(study)
+    with Executor("processes", 2) as executor:
+        there = import_instances(study, executor=executor)
+    assert list(there) == list(here) == ["demo_00", "left", "right", "demo_02"]
+    for n in here:
+        assert np.array_equal(here[n].mask, there[n].mask) and here[n].spacing_mm == there[n].spacing_mm
+        assert np.array_equal(here[n].origin_object, there[n].origin_object)
+        assert np.array_equal(here[n].frame.matrix_world, there[n].frame.matrix_world)
+    assert not np.array_equal(here["left"].frame.matrix_world, here["right"].frame.matrix_world)

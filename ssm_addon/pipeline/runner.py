@@ -70,7 +70,8 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
         stages = [s for s in stages if s not in ("import", "template", "coating")]
     if "import" in stages:
         report(progress, 0.0, f"import: {n} instances at {study.params.template.spacing_mm:g} mm")
-        applied(import_stage(study, jobs=jobs, progress=sub_progress(progress, 0.0, 0.15), cancelled=cancelled))
+        applied(import_stage(study, jobs=jobs, progress=sub_progress(progress, 0.0, 0.15), cancelled=cancelled,
+                             executor=executor))
     if "template" in stages:
         check_cancelled(cancelled)
         report(progress, 0.15, f"template: from {study.template_instance}")

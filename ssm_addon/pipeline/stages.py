@@ -8,6 +8,7 @@ import dataclasses
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import numpy as np
 
@@ -46,16 +47,43 @@ from .study import (
     template_landmark_locations,
 )
 
-__all__ = ["coat_from_frames", "coat_instances", "coating_result", "evaluate_model", "import_instances", "import_result", "import_stage", "make_model", "make_template", "metrics_stage", "model_stage", "self_check", "template_stage"]
+__all__ = ["coat_from_frames", "coat_instances", "coating_result", "evaluate_model", "import_instances", "import_result", "import_stage", "label_map_once", "make_model", "make_template", "metrics_stage", "model_stage", "self_check", "template_stage"]
+
+
+_LABEL_MAP_MEMO: dict = {}
+
+
+def label_map_once(path) -> object:
+    """A label map that holds several instances, read once per process (the last one kept)."""
+    st = Path(path).stat()
+    key = (str(path), st.st_size, st.st_mtime_ns)
+    if key not in _LABEL_MAP_MEMO:
+        _LABEL_MAP_MEMO.clear()
+        _LABEL_MAP_MEMO[key] = read_label_map(path)
+    return _LABEL_MAP_MEMO[key]
+
+
+def _import_job(args) -> ObjectVolume:
+    inst, spacing_mm, frame_method, space, shared_file = args
+    label_map = None
+    if shared_file:
+        try:
+            label_map = label_map_once(inst.volume_path)
+        except InputError as err:
+            raise InputError(f"instances using {inst.volume_path.name}: {err}") from None
+    return import_instance(inst, spacing_mm=spacing_mm, frame_method=frame_method, space=space, label_map=label_map)
 
 
 def import_instances(study: Study, *, names: Sequence[str] | None = None, jobs: int = 1,
-                     progress: ProgressFn = None, cancelled: CancelledFn = None) -> dict[str, ObjectVolume]:
+                     progress: ProgressFn = None, cancelled: CancelledFn = None,
+                     executor=None) -> dict[str, ObjectVolume]:
     """Read every instance, compute its object frame and resample it (paper 2).
 
-    Label maps shared by several instances (one file, several labels) are read once.
-    With ``jobs`` > 1 the instances are processed in threads (the numeric work releases
-    the GIL); the result does not depend on ``jobs``.
+    With an ``executor`` (:class:`~ssm_addon.base.compute.Executor`) the instances are
+    imported on its workers, each of which reads a label map shared by several instances
+    once; without, in this process: shared label maps read once, and with ``jobs`` > 1 the
+    instances in threads (the numeric work releases the GIL). The volumes do not depend on
+    where they were made.
 
     Returns
     -------
@@ -64,9 +92,16 @@ def import_instances(study: Study, *, names: Sequence[str] | None = None, jobs: 
     todo = [study.instance(n) for n in (study.names if names is None else names)]
     n = len(todo)
     tp = study.params.template
-    shared = {}
     paths = [inst.volume_path for inst in todo if inst.volume_path is not None]
-    for path in sorted({p for p in paths if paths.count(p) > 1}):
+    many = {p for p in paths if paths.count(p) > 1}
+    if executor is not None and n > 1:
+        volumes = executor.map(_import_job, [(inst, tp.spacing_mm, tp.frame, tp.space, inst.volume_path in many)
+                                             for inst in todo],
+                               labels=[inst.name for inst in todo], verb="imported", progress=progress,
+                               cancelled=cancelled)
+        return {inst.name: ov for inst, ov in zip(todo, volumes)}
+    shared = {}
+    for path in sorted(many):
         check_cancelled(cancelled)
         try:
             shared[path] = read_label_map(path)
@@ -233,10 +268,11 @@ def import_result(study: Study, volumes: dict[str, ObjectVolume], seconds: float
 
 
 def import_stage(study: Study, *, names: Sequence[str] | None = None, jobs: int = 1, progress: ProgressFn = None,
-                 cancelled: CancelledFn = None) -> StageResult:
-    """Import (paper 2): :func:`import_instances` and the import gates."""
+                 cancelled: CancelledFn = None, executor=None) -> StageResult:
+    """Import (paper 2): :func:`import_instances` (on ``executor`` when given) and the import gates."""
     t0 = time.perf_counter()
-    volumes = import_instances(study, names=names, jobs=jobs, progress=progress, cancelled=cancelled)
+    volumes = import_instances(study, names=names, jobs=jobs, progress=progress, cancelled=cancelled,
+                               executor=executor)
     return import_result(study, volumes, time.perf_counter() - t0)
 
 

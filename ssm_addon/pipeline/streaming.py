@@ -7,7 +7,6 @@ import dataclasses
 import time
 from collections import Counter
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -15,7 +14,6 @@ from ..base.errors import InputError, check_cancelled
 from ..base.params import CoatingParams, QualityParams
 from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..coating.coating import coat
-from ..formats.label_maps import read_label_map
 from ..instances.importing import InstanceSpec, import_instance
 from ..meshutil import Mesh, genus
 from ..model.quality import (
@@ -26,7 +24,7 @@ from ..model.quality import (
     content_digest,
 )
 from ..pipeline.cache import InstanceProduct, digest, file_digest
-from .stages import coating_result, make_template, self_check
+from .stages import coating_result, label_map_once, make_template, self_check
 from .study import Log, StageResult, Study, common_landmark_names, instance_sources
 
 __all__ = ["InstanceJob", "coat_from_source", "stream_instances", "template_key"]
@@ -78,20 +76,6 @@ class InstanceJob:
                        "max_landmark_distance_mm": qp.max_landmark_distance_mm})
 
 
-_LABEL_MAP_MEMO: dict = {}
-
-
-def _label_map_once(path) -> object:
-    """A shared label map, read once per process (the last one kept)."""
-
-    st = Path(path).stat()
-    key = (str(path), st.st_size, st.st_mtime_ns)
-    if key not in _LABEL_MAP_MEMO:
-        _LABEL_MAP_MEMO.clear()
-        _LABEL_MAP_MEMO[key] = read_label_map(path)
-    return _LABEL_MAP_MEMO[key]
-
-
 def coat_from_source(job: InstanceJob):
     """Import one instance from its file and coat the template onto it (paper 2 and 4).
 
@@ -104,7 +88,7 @@ def coat_from_source(job: InstanceJob):
     label_map = None
     if job.shared_file and spec.volume_path is not None:
         try:
-            label_map = _label_map_once(spec.volume_path)
+            label_map = label_map_once(spec.volume_path)
         except InputError as err:
             raise InputError(f"instances using {spec.volume_path.name}: {err}") from None
     ov = import_instance(spec, spacing_mm=job.spacing_mm, frame_method=job.frame_method, label_map=label_map,
