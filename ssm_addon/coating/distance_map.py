@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import mmap
 import os
 import shutil
 from concurrent.futures import ThreadPoolExecutor
@@ -321,15 +322,27 @@ def _store_key(ov: ObjectVolume, band_vox: float) -> str:
 
 
 def _read_kept(store: Path, key: str, ov: ObjectVolume) -> DistanceMap | None:
-    """The map kept in ``store`` under ``key``, or None (not kept, or not readable as one)."""
+    """The map kept in ``store`` under ``key``, or None (not kept, or not readable as one).
+
+    The fields are mapped from the file, not read: a coating samples the grid near the
+    surface, so only those pages are brought in (the file's pages stay in the system's
+    cache from when they were written)."""
     mask = np.asarray(ov.mask, dtype=bool)
     try:
         with open(store / f"{key}.npy", "rb") as f:
-            fields, vertices, faces = (np.load(f, allow_pickle=False) for _ in range(3))
+            vertices, faces = (np.load(f, allow_pickle=False) for _ in range(2))
+            version = np.lib.format.read_magic(f)
+            if version != (1, 0):
+                return None
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(f)
+            offset = f.tell()
+            if shape != (4, mask.size) or fortran or dtype != np.float64:
+                return None
+            buffer = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+        fields = np.frombuffer(buffer, dtype=np.float64, count=4 * mask.size, offset=offset).reshape(shape)
     except (OSError, ValueError, EOFError):
         return None
-    if (fields.shape != (4, mask.size) or fields.dtype != np.float64 or vertices.ndim != 2 or faces.ndim != 2
-            or vertices.shape[1:] != (3,) or faces.shape[1:] != (3,)):
+    if vertices.ndim != 2 or faces.ndim != 2 or vertices.shape[1:] != (3,) or faces.shape[1:] != (3,):
         return None
     dm = DistanceMap.__new__(DistanceMap)
     dm._set_up(fields, mask.shape, ov.spacing_mm, ov.origin_object, vertices, faces, mask, ov.source, None)
@@ -349,7 +362,7 @@ def _keep(dm: DistanceMap, store: Path, key: str) -> None:
         if used + size > STORE_BUDGET_BYTES or shutil.disk_usage(store).free < size + STORE_KEEP_FREE_BYTES:
             return
         with open(part, "wb") as f:
-            for a in (dm._fields_flat, dm.surface_vertices, dm.surface_faces):
+            for a in (dm.surface_vertices, dm.surface_faces, dm._fields_flat):  # the fields last: mapped
                 np.save(f, np.ascontiguousarray(a), allow_pickle=False)
         os.replace(part, store / f"{key}.npy")
     except OSError:
