@@ -87,6 +87,31 @@ def test_same_seed_same_p_values_and_three_groups_are_tested_pairwise():
     assert r1.group_test.p_value > 0.01  # site is unrelated to shape here
 
 
+def test_a_study_with_more_shapes_than_coordinates_is_tested_through_the_small_scatter(monkeypatch):
+    """n > 3N: the global statistics come from the 3N × 3N scatter instead of the n × n Gram
+    matrix (no eigenproblem of n × n: 10⁴ shapes took gigabytes); points that no shape moves
+    add coordinates and change no statistic, so the same shapes with such points (n < 3N,
+    the Gram route) give the same test."""
+    solved = []
+    eigh = np.linalg.eigh
+    monkeypatch.setattr(np.linalg, "eigh", lambda a, *args, **kw: solved.append(a.shape) or eigh(a, *args, **kw))
+    rng = np.random.default_rng(5)
+    n, npts = 120, 8
+    group = (np.arange(n) % 2).astype(float)[:, None]
+    age = rng.uniform(20, 80, size=(n, 1))
+    x = rng.normal(size=(n, npts, 3)) + 0.4 * group[:, :, None] + 0.02 * age[:, :, None] * np.linspace(0, 1, 3)
+    still = np.zeros((n, 40, 3)) + rng.normal(size=(1, 40, 3))  # the same place in every shape
+    reduced = np.concatenate([np.ones((n, 1)), age], axis=1)
+    small = term_test(x, reduced, group, permutations=199, seed=3, per_point=False)
+    assert solved == [(3 * npts, 3 * npts)]
+    large = term_test(np.concatenate([x, still], axis=1), reduced, group, permutations=199, seed=3, per_point=False)
+    assert 3 * npts < n < 3 * (npts + 40)
+    assert (small.p_value, small.p_value_f, small.global_modes) == (large.p_value, large.p_value_f, large.global_modes)
+    for key in ("f", "r_squared", "global_pillai"):
+        assert getattr(small, key) == pytest.approx(getattr(large, key), rel=1e-9), key
+    assert small.p_value < 0.01  # the group moves every point
+
+
 def test_benjamini_hochberg_matches_the_step_up_rule():
     p = np.array([0.001, 0.008, 0.039, 0.041, 0.042, 0.06, 0.074, 0.205, 0.212, 0.216])
     q = benjamini_hochberg(p)

@@ -205,3 +205,23 @@ def test_large_study_outlier_scores_agree_with_the_exact_ones():
     np.testing.assert_allclose(fast["loo_error_mm"], exact["loo_error_mm"], rtol=1e-6)
     np.testing.assert_allclose(fast["max_t"], exact["max_t"], rtol=1e-6)
     assert int(np.argmax(fast["mahalanobis2"])) == 7
+
+
+@pytest.mark.parametrize("n, npts", [(160, 150), (240, 20)])
+def test_outlier_scores_of_the_rank_one_downdate_equal_the_exact_ones(n, npts):
+    """The scores from the downdated spectrum (eigenvalues and the secular equation's weights,
+    no eigenvectors) equal those of one leave-one-out eigenproblem per instance, through the
+    n × n Gram matrix (n <= 3N) and through the 3N × 3N scatter (n > 3N); a shape exactly
+    at the mean has no coefficient."""
+    rng = np.random.default_rng(n)
+    basis = np.linalg.qr(rng.standard_normal((3 * npts, 5)))[0].T
+    x = (rng.standard_normal((n, 5)) * [9.0, 6.0, 4.0, 3.0, 2.0]) @ basis + 0.3 * rng.standard_normal((n, 3 * npts))
+    x[7] += 40.0 * basis[2]  # one outlier
+    x[11] = (x.sum(axis=0) - x[11]) / (n - 1)  # one shape at the mean of the others: at the mean of all
+    x = x.reshape(n, npts, 3)
+    exact = Q.loo_outlier_scores(x, variance_fraction=0.95, method="exact")
+    fast = Q.loo_outlier_scores(x, variance_fraction=0.95, method="subspace")
+    assert np.array_equal(fast["modes"], exact["modes"])
+    for key in ("mahalanobis2", "loo_error_mm", "max_t"):
+        np.testing.assert_allclose(fast[key], exact[key], rtol=1e-7, atol=1e-9, err_msg=key)
+    assert int(np.argmax(fast["mahalanobis2"])) == 7 and fast["mahalanobis2"][11] < 1e-9

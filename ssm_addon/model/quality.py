@@ -365,6 +365,9 @@ EXACT_LOO_MAX = 300
 SUBSPACE_MODES = 300
 """Above this many instances the leave-one-out scores use the model's leading subspace (see
 :func:`_loo_scores_in_subspace`); below it, one n × n eigenproblem per instance."""
+# a component of a rank-one downdate this small against the largest variance is deflated
+# (:func:`_downdated_spectrum`): its eigenvalue would lie within rounding of its pole
+DEFLATION = 1e-13
 
 
 def _descending_eig(mat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -387,35 +390,79 @@ def _row_scores(lam: np.ndarray, b: np.ndarray, total: float, tt: float, npts: i
     return d2, k, rms, t
 
 
-def _loo_scores_in_subspace(gram: np.ndarray, npts: int, variance_fraction: float) -> dict:
-    """Leave-one-out scores from one eigendecomposition plus an r × r one per instance.
+def _leading_coordinates(xc: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray]:
+    """The centred shapes' coordinates in their ``r`` leading modes: (eigenvalues of the
+    scatter, all of them, descending (n − 1 at most non-zero); (n, r) coordinates).
+
+    Through the n × n Gram matrix, or, with more shapes than coordinates, the 3N × 3N scatter
+    (eq. 5 before its 1/n: the same non-zero eigenvalues); zero eigenvalues to rounding are 0."""
+    n, d = xc.shape
+    if n <= d:
+        w, v = np.linalg.eigh(xc @ xc.T)
+        order = np.argsort(w)[::-1]
+        w, v = np.maximum(w[order], 0.0), v[:, order]
+        return w, v[:, :r] * np.sqrt(w[:r])
+    w, v = np.linalg.eigh(xc.T @ xc)
+    order = np.argsort(w)[::-1]
+    w, v = np.maximum(w[order], 0.0), v[:, order]
+    return w, xc @ v[:, :r]
+
+
+def _downdated_spectrum(w: np.ndarray, ci: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Variances λ (descending, numerically non-zero) of the model without instance i in the
+    subspace, and the squared coefficients b² of the held-out shape on their modes.
+
+    The covariance without i is (W − a cᵢcᵢᵀ)/m (m = n − 1, a = n/m): a diagonal less a rank
+    one. Its eigenvalues come from LAPACK; for an eigenvector u of eigenvalue μ,
+    (W/m − μ)u = (a/m)(cᵢ·u) cᵢ, so (cᵢ·u)² = 1 / ((a/m)² Σₖ cᵢₖ² / (wₖ/m − μ)²) (the
+    secular equation's weights): the coefficients without the eigenvectors. A component
+    whose part of the downdate is within rounding of the largest variance
+    (a cᵢₖ² <= ``DEFLATION`` w₁) is deflated first: wₖ/m is a variance with mode eₖ (its
+    eigenvalue would lie within rounding of the pole, where the weight is not determined).
+    """
+    m = n - 1
+    a = n / m
+    small = a * ci * ci <= DEFLATION * max(float(w[0]) if len(w) else 0.0, 1e-300)
+    c, wk = ci[~small], w[~small]
+    mu = np.linalg.eigvalsh((np.diag(wk) - a * np.outer(c, c)) / m)
+    gap = (wk / m)[None, :] - mu[:, None]
+    with np.errstate(divide="ignore"):  # a root on a pole (equal variances) holds none of cᵢ: weight 0
+        spread = ((c * c)[None, :] / (gap * gap)).sum(axis=1)
+    b2 = np.divide((n / m) ** 2, (a / m) ** 2 * spread, out=np.zeros(len(mu)), where=spread > 0)
+    lam = np.concatenate([mu, w[small] / m])
+    b2 = np.concatenate([b2, (ci[small] * (n / m)) ** 2])
+    order = np.argsort(-lam, kind="stable")
+    lam, b2 = lam[order], b2[order]
+    keep = lam > 1e-10 * max(lam[0] if len(lam) else 0.0, 1e-300)
+    return lam[keep], b2[keep]
+
+
+def _loo_scores_in_subspace(xc: np.ndarray, npts: int, variance_fraction: float) -> dict:
+    """Leave-one-out scores from one eigendecomposition plus an r × r eigenvalue problem per
+    instance.
 
     With the full model's modes as basis (coefficients c_i, Σ c_i = 0, Σ c_i c_iᵀ = W
     diagonal), the model without i has mean −c_i/(n−1) and covariance
     S₋ᵢ = (W − n/(n−1) c_i c_iᵀ)/(n−1): a rank-one downdate, solved in the leading
-    r = min(n − 1, :data:`SUBSPACE_MODES`) modes. Exact up to 301 instances; above, the
-    total variance and the held-out shape's squared distance stay exact and what is lost
-    is the part of the leave-one-out modes outside the full model's leading 300.
-    O(n³ + n r³) instead of O(n⁴).
+    r = min(n − 1, :data:`SUBSPACE_MODES`) modes (:func:`_downdated_spectrum`). Exact up to
+    301 instances; above, the total variance and the held-out shape's squared distance stay
+    exact and what is lost is the part of the leave-one-out modes outside the full model's
+    leading 300. O(min(n, 3N)³ + n r³).
     """
-    n = len(gram)
-    w, v = np.linalg.eigh(gram)
-    order = np.argsort(w)[::-1]
-    w, v = np.maximum(w[order], 0.0), v[:, order]
-    total = float(w.sum())
+    n = len(xc)
     r = int(min(n - 1, SUBSPACE_MODES))
-    c = v[:, :r] * np.sqrt(w[:r])  # (n, r) coordinates of the centred shapes
-    sq = np.diag(gram)  # |p_i − p̄|²
+    w, c = _leading_coordinates(xc, r)
+    total = float(w.sum())
+    sq = np.einsum("ij,ij->i", xc, xc)  # |p_i − p̄|²
     m = n - 1
     m2, ks, err, tmax = np.full(n, np.nan), np.zeros(n, dtype=int), np.full(n, np.nan), np.full(n, np.nan)
     for i in range(n):
-        ci = c[i]
-        lam, u = _descending_eig((np.diag(w[:r]) - (n / m) * np.outer(ci, ci)) / m)
+        lam, b2 = _downdated_spectrum(w[:r], c[i], n)
         if not len(lam):
             continue
         total_i = (total - sq[i] * n / m) / m  # exact variance of the model without i
-        m2[i], ks[i], err[i], tmax[i] = _row_scores(lam, u.T @ (ci * (n / m)), total_i, sq[i] * (n / m) ** 2, npts,
-                                                     m, variance_fraction)
+        m2[i], ks[i], err[i], tmax[i] = _row_scores(lam, np.sqrt(b2), total_i, sq[i] * (n / m) ** 2, npts, m,
+                                                     variance_fraction)
     return {"mahalanobis2": m2, "modes": ks, "loo_error_mm": err, "max_t": tmax}
 
 
@@ -444,13 +491,13 @@ def loo_outlier_scores(instance_points: np.ndarray, *, variance_fraction: float 
     n = x.shape[0]
     flat = x.reshape(n, -1)
     xc = flat - flat.mean(axis=0)
-    gram = xc @ xc.T
     m2, ks, err, tmax = np.full(n, np.nan), np.zeros(n, dtype=int), np.full(n, np.nan), np.full(n, np.nan)
     if n < 3:
         return {"mahalanobis2": m2, "modes": ks, "loo_error_mm": err, "max_t": tmax}
     npts = x.shape[1]
     if method == "subspace" or (method == "auto" and n > EXACT_LOO_MAX):
-        return _loo_scores_in_subspace(gram, npts, variance_fraction)
+        return _loo_scores_in_subspace(xc, npts, variance_fraction)
+    gram = xc @ xc.T
     for i in range(n):
         rest = np.delete(np.arange(n), i)
         a = 1.0 / (n - 1)
