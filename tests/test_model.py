@@ -380,3 +380,23 @@ def test_more_instances_than_coordinates_uses_the_covariance_and_equals_the_gram
     np.testing.assert_allclose(m @ m.T, np.eye(auto.n_modes), atol=1e-12)
     for shape in shapes[:5]:  # every mode: the training shapes themselves
         assert np.abs(auto.reconstruct(shape) - shape).max() < 1e-8
+
+
+@pytest.mark.parametrize("alignment", ["none", "rigid", "similarity"])
+def test_projecting_many_shapes_at_once_equals_projecting_each(alignment, monkeypatch):
+    """``project_all`` (one product per block of shapes, blocks smaller than the study here)
+    gives each shape's ``project``, turned and moved shapes aligned alike."""
+    import ssm_addon.model.pca as pca
+
+    shapes, *_ = synthetic_population(n=12, n_points=40, noise_mm=0.5, seed=8)
+    m = build_model(shapes, np.zeros((0, 3), int), names(12), alignment=alignment)
+    rng = np.random.default_rng(2)
+    others = np.stack([s @ random_rotation(rng).T + rng.normal(size=3) * 20 for s in shapes[:5]])
+    test = np.concatenate([m.instance_points, others if alignment != "none" else shapes[:5]])
+    monkeypatch.setattr(pca, "PROJECT_BLOCK", 5)
+    together = m.project_all(test)
+    each = np.stack([m.project(p) for p in test])
+    np.testing.assert_allclose(together, each, rtol=1e-10, atol=1e-9)
+    np.testing.assert_allclose(m.project_all(test, k=3), each[:, :3], rtol=1e-10, atol=1e-9)
+    with pytest.raises(InputError, match="expected"):
+        m.project_all(test[0])

@@ -331,7 +331,7 @@ def write_score_tables(model: ShapeModel, out_dir) -> dict:
     out_dir = Path(out_dir)
     k = model.n_modes
     sd = np.sqrt(np.maximum(np.asarray(model.variances, float), 1e-300))
-    b = np.array([model.project(p) for p in np.asarray(model.instance_points, float)]).reshape(-1, k)
+    b = model.project_all(model.instance_points).reshape(-1, k)
     with open(out_dir / "scores.csv", "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(["instance"] + [f"z{i + 1}" for i in range(k)] + [f"b{i + 1}_mm" for i in range(k)])

@@ -59,6 +59,10 @@ def drop_empty_modes(model: ShapeModel) -> tuple[ShapeModel, int]:
     return dataclasses.replace(model, modes=model.modes[keep], variances=lam[keep], params=params), dropped
 
 
+# shapes aligned and projected together by ShapeModel.project_all (bounded temporaries)
+PROJECT_BLOCK = 1000
+
+
 @dataclass(frozen=True, eq=False)
 class ShapeModel:
     """A point distribution model (paper section 5).
@@ -248,6 +252,23 @@ class ShapeModel:
         aligned, _ = self.align(points)
         k = self.n_modes if k is None else min(int(k), self.n_modes)
         return self.modes[:k].reshape(k, -1) @ (aligned - self.mean).ravel()
+
+    def project_all(self, shapes, k: int | None = None) -> np.ndarray:
+        """Mode weights of many shapes: :meth:`project` of each, (n, N, 3) -> (n, k) mm, as one
+        matrix product per block of ``PROJECT_BLOCK`` shapes (each aligned as :meth:`align`)."""
+        x = np.asarray(shapes, dtype=float)
+        if x.ndim != 3 or x.shape[1:] != (self.n_points, 3):
+            raise InputError(f"model.project_all: shapes have shape {x.shape}; expected (n, {self.n_points}, 3)")
+        k = self.n_modes if k is None else min(int(k), self.n_modes)
+        q = self.modes[:k].reshape(k, -1)
+        out = np.empty((len(x), k))
+        for start in range(0, len(x), PROJECT_BLOCK):
+            block = x[start:start + PROJECT_BLOCK]
+            if self.alignment != "none":
+                s, rot, t = procrustes_fit(block, self.mean, scale=self.alignment == "similarity")
+                block = s[:, None, None] * np.einsum("inj,ikj->ink", block, rot) + t[:, None, :]
+            out[start:start + len(block)] = (block - self.mean).reshape(len(block), -1) @ q.T
+        return out
 
     def reconstruct(self, points, k: int | None = None) -> np.ndarray:
         """Best approximation of a shape with the first ``k`` modes (eq. 7 of its projection).
