@@ -210,3 +210,19 @@ def test_exchange_meshes_open_at_their_real_size(tmp_path):
     legacy = (tmp_path / "vtk" / "mean.vtk").read_text().splitlines()
     assert legacy[0] == "# vtk DataFile Version 4.2" and "POINTS 30 double" in legacy
     assert "SCALARS variance_mm2 double 1" in legacy and "POLYGONS 28 112" in legacy
+
+
+def test_vtp_files_of_meshes_with_other_triangles_hold_their_own(tmp_path):
+    """The connectivity text is kept for the next file (a study's coatings share the template's
+    triangles); a file of other triangles, and one of the first again, hold their own."""
+    import xml.etree.ElementTree as ET
+
+    from ssm_addon.formats.vtk import write_vtp
+
+    pts = np.random.default_rng(0).normal(size=(5, 3))
+    first, other = np.array([[0, 1, 2], [0, 2, 3]]), np.array([[1, 2, 4], [2, 3, 4], [0, 1, 4]])
+    for k, faces in enumerate((first, other, first, first)):
+        root = ET.parse(write_vtp(tmp_path / f"{k}.vtp", pts, faces)).getroot()
+        polys = {a.get("Name"): a.text for a in root.iter("DataArray") if a.get("Name")}
+        assert np.array_equal(np.array(polys["connectivity"].split(), int).reshape(-1, 3), faces), k
+        assert np.array_equal(np.array(polys["offsets"].split(), int), 3 * np.arange(1, len(faces) + 1)), k

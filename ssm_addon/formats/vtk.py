@@ -40,6 +40,21 @@ def _numbers(a: np.ndarray, fmt: str = "%.9g") -> str:
     return "\n".join(row % tuple(r) for r in a.tolist())
 
 
+_CONNECTIVITY_TEXT: dict = {}
+
+
+def _connectivity_text(faces: np.ndarray) -> tuple[str, str]:
+    """The connectivity and offsets text of ``faces``; the last one is kept, since every coated
+    instance of a study has the template's triangles."""
+    key = faces.tobytes()
+    text = _CONNECTIVITY_TEXT.get(key)
+    if text is None:
+        text = (_numbers(faces, "%d"), _numbers(np.arange(1, len(faces) + 1) * 3, "%d"))
+        _CONNECTIVITY_TEXT.clear()
+        _CONNECTIVITY_TEXT[key] = text
+    return text
+
+
 def write_vtp(path, points, faces, point_data: dict | None = None) -> Path:
     """Write a triangle mesh as VTK XML PolyData (ASCII ``.vtp``).
 
@@ -69,11 +84,11 @@ def write_vtp(path, points, faces, point_data: dict | None = None) -> Path:
             parts += [f'<DataArray type="Float64" Name="{k}" NumberOfComponents="{comps}" format="ascii">',
                       _numbers(v), "</DataArray>"]
         parts.append("</PointData>")
+    connectivity, offsets = _connectivity_text(faces)
     parts += ["<Points>", '<DataArray type="Float64" NumberOfComponents="3" format="ascii">', _numbers(points),
               "</DataArray>", "</Points>", "<Polys>",
-              '<DataArray type="Int64" Name="connectivity" format="ascii">', _numbers(faces, "%d"), "</DataArray>",
-              '<DataArray type="Int64" Name="offsets" format="ascii">',
-              _numbers(np.arange(1, len(faces) + 1) * 3, "%d"), "</DataArray>",
+              '<DataArray type="Int64" Name="connectivity" format="ascii">', connectivity, "</DataArray>",
+              '<DataArray type="Int64" Name="offsets" format="ascii">', offsets, "</DataArray>",
               "</Polys>", "</Piece>", "</PolyData>", "</VTKFile>", ""]
     path = Path(path)
     path.write_text("\n".join(parts), encoding="ascii")
