@@ -5,13 +5,17 @@ Usage::
     python tools/bench_scale.py build [--n 100,300,1000] [--schedulers processes,dask-local] [--jobs 2]
     python tools/bench_scale.py resume [--n 300] [--jobs 2]
     python tools/bench_scale.py pca [--n 10000] [--points 5000] [--modes 100] [--precision float32]
+    python tools/bench_scale.py study [--n 10000] [--points 627]
 
 ``build`` prints, per n and scheduler: wall time, coating time per instance and per
 instance-worker, peak resident memory of the main process and of the largest worker
 (sampled every 0.1 s with psutil), and a projection to 10⁴ and 10⁵ instances on 100
 workers from the measured per-instance cost. ``resume`` kills a build (SIGKILL) once half
 of the instances are in the cache and times the rerun. ``pca`` builds a model and its
-metrics from synthetic points (low rank plus noise) and prints time and peak memory.
+metrics from synthetic points (low rank plus noise) and prints time and peak memory;
+``study`` times what a build does with such a model after the metrics: the leave-one-out
+outlier scores, the scores table and the shape analysis (a group and a covariate, 1,000
+permutations), each with its peak memory.
 Populations are generated once into ``--data`` (default /tmp/ssm-bench-scale).
 """
 
@@ -144,17 +148,10 @@ def cmd_pca(args) -> None:
     from ssm_addon.model.pca import build_model
 
     n, npts, k = int(args.n), int(args.points), 40
-    rng = np.random.default_rng(0)
     dtype = np.float32 if args.precision == "float32" else np.float64
-    t0 = time.perf_counter()
-    basis = np.linalg.qr(rng.standard_normal((3 * npts, k)))[0].T.astype(dtype)
     sd = (30.0 / np.arange(1, k + 1)).astype(dtype)
-    x = np.empty((n, npts, 3), dtype)
-    for start in range(0, n, 1000):  # synthetic shapes in blocks (bounded temporaries)
-        stop = min(n, start + 1000)
-        block = (rng.standard_normal((stop - start, k)).astype(dtype) * sd) @ basis
-        block += rng.standard_normal(block.shape).astype(dtype) * dtype(0.2)
-        x[start:stop] = block.reshape(-1, npts, 3)
+    t0 = time.perf_counter()
+    x = synthetic_shapes(n, npts, k, dtype)
     print(f"synthetic {n} shapes x {npts} points ({x.nbytes / 2**30:.2f} GB {args.precision}) in "
           f"{time.perf_counter() - t0:.1f} s", flush=True)
     with MemorySampler() as mem:
@@ -173,6 +170,50 @@ def cmd_pca(args) -> None:
           f"(true {', '.join(f'{v:.1f}' for v in (sd[:3].astype(float) ** 2))} + noise)")
 
 
+def synthetic_shapes(n: int, npts: int, k: int = 40, dtype=np.float64, seed: int = 0) -> np.ndarray:
+    """(n, npts, 3) shapes of low rank (``k`` modes, SD 30/j mm) plus 0.2 mm noise, made in blocks."""
+    rng = np.random.default_rng(seed)
+    basis = np.linalg.qr(rng.standard_normal((3 * npts, k)))[0].T.astype(dtype)
+    sd = (30.0 / np.arange(1, k + 1)).astype(dtype)
+    x = np.empty((n, npts, 3), dtype)
+    for start in range(0, n, 1000):  # bounded temporaries
+        stop = min(n, start + 1000)
+        block = (rng.standard_normal((stop - start, k)).astype(dtype) * sd) @ basis
+        block += rng.standard_normal(block.shape).astype(dtype) * dtype(0.2)
+        x[start:stop] = block.reshape(-1, npts, 3)
+    return x
+
+
+def cmd_study(args) -> None:
+    from ssm_addon.analysis import analyze, attributes_from_tables
+    from ssm_addon.model.files import write_score_tables
+    from ssm_addon.model.pca import build_model
+    from ssm_addon.model.quality import loo_outlier_scores
+
+    n, npts = int(args.n), int(args.points)
+    x = synthetic_shapes(n, npts)
+    rng = np.random.default_rng(1)
+    age = rng.uniform(20, 80, n)
+    long = np.arange(n) % 2 == 1
+    x[:, :, 2] += 0.02 * (age - 50)[:, None] + 0.5 * long[:, None]  # an age effect and a group difference
+    names = [f"s{i:05d}" for i in range(n)]
+    model = build_model(x, np.zeros((0, 3), int), names, n_modes=int(args.modes) or None)
+    attrs = attributes_from_tables({m: {"group": "long" if g else "short", "age": float(a)}
+                                    for m, g, a in zip(names, long, age)})
+    print(f"synthetic {n} shapes x {npts} points, model of {model.n_modes} modes", flush=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        steps = (("outlier scores", lambda: loo_outlier_scores(model.instance_points)),
+                 ("scores.csv", lambda: write_score_tables(model, tmp)),
+                 ("shape analysis", lambda: analyze(model, attrs, group="group", covariates=["age"],
+                                                    permutations=1000)))
+        for label, step in steps:
+            with MemorySampler() as mem:
+                t0 = time.perf_counter()
+                step()
+                seconds = time.perf_counter() - t0
+            print(f"  {label:15s} {seconds:7.1f} s, peak RSS {mem.main_mb:.0f} MB", flush=True)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -188,11 +229,15 @@ def main(argv=None):
     p.add_argument("--points", default="5000")
     p.add_argument("--modes", default="100")
     p.add_argument("--precision", default="float64", choices=("float64", "float32"))
-    for x in (b, r, p):
+    st = sub.add_parser("study")
+    st.add_argument("--n", default="10000")
+    st.add_argument("--points", default="627")
+    st.add_argument("--modes", default="0", help="modes kept (0: all)")
+    for x in (b, r, p, st):
         x.add_argument("--data", default="/tmp/ssm-bench-scale")
     args = ap.parse_args(argv)
     Path(args.data).mkdir(parents=True, exist_ok=True)
-    {"build": cmd_build, "resume": cmd_resume, "pca": cmd_pca}[args.cmd](args)
+    {"build": cmd_build, "resume": cmd_resume, "pca": cmd_pca, "study": cmd_study}[args.cmd](args)
 
 
 if __name__ == "__main__":
