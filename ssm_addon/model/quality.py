@@ -472,12 +472,14 @@ def loo_outlier_scores(instance_points: np.ndarray, *, variance_fraction: float 
     For each instance i the model of the others (eqs. 4–6, 1/n normalisation) gives its
     coefficients b_k = q_k·(p_i − p̄) on the first K modes that hold
     ``variance_fraction`` of that model's variance, the squared Mahalanobis distance
-    D² = Σ b_k²/λ_k and the reconstruction error (RMS over points, mm). Computed
-    through the n × n Gram matrix (no 3N × 3N matrix).
+    D² = Σ b_k²/λ_k and the reconstruction error (RMS over points, mm).
 
-    ``method``: ``"exact"`` solves one n × n eigenproblem per instance; ``"subspace"`` works in
-    the leading modes of all instances (the same scores to rounding, in O(n²) per instance);
-    ``"auto"`` takes the subspace above ``EXACT_LOO_MAX`` instances.
+    ``method``: ``"exact"`` solves one n × n eigenproblem per instance (through the n × n Gram
+    matrix); ``"subspace"`` works in the leading r <= :data:`SUBSPACE_MODES` modes of all
+    instances, from the smaller of the Gram matrix and the 3N × 3N scatter, with one r × r
+    eigenvalue problem per instance (:func:`_loo_scores_in_subspace`; the same scores to
+    rounding up to 301 instances); ``"auto"`` takes the subspace above ``EXACT_LOO_MAX``
+    instances.
 
     Returns
     -------
