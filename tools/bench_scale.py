@@ -106,6 +106,7 @@ def cmd_build(args) -> None:
                   f"({per * args.jobs:.3f} s per instance per worker), model {res.timings_s.get('model', 0):.2f} s, "
                   f"metrics {res.timings_s.get('metrics', 0):.2f} s; peak RSS main {mem.main_mb:.0f} MB, "
                   f"largest worker {mem.worker_mb:.0f} MB", flush=True)
+            print("  stages: " + ", ".join(f"{k} {v:.1f} s" for k, v in res.timings_s.items()), flush=True)
     if rows:
         cost = max(r[5] for r in rows if r[0] == max(x[0] for x in rows))  # s per instance per worker, largest n
         for total in (10_000, 100_000):
