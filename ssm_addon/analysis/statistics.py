@@ -42,6 +42,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..base.errors import Cancelled, InputError
+from ..model.pca import gram_factor
 
 __all__ = ["TermTest", "benjamini_hochberg", "centroid_size", "orthonormal_basis", "permutation_orders",
            "term_test"]
@@ -174,27 +175,6 @@ def _whitening(residuals: np.ndarray) -> np.ndarray:
     return np.einsum("nij,nj,nkj->nik", v, inv, v)
 
 
-def _gram_factor(flat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The non-zero spectrum of the Gram matrix G = X Xᵀ of ``flat`` (n, d): its eigenvalues w
-    (ascending, those above 1e-12 of the largest), Z (n, r) with Z Zᵀ = G and the eigenvectors
-    V = Z / √w, columns in the order of w.
-
-    Through G itself when n <= d; with more rows than columns through the d × d scatter
-    XᵀX (the same non-zero eigenvalues; Z = X U for its eigenvectors U), so a study of 10⁴
-    shapes needs no 10⁴ × 10⁴ matrix. Z and V are determined up to the signs of their
-    columns (and turns within equal eigenvalues), which no statistic here depends on.
-    """
-    n, d = flat.shape
-    if n <= d:
-        w, v = np.linalg.eigh(flat @ flat.T)
-        keep = w > 1e-12 * max(float(w[-1]), 1e-300)
-        return w[keep], v[:, keep] * np.sqrt(w[keep]), v[:, keep]
-    w, u = np.linalg.eigh(flat.T @ flat)
-    keep = w > 1e-12 * max(float(w[-1]), 1e-300)
-    z = flat @ u[:, keep]
-    return w[keep], z, z / np.sqrt(w[keep])
-
-
 def term_test(points, reduced, term, *, permutations: int = 1000, seed: int = 0, per_point: bool = True,
               cancelled=None) -> TermTest:
     """Test a term of a linear model of shape by Freedman–Lane permutation.
@@ -237,7 +217,7 @@ def term_test(points, reduced, term, *, permutations: int = 1000, seed: int = 0,
                          "than columns")
     flat = r0.reshape(n, -1)
     # Global: squared norms need only the residuals' Gram matrix; factor it as Z Zᵀ (n × r).
-    w, z, v = _gram_factor(flat)
+    w, z, v = gram_factor(flat)
     total_r0 = float(np.sum(w))
     # the leading residual modes, whitened (the Gram matrix's eigenvectors, largest first)
     share = np.cumsum(w[::-1]) / max(total_r0, 1e-300)

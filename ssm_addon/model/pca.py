@@ -443,6 +443,27 @@ def _orthonormalise_rows(modes: np.ndarray, tol: float = 1e-12) -> tuple[np.ndar
     return modes, err
 
 
+def gram_factor(flat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The non-zero spectrum of the Gram matrix G = X Xᵀ of ``flat`` (n, d): its eigenvalues w
+    (ascending, those above 1e-12 of the largest), Z (n, r) with Z Zᵀ = G and the eigenvectors
+    V = Z / √w, columns in the order of w.
+
+    Through G itself when n <= d; with more rows than columns through the d × d scatter
+    XᵀX (the same non-zero eigenvalues; Z = X U for its eigenvectors U), so a study of 10⁴
+    shapes needs no 10⁴ × 10⁴ matrix. Z and V are determined up to the signs of their
+    columns (and turns within equal eigenvalues), which no sum of squares depends on.
+    """
+    n, d = flat.shape
+    if n <= d:
+        w, v = np.linalg.eigh(flat @ flat.T)
+        keep = w > 1e-12 * max(float(w[-1]), 1e-300)
+        return w[keep], v[:, keep] * np.sqrt(w[keep]), v[:, keep]
+    w, u = np.linalg.eigh(flat.T @ flat)
+    keep = w > 1e-12 * max(float(w[-1]), 1e-300)
+    z = flat @ u[:, keep]
+    return w[keep], z, z / np.sqrt(w[keep])
+
+
 def _nonzero_eigenpairs(mat: np.ndarray, n: int, n_modes: int | None) -> tuple[np.ndarray, np.ndarray]:
     """Eigenpairs of the symmetric product matrix of ``n`` centred shapes (their n × n Gram
     matrix or their 3N × 3N covariance), largest first: at most n - 1 (centring), none zero to

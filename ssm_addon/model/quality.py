@@ -47,7 +47,7 @@ from scipy.special import fdtrc, stdtr  # F and t tails (scipy.stats costs 0.5 s
 from ..base.errors import InputError, SSMError
 from ..base.params import QualityParams
 from ..meshutil import marching_cubes
-from ..model.pca import procrustes_fit
+from ..model.pca import gram_factor, procrustes_fit
 
 __all__ = [
     "Finding",
@@ -390,24 +390,6 @@ def _row_scores(lam: np.ndarray, b: np.ndarray, total: float, tt: float, npts: i
     return d2, k, rms, t
 
 
-def _leading_coordinates(xc: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray]:
-    """The centred shapes' coordinates in their ``r`` leading modes: (eigenvalues of the
-    scatter, all of them, descending (n − 1 at most non-zero); (n, r) coordinates).
-
-    Through the n × n Gram matrix, or, with more shapes than coordinates, the 3N × 3N scatter
-    (eq. 5 before its 1/n: the same non-zero eigenvalues); zero eigenvalues to rounding are 0."""
-    n, d = xc.shape
-    if n <= d:
-        w, v = np.linalg.eigh(xc @ xc.T)
-        order = np.argsort(w)[::-1]
-        w, v = np.maximum(w[order], 0.0), v[:, order]
-        return w, v[:, :r] * np.sqrt(w[:r])
-    w, v = np.linalg.eigh(xc.T @ xc)
-    order = np.argsort(w)[::-1]
-    w, v = np.maximum(w[order], 0.0), v[:, order]
-    return w, xc @ v[:, :r]
-
-
 def _downdated_spectrum(w: np.ndarray, ci: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     """Variances λ (descending, numerically non-zero) of the model without instance i in the
     subspace, and the squared coefficients b² of the held-out shape on their modes.
@@ -450,8 +432,10 @@ def _loo_scores_in_subspace(xc: np.ndarray, npts: int, variance_fraction: float)
     leading 300. O(min(n, 3N)³ + n r³).
     """
     n = len(xc)
-    r = int(min(n - 1, SUBSPACE_MODES))
-    w, c = _leading_coordinates(xc, r)
+    w, z, _v = gram_factor(xc)  # ascending, the non-zero ones
+    w, z = w[::-1], z[:, ::-1]
+    r = int(min(n - 1, SUBSPACE_MODES, len(w)))
+    c = z[:, :r]  # (n, r) coordinates of the centred shapes in the leading modes
     total = float(w.sum())
     sq = np.einsum("ij,ij->i", xc, xc)  # |p_i − p̄|²
     m = n - 1
