@@ -54,23 +54,26 @@ _LABEL_MAP_MEMO: dict = {}
 
 
 def label_map_once(path) -> object:
-    """A label map that holds several instances, read once per process (the last one kept)."""
+    """A label map that holds several instances, read once per process (the last one kept).
+
+    Raises
+    ------
+    InputError
+        The file cannot be read as a label map (the message names the instances' file)."""
     st = Path(path).stat()
     key = (str(path), st.st_size, st.st_mtime_ns)
     if key not in _LABEL_MAP_MEMO:
         _LABEL_MAP_MEMO.clear()
-        _LABEL_MAP_MEMO[key] = read_label_map(path)
+        try:
+            _LABEL_MAP_MEMO[key] = read_label_map(path)
+        except InputError as err:
+            raise InputError(f"instances using {Path(path).name}: {err}") from None
     return _LABEL_MAP_MEMO[key]
 
 
 def _import_job(args) -> ObjectVolume:
     inst, spacing_mm, frame_method, space, shared_file = args
-    label_map = None
-    if shared_file:
-        try:
-            label_map = label_map_once(inst.volume_path)
-        except InputError as err:
-            raise InputError(f"instances using {inst.volume_path.name}: {err}") from None
+    label_map = label_map_once(inst.volume_path) if shared_file else None
     return import_instance(inst, spacing_mm=spacing_mm, frame_method=frame_method, space=space, label_map=label_map)
 
 

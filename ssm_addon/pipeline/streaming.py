@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..base.errors import InputError, check_cancelled
+from ..base.errors import check_cancelled
 from ..base.params import CoatingParams, QualityParams
 from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..coating.coating import coat
@@ -85,12 +85,7 @@ def coat_from_source(job: InstanceJob):
     dropped when the function returns.
     """
     spec, qp = job.spec, job.quality_params
-    label_map = None
-    if job.shared_file and spec.volume_path is not None:
-        try:
-            label_map = label_map_once(spec.volume_path)
-        except InputError as err:
-            raise InputError(f"instances using {spec.volume_path.name}: {err}") from None
+    label_map = label_map_once(spec.volume_path) if job.shared_file and spec.volume_path is not None else None
     ov = import_instance(spec, spacing_mm=job.spacing_mm, frame_method=job.frame_method, label_map=label_map,
                          space=job.space)
     findings = check_volume(spec.name, ov, qp)
