@@ -4,4 +4,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup_env.sh requirements-dev.txt
 .venv/bin/ruff check .
-.venv/bin/python -m pytest "$@"
+# the test files in parallel: one process per core, at most 4 (pytest-xdist; a file's tests
+# stay in one process, so a module's fixture is built once); "-n 0" in the arguments runs
+# them in this process
+.venv/bin/python -m pytest -n auto --maxprocesses 4 --dist loadfile "$@"

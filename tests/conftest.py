@@ -6,12 +6,17 @@
   loads it as ``bl_ext.<repo>.ssm``), so ``operators`` can import ``..ssm_addon``.
 * ``verse_dir`` is the real VerSe sample in ``../shared/data/verse004``; tests that
   need it skip with a reason where it is absent (a user's fresh clone).
+* ``scripts/test.sh`` runs the test files in several processes (pytest-xdist, a file per
+  process at a time): what two files share on disk (``wheels_cache/``) is written by one
+  process at a time (:func:`one_process_at_a_time`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
+import hashlib
 import importlib.util
 import os
 import re
@@ -20,6 +25,10 @@ import sys
 import tempfile
 from pathlib import Path
 
+try:
+    import fcntl
+except ImportError:  # Windows: the suite runs in one process there (no shared writes to guard)
+    fcntl = None
 import h5py
 import numpy as np
 import pytest
@@ -106,6 +115,22 @@ def build_tool():
     return module
 
 
+@contextlib.contextmanager
+def one_process_at_a_time(name: str):
+    """Hold an exclusive lock (a file in the system's temp folder, one per checkout and
+    ``name``) for the block: test processes that write the same files take turns."""
+    if fcntl is None:
+        yield
+        return
+    path = Path(tempfile.gettempdir()) / f"ssm-tests-{hashlib.sha1(str(ROOT).encode()).hexdigest()[:12]}-{name}.lock"
+    with open(path, "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
 @pytest.fixture(scope="session")
 def zip_wheels() -> Path:
     """``wheels_cache/linux-x64``: the wheels the linux-x64 extension zip bundles, resolved and
@@ -114,13 +139,14 @@ def zip_wheels() -> Path:
     bx = build_tool()
     cache = ROOT / "wheels_cache"
     requirements = bx.runtime_requirements()
-    try:
-        bx.download_wheels("linux-x64", requirements, cache, offline=True, log=lambda *a: None)
-    except bx.BuildError:
+    with one_process_at_a_time("wheels_cache"):
         try:
-            bx.download_wheels("linux-x64", requirements, cache, offline=False, log=print)
-        except bx.BuildError as err:
-            pytest.skip(f"the zip's wheels cannot be downloaded here: {err}")
+            bx.download_wheels("linux-x64", requirements, cache, offline=True, log=lambda *a: None)
+        except bx.BuildError:
+            try:
+                bx.download_wheels("linux-x64", requirements, cache, offline=False, log=print)
+            except bx.BuildError as err:
+                pytest.skip(f"the zip's wheels cannot be downloaded here: {err}")
     return cache / "linux-x64"
 
 

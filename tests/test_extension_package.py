@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import build_tool
+from conftest import build_tool, one_process_at_a_time
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -300,10 +300,11 @@ def _write_ball_nifti(path: Path):
 
 
 def _build_linux_zip(out_dir: Path) -> Path:
-    try:  # a warm cache needs no index
-        zips = bx.build(["linux-x64"], out_dir=out_dir, offline=True, log=print)
-    except bx.BuildError:
-        zips = bx.build(["linux-x64"], out_dir=out_dir, offline=False, log=print)
+    with one_process_at_a_time("wheels_cache"):  # it may download into wheels_cache/
+        try:  # a warm cache needs no index
+            zips = bx.build(["linux-x64"], out_dir=out_dir, offline=True, log=print)
+        except bx.BuildError:
+            zips = bx.build(["linux-x64"], out_dir=out_dir, offline=False, log=print)
     assert [z.name for z in zips] == ["ssm-0.1.0-linux_x64.zip"]
     return zips[0]
 

@@ -423,20 +423,25 @@ def core_wheel(dest: Path, root: Path = ROOT) -> Path:
     """Build the core's wheel (``ssm_addon``, pure Python) into ``dest`` with this interpreter.
 
     ``pip wheel --no-build-isolation`` uses the setuptools of the running environment
-    (``requirements-dev.txt``), so it needs no network.
+    (``requirements-dev.txt``), so it needs no network. It builds from a copy of the
+    sources the wheel is made of (``pyproject.toml`` and ``ssm_addon/``): setuptools writes
+    ``build/`` and ``*.egg-info`` next to the sources it builds, so two builds at once (two
+    test processes, two zips) would otherwise share and remove one another's files, and the
+    checkout is left as it was.
     """
     dest.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="ssm-core-wheel-") as tmp:
-        proc = subprocess.run([sys.executable, "-m", "pip", "wheel", str(root), "--no-deps", "--no-build-isolation",
-                               "--quiet", "-w", tmp], capture_output=True, text=True, cwd=tmp)
-        built = sorted(Path(tmp).glob("ssm_builder-*.whl"))
+        src, out_dir = Path(tmp) / "src", Path(tmp) / "wheel"
+        src.mkdir()
+        shutil.copy2(root / "pyproject.toml", src / "pyproject.toml")
+        shutil.copytree(root / "ssm_addon", src / "ssm_addon", ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+        proc = subprocess.run([sys.executable, "-m", "pip", "wheel", str(src), "--no-deps", "--no-build-isolation",
+                               "--quiet", "-w", str(out_dir)], capture_output=True, text=True, cwd=tmp)
+        built = sorted(out_dir.glob("ssm_builder-*.whl"))
         if proc.returncode != 0 or not built:
             raise BuildError(f"building the core wheel failed:\n{proc.stdout[-2000:]}{proc.stderr[-2000:]}")
         out = dest / built[0].name
         shutil.copy2(built[0], out)
-    shutil.rmtree(root / "build", ignore_errors=True)
-    for info in root.glob("*.egg-info"):
-        shutil.rmtree(info, ignore_errors=True)
     return out
 
 
