@@ -274,15 +274,72 @@ class ModelErrorField:
     Per axis, cov(e(x), e(y)) = a(x) a(y) exp(−|x − y|² / 2ℓ²): ``amplitude_mm`` a (N,)
     from the training instances' leave-one-out residuals (a² is a third of
     :func:`model_error_variance`), ``length_mm`` ℓ the distance at which those residuals'
-    correlation falls to e^(−1/2). ``basis`` (N, 3, 3r) is its low-rank (Nyström) form on
-    ``r`` kernel eigenvectors, each coefficient of prior variance 1: the extra modes a
-    partial fit is given, so that what the model cannot represent neither bends the pose
-    nor vanishes from the posterior of the part the target does not show.
+    correlation falls to e^(−1/2). ``fields_mm`` (N, r) is its low-rank (Nyström) form on
+    ``r`` kernel eigenvectors, each field of prior variance 1 and applied to each axis on
+    its own: the 3r extra modes a partial fit is given (:attr:`basis`), so that what the
+    model cannot represent neither bends the pose nor vanishes from the posterior of the
+    part the target does not show.
     """
 
     amplitude_mm: np.ndarray
     length_mm: float
-    basis: np.ndarray
+    fields_mm: np.ndarray
+
+    @property
+    def basis(self) -> np.ndarray:
+        """(N, 3, 3r) mm: the fields as modes, axis by axis (mode a·r + j moves axis a by field j)."""
+        return _ModeBasis(np.zeros((len(self.fields_mm), 3, 0)), self.fields_mm).rows(np.arange(len(self.fields_mm)))
+
+
+class _ModeBasis:
+    """A fit's linear shape basis (model frame, mm per unit coefficient): the model's modes
+    ``q`` (N, 3, k) and, for a partial fit, the model-error field's smooth fields ``f`` (N, r),
+    each applied to each axis on its own (coefficient k + a·r + j moves axis a by field j).
+    The fields stay in that factored form: the dense (N, 3, k + 3r) basis is three times
+    their size and mostly zeros."""
+
+    def __init__(self, q: np.ndarray, f: np.ndarray | None = None):
+        self.q = q
+        self.f = f
+        self.k_modes = q.shape[2]
+        self.r = 0 if f is None else f.shape[1]
+        self.k = self.k_modes + 3 * self.r
+
+    def apply(self, b: np.ndarray) -> np.ndarray:
+        """(N, 3) mm: the basis times the coefficients ``b`` (k + 3r,)."""
+        out = self.q @ b[:self.k_modes]
+        if self.r:
+            out += self.f @ b[self.k_modes:].reshape(3, self.r).T
+        return out
+
+    def rows(self, idx: np.ndarray) -> np.ndarray:
+        """(*idx.shape, 3, k + 3r) mm: the dense basis at the points ``idx``."""
+        idx = np.asarray(idx)
+        out = np.zeros(idx.shape + (3, self.k))
+        out[..., :self.k_modes] = self.q[idx]
+        if self.r:
+            fi = self.f[idx]
+            for axis in range(3):
+                start = self.k_modes + axis * self.r
+                out[..., axis, start:start + self.r] = fi
+        return out
+
+    def normal_rows(self, normals: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        """(M, k + 3r): n·Q at the points ``idx`` (M,) along their ``normals`` (M, 3)."""
+        qn = np.einsum("ud,udk->uk", normals, self.q[idx])
+        if not self.r:
+            return qn
+        fi = self.f[idx]
+        return np.hstack([qn] + [normals[:, axis:axis + 1] * fi for axis in range(3)])
+
+    def axis_rows(self, axis: int) -> np.ndarray:
+        """(N, k + 3r): the basis's ``axis`` component at every point."""
+        out = np.zeros((len(self.q), self.k))
+        out[:, :self.k_modes] = self.q[:, axis, :]
+        if self.r:
+            start = self.k_modes + axis * self.r
+            out[:, start:start + self.r] = self.f
+        return out
 
 
 def correlation_length(points: np.ndarray, residuals: np.ndarray, *, pairs: int = MODEL_ERROR_PAIRS) -> float:
@@ -365,16 +422,12 @@ def model_error_field(model, *, keep: float = 0.99) -> ModelErrorField | None:
     kxc = np.exp(-((mean[:, None] - centres[None]) ** 2).sum(-1) / (2 * length ** 2))
     phi = kxc @ (u[:, :r] / np.sqrt(w[:r]))  # (N, r): phi phiᵀ ≈ the kernel
     phi /= np.maximum(np.linalg.norm(phi, axis=1, keepdims=True), 1e-300)  # unit prior variance per point
-    f = amp[:, None] * phi
-    basis = np.zeros((len(mean), 3, 3 * r))
-    for axis in range(3):
-        basis[:, axis, axis * r:(axis + 1) * r] = f
-    field_ = ModelErrorField(amplitude_mm=amp, length_mm=length, basis=basis)
+    field_ = ModelErrorField(amplitude_mm=amp, length_mm=length, fields_mm=amp[:, None] * phi)
     _ERROR_FIELD[model] = field_
     return field_
 
 
-def _posterior(q, shape, faces, rows_v, w, pose, lm_pairs, w_lm, sigma2, params, lam, k):
+def _posterior(modes, shape, faces, rows_v, w, pose, lm_pairs, w_lm, sigma2, params, lam, k):
     """Posterior covariance of b and per-point shape variance (mm², model frame), pose included.
 
     Linearised at the fit: the parameters are b and a small rotation ω and translation τ
@@ -382,23 +435,24 @@ def _posterior(q, shape, faces, rows_v, w, pose, lm_pairs, w_lm, sigma2, params,
     uncertainty matters most for a partial target, whose pose the data pins least.
     """
     n = len(shape)
-    jac = np.concatenate([q, -_skew(shape), np.broadcast_to(np.eye(3), (n, 3, 3))], axis=2)  # (N, 3, K+6)
+    pose_jac = np.concatenate([-_skew(shape), np.broadcast_to(np.eye(3), (n, 3, 3))], axis=2)  # (N, 3, 6)
     s2 = sigma2 / pose.scale ** 2
-    m = jac.shape[2]
+    m = modes.k + 6
     if len(rows_v):
         used, inv = np.unique(rows_v, return_inverse=True)
         w_used = np.bincount(inv, weights=w, minlength=len(used))
-        ja = jac[used]
         if len(faces):
-            jn = np.einsum("pd,pdm->pm", vertex_normals(shape, faces)[used], ja)
+            nu = vertex_normals(shape, faces)[used]
+            jn = np.hstack([modes.normal_rows(nu, used), np.einsum("pd,pdm->pm", nu, pose_jac[used])])
             info = (jn * w_used[:, None]).T @ jn
         else:
-            flat = ja.reshape(-1, m)
+            flat = np.concatenate([modes.rows(used), pose_jac[used]], axis=2).reshape(-1, m)
             info = (flat * np.repeat(w_used, 3)[:, None]).T @ flat
     else:
         info = np.zeros((m, m))
     if lm_pairs is not None:
-        jl = np.einsum("lk,lkdm->ldm", lm_pairs[2], jac[lm_pairs[1]])
+        jac_lm = np.concatenate([modes.rows(lm_pairs[1]), pose_jac[lm_pairs[1]]], axis=3)
+        jl = np.einsum("lk,lkdm->ldm", lm_pairs[2], jac_lm)
         info = info + w_lm * np.einsum("idm,idl->ml", jl, jl)
     prior = np.zeros((m, m))
     prior[:k, :k] = params.prior_weight * np.diag(1.0 / lam)
@@ -406,7 +460,7 @@ def _posterior(q, shape, faces, rows_v, w, pose, lm_pairs, w_lm, sigma2, params,
     cov = np.linalg.inv(info / s2 + prior)
     per_point = np.zeros(n)
     for axis in range(3):  # only the parameters that move this axis (the error field's are per axis)
-        ja = jac[:, axis, :]
+        ja = np.hstack([modes.axis_rows(axis), pose_jac[:, axis, :]])
         cols = np.flatnonzero(np.any(ja != 0.0, axis=0))
         ja = ja[:, cols]
         per_point += ((ja @ cov[np.ix_(cols, cols)]) * ja).sum(axis=1)
@@ -427,7 +481,7 @@ JOINT_MAX_TURN = 0.2
 """The joint step's largest turn (radians, about 11°); a longer step is shortened whole."""
 
 
-def _joint_step(pose, b, shape, normals, q, lam, rows_v, y, w, lm_pairs, w_lm, sigma2, prior_weight):
+def _joint_step(pose, b, shape, normals, modes, lam, rows_v, y, w, lm_pairs, w_lm, sigma2, prior_weight):
     """One Gauss-Newton step of the fit's energy (paper eq. 7 with the prior) in the pose's small
     turn ω, its shift δt and the coefficients δb together, every surface correspondence
     point to plane (its distance along the shape's normal) and every landmark point to point.
@@ -444,13 +498,13 @@ def _joint_step(pose, b, shape, normals, q, lam, rows_v, y, w, lm_pairs, w_lm, s
     xp = x[rows_v]
     nw = normals[rows_v] @ rot.T  # the shape's normals in the target frame
     r = np.einsum("pd,pd->p", nw, y - xp)
-    jb = pose.scale * np.einsum("pd,pdk->pk", normals[rows_v], q[rows_v])  # (R n)·(s R Q) = s n·Q
+    jb = pose.scale * modes.normal_rows(normals[rows_v], rows_v)  # (R n)·(s R Q) = s n·Q
     jac = np.hstack([np.cross(xp, nw), nw, jb])
     a = (jac * w[:, None]).T @ jac
     g = (jac * w[:, None]).T @ r
     if lm_pairs is not None:
         xl = np.einsum("lk,lkj->lj", lm_pairs[2], x[lm_pairs[1]])
-        ql = np.einsum("lk,lkdm->ldm", lm_pairs[2], q[lm_pairs[1]])  # (L, 3, K) model frame
+        ql = np.einsum("lk,lkdm->ldm", lm_pairs[2], modes.rows(lm_pairs[1]))  # (L, 3, K) model frame
         jl = np.concatenate([-_skew(xl), np.broadcast_to(np.eye(3), (len(xl), 3, 3)),
                              pose.scale * np.einsum("de,lek->ldk", rot, ql)], axis=2).reshape(-1, a.shape[0])
         rl = (np.asarray(lm_pairs[3], float) - centre - xl).reshape(-1)
@@ -515,10 +569,10 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
     lam = np.maximum(np.asarray(model.variances[:k], float), 1e-12)
     n_modes = k
     error_field = model_error_field(model) if partial and params.model_error else None
+    modes = _ModeBasis(q, None if error_field is None else error_field.fields_mm)
     if error_field is not None:  # the model's error as extra modes of prior variance 1
-        q = np.concatenate([q, error_field.basis], axis=2)
-        lam = np.concatenate([lam, np.ones(error_field.basis.shape[2])])
-        k = q.shape[2]
+        lam = np.concatenate([lam, np.ones(3 * modes.r)])
+        k = modes.k
     located = model.landmark_locations
     names = list(located.names)
     lm_pairs = None
@@ -570,7 +624,7 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
         w = np.concatenate(ws) if ws else np.zeros(0)
         normals = vertex_normals(shape, model.faces) if len(model.faces) else None
         if joint:  # pose and coefficients in one point-to-plane step (see _joint_step)
-            pose, b = _joint_step(pose, b, shape, normals, q, lam, rows_v, y, w, lm_pairs, w_lm, sigma2,
+            pose, b = _joint_step(pose, b, shape, normals, modes, lam, rows_v, y, w, lm_pairs, w_lm, sigma2,
                                   params.prior_weight)
         else:
             # pose from the current shape's corresponding points (and landmarks)
@@ -596,17 +650,17 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
             yl = pose.inverse(y) - mean[rows_v]  # (P, 3)
             if normals is not None:  # summed per model point: n·Q once per point used
                 used, inv = np.unique(rows_v, return_inverse=True)
-                qn = np.einsum("ud,udk->uk", normals[used], q[used])  # (U, K): n·Q
+                qn = modes.normal_rows(normals[used], used)  # (U, K): n·Q
                 w_used = np.bincount(inv, weights=w, minlength=len(used))
                 r_used = np.bincount(inv, weights=w * np.einsum("pd,pd->p", normals[rows_v], yl), minlength=len(used))
                 a = (qn * w_used[:, None]).T @ qn
                 rhs = qn.T @ r_used
             else:
-                qa = q[rows_v]  # (P, 3, K)
+                qa = modes.rows(rows_v)  # (P, 3, K)
                 a = np.einsum("p,pdk,pdl->kl", w, qa, qa)
                 rhs = np.einsum("p,pdk,pd->k", w, qa, yl)
             if lm_pairs is not None:
-                qlm = np.einsum("lk,lkdm->ldm", lm_pairs[2], q[lm_pairs[1]])
+                qlm = np.einsum("lk,lkdm->ldm", lm_pairs[2], modes.rows(lm_pairs[1]))
                 mlm = np.einsum("lk,lkj->lj", lm_pairs[2], mean[lm_pairs[1]])
                 rlm = pose.inverse(lm_pairs[3]) - mlm
                 a += w_lm * np.einsum("idk,idm->km", qlm, qlm)
@@ -614,7 +668,7 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
             s2 = sigma2 / pose.scale ** 2
             precision = a / s2 + params.prior_weight * np.diag(1.0 / lam)
             b = np.linalg.solve(precision + 1e-12 * np.eye(k) * max(1.0, float(np.abs(precision).max())), rhs / s2)
-        shape = mean + q @ b
+        shape = mean + modes.apply(b)
         x_new = pose.apply(shape)
         move = float(np.sqrt(((x_new - last) ** 2).sum(axis=1).mean()))
         last = x_new
@@ -622,7 +676,7 @@ def fit_model(model, target: Target, *, params: FitParams | None = None, pose: P
         if move < params.tolerance_mm:
             converged = True
             break
-    cov_b, per_point = _posterior(q, shape, model.faces, rows_v, w, pose, lm_pairs, w_lm, sigma2, params, lam, k)
+    cov_b, per_point = _posterior(modes, shape, model.faces, rows_v, w, pose, lm_pairs, w_lm, sigma2, params, lam, k)
     if params.model_error and error_field is None:  # what the model cannot represent, added
         extra = model_error_variance(model, k)
         if extra is not None:
