@@ -106,7 +106,8 @@ class DistanceMap:
         self._hi_vox = self._shape - 1.0
         self._hi_base = self._shape - 2
         self._strides = np.array([self._shape[1] * self._shape[2], self._shape[2], 1], dtype=np.int64)
-        self._corner_offsets = (np.indices((2, 2, 2)).reshape(3, -1).T @ self._strides)[None, :]
+        # the 8 cell corners' offsets, z step outermost: (dz, dy, dx) in the order of np.indices
+        self._corner_offsets = (np.indices((2, 2, 2))[::-1].reshape(3, -1).T @ self._strides).reshape(8, 1)
         self._locator_cache = locator
         self._samples_cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
@@ -206,14 +207,16 @@ class DistanceMap:
         base = np.minimum(clamped.astype(np.int64), self._hi_base)
         t = (clamped - base).T.copy()  # (3, M)
         lin = base[:, 0] * self._strides[0] + base[:, 1] * self._strides[1] + base[:, 2]
-        # corners (4 fields, x, y, z, M) in the order of np.indices((2, 2, 2)):
-        # lerp z, then y, then x (same operations as per point, so the same values)
-        corners = np.take(fields_flat, self._corner_offsets.reshape(8, 1) + lin, axis=1).reshape(4, 2, 2, 2, -1)
-        c = corners[:, :, :, 0] + t[2] * (corners[:, :, :, 1] - corners[:, :, :, 0])
-        c = c[:, :, 0] + t[1] * (c[:, :, 1] - c[:, :, 0])
+        # corners (4 fields, dz, dy, dx, M): lerp z, then y, then x (the operations per point
+        # are those of a lerp per axis, so the values are the same), each on whole halves
+        corners = np.take(fields_flat, self._corner_offsets + lin, axis=1).reshape(4, 2, 2, 2, -1)
+        c = corners[:, 0] + t[2] * (corners[:, 1] - corners[:, 0])
+        c = c[:, 0] + t[1] * (c[:, 1] - c[:, 0])
         vals = c[:, 0] + t[0] * (c[:, 1] - c[:, 0])
         d = vals[0]
         g = vals[1:].T.copy()
+        if not np.any(vox != clamped):  # every point inside the grid
+            return d, g
         off = (vox - clamped) * self.spacing_mm
         out = np.any(off != 0.0, axis=1)
         if np.any(out):

@@ -210,6 +210,10 @@ def relax(
     n = len(p)
     v = np.zeros_like(p)
     i0, i1 = e[:, 0], e[:, 1]
+    # each edge's force on its ends as one bincount per end over the flat (vertex, axis)
+    # index: a bin adds its edges in edge order, as a bincount per axis does
+    flat0 = (3 * i0[:, None] + np.arange(3)).ravel()
+    flat1 = (3 * i1[:, None] + np.arange(3)).ravel()
     deg = np.maximum(np.bincount(e.ravel(), minlength=n), 1).astype(float)
     it = 0
     converged = params.max_iterations == 0
@@ -219,30 +223,36 @@ def relax(
         folding = it <= params.fold_iterations
         if it == params.fold_iterations + 1:
             surface_on = np.ones(n, dtype=bool)  # settling: every vertex held to the surface
-        vec = p[i1] - p[i0]
-        length = np.linalg.norm(vec, axis=1)
+        vec = np.take(p, i1, axis=0) - np.take(p, i0, axis=0)
+        length = np.sqrt(np.add.reduce(vec * vec, axis=1))  # np.linalg.norm's operations
         unit = vec / np.maximum(length, 1e-12)[:, None]
         stretch = length - d0
         if tension:
             stretch = np.maximum(stretch, 0.0)
-        fe = (params.k1 * stretch)[:, None] * unit  # force on i0 towards i1 when stretched
-        force = np.empty_like(p)
-        for k in range(3):
-            force[:, k] = np.bincount(i0, fe[:, k], minlength=n) - np.bincount(i1, fe[:, k], minlength=n)
+        fe = ((params.k1 * stretch)[:, None] * unit).ravel()  # force on i0 towards i1 when stretched
+        force = (np.bincount(flat0, fe, minlength=3 * n) - np.bincount(flat1, fe, minlength=3 * n)).reshape(n, 3)
         d, g = distance_map.sample(p)
-        nrm = g / np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-12)
+        nrm = g / np.maximum(np.sqrt(np.add.reduce(g * g, axis=1)), 1e-12)[:, None]
         if folding and (it - 1) % params.fold_check_interval == 0:
             # fold detection: triangle normal vs (smoothed) surface normal at the centroid
             folded = folded_triangles(p, faces, distance_map, params.fold_angle_deg, params.fold_normal_sigma_mm)
             surface_on = np.ones(n, dtype=bool)
             if np.any(folded):
                 surface_on[faces[folded].ravel()] = False
-        k_smooth = params.k3 + params.fold_smoothing * ~surface_on
-        if np.any(k_smooth > 0):
-            force += k_smooth[:, None] * (_neighbour_sum(p, e) / deg[:, None] - p)
+        # every vertex on the surface (settling, or no fold): the umbrella force's weight is
+        # k3 alone and the surface terms need no mask (a product with 1 is the value itself)
+        every = not folding or bool(surface_on.all())
+        if every:
+            if params.k3 > 0:
+                force += params.k3 * (_neighbour_sum(p, e) / deg[:, None] - p)
+        else:
+            k_smooth = params.k3 + params.fold_smoothing * ~surface_on
+            if np.any(k_smooth > 0):
+                force += k_smooth[:, None] * (_neighbour_sum(p, e) / deg[:, None] - p)
         if params.tangential_springs:
-            force -= np.einsum("ij,ij->i", force, nrm)[:, None] * nrm * surface_on[:, None]
-        force += (params.k2 * -d * surface_on)[:, None] * nrm
+            along = np.einsum("ij,ij->i", force, nrm)[:, None] * nrm
+            force -= along if every else along * surface_on[:, None]
+        force += (params.k2 * -d if every else params.k2 * -d * surface_on)[:, None] * nrm
         v += params.dt * (force - params.damping * v) / params.mass
         p += params.dt * v
         vmax = float(np.sqrt((v * v).sum(1).max())) if n else 0.0
