@@ -9,6 +9,7 @@ from collections.abc import Callable, Sequence
 from ..base.compute import time_left_text
 from ..base.errors import InputError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
+from ..model.metrics import import_plotting_in_background
 from .model_method import refine_correspondence
 from .stages import coat_instances, coating_result, import_stage, metrics_stage, model_stage, self_check, template_stage
 from .streaming import stream_instances
@@ -79,6 +80,7 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
     if "coating" in stages:
         check_cancelled(cancelled)
         report(progress, 0.3, f"coating: {n} instances, {jobs} job(s)")
+        import_plotting_in_background()  # for the plots after the model, while the workers coat
         coat_prog = sub_progress(progress, 0.3, 0.85)
         if study.params.correspondence.method == "landmarks":  # one progress line per instance, as it arrives
             t0, arrived = time.perf_counter(), []

@@ -16,6 +16,7 @@ from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..coating.coating import coat
 from ..instances.importing import InstanceSpec, import_instance
 from ..meshutil import Mesh, genus
+from ..model.metrics import import_plotting_in_background
 from ..model.quality import (
     check_duplicate_instances,
     check_landmarks_on_surface,
@@ -158,6 +159,7 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
         say("import: the coating workers read every instance (the template is in the cache)")
         say(f"template: {len(template.points_object)} points from the cache ({tname})")
     timings["template"] = time.perf_counter() - t0
+    import_plotting_in_background()  # for the plots after the model, while the workers coat
     t0 = time.perf_counter()
     # the template's frame is its instance's object frame (the same numbers as study.frame)
     src = template.frame.to_object(study.landmarks(tname).subset(common).points_world)
