@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -86,7 +87,6 @@ def any_pose(population: str, *, count: int = 8) -> None:
     (:func:`ssm_addon.fitting.fit.fit_any_pose`) by the model of the others (their true
     correspondence, rigidly aligned), with each pose step: mean distance of the fitted points
     from their true places (not a surface distance), the surface distance, and the time."""
-    import time
 
     from eval_correspondence import mesh_population
     from scipy.spatial.transform import Rotation
@@ -139,8 +139,10 @@ def main() -> None:
     if FEMUR10_DIR.exists() and not args.no_femur10:
         from test_fitting import femur10_completion
 
+        t0 = time.perf_counter()
         rows = femur10_completion(FEMUR10_DIR, step=args.step)
-        print("femur10: completion of the distal half from the proximal half (model of the other nine)")
+        print(f"femur10: completion of the distal half from the proximal half (model of the other nine), "
+              f"{time.perf_counter() - t0:.1f} s for the ten")
         for r in rows:
             print(f"  {r['name']}: missing {r['missing_mm']:.2f} mm (SD {r['sd_missing_mm']:.2f}), "
                   f"seen {r['seen_mm']:.2f} mm, {100 * r['within_2sd']:.1f} % within 2 SD")
