@@ -402,3 +402,72 @@ def test_the_model_method_computes_each_distance_map_once_and_gives_the_same_coa
     assert len(builds) >= 2 * len(kept_builds)
     assert kept.keys() == every_time.keys()
     assert all(np.array_equal(kept[n], every_time[n]) for n in kept)
+
+
+def test_the_landmark_medoid_is_the_configuration_nearest_the_mean_in_any_frame():
+    """``landmark_medoid``: the instance whose given landmarks are nearest their mean (RMS, mm),
+    the same when one instance's landmarks are turned and moved (object frames that disagree),
+    ties to the earlier instance."""
+    from types import SimpleNamespace
+
+    from ssm_addon.pipeline.model_method import landmark_medoid
+
+    rng = np.random.default_rng(4)
+    base = rng.normal(scale=20.0, size=(8, 3))
+    offsets = rng.normal(scale=1.5, size=(2, 8, 3))
+    configs = {"a": base + offsets[0], "b": base - offsets[0], "c": base + offsets[1], "d": base - offsets[1],
+               "m": base.copy()}  # "m" is the mean of the others
+    names = tuple(f"L{k}" for k in range(8))
+
+    def study_of(cfg):
+        return SimpleNamespace(names=list(cfg), template_instance="a",
+                               template=SimpleNamespace(landmark_locations=SimpleNamespace(names=names)),
+                               landmarks_object=lambda n: dict(zip(names, cfg[n])))
+
+    medoid, distance = landmark_medoid(study_of(configs), list(configs))
+    assert medoid == "m" and distance["m"] < 0.2 * min(d for n, d in distance.items() if n != "m"), distance
+    q, _r = np.linalg.qr(rng.normal(size=(3, 3)))
+    turned = dict(configs, c=configs["c"] @ (q * np.sign(np.linalg.det(q))).T + [40.0, -7.0, 3.0])
+    again, moved = landmark_medoid(study_of(turned), list(turned))
+    assert again == "m" and all(abs(moved[n] - distance[n]) < 1e-9 for n in configs)
+    twins = dict(configs, e=configs["m"].copy())  # "m" and "e" alike: the earlier wins
+    assert landmark_medoid(study_of(twins), list(twins))[0] == "m"
+    assert landmark_medoid(study_of({"e": twins["e"], **configs}), ["e", *configs])[0] == "e"
+
+
+def test_the_landmark_medoid_template_is_chosen_before_the_first_coating(population, tmp_path, monkeypatch):
+    """``template_choice = "landmark-medoid"``: the template is built from the instance whose landmarks
+    are nearest their mean before any coating, every instance is coated once for the start, and the
+    model is the one of the same project with that instance as the given template, array for array."""
+    from ssm_addon.pipeline import model_method
+    from ssm_addon.pipeline.runner import run
+    from ssm_addon.pipeline.study import Study
+
+    corr = '[correspondence]\nmethod = "model"\niterations = 1\ntemplate_choice = "{}"'
+    project = project_variant(population, "lm_medoid.toml", correspondence=corr.format("landmark-medoid"))
+    study = Study.from_project(read_project(project))
+    run(study, stages=("import", "template"))
+    medoid, _d = model_method.landmark_medoid(study, list(study.names))
+    if medoid == study.template_instance:  # start from another instance, so that the choice changes the template
+        other = next(n for n in study.names if n != medoid)
+        project.write_text(re.sub(r'instance = "[^"]+"', f'instance = "{other}"', project.read_text(), count=1))
+    starts = []
+    real = model_method.start_coatings
+
+    def counted(study_, names=None, **kw):
+        starts.append((study_.template_instance, list(names)))
+        return real(study_, names, **kw)
+
+    monkeypatch.setattr(model_method, "start_coatings", counted)
+    result = build(read_project(project), tmp_path / "chosen", log=None)
+    choice = result.report["correspondence"]["template_choice"]
+    assert choice["by"] == "landmarks" and choice["medoid"] == medoid and choice["kept"] is True, choice
+    assert result.study.template_instance == medoid
+    assert starts == [(medoid, list(study.names))], starts  # one start pass, from the medoid's template
+    given = project_variant(population, "lm_given.toml", correspondence=corr.format("given"))
+    given.write_text(re.sub(r'instance = "[^"]+"', f'instance = "{medoid}"', given.read_text(), count=1))
+    reference = build(read_project(given), tmp_path / "given", log=None)
+    a, b = (np.load(r.out_dir / "model.npz", allow_pickle=False) for r in (result, reference))
+    assert sorted(a.files) == sorted(b.files)
+    for key in a.files:
+        assert np.array_equal(a[key], b[key]), key

@@ -323,6 +323,7 @@ def deformed_population(n: int, label: int, seed: int, workdir: Path):
 
 LANDMARK_WEIGHT = [None]
 ROUND_TEMPLATE = [None]
+TEMPLATE_CHOICE = [None]
 ROUND_STATES: list = []  # the model method's re-sampled coatings of every round (object frames)
 LANDMARK_NOISE = [None]
 
@@ -336,6 +337,8 @@ def run_study(specs, template_name: str, method: str, iterations: int, jobs: int
         extra["round_template"] = ROUND_TEMPLATE[0]
     if LANDMARK_NOISE[0] is not None:
         extra["landmark_noise_mm"] = LANDMARK_NOISE[0]
+    if TEMPLATE_CHOICE[0] is not None:
+        extra["template_choice"] = TEMPLATE_CHOICE[0]
     study.params = study.params.replace(correspondence=CorrespondenceParams(method=method, iterations=iterations, **extra))
     t0 = time.perf_counter()
     say = lambda m: print("  " + m, flush=True)  # noqa: E731
@@ -446,6 +449,8 @@ def main(argv=None):
                     help="[correspondence] landmark_noise_mm (default: estimated; 0: exact landmarks)")
     ap.add_argument("--round-template", choices=("instance", "mean"), default=None,
                     help="[correspondence] round_template (default: the method's default)")
+    ap.add_argument("--template-choice", choices=("medoid", "landmark-medoid", "given"), default=None,
+                    help="[correspondence] template_choice (default: the method's default)")
     ap.add_argument("--suite", action="store_true", help="the issue's matrix of settings, one table")
     ap.add_argument("--fit-projection", action="store_true",
                     help="also measure the leave-one-out fit's points as correspondence (folders of meshes)")
@@ -455,6 +460,7 @@ def main(argv=None):
         ap.error(f"unknown population {args.population!r}")
     LANDMARK_WEIGHT[0] = args.landmark_weight
     ROUND_TEMPLATE[0] = args.round_template
+    TEMPLATE_CHOICE[0] = args.template_choice
     LANDMARK_NOISE[0] = args.landmark_noise
     if args.suite:
         suite(args)

@@ -739,7 +739,7 @@ class FitParams:
 
 
 CORRESPONDENCE_METHODS = ("landmarks", "model")
-TEMPLATE_CHOICES = ("medoid", "given")
+TEMPLATE_CHOICES = ("medoid", "landmark-medoid", "given")
 ROUND_TEMPLATES = ("instance", "mean")
 
 
@@ -768,8 +768,10 @@ class CorrespondenceParams:
     template_choice: str = param("medoid", choices=TEMPLATE_CHOICES, label="Template from",
                                  help="'medoid': the template is built again from the landmarked instance nearest the "
                                       "population's mean shape (paper 3.3: the model should not depend on the "
-                                      "template's instance), kept when the self-check improves; 'given': the "
-                                      "[template] instance")
+                                      "template's instance), kept when the self-check improves; 'landmark-medoid': "
+                                      "from the instance whose landmarks are nearest their mean, before the first "
+                                      "coating (one coating pass fewer, no comparison); 'given': the [template] "
+                                      "instance")
     round_template: str = param("instance", choices=ROUND_TEMPLATES, label="Round template",
                                 help="what each round coats: 'instance', the template (its instance's points) "
                                      "with the landmarks the fit gives; 'mean', the mean shape (paper 3.3), "

@@ -34,8 +34,8 @@ from ..model.quality import (
 from .stages import coat_from_frames, coat_instances, coating_result, make_template
 from .study import Log, StageResult, Study, template_landmark_locations
 
-__all__ = ["distance_maps_kept", "medoid_template", "population", "population_medoid", "refine_correspondence",
-           "start_coatings"]
+__all__ = ["distance_maps_kept", "landmark_medoid", "landmark_medoid_template", "medoid_template", "population",
+           "population_medoid", "refine_correspondence", "start_coatings"]
 
 
 def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: int = 1,
@@ -110,6 +110,8 @@ def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn =
     # one pool of processes for every step (starts, template choice, rounds); each instance's
     # distance map computed once and read by its later coatings
     with executor_or_local(executor, jobs, len(study.names)) as pool, distance_maps_kept(work):
+        if study.params.correspondence.template_choice == "landmark-medoid":
+            work, choice = landmark_medoid_template(work, cancelled=cancelled, log=say)
         if missing:
             work.coatings.update(start_coatings(work, missing, jobs=jobs, cancelled=cancelled, executor=pool))
             starts = [work.coating_start[n] for n in missing]
@@ -190,6 +192,78 @@ def population_medoid(study: Study, candidates: Sequence[str]) -> tuple[str, dic
     rms = np.sqrt(((aligned - aligned.mean(axis=0)) ** 2).sum(axis=2).mean(axis=1))
     distance = {n: float(d) for n, d in zip(names, rms)}
     return min(candidates, key=lambda n: (distance[n], names.index(n))), distance
+
+
+def landmark_medoid(study: Study, candidates: Sequence[str]) -> tuple[str, dict[str, float]]:
+    """The instance of ``candidates`` whose given landmarks are nearest their mean configuration.
+
+    The candidates' landmarks named by the template (each candidate has all of them), in
+    their object frames, put onto the template instance's by their names (rigidly: object
+    frames may disagree by a turn); the distance is the RMS over the landmarks, mm. Ties go
+    to the earlier instance in study order.
+
+    Returns
+    -------
+    (name, {candidate: RMS distance from the mean configuration, mm})
+    """
+    wanted = study.template.landmark_locations.names
+    names = [n for n in study.names if n in set(candidates)]
+    points = np.stack([[study.landmarks_object(n)[k] for k in wanted] for n in names])
+    aligned = aligned_to(points, points[names.index(study.template_instance)] if study.template_instance in names
+                         else points[0])
+    rms = np.sqrt(((aligned - aligned.mean(axis=0)) ** 2).sum(axis=2).mean(axis=1))
+    distance = {n: float(d) for n, d in zip(names, rms)}
+    return min(names, key=lambda n: (distance[n], names.index(n))), distance
+
+
+def landmark_medoid_template(study: Study, *, cancelled: CancelledFn = None, log: Log = None) -> tuple[Study, dict]:
+    """The study with its template built from the landmark medoid (:func:`landmark_medoid`),
+    before any instance is coated (``template_choice = "landmark-medoid"``).
+
+    Paper 3.3: a template from one arbitrary instance makes the model depend on it. Here the
+    instance most like the others is chosen by its given landmarks alone, so the start is
+    coated once, from that instance's template; ``"medoid"`` chooses by the start's coatings
+    and coats every instance a second time to compare. Nothing changes when an instance is
+    coated already, fewer than 3 instances or 2 with every template landmark are given, or
+    the medoid's template fails (a fallback finding).
+
+    Returns
+    -------
+    (the study to coat: a copy with the medoid's template, or ``study``; the record:
+    ``given``, ``medoid``, ``by`` ("landmarks"), ``rms_from_mean_mm`` and ``kept``)
+    """
+    say = log or (lambda _m: None)
+    wanted = study.template.landmark_locations.names
+    complete = [n for n in study.names if study.landmarks(n) is not None
+                and set(wanted) <= set(study.landmarks(n).names)]
+    if len(complete) < 2 or not len(wanted) or len(study.names) < 3:
+        return study, {}
+    if study.coatings:
+        say(f"correspondence: {len(study.coatings)} instance(s) coated already: the template of "
+            f"{study.template_instance} is kept (template_choice = \"landmark-medoid\" chooses before the first coating)")
+        return study, {}
+    medoid, distance = landmark_medoid(study, complete)
+    record = {"given": study.template_instance, "medoid": medoid, "by": "landmarks",
+              "rms_from_mean_mm": {n: distance[n] for n in dict.fromkeys((study.template_instance, medoid))
+                                   if n in distance}}
+    if medoid == study.template_instance:
+        say(f"correspondence: the template's instance {medoid} has the landmarks nearest their mean already")
+        return study, {**record, "kept": True}
+    check_cancelled(cancelled)
+    other = dataclasses.replace(study, template_instance=medoid, coatings={}, coating_start={},
+                                volumes=dict(study.volumes), frames=dict(study.frames), fallbacks=list(study.fallbacks))
+    try:
+        other.template = make_template(other, cancelled=cancelled)
+    except Cancelled:
+        raise
+    except SSMError as err:  # the medoid's template is a refinement: the given one stays
+        study.fallbacks.append(Finding(medoid, "fallback", f"the landmark medoid {medoid!r} gave no template "
+                                       f"({err}); the given template of {study.template_instance!r} is kept"))
+        return study, {**record, "kept": False, "failed": str(err)}
+    given = distance.get(study.template_instance)
+    say(f"correspondence: template from the landmark medoid {medoid} (its landmarks {distance[medoid]:.2f} mm RMS from "
+        f"their mean" + (f", {study.template_instance}'s {given:.2f} mm)" if given is not None else ")"))
+    return other, {**record, "kept": True}
 
 
 def medoid_template(study: Study, *, jobs: int = 1, executor=None, cancelled: CancelledFn = None,

@@ -559,7 +559,12 @@ def write_html_report(path, report: Report | dict, *, images: dict[str, bytes] |
                         "instance's given landmarks predicted by the model of the others fitted to its surface)."
                         if transfer else "") + "</p>")
         choice = corr.get("template_choice") or {}
-        if choice.get("medoid"):
+        if choice.get("medoid") and choice.get("by") == "landmarks":
+            used = choice["medoid"] if choice.get("kept") else choice.get("given")
+            parts.append(f"<p>Template from <b>{html.escape(str(used))}</b>: the instance whose given landmarks are "
+                         f"nearest their mean is {html.escape(str(choice['medoid']))}, chosen before the first "
+                         "coating.</p>")
+        elif choice.get("medoid"):
             used = choice["medoid"] if choice.get("kept") else choice.get("given")
             parts.append(f"<p>Template from <b>{html.escape(str(used))}</b>: the population's medoid is "
                          f"{html.escape(str(choice['medoid']))} (the instance nearest the mean shape); "
