@@ -327,15 +327,26 @@ def test_a_swapped_landmark_is_named_although_the_model_corrects_it(population, 
 
 
 @pytest.mark.slow
-def test_an_optional_refinement_that_fails_falls_back_and_the_build_finishes(population, tmp_path, monkeypatch):
-    """The medoid's template is a refinement: when its triangulation fails (forced here), the build
-    keeps the given template, says so by name, and finishes; the same for rounds that fail."""
+@pytest.mark.parametrize("template_choice", ["landmark-medoid", "medoid"])
+def test_an_optional_refinement_that_fails_falls_back_and_the_build_finishes(population, tmp_path, monkeypatch,
+                                                                             template_choice):
+    """The medoid's template (either choice) is a refinement: when its triangulation fails (forced
+    here), the build keeps the given template, says so by name, and finishes; the same for rounds
+    that fail."""
     from ssm_addon.base.errors import SSMError
     from ssm_addon.pipeline import model_method
+    from ssm_addon.pipeline.runner import run
+    from ssm_addon.pipeline.study import Study
 
-    project = project_variant(population, "medoid.toml", correspondence=('[correspondence]\nmethod = "model"\n'
-                                                                      'iterations = 1\nround_template = "mean"'))
-    medoid = template_of(project)  # this population's medoid gives the template: start from another instance
+    project = project_variant(population, "medoid.toml", correspondence=(
+        f'[correspondence]\nmethod = "model"\niterations = 1\nround_template = "mean"\n'
+        f'template_choice = "{template_choice}"'))
+    if template_choice == "medoid":
+        medoid = template_of(project)  # this population's medoid gives the template: start from another instance
+    else:
+        study = Study.from_project(read_project(project))
+        run(study, stages=("import", "template"))
+        medoid, _d = model_method.landmark_medoid(study, list(study.names))
     given = next(i.name for i in read_project(project).instances if i.name != medoid)
     project.write_text(re.sub(r'instance = "[^"]+"', f'instance = "{given}"', project.read_text(), count=1))
     real = model_method.make_template

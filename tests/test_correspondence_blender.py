@@ -121,11 +121,13 @@ def test_propose_landmarks_fits_the_scene_model(bpy_clean, light_project):
 
 
 @pytest.mark.slow
-def test_the_medoid_template_of_the_model_method_reaches_the_scene(bpy_clean, tmp_path):
-    """Landmarks on every instance: the model method builds the template again from the
-    population's medoid when that lowers the self-check; Coat Template in Blender does what the
-    headless build does: the same template instance (the template object follows it), the same
-    coatings, the same record of the choice."""
+@pytest.mark.parametrize("template_choice", ["landmark-medoid", "medoid"])
+def test_the_medoid_template_of_the_model_method_reaches_the_scene(bpy_clean, tmp_path, template_choice):
+    """Landmarks on every instance: the model method builds the template from the instance whose
+    landmarks are nearest their mean ("landmark-medoid", before the first coating) or again from
+    the population's medoid when that lowers the self-check ("medoid"); Coat Template in Blender
+    does what the headless build does: the same template instance (the template object follows
+    it), the same coatings, the same record of the choice."""
 
     bpy = bpy_clean
     from ssm.operators.scene import find_template
@@ -133,7 +135,8 @@ def test_the_medoid_template_of_the_model_method_reaches_the_scene(bpy_clean, tm
     path = demo.make_demo_population(tmp_path / "population", n=6, seed=9)
     path.write_text(path.read_text().replace("spacing = 1.0", "spacing = 1.0\nr_min_mm = 4.0\nr_max_mm = 8.0")
                     .replace("[model]", "[model]\nspecificity_samples = 50")
-                    .replace("[coating]", '[correspondence]\nmethod = "model"\niterations = 2\n\n[coating]'))
+                    .replace("[coating]", '[correspondence]\nmethod = "model"\niterations = 2\n'
+                                                f'template_choice = "{template_choice}"\n\n[coating]'))
     headless = build(read_project(path), tmp_path / "out", log=None)
     choice = headless.report["correspondence"]["template_choice"]
     assert choice["kept"] and choice["medoid"] != choice["given"], choice  # the fixture exercises the choice

@@ -6,6 +6,7 @@ Usage::
     .venv/bin/python tools/bench_build.py [--jobs N] [--blend] [--n 31] [--cases demo,verse,femur10,femur10-model]
                                           [--against REV --runs 3]
     .venv/bin/python tools/bench_build.py --cases dense-truth --ratio   # model method / single pass
+    .venv/bin/python tools/bench_build.py --cases dense-truth --ratio --template-choice landmark-medoid
 
 Cases, each run as ``python -m ssm_addon build`` in a fresh process (``--cache off``):
 
@@ -94,10 +95,11 @@ STAGES = ("import", "template", "coating", "coating_self_check", "model", "metri
           "total")
 
 
-def mesh_set_project(folder: Path, data: Path, pattern: str, method: str, landmarks: int = 15) -> Path:
+def mesh_set_project(folder: Path, data: Path, pattern: str, method: str, landmarks: int = 15,
+                     template_choice: str | None = None) -> Path:
     """A folder of meshes sharing one connectivity (``pattern``) with ``landmarks`` at farthest
     points of the first (the same vertices on every mesh: the data's dense correspondence), by
-    ``method``."""
+    ``method`` (and ``[correspondence] template_choice`` when given, the model method's)."""
     from foreign_data import scalismo_landmarks
 
     from ssm_addon.formats.meshes import read_mesh
@@ -105,7 +107,10 @@ def mesh_set_project(folder: Path, data: Path, pattern: str, method: str, landma
     folder.mkdir(parents=True, exist_ok=True)
     files = sorted(data.glob(pattern))
     chosen = farthest_points(read_mesh(files[0])[0], landmarks, 0)
-    lines = ["[correspondence]", f'method = "{method}"', ""]
+    lines = ["[correspondence]", f'method = "{method}"']
+    if template_choice and method == "model":
+        lines.append(f'template_choice = "{template_choice}"')
+    lines.append("")
     for f in files:
         v, _f = read_mesh(f)
         lm = scalismo_landmarks(folder / f"{f.stem}.json", [f"P{k}" for k in range(landmarks)], v[chosen])
@@ -115,7 +120,7 @@ def mesh_set_project(folder: Path, data: Path, pattern: str, method: str, landma
     return path
 
 
-def make_cases(tmp: Path, names, n: int) -> dict:
+def make_cases(tmp: Path, names, n: int, template_choice: str | None = None) -> dict:
     """``{case: project file}`` of the cases asked for whose data are present."""
     from conftest import VERSE_DIR, VERSE_FILE, shared_data_dir
 
@@ -141,7 +146,8 @@ def make_cases(tmp: Path, names, n: int) -> dict:
             if not data.is_dir():
                 print(f"{name}: skipped ({data} not found)")
                 continue
-            cases[name] = mesh_set_project(tmp / name, data, pattern, "model" if name.endswith("-model") else "landmarks")
+            cases[name] = mesh_set_project(tmp / name, data, pattern, "model" if name.endswith("-model") else "landmarks",
+                                           template_choice=template_choice)
         else:
             raise SystemExit(f"unknown case {name!r} (demo, verse, dense-truth, or a set of {', '.join(MESH_SETS)} "
                              "with or without -model)")
@@ -210,10 +216,13 @@ def main(argv=None) -> int:
                                                             "(default 3)")
     parser.add_argument("--ratio", action="store_true",
                         help="the model method's time over the single pass's, for every set given both ways")
+    parser.add_argument("--template-choice", choices=("medoid", "landmark-medoid", "given"), default=None,
+                        help="[correspondence] template_choice of the -model cases (default: the method's default)")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="ssm-bench-build-") as tmp:
         tmp = Path(tmp)
-        cases = make_cases(tmp, [c.strip() for c in args.cases.split(",") if c.strip()], args.n)
+        cases = make_cases(tmp, [c.strip() for c in args.cases.split(",") if c.strip()], args.n,
+                           template_choice=args.template_choice)
         if args.against:
             paired(cases, args.against, tmp, jobs=args.jobs, blend=args.blend, runs=args.runs)
             return 0

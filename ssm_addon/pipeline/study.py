@@ -96,8 +96,11 @@ class Study:
     correspondence_check : CorrespondenceCheck or None
         The correspondence self-check (landmark transfer error) of the coatings.
     template_choice : dict
-        The model method's choice of the template's instance (``template_choice =
-        "medoid"``): ``given``, ``medoid``, their landmark transfer errors (mm) and ``kept``.
+        The model method's choice of the template's instance: ``given``, ``medoid``, ``kept`` and
+        ``rms_from_mean_mm`` (RMS distance from the mean, mm: of the given landmarks with
+        ``template_choice = "landmark-medoid"``, which records ``by = "landmarks"``; of the
+        coatings' points with ``"medoid"``, which records both templates' landmark transfer
+        errors, mm).
     input_distances : dict name -> dict
         Instances given as meshes: their coating against the mesh, both ways (mm:
         ``to_input``, ``from_input``, each mean, p95 and max).
