@@ -394,7 +394,6 @@ def test_the_model_method_computes_each_distance_map_once_and_gives_the_same_coa
                                                            real_build(cls, ov, band)))
     proj = project_variant(population, "kept.toml", correspondence=('[correspondence]\nmethod = "model"\n'
                                                                       'iterations = 1\nround_template = "mean"'))
-    scratch = set(Path(tempfile.gettempdir()).glob("ssm-distance-maps-*"))
 
     def coat(study):
         run(study, stages=("import", "template"), jobs=1)
@@ -404,8 +403,17 @@ def test_the_model_method_computes_each_distance_map_once_and_gives_the_same_coa
         assert all(study.volumes[n] is v for n, v in volumes.items())
         return {n: c.points_object for n, c in study.coatings.items()}, list(built)
 
+    folders, real_kept = [], mm.distance_maps_kept
+
+    @contextlib.contextmanager
+    def recorded(study):
+        with real_kept(study) as folder:
+            folders.append(Path(folder))
+            yield folder
+
+    monkeypatch.setattr(mm, "distance_maps_kept", recorded)
     kept, kept_builds = coat(Study.from_project(read_project(proj)))
-    assert set(Path(tempfile.gettempdir()).glob("ssm-distance-maps-*")) == scratch
+    assert len(folders) == 1 and folders[0].parent == Path(tempfile.gettempdir()) and not folders[0].exists()
     monkeypatch.setattr(mm, "distance_maps_kept", lambda _study: contextlib.nullcontext(""))
     every_time, builds = coat(Study.from_project(read_project(proj)))
     print(f"distance maps computed: {len(kept_builds)} kept, {len(builds)} without")
@@ -482,3 +490,69 @@ def test_the_landmark_medoid_template_is_chosen_before_the_first_coating(populat
     assert sorted(a.files) == sorted(b.files)
     for key in a.files:
         assert np.array_equal(a[key], b[key]), key
+
+
+@pytest.mark.slow
+def test_the_medoid_route_starts_from_the_landmark_medoid_and_falls_back_to_the_given_template(population, tmp_path,
+                                                                                            monkeypatch):
+    """``template_choice = "medoid"`` (the default) tries the landmark medoid first: when the
+    coatings of its template have that instance nearest their mean shape, the study is coated
+    once (no second pass, no comparison) and the model is the one of the same project given
+    that instance as its template; when they name another instance, the route from the given
+    template runs as it does without the guess, and the model is that route's, array for array."""
+    from ssm_addon.pipeline import model_method
+    from ssm_addon.pipeline.runner import run
+    from ssm_addon.pipeline.study import Study
+
+    corr = '[correspondence]\nmethod = "model"\niterations = 1\ntemplate_choice = "{}"'
+    project = project_variant(population, "confirmed.toml", correspondence=corr.format("medoid"))
+    study = Study.from_project(read_project(project))
+    run(study, stages=("import", "template"))
+    medoid, _d = model_method.landmark_medoid(study, list(study.names))
+    if medoid == study.template_instance:  # start from another instance, so that the guess is tried
+        other = next(n for n in study.names if n != medoid)
+        project.write_text(re.sub(r'instance = "[^"]+"', f'instance = "{other}"', project.read_text(), count=1))
+    given = template_of(project)
+    starts = []
+    real_starts, real_medoid = model_method.start_coatings, model_method.population_medoid
+
+    def counted(study_, names=None, **kw):
+        starts.append(study_.template_instance)
+        return real_starts(study_, names, **kw)
+
+    monkeypatch.setattr(model_method, "start_coatings", counted)
+    confirmed = build(read_project(project), tmp_path / "confirmed", log=None)
+    choice = confirmed.report["correspondence"]["template_choice"]
+    print(f"landmark medoid {medoid}, given {given}: {choice}")
+    assert choice.get("confirmed") is True, choice  # this population confirms its landmark medoid
+    assert choice["medoid"] == choice["coatings_medoid"] == medoid and choice["given"] == given, choice
+    assert confirmed.study.template_instance == medoid and starts == [medoid], starts  # one start pass
+    reference = project_variant(population, "confirmed_given.toml", correspondence=corr.format("given"))
+    reference.write_text(re.sub(r'instance = "[^"]+"', f'instance = "{medoid}"', reference.read_text(), count=1))
+    same = build(read_project(reference), tmp_path / "reference", log=None)
+    a, b = (np.load(r.out_dir / "model.npz", allow_pickle=False) for r in (confirmed, same))
+    assert sorted(a.files) == sorted(b.files) and all(np.array_equal(a[k], b[k]) for k in a.files)
+
+    # the coatings of the landmark medoid's template have another instance nearest their mean,
+    # beyond a tie: the guess is dropped
+    def elsewhere(study_, candidates):
+        found, distance = real_medoid(study_, candidates)
+        if study_.template_instance == medoid:
+            other = next(n for n in candidates if n != medoid)
+            return other, {**distance, other: distance[medoid] / (model_method.MEDOID_TIE + 0.01)}
+        return found, distance
+
+    monkeypatch.setattr(model_method, "population_medoid", elsewhere)
+    del starts[:]
+    dropped = build(read_project(project), tmp_path / "dropped", log=None)
+    choice = dropped.report["correspondence"]["template_choice"]
+    guess = choice["landmark_medoid"]
+    assert guess["medoid"] == medoid and guess["confirmed"] is False and guess["coatings_medoid"] != medoid, choice
+    assert starts[:2] == [medoid, given], starts  # the guess, then the given template's route
+    monkeypatch.setattr(model_method, "confirmed_landmark_medoid", lambda study_, **_kw: (study_, {}))
+    without = build(read_project(project), tmp_path / "without", log=None)
+    route = without.report["correspondence"]["template_choice"]
+    assert {k: v for k, v in choice.items() if k != "landmark_medoid"} == route
+    assert dropped.study.template_instance == without.study.template_instance
+    a, b = (np.load(r.out_dir / "model.npz", allow_pickle=False) for r in (dropped, without))
+    assert sorted(a.files) == sorted(b.files) and all(np.array_equal(a[k], b[k]) for k in a.files)

@@ -766,12 +766,14 @@ class CorrespondenceParams:
                                 help="stop the refinement when the mean shape moves less than this (RMS; a "
                                      "tenth of the default 1 mm voxel)")
     template_choice: str = param("medoid", choices=TEMPLATE_CHOICES, label="Template from",
-                                 help="'medoid': the template is built again from the landmarked instance nearest the "
+                                 help="'medoid': the template is built from the landmarked instance nearest the "
                                       "population's mean shape (paper 3.3: the model should not depend on the "
-                                      "template's instance), kept when the self-check improves; 'landmark-medoid': "
-                                      "from the instance whose landmarks are nearest their mean, before the first "
-                                      "coating (one coating pass fewer, no comparison); 'given': the [template] "
-                                      "instance")
+                                      "template's instance): the instance whose landmarks are nearest their mean, "
+                                      "kept when its coatings confirm it, else the medoid of the given template's "
+                                      "coatings, kept when the self-check improves; 'landmark-medoid': "
+                                      "from the instance whose landmarks are nearest their mean, not confirmed: "
+                                      "no pass from the given template when the coatings disagree; 'given': the "
+                                      "[template] instance")
     round_template: str = param("instance", choices=ROUND_TEMPLATES, label="Round template",
                                 help="what each round coats: 'instance', the template (its instance's points) "
                                      "with the landmarks the fit gives; 'mean', the mean shape (paper 3.3), "

@@ -34,8 +34,13 @@ from ..model.quality import (
 from .stages import coat_from_frames, coat_instances, coating_result, make_template
 from .study import Log, StageResult, Study, template_landmark_locations
 
-__all__ = ["distance_maps_kept", "landmark_medoid", "landmark_medoid_template", "medoid_template", "population",
-           "population_medoid", "refine_correspondence", "start_coatings"]
+#: The landmark medoid is confirmed when its RMS distance from the mean shape of its own
+#: coatings is at most this many times the nearest instance's (a near tie is a tie: the mean
+#: shape is an estimate, and the coatings' distances differ by a few per cent between templates)
+MEDOID_TIE = 1.05
+
+__all__ = ["MEDOID_TIE", "confirmed_landmark_medoid", "distance_maps_kept", "landmark_medoid", "landmark_medoid_template",
+           "medoid_template", "population", "population_medoid", "refine_correspondence", "start_coatings"]
 
 
 def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: int = 1,
@@ -106,22 +111,25 @@ def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn =
     work = dataclasses.replace(study, coatings=dict(study.coatings), coating_start=dict(study.coating_start),
                                volumes=dict(study.volumes), frames=dict(study.frames), findings=list(study.findings),
                                correspondence_rounds=list(study.correspondence_rounds), timings_s={}, fallbacks=[])
-    choice = {}
+    choice, first_fits = {}, {}
+    template_choice = study.params.correspondence.template_choice
     # one pool of processes for every step (starts, template choice, rounds); each instance's
     # distance map computed once and read by its later coatings
     with executor_or_local(executor, jobs, len(study.names)) as pool, distance_maps_kept(work):
-        if study.params.correspondence.template_choice == "landmark-medoid":
+        if template_choice == "landmark-medoid":
             work, choice = landmark_medoid_template(work, cancelled=cancelled, log=say)
+        elif template_choice == "medoid":
+            work, choice = confirmed_landmark_medoid(work, jobs=jobs, executor=pool, cancelled=cancelled, log=say)
         if missing:
-            work.coatings.update(start_coatings(work, missing, jobs=jobs, cancelled=cancelled, executor=pool))
+            if any(n not in work.coatings for n in missing):
+                work.coatings.update(start_coatings(work, missing, jobs=jobs, cancelled=cancelled, executor=pool))
             starts = [work.coating_start[n] for n in missing]
             say(f"coating: {starts.count('landmark warp')} by landmarks, {starts.count('model fit')} from the "
                 f"landmarked instances' model, {starts.count('object frames')} from the object frames; refining "
                 "with the model")
-        if study.params.correspondence.template_choice == "medoid":
-            work, choice, first_fits = medoid_template(work, jobs=jobs, executor=pool, cancelled=cancelled, log=say)
-        else:
-            first_fits = {}
+        if template_choice == "medoid" and not choice.get("confirmed"):
+            work, route, first_fits = medoid_template(work, jobs=jobs, executor=pool, cancelled=cancelled, log=say)
+            choice = route | ({"landmark_medoid": choice} if choice else {})
         refined = population(work)
         try:
             rounds, check = refine_rounds(refined, study.params.correspondence, jobs=jobs, progress=progress,
@@ -263,6 +271,70 @@ def landmark_medoid_template(study: Study, *, cancelled: CancelledFn = None, log
     given = distance.get(study.template_instance)
     say(f"correspondence: template from the landmark medoid {medoid} (its landmarks {distance[medoid]:.2f} mm RMS from "
         f"their mean" + (f", {study.template_instance}'s {given:.2f} mm)" if given is not None else ")"))
+    return other, {**record, "kept": True}
+
+
+def confirmed_landmark_medoid(study: Study, *, jobs: int = 1, executor=None, cancelled: CancelledFn = None,
+                              log: Log = None) -> tuple[Study, dict]:
+    """The first step of ``template_choice = "medoid"``: the landmark medoid's template, coated
+    onto every instance, kept when those coatings confirm it as the population's medoid.
+
+    Paper 3.3 asks for the template from the instance nearest the mean shape, which only the
+    coatings tell. The instance whose given landmarks are nearest their mean
+    (:func:`landmark_medoid`) is the guess: its template (paper 3) is coated onto every
+    instance as the start is (:func:`start_coatings`), and when the medoid of those coatings
+    (:func:`population_medoid`) is that instance again, the study is at the paper's choice in
+    one coating pass (or when it is within :data:`MEDOID_TIE` of the nearest: a tie).
+    Otherwise, or when the landmark medoid is the given instance, an
+    instance is coated already, fewer than 3 instances or 2 with every template landmark are
+    given, or its template or coatings fail, nothing changes and :func:`medoid_template`
+    decides from the given template's coatings (their distance maps are kept, so the pass
+    spent here costs them less).
+
+    Returns
+    -------
+    (the study: a copy with the landmark medoid's template and every coating when confirmed,
+    else ``study``; the record: ``given``, ``medoid`` (the landmark medoid), ``by``
+    ("landmarks"), ``rms_from_mean_mm`` (of the landmarks, mm), ``coatings_medoid`` and
+    ``coatings_rms_from_mean_mm`` (of its coatings' points, mm), ``confirmed``; or ``{}`` when
+    it does not apply)
+    """
+    say = log or (lambda _m: None)
+    wanted = study.template.landmark_locations.names
+    complete = [n for n in study.names if study.landmarks(n) is not None
+                and set(wanted) <= set(study.landmarks(n).names)]
+    if len(complete) < 2 or not len(wanted) or len(study.names) < 3 or study.coatings:
+        return study, {}
+    medoid, distance = landmark_medoid(study, complete)
+    if medoid == study.template_instance:
+        return study, {}
+    record = {"given": study.template_instance, "medoid": medoid, "by": "landmarks",
+              "rms_from_mean_mm": {n: distance[n] for n in (study.template_instance, medoid) if n in distance}}
+    check_cancelled(cancelled)
+    other = dataclasses.replace(study, template_instance=medoid, coatings={}, coating_start={},
+                                volumes=dict(study.volumes), frames=dict(study.frames), fallbacks=list(study.fallbacks))
+    try:
+        other.template = make_template(other, cancelled=cancelled)
+        other.coatings.update(start_coatings(other, list(other.names), jobs=jobs, cancelled=cancelled,
+                                             executor=executor))
+    except Cancelled:
+        raise
+    except SSMError as err:  # a guess: the medoid's route from the given template decides
+        say(f"correspondence: the landmark medoid {medoid} gave no template or coatings ({err}); the medoid is "
+            "found from the given template's coatings")
+        return study, {**record, "confirmed": False, "failed": str(err)}
+    found, from_mean = population_medoid(other, complete)
+    confirmed = from_mean[medoid] <= MEDOID_TIE * from_mean[found]
+    record.update(coatings_medoid=found, coatings_rms_from_mean_mm={n: from_mean[n] for n in dict.fromkeys((medoid, found))},
+                  confirmed=confirmed)
+    if not confirmed:
+        say(f"correspondence: the landmark medoid {medoid}'s coatings have {found} nearest their mean shape "
+            f"({from_mean[found]:.2f} mm RMS, {medoid} {from_mean[medoid]:.2f} mm): the medoid is found from the given "
+            "template's coatings")
+        return study, record
+    say(f"correspondence: template from the medoid {medoid} (its landmarks nearest their mean, {distance[medoid]:.2f} "
+        f"mm RMS; its coatings confirm it nearest the mean shape, {from_mean[medoid]:.2f} mm"
+        + (f", {found} {from_mean[found]:.2f} mm, a tie)" if found != medoid else ")"))
     return other, {**record, "kept": True}
 
 

@@ -563,7 +563,8 @@ def write_html_report(path, report: Report | dict, *, images: dict[str, bytes] |
             used = choice["medoid"] if choice.get("kept") else choice.get("given")
             parts.append(f"<p>Template from <b>{html.escape(str(used))}</b>: the instance whose given landmarks are "
                          f"nearest their mean is {html.escape(str(choice['medoid']))}, chosen before the first "
-                         "coating.</p>")
+                         "coating" + ("; its coatings confirm it as the instance nearest the mean shape"
+                                      if choice.get("confirmed") else "") + ".</p>")
         elif choice.get("medoid"):
             used = choice["medoid"] if choice.get("kept") else choice.get("given")
             parts.append(f"<p>Template from <b>{html.escape(str(used))}</b>: the population's medoid is "

@@ -100,7 +100,9 @@ class Study:
         ``rms_from_mean_mm`` (RMS distance from the mean, mm: of the given landmarks with
         ``template_choice = "landmark-medoid"``, which records ``by = "landmarks"``; of the
         coatings' points with ``"medoid"``, which records both templates' landmark transfer
-        errors, mm).
+        errors, mm). ``"medoid"`` tries the landmark medoid first: confirmed by its coatings,
+        the record is that guess's (``by = "landmarks"``, ``coatings_medoid``, ``confirmed``);
+        else the given template's route, with the guess under ``landmark_medoid``.
     input_distances : dict name -> dict
         Instances given as meshes: their coating against the mesh, both ways (mm:
         ``to_input``, ``from_input``, each mean, p95 and max).
