@@ -183,6 +183,25 @@ def distance_maps_kept(study: Study) -> Iterator[str]:
         shutil.rmtree(folder, ignore_errors=True)
 
 
+def _complete(study: Study) -> list[str]:
+    """The instances with every template landmark given (the medoids' candidates)."""
+    wanted = set(study.template.landmark_locations.names)
+    return [n for n in study.names if study.landmarks(n) is not None and wanted <= set(study.landmarks(n).names)]
+
+
+def _from_template_of(study: Study, instance: str, *, fallbacks: list, coat: bool, jobs: int = 1, executor=None,
+                      cancelled: CancelledFn = None) -> Study:
+    """A copy of ``study`` with the template built from ``instance`` (paper 3) and, with
+    ``coat``, every instance's start coated from it (:func:`start_coatings`); raises what they raise."""
+    other = dataclasses.replace(study, template_instance=instance, coatings={}, coating_start={},
+                                volumes=dict(study.volumes), frames=dict(study.frames), fallbacks=fallbacks)
+    other.template = make_template(other, cancelled=cancelled)
+    if coat:
+        other.coatings.update(start_coatings(other, list(other.names), jobs=jobs, cancelled=cancelled,
+                                             executor=executor))
+    return other
+
+
 def population_medoid(study: Study, candidates: Sequence[str]) -> tuple[str, dict[str, float]]:
     """The instance of ``candidates`` whose coating is nearest the mean shape of every coating.
 
@@ -241,10 +260,8 @@ def landmark_medoid_template(study: Study, *, cancelled: CancelledFn = None, log
     ``given``, ``medoid``, ``by`` ("landmarks"), ``rms_from_mean_mm`` and ``kept``)
     """
     say = log or (lambda _m: None)
-    wanted = study.template.landmark_locations.names
-    complete = [n for n in study.names if study.landmarks(n) is not None
-                and set(wanted) <= set(study.landmarks(n).names)]
-    if len(complete) < 2 or not len(wanted) or len(study.names) < 3:
+    complete = _complete(study)
+    if len(complete) < 2 or not len(study.template.landmark_locations.names) or len(study.names) < 3:
         return study, {}
     if study.coatings:
         say(f"correspondence: {len(study.coatings)} instance(s) coated already: the template of "
@@ -258,10 +275,8 @@ def landmark_medoid_template(study: Study, *, cancelled: CancelledFn = None, log
         say(f"correspondence: the template's instance {medoid} has the landmarks nearest their mean already")
         return study, {**record, "kept": True}
     check_cancelled(cancelled)
-    other = dataclasses.replace(study, template_instance=medoid, coatings={}, coating_start={},
-                                volumes=dict(study.volumes), frames=dict(study.frames), fallbacks=list(study.fallbacks))
     try:
-        other.template = make_template(other, cancelled=cancelled)
+        other = _from_template_of(study, medoid, fallbacks=list(study.fallbacks), coat=False, cancelled=cancelled)
     except Cancelled:
         raise
     except SSMError as err:  # the medoid's template is a refinement: the given one stays
@@ -300,10 +315,8 @@ def confirmed_landmark_medoid(study: Study, *, jobs: int = 1, executor=None, can
     it does not apply)
     """
     say = log or (lambda _m: None)
-    wanted = study.template.landmark_locations.names
-    complete = [n for n in study.names if study.landmarks(n) is not None
-                and set(wanted) <= set(study.landmarks(n).names)]
-    if len(complete) < 2 or not len(wanted) or len(study.names) < 3 or study.coatings:
+    complete = _complete(study)
+    if len(complete) < 2 or not len(study.template.landmark_locations.names) or len(study.names) < 3 or study.coatings:
         return study, {}
     medoid, distance = landmark_medoid(study, complete)
     if medoid == study.template_instance:
@@ -311,12 +324,9 @@ def confirmed_landmark_medoid(study: Study, *, jobs: int = 1, executor=None, can
     record = {"given": study.template_instance, "medoid": medoid, "by": "landmarks",
               "rms_from_mean_mm": {n: distance[n] for n in (study.template_instance, medoid) if n in distance}}
     check_cancelled(cancelled)
-    other = dataclasses.replace(study, template_instance=medoid, coatings={}, coating_start={},
-                                volumes=dict(study.volumes), frames=dict(study.frames), fallbacks=list(study.fallbacks))
     try:
-        other.template = make_template(other, cancelled=cancelled)
-        other.coatings.update(start_coatings(other, list(other.names), jobs=jobs, cancelled=cancelled,
-                                             executor=executor))
+        other = _from_template_of(study, medoid, fallbacks=list(study.fallbacks), coat=True, jobs=jobs,
+                                  executor=executor, cancelled=cancelled)
     except Cancelled:
         raise
     except SSMError as err:  # a guess: the medoid's route from the given template decides
@@ -357,11 +367,9 @@ def medoid_template(study: Study, *, jobs: int = 1, executor=None, cancelled: Ca
     (:func:`ssm_addon.correspondence.rounds.round_fits`), which are its first round's)
     """
     say = log or (lambda _m: None)
-    wanted = study.template.landmark_locations.names
-    complete = [n for n in study.names if study.landmarks(n) is not None
-                and set(wanted) <= set(study.landmarks(n).names)]
-    if len(complete) < 2 or not len(wanted) or len(study.names) < 3:  # the rounds need 3 instances
-        return study, {}, {}
+    complete = _complete(study)
+    if len(complete) < 2 or not len(study.template.landmark_locations.names) or len(study.names) < 3:
+        return study, {}, {}  # (the rounds need 3 instances)
     medoid, distance = population_medoid(study, complete)
     record = {"given": study.template_instance, "medoid": medoid,
               "rms_from_mean_mm": {study.template_instance: distance[study.template_instance], medoid: distance[medoid]}}
@@ -369,12 +377,9 @@ def medoid_template(study: Study, *, jobs: int = 1, executor=None, cancelled: Ca
         say(f"correspondence: the template's instance {medoid} is the population's medoid already")
         return study, {**record, "kept": True}, {}
     check_cancelled(cancelled)
-    other = dataclasses.replace(study, template_instance=medoid, coatings={}, coating_start={},
-                                volumes=dict(study.volumes), frames=dict(study.frames), fallbacks=[])
     try:
-        other.template = make_template(other, cancelled=cancelled)
-        other.coatings.update(start_coatings(other, list(other.names), jobs=jobs, cancelled=cancelled,
-                                             executor=executor))
+        other = _from_template_of(study, medoid, fallbacks=[], coat=True, jobs=jobs, executor=executor,
+                                  cancelled=cancelled)
     except Cancelled:
         raise
     except SSMError as err:  # the medoid's template is a refinement: the given one stays
