@@ -423,6 +423,14 @@ def test_the_model_method_computes_each_distance_map_once_and_gives_the_same_coa
     assert all(np.array_equal(kept[n], every_time[n]) for n in kept)
 
 
+def assert_same_model(a, b):
+    """Two builds' ``model.npz``: the same arrays, each equal to the last bit."""
+    a, b = (np.load(r.out_dir / "model.npz", allow_pickle=False) for r in (a, b))
+    assert sorted(a.files) == sorted(b.files)
+    for key in a.files:
+        assert np.array_equal(a[key], b[key]), key
+
+
 def test_the_landmark_medoid_is_the_configuration_nearest_the_mean_in_any_frame():
     """``landmark_medoid``: the instance whose given landmarks are nearest their mean (RMS, mm),
     the same when one instance's landmarks are turned and moved (object frames that disagree),
@@ -486,10 +494,7 @@ def test_the_landmark_medoid_template_is_chosen_before_the_first_coating(populat
     given = project_variant(population, "lm_given.toml", correspondence=corr.format("given"))
     given.write_text(re.sub(r'instance = "[^"]+"', f'instance = "{medoid}"', given.read_text(), count=1))
     reference = build(read_project(given), tmp_path / "given", log=None)
-    a, b = (np.load(r.out_dir / "model.npz", allow_pickle=False) for r in (result, reference))
-    assert sorted(a.files) == sorted(b.files)
-    for key in a.files:
-        assert np.array_equal(a[key], b[key]), key
+    assert_same_model(result, reference)
 
 
 @pytest.mark.slow
@@ -530,8 +535,7 @@ def test_the_medoid_route_starts_from_the_landmark_medoid_and_falls_back_to_the_
     reference = project_variant(population, "confirmed_given.toml", correspondence=corr.format("given"))
     reference.write_text(re.sub(r'instance = "[^"]+"', f'instance = "{medoid}"', reference.read_text(), count=1))
     same = build(read_project(reference), tmp_path / "reference", log=None)
-    a, b = (np.load(r.out_dir / "model.npz", allow_pickle=False) for r in (confirmed, same))
-    assert sorted(a.files) == sorted(b.files) and all(np.array_equal(a[k], b[k]) for k in a.files)
+    assert_same_model(confirmed, same)
 
     # the coatings of the landmark medoid's template have another instance nearest their mean,
     # beyond a tie: the guess is dropped
@@ -554,5 +558,4 @@ def test_the_medoid_route_starts_from_the_landmark_medoid_and_falls_back_to_the_
     route = without.report["correspondence"]["template_choice"]
     assert {k: v for k, v in choice.items() if k != "landmark_medoid"} == route
     assert dropped.study.template_instance == without.study.template_instance
-    a, b = (np.load(r.out_dir / "model.npz", allow_pickle=False) for r in (dropped, without))
-    assert sorted(a.files) == sorted(b.files) and all(np.array_equal(a[k], b[k]) for k in a.files)
+    assert_same_model(dropped, without)

@@ -50,6 +50,8 @@ sys.path.insert(0, str(ROOT / "tools"))
 
 from eval_correspondence import MESH_SETS, farthest_points  # noqa: E402  (the dense-truth sets, one definition)
 
+from ssm_addon.base.params import TEMPLATE_CHOICES  # noqa: E402
+
 
 def run_build(project: Path, out: Path, jobs: int, blend: bool, extra=(), root: Path = ROOT) -> dict:
     """``python -m ssm_addon build`` of the checkout ``root`` in a fresh process (``extra``: further
@@ -216,7 +218,7 @@ def main(argv=None) -> int:
                                                             "(default 3)")
     parser.add_argument("--ratio", action="store_true",
                         help="the model method's time over the single pass's, for every set given both ways")
-    parser.add_argument("--template-choice", choices=("medoid", "landmark-medoid", "given"), default=None,
+    parser.add_argument("--template-choice", choices=TEMPLATE_CHOICES, default=None,
                         help="[correspondence] template_choice of the -model cases (default: the method's default)")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="ssm-bench-build-") as tmp:

@@ -54,7 +54,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import ssm_addon.correspondence.rounds as corr  # noqa: E402
-from ssm_addon.base.params import CorrespondenceParams  # noqa: E402
+from ssm_addon.base.params import TEMPLATE_CHOICES, CorrespondenceParams  # noqa: E402
 from ssm_addon.formats.landmarks import LandmarkSet, read_landmarks, write_landmarks  # noqa: E402
 from ssm_addon.formats.meshes import read_mesh  # noqa: E402
 from ssm_addon.instances.importing import InstanceSpec  # noqa: E402
@@ -449,7 +449,7 @@ def main(argv=None):
                     help="[correspondence] landmark_noise_mm (default: estimated; 0: exact landmarks)")
     ap.add_argument("--round-template", choices=("instance", "mean"), default=None,
                     help="[correspondence] round_template (default: the method's default)")
-    ap.add_argument("--template-choice", choices=("medoid", "landmark-medoid", "given"), default=None,
+    ap.add_argument("--template-choice", choices=TEMPLATE_CHOICES, default=None,
                     help="[correspondence] template_choice (default: the method's default)")
     ap.add_argument("--suite", action="store_true", help="the issue's matrix of settings, one table")
     ap.add_argument("--fit-projection", action="store_true",

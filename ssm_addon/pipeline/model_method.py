@@ -183,10 +183,13 @@ def distance_maps_kept(study: Study) -> Iterator[str]:
         shutil.rmtree(folder, ignore_errors=True)
 
 
-def _complete(study: Study) -> list[str]:
-    """The instances with every template landmark given (the medoids' candidates)."""
+def _candidates(study: Study) -> list[str]:
+    """The medoids' candidates: the instances with every template landmark given; none when a
+    choice of the template does not apply (no template landmarks, fewer than 2 candidates or 3
+    instances: the rounds need 3)."""
     wanted = set(study.template.landmark_locations.names)
-    return [n for n in study.names if study.landmarks(n) is not None and wanted <= set(study.landmarks(n).names)]
+    complete = [n for n in study.names if study.landmarks(n) is not None and wanted <= set(study.landmarks(n).names)]
+    return complete if wanted and len(complete) >= 2 and len(study.names) >= 3 else []
 
 
 def _from_template_of(study: Study, instance: str, *, fallbacks: list, coat: bool, jobs: int = 1, executor=None,
@@ -260,8 +263,8 @@ def landmark_medoid_template(study: Study, *, cancelled: CancelledFn = None, log
     ``given``, ``medoid``, ``by`` ("landmarks"), ``rms_from_mean_mm`` and ``kept``)
     """
     say = log or (lambda _m: None)
-    complete = _complete(study)
-    if len(complete) < 2 or not len(study.template.landmark_locations.names) or len(study.names) < 3:
+    complete = _candidates(study)
+    if not complete:
         return study, {}
     if study.coatings:
         say(f"correspondence: {len(study.coatings)} instance(s) coated already: the template of "
@@ -315,8 +318,8 @@ def confirmed_landmark_medoid(study: Study, *, jobs: int = 1, executor=None, can
     it does not apply)
     """
     say = log or (lambda _m: None)
-    complete = _complete(study)
-    if len(complete) < 2 or not len(study.template.landmark_locations.names) or len(study.names) < 3 or study.coatings:
+    complete = _candidates(study)
+    if not complete or study.coatings:
         return study, {}
     medoid, distance = landmark_medoid(study, complete)
     if medoid == study.template_instance:
@@ -367,9 +370,9 @@ def medoid_template(study: Study, *, jobs: int = 1, executor=None, cancelled: Ca
     (:func:`ssm_addon.correspondence.rounds.round_fits`), which are its first round's)
     """
     say = log or (lambda _m: None)
-    complete = _complete(study)
-    if len(complete) < 2 or not len(study.template.landmark_locations.names) or len(study.names) < 3:
-        return study, {}, {}  # (the rounds need 3 instances)
+    complete = _candidates(study)
+    if not complete:
+        return study, {}, {}
     medoid, distance = population_medoid(study, complete)
     record = {"given": study.template_instance, "medoid": medoid,
               "rms_from_mean_mm": {study.template_instance: distance[study.template_instance], medoid: distance[medoid]}}
