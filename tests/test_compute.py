@@ -24,6 +24,7 @@ from ssm_addon.pipeline.project import read_project
 
 ROOT = Path(__file__).resolve().parents[1]
 ARRAYS = ("mean", "modes", "variances", "instance_points", "instance_points_world")
+PICTURES = ("modes.png", "spectrum.png", "cumulative_variance.png", "variability.png", "metrics.png")
 
 
 @pytest.fixture(scope="module")
@@ -73,6 +74,8 @@ def test_schedulers_give_identical_models(population, tmp_path):
     for s in schedulers[1:]:
         for k in ARRAYS:
             assert np.array_equal(models[s][k], models["serial"][k]), (s, k)
+        for png in PICTURES:  # drawn on a worker by "processes", here by the others
+            assert (tmp_path / f"out-{s}" / png).read_bytes() == (tmp_path / "out-serial" / png).read_bytes(), (s, png)
     assert "dask-local" in schedulers, "dask is in requirements-dev.txt: the Dask scheduler must be tested"
 
 
@@ -397,3 +400,33 @@ def test_inner_threads_are_one_in_a_worker_process_and_up_to_two_here(monkeypatc
     monkeypatch.delitem(sys.modules, "bpy", raising=False)
     with compute.Executor("processes", jobs=2) as ex:
         assert ex.map(_inner_threads_here, [0, 1]) == [1, 1]
+
+
+def _pid_of_worker(item):
+    if item == "fail":
+        raise ValueError("a bad item")
+    return os.getpid()
+
+
+def test_workers_started_ahead_run_the_map_and_an_error_stops_them(monkeypatch):
+    """``start_workers`` starts the pool's processes before the first map (which then runs on
+    them, not on new ones), and an error in a later map stops every one of them."""
+    import multiprocessing
+
+    from ssm_addon.base import compute
+
+    monkeypatch.setattr(compute, "usable_cores", lambda: 2)
+    monkeypatch.delitem(sys.modules, "bpy", raising=False)
+    before = {c.pid for c in multiprocessing.active_children()}
+    with compute.Executor("processes", jobs=2) as ex:
+        ex.start_workers(("json", "no_such_module_anywhere"))  # an import error is left to the tasks
+        started = {c.pid for c in multiprocessing.active_children()} - before
+        assert len(started) == 2
+        assert set(ex.map(_pid_of_worker, range(6))) <= started
+        with pytest.raises(ValueError, match="a bad item"):
+            ex.map(_pid_of_worker, [1, "fail", 2])
+        assert not started & {c.pid for c in multiprocessing.active_children()}
+        assert set(ex.map(_pid_of_worker, range(4))).isdisjoint(started)  # a new pool after the error
+    with compute.Executor("serial") as ex:
+        ex.start_workers(("json",))
+        assert ex.map(_pid_of_worker, [0]) == [os.getpid()]

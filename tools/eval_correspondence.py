@@ -41,11 +41,12 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import ast
 import os
 import sys
 import tempfile
 import time
-from dataclasses import replace
+from dataclasses import fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -54,7 +55,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import ssm_addon.correspondence.rounds as corr  # noqa: E402
-from ssm_addon.base.params import TEMPLATE_CHOICES, CorrespondenceParams  # noqa: E402
+from ssm_addon.base.params import TEMPLATE_CHOICES, CoatingParams, CorrespondenceParams  # noqa: E402
 from ssm_addon.formats.landmarks import LandmarkSet, read_landmarks, write_landmarks  # noqa: E402
 from ssm_addon.formats.meshes import read_mesh  # noqa: E402
 from ssm_addon.instances.importing import InstanceSpec  # noqa: E402
@@ -167,7 +168,9 @@ def report_run(label: str, errors: dict, study, seconds: float, args, error_of=N
            "p95_mm": float(np.percentile(allv, 95)), "max_mm": float(allv.max()), "seconds": seconds,
            "self_check_mm": float(np.mean(list(check.values()))) if check else None, "rank_correlation": rho,
            "rounds": rounds, "truth_rounds": truth_rounds, "stop": stop, "reconstruction_mm": float(np.mean(list(recon.values()))),
-           "rank_correlation_reconstruction": rho_recon}
+           "rank_correlation_reconstruction": rho_recon, "coating": list(getattr(args, "coating", []) or []),
+           "folded_after": int(sum(c.fit.folded_after for c in study.coatings.values())),
+           "not_converged": int(sum(not c.fit.converged for c in study.coatings.values()))}
     print(f"{label}: mean {row['mean_mm']:.3f} mm, 95th {row['p95_mm']:.2f} mm, worst {row['max_mm']:.1f} mm "
           f"({seconds:.0f} s; self-check {row['self_check_mm'] or float('nan'):.2f} mm, rank correlation "
           f"{rho:.2f}; leave-one-out reconstruction {row['reconstruction_mm']:.2f} mm, rank correlation "
@@ -326,6 +329,7 @@ ROUND_TEMPLATE = [None]
 TEMPLATE_CHOICE = [None]
 ROUND_STATES: list = []  # the model method's re-sampled coatings of every round (object frames)
 LANDMARK_NOISE = [None]
+COATING = [{}]  # [coating] parameters other than the defaults (--coating KEY=VALUE)
 
 
 def run_study(specs, template_name: str, method: str, iterations: int, jobs: int, spacing: float | None = None):
@@ -340,6 +344,8 @@ def run_study(specs, template_name: str, method: str, iterations: int, jobs: int
     if TEMPLATE_CHOICE[0] is not None:
         extra["template_choice"] = TEMPLATE_CHOICE[0]
     study.params = study.params.replace(correspondence=CorrespondenceParams(method=method, iterations=iterations, **extra))
+    if COATING[0]:
+        study.params = study.params.replace(coating=replace(study.params.coating, **COATING[0]))
     t0 = time.perf_counter()
     say = lambda m: print("  " + m, flush=True)  # noqa: E731
     ROUND_STATES.clear()
@@ -430,6 +436,24 @@ def replace_args(args, **changes):
     return out
 
 
+def coating_overrides(ap, items) -> dict:
+    """``KEY=VALUE`` items as [coating] parameters (values read as Python literals), each
+    checked against :class:`~ssm_addon.base.params.CoatingParams`."""
+    known = {f.name for f in fields(CoatingParams)}
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or key.strip() not in known:
+            ap.error(f"--coating {item!r}: expected KEY=VALUE with KEY one of {', '.join(sorted(known))}")
+        try:
+            out[key.strip()] = ast.literal_eval(value.strip())
+        except (ValueError, SyntaxError):
+            ap.error(f"--coating {item!r}: {value!r} is not a number, tuple or quoted string")
+    if out:
+        CoatingParams(**out)  # the parameters' own checks
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("population", help="femur10, knee30-femur, knee30-tibia, knee30-patella, deformed or "
@@ -455,6 +479,9 @@ def main(argv=None):
     ap.add_argument("--fit-projection", action="store_true",
                     help="also measure the leave-one-out fit's points as correspondence (folders of meshes)")
     ap.add_argument("--json", default=None, help="append each run's figures to this JSON-lines file")
+    ap.add_argument("--coating", action="append", default=[], metavar="KEY=VALUE",
+                    help="a [coating] parameter other than its default (a Python literal: 3, 0.5, (16, 8, 4)); "
+                         "repeatable")
     args = ap.parse_args(argv)
     if args.population not in MESH_SETS and args.population != "deformed" and not args.population.startswith("folder:"):
         ap.error(f"unknown population {args.population!r}")
@@ -462,6 +489,7 @@ def main(argv=None):
     ROUND_TEMPLATE[0] = args.round_template
     TEMPLATE_CHOICE[0] = args.template_choice
     LANDMARK_NOISE[0] = args.landmark_noise
+    COATING[0] = coating_overrides(ap, args.coating)
     if args.suite:
         suite(args)
     else:

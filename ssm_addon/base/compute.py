@@ -21,6 +21,7 @@ need ``ssm_addon`` installed and the input paths readable under the same names.
 
 from __future__ import annotations
 
+import importlib
 import logging
 import multiprocessing
 import os
@@ -32,7 +33,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from contextlib import contextmanager
 from multiprocessing import resource_tracker
 
@@ -41,8 +42,8 @@ from threadpoolctl import threadpool_limits
 from .errors import Cancelled, InputError
 from .progress import CancelledFn, ProgressFn, report
 
-__all__ = ["CONNECT_TIMEOUT_S", "SCHEDULERS", "Executor", "check_scheduler", "dask_setup", "executor_or_local",
-           "ignore_sigint", "inner_threads", "probe_scheduler", "run_one_thread", "signals_deferred", "start_resource_tracker", "stop_children", "time_left_text",
+__all__ = ["CONNECT_TIMEOUT_S", "SCHEDULERS", "Executor", "check_scheduler", "dask_setup", "done_future", "executor_or_local",
+           "ignore_sigint", "import_modules", "inner_threads", "probe_scheduler", "run_one_thread", "signals_deferred", "start_resource_tracker", "stop_children", "time_left_text",
            "usable_cores"]
 
 SCHEDULERS = ("serial", "processes", "dask-local")
@@ -85,6 +86,26 @@ def time_left_text(done: int, total: int, elapsed_s: float) -> str:
     if left < 3600:
         return f"about {left / 60:.0f} min left"
     return f"about {left / 3600:.1f} h left"
+
+
+def import_modules(names: Sequence[str]) -> None:
+    """Import ``names`` (a worker's start, :meth:`Executor.start_workers`); an import error is
+    left to the first task that needs the module."""
+    for name in names:
+        try:
+            importlib.import_module(name)
+        except ImportError:
+            return
+
+
+def done_future(fn: Callable, item) -> Future:
+    """A finished future of ``fn(item)``, computed here (:meth:`Executor.submit` without workers)."""
+    future: Future = Future()
+    try:
+        future.set_result(run_one_thread(fn, item))
+    except Exception as err:  # noqa: BLE001 - kept for result(), as a worker's would be
+        future.set_exception(err)
+    return future
 
 
 def run_one_thread(fn: Callable, item):
@@ -309,6 +330,7 @@ class Executor:
         self._client = None
         self._cluster = None
         self._pool = None
+        self._before_pool: set = set()
         if self.scheduler == "processes" and ("bpy" in sys.modules or self.jobs == 1):
             self.scheduler = "serial"
         if self.scheduler not in ("serial", "processes"):
@@ -376,6 +398,45 @@ class Executor:
     def __exit__(self, *exc) -> None:
         self.close()
 
+    def _local_pool(self) -> ProcessPoolExecutor:
+        """The local worker pool, made on first use; the processes that existed before it are
+        remembered, so that an error stops exactly this pool's workers."""
+        if self._pool is None:
+            self._before_pool = {c.pid for c in multiprocessing.active_children()}
+            start_resource_tracker()
+            context = multiprocessing.get_context(self.start_method)
+            self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=context, initializer=ignore_sigint)
+        return self._pool
+
+    def start_workers(self, modules: Sequence[str] = ()) -> None:
+        """Start the local worker processes now, each importing ``modules``, so that their start
+        (an interpreter and numpy, scipy, scikit-image in each) runs while this process works on
+        something else (the template) instead of before the first instance.
+
+        Only for ``"processes"`` with two or more workers; serial and Dask executors do nothing
+        (a Dask worker is started with the cluster). Nothing waits for the workers: a module
+        that fails to import fails again, with its message, in the first :meth:`map`.
+        """
+        if self.scheduler != "processes" or self._pool is not None:
+            return
+        pool = self._local_pool()
+        with signals_deferred():  # each submit starts a worker process (none is idle yet)
+            for _ in range(self.jobs):
+                pool.submit(import_modules, tuple(modules))
+
+    def submit(self, fn: Callable, item) -> Future:
+        """``fn(item)`` begun now; its future's ``result()`` gives the value or raises its error.
+
+        On a ``"processes"`` executor it runs on a local worker (through :func:`run_one_thread`,
+        as :meth:`map`), so this process can work on something else meanwhile; on the others it
+        is computed here before this returns (a Dask worker may be another machine, and the work
+        given here writes this machine's files).
+        """
+        if self.scheduler == "processes":
+            with signals_deferred():  # the submit may start a worker process
+                return self._local_pool().submit(run_one_thread, fn, item)
+        return done_future(fn, item)
+
     # ------------------------------------------------------------------ map
     def map(self, fn: Callable, items: Sequence, *, on_result: Callable | None = None,
             progress: ProgressFn = None, cancelled: CancelledFn = None, labels: Sequence[str] | None = None,
@@ -419,12 +480,8 @@ class Executor:
 
     def _map_processes(self, fn, items, arrived, cancelled) -> None:
 
-        before = {c.pid for c in multiprocessing.active_children()}
-        if self._pool is None:
-            start_resource_tracker()
-            context = multiprocessing.get_context(self.start_method)
-            self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=context, initializer=ignore_sigint)
-        pool = self._pool
+        pool = self._local_pool()
+        before = self._before_pool
         queue = list(range(len(items)))
         pending: dict = {}
         ahead = self.jobs  # one in flight per worker: cancellation stops after the running ones

@@ -227,27 +227,28 @@ def build(
         build_cache = None
     with owned_output_folder(out_dir, inputs, force=force) as tmp:
         with Executor(scheduler or project.params.compute.scheduler, jobs, tasks=len(project.instances),
-                      connect_timeout_s=project.params.compute.connect_timeout_s) as executor:  # closed before the files
+                      connect_timeout_s=project.params.compute.connect_timeout_s) as executor:
+            # open until the files are written: its workers draw the pictures meanwhile
             if executor.note:
                 say(f"compute: {executor.note}")
             run(study, jobs=jobs, progress=sub_progress(progress, 0.0, 0.95), cancelled=cancelled, log=say,
                 executor=executor, cache=build_cache)
-        check_cancelled(cancelled)
-        if project.params.quality.strict and study.findings:
-            raise QualityError(f"{len(study.findings)} quality gate(s) failed and [quality] strict is set; nothing "
-                               f"was written to {out_dir}:\n" + warnings_text(study.findings))
-        use_blend = project.params.output.blend if blend is None else blend
-        compute = {"scheduler": executor.scheduler, "workers": executor.jobs,
-                   "cache": str(build_cache.folder) if build_cache is not None else None,
-                   "from_cache": study.streamed.get("cached", 0),
-                   "computed": study.streamed.get("computed", len(study.names))}
-        files, final_report = write_study(
-            study, tmp, output=project.params.output, project=str(project.path),
-            title=f"SSM Builder: {project.path.stem}", blender_hook=blender_hook if use_blend else None,
-            analysis=lambda folder: write_analysis_files(project, study.model, folder, timings=study.timings_s,
-                                                         log=say, progress=progress,
-                                                         cancelled=cancelled),
-            extra={"compute": compute}, log=say, progress=progress, cancelled=cancelled, t_start=t_total)
+            check_cancelled(cancelled)
+            if project.params.quality.strict and study.findings:
+                raise QualityError(f"{len(study.findings)} quality gate(s) failed and [quality] strict is set; "
+                                   f"nothing was written to {out_dir}:\n" + warnings_text(study.findings))
+            use_blend = project.params.output.blend if blend is None else blend
+            compute = {"scheduler": executor.scheduler, "workers": executor.jobs,
+                       "cache": str(build_cache.folder) if build_cache is not None else None,
+                       "from_cache": study.streamed.get("cached", 0),
+                       "computed": study.streamed.get("computed", len(study.names))}
+            files, final_report = write_study(
+                study, tmp, output=project.params.output, project=str(project.path),
+                title=f"SSM Builder: {project.path.stem}", blender_hook=blender_hook if use_blend else None,
+                analysis=lambda folder: write_analysis_files(project, study.model, folder, timings=study.timings_s,
+                                                             log=say, progress=progress, cancelled=cancelled),
+                extra={"compute": compute}, log=say, progress=progress, cancelled=cancelled, t_start=t_total,
+                executor=executor)
         result = BuildResult(out_dir=out_dir, project=project, study=study, files={}, report={})
     final = _absolute_files(files, out_dir)
     report(progress, 1.0, f"done: {out_dir}")

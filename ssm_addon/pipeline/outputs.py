@@ -12,6 +12,7 @@ them on their study, so the two reports differ only in what is genuinely Blender
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import resource
@@ -30,6 +31,7 @@ except ImportError:  # pragma: no cover - Windows
     fcntl = None
 
 from .. import __version__
+from ..base.compute import done_future
 from ..base.errors import InputError, check_cancelled
 from ..base.params import OutputParams
 from ..base.progress import CancelledFn, ProgressFn, report
@@ -44,7 +46,7 @@ from .report import Absent, Report, joint_report, model_report, study_report, wr
 from .study import Study, carried_landmarks
 
 __all__ = ["MANIFEST", "check_output_folder", "check_writable", "owned_output_folder", "peak_memory_mb",
-           "relative_files", "save_study_outputs", "study_inputs", "write_joint", "write_outputs", "write_study"]
+           "relative_files", "save_study_outputs", "start_drawings", "study_inputs", "write_joint", "write_outputs", "write_study"]
 
 
 def peak_memory_mb() -> dict:
@@ -271,18 +273,56 @@ def write_outputs(model, out_dir, *, metrics=None, per_instance: dict | None = N
     return written
 
 
-def picture_without_blender(model, output: OutputParams, folder: Path, files: dict, say) -> None:
-    """``modes.png`` (paper fig. 10) drawn by the core when no Blender step wrote it (a
-    ``pip install .`` core, ``--no-blend``): the same layout, labels and scale bar."""
-    if not output.picture or "picture" in files or model.n_modes == 0:
-        return
+def _picture_job(args) -> str | None:
+    """Draw ``modes.png``; None, or why it could not (matplotlib missing)."""
+    model, path, n_modes = args
     try:
-        render_modes_figure(model, Path(folder) / "modes.png", n_modes=int(output.picture_modes))
+        render_modes_figure(model, path, n_modes=n_modes)
     except ImportError as err:  # matplotlib draws the labels
-        say(f"picture: modes.png skipped ({err})")
-        return
-    files["picture"] = "modes.png"
-    say("picture: modes.png (mean and ±2σ of the first modes, axial / sagittal / coronal; drawn without Blender)")
+        return str(err)
+    return None
+
+
+def _plots_job(args) -> dict:
+    model, folder, metrics = args
+    return write_plots(model, folder, metrics)
+
+
+def start_drawings(model, metrics, output: OutputParams, folder: Path, files: dict, *, plots: bool = True,
+                   executor=None) -> Callable[[Callable[[str], None]], dict]:
+    """Begin the build's pictures: ``modes.png`` (paper fig. 10, drawn by the core when no Blender
+    step wrote it: the same layout, labels and scale bar) and the fig. 9 plots.
+
+    With an ``executor`` (:class:`~ssm_addon.base.compute.Executor`) they are drawn on its local
+    workers, which are idle once the model is built, while this process writes the other files;
+    without, here and now. The pictures are the same either way. Returns ``finish(say)``, which
+    waits for them, adds ``modes.png`` to ``files``, says what was drawn or skipped, and returns
+    the plots' ``{"files": [...]}`` (``"skipped"`` without matplotlib).
+    """
+    folder = Path(folder)
+    submit = executor.submit if executor is not None else done_future
+    n_modes = int(output.picture_modes)
+    # what a worker is sent: no picture reads the instances' points nor the modes after the drawn
+    # ones (at 10^4 instances those are most of the model)
+    drawn = dataclasses.replace(model, modes=model.modes[:n_modes], instance_points=model.instance_points[:, :0],
+                                instance_points_world=model.instance_points_world[:, :0])
+    picture = None
+    if output.picture and "picture" not in files and model.n_modes > 0:
+        picture = submit(_picture_job, (drawn, folder / "modes.png", n_modes))
+    plotted = submit(_plots_job, (drawn, folder, metrics)) if plots else done_future(lambda _: {"files": []}, None)
+
+    def finish(say: Callable[[str], None]) -> dict:
+        if picture is not None:
+            why = picture.result()
+            if why is None:
+                files["picture"] = "modes.png"
+                say("picture: modes.png (mean and ±2σ of the first modes, axial / sagittal / coronal; drawn without "
+                    "Blender)")
+            else:
+                say(f"picture: modes.png skipped ({why})")
+        return plotted.result()
+
+    return finish
 
 
 def study_inputs(study: Study) -> list[Path]:
@@ -290,26 +330,28 @@ def study_inputs(study: Study) -> list[Path]:
     return [p for i in study.instances for p in (i.volume_path, i.mesh_path, i.landmarks_path) if p is not None]
 
 
-def _write_model_outputs(model, metrics, folder: Path, files: dict, *, output: OutputParams, plots: bool, say,
+def _write_model_outputs(model, folder: Path, files: dict, *, output: OutputParams, say, drawn: Callable,
                          analysis: Callable | None, extra: dict | None) -> dict:
-    """The model's files and tables, the plots and the analysis into ``folder``; adds what it wrote
-    to ``files`` and returns the report's further entries (``extra`` with the analysis's)."""
+    """The model's files and tables, the analysis, and the pictures begun by :func:`start_drawings`
+    (``drawn``: its ``finish``) into ``folder``; adds what it wrote to ``files`` and returns the
+    report's further entries (``extra`` with the analysis's)."""
     if (output.gltf or output.vtk) and output.exchange_modes > model.n_modes:
         say(f"note: [output] exchange_modes = {output.exchange_modes}: the model has {model.n_modes} modes; "
             f"model.glb and vtk/ hold {model.n_modes}")
     written = write_model_files(model, folder, statismo=output.statismo, tables=output.scores, gltf=output.gltf,
                                 vtk=output.vtk, exchange_modes=output.exchange_modes)
-    plot_info = write_plots(model, folder, metrics) if plots else {"files": []}
+    entries = dict(extra or {})
+    found = entry = None
+    if analysis is not None:
+        found, entry = analysis(folder)
+    plot_info = drawn(say)
     written["plots"] = plot_info["files"]
     if "skipped" in plot_info:
         say(f"plots: {plot_info['skipped']}")
     files.update(relative_files(written, folder))
-    entries = dict(extra or {})
-    if analysis is not None:
-        found, entry = analysis(folder)
-        files.update(found or {})
-        if entry is not None:
-            entries["analysis"] = entry
+    files.update(found or {})
+    if entry is not None:
+        entries["analysis"] = entry
     return entries
 
 
@@ -317,7 +359,7 @@ def write_study(study: Study, folder, *, output: OutputParams, project: str | Ab
                 blender_hook: Callable | None = None, analysis: Callable | None = None, plots: bool = True,
                 timings_unknown: dict | None = None, metrics_absent: str = "not computed", extra: dict | None = None,
                 log: Callable[[str], None] | None = None, progress: ProgressFn = None,
-                cancelled: CancelledFn = None, t_start: float | None = None) -> tuple[dict, Report]:
+                cancelled: CancelledFn = None, t_start: float | None = None, executor=None) -> tuple[dict, Report]:
     """Write a built study's outputs into ``folder``: the build's writer, for ``ssm build`` and
     Blender's *Save Model* alike.
 
@@ -326,6 +368,8 @@ def write_study(study: Study, folder, *, output: OutputParams, project: str | Ab
     ``model.blend`` and ``modes.png`` through ``blender_hook(study, output, folder, log)`` when
     given, the analysis through ``analysis(folder) -> (files, report entry or None)`` when given, then ``report.json`` once (one
     :class:`~ssm_addon.pipeline.report.Report`, with the final timings) and ``report.html``.
+    ``executor``: the build's, whose local workers draw the pictures meanwhile
+    (:func:`start_drawings`).
 
     Returns
     -------
@@ -343,7 +387,7 @@ def write_study(study: Study, folder, *, output: OutputParams, project: str | Ab
         files.update(blender_hook(study, output, folder, say) or {})
         study.timings_s["blender"] = time.perf_counter() - t1
     check_cancelled(cancelled)
-    picture_without_blender(study.model, output, folder, files, say)
+    drawn = start_drawings(study.model, study.metrics, output, folder, files, plots=plots, executor=executor)
     tpl, model = study.template, study.model
     tframe = study.frame(study.template_instance)
     write_ply(folder / "template.ply", tframe.to_world(tpl.points_object), tpl.faces, space="RAS")
@@ -367,8 +411,8 @@ def write_study(study: Study, folder, *, output: OutputParams, project: str | Ab
         for name in names:
             write_landmarks(folder / "landmarks" / f"{safe[name]}.{ext}", carried[name])
         files["landmarks"] = "landmarks"
-    entries = _write_model_outputs(model, study.metrics, folder, files, output=output, plots=plots, say=say,
-                                   analysis=analysis, extra=extra)
+    entries = _write_model_outputs(model, folder, files, output=output, say=say, drawn=drawn, analysis=analysis,
+                                   extra=extra)
     study.timings_s["write"] = time.perf_counter() - t0 - study.timings_s.get("blender", 0.0)
     if t_start is not None:
         study.timings_s["total"] = time.perf_counter() - t_start
@@ -414,7 +458,7 @@ def write_joint(joint, folder, *, output: OutputParams, project: str | Absent, t
     report(progress, 0.95, "writing outputs")
     files = dict(files or {})
     model = joint.model
-    picture_without_blender(model, output, folder, files, say)
+    drawn = start_drawings(model, joint.metrics, output, folder, files)
     for name, study in joint.structures.items():
         base = folder / "structures" / file_names([name])[name]
         (base / "coated").mkdir(parents=True)
@@ -427,7 +471,7 @@ def write_joint(joint, folder, *, output: OutputParams, project: str | Absent, t
             write_ply(base / "coated" / f"{safe[str(subject)]}.ply", np.asarray(pw[sl], float), tpl.faces, space="RAS")
     files["structures"] = "structures"
     check_cancelled(cancelled)
-    entries = _write_model_outputs(model, joint.metrics, folder, files, output=output, plots=True, say=say,
+    entries = _write_model_outputs(model, folder, files, output=output, say=say, drawn=drawn,
                                    analysis=analysis, extra=extra)
     joint.timings_s["write"] = time.perf_counter() - t0 - joint.timings_s.get("analysis", 0.0)
     if t_start is not None:

@@ -133,6 +133,8 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
     for note in cache.take_notes() if cache is not None else ():
         say(note)
     if template is None:
+        if len(names) > 1:  # the workers start (and import) while this process makes the template
+            executor.start_workers(("ssm_addon.pipeline.streaming",))
         tspec = study.instance(tname)
         report(progress, 0.0, f"import: {tname} (template instance)")
         ov = import_instance(tspec, spacing_mm=study.params.template.spacing_mm,
