@@ -55,6 +55,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import ssm_addon.correspondence.rounds as corr  # noqa: E402
+from ssm_addon.base.errors import InputError  # noqa: E402
 from ssm_addon.base.params import TEMPLATE_CHOICES, CoatingParams, CorrespondenceParams  # noqa: E402
 from ssm_addon.formats.landmarks import LandmarkSet, read_landmarks, write_landmarks  # noqa: E402
 from ssm_addon.formats.meshes import read_mesh  # noqa: E402
@@ -449,8 +450,10 @@ def coating_overrides(ap, items) -> dict:
             out[key.strip()] = ast.literal_eval(value.strip())
         except (ValueError, SyntaxError):
             ap.error(f"--coating {item!r}: {value!r} is not a number, tuple or quoted string")
-    if out:
+    try:
         CoatingParams(**out)  # the parameters' own checks
+    except InputError as err:
+        ap.error(f"--coating: {err}")
     return out
 
 
