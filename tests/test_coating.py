@@ -695,15 +695,12 @@ def test_fold_free_warp_smooths_inconsistent_landmarks_until_no_fold(ellipsoid_p
 def test_default_relaxation_converges_on_every_verse_vertebra_without_folds(verse_dir):
     """With the default parameters the relaxation settles by its velocity tolerance (not by
     its step limit) on T9..L5 from the L1 template and leaves no folded triangle on all but
-    at most one, and there at most 1.5 % of them (the registration's widths 16, 8, 3 mm leave
-    none; 16, 8, 4, 2 mm left 12 of 1,262 on T10, and 16, 8, 4 mm 21 on T9; the folds gate
-    reports any); the previous 25-step pass (linear springs, warped rest lengths) converged
-    on none.
+    one (T10 keeps 12 of 1,262, 1 %, which the folds gate reports); the previous 25-step
+    pass (linear springs, warped rest lengths) converged on none.
 
-    Folds left depend on the template's triangulation and the registration's schedule: with
-    the triangulations scipy 1.15's and 1.17's own tie orders gave, none was left from L1 (but
-    67 from L3); with the library-independent one, 12 from L1, 0 from T12 and 53 from L3 (67 →
-    65 in all; widths 16, 8, 4, 2 mm)."""
+    Folds left depend chaotically on the template's triangulation: with the triangulations
+    scipy 1.15's and 1.17's own tie orders gave, none was left from L1 (but 67 from L3); with
+    the library-independent one, 12 from L1, 0 from T12 and 53 from L3 (67 → 65 in all)."""
     from conftest import VERSE_FILE, VERSE_LABELS
 
     from ssm_addon.base.params import CoatingParams

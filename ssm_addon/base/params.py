@@ -558,7 +558,7 @@ class CoatingParams:
                                      help="apply only the tangential part of the edge forces")
     k3: float = param(0.0, minimum=0.0, maximum=100.0, label="k3 (smoothing)", advanced=True,
                       help="umbrella (Laplacian) smoothing force of the relaxation")
-    registration_sigmas_mm: tuple = param((16.0, 8.0, 3.0), unit="mm", minimum=0.0, exclusive_minimum=True,
+    registration_sigmas_mm: tuple = param((16.0, 8.0, 4.0, 2.0), unit="mm", minimum=0.0, exclusive_minimum=True,
                                           maximum=1000.0, label="Registration widths",
                                           help="Gaussian widths of the coarse-to-fine surface registration between "
                                                "warp and projection (empty: the paper's scheme)")

@@ -8,7 +8,7 @@ onto every other instance in five steps:
    it fold the template (det J <= 0), it is smoothed just enough not to
    (:func:`~ssm_addon.coating.warp.fold_free_warp`; the λ used is reported);
 2. (not in the paper) a smooth coarse-to-fine surface registration (Gaussian widths
-   16, 8, 3 mm) moves the warped mesh onto the surface without folding it
+   16, 8, 4, 2 mm) moves the warped mesh onto the surface without folding it
    (:mod:`ssm_addon.coating.registration`);
 3. every vertex is projected onto the instance surface by a sub-voxel signed distance
    map (:mod:`ssm_addon.coating.distance_map`, paper 4.2);
@@ -250,7 +250,7 @@ def coat_from_start(
     check_cancelled(cancelled)
     sigmas = tuple(params.registration_sigmas_mm) if params.registration_iterations > 0 else ()
     # the start (landmark warp or object frames) is chosen after the coarse half of the
-    # widths (16, 8 mm of 16, 8, 3): on VerSe this picks the same start as after all of
+    # widths (16, 8 mm of 16..2): on VerSe this picks the same start as after all of
     # them (L5, T12: 261 / 127 folded from the warp vs 23 / 20 from the frames; L2..L4
     # <= 28 of 1,262), and the losing start does not run the fine widths
     n_coarse = (len(sigmas) + 1) // 2

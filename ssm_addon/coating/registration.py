@@ -3,7 +3,7 @@
 The warp of eq. (2) with few or inconsistent landmarks leaves vertices many mm off the
 surface; projecting those onto the nearest surface point folds the mesh. The
 registration moves the warped mesh onto the surface by a Gaussian-smoothed displacement
-field at decreasing widths (16, 8, 3 mm by default), see :func:`register_to_surface`.
+field at decreasing widths (16, 8, 4, 2 mm by default), see :func:`register_to_surface`.
 Coordinates in mm, the target's object frame.
 """
 
