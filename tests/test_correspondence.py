@@ -423,6 +423,45 @@ def test_the_model_method_computes_each_distance_map_once_and_gives_the_same_coa
     assert all(np.array_equal(kept[n], every_time[n]) for n in kept)
 
 
+def test_the_workers_compute_the_distance_maps_while_the_template_is_made(population, monkeypatch):
+    """With local worker processes the model method's distance maps are computed on the workers
+    while this process builds the template, into the folder its coatings read: every map is
+    there before the first coating, the coatings equal the serial build's bit for bit, and the
+    folder goes with the build."""
+    import os
+    import sys
+    import time
+
+    import ssm_addon.pipeline.runner as runner
+    from ssm_addon.base.compute import Executor
+    from ssm_addon.pipeline.study import Study
+
+    proj = project_variant(population, "ahead.toml", correspondence=('[correspondence]\nmethod = "model"\n'
+                                                                       'iterations = 1\nround_template = "mean"'))
+    serial = runner.run(Study.from_project(read_project(proj)), jobs=1)
+    folders, maps, real = [], [], runner.refine_correspondence
+
+    def coating(study, **kw):  # the maps ahead: all there before the first coating (the workers finish them)
+        folder = Path(next(iter(study.volumes.values())).distance_map_store)
+        deadline = time.monotonic() + 120
+        while len([f for f in os.listdir(folder) if f.endswith(".npy")]) < len(study.names):
+            assert time.monotonic() < deadline, os.listdir(folder)
+            time.sleep(0.05)
+        folders.append(folder)
+        maps.append(len(os.listdir(folder)))
+        return real(study, **kw)
+
+    monkeypatch.setattr(runner, "refine_correspondence", coating)
+    monkeypatch.delitem(sys.modules, "bpy", raising=False)
+    with Executor("processes", 2) as ex:
+        ahead = runner.run(Study.from_project(read_project(proj)), jobs=2, executor=ex)
+    assert maps == [len(ahead.names)] and not folders[0].exists()
+    assert all(v.distance_map_store in (None, "") for v in ahead.volumes.values())
+    assert ahead.coatings.keys() == serial.coatings.keys()
+    for name in serial.coatings:
+        assert np.array_equal(ahead.coatings[name].points_object, serial.coatings[name].points_object), name
+
+
 def assert_same_model(a, b):
     """Two builds' ``model.npz``: the same arrays, each equal to the last bit."""
     a, b = (np.load(r.out_dir / "model.npz", allow_pickle=False) for r in (a, b))

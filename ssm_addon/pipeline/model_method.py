@@ -8,6 +8,7 @@ import shutil
 import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import wait
 from contextlib import contextmanager
 
 import numpy as np
@@ -16,6 +17,7 @@ from ..base.compute import executor_or_local
 from ..base.errors import Cancelled, InputError, SSMError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn
 from ..coating.coating import CoatingResult
+from ..coating.distance_map import DistanceMap
 from ..correspondence.rounds import (
     CorrespondenceCheck,
     Population,
@@ -39,7 +41,7 @@ from .study import Log, StageResult, Study, template_landmark_locations
 #: shape is an estimate, and the coatings' distances differ by a few per cent between templates)
 MEDOID_TIE = 1.05
 
-__all__ = ["MEDOID_TIE", "confirmed_landmark_medoid", "distance_maps_kept", "landmark_medoid", "landmark_medoid_template",
+__all__ = ["MEDOID_TIE", "confirmed_landmark_medoid", "distance_maps_ahead", "distance_maps_kept", "keep_distance_map", "landmark_medoid", "landmark_medoid_template",
            "medoid_template", "population", "population_medoid", "refine_correspondence", "start_coatings"]
 
 
@@ -171,8 +173,13 @@ def distance_maps_kept(study: Study) -> Iterator[str]:
 
     The maps read back are the arrays computed (:meth:`~ssm_addon.coating.distance_map.DistanceMap.from_object_volume`),
     so the coatings are the same as without the folder; a worker on another machine
-    (Dask) does not see the folder and computes its maps as before.
+    (Dask) does not see the folder and computes its maps as before. Volumes that all name one
+    folder already (:func:`distance_maps_ahead`'s) keep it, and it is left to its owner.
     """
+    stores = {v.distance_map_store for v in study.volumes.values()}
+    if len(stores) == 1 and None not in stores and "" not in stores:  # the caller's folder (distance_maps_ahead)
+        yield next(iter(stores))
+        return
     folder = tempfile.mkdtemp(prefix="ssm-distance-maps-")
     given = dict(study.volumes)
     study.volumes.update({n: dataclasses.replace(v, distance_map_store=folder) for n, v in given.items()})
@@ -181,6 +188,36 @@ def distance_maps_kept(study: Study) -> Iterator[str]:
     finally:
         study.volumes.update(given)
         shutil.rmtree(folder, ignore_errors=True)
+
+
+def keep_distance_map(volume) -> None:
+    """Compute an instance's distance map into the folder its volume names (paper 4.2; read there by
+    its coatings, :func:`distance_maps_kept`); nothing comes back."""
+    DistanceMap.from_object_volume(volume)
+
+
+@contextmanager
+def distance_maps_ahead(study: Study, executor) -> Iterator[None]:
+    """:func:`distance_maps_kept` for the template stage and the model method's coating after it,
+    with every instance's distance map computed meanwhile on ``executor``'s local workers, which
+    are idle while this process builds the template; the coatings then read them.
+
+    Only for local processes (:meth:`~ssm_addon.base.compute.Executor.submit`) and a study with
+    its volumes imported; otherwise the block runs as it is. The maps are the arrays the
+    coatings would compute, so the model is the same; on leaving, maps not begun are dropped and
+    those being computed are waited for before the folder is removed.
+    """
+    if executor is None or executor.scheduler != "processes" or len(study.volumes) < 2:
+        yield
+        return
+    with distance_maps_kept(study):
+        futures = [executor.submit(keep_distance_map, study.volumes[n]) for n in study.names if n in study.volumes]
+        try:
+            yield
+        finally:
+            for future in futures:
+                future.cancel()
+            wait(futures)
 
 
 def _candidates(study: Study) -> list[str]:

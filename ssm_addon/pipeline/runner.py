@@ -3,6 +3,7 @@ the coating stage by the study's correspondence method."""
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Callable, Sequence
 
@@ -10,7 +11,7 @@ from ..base.compute import time_left_text
 from ..base.errors import InputError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..model.metrics import import_plotting_in_background
-from .model_method import refine_correspondence
+from .model_method import distance_maps_ahead, refine_correspondence
 from .stages import coat_instances, coating_result, import_stage, metrics_stage, model_stage, self_check, template_stage
 from .streaming import stream_instances
 from .study import STAGES, Log, StageResult, Study, apply_stage
@@ -73,28 +74,34 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
         report(progress, 0.0, f"import: {n} instances at {study.params.template.spacing_mm:g} mm")
         applied(import_stage(study, jobs=jobs, progress=sub_progress(progress, 0.0, 0.15), cancelled=cancelled,
                              executor=executor))
-    if "template" in stages:
-        check_cancelled(cancelled)
-        report(progress, 0.15, f"template: from {study.template_instance}")
-        applied(template_stage(study, progress=sub_progress(progress, 0.15, 0.3), cancelled=cancelled))
-    if "coating" in stages:
-        check_cancelled(cancelled)
-        report(progress, 0.3, f"coating: {n} instances, {jobs} job(s)")
-        import_plotting_in_background()  # for the plots after the model, while the workers coat
-        coat_prog = sub_progress(progress, 0.3, 0.85)
-        if study.params.correspondence.method == "landmarks":  # one progress line per instance, as it arrives
-            t0, arrived = time.perf_counter(), []
+    # the model method: its instances' distance maps computed on the idle workers while this
+    # process builds the template, and read by the coatings (the same maps)
+    ahead = (distance_maps_ahead(study, executor)
+             if study.params.correspondence.method == "model" and "template" in stages and "coating" in stages
+             else contextlib.nullcontext())
+    with ahead:
+        if "template" in stages:
+            check_cancelled(cancelled)
+            report(progress, 0.15, f"template: from {study.template_instance}")
+            applied(template_stage(study, progress=sub_progress(progress, 0.15, 0.3), cancelled=cancelled))
+        if "coating" in stages:
+            check_cancelled(cancelled)
+            report(progress, 0.3, f"coating: {n} instances, {jobs} job(s)")
+            import_plotting_in_background()  # for the plots after the model, while the workers coat
+            coat_prog = sub_progress(progress, 0.3, 0.85)
+            if study.params.correspondence.method == "landmarks":  # one progress line per instance, as it arrives
+                t0, arrived = time.perf_counter(), []
 
-            def coated(name: str) -> None:
-                arrived.append(name)
-                left = time_left_text(len(arrived), n, time.perf_counter() - t0)
-                report(coat_prog, len(arrived) / n, f"coated {name} ({len(arrived)}/{n})" + (f", {left}" if left else ""))
+                def coated(name: str) -> None:
+                    arrived.append(name)
+                    left = time_left_text(len(arrived), n, time.perf_counter() - t0)
+                    report(coat_prog, len(arrived) / n, f"coated {name} ({len(arrived)}/{n})" + (f", {left}" if left else ""))
 
-            applied(coating_stage(study, jobs=jobs, cancelled=cancelled, log=say, executor=executor,
-                                  on_coated=coated if progress else None))
-        else:
-            applied(coating_stage(study, jobs=jobs, progress=coat_prog, cancelled=cancelled, log=say,
-                                  executor=executor))
+                applied(coating_stage(study, jobs=jobs, cancelled=cancelled, log=say, executor=executor,
+                                      on_coated=coated if progress else None))
+            else:
+                applied(coating_stage(study, jobs=jobs, progress=coat_prog, cancelled=cancelled, log=say,
+                                      executor=executor))
     if "model" in stages:
         check_cancelled(cancelled)
         report(progress, 0.85, "model: PCA")
