@@ -41,12 +41,11 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import ast
 import os
 import sys
 import tempfile
 import time
-from dataclasses import fields, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -55,8 +54,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import ssm_addon.correspondence.rounds as corr  # noqa: E402
+from ssm_addon.base import params as P  # noqa: E402
 from ssm_addon.base.errors import InputError  # noqa: E402
-from ssm_addon.base.params import TEMPLATE_CHOICES, CoatingParams, CorrespondenceParams  # noqa: E402
+from ssm_addon.base.params import TEMPLATE_CHOICES, CorrespondenceParams  # noqa: E402
 from ssm_addon.formats.landmarks import LandmarkSet, read_landmarks, write_landmarks  # noqa: E402
 from ssm_addon.formats.meshes import read_mesh  # noqa: E402
 from ssm_addon.instances.importing import InstanceSpec  # noqa: E402
@@ -330,7 +330,7 @@ ROUND_TEMPLATE = [None]
 TEMPLATE_CHOICE = [None]
 ROUND_STATES: list = []  # the model method's re-sampled coatings of every round (object frames)
 LANDMARK_NOISE = [None]
-COATING = [{}]  # [coating] parameters other than the defaults (--coating KEY=VALUE)
+COATING = [None]  # the [coating] parameters, with the --coating-* options given
 
 
 def run_study(specs, template_name: str, method: str, iterations: int, jobs: int, spacing: float | None = None):
@@ -345,8 +345,8 @@ def run_study(specs, template_name: str, method: str, iterations: int, jobs: int
     if TEMPLATE_CHOICE[0] is not None:
         extra["template_choice"] = TEMPLATE_CHOICE[0]
     study.params = study.params.replace(correspondence=CorrespondenceParams(method=method, iterations=iterations, **extra))
-    if COATING[0]:
-        study.params = study.params.replace(coating=replace(study.params.coating, **COATING[0]))
+    if COATING[0] is not None:
+        study.params = study.params.replace(coating=COATING[0])
     t0 = time.perf_counter()
     say = lambda m: print("  " + m, flush=True)  # noqa: E731
     ROUND_STATES.clear()
@@ -437,24 +437,10 @@ def replace_args(args, **changes):
     return out
 
 
-def coating_overrides(ap, items) -> dict:
-    """``KEY=VALUE`` items as [coating] parameters (values read as Python literals), each
-    checked against :class:`~ssm_addon.base.params.CoatingParams`."""
-    known = {f.name for f in fields(CoatingParams)}
-    out = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or key.strip() not in known:
-            ap.error(f"--coating {item!r}: expected KEY=VALUE with KEY one of {', '.join(sorted(known))}")
-        try:
-            out[key.strip()] = ast.literal_eval(value.strip())
-        except (ValueError, SyntaxError):
-            ap.error(f"--coating {item!r}: {value!r} is not a number, tuple or quoted string")
-    try:
-        CoatingParams(**out)  # the parameters' own checks
-    except InputError as err:
-        ap.error(f"--coating: {err}")
-    return out
+def coating_given(args) -> list[str]:
+    """The ``--coating-*`` options given, as ``key=value`` (the JSON rows' ``coating``)."""
+    return [f"{spec.key}={getattr(args, f'coating__{spec.name}')}" for spec in P.specs(P.CoatingParams)
+            if getattr(args, f"coating__{spec.name}", None) is not None]
 
 
 def main(argv=None):
@@ -482,9 +468,8 @@ def main(argv=None):
     ap.add_argument("--fit-projection", action="store_true",
                     help="also measure the leave-one-out fit's points as correspondence (folders of meshes)")
     ap.add_argument("--json", default=None, help="append each run's figures to this JSON-lines file")
-    ap.add_argument("--coating", action="append", default=[], metavar="KEY=VALUE",
-                    help="a [coating] parameter other than its default (a Python literal: 3, 0.5, (16, 8, 4)); "
-                         "repeatable")
+    P.add_arguments(ap.add_argument_group("[coating] values other than the defaults (as ssm build takes them)"),
+                    P.CoatingParams, prefix="coating")
     args = ap.parse_args(argv)
     if args.population not in MESH_SETS and args.population != "deformed" and not args.population.startswith("folder:"):
         ap.error(f"unknown population {args.population!r}")
@@ -492,7 +477,11 @@ def main(argv=None):
     ROUND_TEMPLATE[0] = args.round_template
     TEMPLATE_CHOICE[0] = args.template_choice
     LANDMARK_NOISE[0] = args.landmark_noise
-    COATING[0] = coating_overrides(ap, args.coating)
+    try:
+        COATING[0] = P.from_arguments(args, P.CoatingParams, prefix="coating")
+    except InputError as err:
+        ap.error(str(err))
+    args.coating = coating_given(args)
     if args.suite:
         suite(args)
     else:
