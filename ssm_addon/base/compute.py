@@ -419,10 +419,8 @@ class Executor:
         """
         if self.scheduler != "processes" or self._pool is not None:
             return
-        pool = self._local_pool()
-        with signals_deferred():  # each submit starts a worker process (none is idle yet)
-            for _ in range(self.jobs):
-                pool.submit(import_modules, tuple(modules))
+        for _ in range(self.jobs):  # each submit starts a worker process (none is idle yet)
+            self.submit(import_modules, tuple(modules))
 
     def submit(self, fn: Callable, item) -> Future:
         """``fn(item)`` begun now; its future's ``result()`` gives the value or raises its error.
@@ -490,8 +488,7 @@ class Executor:
             while queue or pending:
                 while queue and len(pending) < ahead:
                     i = queue.pop(0)
-                    with signals_deferred():  # the submit may start a worker process
-                        pending[pool.submit(run_one_thread, fn, items[i])] = i
+                    pending[self.submit(fn, items[i])] = i
                 finished, _ = wait(list(pending), timeout=0.2, return_when=FIRST_COMPLETED)
                 for fut in finished:
                     arrived(pending.pop(fut), fut.result())

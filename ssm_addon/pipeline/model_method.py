@@ -177,7 +177,7 @@ def distance_maps_kept(study: Study) -> Iterator[str]:
     folder already (:func:`distance_maps_ahead`'s) keep it, and it is left to its owner.
     """
     stores = {v.distance_map_store for v in study.volumes.values()}
-    if len(stores) == 1 and None not in stores and "" not in stores:  # the caller's folder (distance_maps_ahead)
+    if len(stores) == 1 and all(stores):  # the caller's folder (distance_maps_ahead)
         yield next(iter(stores))
         return
     folder = tempfile.mkdtemp(prefix="ssm-distance-maps-")

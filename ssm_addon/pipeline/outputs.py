@@ -309,7 +309,7 @@ def start_drawings(model, metrics, output: OutputParams, folder: Path, files: di
     picture = None
     if output.picture and "picture" not in files and model.n_modes > 0:
         picture = submit(_picture_job, (drawn, folder / "modes.png", n_modes))
-    plotted = submit(_plots_job, (drawn, folder, metrics)) if plots else done_future(lambda _: {"files": []}, None)
+    plotted = submit(_plots_job, (drawn, folder, metrics)) if plots else None
 
     def finish(say: Callable[[str], None]) -> dict:
         if picture is not None:
@@ -320,7 +320,7 @@ def start_drawings(model, metrics, output: OutputParams, folder: Path, files: di
                     "Blender)")
             else:
                 say(f"picture: modes.png skipped ({why})")
-        return plotted.result()
+        return plotted.result() if plotted is not None else {"files": []}
 
     return finish
 
