@@ -137,6 +137,25 @@ def test_intensity_image_is_refused(tmp_path):
         read_label_map(tmp_path / "mr.nii.gz")
 
 
+@pytest.mark.parametrize("dtype", [np.uint8, np.int8, np.uint16, np.int16, np.int32, np.uint32, np.int64, np.float32])
+def test_labels_of_every_type_are_counted_and_only_too_many_are_refused(tmp_path, dtype):
+    from ssm_addon.formats.label_maps import MAX_DISTINCT_LABELS, read_label_map
+
+    rng = np.random.default_rng(1)
+    info = np.iinfo(dtype) if np.dtype(dtype).kind in "iu" else None
+    few = np.array([0, 1, 7, 100] + ([info.max, info.min] if info is not None and info.min < 0 else []), dtype=dtype)
+    labels = few[rng.integers(0, len(few), size=(30, 30, 20))]
+    nib.save(nib.Nifti1Image(labels, np.eye(4), dtype=dtype), str(tmp_path / "few.nii.gz"))
+    got = read_label_map(tmp_path / "few.nii.gz")
+    assert set(np.unique(got.labels).tolist()) == set(few.astype(np.int64).tolist())
+    if info is not None and info.max <= MAX_DISTINCT_LABELS:
+        return  # a byte image cannot hold too many labels
+    many = np.arange(30 * 30 * 20).reshape(30, 30, 20).astype(dtype)
+    nib.save(nib.Nifti1Image(many, np.eye(4), dtype=dtype), str(tmp_path / "many.nii.gz"))
+    with pytest.raises(InputError, match=r"many\.nii\.gz: looks like an intensity image.*18,000 distinct values"):
+        read_label_map(tmp_path / "many.nii.gz")
+
+
 def test_a_few_voxels_is_an_error():
     from ssm_addon.instances.volume import ObjectFrame, ObjectVolume
 
