@@ -319,3 +319,25 @@ def test_another_tools_joined_model_opens_as_a_joint_model_of_its_parts(tmp_path
                        instance_points=single.instance_points[:, shuffled],
                        instance_points_world=single.instance_points_world[:, shuffled], faces=inverse[single.faces])
     assert joined_parts(mixed) is None  # the parts interleave: not a joined model
+
+
+def test_a_joint_build_draws_the_same_pictures_on_worker_processes_as_serially(tmp_path):
+    """The joint build's modes.png (drawn by the core without Blender) and fig. 9 plots: drawn on
+    the build's worker processes while the files are written, the same bytes as drawn in the main
+    process, and the same joint model."""
+    from ssm_addon.cli.project_build import build
+
+    project = joint_project(tmp_path, 4, ["[template]", "spacing = 1.0", ""])
+    outs = {}
+    for scheduler in ("serial", "processes"):
+        outs[scheduler] = tmp_path / f"out-{scheduler}"
+        result = build(read_project(project), outs[scheduler], jobs=2, scheduler=scheduler, blend=False, log=None,
+                       cache="off")
+        assert result.report["compute"]["scheduler"] == scheduler
+    with np.load(outs["serial"] / "model.npz", allow_pickle=False) as a, \
+            np.load(outs["processes"] / "model.npz", allow_pickle=False) as b:
+        for k in ("mean", "modes", "variances", "instance_points_world", "structure_offsets"):
+            assert np.array_equal(a[k], b[k]), k
+    pictures = ("modes.png", "spectrum.png", "cumulative_variance.png", "variability.png", "metrics.png")
+    for png in pictures:
+        assert (outs["processes"] / png).read_bytes() == (outs["serial"] / png).read_bytes(), png

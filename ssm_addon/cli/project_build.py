@@ -276,27 +276,28 @@ def build_joint(project: Project, out_dir: Path, *, jobs: int = 1, progress: Pro
                 say(f"compute: {executor.note}")
             run_joint(joint, jobs=jobs, progress=sub_progress(progress, 0.0, 0.95), cancelled=cancelled, log=say,
                       executor=executor, cache=build_cache)
-        check_cancelled(cancelled)
-        every = [f for study in joint.structures.values() for f in study.findings] + joint.findings
-        if project.params.quality.strict and every:
-            raise QualityError(f"{len(every)} quality gate(s) failed and [quality] strict is set; nothing was written "
-                               f"to {out_dir}:\n" + warnings_text(every))
-        first = next(iter(joint.structures.values()))
-        blender_files = {}
-        if blender_hook is not None:  # the first structure's study carries the joint model over
-            t_blender = time.perf_counter()
-            report(progress, 0.95, "Blender: model.blend and pictures")
-            blender_files = blender_hook(dataclasses.replace(first, model=joint.model), project.params.output, tmp,
-                                         say) or {}
-            joint.timings_s["blender"] = time.perf_counter() - t_blender
-        files, final_report = write_joint(joint, tmp, output=project.params.output, project=str(project.path),
-                                          files=blender_files,
-                                          title=f"SSM Builder: {project.path.stem} (joint)", log=say,
-                                          progress=progress, cancelled=cancelled, t_start=t_total,
-                                          analysis=lambda folder: write_analysis_files(
-                                              project, joint.model, folder, timings=joint.timings_s, log=say,
-                                              progress=progress, cancelled=cancelled),
-                                          extra={"compute": {"scheduler": executor.scheduler, "workers": executor.jobs}})
+            check_cancelled(cancelled)
+            every = [f for study in joint.structures.values() for f in study.findings] + joint.findings
+            if project.params.quality.strict and every:
+                raise QualityError(f"{len(every)} quality gate(s) failed and [quality] strict is set; nothing was written "
+                                   f"to {out_dir}:\n" + warnings_text(every))
+            first = next(iter(joint.structures.values()))
+            blender_files = {}
+            if blender_hook is not None:  # the first structure's study carries the joint model over
+                t_blender = time.perf_counter()
+                report(progress, 0.95, "Blender: model.blend and pictures")
+                blender_files = blender_hook(dataclasses.replace(first, model=joint.model), project.params.output, tmp,
+                                             say) or {}
+                joint.timings_s["blender"] = time.perf_counter() - t_blender
+            files, final_report = write_joint(joint, tmp, output=project.params.output, project=str(project.path),
+                                              files=blender_files,
+                                              title=f"SSM Builder: {project.path.stem} (joint)", log=say,
+                                              progress=progress, cancelled=cancelled, t_start=t_total,
+                                              analysis=lambda folder: write_analysis_files(
+                                                  project, joint.model, folder, timings=joint.timings_s, log=say,
+                                                  progress=progress, cancelled=cancelled),
+                                              extra={"compute": {"scheduler": executor.scheduler, "workers": executor.jobs}},
+                                              executor=executor)
     final = _absolute_files(files, out_dir)
     report(progress, 1.0, f"done: {out_dir}")
     first.model = joint.model

@@ -445,20 +445,21 @@ def save_study_outputs(study: Study, out_dir, *, force: bool = False, inputs=(),
 def write_joint(joint, folder, *, output: OutputParams, project: str | Absent, title: str, extra: dict | None = None,
                 log: Callable[[str], None] | None = None, progress: ProgressFn = None, cancelled: CancelledFn = None,
                 t_start: float | None = None, analysis: Callable | None = None,
-                files: dict | None = None) -> tuple[dict, Report]:
+                files: dict | None = None, executor=None) -> tuple[dict, Report]:
     """Write a joint study's outputs into ``folder``: each structure's template and coated meshes
     (``structures/<name>/``, world mm), the joint model's files (``model.npz`` with its
     ``structure_names`` and ``structure_offsets``, statismo with its ``/ssm/structures`` group,
     tables, glTF, VTK), the plots, the analysis through ``analysis(folder) -> (files, report
     entry or None)`` when given (as :func:`write_study`), ``report.json`` and ``report.html``.
-    ``files``: what was written into ``folder`` before (``model.blend``, ``modes.png``), for the report."""
+    ``files``: what was written into ``folder`` before (``model.blend``, ``modes.png``), for the report.
+    ``executor``: the build's, whose local workers draw the pictures meanwhile (:func:`start_drawings`)."""
     say = log or (lambda _msg: None)
     folder = Path(folder)
     t0 = time.perf_counter()
     report(progress, 0.95, "writing outputs")
     files = dict(files or {})
     model = joint.model
-    drawn = start_drawings(model, joint.metrics, output, folder, files)
+    drawn = start_drawings(model, joint.metrics, output, folder, files, executor=executor)
     for name, study in joint.structures.items():
         base = folder / "structures" / file_names([name])[name]
         (base / "coated").mkdir(parents=True)
