@@ -19,7 +19,9 @@ Cases, each run as ``python -m ssm_addon build`` in a fresh process (``--cache o
   single pass and by the model method, when present;
 * ``knee30-femur``, ``knee30-tibia``, ``knee30-patella`` (and ``…-model``): each bone of ``knee30``
   (30 meshes) the same way;
-* ``dense-truth``: all eight of the above.
+* ``dense-truth``: all eight of the above;
+* ``joint``: the joint model of knee30's femur and tibia (30 subjects, 12 landmarks per bone;
+  ``tools/eval_joint.py``'s project).
 
 ``--ratio``: for each set built both ways, the model method's time over the single pass's
 (coating stage and whole command, medians of ``--runs``).
@@ -142,6 +144,13 @@ def make_cases(tmp: Path, names, n: int, template_choice: str | None = None) -> 
             from test_build_verse import write_verse_project
 
             cases[name] = write_verse_project(tmp, VERSE_DIR)
+        elif name == "joint":
+            if not (shared_data_dir() / "knee30").is_dir():
+                print(f"joint: skipped ({shared_data_dir() / 'knee30'} not found)")
+                continue
+            from eval_joint import knee_project
+
+            cases[name] = knee_project(tmp / "joint", 30, 12)
         elif name.removesuffix("-model") in MESH_SETS:
             sub, pattern = MESH_SETS[name.removesuffix("-model")]
             data = shared_data_dir() / sub
@@ -151,8 +160,8 @@ def make_cases(tmp: Path, names, n: int, template_choice: str | None = None) -> 
             cases[name] = mesh_set_project(tmp / name, data, pattern, "model" if name.endswith("-model") else "landmarks",
                                            template_choice=template_choice)
         else:
-            raise SystemExit(f"unknown case {name!r} (demo, verse, dense-truth, or a set of {', '.join(MESH_SETS)} "
-                             "with or without -model)")
+            raise SystemExit(f"unknown case {name!r} (demo, verse, joint, dense-truth, or a set of "
+                             f"{', '.join(MESH_SETS)} with or without -model)")
     return cases
 
 
@@ -211,7 +220,7 @@ def main(argv=None) -> int:
     parser.add_argument("--n", type=int, default=31, help="demo instances (paper: 31)")
     parser.add_argument("--blend", action="store_true", help="also write model.blend and modes.png (needs bpy)")
     parser.add_argument("--cases", default="demo,verse",
-                        help="comma-separated: demo, verse, dense-truth, femur10, knee30-femur, knee30-tibia, "
+                        help="comma-separated: demo, verse, joint, dense-truth, femur10, knee30-femur, knee30-tibia, "
                              "knee30-patella (each also with -model)")
     parser.add_argument("--against", metavar="REV", help="an earlier commit to pair every case against")
     parser.add_argument("--runs", type=int, default=3, help="runs of each case and side with --against or --ratio "
