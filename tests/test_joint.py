@@ -324,7 +324,8 @@ def test_another_tools_joined_model_opens_as_a_joint_model_of_its_parts(tmp_path
 def test_a_joint_build_draws_the_same_pictures_on_worker_processes_as_serially(tmp_path):
     """The joint build's modes.png (drawn by the core without Blender) and fig. 9 plots: drawn on
     the build's worker processes while the files are written, the same bytes as drawn in the main
-    process, and the same joint model."""
+    process; the same joint model, and the same metrics of it and of each structure (computed on
+    the workers while the main process finds the collisions)."""
     from ssm_addon.cli.project_build import build
 
     project = joint_project(tmp_path, 4, ["[template]", "spacing = 1.0", ""])
@@ -338,6 +339,16 @@ def test_a_joint_build_draws_the_same_pictures_on_worker_processes_as_serially(t
             np.load(outs["processes"] / "model.npz", allow_pickle=False) as b:
         for k in ("mean", "modes", "variances", "instance_points_world", "structure_offsets"):
             assert np.array_equal(a[k], b[k]), k
+    reports = {k: json.loads((out / "report.json").read_text()) for k, out in outs.items()}
+
+    def figures(metrics):  # without the seconds each metric took
+        return {k: {f: v for f, v in m.items() if f != "seconds"} for k, m in metrics.items()}
+
+    assert figures(reports["processes"]["metrics"]) == figures(reports["serial"]["metrics"])
+    for name in ("a", "b"):
+        got = reports["processes"]["joint"]["structures"][name]["metrics"]
+        assert got == reports["serial"]["joint"]["structures"][name]["metrics"]
+        assert set(got) == {"joint", "separate"} and 1 <= len(got["joint"]["generalization_mm"]) <= got["joint"]["modes"]
     pictures = ("modes.png", "spectrum.png", "cumulative_variance.png", "variability.png", "metrics.png")
     for png in pictures:
         assert (outs["processes"] / png).read_bytes() == (outs["serial"] / png).read_bytes(), png

@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..base.compute import done_future, run_one_thread
 from ..base.errors import InputError, check_cancelled
 from ..base.params import StudyParams
 from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
@@ -140,19 +141,32 @@ def run_joint(joint: JointStudy, *, jobs: int = 1, progress: ProgressFn = None, 
     t0 = time.perf_counter()
     report(progress, 0.8, "joint model: compactness, generalization, specificity")
     mp = joint.params.model
-    joint.metrics = model_metrics.evaluate(joint.model, n_samples=mp.specificity_samples, seed=mp.seed,
-                                           max_loo=mp.max_loo, cancelled=cancelled)
+    # the joint model's metrics and each structure's (its rows, its own model) are independent:
+    # begun on the build's workers, while this process finds the shape and relative pose and the
+    # collisions; each runs with one BLAS thread wherever it runs (the same numbers)
+    submit = executor.submit if executor is not None else done_future
+    settings = (mp.specificity_samples, mp.seed, mp.max_loo)
+    pending = {"": submit(_metrics_job, (joint.model, *settings))}
+    modes = {}
     for name in joint.names:
-        joint.structure_metrics[name] = structure_metrics(joint, name, cancelled=cancelled)
-    joint.timings_s["metrics"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
+        for label, m in (("joint", structure_model(joint.model, name)), ("separate", make_model(joint.structures[name]))):
+            pending[f"{name}/{label}"] = submit(_metrics_job, (m, *settings))
+            modes[f"{name}/{label}"] = m.n_modes
+    t1 = time.perf_counter()
     report(progress, 0.9, "joint model: shape and relative pose, collisions")
     joint.shape_pose = shape_and_pose(joint.model, reference=joint.reference)
     jp = joint.params.joint
     joint.collisions = collisions(joint.model, samples=jp.collision_samples, depth_mm=jp.penetration_mm,
                                   seed=mp.seed, cancelled=cancelled)
     joint.findings += collision_findings(joint.collisions, jp.max_collision_excess)
-    joint.timings_s["shape_pose_collisions"] = time.perf_counter() - t0
+    joint.timings_s["shape_pose_collisions"] = time.perf_counter() - t1
+    joint.metrics = pending[""].result()
+    for name in joint.names:
+        joint.structure_metrics[name] = {label: _structure_figures(pending[f"{name}/{label}"].result(),
+                                                                   modes[f"{name}/{label}"])
+                                         for label in ("joint", "separate")}
+    joint.timings_s["metrics"] = time.perf_counter() - t0 - joint.timings_s["shape_pose_collisions"]
+    check_cancelled(cancelled)
     for f in joint.findings:
         say(f"WARNING {f.instance or 'joint model'} [{f.gate}]: {f.message}")
     return joint
@@ -208,17 +222,25 @@ def joint_model(joint: JointStudy, *, cancelled: CancelledFn = None) -> ShapeMod
     return dataclasses.replace(model, structure_names=tuple(joint.names), structure_offsets=offsets)
 
 
+def _metrics_job(args) -> ModelMetrics:
+    model, n_samples, seed, max_loo = args
+    return model_metrics.evaluate(model, n_samples=n_samples, seed=seed, max_loo=max_loo)
+
+
+def _structure_figures(mets: ModelMetrics, n_modes: int) -> dict:
+    return {"generalization_mm": list(mets.generalization["mean_mm"]),
+            "specificity_mm": list(mets.specificity["mean_mm"]), "modes": n_modes}
+
+
 def structure_metrics(joint: JointStudy, name: str, *, cancelled: CancelledFn = None) -> dict:
     """Generalization and specificity (mm, per number of modes) of structure ``name``: its rows of the
     joint model (:func:`structure_model`, relative pose included) and its own model from the same
-    coatings (aligned on itself, as a separate build makes it)."""
+    coatings (aligned on itself, as a separate build makes it). :func:`run_joint` computes the same
+    on the build's executor."""
     mp = joint.params.model
-    rows = structure_model(joint.model, name)
-    own = make_model(joint.structures[name])
     out = {}
-    for label, m in (("joint", rows), ("separate", own)):
-        mets = model_metrics.evaluate(m, n_samples=mp.specificity_samples, seed=mp.seed, max_loo=mp.max_loo,
-                                      cancelled=cancelled)
-        out[label] = {"generalization_mm": list(mets.generalization["mean_mm"]),
-                      "specificity_mm": list(mets.specificity["mean_mm"]), "modes": m.n_modes}
+    for label, m in (("joint", structure_model(joint.model, name)), ("separate", make_model(joint.structures[name]))):
+        out[label] = _structure_figures(run_one_thread(_metrics_job, (m, mp.specificity_samples, mp.seed,
+                                                                      mp.max_loo)), m.n_modes)
+        check_cancelled(cancelled)
     return out
