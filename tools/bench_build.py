@@ -182,7 +182,8 @@ def paired(cases: dict, rev: str, tmp: Path, *, jobs: int, blend: bool, runs: in
                     got[who].append({**report["timings_s"], "process": report["wall_s"]})
                     print(f"  {case} run {r + 1} {who:4s} {report['wall_s']:7.2f} s", flush=True)
             print(f"\n{case}: median of {runs} runs (s), this / {rev}")
-            for stage in (*STAGES, "process"):
+            others = sorted({k for t in got["this"] for k in t} - {*STAGES, "process"})  # a joint build's structures
+            for stage in (*others, *STAGES, "process"):
                 a = [t[stage] for t in got["this"] if stage in t]
                 b = [t[stage] for t in got["rev"] if stage in t]
                 if a and b:
