@@ -437,12 +437,6 @@ def replace_args(args, **changes):
     return out
 
 
-def coating_given(args) -> list[str]:
-    """The ``--coating-*`` options given, as ``key=value`` (the JSON rows' ``coating``)."""
-    return [f"{spec.key}={getattr(args, f'coating__{spec.name}')}" for spec in P.specs(P.CoatingParams)
-            if getattr(args, f"coating__{spec.name}", None) is not None]
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("population", help="femur10, knee30-femur, knee30-tibia, knee30-patella, deformed or "
@@ -481,7 +475,7 @@ def main(argv=None):
         COATING[0] = P.from_arguments(args, P.CoatingParams, prefix="coating")
     except InputError as err:
         ap.error(str(err))
-    args.coating = coating_given(args)
+    args.coating = [f"{k}={v}" for k, v in P.to_table(COATING[0], only_changed=True).items()]  # the JSON rows'
     if args.suite:
         suite(args)
     else:
