@@ -137,29 +137,20 @@ def _refuse_intensities(data: np.ndarray, path) -> None:
         return  # at most 256 distinct values: nothing to count
     flat = data.reshape(-1)
     sample = np.ascontiguousarray(flat[:: max(1, flat.size // 500_000)])
-    if data.dtype.kind in "iu":
-        lo_i, hi_i = int(sample.min()), int(sample.max())
-        if hi_i - lo_i < 1 << 20 and abs(lo_i) < 1 << 62 and abs(hi_i) < 1 << 62:
-            distinct = int(np.count_nonzero(np.bincount(sample.astype(np.int64) - lo_i)))
-        else:
-            distinct = int(np.unique(sample).size)
-        _refuse_distinct(distinct, float(lo_i), float(hi_i), path)
-        return
-    frac = np.abs(sample - np.rint(sample))  # float labels from here on
-    bad = np.count_nonzero(frac > 1e-3)
-    if bad > 0.001 * sample.size:
-        raise InputError(f"{path}: looks like an intensity image, not a label map: {100 * bad / sample.size:.1f} % "
-                         f"of the voxels hold fractional values (e.g. {float(sample[np.argmax(frac)]):g}); give the "
-                         "segmentation (whole-number labels, 0 = background)")
-    lo, hi = float(sample.min()), float(sample.max())
+    whole = sample  # integer labels are whole already (rounding them went through float)
+    if data.dtype.kind == "f":
+        whole = np.rint(sample)
+        frac = np.abs(sample - whole)
+        bad = np.count_nonzero(frac > 1e-3)
+        if bad > 0.001 * sample.size:
+            raise InputError(f"{path}: looks like an intensity image, not a label map: {100 * bad / sample.size:.1f} % "
+                             f"of the voxels hold fractional values (e.g. {float(sample[np.argmax(frac)]):g}); give the "
+                             "segmentation (whole-number labels, 0 = background)")
+    lo, hi = float(whole.min()), float(whole.max())
     if hi - lo < 1 << 20:  # whole numbers in a modest range: count them in O(n)
-        distinct = int(np.count_nonzero(np.bincount((np.rint(sample) - lo).astype(np.int64))))
+        distinct = int(np.count_nonzero(np.bincount((whole - lo).astype(np.int64))))
     else:
         distinct = int(np.unique(sample).size)
-    _refuse_distinct(distinct, lo, hi, path)
-
-
-def _refuse_distinct(distinct: int, lo: float, hi: float, path) -> None:
     if distinct > MAX_DISTINCT_LABELS:
         raise InputError(f"{path}: looks like an intensity image, not a label map: {distinct:,} distinct values "
                          f"from {lo:g} to {hi:g} (a label map has a few labels, 0 = background; more than "
