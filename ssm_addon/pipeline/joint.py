@@ -149,7 +149,7 @@ def run_joint(joint: JointStudy, *, jobs: int = 1, progress: ProgressFn = None, 
     pending = {"": submit(_metrics_job, (joint.model, *settings))}
     modes = {}
     for name in joint.names:
-        for label, m in (("joint", structure_model(joint.model, name)), ("separate", make_model(joint.structures[name]))):
+        for label, m in _structure_models(joint, name):
             pending[f"{name}/{label}"] = submit(_metrics_job, (m, *settings))
             modes[f"{name}/{label}"] = m.n_modes
     t1 = time.perf_counter()
@@ -227,6 +227,12 @@ def _metrics_job(args) -> ModelMetrics:
     return model_metrics.evaluate(model, n_samples=n_samples, seed=seed, max_loo=max_loo)
 
 
+def _structure_models(joint: JointStudy, name: str) -> tuple[tuple[str, ShapeModel], ...]:
+    """Structure ``name``'s two models whose metrics the report gives: its rows of the joint model
+    (``"joint"``) and its own model of the same coatings (``"separate"``)."""
+    return ("joint", structure_model(joint.model, name)), ("separate", make_model(joint.structures[name]))
+
+
 def _structure_figures(mets: ModelMetrics, n_modes: int) -> dict:
     return {"generalization_mm": list(mets.generalization["mean_mm"]),
             "specificity_mm": list(mets.specificity["mean_mm"]), "modes": n_modes}
@@ -239,7 +245,7 @@ def structure_metrics(joint: JointStudy, name: str, *, cancelled: CancelledFn = 
     on the build's executor."""
     mp = joint.params.model
     out = {}
-    for label, m in (("joint", structure_model(joint.model, name)), ("separate", make_model(joint.structures[name]))):
+    for label, m in _structure_models(joint, name):
         out[label] = _structure_figures(run_one_thread(_metrics_job, (m, mp.specificity_samples, mp.seed,
                                                                       mp.max_loo)), m.n_modes)
         check_cancelled(cancelled)
