@@ -22,6 +22,7 @@ build whose quality gates fail exits with 3; an interrupted one with 130 (SIGINT
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import os
 import signal
@@ -51,27 +52,68 @@ class Interrupted(BaseException):
         self.name = signal.Signals(signum).name
 
 
-def _catch_signals() -> dict:
-    """SIGTERM and SIGHUP raise :class:`Interrupted` in the main thread (SIGINT raises
-    KeyboardInterrupt already); returns the previous handlers."""
+_received: list[int] = []  # the signals this command has received, in order of arrival
+
+
+def _signal_exception(signum: int) -> BaseException:
+    return KeyboardInterrupt() if signum == signal.SIGINT else Interrupted(signum)
+
+
+def check_signals() -> bool:
+    """The ``cancelled`` callable the command line gives the core: raises the exception of the
+    first signal received (again: see :func:`signals_as_exceptions`); False when none arrived."""
+    if _received:
+        raise _signal_exception(_received[0])
+    return False
+
+
+@contextlib.contextmanager
+def signals_as_exceptions():
+    """SIGINT raises KeyboardInterrupt, SIGTERM and SIGHUP :class:`Interrupted` in the main
+    thread, and each is remembered.
+
+    Python drops an exception raised inside a finalizer (an object's ``__del__``, a weakref
+    callback): a signal that lands while the garbage collector runs one would be lost, and the
+    build would go on to write its output. :func:`check_signals` raises it again at the core's
+    next check (every map result, every progress line, before the output folder is moved into
+    place), and the dropped first raise is not printed. A signal ignored when the command
+    started (``nohup``, a background job's SIGINT) stays ignored. Outside the main thread
+    (Blender's) nothing changes.
+    """
     if threading.current_thread() is not threading.main_thread():
-        return {}
+        yield
+        return
 
     def handler(signum, _frame):
-        raise Interrupted(signum)
+        _received.append(signum)
+        raise _signal_exception(signum)
+
+    unraisable = sys.unraisablehook
+
+    def quiet_when_raised_again(info):
+        if not (_received and isinstance(info.exc_value, Interrupted | KeyboardInterrupt)):
+            unraisable(info)
 
     previous = {}
-    for name in ("SIGTERM", "SIGHUP"):
+    _received.clear()
+    for name in ("SIGINT", "SIGTERM", "SIGHUP"):
         signum = getattr(signal, name, None)
-        if signum is not None:
+        if signum is not None and signal.getsignal(signum) is not signal.SIG_IGN:
             previous[signum] = signal.signal(signum, handler)
-    return previous
+    sys.unraisablehook = quiet_when_raised_again
+    try:
+        yield
+    finally:
+        for signum, old in previous.items():
+            signal.signal(signum, old)
+        sys.unraisablehook = unraisable
 
 
 def _print_progress():
     state = {"last": None}
 
     def progress(fraction: float, message: str) -> None:
+        check_signals()
         if message != state["last"]:
             state["last"] = message
             print(f"[{fraction * 100:5.1f} %] {message}", flush=True)
@@ -274,8 +316,8 @@ def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> 
     if args is not None and getattr(args, "strict", False) and not project.params.quality.strict:
         strict = dataclasses.replace(project.params.quality, strict=True)
         project = dataclasses.replace(project, params=project.params.replace(quality=strict))
-    result = build(project, out, jobs=jobs, progress=_print_progress(), log=lambda m: print(m, flush=True),
-                   blender_hook=hook, force=bool(getattr(args, "force", False)))
+    result = build(project, out, jobs=jobs, progress=_print_progress(), cancelled=check_signals,
+                   log=lambda m: print(m, flush=True), blender_hook=hook, force=bool(getattr(args, "force", False)))
     t = result.timings_s
     print("timings: " + ", ".join(f"{k} {v:.2f} s" for k, v in t.items()), flush=True)
     print(f"outputs in {result.out_dir}:")
@@ -482,23 +524,14 @@ def main(argv=None, in_blender: bool = False, blend_writer=None) -> int:
         args = argument_parser().parse_args(sys.argv[1:] if argv is None else list(argv))
     except SystemExit as exc:  # argparse: --help (0) or a usage error (2); never exit Blender
         return exc.code if isinstance(exc.code, int) else EXIT_INPUT
-    restore = {} if in_blender else _catch_signals()
     try:
-        if args.command == "info":
-            return cmd_info(args)
-        if args.command == "template":
-            return cmd_template(args)
-        if args.command == "build":
-            return cmd_build(args, blend_writer)
-        if args.command == "demo":
-            return cmd_demo(args, blend_writer)
-        if args.command == "fit":
-            return cmd_fit(args)
-        if args.command == "analyze":
-            return cmd_analyze(args)
-        if args.command == "params":
-            print(P.markdown_tables())
-            return 0
+        with contextlib.nullcontext() if in_blender else signals_as_exceptions():
+            code = _dispatch(args, blend_writer)
+            if _received:  # dropped in a finalizer after the core's last check: the command had ended
+                name = signal.Signals(_received[0]).name
+                print(f"interrupted by {name} as the command ended: its output is complete", file=sys.stderr)
+                return 128 + _received[0]
+            return code
     except Interrupted as sig:
         print(f"interrupted by {sig.name}: stopped; the output folder is as it was", file=sys.stderr)
         return 128 + sig.signum
@@ -513,9 +546,24 @@ def main(argv=None, in_blender: bool = False, blend_writer=None) -> int:
 
         print(f"error: {err}", file=sys.stderr)
         return EXIT_QUALITY if isinstance(err, QualityError) else EXIT_INPUT
-    finally:
-        for signum, handler in restore.items():
-            signal.signal(signum, handler)
+
+
+def _dispatch(args, blend_writer) -> int:
+    if args.command == "info":
+        return cmd_info(args)
+    if args.command == "template":
+        return cmd_template(args)
+    if args.command == "build":
+        return cmd_build(args, blend_writer)
+    if args.command == "demo":
+        return cmd_demo(args, blend_writer)
+    if args.command == "fit":
+        return cmd_fit(args)
+    if args.command == "analyze":
+        return cmd_analyze(args)
+    if args.command == "params":
+        print(P.markdown_tables())
+        return 0
     return EXIT_INPUT  # pragma: no cover - argparse requires a command
 
 

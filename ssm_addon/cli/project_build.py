@@ -225,7 +225,7 @@ def build(
     if project.params.correspondence.method == "model" and build_cache is not None:
         say("cache: not used by [correspondence] method = \"model\" (its rounds depend on every instance)")
         build_cache = None
-    with owned_output_folder(out_dir, inputs, force=force) as tmp:
+    with owned_output_folder(out_dir, inputs, force=force, cancelled=cancelled) as tmp:
         with Executor(scheduler or project.params.compute.scheduler, jobs, tasks=len(project.instances),
                       connect_timeout_s=project.params.compute.connect_timeout_s) as executor:
             # open until the files are written: its workers draw the pictures meanwhile
@@ -269,7 +269,7 @@ def build_joint(project: Project, out_dir: Path, *, jobs: int = 1, progress: Pro
     build_cache = open_cache(project, out_dir, cache)
     if any(st.params.correspondence.method == "model" for st in project.structures.values()):
         build_cache = None
-    with owned_output_folder(out_dir, inputs, force=force) as tmp:
+    with owned_output_folder(out_dir, inputs, force=force, cancelled=cancelled) as tmp:
         with Executor(scheduler or project.params.compute.scheduler, jobs, tasks=len(project.instances),
                       connect_timeout_s=project.params.compute.connect_timeout_s) as executor:
             if executor.note:

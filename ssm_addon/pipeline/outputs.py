@@ -155,14 +155,16 @@ def check_writable(out_dir: Path) -> None:
 
 
 @contextlib.contextmanager
-def owned_output_folder(out_dir: Path, inputs, *, force: bool = False, what: str = "building"):
+def owned_output_folder(out_dir: Path, inputs, *, force: bool = False, what: str = "building",
+                        cancelled: CancelledFn = None):
     """The output rules of every command that writes a folder, as one context manager.
 
     Refuses ``out_dir`` before any work (:func:`check_output_folder`: it holds an input, or
     files no SSM command wrote, unless ``force``); yields a temporary folder beside it to
     write into; on success puts exactly those files in place (files it did not write are
     kept, never replaced) with a manifest; on any error or cancel removes the temporary
-    folder and leaves ``out_dir`` as it was.
+    folder and leaves ``out_dir`` as it was. ``cancelled()`` is asked once more just before
+    the files are moved into place.
     """
     out_dir = Path(out_dir).expanduser().resolve()
     check_output_folder(out_dir, [p for p in inputs if p], force=force)
@@ -172,6 +174,7 @@ def owned_output_folder(out_dir: Path, inputs, *, force: bool = False, what: str
         os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes it private; the output folder follows the umask
         try:
             yield tmp
+            check_cancelled(cancelled)
             _final_move(tmp, out_dir)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -436,7 +439,8 @@ def save_study_outputs(study: Study, out_dir, *, force: bool = False, inputs=(),
     Returns (the output folder, ``{output name: absolute path}``, the report).
     """
     out_dir = Path(out_dir).expanduser().resolve()
-    with owned_output_folder(out_dir, [*study_inputs(study), *inputs], force=force, what="saving") as tmp:
+    with owned_output_folder(out_dir, [*study_inputs(study), *inputs], force=force, what="saving",
+                             cancelled=kw.get("cancelled")) as tmp:
         files, final = write_study(study, tmp, **kw)
     absolute = {k: ([str(out_dir / x) for x in v] if isinstance(v, list) else str(out_dir / v)) for k, v in files.items()}
     return out_dir, absolute, final
