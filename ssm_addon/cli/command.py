@@ -107,6 +107,7 @@ def signals_as_exceptions():
         for signum, old in previous.items():
             signal.signal(signum, old)
         sys.unraisablehook = unraisable
+        _received.clear()
 
 
 def _print_progress():
