@@ -277,6 +277,31 @@ def test_dask_local_starts_no_more_workers_than_cores_and_instances_and_leaves_n
     assert list(tmp_path.iterdir()) == []  # no dask-scratch-space, no ssm-dask-* left
 
 
+@pytest.mark.slow
+def test_dask_local_beside_another_cluster_on_8787_says_nothing():
+    """A second dask-local build (or a notebook's cluster) holds Dask's usual port 8787: the build's
+    scheduler takes a free local port and Dask prints no "Port 8787 is already in use" warning."""
+    pytest.importorskip("distributed", reason="Dask is optional (pip install .[dask])")
+    import socket
+    import warnings
+
+    other = socket.socket()
+    try:
+        other.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            other.bind(("0.0.0.0", 8787))
+            other.listen()
+        except OSError:
+            pass  # held already: as good for this test
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            with Executor("dask-local", jobs=1, tasks=1) as ex:
+                assert ex.map(abs, [-4]) == [4]
+    finally:
+        other.close()
+    assert [str(w.message) for w in seen if "8787" in str(w.message)] == []
+
+
 def test_scheduler_names_and_time_left():
     assert check_scheduler(" processes ") == "processes"
     with pytest.raises(InputError, match="unknown scheduler"):

@@ -351,9 +351,12 @@ class Executor:
             start_resource_tracker()
             self._scratch = tempfile.mkdtemp(prefix="ssm-dask-")
             self._dask_config = dask.config.set({"temporary-directory": self._scratch})  # scheduler's too
+            # no dashboard; the scheduler's own HTTP routes (health, metrics) on a free local port, not on
+            # 8787: another cluster there (a second build, a notebook's) would make Dask warn on stderr
             self._cluster = LocalCluster(n_workers=self.jobs, threads_per_worker=1, processes=True,
                                          dashboard_address=None, silence_logs=logging.CRITICAL,
-                                         local_directory=self._scratch, preload=[__name__])
+                                         local_directory=self._scratch, preload=[__name__],
+                                         scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"})
             self._client = Client(self._cluster)
             return
         deadline = time.monotonic() + self.connect_timeout_s
