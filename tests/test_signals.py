@@ -221,7 +221,7 @@ def test_a_signal_ignored_when_the_command_starts_stays_ignored():
         signal.signal(signal.SIGHUP, previous)
 
 
-_DROPPED_DURING_THE_COATING = """
+_SIGNAL_AT_A_LINE = """
 import os, signal, sys
 sys.path.insert(0, {tests!r})
 from test_signals import _SignalsWhenCollected
@@ -233,9 +233,12 @@ class Lines:
 
     def write(self, text):
         n = self.stream.write(text)
-        if "coating:" in text and not self.sent:
+        if {line!r} in text and not self.sent:
             self.sent = True
-            _SignalsWhenCollected(signal.SIGHUP)
+            if {dropped!r}:
+                _SignalsWhenCollected({signum})
+            else:
+                os.kill(os.getpid(), {signum})
         return n
 
     def __getattr__(self, name):
@@ -249,6 +252,21 @@ if __name__ == "__main__":  # not in the workers, which import this file again
 """
 
 
+def _build_signalled_at(project, tmp_path, line: str, signum: int, *, dropped: bool, scheduler: str = "processes"):
+    """Run ``ssm build`` in a new session; ``signum`` arrives (in a finalizer when ``dropped``) as the
+    build prints ``line``. Returns the finished process and the processes of its session left."""
+    script = tmp_path / "signalled.py"
+    script.write_text(_SIGNAL_AT_A_LINE.format(tests=str(Path(__file__).parent), line=line, signum=int(signum),
+                                               dropped=dropped))
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, "-u", str(script), "build", str(project), "--out", str(tmp_path / "out"),
+                             "--jobs", "2", "--no-blend", "--cache", "off", "--scheduler", scheduler], cwd=tmp_path,
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    stdout, stderr = proc.communicate(timeout=600)  # against a hang only
+    return subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr), _ended(_in_session(proc.pid))
+
+
 @pytest.mark.parametrize("scheduler", ["processes", "dask-local"])
 def test_a_signal_dropped_during_the_coating_still_stops_the_build(project, tmp_path, scheduler):
     """The CI failure of stop 48: SIGHUP landed in a library's ``__del__``, Python dropped its
@@ -256,17 +274,21 @@ def test_a_signal_dropped_during_the_coating_still_stops_the_build(project, tmp_
     stops at its next check with the one line and status 129, its workers ended, no output."""
     if scheduler == "dask-local":
         pytest.importorskip("distributed", reason="Dask is optional (pip install .[dask])")
-    out = tmp_path / "out"
-    script = tmp_path / "dropped.py"
-    script.write_text(_DROPPED_DURING_THE_COATING.format(tests=str(Path(__file__).parent)))
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    proc = subprocess.Popen([sys.executable, "-u", str(script), "build", str(project), "--out", str(out), "--jobs",
-                             "2", "--no-blend", "--cache", "off", "--scheduler", scheduler], cwd=tmp_path, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
-    stdout, stderr = proc.communicate(timeout=600)  # against a hang only
-    done = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
-    assert _ended(_in_session(proc.pid)) == [], "the build's workers outlived it"
+    done, left = _build_signalled_at(project, tmp_path, "coating:", signal.SIGHUP, dropped=True, scheduler=scheduler)
+    assert left == [], "the build's workers outlived it"
     assert done.returncode == 129, (done.returncode, done.stderr[-2000:])
     assert done.stderr.strip().splitlines() == ["interrupted by SIGHUP: stopped; the output folder is as it was"]
     assert "coating:" in done.stdout and "done:" not in done.stdout
-    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["dropped.py"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["signalled.py"]  # no output, no temporary folder
+
+
+@pytest.mark.parametrize(("signum", "dropped"), [(signal.SIGTERM, False), (signal.SIGHUP, True)])
+def test_a_signal_after_the_output_is_in_place_says_it_is_complete(project, tmp_path, signum, dropped):
+    """A signal while the build prints its summary (the output folder already moved into place) still
+    exits 128 + signal, and its one line says the output is complete, not "as it was"."""
+    done, left = _build_signalled_at(project, tmp_path, "timings:", signum, dropped=dropped)
+    out = tmp_path / "out"
+    assert left == [] and done.returncode == 128 + signum, (done.returncode, done.stderr[-2000:])
+    assert done.stderr.strip().splitlines() == [f"interrupted by {signal.Signals(signum).name} after the output was "
+                                                f"written: {out} is complete"]
+    assert (out / "model.npz").is_file() and (out / ".ssm-build.json").is_file()

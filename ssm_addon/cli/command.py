@@ -53,6 +53,7 @@ class Interrupted(BaseException):
 
 
 _received: list[int] = []  # the signals this command has received, in order of arrival
+_written: list[Path] = []  # the outputs this command has put in place (a signal after them leaves them whole)
 
 
 def _signal_exception(signum: int) -> BaseException:
@@ -108,6 +109,24 @@ def signals_as_exceptions():
             signal.signal(signum, old)
         sys.unraisablehook = unraisable
         _received.clear()
+
+
+@contextlib.contextmanager
+def _output_folder(out: Path, inputs, **options):
+    """:func:`~ssm_addon.pipeline.outputs.owned_output_folder` with the command's signal check before
+    the final move; remembers ``out`` once it is in place."""
+    from ..pipeline.outputs import owned_output_folder
+
+    with owned_output_folder(out, inputs, cancelled=check_signals, **options) as tmp:
+        yield tmp
+    _written.append(Path(out))
+
+
+def _interrupted_line(name: str) -> str:
+    """The one line an interrupted command prints: whether its output is as it was, or complete."""
+    if _written:
+        return f"interrupted by {name} after the output was written: {_written[-1]} is complete"
+    return f"interrupted by {name}: stopped; the output folder is as it was"
 
 
 def _print_progress():
@@ -274,6 +293,7 @@ def cmd_template(args) -> int:
     template = build_template(ov, params, progress=progress)
     n_v, faces = len(template.points_object), template.faces
     write_ply(out, template.points_world, faces, space="RAS")
+    _written.append(out)
     print(f"vertices: {n_v}")
     print(f"faces:    {len(faces)}")
     print(f"Euler characteristic: {euler_characteristic(n_v, faces)}")
@@ -319,6 +339,7 @@ def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> 
         project = dataclasses.replace(project, params=project.params.replace(quality=strict))
     result = build(project, out, jobs=jobs, progress=_print_progress(), cancelled=check_signals,
                    log=lambda m: print(m, flush=True), blender_hook=hook, force=bool(getattr(args, "force", False)))
+    _written.append(Path(result.out_dir))
     t = result.timings_s
     print("timings: " + ", ".join(f"{k} {v:.2f} s" for k, v in t.items()), flush=True)
     print(f"outputs in {result.out_dir}:")
@@ -376,8 +397,6 @@ def cmd_fit(args) -> int:
     params = P.from_arguments(args, P.FitParams)
     if not 0.5 < args.outlier_probability < 1.0:
         raise InputError(f"--outlier-probability must be between 0.5 and 1, got {args.outlier_probability}")
-    from ..pipeline.outputs import owned_output_folder
-
     out = Path(args.out).expanduser().resolve()
     meshes = args.mesh or []
     named = dict(m.split("=", 1) for m in meshes if "=" in m)
@@ -395,7 +414,7 @@ def cmd_fit(args) -> int:
         labels = dict(x.split("=", 1) for x in args.label_of)
         targets = {n: apply.FitTarget(name=n, mesh=Path(f)) for n, f in named.items()}
         targets.update({n: apply.FitTarget(name=n, volume=Path(args.volume), label=int(lab)) for n, lab in labels.items()})
-        with owned_output_folder(out, inputs, force=args.force, what="fitting") as tmp:
+        with _output_folder(out, inputs, force=args.force, what="fitting") as tmp:
             doc = apply.fit_structures_to_folder(model, targets, tmp, params=params, model_path=str(args.model),
                                                  outlier_probability=args.outlier_probability,
                                                  progress=_print_progress())
@@ -413,7 +432,7 @@ def cmd_fit(args) -> int:
             print(f"landmarks: {len(with_lm)} of {len(targets)} targets are fitted with their project landmarks as "
                   "soft constraints (--no-landmarks: surfaces alone)")
         inputs += [p for t in targets for p in (t.volume, t.mesh, t.points, t.landmarks)]
-        with owned_output_folder(out, inputs, force=args.force, what="fitting") as tmp:
+        with _output_folder(out, inputs, force=args.force, what="fitting") as tmp:
             docs = apply.fit_batch(args.model, targets, tmp, params=params, partial=args.partial, free=args.free,
                                    outlier_probability=args.outlier_probability, jobs=args.jobs,
                                    progress=_print_progress(), scheduler=args.scheduler)
@@ -430,7 +449,7 @@ def cmd_fit(args) -> int:
     t = apply.FitTarget(name=name, volume=Path(args.volume) if args.volume else None, label=args.label,
                         mesh=Path(args.mesh) if args.mesh else None, points=Path(args.points) if args.points else None,
                         landmarks=Path(args.landmarks) if args.landmarks else None)
-    with owned_output_folder(out, inputs, force=args.force, what="fitting") as tmp:
+    with _output_folder(out, inputs, force=args.force, what="fitting") as tmp:
         doc = apply.fit_to_folder(model, t, tmp, params=params, partial=args.partial, free=args.free,
                                   outlier_probability=args.outlier_probability, model_path=str(args.model),
                                   progress=_print_progress())
@@ -449,8 +468,6 @@ def cmd_analyze(args) -> int:
     from ..analysis.attributes import read_attributes
     from ..analysis.files import analysis_summary, run_analysis
     from ..fitting.batch import load_model
-    from ..pipeline.outputs import owned_output_folder
-
     source = Path(args.model).expanduser()
     model_path = source / "model.npz" if source.is_dir() else source
     if source.is_dir() and not model_path.is_file():
@@ -474,7 +491,7 @@ def cmd_analyze(args) -> int:
         raise InputError("analyze: give --group COLUMN, --covariate COLUMN, or both")
     attributes = read_attributes(attributes_path)
     out = Path(args.out).expanduser().resolve()
-    with owned_output_folder(out, [model_path, attributes_path], force=args.force, what="analysis") as tmp:
+    with _output_folder(out, [model_path, attributes_path], force=args.force, what="analysis") as tmp:
         result, _, written = run_analysis(model, attributes, params, tmp, model_path=str(model_path),
                                           progress=_print_progress())
     print(f"analysis of {len(result.names)} instances ({', '.join(f'{k} {v}' for k, v in result.counts.items())})"
@@ -525,19 +542,19 @@ def main(argv=None, in_blender: bool = False, blend_writer=None) -> int:
         args = argument_parser().parse_args(sys.argv[1:] if argv is None else list(argv))
     except SystemExit as exc:  # argparse: --help (0) or a usage error (2); never exit Blender
         return exc.code if isinstance(exc.code, int) else EXIT_INPUT
+    _written.clear()
     try:
         with contextlib.nullcontext() if in_blender else signals_as_exceptions():
             code = _dispatch(args, blend_writer)
             if _received:  # dropped in a finalizer after the core's last check: the command had ended
-                name = signal.Signals(_received[0]).name
-                print(f"interrupted by {name} as the command ended: its output is complete", file=sys.stderr)
+                print(_interrupted_line(signal.Signals(_received[0]).name), file=sys.stderr)
                 return 128 + _received[0]
             return code
     except Interrupted as sig:
-        print(f"interrupted by {sig.name}: stopped; the output folder is as it was", file=sys.stderr)
+        print(_interrupted_line(sig.name), file=sys.stderr)
         return 128 + sig.signum
     except KeyboardInterrupt:
-        print("interrupted by SIGINT: stopped; the output folder is as it was", file=sys.stderr)
+        print(_interrupted_line("SIGINT"), file=sys.stderr)
         return EXIT_CANCELLED
     except Cancelled as err:
         print(f"cancelled: {err}", file=sys.stderr)
