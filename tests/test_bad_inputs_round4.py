@@ -3,11 +3,14 @@ are not numbers, asked-for values the data cannot give, non-Latin names, two bui
 
 from __future__ import annotations
 
+import os
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,7 +20,7 @@ from ssm_addon.analysis import analyze, attributes_from_tables, read_attributes
 from ssm_addon.base.errors import InputError
 from ssm_addon.cli import demo
 from ssm_addon.cli.command import main
-from ssm_addon.formats.meshes import write_ply
+from ssm_addon.formats.meshes import read_mesh, write_ply
 from ssm_addon.instances.importing import file_names, safe_file_name
 from ssm_addon.model.files import save_npz
 from ssm_addon.model.pca import build_model
@@ -206,3 +209,38 @@ def test_two_builds_at_once_leave_one_output_and_one_refusal(population, tmp_pat
     assert second.returncode == 2 and "another SSM command is writing it now" in second.stderr
     assert "outputs in" not in second.stdout
     assert (out / "model.npz").is_file()
+
+
+# ------------------------------------------------------------------------ the template command's file
+def test_template_refuses_to_write_over_its_input(population, tmp_path, capsys):
+    volume = tmp_path / "demo_00.nii.gz"
+    shutil.copy(population / "demo_00.nii.gz", volume)
+    before = volume.read_bytes()
+    assert main(["template", str(volume), "--out", str(volume)]) == 2
+    assert _one_line_error(capsys) == (f"error: --out {volume}: is the input itself; give another file for the "
+                                       f"template, e.g. {tmp_path / 'demo_00_template.ply'}")
+    assert volume.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["demo_00.nii.gz"]
+
+
+def test_template_leaves_an_earlier_file_whole_when_its_writing_fails(population, tmp_path, monkeypatch, capsys):
+    from ssm_addon.formats import meshes
+
+    out = tmp_path / "t.ply"
+    assert main(["template", str(population / "demo_00.nii.gz"), "--out", str(out)]) == 0
+    earlier = out.read_bytes()
+    assert read_mesh(out)[0].shape[0] > 100 and oct(out.stat().st_mode & 0o777) == oct(0o666 & ~_umask_now())
+
+    def disk_full(path, *args, **kwargs):
+        Path(path).write_bytes(b"ply\nformat binary_little_endian 1.0\n")  # a start, then the disk is full
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(meshes, "write_ply", disk_full)
+    with pytest.raises(OSError, match="No space left"):
+        main(["template", str(population / "demo_00.nii.gz"), "--out", str(out)])
+    assert out.read_bytes() == earlier and sorted(p.name for p in tmp_path.iterdir()) == ["t.ply"]
+
+
+def _umask_now() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask

@@ -286,13 +286,25 @@ def cmd_template(args) -> int:
     if out.is_dir():
         raise InputError(f"{out}: --out is a folder; give the PLY file to write, e.g. {out / 'template.ply'}")
     _writable_folder(out.parent, "--out")  # before the work, not after it
+    if out.exists() and Path(args.volume).exists() and os.path.samefile(out, args.volume):
+        raise InputError(f"--out {out}: is the input itself; give another file for the template, e.g. "
+                         f"{out.with_name(out.stem.split('.')[0] + '_template.ply')}")
     progress = _print_progress()
     t0 = time.perf_counter()
     ov = load_object(args.volume, label=args.label, spacing_mm=params.spacing_mm, frame_method=params.frame,
                      progress=progress)
     template = build_template(ov, params, progress=progress)
     n_v, faces = len(template.points_object), template.faces
-    write_ply(out, template.points_world, faces, space="RAS")
+    # whole or not at all: an earlier file of that name stays as it was if the writing fails or is interrupted
+    part = out.with_name(f".{out.name}.{os.getpid()}.part")
+    os.close(os.open(part, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))  # the umask's mode, as a new file
+    try:
+        write_ply(part, template.points_world, faces, space="RAS")
+        check_signals()
+        os.replace(part, out)
+    except BaseException:
+        Path(part).unlink(missing_ok=True)
+        raise
     _written.append(out)
     print(f"vertices: {n_v}")
     print(f"faces:    {len(faces)}")
