@@ -297,7 +297,6 @@ def cmd_template(args) -> int:
     n_v, faces = len(template.points_object), template.faces
     # whole or not at all: an earlier file of that name stays as it was if the writing fails or is interrupted
     part = out.with_name(f".{out.name}.{os.getpid()}.part")
-    os.close(os.open(part, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))  # the umask's mode, as a new file
     try:
         write_ply(part, template.points_world, faces, space="RAS")
         check_signals()
