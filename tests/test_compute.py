@@ -318,6 +318,39 @@ def test_executor_map_keeps_order_and_reports(tmp_path):
     assert out == [3, 1, 2, 5] and sorted(seen) == [(0, 3), (1, 1), (2, 2), (3, 5)]
 
 
+def test_processes_are_processes_after_bpy_is_imported_and_serial_only_inside_the_blender_program(
+        tmp_path, monkeypatch):
+    """The rule is the program, not what was imported before: a Python that imported the ``bpy`` module
+    (a Blender test earlier in the same pytest worker, a notebook) runs real worker processes; only the
+    Blender program itself (``bpy.app.binary_path`` set) runs ``processes`` serially. Run in a fresh
+    interpreter that imports ``bpy`` first, so no earlier test decides it."""
+    pytest.importorskip("bpy", reason="the bpy module is not installed")
+    (tmp_path / "pid_of.py").write_text("import os\n\ndef pid_of(_):\n    return os.getpid()\n")
+    code = ("import os, bpy\n"
+            "from pid_of import pid_of\n"
+            "from ssm_addon.base.compute import Executor\n"
+            "with Executor('processes', jobs=2) as ex:\n"
+            "    assert ex.scheduler == 'processes', ex.scheduler\n"
+            "    pids = set(ex.map(pid_of, [0, 1, 2, 3]))\n"
+            "assert os.getpid() not in pids, pids\n"
+            "print('ok')\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(ROOT)])}
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True,
+                          timeout=600)
+    assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-2000:]
+
+    import types
+
+    from ssm_addon.base import compute
+
+    monkeypatch.setitem(sys.modules, "bpy", types.SimpleNamespace(app=types.SimpleNamespace(binary_path="/opt/blender")))
+    assert compute.inside_blender_program()
+    with Executor("processes", jobs=2) as ex:
+        assert ex.scheduler == "serial"
+    monkeypatch.setitem(sys.modules, "bpy", types.SimpleNamespace(app=types.SimpleNamespace(binary_path="")))
+    assert not compute.inside_blender_program()
+
+
 def _damage(entry: Path, how: str) -> None:
     data = entry.read_bytes()
     if how == "truncated":

@@ -206,6 +206,18 @@ def stop_children(before: set) -> None:
             child.kill()
 
 
+def inside_blender_program() -> bool:
+    """True when this Python runs inside the Blender program, where ``processes`` runs serially.
+
+    The Blender program embeds Python and its worker processes would start Blender's own
+    ``sys.executable``; the ``bpy`` module from PyPI (``bpy.app.binary_path`` empty) is an
+    ordinary interpreter whose worker processes start as any other's.
+    """
+    bpy = sys.modules.get("bpy")
+    app = getattr(bpy, "app", None)
+    return bool(getattr(app, "binary_path", ""))
+
+
 def usable_cores() -> int:
     """Cores this process may run on (its CPU affinity where the system says, else the CPU count)."""
     try:
@@ -301,8 +313,9 @@ class Executor:
         existing scheduler brings its own workers.
 
     Use as a context manager; the cluster (or pool) lives until it is closed, so several
-    maps (the refinement rounds, say) share it. Inside Blender ``processes`` runs
-    serially (``sys.executable`` is Blender itself).
+    maps (the refinement rounds, say) share it. Inside the Blender program ``processes``
+    runs serially (:func:`inside_blender_program`); a Python that imported the ``bpy``
+    module runs real processes.
 
     Raises
     ------
@@ -331,7 +344,7 @@ class Executor:
         self._cluster = None
         self._pool = None
         self._before_pool: set = set()
-        if self.scheduler == "processes" and ("bpy" in sys.modules or self.jobs == 1):
+        if self.scheduler == "processes" and (inside_blender_program() or self.jobs == 1):
             self.scheduler = "serial"
         if self.scheduler not in ("serial", "processes"):
             self._start_dask()

@@ -50,7 +50,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import sys
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -59,7 +58,7 @@ from enum import StrEnum
 
 import numpy as np
 
-from ..base.compute import executor_or_local, inner_threads, run_one_thread
+from ..base.compute import executor_or_local, inner_threads, inside_blender_program, run_one_thread
 from ..base.errors import Cancelled, InputError, check_cancelled
 from ..base.params import CoatingParams
 from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
@@ -427,10 +426,6 @@ def _coat_job(args):
     return coat(template, src, target, dst, params=params, name=name)  # the executor limits the BLAS threads
 
 
-def _in_blender() -> bool:
-    return "bpy" in sys.modules
-
-
 def coat_all(
     template,
     template_landmarks_object: np.ndarray,
@@ -451,7 +446,7 @@ def coat_all(
     Results are identical serial vs parallel (no random state; each instance is
     computed by the same code). Processes (``jobs`` > 1, ``start_method`` "spawn" or
     "forkserver"; fork is avoided because the caller may hold threads) are used
-    only outside Blender (inside Blender ``sys.executable`` is Blender itself), and
+    only outside the Blender program (:func:`~ssm_addon.base.compute.inside_blender_program`), and
     only when there are at least two targets.
 
     Progress is reported per finished instance. Cancellation is checked between
@@ -469,7 +464,7 @@ def coat_all(
     n = len(targets)
     results: list[CoatingResult | None] = [None] * n
     jobs = max(1, min(int(jobs or 1), n, os.cpu_count() or 1))
-    if executor is None and (jobs == 1 or _in_blender()):
+    if executor is None and (jobs == 1 or inside_blender_program()):
         for i, (tgt, lm) in enumerate(zip(targets, target_landmarks_object_list)):
             if cancelled is not None and cancelled():
                 raise CoatingCancelled(f"coating cancelled after {i} of {n} instances", results)
