@@ -793,6 +793,25 @@ class CorrespondenceParams:
     fit_noise_mm: float = param(1.0, unit="mm", minimum=0.0, exclusive_minimum=True, maximum=1000.0,
                                 label="Fit noise", advanced=True,
                                 help="noise σ of the model fit to each instance's surface")
+    optimise: bool = param(False, label="Optimise",
+                           help="after the coating, slide each instance's points along its own surface to lower "
+                                "the population's objective (entropy of the shapes, springs, landmarks held)")
+    optimise_iterations: int = param(10, minimum=1, maximum=1000, label="Optimisation iterations",
+                                     help="most iterations of the correspondence optimisation")
+    population_weight: float = param(0.0, minimum=0.0, maximum=1000.0, label="Population weight",
+                                     help="weight of the population term (the shapes' entropy) against one spring "
+                                          "of the regularity; 0: springs and landmarks only")
+    min_variance: float = param(0.001, minimum=0.0, exclusive_minimum=True, maximum=1.0,
+                                label="Negligible variance", advanced=True,
+                                help="share of the total variance below which a mode counts as noise that the "
+                                     "population term removes (its floor α)")
+    landmark_hold: float = param(1.0, minimum=0.0, maximum=1000.0, label="Landmark hold",
+                                 help="weight of a given landmark's pull to its place against one spring during "
+                                      "the optimisation (0: landmarks slide with the rest)")
+    optimise_tolerance_mm: float = param(0.01, unit="mm", minimum=0.0, maximum=100.0, label="Optimisation stop",
+                                         advanced=True,
+                                         help="stop the optimisation when an iteration moves the points less than "
+                                              "this (RMS)")
 
     _where = "correspondence parameters:"
 

@@ -32,7 +32,7 @@ from .metrics import (
 from .pca import ShapeModel
 
 __all__ = ["FIGURE_COLOURS", "FIGURE_VIEWS", "fit_figure", "label_modes_figure", "mode_shapes", "modes_figure_cell",
-           "p_value_text", "principal_views", "rasterize_meshes", "render_modes_figure"]
+           "optimisation_figure", "p_value_text", "principal_views", "rasterize_meshes", "render_modes_figure"]
 
 #: Model frame -> screen frame (rows: screen x right, screen y up, towards the viewer).
 #: axial: seen from superior (x right, y up); sagittal: from the +x side with z up;
@@ -295,3 +295,71 @@ def fit_figure(points_mm: np.ndarray, faces: np.ndarray, sd_mm: np.ndarray, targ
     fig.savefig(path)
     return path
 
+
+
+def optimisation_figure(points_mm: np.ndarray, faces: np.ndarray, movement_mm: np.ndarray, steps, path, *,
+                        title: str = "Correspondence optimisation", cell_px: int = 360) -> Path:
+    """Where the correspondence optimisation moved points, and its objective by iteration (PNG).
+
+    Left: the objective and the population's entropy (nats) by iteration. Right: the mean
+    shape (``points_mm``, model frame) in two views along its principal axes, coloured by
+    ``movement_mm``, each point's mean distance from its coated place over the instances (mm,
+    with its colour bar).
+
+    Parameters
+    ----------
+    points_mm : (N, 3) mm; faces : (F, 3)
+    movement_mm : (N,) mm
+    steps : sequence of :class:`~ssm_addon.correspondence.optimisation.OptimisationStep` (or their dicts)
+    """
+    import matplotlib
+    from matplotlib import cm, colors
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
+
+    rows = [s if isinstance(s, dict) else s.to_dict() for s in steps]
+    pts = np.asarray(points_mm, float)
+    move = np.asarray(movement_mm, float)
+    centre = pts.mean(axis=0)
+    extent = float(np.linalg.norm(pts - centre, axis=1).max())
+    px_per_mm = 0.42 * cell_px / max(extent, 1e-9)
+    top = max(float(move.max()) if move.size else 0.0, 1e-6)
+    norm = colors.Normalize(vmin=0.0, vmax=top)
+    cmap = matplotlib.colormaps["magma_r"]
+    face_rgb = cmap(norm(move[np.asarray(faces)].mean(axis=1)))[:, :3] if move.size else None
+    fig = Figure(figsize=(13.0, 5.0), dpi=100)
+    FigureCanvasAgg(fig)
+    curve = fig.add_axes([0.06, 0.22, 0.25, 0.6])
+    it = [r["iteration"] for r in rows]
+    curve.plot(it, [r["objective"] for r in rows], "o-", color="black", label="objective")
+    curve.set_xlabel("iteration")
+    curve.xaxis.set_major_locator(MaxNLocator(integer=True))
+    curve.set_ylabel("objective")
+    twin = curve.twinx()
+    twin.plot(it, [r["entropy_nats"] for r in rows], "s--", color="#1f5fbf", label="entropy (nats)")
+    twin.set_ylabel("population entropy (nats)", color="#1f5fbf")
+    curve.set_title("objective by iteration", fontsize=11)
+    lines = curve.get_legend_handles_labels()[0] + twin.get_legend_handles_labels()[0]
+    curve.legend(lines, [line.get_label() for line in lines], fontsize=9, loc="upper right")
+    for i, (name, rot) in enumerate(principal_views(pts)):
+        ax = fig.add_axes([0.36 + 0.31 * i, 0.22, 0.3, 0.66])
+        q = (pts - centre) @ rot.T
+        screen = np.c_[cell_px / 2 + q[:, 0] * px_per_mm, cell_px / 2 - q[:, 1] * px_per_mm, q[:, 2]]
+        rgb = face_rgb if face_rgb is not None else np.full((len(faces), 3), 0.8)
+        ax.imshow(rasterize_meshes([(screen, faces, rgb)], (cell_px, cell_px)), interpolation="lanczos")
+        bar = scale_bar_mm(1.0 / px_per_mm, cell_px)
+        x0, y0 = 0.06 * cell_px, 0.94 * cell_px
+        ax.plot([x0, x0 + bar * px_per_mm], [y0, y0], color="black", lw=3, solid_capstyle="butt")
+        ax.text(x0, y0 - 0.02 * cell_px, f"{bar:g} mm", fontsize=10, va="bottom")
+        ax.set_title(f"mean shape, view {name}", fontsize=11)
+        ax.set_xlim(0, cell_px)
+        ax.set_ylim(cell_px, 0)
+        ax.set_axis_off()
+    fig.suptitle(title, fontsize=13, y=0.97)
+    bar_ax = fig.add_axes([0.42, 0.1, 0.5, 0.03])
+    fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), cax=bar_ax, orientation="horizontal")
+    bar_ax.set_xlabel("each point's mean movement along the surfaces (mm)", fontsize=10)
+    path = Path(path)
+    fig.savefig(path)
+    return path

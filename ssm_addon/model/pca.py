@@ -542,6 +542,13 @@ def _modes_randomized(centred: np.ndarray, n_norm: float, k: int, *, seed: int =
     return (sv[:k].astype(float) ** 2) / n_norm, vt[:k].astype(float)
 
 
+def leading_modes(centred: np.ndarray, n_norm: float, k: int, *, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The first ``k`` eigenpairs of S = P Pᵀ / n_norm of centred (n, 3N) shape vectors by the
+    randomized SVD (:func:`build_model`'s solver for large studies): variances (k,), modes (k, 3N).
+    Its cost grows linearly with n."""
+    return _modes_randomized(centred, n_norm, k, seed=seed)
+
+
 def _modes_for_fraction(variances: np.ndarray, total: float, fraction: float | None) -> int:
     """Number of leading modes whose variance reaches ``fraction`` of ``total`` (all when None)."""
     if fraction is None or total <= 0 or not len(variances):

@@ -39,7 +39,7 @@ from ..formats.landmarks import landmark_format, write_landmarks
 from ..formats.meshes import write_ply
 from ..formats.vtk import write_vtp
 from ..instances.importing import file_names
-from ..model.figures import render_modes_figure
+from ..model.figures import optimisation_figure, render_modes_figure
 from ..model.files import write_model_files
 from ..model.metrics import write_plots
 from .report import Absent, Report, joint_report, model_report, study_report, write_report_html
@@ -414,6 +414,13 @@ def write_study(study: Study, folder, *, output: OutputParams, project: str | Ab
         for name in names:
             write_landmarks(folder / "landmarks" / f"{safe[name]}.{ext}", carried[name])
         files["landmarks"] = "landmarks"
+    if study.optimisation is not None and len(study.optimisation.point_movement_mm) == len(model.mean) and plots:
+        try:
+            optimisation_figure(model.mean, tpl.faces, study.optimisation.point_movement_mm, study.optimisation.steps,
+                                folder / "optimisation.png")
+            files["optimisation"] = "optimisation.png"
+        except ImportError as err:
+            say(f"picture: optimisation.png skipped ({err})")
     entries = _write_model_outputs(model, folder, files, output=output, say=say, drawn=drawn, analysis=analysis,
                                    extra=extra)
     study.timings_s["write"] = time.perf_counter() - t0 - study.timings_s.get("blender", 0.0)

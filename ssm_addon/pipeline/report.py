@@ -218,6 +218,7 @@ def study_report(study: Study, *, project: str | Absent, timings_unknown: dict |
         "stop": check.stop if check is not None else "",
         "self_check": check.to_dict() if check is not None else None,
         "carried_landmark_distance_mm": landmark_distances(study, carried_landmarks(study)),
+        "optimisation": study.optimisation.to_dict() if study.optimisation is not None else None,
     }
     return Report(
         project=project,
@@ -590,6 +591,21 @@ def write_html_report(path, report: Report | dict, *, images: dict[str, bytes] |
                  "model's prediction error (mm/axis)", "landmarks moved (%)", "transfer before (mm)",
                  "transfer after (mm)", "kept", "folds", "seconds"]))
 
+        opt = corr.get("optimisation") or {}
+        if opt.get("steps"):
+            first, last = opt["steps"][0], opt["steps"][-1]
+            moved = opt.get("instance_movement_mm") or {}
+            most = max(moved, key=moved.get) if moved else ""
+            stop = {"converged": "it converged (the points moved less than the tolerance)",
+                    "limit": "it stopped at its iteration limit", "cancelled": "it was cancelled (the last complete "
+                    "iteration kept)"}.get(opt.get("stop", ""), str(opt.get("stop", "")))
+            parts.append(f"<p>Correspondence optimisation: {int(opt.get('iterations', 0))} iteration(s), "
+                         f"{html.escape(stop)}; objective {_num(first.get('objective'), 4)} → "
+                         f"{_num(last.get('objective'), 4)}, population entropy {_num(first.get('entropy_nats'), 2)} → "
+                         f"{_num(last.get('entropy_nats'), 2)} nats"
+                         + (f"; the points of <b>{html.escape(str(most))}</b> moved most, "
+                            f"{_num(moved[most], 3)} mm RMS" if most else "") + ".</p>")
+
     # instances
     inst = report.instances
     if inst:
@@ -660,7 +676,9 @@ def write_html_report(path, report: Report | dict, *, images: dict[str, bytes] |
 
 FIGURES = (("variability.png", "Eigenvalue spectrum and concentration of variability (paper fig. 9)"),
            ("modes.png", "Mean shape and the first modes (paper fig. 10)"),
-           ("metrics.png", "Compactness, generalization and specificity by number of modes"))
+           ("metrics.png", "Compactness, generalization and specificity by number of modes"),
+           ("optimisation.png", "Correspondence optimisation: the objective by iteration, and where on the mean "
+                                "shape points moved (mm)"))
 
 
 ANALYSIS_FIGURES = (("analysis_map.png", "Group difference along the surface normal on the mean shape (mm); faded: "

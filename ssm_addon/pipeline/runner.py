@@ -12,7 +12,16 @@ from ..base.errors import InputError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..model.metrics import import_plotting_in_background
 from .model_method import distance_maps_ahead, refine_correspondence
-from .stages import coat_instances, coating_result, import_stage, metrics_stage, model_stage, self_check, template_stage
+from .stages import (
+    coat_instances,
+    coating_result,
+    import_stage,
+    metrics_stage,
+    model_stage,
+    optimisation_stage,
+    self_check,
+    template_stage,
+)
 from .streaming import stream_instances
 from .study import STAGES, Log, StageResult, Study, apply_stage
 
@@ -45,8 +54,10 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
         cancelled: CancelledFn = None, log: Log = None, executor=None, cache=None) -> Study:
     """Run ``stages`` in order on ``study``, applying each stage's result, and return it.
 
-    Progress: import 0–15 %, template 15–30 %, coating 30–85 %, model 85–90 %, metrics
-    90–95 % of ``progress``; ``log`` receives each result's lines (:meth:`StageResult.lines`).
+    Progress: import 0–15 %, template 15–30 %, coating 30–80 %, optimisation 80–85 % (when
+    ``[correspondence] optimise``; a line per iteration with its objective), model 85–90 %,
+    metrics 90–95 % of ``progress``; ``log`` receives each result's lines
+    (:meth:`StageResult.lines`).
 
     With an ``executor`` (:class:`~ssm_addon.base.compute.Executor`), the landmarks method
     and the import, template and coating stages all asked for, those stages run streamed
@@ -67,7 +78,7 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
     if (executor is not None and study.params.correspondence.method == "landmarks"
             and all(s in stages for s in ("import", "template", "coating"))):
         report(progress, 0.0, f"import, template and coating: {n} instances on {executor.describe()}")
-        applied(stream_instances(study, executor, cache=cache, progress=sub_progress(progress, 0.0, 0.85),
+        applied(stream_instances(study, executor, cache=cache, progress=sub_progress(progress, 0.0, 0.8),
                                  cancelled=cancelled, log=say))
         stages = [s for s in stages if s not in ("import", "template", "coating")]
     if "import" in stages:
@@ -88,7 +99,7 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
             check_cancelled(cancelled)
             report(progress, 0.3, f"coating: {n} instances, {jobs} job(s)")
             import_plotting_in_background()  # for the plots after the model, while the workers coat
-            coat_prog = sub_progress(progress, 0.3, 0.85)
+            coat_prog = sub_progress(progress, 0.3, 0.8)
             if study.params.correspondence.method == "landmarks":  # one progress line per instance, as it arrives
                 t0, arrived = time.perf_counter(), []
 
@@ -102,6 +113,19 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
             else:
                 applied(coating_stage(study, jobs=jobs, progress=coat_prog, cancelled=cancelled, log=say,
                                       executor=executor))
+    if "optimisation" in stages and study.params.correspondence.optimise:
+        check_cancelled(cancelled)
+        iterations = study.params.correspondence.optimise_iterations
+        report(progress, 0.8, f"optimisation: up to {iterations} iterations, population weight "
+                              f"{study.params.correspondence.population_weight:g}")
+        opt_prog = sub_progress(progress, 0.8, 0.85)
+
+        def step_line(step) -> None:
+            report(opt_prog, step.iteration / iterations,
+                   f"optimisation: iteration {step.iteration}/{iterations}: objective {step.objective:.4f}, entropy "
+                   f"{step.entropy_nats:.2f} nats, landmarks {step.landmark_mm:.3f} mm, moved {step.movement_mm:.4f} mm")
+
+        applied(optimisation_stage(study, jobs=jobs, executor=executor, cancelled=cancelled, on_step=step_line))
     if "model" in stages:
         check_cancelled(cancelled)
         report(progress, 0.85, "model: PCA")

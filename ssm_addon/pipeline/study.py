@@ -10,6 +10,7 @@ stage                 function                                    product
 import (paper 2)      :func:`import_instances`                    ``volumes``
 template (paper 3)    :func:`make_template`                       ``template``
 coating (paper 4)     :func:`coat_instances`                      ``coatings``
+optimisation          :func:`optimisation_stage`                  ``coatings``
 model (paper 5)       :func:`make_model`                          ``model``
 metrics               :func:`evaluate_model`                      ``metrics``
 ====================  ==========================================  ===================
@@ -103,6 +104,9 @@ class Study:
         errors, mm). ``"medoid"`` tries the landmark medoid first: confirmed by its coatings,
         the record is that guess's (``by = "landmarks"``, ``coatings_medoid``, ``confirmed``);
         else the given template's route, with the guess under ``landmark_medoid``.
+    optimisation : Optimisation or None
+        The correspondence optimisation's record (``[correspondence] optimise``): its
+        iterations, stop and how far each instance's points moved.
     input_distances : dict name -> dict
         Instances given as meshes: their coating against the mesh, both ways (mm:
         ``to_input``, ``from_input``, each mean, p95 and max).
@@ -130,6 +134,7 @@ class Study:
     streamed: dict = field(default_factory=dict)
     fallbacks: list = field(default_factory=list)
     input_distances: dict = field(default_factory=dict)
+    optimisation: object | None = None
 
     def __post_init__(self):
         self.instances = tuple(self.instances)
@@ -184,7 +189,7 @@ class Study:
         return self.volumes[name]
 
 
-STAGES = ("import", "template", "coating", "model", "metrics")
+STAGES = ("import", "template", "coating", "optimisation", "model", "metrics")
 
 
 def study_parameters(study: Study, landmark_names: Sequence[str] = ()) -> dict:
