@@ -62,7 +62,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -104,9 +104,12 @@ class InstanceSource:
     spacing_mm: float
     frame_method: str
     space: str = "auto"
+    distance_map_store: str = ""
 
     def volume(self) -> ObjectVolume:
-        return import_instance(self.spec, spacing_mm=self.spacing_mm, frame_method=self.frame_method, space=self.space)
+        """The instance imported (paper 2), its distance map kept in ``distance_map_store`` when named."""
+        ov = import_instance(self.spec, spacing_mm=self.spacing_mm, frame_method=self.frame_method, space=self.space)
+        return replace(ov, distance_map_store=self.distance_map_store) if self.distance_map_store else ov
 
 
 @dataclass(frozen=True)
@@ -216,8 +219,9 @@ class Optimisation:
     point_movement_mm : (N,) ndarray
         Mean over the instances of each point's distance from its coated place (mm): where
         on the template (and the mean shape) points moved most.
-    surface_distance_mm : dict name -> float
-        Largest distance of an instance's points from its surface after the optimisation.
+    surface_distance_mm, surface_mean_mm : dict name -> float
+        Largest and mean distance of an instance's points from its surface after the
+        optimisation (mm, exact to the marching-cubes surface, as the coating's fit figures).
     folds : dict name -> int
         Folded triangles after the optimisation.
     seconds : float
@@ -229,6 +233,7 @@ class Optimisation:
     instance_movement_mm: dict = field(default_factory=dict)
     point_movement_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
     surface_distance_mm: dict = field(default_factory=dict)
+    surface_mean_mm: dict = field(default_factory=dict)
     folds: dict = field(default_factory=dict)
     seconds: float = 0.0
 
@@ -242,6 +247,7 @@ class Optimisation:
                 "instance_movement_mm": {k: float(v) for k, v in self.instance_movement_mm.items()},
                 "point_movement_mm": [float(x) for x in np.asarray(self.point_movement_mm, float)],
                 "surface_distance_mm": {k: float(v) for k, v in self.surface_distance_mm.items()},
+                "surface_mean_mm": {k: float(v) for k, v in self.surface_mean_mm.items()},
                 "folds": {k: int(v) for k, v in self.folds.items()}, "seconds": float(self.seconds)}
 
     @classmethod
@@ -250,7 +256,8 @@ class Optimisation:
         return cls(points={}, steps=tuple(OptimisationStep(**s) for s in d.get("steps", ())), stop=str(d.get("stop", "")),
                    instance_movement_mm=dict(d.get("instance_movement_mm", {})),
                    point_movement_mm=np.asarray(d.get("point_movement_mm", ()), float),
-                   surface_distance_mm=dict(d.get("surface_distance_mm", {})), folds=dict(d.get("folds", {})),
+                   surface_distance_mm=dict(d.get("surface_distance_mm", {})),
+                   surface_mean_mm=dict(d.get("surface_mean_mm", {})), folds=dict(d.get("folds", {})),
                    seconds=float(d.get("seconds", 0.0)))
 
 
@@ -359,7 +366,8 @@ def slide_on_surface(points: np.ndarray, faces: np.ndarray, dm: DistanceMap, res
     points : (N, 3) mm
     figures : dict
         ``energy`` (per point, squared voxels: springs and landmarks), ``landmark_rms_mm``,
-        ``folds`` (folded triangles left), ``surface_distance_mm`` (largest, trilinear),
+        ``folds`` (folded triangles left), ``surface_distance_mm`` and ``surface_mean_mm`` (largest
+        and mean, exact to the marching-cubes surface),
         ``steps`` (taken), ``converged`` (the last step moved less than ``tolerance_mm``).
     """
     coating = coating or CoatingParams()
@@ -421,7 +429,9 @@ def slide_on_surface(points: np.ndarray, faces: np.ndarray, dm: DistanceMap, res
                "landmark_rms_mm": (float(np.sqrt((hold.residuals_mm(p, faces) ** 2).mean()))
                                    if hold is not None and len(hold.triangles) else 0.0),
                "folds": int(folded_triangles(p, faces, dm).sum()),
-               "surface_distance_mm": float(np.abs(dm.distance(p)).max()), "steps": taken, "converged": converged}
+               "steps": taken, "converged": converged}
+    exact = dm.surface_distance(p)
+    figures.update(surface_distance_mm=float(exact.max()), surface_mean_mm=float(exact.mean()))
     return p, figures
 
 
@@ -515,7 +525,10 @@ def optimise_correspondence(points: Mapping[str, np.ndarray], faces: np.ndarray,
         per_point = np.mean([np.linalg.norm(current[n] - start[n], axis=1) for n in names], axis=0)
         return Optimisation(points=dict(current), steps=tuple(steps), stop=stop, instance_movement_mm=moved,
                             point_movement_mm=per_point,
-                            surface_distance_mm={n: figures[n].get("surface_distance_mm", 0.0) for n in names},
+                            surface_distance_mm={n: figures[n]["surface_distance_mm"] for n in names
+                                                 if "surface_distance_mm" in figures[n]},
+                            surface_mean_mm={n: figures[n]["surface_mean_mm"] for n in names
+                                             if "surface_mean_mm" in figures[n]},
                             folds={n: figures[n].get("folds", 0) for n in names},
                             seconds=time.perf_counter() - t0)
 

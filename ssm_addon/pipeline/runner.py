@@ -12,13 +12,13 @@ from ..base.errors import InputError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..model.metrics import import_plotting_in_background
 from .model_method import distance_maps_ahead, refine_correspondence
+from .optimisation import optimisation_stage
 from .stages import (
     coat_instances,
     coating_result,
     import_stage,
     metrics_stage,
     model_stage,
-    optimisation_stage,
     self_check,
     template_stage,
 )

@@ -16,13 +16,6 @@ from ..base.compute import executor_or_local
 from ..base.errors import InputError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn, report
 from ..coating.coating import CoatingResult, coat_all, coat_from_start
-from ..coating.distance_map import DistanceMap
-from ..correspondence.optimisation import (
-    InstanceSource,
-    Optimisation,
-    landmark_holds,
-    optimise_correspondence,
-)
 from ..correspondence.rounds import check_correspondence, correspondence_fit_params
 from ..formats.label_maps import read_label_map
 from ..formats.meshes import read_mesh
@@ -54,7 +47,7 @@ from .study import (
     template_landmark_locations,
 )
 
-__all__ = ["coat_from_frames", "coat_instances", "coating_result", "evaluate_model", "import_instances", "import_result", "import_stage", "label_map_once", "make_model", "make_template", "metrics_stage", "model_stage", "optimisation_result", "optimisation_stage", "self_check", "template_stage"]
+__all__ = ["coat_from_frames", "coat_instances", "coating_result", "evaluate_model", "import_instances", "import_result", "import_stage", "label_map_once", "make_model", "make_template", "metrics_stage", "model_stage", "self_check", "template_stage"]
 
 
 _LABEL_MAP_MEMO: dict = {}
@@ -388,73 +381,6 @@ def self_check(study: Study, coatings: dict[str, CoatingResult], *, template: Te
                                  template.landmark_locations, given, fit=fit, executor=executor, jobs=jobs,
                                  cancelled=cancelled)
     return check, tuple(check_landmark_transfer(check, study.params.quality))
-
-
-def optimisation_stage(study: Study, *, jobs: int = 1, executor=None, progress: ProgressFn = None,
-                       cancelled: CancelledFn = None, on_step=None) -> StageResult:
-    """The correspondence optimisation (``[correspondence] optimise``): every instance's points
-    slide along its own surface (:func:`ssm_addon.correspondence.optimisation.optimise_correspondence`),
-    the given landmarks held where the coating's warp put them. The self-check is measured again
-    on the result when the coating measured it.
-
-    Instances whose volume the study does not hold (a streamed build keeps one) are imported
-    again by the worker that moves their points. ``on_step(step)``: each iteration's figures as
-    it ends. Cancelling raises :class:`~ssm_addon.correspondence.optimisation.OptimisationCancelled`,
-    whose ``result`` (the last complete iteration) :func:`optimisation_result` turns into a
-    stage result.
-    """
-    if study.template is None or any(n not in study.coatings for n in study.names):
-        raise InputError("optimisation: coat every instance first")
-    t0 = time.perf_counter()
-    names = list(study.names)
-    tp = study.params.template
-    surfaces = {n: study.volumes[n] if n in study.volumes else
-                InstanceSource(study.instance(n), tp.spacing_mm, tp.frame, tp.space) for n in names}
-    given = {n: study.landmarks(n).names if study.landmarks(n) is not None else () for n in names}
-    holds = landmark_holds(study.template.landmark_locations, study.template.faces,
-                           {n: study.coatings[n].warped_points_object for n in names}, given)
-    result = optimise_correspondence({n: study.coatings[n].points_object for n in names}, study.template.faces,
-                                     surfaces, params=study.params.correspondence, coating=study.params.coating,
-                                     holds=holds, jobs=jobs, executor=executor, progress=progress,
-                                     cancelled=cancelled, on_step=on_step)
-    return optimisation_result(study, result, time.perf_counter() - t0, jobs=jobs, executor=executor,
-                               cancelled=cancelled)
-
-
-def optimisation_result(study: Study, result: Optimisation, seconds: float, *, jobs: int = 1, executor=None,
-                        cancelled: CancelledFn = None) -> StageResult:
-    """The optimisation stage's result: the coatings with the optimised points (their fit figures
-    measured again, paper 4.2's exact surface distance), the record, the coating gates and, when
-    the coating had one, the self-check of the optimised points."""
-    coated = {}
-    for n, c in study.coatings.items():
-        if n not in result.points:
-            continue
-        dist = DistanceMap.from_object_volume(study.volumes[n]).surface_distance(result.points[n]) \
-            if n in study.volumes else None
-        fit = dataclasses.replace(
-            c.fit, folded_after=int(result.folds.get(n, c.fit.folded_after)),
-            **({} if dist is None else {"mean_distance_mm": float(dist.mean()), "max_distance_mm": float(dist.max())}))
-        coated[n] = dataclasses.replace(c, points_object=np.asarray(result.points[n], float), fit=fit)
-    qp = study.params.quality
-    findings = tuple(f for n, c in coated.items() for f in check_coating(n, c.fit, qp))
-    product = {"coatings": coated, "optimisation": result}
-    before = study.correspondence_check
-    lines = []
-    if before is not None and getattr(before, "instance_mm", None) and result.stop != "cancelled":
-        check, found = self_check(study, {**study.coatings, **coated}, jobs=jobs, executor=executor,
-                                  cancelled=cancelled)
-        if check is not None:
-            product["correspondence_check"] = dataclasses.replace(check, stop=before.stop,
-                                                                  kept_round=before.kept_round)
-            findings += tuple(found)
-            lines.append(f"optimisation: landmark transfer error {before.study_mm:.3f} -> {check.study_mm:.3f} mm")
-    last = result.steps[-1] if result.steps else None
-    moved = max(result.instance_movement_mm.values(), default=0.0)
-    lines.insert(0, f"optimisation: {result.iterations} iteration(s) in {seconds:.2f} s, {result.stop}; objective "
-                    f"{result.steps[0].objective:.4f} -> {last.objective:.4f}, entropy {result.steps[0].entropy_nats:.2f}"
-                    f" -> {last.entropy_nats:.2f} nats; points moved {moved:.3f} mm RMS at most")
-    return StageResult("optimisation", product, findings, {"optimisation": seconds}, tuple(lines))
 
 
 def model_stage(study: Study, *, progress: ProgressFn = None, cancelled: CancelledFn = None) -> StageResult:

@@ -1,0 +1,97 @@
+"""The correspondence optimisation on a study (``[correspondence] optimise``): the stage after
+the coating that slides every instance's points along its own surface
+(:mod:`ssm_addon.correspondence.optimisation`)."""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import time
+
+import numpy as np
+
+from ..base.errors import InputError
+from ..base.progress import CancelledFn, ProgressFn
+from ..correspondence.optimisation import (
+    InstanceSource,
+    Optimisation,
+    landmark_holds,
+    optimise_correspondence,
+)
+from ..model.quality import check_coating
+from .model_method import distance_maps_kept
+from .stages import self_check
+from .study import StageResult, Study
+
+__all__ = ["optimisation_result", "optimisation_stage"]
+
+
+def optimisation_stage(study: Study, *, jobs: int = 1, executor=None, progress: ProgressFn = None,
+                       cancelled: CancelledFn = None, on_step=None) -> StageResult:
+    """The correspondence optimisation (``[correspondence] optimise``): every instance's points
+    slide along its own surface (:func:`ssm_addon.correspondence.optimisation.optimise_correspondence`),
+    the given landmarks held where the coating's warp put them. The self-check is measured again
+    on the result when the coating measured it.
+
+    Instances whose volume the study does not hold (a streamed build keeps one) are imported
+    again by the worker that moves their points. ``on_step(step)``: each iteration's figures as
+    it ends. Cancelling raises :class:`~ssm_addon.correspondence.optimisation.OptimisationCancelled`,
+    whose ``result`` (the last complete iteration) :func:`optimisation_result` turns into a
+    stage result.
+    """
+    if study.template is None or any(n not in study.coatings for n in study.names):
+        raise InputError("optimisation: coat every instance first")
+    t0 = time.perf_counter()
+    names = list(study.names)
+    tp = study.params.template
+    given = {n: study.landmarks(n).names if study.landmarks(n) is not None else () for n in names}
+    holds = landmark_holds(study.template.landmark_locations, study.template.faces,
+                           {n: study.coatings[n].warped_points_object for n in names}, given)
+    several = study.params.correspondence.population_weight > 0  # a map per iteration: keep the distance maps
+    with distance_maps_kept(study) if several else contextlib.nullcontext("") as store:
+        surfaces = {n: study.volumes[n] if n in study.volumes else
+                    InstanceSource(study.instance(n), tp.spacing_mm, tp.frame, tp.space, distance_map_store=store)
+                    for n in names}
+        result = optimise_correspondence({n: study.coatings[n].points_object for n in names}, study.template.faces,
+                                         surfaces, params=study.params.correspondence, coating=study.params.coating,
+                                         holds=holds, jobs=jobs, executor=executor, progress=progress,
+                                         cancelled=cancelled, on_step=on_step)
+    return optimisation_result(study, result, time.perf_counter() - t0, jobs=jobs, executor=executor,
+                               cancelled=cancelled)
+
+
+def optimisation_result(study: Study, result: Optimisation, seconds: float, *, jobs: int = 1, executor=None,
+                        cancelled: CancelledFn = None) -> StageResult:
+    """The optimisation stage's result: the coatings with the optimised points (their fit figures
+    measured again, paper 4.2's exact surface distance), the record, the coating gates and, when
+    the coating had one, the self-check of the optimised points."""
+    coated = {}
+    for n, c in study.coatings.items():
+        if n not in result.points:
+            continue
+        fit = dataclasses.replace(c.fit, folded_after=int(result.folds.get(n, c.fit.folded_after)),
+                                  **{k: float(v[n]) for k, v in (("mean_distance_mm", result.surface_mean_mm),
+                                                                 ("max_distance_mm", result.surface_distance_mm))
+                                     if n in v})
+        coated[n] = dataclasses.replace(c, points_object=np.asarray(result.points[n], float), fit=fit)
+    qp = study.params.quality
+    findings = tuple(f for n, c in coated.items() for f in check_coating(n, c.fit, qp))
+    product = {"coatings": coated, "optimisation": result}
+    before = study.correspondence_check
+    lines = []
+    if before is not None and getattr(before, "instance_mm", None) and result.stop != "cancelled":
+        check, found = self_check(study, {**study.coatings, **coated}, jobs=jobs, executor=executor,
+                                  cancelled=cancelled)
+        if check is not None:
+            product["correspondence_check"] = dataclasses.replace(check, stop=before.stop,
+                                                                  kept_round=before.kept_round)
+            findings += tuple(found)
+            lines.append(f"optimisation: landmark transfer error {before.study_mm:.3f} -> {check.study_mm:.3f} mm")
+    last = result.steps[-1] if result.steps else None
+    moved = max(result.instance_movement_mm.values(), default=0.0)
+    lines.insert(0, f"optimisation: {result.iterations} iteration(s) in {seconds:.2f} s, {result.stop}; objective "
+                    f"{result.steps[0].objective:.4f} -> {last.objective:.4f}, entropy {result.steps[0].entropy_nats:.2f}"
+                    f" -> {last.entropy_nats:.2f} nats; points moved {moved:.3f} mm RMS at most")
+    return StageResult("optimisation", product, findings, {"optimisation": seconds}, tuple(lines))
+
+
