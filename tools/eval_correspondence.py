@@ -153,6 +153,15 @@ def report_run(label: str, errors: dict, study, seconds: float, args, error_of=N
                   f"{np.percentile(e, 95):.2f} mm (start {allv.mean() if not r.kept else float('nan'):.3f}); "
                   f"transfer {r.transfer_before_mm:.3f} -> {r.transfer_after_mm:.3f} mm; landmarks "
                   f"{noise.click_mm:.2f} mm off (model {noise.model_mm:.2f}), moved {noise.shrink:.0%}")
+    before = {}
+    if error_of is not None and BEFORE_OPTIMISATION:
+        b = np.concatenate(list(error_of(BEFORE_OPTIMISATION).values()))
+        opt = study.optimisation
+        before = {"mean_mm": float(b.mean()), "p95_mm": float(np.percentile(b, 95)), "max_mm": float(b.max()),
+                  "optimisation_seconds": study.timings_s.get("optimisation"), "iterations": opt.iterations,
+                  "stop": opt.stop}
+        print(f"  before the optimisation: {b.mean():.3f} / {np.percentile(b, 95):.2f} / {b.max():.1f} mm; "
+              f"optimisation {opt.iterations} iteration(s), {opt.stop}, {before['optimisation_seconds']:.1f} s")
     per = {n: float(e.mean()) for n, e in errors.items()}
     check = self_check(study)
     rho = rank_correlation(per, check, study.template_instance)
@@ -165,11 +174,12 @@ def report_run(label: str, errors: dict, study, seconds: float, args, error_of=N
     rounds = [(r.round, r.kept) for r in getattr(study, "correspondence_rounds", ()) if hasattr(r, "kept")]
     stop = getattr(getattr(study, "correspondence_check", None), "stop", "")
     row = {"population": args.population, "method": args.method, "landmarks": args.landmarks, "on": args.on,
-           "jitter": args.jitter, "landmark_noise": args.landmark_noise, "mean_mm": float(allv.mean()),
+           "jitter": args.jitter, "landmark_noise": args.landmark_noise, "optimise": OPTIMISE[0] or {},
+           "mean_mm": float(allv.mean()),
            "p95_mm": float(np.percentile(allv, 95)), "max_mm": float(allv.max()), "seconds": seconds,
            "self_check_mm": float(np.mean(list(check.values()))) if check else None, "rank_correlation": rho,
            "rounds": rounds, "truth_rounds": truth_rounds, "stop": stop, "reconstruction_mm": float(np.mean(list(recon.values()))),
-           "rank_correlation_reconstruction": rho_recon, "coating": list(getattr(args, "coating", []) or []),
+           "rank_correlation_reconstruction": rho_recon, "before_optimisation": before, "coating": list(getattr(args, "coating", []) or []),
            "folded_after": int(sum(c.fit.folded_after for c in study.coatings.values())),
            "not_converged": int(sum(not c.fit.converged for c in study.coatings.values()))}
     print(f"{label}: mean {row['mean_mm']:.3f} mm, 95th {row['p95_mm']:.2f} mm, worst {row['max_mm']:.1f} mm "
@@ -331,6 +341,8 @@ TEMPLATE_CHOICE = [None]
 ROUND_STATES: list = []  # the model method's re-sampled coatings of every round (object frames)
 LANDMARK_NOISE = [None]
 COATING = [None]  # the [coating] parameters, with the --coating-* options given
+OPTIMISE = [None]  # the correspondence optimisation's [correspondence] keys, with --optimise
+BEFORE_OPTIMISATION: dict = {}  # the coatings the optimisation started from (object frames)
 
 
 def run_study(specs, template_name: str, method: str, iterations: int, jobs: int, spacing: float | None = None):
@@ -344,6 +356,7 @@ def run_study(specs, template_name: str, method: str, iterations: int, jobs: int
         extra["landmark_noise_mm"] = LANDMARK_NOISE[0]
     if TEMPLATE_CHOICE[0] is not None:
         extra["template_choice"] = TEMPLATE_CHOICE[0]
+    extra.update(OPTIMISE[0] or {})
     study.params = study.params.replace(correspondence=CorrespondenceParams(method=method, iterations=iterations, **extra))
     if COATING[0] is not None:
         study.params = study.params.replace(coating=COATING[0])
@@ -360,6 +373,10 @@ def run_study(specs, template_name: str, method: str, iterations: int, jobs: int
     run(study, stages=("import", "template"), jobs=jobs, log=say)
     template_points = study.template.points_object.copy()
     run(study, stages=("coating",), jobs=jobs, log=say)
+    BEFORE_OPTIMISATION.clear()
+    if study.params.correspondence.optimise:  # the coatings before, for the truth of both in one run
+        BEFORE_OPTIMISATION.update({n: c.points_object.copy() for n, c in study.coatings.items()})
+        run(study, stages=("optimisation",), jobs=jobs, log=say)
     if not study.template.is_mean_shape:  # the template's own points (another instance's, when the medoid's)
         template_points = study.template.points_object.copy()
     return study, template_points, time.perf_counter() - t0
@@ -462,6 +479,12 @@ def main(argv=None):
     ap.add_argument("--fit-projection", action="store_true",
                     help="also measure the leave-one-out fit's points as correspondence (folders of meshes)")
     ap.add_argument("--json", default=None, help="append each run's figures to this JSON-lines file")
+    ap.add_argument("--optimise", action="store_true",
+                    help="run the correspondence optimisation after the coating ([correspondence] optimise)")
+    ap.add_argument("--population-weight", type=float, default=None, help="[correspondence] population_weight")
+    ap.add_argument("--landmark-hold", type=float, default=None, help="[correspondence] landmark_hold")
+    ap.add_argument("--min-variance", type=float, default=None, help="[correspondence] min_variance")
+    ap.add_argument("--optimise-iterations", type=int, default=None, help="[correspondence] optimise_iterations")
     P.add_arguments(ap.add_argument_group("[coating] values other than the defaults (as ssm build takes them)"),
                     P.CoatingParams, prefix="coating")
     args = ap.parse_args(argv)
@@ -471,6 +494,8 @@ def main(argv=None):
     ROUND_TEMPLATE[0] = args.round_template
     TEMPLATE_CHOICE[0] = args.template_choice
     LANDMARK_NOISE[0] = args.landmark_noise
+    OPTIMISE[0] = {"optimise": args.optimise} | {k: getattr(args, k) for k in (
+        "population_weight", "landmark_hold", "min_variance", "optimise_iterations") if getattr(args, k) is not None}
     try:
         COATING[0] = P.from_arguments(args, P.CoatingParams, prefix="coating")
     except InputError as err:
