@@ -200,13 +200,13 @@ def eval_meshes(args) -> dict:
     files, meshes = mesh_population(args.population)
     names = [f.stem for f in files]
     v0, f0 = meshes[0]
-    lm_idx = farthest_points(v0, args.landmarks, int(np.argmax(v0[:, 2])))
+    lm_idx = farthest_points(v0, max(args.landmarks, 1), int(np.argmax(v0[:, 2])))
     rng = np.random.default_rng(args.seed)
     with tempfile.TemporaryDirectory() as tmp:
         specs = []
         for i, (name, f, (v, _f)) in enumerate(zip(names, files, meshes)):
             lm = None
-            if i < args.on:
+            if i < args.on and args.landmarks > 0:
                 pts = v[lm_idx] + rng.normal(scale=args.jitter, size=(len(lm_idx), 3)) * (i > 0 or args.jitter_template)
                 lm = Path(tmp) / f"{name}.csv"
                 write_landmarks(lm, LandmarkSet(tuple(f"L{j:02d}" for j in range(len(lm_idx))), pts, name))
@@ -407,7 +407,7 @@ def eval_deformed(args):
         specs = []
         for i, (name, f, u) in enumerate(zip(names, files, maps)):
             lm = None
-            if i < args.on:
+            if i < args.on and args.landmarks > 0:
                 pts = given.points_world + u(given.points_world)
                 if i > 0 or args.jitter_template:
                     pts = pts + rng.normal(scale=args.jitter, size=pts.shape)
@@ -485,6 +485,8 @@ def main(argv=None):
     ap.add_argument("--landmark-hold", type=float, default=None, help="[correspondence] landmark_hold")
     ap.add_argument("--min-variance", type=float, default=None, help="[correspondence] min_variance")
     ap.add_argument("--optimise-iterations", type=int, default=None, help="[correspondence] optimise_iterations")
+    ap.add_argument("--optimise-tolerance-mm", type=float, default=None,
+                    help="[correspondence] optimise_tolerance_mm")
     P.add_arguments(ap.add_argument_group("[coating] values other than the defaults (as ssm build takes them)"),
                     P.CoatingParams, prefix="coating")
     args = ap.parse_args(argv)
@@ -495,7 +497,7 @@ def main(argv=None):
     TEMPLATE_CHOICE[0] = args.template_choice
     LANDMARK_NOISE[0] = args.landmark_noise
     OPTIMISE[0] = {"optimise": args.optimise} | {k: getattr(args, k) for k in (
-        "population_weight", "landmark_hold", "min_variance", "optimise_iterations") if getattr(args, k) is not None}
+        "population_weight", "landmark_hold", "min_variance", "optimise_iterations", "optimise_tolerance_mm") if getattr(args, k) is not None}
     try:
         COATING[0] = P.from_arguments(args, P.CoatingParams, prefix="coating")
     except InputError as err:

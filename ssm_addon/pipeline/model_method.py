@@ -16,8 +16,10 @@ import numpy as np
 from ..base.compute import executor_or_local
 from ..base.errors import Cancelled, InputError, SSMError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn
-from ..coating.coating import CoatingResult
+from ..coating.coating import CoatingResult, CoatingStart
 from ..coating.distance_map import DistanceMap
+from ..correspondence.frames import TURN_NAMES, TURNED_FACTOR, population_turns
+from ..correspondence.frames import coat_without_landmarks as frames_coat
 from ..correspondence.rounds import (
     CorrespondenceCheck,
     Population,
@@ -28,6 +30,7 @@ from ..correspondence.rounds import (
     round_helps,
     starts_from_model,
 )
+from ..meshutil import Mesh
 from ..model.quality import (
     Finding,
     check_correspondence_rounds,
@@ -41,7 +44,7 @@ from .study import Log, StageResult, Study, template_landmark_locations
 #: shape is an estimate, and the coatings' distances differ by a few per cent between templates)
 MEDOID_TIE = 1.05
 
-__all__ = ["MEDOID_TIE", "confirmed_landmark_medoid", "distance_maps_ahead", "distance_maps_kept", "keep_distance_map", "landmark_medoid", "landmark_medoid_template",
+__all__ = ["MEDOID_TIE", "coat_without_landmarks_stage", "confirmed_landmark_medoid", "landmarked", "distance_maps_ahead", "distance_maps_kept", "keep_distance_map", "landmark_medoid", "landmark_medoid_template",
            "medoid_template", "population", "population_medoid", "refine_correspondence", "start_coatings"]
 
 
@@ -446,3 +449,56 @@ def population(study: Study) -> Population:
     return Population(names=names, template_instance=study.template_instance, template=study.template,
                       coatings=dict(study.coatings), volumes=dict(study.volumes),
                       landmarks={n: study.landmarks_object(n) for n in names}, coating_params=study.params.coating)
+
+
+def landmarked(study: Study) -> list[str]:
+    """The instances with landmarks, in study order."""
+    return [n for n in study.names if study.landmarks(n) is not None]
+
+
+def coat_without_landmarks_stage(study: Study, *, jobs: int = 1, executor=None,
+                                 cancelled: CancelledFn = None) -> StageResult:
+    """The coating stage of a study without landmarks on any instance.
+
+    The template is put onto every instance by the object frames and the turns of its
+    principal axes (:func:`ssm_addon.correspondence.frames.template_start`), coated from there
+    (registration, projection, relaxation: paper 4.2), and an instance the population disagrees
+    with is coated again from the other turns (:func:`~ssm_addon.correspondence.frames.population_turns`).
+    The summary says that no landmarks anchored the correspondence and which instances were turned.
+    """
+    t0 = time.perf_counter()
+    names = list(study.names)
+    template = Mesh(study.template.points_object, study.template.faces)
+    frame = study.frame(study.template_instance)
+    coating = study.params.coating
+    with executor_or_local(executor, jobs, len(names)) as pool:
+        coated = frames_coat(template, {n: study.volume(n) for n in names}, coating=coating, template_frame=frame,
+                             jobs=jobs, executor=pool, cancelled=cancelled)
+
+        def retry(suspects):
+            turns = {n: tuple(k for k, t in enumerate(TURN_NAMES) if t != coated[n][1].turn) for n in suspects}
+            return frames_coat(template, {n: study.volume(n) for n in suspects}, coating=coating,
+                               template_frame=None, turns=turns, jobs=jobs, executor=pool, cancelled=cancelled)
+
+        coated, changed, unresolved = population_turns(coated, study.template_instance, retry)
+        result = coating_result(study, {n: c for n, (c, _h) in coated.items()},
+                                {n: CoatingStart.OBJECT_FRAMES for n in names}, time.perf_counter() - t0,
+                                executor=pool, cancelled=cancelled)
+    turned = {n: h.turn for n, (_c, h) in coated.items() if h.turn not in ("frames", "input coordinates")}
+    lines = [f"correspondence: no landmarks were given: the template was put onto every instance by its object "
+             f"frame (paper 2) and the turn of its principal axes that fits the surface best, then coated; "
+             f"{len(turned)} instance(s) in a turned pose" + (f" ({', '.join(f'{n}: {t}' for n, t in turned.items())})"
+                                                               if turned else "")]
+    for n, (before, after) in changed.items():
+        lines.append(f"correspondence: {n} was coated turned against the population ({before:.1f} mm from the others' "
+                     f"mean shape); coated again {coated[n][1].turn}: {after:.1f} mm")
+    findings = [Finding(n, "frame", f"its coating lies {far:.1f} mm (RMS) from the mean shape of the others, more than "
+                                    f"{TURNED_FACTOR:g}x the median instance's {median:.1f} mm, and no turn of the "
+                                    "template's axes brings it nearer: a correspondence turned against the "
+                                    "population's, or an instance unlike the others; give it landmarks",
+                        far, TURNED_FACTOR * median)
+                for n, (far, median) in unresolved.items()]
+    product = dict(result.product)
+    product["template_choice"] = {"by": "no landmarks", "starts": {n: h.to_dict() for n, (_c, h) in coated.items()}}
+    return dataclasses.replace(result, product=product, findings=tuple(result.findings) + tuple(findings),
+                               summary=tuple(lines) + tuple(result.summary))

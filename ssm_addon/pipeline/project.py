@@ -266,7 +266,7 @@ def _params(cls, doc: dict, section: str, ctx: _Context, extra=()):
     return P.from_table(cls, values, where=f"{ctx.at(ctx.lines.table(section))}: [{section}]", lines=lines)
 
 
-def _instances(doc: dict, ctx: _Context, base: Path, landmarks_required: bool = True,
+def _instances(doc: dict, ctx: _Context, base: Path,
                study_space: str = "auto") -> list[InstanceSpec]:
     raw = doc.get("instances")
     if raw is None or (isinstance(raw, list) and not raw):
@@ -310,9 +310,6 @@ def _instances(doc: dict, ctx: _Context, base: Path, landmarks_required: bool = 
         if has_volume == has_mesh:
             problem = "both volume and mesh" if has_volume else "neither volume nor mesh"
             raise ctx.error(f"{what}: give exactly one of 'volume' (label map) or 'mesh', got {problem}", head)
-        if "landmarks" not in table and landmarks_required:
-            raise ctx.error(f"{what}: missing key 'landmarks' (a .fcsv, .mrk.json, .csv or .json file; optional "
-                            "with [correspondence] method = \"model\")", head)
         if has_mesh and "label" in table:
             raise ctx.error(f"{what}: 'label' applies to volumes, not meshes", ctx.lines.key(*where, "label"))
         if has_volume and "mesh_spacing" in table:
@@ -478,7 +475,7 @@ def _study_instances(doc: dict, ctx: _Context, path: Path, tables: dict, structu
     """The instances of one structure's study (the project's, or a structure's of a multi-structure
     project): validated, landmarks read and matched; with the template instance and the landmark names."""
     what = f"structure {structure!r}: " if structure else ""
-    instances = _instances(doc, ctx, path.parent, landmarks_required=tables["correspondence"].method == "landmarks",
+    instances = _instances(doc, ctx, path.parent,
                            study_space=tables["template"].space)
     if len(instances) < 2:
         raise ctx.error(f"only one instance ({instances[0].name!r}): a build needs at least 3 (a model with its "

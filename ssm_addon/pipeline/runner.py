@@ -11,7 +11,7 @@ from ..base.compute import time_left_text
 from ..base.errors import InputError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..model.metrics import import_plotting_in_background
-from .model_method import distance_maps_ahead, refine_correspondence
+from .model_method import coat_without_landmarks_stage, distance_maps_ahead, landmarked, refine_correspondence
 from .optimisation import optimisation_stage
 from .stages import (
     coat_instances,
@@ -37,7 +37,15 @@ def coating_stage(study: Study, *, names: Sequence[str] | None = None, jobs: int
     ``"model"``: :func:`refine_correspondence` (every instance). ``on_coated(name)`` is
     called as each coating arrives (for counting; progress lines are for people).
     """
-    if study.params.correspondence.method != "landmarks":
+    with_landmarks = landmarked(study)
+    if not with_landmarks:
+        return coat_without_landmarks_stage(study, jobs=jobs, executor=executor, cancelled=cancelled)
+    if study.params.correspondence.method != "landmarks" or len(with_landmarks) < len(study.names):
+        if study.params.correspondence.method == "landmarks" and log is not None:
+            without = [n for n in study.names if n not in with_landmarks]
+            log(f"correspondence: landmarks on {len(with_landmarks)} of {len(study.names)} instances (none on "
+                f"{', '.join(without[:5])}{', …' if len(without) > 5 else ''}): the model method supplies theirs "
+                "(paper 7's bootstrap)")
         return refine_correspondence(study, jobs=jobs, progress=progress, cancelled=cancelled, log=log,
                                      executor=executor, on_coated=on_coated)
     t0 = time.perf_counter()
@@ -76,6 +84,7 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
             say(line)
 
     if (executor is not None and study.params.correspondence.method == "landmarks"
+            and len(landmarked(study)) == len(study.names)
             and all(s in stages for s in ("import", "template", "coating"))):
         report(progress, 0.0, f"import, template and coating: {n} instances on {executor.describe()}")
         applied(stream_instances(study, executor, cache=cache, progress=sub_progress(progress, 0.0, 0.8),
@@ -100,7 +109,7 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
             report(progress, 0.3, f"coating: {n} instances, {jobs} job(s)")
             import_plotting_in_background()  # for the plots after the model, while the workers coat
             coat_prog = sub_progress(progress, 0.3, 0.8)
-            if study.params.correspondence.method == "landmarks":  # one progress line per instance, as it arrives
+            if study.params.correspondence.method == "landmarks" and len(landmarked(study)) == n:  # a line per instance
                 t0, arrived = time.perf_counter(), []
 
                 def coated(name: str) -> None:
