@@ -137,12 +137,51 @@ def test_model_method_needs_landmarks_on_the_template_instance(population, tmp_p
     assert not list(tmp_path.glob(".out.building-*"))
 
 
-def test_landmarks_method_still_needs_landmarks_everywhere(population):
+@pytest.mark.slow
+def test_landmarks_on_a_few_instances_under_the_default_method_use_the_model_method(population, tmp_path):
+    """The default method with landmarks on the template instance only: the build no longer refuses
+    ("missing key 'landmarks'"); it says that the model method supplies the others' and uses it."""
     tpl = template_of(population)
-    proj = project_variant(population, "missing.toml", keep_landmarks={tpl})
-    other = "demo_00" if tpl != "demo_00" else "demo_02"
-    with pytest.raises(InputError, match=rf"missing.toml.*{other}.*landmarks"):
-        read_project(proj)
+    proj = project_variant(population, "few.toml", keep_landmarks={tpl})
+    lines = []
+    result = build(read_project(proj), tmp_path / "out", log=lines.append, blend=False, cache="off")
+    assert any(re.search(r"landmarks on 1 of 6 instances \(none on .*\): the model method supplies theirs", x)
+               for x in lines), lines
+    corr = result.report["correspondence"]
+    assert len(corr["start"]) == 6 and corr["stop"] in ("converged", "criterion", "limit"), corr["stop"]
+
+
+@pytest.mark.slow
+def test_a_project_without_landmarks_builds_and_turns_a_turned_instance_back(population, tmp_path):
+    """No instance has landmarks, and one instance lies turned by 180° about the scanner's z axis:
+    its object frame (paired with the patient axes) does not turn with it, so the template is put on
+    by the turn of its axes that fits the surface; the build says that no landmarks were given and
+    what anchored the correspondence, and the model (rigid alignment, the default) has no frame
+    finding: the turn is not modelled as shape."""
+    import nibabel as nib
+
+    folder = tmp_path / "pop"
+    folder.mkdir()
+    for f in population.parent.glob("demo_*.nii.gz"):
+        img = nib.load(str(f))
+        data = np.asarray(img.dataobj)
+        if f.name == "demo_03.nii.gz":  # the voxels turned about the grid's third axis (scanner z, nearly)
+            data = data[::-1, ::-1, :]
+        nib.save(nib.Nifti1Image(data, img.affine), str(folder / f.name))
+    text = re.sub(r'landmarks = "[^"]+"\n', "", population.read_text())
+    (folder / "project.toml").write_text(text.replace('alignment = "none"', 'alignment = "rigid"'))
+    lines = []
+    result = build(read_project(folder / "project.toml"), tmp_path / "out", log=lines.append, blend=False,
+                   cache="off")
+    assert any(x.startswith("correspondence: no landmarks were given: the template was put onto every instance by "
+                            "its object frame") for x in lines), lines
+    starts = result.report["correspondence"]["template_choice"]["starts"]
+    assert starts["demo_03"]["turn"] == "turned about z", starts["demo_03"]
+    assert all(s["turn"] == "input coordinates" for n, s in starts.items() if n != "demo_03"), starts
+    findings = result.report["quality"]["findings"]
+    assert not [f for f in findings if f["gate"] == "frame"], findings
+    with np.load(tmp_path / "out" / "model.npz", allow_pickle=False) as z:
+        assert z["instance_points"].shape[0] == 6 and "landmark" not in str(z["params_json"])[:0]
 
 
 @pytest.mark.slow

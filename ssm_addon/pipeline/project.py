@@ -482,9 +482,13 @@ def _study_instances(doc: dict, ctx: _Context, path: Path, tables: dict, structu
                         "leave-one-out metrics)",
                         ctx.lines.table("instances", 0))
     marked = [inst for inst in instances if inst.landmarks is not None]
-    if not marked:
-        raise ctx.error(f"{what}no instance has landmarks: the template instance needs them (they name the places "
-                        "written for every instance)")
+    if not marked:  # no landmarks: the object frames and the shapes anchor the correspondence
+        names = [i.name for i in instances]
+        try:
+            file_names(names)
+        except InputError as err:
+            raise ctx.error(str(err), ctx.lines.table("instances", 0)) from None
+        return instances, _template_instance(doc, ctx, what, names), ()
     try:
         matched = match_landmarks([inst.landmarks for inst in marked])
     except InputError as err:
@@ -499,6 +503,16 @@ def _study_instances(doc: dict, ctx: _Context, path: Path, tables: dict, structu
         file_names(names)
     except InputError as err:
         raise ctx.error(str(err), ctx.lines.table("instances", 0)) from None
+    template_instance = _template_instance(doc, ctx, what, names)
+    if by_name.get(template_instance) is None:
+        raise ctx.error(f"{what}[template] instance {template_instance!r} has no landmarks; the template instance "
+                        "needs them when other instances have landmarks (they name the places carried to every "
+                        "instance; or give no instance landmarks)", ctx.lines.key("template", "instance"))
+    return instances, template_instance, matched[0].names
+
+
+def _template_instance(doc: dict, ctx: _Context, what: str, names: list[str]) -> str:
+    """The ``[template] instance`` (default the first instance), checked to be one of ``names``."""
     template_instance = doc.get("template", {}).get("instance", names[0])
     line = ctx.lines.key("template", "instance")
     if not isinstance(template_instance, str):
@@ -507,10 +521,7 @@ def _study_instances(doc: dict, ctx: _Context, path: Path, tables: dict, structu
         close = difflib.get_close_matches(template_instance, names, n=1)
         hint = f" (did you mean {close[0]!r}?)" if close else ""
         raise ctx.error(f"{what}[template] instance {template_instance!r} is not an instance name{hint}", line)
-    if by_name.get(template_instance) is None:
-        raise ctx.error(f"{what}[template] instance {template_instance!r} has no landmarks; the template instance "
-                        "needs them", line)
-    return instances, template_instance, matched[0].names
+    return template_instance
 
 
 def _structure_names(doc: dict, ctx: _Context) -> tuple[str, ...]:
