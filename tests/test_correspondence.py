@@ -637,3 +637,25 @@ def test_the_medoid_route_starts_from_the_landmark_medoid_and_falls_back_to_the_
     assert {k: v for k, v in choice.items() if k != "landmark_medoid"} == route
     assert dropped.study.template_instance == without.study.template_instance
     assert_same_model(dropped, without)
+
+
+def test_a_template_from_another_instance_keeps_the_given_templates_point_count(population):
+    """The medoid's template has the given template's point count within 2 %: the same radii give
+    another instance another count (eq. 1 follows its curvature), so they are scaled until it does;
+    the study's parameters stay as given."""
+    from ssm_addon.pipeline.model_method import POINT_COUNT_TOLERANCE, template_of_count
+    from ssm_addon.pipeline.runner import run
+    from ssm_addon.pipeline.study import Study
+
+    study = Study.from_project(read_project(population))
+    run(study, stages=("import", "template"))
+    given = len(study.template.points_object)
+    params = study.params.template
+    for other in ("demo_00", "demo_02", "demo_05"):
+        if other == study.template_instance:
+            continue
+        work = Study(instances=study.instances, template_instance=other, params=study.params, volumes=study.volumes)
+        target = int(round(given * 1.3))  # a count the radii as given do not reach
+        template = template_of_count(work, target)
+        assert abs(len(template.points_object) / target - 1) <= POINT_COUNT_TOLERANCE, (other, len(template.points_object), target)
+        assert work.params.template == params

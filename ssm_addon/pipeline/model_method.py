@@ -44,7 +44,7 @@ from .study import Log, StageResult, Study, template_landmark_locations
 #: shape is an estimate, and the coatings' distances differ by a few per cent between templates)
 MEDOID_TIE = 1.05
 
-__all__ = ["MEDOID_TIE", "coat_without_landmarks_stage", "confirmed_landmark_medoid", "landmarked", "distance_maps_ahead", "distance_maps_kept", "keep_distance_map", "landmark_medoid", "landmark_medoid_template",
+__all__ = ["MEDOID_TIE", "POINT_COUNT_TOLERANCE", "coat_without_landmarks_stage", "template_of_count", "confirmed_landmark_medoid", "landmarked", "distance_maps_ahead", "distance_maps_kept", "keep_distance_map", "landmark_medoid", "landmark_medoid_template",
            "medoid_template", "population", "population_medoid", "refine_correspondence", "start_coatings"]
 
 
@@ -238,11 +238,50 @@ def _from_template_of(study: Study, instance: str, *, fallbacks: list, coat: boo
     ``coat``, every instance's start coated from it (:func:`start_coatings`); raises what they raise."""
     other = dataclasses.replace(study, template_instance=instance, coatings={}, coating_start={},
                                 volumes=dict(study.volumes), frames=dict(study.frames), fallbacks=fallbacks)
-    other.template = make_template(other, cancelled=cancelled)
+    other.template = template_of_count(other, len(study.template.points_object) if study.template is not None else 0,
+                                       cancelled=cancelled)
     if coat:
         other.coatings.update(start_coatings(other, list(other.names), jobs=jobs, cancelled=cancelled,
                                              executor=executor))
     return other
+
+
+#: The template from another instance keeps the given template's point count within this share
+POINT_COUNT_TOLERANCE = 0.02
+POINT_COUNT_TRIES = 4
+
+
+def template_of_count(study: Study, count: int, *, cancelled: CancelledFn = None):
+    """The template (paper 3) of the study's template instance with ``count`` points (within
+    :data:`POINT_COUNT_TOLERANCE`; 0: as the parameters give it).
+
+    The same parameters give another instance of the population another number of points (eq. 1
+    follows its curvature; on real femurs 2,939 against 4,079): a template from the medoid would
+    then sample every instance more coarsely or finely than the given one. The radii of eq. (1)
+    (``r_min_mm``, ``r_max_mm``) are scaled by the square root of the ratio of the counts, the
+    topology cleaning's radius kept at the parameters' own, until the count is within the
+    tolerance (at most :data:`POINT_COUNT_TRIES` templates; the nearest is kept). The study's
+    parameters, and so the report's, are unchanged.
+    """
+    tp = study.params.template
+    template = make_template(study, cancelled=cancelled)
+    if count <= 0:
+        return template
+    best = template
+    fixed = dataclasses.replace(tp, topology_radius_mm=tp.topology_radius_mm if tp.topology_radius_mm is not None
+                                else tp.r_min_mm)
+    factor = 1.0
+    for _ in range(POINT_COUNT_TRIES - 1):
+        have = len(template.points_object)
+        if abs(have / count - 1.0) <= POINT_COUNT_TOLERANCE:
+            break
+        check_cancelled(cancelled)
+        factor *= float(np.sqrt(have / count))
+        scaled = dataclasses.replace(fixed, r_min_mm=tp.r_min_mm * factor, r_max_mm=tp.r_max_mm * factor)
+        template = make_template(study, cancelled=cancelled, params=scaled)
+        if abs(len(template.points_object) - count) < abs(len(best.points_object) - count):
+            best = template
+    return best
 
 
 def population_medoid(study: Study, candidates: Sequence[str]) -> tuple[str, dict[str, float]]:

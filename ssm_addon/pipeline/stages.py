@@ -130,11 +130,14 @@ def import_instances(study: Study, *, names: Sequence[str] | None = None, jobs: 
     return {inst.name: ov for inst, ov in zip(todo, volumes)}
 
 
-def make_template(study: Study, *, progress: ProgressFn = None, cancelled: CancelledFn = None) -> Template:
-    """The template (paper 3) from the study's template instance."""
+def make_template(study: Study, *, progress: ProgressFn = None, cancelled: CancelledFn = None,
+                  params=None) -> Template:
+    """The template (paper 3) from the study's template instance (``params``: template parameters
+    other than the study's, e.g. radii scaled to a given point count)."""
     name = study.template_instance
     try:
-        template = build_template(study.volume(name), study.params.template, progress=progress, cancelled=cancelled)
+        template = build_template(study.volume(name), params or study.params.template, progress=progress,
+                                  cancelled=cancelled)
     except InputError as err:
         raise InputError(f"template from instance {name!r}: {err}") from None
     study_with = Study(instances=study.instances, template_instance=name, template=template, frames={
