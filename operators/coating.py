@@ -25,43 +25,25 @@ from ssm_addon.pipeline.runner import coating_stage
 from ssm_addon.pipeline.stages import coating_result, import_result
 from ssm_addon.pipeline.study import apply_stage
 
-from . import bridge
 from .jobs import BackgroundJob
 from .properties import SSMPanel, draw_params, scene_params
 from .scene import (
-    COATED_COLLECTION,
-    COATED_SUFFIX,
-    COATING_KEY,
     VolumeLoader,
     coated_object_of,
     coated_objects,
     find_template,
+    finish_optimisation,
     instance_findings,
-    object_to_blender_matrix,
+    prepare_optimisation,
     record_stage,
     report_stage,
     scene_instances,
+    scene_optimisation,
     scene_records,
     study_from_scene,
+    write_coated,
     write_template_object,
 )
-
-
-def write_coated(context, instance, result: core.CoatingResult, faces, template_points):
-    """Create or replace the coated mesh of ``instance`` for one coating result."""
-    obj = coated_object_of(instance)
-    name = instance.name + COATED_SUFFIX
-    if obj is not None and obj.name != name and bpy.data.objects.get(name) is None:
-        obj.name = name  # the instance was renamed
-    obj = bridge.new_mesh_object(context, obj.name if obj is not None else name, result.points_object, faces,
-                                 collection_name=COATED_COLLECTION, matrix_world=object_to_blender_matrix(instance))
-    bridge.store_arrays(obj, COATING_KEY, {"points_object": result.points_object,
-                                           "warped_points_object": result.warped_points_object})
-    bridge.colour_correspondence(obj, template_points, context.scene.ssm_display.colouring)
-    obj.ssm.role = "COATED"
-    obj.ssm.instance = instance
-    obj.ssm.fit_json = result.fit.to_json()
-    return obj
 
 
 def fit_of(obj) -> core.FitFigures | None:
@@ -260,6 +242,44 @@ def finish_refinement(op, context, outcome):
     return {"FINISHED"}
 
 
+class SSM_OT_optimise_correspondence(BackgroundJob, bpy.types.Operator):
+    """Optimise the correspondence across the population: every instance's coated points slide along its own surface, the given landmarks held (the build's step after the coating). Progress per iteration with the objective; Esc keeps the last complete iteration"""
+
+    bl_idname = "ssm.optimise_correspondence"
+    bl_label = "Optimise Correspondence"
+    bl_options = {"REGISTER", "UNDO"}
+
+    cancel_after: IntProperty(
+        default=-1, options={"HIDDEN", "SKIP_SAVE"},
+        description="Scripts/tests: act as if Esc was pressed after N iterations")
+
+    @classmethod
+    def poll(cls, context):
+        if find_template(context) is None:
+            cls.poll_message_set("Build the template first (Template panel)")
+            return False
+        missing = [o.name for o in scene_instances(context) if coated_object_of(o) is None]
+        if missing or not scene_instances(context):
+            cls.poll_message_set("Coat every instance first" + (f" ({len(missing)} not coated)" if missing else ""))
+            return False
+        return True
+
+    def prepare(self, context):
+        return prepare_optimisation(self, context)
+
+    def finish(self, context, outcome):
+        imported, result, was_cancelled = outcome
+        found = finish_optimisation(self, context, imported, result)
+        opt = result.product["optimisation"]
+        last = opt.steps[-1]
+        msg = (f"optimised {len(result.product['coatings'])} instance(s): {opt.iterations} iteration(s), {opt.stop}; "
+               f"objective {opt.steps[0].objective:.4f} -> {last.objective:.4f}")
+        if was_cancelled:
+            msg = f"cancelled: kept iteration {opt.iterations}; " + msg
+        report_stage(self, msg, found)
+        return {"FINISHED"}
+
+
 def correspondence_check(context) -> dict:
     """The correspondence self-check of the coatings in this scene (empty when none was run)."""
     return scene_records(context).get("correspondence_check") or {}
@@ -292,6 +312,15 @@ class SSM_PT_coating(SSMPanel, bpy.types.Panel):
         box.label(text="Model-guided correspondence", icon="MOD_MESHDEFORM")
         draw_params(box, context.scene.ssm_correspondence, CorrespondenceParams)
         box.operator(SSM_OT_refine_correspondence.bl_idname, icon="FILE_REFRESH")
+        box.operator(SSM_OT_optimise_correspondence.bl_idname, icon="MOD_SMOOTH")
+        opt = scene_optimisation(context)
+        if opt.get("steps"):
+            first, last = opt["steps"][0], opt["steps"][-1]
+            box.label(text=f"optimised: {opt['iterations']} iteration(s), {opt['stop']}; objective "
+                      f"{first['objective']:.4f} -> {last['objective']:.4f}; moved ≤ "
+                      f"{max(opt['instance_movement_mm'].values(), default=0.0):.3f} mm", icon="CHECKMARK")
+        elif context.scene.ssm_correspondence.optimise and coated_objects(context):
+            box.label(text="coatings not optimised yet (Build Model optimises them first)", icon="INFO")
         for r in correspondence_rounds(context)[-6:]:
             moved = max(r["instance_change_mm"].values(), default=0.0)
             shift = max(r.get("landmark_shift_mm", {}).values(), default=0.0)
@@ -343,4 +372,5 @@ class SSM_PT_coating_advanced(SSMPanel, bpy.types.Panel):
         draw_params(self.layout, context.scene.ssm_coating, CoatingParams, advanced=True)
 
 
-classes = (SSM_OT_coat_template, SSM_OT_refine_correspondence, SSM_PT_coating, SSM_PT_coating_advanced)
+classes = (SSM_OT_coat_template, SSM_OT_refine_correspondence, SSM_OT_optimise_correspondence, SSM_PT_coating,
+           SSM_PT_coating_advanced)

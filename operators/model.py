@@ -53,15 +53,18 @@ from .scene import (
     clear_mode_animation,
     coated_objects,
     find_model_object,
+    finish_optimisation,
     joint_study_of,
     mode_sliders,
     model_from_object,
     model_parts,
     model_structures,
+    prepare_optimisation,
     record_stage,
     report_stage,
     scene_findings,
     scene_instances,
+    scene_optimisation,
     scene_structures,
     store_model,
     study_from_scene,
@@ -251,6 +254,12 @@ class SSM_OT_build_model(BackgroundJob, bpy.types.Operator):
         if len(study.coatings) < 2:
             raise InputError(f"Build Model: need at least 2 coated instances, found {len(study.coatings)}")
         self._template_points = study.template.points_object if study.template is not None else None
+        # the build's order: the coatings optimised first when [correspondence] optimise is on and
+        # the scene's are not yet (every instance coated)
+        self._optimise = (study.params.correspondence.optimise and not scene_optimisation(context)
+                          and all(n in study.coatings for n in study.names))
+        if self._optimise:
+            return prepare_optimisation(self, context, then=lambda optimised: model_stage(optimised))
 
         def work(progress, cancelled):
             return model_stage(study, progress=progress, cancelled=cancelled)
@@ -258,6 +267,13 @@ class SSM_OT_build_model(BackgroundJob, bpy.types.Operator):
         return work
 
     def finish(self, context, result):
+        if self._optimise:
+            imported, optimised, was_cancelled, result = result
+            found = finish_optimisation(self, context, imported, optimised)
+            if was_cancelled:
+                report_stage(self, f"cancelled during the correspondence optimisation: kept iteration "
+                                   f"{optimised.product['optimisation'].iterations}; no model built", found)
+                return {"CANCELLED"}
         model = result.product["model"]
         obj = create_model_object(context, model, template_points=self._template_points, activate=False)
         found = record_stage(context, result)

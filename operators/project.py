@@ -39,7 +39,6 @@ from ssm_addon.pipeline.joint import run_joint
 from ssm_addon.pipeline.store import study_records
 
 from . import bridge, register
-from .coating import write_coated
 from .instances import add_instance_objects, import_items, write_instance
 from .jobs import BackgroundJob
 from .landmarks import add_schema_name
@@ -58,6 +57,7 @@ from .scene import (
     scene_structures,
     set_landmark,
     study_from_scene,
+    write_coated,
     write_records,
     write_template_object,
 )

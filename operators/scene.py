@@ -31,6 +31,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import time
 from pathlib import Path
 
 import bpy
@@ -42,6 +43,7 @@ from ssm_addon.base.errors import InputError
 from ssm_addon.base.progress import report, sub_progress
 from ssm_addon.base.records import jsonable
 from ssm_addon.coating.coating import CoatingResult, FitFigures
+from ssm_addon.correspondence.optimisation import OptimisationCancelled
 from ssm_addon.formats.landmarks import LandmarkSet
 from ssm_addon.instances import importing as core_instances
 from ssm_addon.instances.importing import InstanceSpec
@@ -50,6 +52,8 @@ from ssm_addon.model.files import model_from_arrays
 from ssm_addon.model.pca import ShapeModel
 from ssm_addon.model.quality import Finding
 from ssm_addon.pipeline.joint import JointStudy
+from ssm_addon.pipeline.optimisation import optimisation_result, optimisation_stage
+from ssm_addon.pipeline.stages import import_result
 from ssm_addon.pipeline.store import RECORD_FIELDS, apply_records, study_records
 from ssm_addon.pipeline.study import StageResult, Study, apply_stage, merge_findings
 from ssm_addon.template.template import Template
@@ -634,6 +638,7 @@ def record_stage(context, result, *, fresh: bool = True) -> list[Finding]:
         if fresh:
             holder.correspondence_rounds = []
         holder.template_choice = {}
+        holder.optimisation = None  # new coatings: not optimised (yet)
         product.setdefault("correspondence_check", None)
     apply_stage(holder, StageResult(result.stage, product, (), dict(result.timings_s)))
     holder.findings = merge_findings(recorded, result)
@@ -774,3 +779,78 @@ def scene_instance_attributes(context) -> dict:
     """``{instance name: {column: value}}`` of the project opened into the scene (empty if none)."""
     raw = context.scene.get(INSTANCE_ATTRIBUTES_KEY)
     return json.loads(raw) if raw else {}
+
+
+def write_coated(context, instance, result: CoatingResult, faces, template_points):
+    """Create or replace the coated mesh of ``instance`` for one coating result."""
+    obj = coated_object_of(instance)
+    name = instance.name + COATED_SUFFIX
+    if obj is not None and obj.name != name and bpy.data.objects.get(name) is None:
+        obj.name = name  # the instance was renamed
+    obj = bridge.new_mesh_object(context, obj.name if obj is not None else name, result.points_object, faces,
+                                 collection_name=COATED_COLLECTION, matrix_world=object_to_blender_matrix(instance))
+    bridge.store_arrays(obj, COATING_KEY, {"points_object": result.points_object,
+                                           "warped_points_object": result.warped_points_object})
+    bridge.colour_correspondence(obj, template_points, context.scene.ssm_display.colouring)
+    obj.ssm.role = "COATED"
+    obj.ssm.instance = instance
+    obj.ssm.fit_json = result.fit.to_json()
+    return obj
+
+
+def prepare_optimisation(op, context, *, then=None):
+    """The work of the correspondence optimisation on the scene's study (the core's
+    :func:`~ssm_addon.pipeline.optimisation.optimisation_stage`, the build's step): each
+    iteration's objective in the status bar; Esc keeps the last complete iteration. ``then(study)``,
+    optional: more work on the optimised study (Build Model's PCA), its result returned fourth."""
+    study = study_from_scene(context, records=True)
+    if study.template is None or any(n not in study.coatings for n in study.names):
+        raise InputError("optimise correspondence: coat every instance first (Coating panel)")
+    loader = VolumeLoader(context, scene_instances(context))
+    op._loader, op._faces, op._template_points = loader, study.template.faces, study.template.points_object
+    cancel_after = getattr(op, "cancel_after", -1)
+    iterations = study.params.correspondence.optimise_iterations
+    done = [0]
+
+    def work(progress, cancelled):
+        def stop():
+            return bool(cancelled and cancelled()) or 0 <= cancel_after <= done[0]
+
+        def step(s):
+            done[0] = s.iteration
+            if progress is not None:
+                progress(0.1 + 0.8 * s.iteration / max(iterations, 1),
+                         f"optimisation: iteration {s.iteration}/{iterations}, objective {s.objective:.4f}")
+
+        t0 = time.perf_counter()
+        imported = import_result(study, loader.load(sub_progress(progress, 0.0, 0.1), stop), time.perf_counter() - t0)
+        apply_stage(study, imported)
+        t0 = time.perf_counter()
+        try:
+            result, was_cancelled = optimisation_stage(study, cancelled=stop, on_step=step), False
+        except OptimisationCancelled as err:  # Esc: the last complete iteration is kept
+            result, was_cancelled = optimisation_result(study, err.result, time.perf_counter() - t0), True
+        if then is None:
+            return imported, result, was_cancelled
+        apply_stage(study, result)
+        return imported, result, was_cancelled, (None if was_cancelled else then(study))
+
+    return work
+
+
+def finish_optimisation(op, context, imported, result) -> list:
+    """Write the optimised coatings and the optimisation's record into the scene; the findings."""
+    op._loader.keep()
+    for name, coating in result.product["coatings"].items():
+        inst = bpy.data.objects.get(name)
+        if inst is not None:
+            start = coated_object_of(inst).get("ssm_coating_start") if coated_object_of(inst) is not None else None
+            obj = write_coated(context, inst, coating, op._faces, op._template_points)
+            if start is not None:
+                obj["ssm_coating_start"] = start
+    return record_stage(context, imported) + record_stage(context, result)
+
+
+def scene_optimisation(context) -> dict:
+    """The record of the correspondence optimisation of the coatings in this scene (empty when none ran)."""
+    return scene_records(context).get("optimisation") or {}

@@ -23,15 +23,16 @@ from .model_method import distance_maps_kept
 from .stages import self_check
 from .study import StageResult, Study
 
-__all__ = ["optimisation_result", "optimisation_stage"]
+__all__ = ["hold_weight", "optimisation_result", "optimisation_stage"]
 
 
 def optimisation_stage(study: Study, *, jobs: int = 1, executor=None, progress: ProgressFn = None,
                        cancelled: CancelledFn = None, on_step=None) -> StageResult:
     """The correspondence optimisation (``[correspondence] optimise``): every instance's points
     slide along its own surface (:func:`ssm_addon.correspondence.optimisation.optimise_correspondence`),
-    the given landmarks held where the coating's warp put them. The self-check is measured again
-    on the result when the coating measured it.
+    the given landmarks held where the coating's warp put them, as firmly as their uncertainty
+    allows (:func:`hold_weight`). The self-check is measured again on the result when the coating
+    measured it.
 
     Instances whose volume the study does not hold (a streamed build keeps one) are imported
     again by the worker that moves their points. ``on_step(step)``: each iteration's figures as
@@ -52,12 +53,31 @@ def optimisation_stage(study: Study, *, jobs: int = 1, executor=None, progress: 
         surfaces = {n: study.volumes[n] if n in study.volumes else
                     InstanceSource(study.instance(n), tp.spacing_mm, tp.frame, tp.space, distance_map_store=store)
                     for n in names}
+        params = dataclasses.replace(study.params.correspondence, landmark_hold=hold_weight(study))
         result = optimise_correspondence({n: study.coatings[n].points_object for n in names}, study.template.faces,
-                                         surfaces, params=study.params.correspondence, coating=study.params.coating,
+                                         surfaces, params=params, coating=study.params.coating,
                                          holds=holds, jobs=jobs, executor=executor, progress=progress,
                                          cancelled=cancelled, on_step=on_step)
     return optimisation_result(study, result, time.perf_counter() - t0, jobs=jobs, executor=executor,
                                cancelled=cancelled)
+
+
+def hold_weight(study: Study) -> float:
+    """The landmarks' hold, ``landmark_hold * h² / (h² + σ_c²)``: as given for exact landmarks, weaker
+    the farther a given landmark may be from the anatomy. h is the study's voxel spacing (mm: what
+    a coating resolves), σ_c the click error per axis: ``[correspondence] landmark_noise_mm`` when
+    given, else the model method's estimate of its last round, else 0 (the single pass treats the
+    landmarks as exact: its warp, eq. 2, interpolates them).
+
+    On the dense-truth sets, holding clicks off by 1.5 mm per axis as if exact put points up to
+    1.5 % farther from their true places (``docs/measurements.md``)."""
+    cp = study.params.correspondence
+    click = cp.landmark_noise_mm
+    if click is None:
+        rounds = [r for r in study.correspondence_rounds if getattr(r, "landmark_noise", None) is not None]
+        click = rounds[-1].landmark_noise.click_mm if rounds else 0.0
+    h = float(study.params.template.spacing_mm)
+    return float(cp.landmark_hold) * h * h / (h * h + float(click) ** 2)
 
 
 def optimisation_result(study: Study, result: Optimisation, seconds: float, *, jobs: int = 1, executor=None,

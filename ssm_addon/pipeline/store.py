@@ -20,6 +20,7 @@ from ..base import params as P
 from ..base.errors import InputError
 from ..base.records import jsonable
 from ..coating.coating import CoatingResult, CoatingStart, FitFigures
+from ..correspondence.optimisation import Optimisation
 from ..correspondence.rounds import CorrespondenceCheck, RoundFigures
 from ..formats.landmarks import LandmarkSet
 from ..instances.importing import InstanceSpec
@@ -34,13 +35,13 @@ __all__ = ["RECORD_FIELDS", "apply_records", "load_study", "save_study", "study_
 
 #: The study's records beside its arrays: what its stages found, decided and took.
 RECORD_FIELDS = ("findings", "outlier_scores", "coating_start", "correspondence_rounds", "correspondence_check",
-                 "template_choice", "metrics", "timings_s", "input_distances")
+                 "template_choice", "metrics", "timings_s", "input_distances", "optimisation")
 
 
 def study_records(study: Study) -> dict:
     """The study's records as JSON-ready values (:data:`RECORD_FIELDS`): the findings, outlier
     scores, each coating's start, the model method's rounds, the correspondence self-check,
-    the template choice, the metrics and the stages' wall times (s). What a report needs
+    the template choice, the correspondence optimisation, the metrics and the stages' wall times (s). What a report needs
     besides the arrays; the Blender scene keeps them so *Save Model* writes the build's report."""
     check = study.correspondence_check
     return jsonable({
@@ -53,6 +54,7 @@ def study_records(study: Study) -> dict:
         "metrics": study.metrics.to_dict() if study.metrics is not None else None,
         "timings_s": study.timings_s,
         "input_distances": study.input_distances,
+        "optimisation": study.optimisation.to_dict() if study.optimisation is not None else None,
     })
 
 
@@ -78,6 +80,8 @@ def apply_records(study: Study, records: dict) -> Study:
         study.input_distances = dict(records["input_distances"] or {})
     if "timings_s" in records:
         study.timings_s = {k: float(v) for k, v in (records["timings_s"] or {}).items()}
+    if "optimisation" in records:
+        study.optimisation = Optimisation.from_dict(records["optimisation"]) if records["optimisation"] else None
     return study
 
 
