@@ -256,10 +256,16 @@ class SSM_OT_build_model(BackgroundJob, bpy.types.Operator):
         self._template_points = study.template.points_object if study.template is not None else None
         # the build's order: the coatings optimised first when [correspondence] optimise is on and
         # the scene's are not yet (every instance coated)
-        self._optimise = (study.params.correspondence.optimise and not scene_optimisation(context)
+        done = scene_optimisation(context)
+        self._optimise = (study.params.correspondence.optimise and (not done or done.get("stop") == "cancelled")
                           and all(n in study.coatings for n in study.names))
+        self._note = ""
         if self._optimise:
-            return prepare_optimisation(self, context, then=lambda optimised: model_stage(optimised))
+            try:
+                return prepare_optimisation(self, context, then=lambda optimised: model_stage(optimised))
+            except InputError as err:  # an instance's source is not readable: the coatings as they are
+                self._optimise = False
+                self._note = f"; the coatings were not optimised ({err})"
 
         def work(progress, cancelled):
             return model_stage(study, progress=progress, cancelled=cancelled)
@@ -283,7 +289,7 @@ class SSM_OT_build_model(BackgroundJob, bpy.types.Operator):
         loc = np.array(obj.matrix_world.translation)
         report_stage(self, f"{obj.name}: {model.n_modes} modes from {model.n_instances} instances; first {k3}: "
                            f"{share:.1f} %; placed at ({loc[0]:.0f}, {loc[1]:.0f}, {loc[2]:.0f}) mm, right of "
-                           "the instances", found)
+                           "the instances" + self._note, found)
         return {"FINISHED"}
 
 

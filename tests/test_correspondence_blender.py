@@ -51,6 +51,15 @@ def test_model_method_in_blender_equals_the_headless_build(bpy_clean, light_proj
     assert bpy.context.scene.ssm_correspondence.method == "model"
     assert bpy.ops.ssm.build_template() == {"FINISHED"}
     assert bpy.ops.ssm.coat_template() == {"FINISHED"}  # the model method: starts + rounds, as the build
+    # Esc before the optimisation's first iteration ends: the coatings stay as they were
+    before = _coatings(bpy)
+    assert bpy.ops.ssm.optimise_correspondence(cancel_after=0) == {"FINISHED"}
+    assert all(np.array_equal(_coatings(bpy)[n], before[n]) for n in before)
+    from ssm.operators.coating import scene_optimisation
+
+    assert scene_optimisation(bpy.context)["stop"] == "cancelled"
+    assert bpy.ops.ssm.optimise_correspondence() == {"FINISHED"}  # the build's step after the coating
+    assert scene_optimisation(bpy.context)["steps"] == headless.report["correspondence"]["optimisation"]["steps"]
     coated = _coatings(bpy)
     assert set(coated) == set(headless.study.names)
     for name, pts in coated.items():
@@ -145,6 +154,7 @@ def test_the_medoid_template_of_the_model_method_reaches_the_scene(bpy_clean, tm
     assert bpy.ops.ssm.build_template() == {"FINISHED"}
     assert find_template(bpy.context).ssm.instance.name == choice["given"]
     assert bpy.ops.ssm.coat_template() == {"FINISHED"}
+    assert bpy.ops.ssm.optimise_correspondence() == {"FINISHED"}
     assert find_template(bpy.context).ssm.instance.name == choice["medoid"]
     assert bpy.context.scene.ssm_display.template_instance.name == choice["medoid"]
     from ssm.operators.scene import scene_records  # the scene's record of the stages, as a build's report

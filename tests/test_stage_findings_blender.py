@@ -49,7 +49,8 @@ def test_blender_and_headless_builds_report_the_same_findings(bpy_clean, flawed_
     gates = {(f[1], f[2]) for f in expected}
     assert ("components", two) in gates  # the import gate
     assert any(stage == "model" for stage, *_ in expected), expected  # the outlier gates of the model stage
-    assert any(stage == "coating" for stage, *_ in expected), expected
+    # the coating's gates (measured again on the optimised coatings: the optimisation's record replaces them)
+    assert any(stage in ("coating", "optimisation") for stage, *_ in expected), expected
 
     bpy = bpy_clean
     assert bpy.ops.ssm.open_project(filepath=str(path)) == {"FINISHED"}

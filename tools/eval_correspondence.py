@@ -479,8 +479,9 @@ def main(argv=None):
     ap.add_argument("--fit-projection", action="store_true",
                     help="also measure the leave-one-out fit's points as correspondence (folders of meshes)")
     ap.add_argument("--json", default=None, help="append each run's figures to this JSON-lines file")
-    ap.add_argument("--optimise", action="store_true",
-                    help="run the correspondence optimisation after the coating ([correspondence] optimise)")
+    ap.add_argument("--optimise", action=argparse.BooleanOptionalAction, default=None,
+                    help="the correspondence optimisation after the coating ([correspondence] optimise; default: "
+                         "the parameter's default); the truth is measured before and after it")
     ap.add_argument("--population-weight", type=float, default=None, help="[correspondence] population_weight")
     ap.add_argument("--landmark-hold", type=float, default=None, help="[correspondence] landmark_hold")
     ap.add_argument("--min-variance", type=float, default=None, help="[correspondence] min_variance")
@@ -496,7 +497,7 @@ def main(argv=None):
     ROUND_TEMPLATE[0] = args.round_template
     TEMPLATE_CHOICE[0] = args.template_choice
     LANDMARK_NOISE[0] = args.landmark_noise
-    OPTIMISE[0] = {"optimise": args.optimise} | {k: getattr(args, k) for k in (
+    OPTIMISE[0] = {k: getattr(args, k) for k in ("optimise",
         "population_weight", "landmark_hold", "min_variance", "optimise_iterations", "optimise_tolerance_mm") if getattr(args, k) is not None}
     try:
         COATING[0] = P.from_arguments(args, P.CoatingParams, prefix="coating")

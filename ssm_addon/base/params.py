@@ -793,7 +793,7 @@ class CorrespondenceParams:
     fit_noise_mm: float = param(1.0, unit="mm", minimum=0.0, exclusive_minimum=True, maximum=1000.0,
                                 label="Fit noise", advanced=True,
                                 help="noise σ of the model fit to each instance's surface")
-    optimise: bool = param(False, label="Optimise",
+    optimise: bool = param(True, label="Optimise",
                            help="after the coating, slide each instance's points along its own surface to lower "
                                 "the population's objective (entropy of the shapes, springs, landmarks held)")
     optimise_iterations: int = param(10, minimum=1, maximum=1000, label="Optimisation iterations",

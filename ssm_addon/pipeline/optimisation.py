@@ -18,6 +18,7 @@ from ..correspondence.optimisation import (
     landmark_holds,
     optimise_correspondence,
 )
+from ..meshutil import LandmarkLocations
 from ..model.quality import check_coating
 from .model_method import distance_maps_kept
 from .stages import self_check
@@ -80,6 +81,23 @@ def hold_weight(study: Study) -> float:
     return float(cp.landmark_hold) * h * h / (h * h + float(click) ** 2)
 
 
+def _residuals(study: Study, name: str, coating, points) -> dict:
+    """The fit figures' landmark residuals of the optimised points, against the given landmarks (the
+    coating's own measure), where the coating measured every one against a given landmark."""
+    locations = study.template.landmark_locations
+    names = tuple(coating.fit.landmark_names)
+    if not names and len(coating.fit.landmark_residuals_mm) == len(locations):  # the single pass: every one
+        names = tuple(locations.names)
+    given = study.landmarks_object(name)
+    if not names or not given or any(x not in given or x not in locations.names for x in names):
+        return {}
+    index = [locations.names.index(x) for x in names]
+    at = LandmarkLocations(names, locations.triangles[index], locations.bary[index]).evaluate(
+        np.asarray(points, float), study.template.faces)
+    return {"landmark_residuals_mm": tuple(float(d) for d in np.linalg.norm(at - np.stack([given[x] for x in names]),
+                                                                            axis=1))}
+
+
 def optimisation_result(study: Study, result: Optimisation, seconds: float, *, jobs: int = 1, executor=None,
                         cancelled: CancelledFn = None) -> StageResult:
     """The optimisation stage's result: the coatings with the optimised points (their fit figures
@@ -92,7 +110,7 @@ def optimisation_result(study: Study, result: Optimisation, seconds: float, *, j
         fit = dataclasses.replace(c.fit, folded_after=int(result.folds.get(n, c.fit.folded_after)),
                                   **{k: float(v[n]) for k, v in (("mean_distance_mm", result.surface_mean_mm),
                                                                  ("max_distance_mm", result.surface_distance_mm))
-                                     if n in v})
+                                     if n in v}, **_residuals(study, n, c, result.points[n]))
         coated[n] = dataclasses.replace(c, points_object=np.asarray(result.points[n], float), fit=fit)
     qp = study.params.quality
     findings = tuple(f for n, c in coated.items() for f in check_coating(n, c.fit, qp))

@@ -359,15 +359,19 @@ def merge_findings(recorded: Sequence[Finding], result: StageResult) -> list[Fin
 
     A stage's result replaces the earlier findings of that stage for the instances it
     covers (the volumes or coatings it made; every instance for the template, model and
-    metrics), so an instance coated again without a problem loses its old coating finding.
+    metrics), so an instance coated again without a problem loses its old coating finding;
+    and, as :func:`apply_stage`, any earlier finding of an instance and gate it finds again
+    (the optimisation's landmark residual replaces the coating's).
     """
     product = result.product
     covered = set(product.get("coatings", {})) | set(product.get("volumes", {}))
     if result.stage not in ("import", "coating"):
         covered = None
+    again = {(f.instance, f.gate) for f in result.findings}  # as :func:`apply_stage`: a finding replaces its gate's
 
     def replaced(f: Finding) -> bool:
-        return f.stage == result.stage and (covered is None or f.instance in covered or not f.instance)
+        return ((f.stage == result.stage and (covered is None or f.instance in covered or not f.instance))
+                or (f.instance, f.gate) in again)
 
     return [f for f in recorded if not replaced(f)] + list(result.findings)
 
