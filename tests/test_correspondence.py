@@ -181,7 +181,26 @@ def test_a_project_without_landmarks_builds_and_turns_a_turned_instance_back(pop
     findings = result.report["quality"]["findings"]
     assert not [f for f in findings if f["gate"] == "frame"], findings
     with np.load(tmp_path / "out" / "model.npz", allow_pickle=False) as z:
-        assert z["instance_points"].shape[0] == 6 and "landmark" not in str(z["params_json"])[:0]
+        assert z["instance_points"].shape[0] == 6
+
+    # landmarks on the template instance only (the model method's start from the object frames):
+    # the turned instance's start is coated again in the turn that brings it to the others
+    tpl = template_of(population)
+    assert tpl != "demo_03", tpl  # the turned instance is not the template's
+    text = population.read_text().replace('alignment = "none"', 'alignment = "rigid"')
+    for f in population.parent.glob("demo_*"):
+        if not f.name.endswith(".nii.gz") and f.name.startswith(tpl):
+            (folder / f.name).write_bytes(f.read_bytes())
+    blocks = text.split("[[instances]]")
+    blocks = [blocks[0]] + [b if f'name = "{tpl}"' in b else re.sub(r'landmarks = "[^"]+"\n', "", b)
+                            for b in blocks[1:]]
+    (folder / "one.toml").write_text("[[instances]]".join(blocks))
+    lines = []
+    result = build(read_project(folder / "one.toml"), tmp_path / "one", log=lines.append, blend=False,
+                   cache="off")
+    assert any(x.startswith("correspondence: demo_03 its start from the object frames lay") for x in lines), lines
+    findings = result.report["quality"]["findings"]
+    assert not [f for f in findings if f["gate"] == "frame"], findings
 
 
 @pytest.mark.slow

@@ -161,7 +161,7 @@ def far_from_population(points: dict, reference: str) -> dict:
     return out
 
 
-def population_turns(coated: dict, reference: str, retry) -> tuple[dict, dict]:
+def population_turns(coated: dict, reference: str, retry) -> tuple[dict, dict, dict]:
     """Coatings the population disagrees with, tried in the other turns.
 
     An instance whose coating is more than :data:`TURNED_FACTOR` times the median farther from
@@ -186,7 +186,7 @@ def population_turns(coated: dict, reference: str, retry) -> tuple[dict, dict]:
         return coated, {}, {}
     again = retry(suspects)
     out, changed, unresolved = dict(coated), {}, {}
-    for n in suspects:
+    for n in [n for n in suspects if n in again]:
         trial = dict(points)
         trial[n] = again[n][0].points_object
         d = far_from_population(trial, reference)[n]

@@ -18,7 +18,7 @@ from ..base.errors import Cancelled, InputError, SSMError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn
 from ..coating.coating import CoatingResult, CoatingStart
 from ..coating.distance_map import DistanceMap
-from ..correspondence.frames import TURN_NAMES, TURNED_FACTOR, population_turns
+from ..correspondence.frames import TURN_NAMES, TURNED_FACTOR, FramesStart, population_turns
 from ..correspondence.frames import coat_without_landmarks as frames_coat
 from ..correspondence.rounds import (
     CorrespondenceCheck,
@@ -93,10 +93,39 @@ def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: in
             coated.update(coat_from_frames(study, rest, jobs=jobs, cancelled=cancelled, executor=executor))
     else:
         coated.update(coat_from_frames(study, rest, jobs=jobs, cancelled=cancelled, executor=executor))
+        if rest:  # from the frames alone: a coating the population disagrees with tried in the other turns
+            coated.update(_turned_back(study, coated, rest, jobs=jobs, executor=executor, cancelled=cancelled))
     # each coating's own record: the landmark warp or the model fit, or the object frames
     # where the registration fell back from either
     study.coating_start.update({n: coated[n].fit.start for n in names})
     return {n: coated[n] for n in names}
+
+
+def _turned_back(study: Study, coated: dict, rest: Sequence[str], *, jobs: int = 1, executor=None,
+                 cancelled: CancelledFn = None) -> dict:
+    """Coatings from the object frames (``rest``) that lie far from the population's mean shape,
+    coated again from the turns of the template's axes and kept when nearer
+    (:func:`~ssm_addon.correspondence.frames.population_turns`); the changed ones, each with a
+    fallback-style note in ``study.fallbacks``."""
+    template = Mesh(study.template.points_object, study.template.faces)
+    every = {n: (c, FramesStart("frames", {}, 1.0)) for n, c in coated.items()}
+    if study.template_instance not in every and study.template_instance in study.coatings:
+        every[study.template_instance] = (study.coatings[study.template_instance], FramesStart("frames", {}, 1.0))
+    if study.template_instance not in every or len(every) < 3:
+        return {}
+
+    def retry(suspects):
+        suspects = [n for n in suspects if n in rest]
+        return frames_coat(template, {n: study.volume(n) for n in suspects}, coating=study.params.coating,
+                           template_frame=None, turns={n: (1, 2, 3) for n in suspects}, jobs=jobs, executor=executor,
+                           cancelled=cancelled)
+
+    kept, changed, _unresolved = population_turns(every, study.template_instance, retry)
+    for n, (before, after) in changed.items():
+        study.fallbacks.append(Finding(n, "turned", f"its start from the object frames lay {before:.1f} mm from the "
+                                                    f"others' mean shape: coated again {kept[n][1].turn} "
+                                                    f"({after:.1f} mm)"))
+    return {n: kept[n][0] for n in changed}
 
 
 def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn = None, cancelled: CancelledFn = None,
@@ -148,14 +177,15 @@ def refine_correspondence(study: Study, *, jobs: int = 1, progress: ProgressFn =
             work.fallbacks.append(Finding("", "fallback", f"the model method's rounds failed ({err}); the start's "
                                           "coatings are kept (where every instance has landmarks: the paper's single "
                                           "pass)"))
-        for f in work.fallbacks:
-            say(f"WARNING {f.instance or 'study'} [{f.gate}]: {f.message}")
+        for f in work.fallbacks:  # a start turned back is said, not a finding (it was mended)
+            say(f"correspondence: {f.instance} {f.message}" if f.gate == "turned" else
+                f"WARNING {f.instance or 'study'} [{f.gate}]: {f.message}")
         coated = {n: work.coatings[n] for n in study.names}
         kept = "the start" if check.kept_round == 0 else f"round {check.kept_round}'s coatings"
         say(f"correspondence: {check.stop or 'no rounds'}; kept {kept}; landmark transfer error {check.study_mm:.3f} mm")
         findings = (check_landmark_transfer(check, study.params.quality)
                     + check_correspondence_rounds(rounds, check, study.params.correspondence.tolerance_mm)
-                    + list(work.fallbacks))
+                    + [f for f in work.fallbacks if f.gate != "turned"])
         # (the input meshes are measured against their coatings on the same pool)
         result = coating_result(study, coated, {n: work.coating_start.get(n, coated[n].fit.start) for n in coated},
                                 time.perf_counter() - t0, template=work.template, rounds=tuple(rounds), check=check,
