@@ -314,6 +314,16 @@ def template_of_count(study: Study, count: int, *, cancelled: CancelledFn = None
     return best
 
 
+def _points(study: Study, other: Study) -> dict:
+    """The point counts of the given template and of ``other``'s (the medoid's)."""
+    return {"given": int(len(study.template.points_object)), "medoid": int(len(other.template.points_object))}
+
+
+def _points_note(study: Study, other: Study) -> str:
+    p = _points(study, other)
+    return f"; {p['medoid']} points, the given template {p['given']}"
+
+
 def population_medoid(study: Study, candidates: Sequence[str]) -> tuple[str, dict[str, float]]:
     """The instance of ``candidates`` whose coating is nearest the mean shape of every coating.
 
@@ -397,8 +407,9 @@ def landmark_medoid_template(study: Study, *, cancelled: CancelledFn = None, log
         return study, {**record, "kept": False, "failed": str(err)}
     given = distance.get(study.template_instance)
     say(f"correspondence: template from the landmark medoid {medoid} (its landmarks {distance[medoid]:.2f} mm RMS from "
-        f"their mean" + (f", {study.template_instance}'s {given:.2f} mm)" if given is not None else ")"))
-    return other, {**record, "kept": True}
+        f"their mean" + (f", {study.template_instance}'s {given:.2f} mm)" if given is not None else ")")
+        + _points_note(study, other))
+    return other, {**record, "kept": True, "points": _points(study, other)}
 
 
 def confirmed_landmark_medoid(study: Study, *, jobs: int = 1, executor=None, cancelled: CancelledFn = None,
@@ -456,8 +467,8 @@ def confirmed_landmark_medoid(study: Study, *, jobs: int = 1, executor=None, can
         return study, record
     say(f"correspondence: template from the medoid {medoid} (its landmarks nearest their mean, {distance[medoid]:.2f} "
         f"mm RMS; its coatings confirm it nearest the mean shape, {from_mean[medoid]:.2f} mm"
-        + (f", {found} {from_mean[found]:.2f} mm, a tie)" if found != medoid else ")"))
-    return other, {**record, "kept": True}
+        + (f", {found} {from_mean[found]:.2f} mm, a tie)" if found != medoid else ")") + _points_note(study, other))
+    return other, {**record, "kept": True, "points": _points(study, other)}
 
 
 def medoid_template(study: Study, *, jobs: int = 1, executor=None, cancelled: CancelledFn = None,
@@ -504,10 +515,12 @@ def medoid_template(study: Study, *, jobs: int = 1, executor=None, cancelled: Ca
             for s in (study, other)]
     before, after = (CorrespondenceCheck.from_landmarks({n: f.transfer for n, f in found.items()}) for found in fits)
     kept = round_helps(after, before)
-    record.update(transfer_given_mm=before.study_mm, transfer_medoid_mm=after.study_mm, kept=kept)
+    record.update(transfer_given_mm=before.study_mm, transfer_medoid_mm=after.study_mm, kept=kept,
+                  points=_points(study, other))
     say(f"correspondence: template from the medoid {medoid} ({distance[medoid]:.2f} mm RMS from the mean shape, "
         f"{study.template_instance} {distance[study.template_instance]:.2f} mm): landmark transfer error "
-        f"{before.study_mm:.3f} -> {after.study_mm:.3f} mm, {'kept' if kept else 'not kept'}")
+        f"{before.study_mm:.3f} -> {after.study_mm:.3f} mm, {'kept' if kept else 'not kept'}"
+        + _points_note(study, other))
     return (other if kept else study), record, fits[1] if kept else fits[0]
 
 
