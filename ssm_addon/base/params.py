@@ -391,7 +391,9 @@ def add_arguments(parser: argparse.ArgumentParser | argparse._ArgumentGroup, cls
             continue
         dest = f"{prefix}__{s.name}"
         unit = f" ({s.unit})" if s.unit else ""
-        text = f"{s.help}{unit}; default {s.default!r}".replace("%", "%%")
+        shown = (s.none_means if s.default is None and s.none_means else
+                 ("on" if s.default else "off") if s.kind == "bool" else repr(s.default))
+        text = f"{s.help}{unit}; default {shown}".replace("%", "%%")
         if s.kind == "bool":
             parser.add_argument(_flag(prefix, s), dest=dest, action=argparse.BooleanOptionalAction, default=None,
                                 help=text)
@@ -536,8 +538,7 @@ class CoatingParams:
                                    advanced=True, help="the relaxation stops when the largest speed is below this")
     max_iterations: int = param(2000, minimum=0, maximum=100000, label="Max iterations",
                                 help="most relaxation steps in all, a safety limit: it stops earlier, converged, "
-                                     "when the largest speed falls below the velocity tolerance (25 and "
-                                     "springs = 'linear', rest lengths = 'warped': the previous 25-step pass)")
+                                     "when the largest speed falls below the velocity tolerance")
     fold_iterations: int = param(25, minimum=0, maximum=100000, label="Fold steps", advanced=True,
                                  help="first steps with the paper's fold handling (vertices of folded triangles lose "
                                       "the surface force); then every vertex is held to the surface and the mesh "

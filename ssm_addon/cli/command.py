@@ -141,14 +141,23 @@ def _print_progress():
     return progress
 
 
+
+class _ShortErrors(argparse.ArgumentParser):
+    """An argument parser whose error says first what is wrong, then where the options are (a
+    subcommand's usage runs to dozens of lines: ``ssm build`` has one option per parameter)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message}\n(`{self.prog} --help` lists every option)\n")
+
 def argument_parser() -> argparse.ArgumentParser:
     """The ``ssm`` command's parser: every subcommand, and every parameter as a ``--<table>-<key>`` option."""
-    parser = argparse.ArgumentParser(
+    parser = _ShortErrors(
         prog="ssm",
         description="SSM Builder: point-based 3D statistical shape models from segmented volumes (headless). "
                     "Also runs as `python -m ssm_addon` and `blender -b --command ssm`.",
     )
-    sub = parser.add_subparsers(dest="command", required=True, metavar="{info,template,build,fit,analyze,demo,params}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{info,template,build,fit,analyze,demo,params}",
+                                parser_class=_ShortErrors)
 
     p = sub.add_parser("info", help="labels, voxel counts, spacing and affine of a label map")
     p.add_argument("volume", help="label map (NIfTI, NRRD, MetaImage, .npz)")
@@ -172,7 +181,7 @@ def argument_parser() -> argparse.ArgumentParser:
     for section, cls in P.TABLES.items():
         P.add_arguments(p.add_argument_group(f"[{section}] overrides (the project file's values otherwise)"), cls,
                         prefix=section)
-    p.add_argument("--scheduler", dest="compute__scheduler", default=None,
+    p.add_argument("--scheduler", dest="compute__scheduler", default=None, metavar="WHERE",
                    help="where per-instance work runs: processes (default), dask-local, serial, or a Dask scheduler "
                         "address tcp://host:8786 (same as --compute-scheduler)")
     p.add_argument("--cache", dest="compute__cache", default=None, metavar="PATH",
@@ -198,7 +207,7 @@ def argument_parser() -> argparse.ArgumentParser:
                    help="a --project batch fits the surfaces alone, without the instances' landmarks")
     p.add_argument("--glob", help="fit every file of a glob pattern (a batch; --label applies)")
     p.add_argument("--jobs", type=int, default=1, help="parallel workers of a batch")
-    p.add_argument("--scheduler", default="processes",
+    p.add_argument("--scheduler", default="processes", metavar="WHERE",
                    help="where a batch runs: processes (default), dask-local, serial, or a Dask scheduler address")
     p.add_argument("--outlier-probability", type=float, default=0.99,
                    help="chi-square quantile of the Mahalanobis distance above which a target is an outlier")
@@ -229,7 +238,10 @@ def argument_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output folder (written whole at the end)")
     p.add_argument("--force", action="store_true", help="write into a folder holding other files (they are kept)")
 
-    p = sub.add_parser("demo", help="generate the synthetic demo population and build its model")
+    p = sub.add_parser("demo", help="generate the synthetic demo population and build its model",
+                       description="Generate the built-in synthetic population of vertebra-like label maps (with "
+                                   "landmark files in four formats, a group and an age of known effect) in "
+                                   "OUT/population, then build its shape model into OUT/model.")
     p.add_argument("--out", required=True, help="output folder: population in OUT/population, model in OUT/model")
     p.add_argument("--n", type=int, default=24, help="number of instances (default 24)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the population (default 0)")
