@@ -415,6 +415,7 @@ def _one_target(args, named: dict) -> None:
 
 def cmd_fit(args) -> int:
     from ..fitting import batch as apply
+    from ..model.figures import p_value_text
     from ..pipeline.project import targets_from_project
 
     params = P.from_arguments(args, P.FitParams)
@@ -461,7 +462,7 @@ def cmd_fit(args) -> int:
                                    progress=_print_progress(), scheduler=args.scheduler)
         for d in docs:
             flag = "  OUTLIER" if d["outlier"] else ""
-            print(f"{d['name']}: Mahalanobis {d['mahalanobis']:.2f} (p = {d['p_value']:.3g}), mean distance "
+            print(f"{d['name']}: Mahalanobis {d['mahalanobis']:.2f} ({p_value_text(d['p_value'])}), mean distance "
                   f"{d['mean_distance_mm']:.2f} mm{flag}")
         for d in docs:
             for w in d.get("warnings", []):
@@ -478,7 +479,7 @@ def cmd_fit(args) -> int:
                                   progress=_print_progress())
     if doc.get("landmarks_used"):
         print(f"landmarks used: {', '.join(doc['landmarks_used'])}")
-    print(f"{name}: Mahalanobis distance {doc['mahalanobis']:.2f} on {doc['n_modes']} modes (p = {doc['p_value']:.3g})"
+    print(f"{name}: Mahalanobis distance {doc['mahalanobis']:.2f} on {doc['n_modes']} modes ({p_value_text(doc['p_value'])})"
           f"{': an OUTLIER' if doc['outlier'] else ''}; mean distance {doc['mean_distance_mm']:.2f} mm, largest "
           f"{doc['max_distance_mm']:.2f} mm (pose from the start {doc['pose_search']['chosen']!r})")
     for w in doc.get("warnings", []):

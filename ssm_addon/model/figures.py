@@ -209,14 +209,18 @@ def label_modes_figure(grid: np.ndarray, path, model: ShapeModel, *, n_modes: in
 
 
 def p_value_text(p: float) -> str:
-    """A p-value as a paper prints it: two significant figures, or ``< 0.001``.
+    """A p-value as a paper prints it: two significant figures, ``< 0.001`` or ``> 0.99``, never 0 or 1.
 
-    >>> p_value_text(0.04321), p_value_text(1.0), p_value_text(2e-226)
-    ('p = 0.043', 'p = 1.0', 'p < 0.001')
+    >>> p_value_text(0.04321), p_value_text(1.0), p_value_text(0.9996), p_value_text(2e-226)
+    ('p = 0.043', 'p > 0.99', 'p > 0.99', 'p < 0.001')
     """
     if not np.isfinite(p):
         return "p unknown"
-    return "p < 0.001" if p < 0.001 else f"p = {float(f'{p:.2g}'):g}" if p < 1 else "p = 1.0"
+    if p < 0.001:
+        return "p < 0.001"
+    if p > 0.99:
+        return "p > 0.99"
+    return f"p = {float(f'{p:.2g}'):g}"
 
 
 def principal_views(points: np.ndarray) -> list[tuple[str, np.ndarray]]:
