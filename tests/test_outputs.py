@@ -226,3 +226,34 @@ def test_vtp_files_of_meshes_with_other_triangles_hold_their_own(tmp_path):
         polys = {a.get("Name"): a.text for a in root.iter("DataArray") if a.get("Name")}
         assert np.array_equal(np.array(polys["connectivity"].split(), int).reshape(-1, 3), faces), k
         assert np.array_equal(np.array(polys["offsets"].split(), int), 3 * np.arange(1, len(faces) + 1)), k
+
+
+def test_every_series_a_legend_names_has_data_when_drawn_from_the_builds_copy():
+    """The build draws fig. 9 on a worker from a copy of the model without its training shapes
+    (:func:`~ssm_addon.pipeline.outputs.drawing_copy`): the dashed curve of the point-coordinate
+    variances, which the legend names, must come with it (it was empty: the copy has no shapes
+    to take the variances of)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from ssm_addon.model.metrics import _draw_cumulative, _draw_spectrum
+    from ssm_addon.model.pca import build_model
+    from ssm_addon.pipeline.outputs import drawing_copy
+
+    rng = np.random.default_rng(0)
+    base = rng.normal(size=(60, 3)) * 10
+    shapes = np.stack([base + rng.normal(scale=1.0, size=base.shape) for _ in range(8)])
+    model = build_model(shapes, np.array([[0, 1, 2]]), [f"s{k}" for k in range(8)], alignment="none")
+    drawn, coordinate = drawing_copy(model, 2)
+    assert drawn.instance_points.shape[1] == 0  # what a worker is sent holds no shapes
+    fig = Figure()
+    FigureCanvasAgg(fig)
+    ax, bx = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
+    _draw_spectrum(ax, drawn)
+    _draw_cumulative(bx, drawn, coordinate)
+    handles, labels = bx.get_legend_handles_labels()
+    assert len(labels) == 2 and any("coordinate" in x for x in labels), labels
+    for line in bx.get_lines():
+        assert len(line.get_xdata()) > 0 and np.isfinite(line.get_ydata()).all(), line.get_label()
+    full = model.variability_concentration("coordinate")
+    assert np.allclose(coordinate[: len(full)], full[: len(coordinate)])

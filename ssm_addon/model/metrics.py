@@ -623,10 +623,11 @@ def _draw_spectrum(ax, model):
     ax.set_title("Eigenvalue spectrum")
 
 
-def _draw_cumulative(ax, model):
+def _draw_cumulative(ax, model, coordinate=None):
     k = np.arange(1, model.n_modes + 1)
     ax.plot(k, 100 * model.variability_concentration("eigen"), "o-", ms=3, color="#aa3377", label="eigenvalues")
-    coord = model.variability_concentration("coordinate")[: model.n_modes]
+    coord = (model.variability_concentration("coordinate") if coordinate is None else np.asarray(coordinate))
+    coord = coord[: model.n_modes]
     ax.plot(k[: len(coord)], 100 * coord, "s--", ms=2, color="#999933",
             label="k largest point-coordinate variances\n(no PCA: what the modes gain over raw coordinates)")
     ax.set_xscale("log")
@@ -765,18 +766,21 @@ def plot_spectrum(model: ShapeModel, path_png):
     return _save(fig, path_png)
 
 
-def plot_cumulative_variance(model: ShapeModel, path_png):
-    """Concentration of variability (eq. 8) over k (paper fig. 9, right). Returns the PNG path."""
+def plot_cumulative_variance(model: ShapeModel, path_png, coordinate=None):
+    """Concentration of variability (eq. 8) over k (paper fig. 9, right); ``coordinate``: the
+    coordinates' concentration when ``model`` no longer holds its training shapes (a drawing copy).
+    Returns the PNG path."""
     fig, (ax,) = _figure()
-    _draw_cumulative(ax, model)
+    _draw_cumulative(ax, model, coordinate)
     return _save(fig, path_png)
 
 
-def plot_model_figure(model: ShapeModel, path_png):
-    """Both panels of paper fig. 9 side by side. Returns the PNG path."""
+def plot_model_figure(model: ShapeModel, path_png, coordinate=None):
+    """Both panels of paper fig. 9 side by side (``coordinate`` as :func:`plot_cumulative_variance`).
+    Returns the PNG path."""
     fig, (a, b) = _figure(ncols=2, height=4.6)
     _draw_spectrum(a, model)
-    _draw_cumulative(b, model)
+    _draw_cumulative(b, model, coordinate)
     return _save(fig, path_png)
 
 
@@ -808,8 +812,11 @@ def plot_metrics(metrics: ModelMetrics, path_png):
     return _save(fig, path_png)
 
 
-def write_plots(model: ShapeModel, out_dir, metrics: ModelMetrics | None = None) -> dict:
+def write_plots(model: ShapeModel, out_dir, metrics: ModelMetrics | None = None, *, coordinate=None) -> dict:
     """Write spectrum, cumulative variance, fig. 9 and metrics plots into ``out_dir``.
+
+    ``coordinate``: the coordinates' concentration of variability (eq. 8, at least the model's
+    modes long), for a drawing copy of the model without its training shapes.
 
     Returns {"files": [...]} or {"files": [], "skipped": message} without matplotlib.
     """
@@ -817,8 +824,8 @@ def write_plots(model: ShapeModel, out_dir, metrics: ModelMetrics | None = None)
     try:
         files = [
             plot_spectrum(model, out_dir / "spectrum.png"),
-            plot_cumulative_variance(model, out_dir / "cumulative_variance.png"),
-            plot_model_figure(model, out_dir / "variability.png"),
+            plot_cumulative_variance(model, out_dir / "cumulative_variance.png", coordinate),
+            plot_model_figure(model, out_dir / "variability.png", coordinate),
         ]
         if metrics is not None and (metrics.generalization or metrics.specificity):
             files.append(plot_metrics(metrics, out_dir / "metrics.png"))

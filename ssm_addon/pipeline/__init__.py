@@ -6,7 +6,7 @@ Every public name of the subpackage's modules, imported on first use (:mod:`ssm_
 from .._lazy import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, {
-    "outputs": ("MANIFEST", "check_output_folder", "check_writable", "owned_output_folder", "peak_memory_mb", "relative_files", "save_study_outputs", "start_drawings", "study_inputs", "write_joint", "write_outputs", "write_study"),
+    "outputs": ("MANIFEST", "check_output_folder", "check_writable", "drawing_copy", "owned_output_folder", "peak_memory_mb", "relative_files", "save_study_outputs", "start_drawings", "study_inputs", "write_joint", "write_outputs", "write_study"),
     "report": ("MAX_THUMBNAILS", "SECTIONS", "Absent", "Report", "instance_thumbnails", "joint_report", "model_alignment", "model_report", "study_report", "thumbnail_names", "write_html_report", "write_report_html"),
     "project": ("STRUCTURE_KEYS", "Project", "Structure", "project_text", "read_project", "structure_overrides", "targets_from_project", "toml_value", "write_project"),
     "store": ("RECORD_FIELDS", "apply_records", "load_study", "save_study", "study_records"),

@@ -45,7 +45,7 @@ from ..model.metrics import write_plots
 from .report import Absent, Report, joint_report, model_report, study_report, write_report_html
 from .study import Study, carried_landmarks
 
-__all__ = ["MANIFEST", "check_output_folder", "check_writable", "owned_output_folder", "peak_memory_mb",
+__all__ = ["MANIFEST", "check_output_folder", "check_writable", "drawing_copy", "owned_output_folder", "peak_memory_mb",
            "relative_files", "save_study_outputs", "start_drawings", "study_inputs", "write_joint", "write_outputs", "write_study"]
 
 
@@ -287,8 +287,19 @@ def _picture_job(args) -> str | None:
 
 
 def _plots_job(args) -> dict:
-    model, folder, metrics = args
-    return write_plots(model, folder, metrics)
+    model, folder, metrics, coordinate = args
+    return write_plots(model, folder, metrics, coordinate=coordinate)
+
+
+def drawing_copy(model, n_modes: int):
+    """What a worker draws from: the model without its training shapes and without the modes after
+    the first ``n_modes`` (at 10^4 instances those are most of it), and the coordinates'
+    concentration of variability (eq. 8, paper fig. 9's dashed curve) computed here from the
+    shapes the copy no longer holds."""
+    coordinate = model.variability_concentration("coordinate")[: max(model.n_modes, 1)]
+    drawn = dataclasses.replace(model, modes=model.modes[:n_modes], instance_points=model.instance_points[:, :0],
+                                instance_points_world=model.instance_points_world[:, :0])
+    return drawn, coordinate
 
 
 def start_drawings(model, metrics, output: OutputParams, folder: Path, files: dict, *, plots: bool = True,
@@ -307,12 +318,11 @@ def start_drawings(model, metrics, output: OutputParams, folder: Path, files: di
     n_modes = int(output.picture_modes)
     # what a worker is sent: no picture reads the instances' points nor the modes after the drawn
     # ones (at 10^4 instances those are most of the model)
-    drawn = dataclasses.replace(model, modes=model.modes[:n_modes], instance_points=model.instance_points[:, :0],
-                                instance_points_world=model.instance_points_world[:, :0])
+    drawn, coordinate = drawing_copy(model, n_modes)
     picture = None
     if output.picture and "picture" not in files and model.n_modes > 0:
         picture = submit(_picture_job, (drawn, folder / "modes.png", n_modes))
-    plotted = submit(_plots_job, (drawn, folder, metrics)) if plots else None
+    plotted = submit(_plots_job, (drawn, folder, metrics, coordinate)) if plots else None
 
     def finish(say: Callable[[str], None]) -> dict:
         if picture is not None:
