@@ -239,7 +239,9 @@ class Optimisation:
 
     @property
     def iterations(self) -> int:
-        return max(0, len(self.steps) - 1)
+        """Iterations done (the last step's number: without the population term every iteration's
+        steps run in one task per instance, measured once at the end)."""
+        return int(self.steps[-1].iteration) if self.steps else 0
 
     def to_dict(self) -> dict:
         """JSON-ready record (``report.json``'s ``correspondence.optimisation``), without the points."""
