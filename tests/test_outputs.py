@@ -236,7 +236,7 @@ def test_every_series_a_legend_names_has_data_when_drawn_from_the_builds_copy():
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from ssm_addon.model.metrics import _draw_cumulative, _draw_spectrum
+    from ssm_addon.model.metrics import draw_cumulative, draw_spectrum
     from ssm_addon.model.pca import build_model
     from ssm_addon.pipeline.outputs import drawing_copy
 
@@ -249,8 +249,8 @@ def test_every_series_a_legend_names_has_data_when_drawn_from_the_builds_copy():
     fig = Figure()
     FigureCanvasAgg(fig)
     ax, bx = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
-    _draw_spectrum(ax, drawn)
-    _draw_cumulative(bx, drawn, coordinate)
+    draw_spectrum(ax, drawn)
+    draw_cumulative(bx, drawn, coordinate)
     handles, labels = bx.get_legend_handles_labels()
     assert len(labels) == 2 and any("coordinate" in x for x in labels), labels
     for line in bx.get_lines():

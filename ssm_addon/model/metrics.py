@@ -613,7 +613,7 @@ def _figure(width=5.0, height=3.6, ncols=1):
     return fig, axes
 
 
-def _draw_spectrum(ax, model):
+def draw_spectrum(ax, model):
     k = np.arange(1, model.n_modes + 1)
     lam = np.maximum(model.variances, np.finfo(float).tiny)
     ax.bar(k, lam, color="#4477aa")
@@ -623,7 +623,7 @@ def _draw_spectrum(ax, model):
     ax.set_title("Eigenvalue spectrum")
 
 
-def _draw_cumulative(ax, model, coordinate=None):
+def draw_cumulative(ax, model, coordinate=None):
     k = np.arange(1, model.n_modes + 1)
     ax.plot(k, 100 * model.variability_concentration("eigen"), "o-", ms=3, color="#aa3377", label="eigenvalues")
     coord = (model.variability_concentration("coordinate") if coordinate is None else np.asarray(coordinate))
@@ -762,7 +762,7 @@ def label_grid_picture(grid_rgb: np.ndarray, path_png, *, row_labels, column_lab
 def plot_spectrum(model: ShapeModel, path_png):
     """Eigenvalues λ_k on a log scale (paper fig. 9, left). Returns the PNG path."""
     fig, (ax,) = _figure()
-    _draw_spectrum(ax, model)
+    draw_spectrum(ax, model)
     return _save(fig, path_png)
 
 
@@ -771,7 +771,7 @@ def plot_cumulative_variance(model: ShapeModel, path_png, coordinate=None):
     coordinates' concentration when ``model`` no longer holds its training shapes (a drawing copy).
     Returns the PNG path."""
     fig, (ax,) = _figure()
-    _draw_cumulative(ax, model, coordinate)
+    draw_cumulative(ax, model, coordinate)
     return _save(fig, path_png)
 
 
@@ -779,8 +779,8 @@ def plot_model_figure(model: ShapeModel, path_png, coordinate=None):
     """Both panels of paper fig. 9 side by side (``coordinate`` as :func:`plot_cumulative_variance`).
     Returns the PNG path."""
     fig, (a, b) = _figure(ncols=2, height=4.6)
-    _draw_spectrum(a, model)
-    _draw_cumulative(b, model, coordinate)
+    draw_spectrum(a, model)
+    draw_cumulative(b, model, coordinate)
     return _save(fig, path_png)
 
 
