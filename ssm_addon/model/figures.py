@@ -240,6 +240,18 @@ def principal_views(points: np.ndarray) -> list[tuple[str, np.ndarray]]:
             ("along the middle axis", np.stack([long_, least, np.cross(long_, least)]))]
 
 
+def _dress_view(ax, title: str, px_per_mm: float, cell_px: int) -> None:
+    """A view's scale bar (mm), title and frame: the pixels of one cell, no axes."""
+    bar = scale_bar_mm(1.0 / px_per_mm, cell_px)
+    x0, y0 = 0.06 * cell_px, 0.94 * cell_px
+    ax.plot([x0, x0 + bar * px_per_mm], [y0, y0], color="black", lw=3, solid_capstyle="butt")
+    ax.text(x0, y0 - 0.02 * cell_px, f"{bar:g} mm", fontsize=10, va="bottom")
+    ax.set_title(title, fontsize=11)
+    ax.set_xlim(0, cell_px)
+    ax.set_ylim(cell_px, 0)
+    ax.set_axis_off()
+
+
 def fit_figure(points_mm: np.ndarray, faces: np.ndarray, sd_mm: np.ndarray, target_mm: np.ndarray | None, path, *,
                title: str, summary: str, flagged: bool = False, cell_px: int = 420) -> Path:
     """A fitted shape over its target, in two views along its principal axes (PNG, for a paper).
@@ -282,14 +294,7 @@ def fit_figure(points_mm: np.ndarray, faces: np.ndarray, sd_mm: np.ndarray, targ
             t = (np.asarray(target_mm, float) - centre) @ rot.T
             ax.scatter(cell_px / 2 + t[:, 0] * px_per_mm, cell_px / 2 - t[:, 1] * px_per_mm, s=1.5, c="black",
                        linewidths=0, alpha=0.6)
-        bar = scale_bar_mm(1.0 / px_per_mm, cell_px)
-        x0, y0 = 0.06 * cell_px, 0.94 * cell_px
-        ax.plot([x0, x0 + bar * px_per_mm], [y0, y0], color="black", lw=3, solid_capstyle="butt")
-        ax.text(x0, y0 - 0.02 * cell_px, f"{bar:g} mm", fontsize=10, va="bottom")
-        ax.set_title(f"view {name}", fontsize=11)
-        ax.set_xlim(0, cell_px)
-        ax.set_ylim(cell_px, 0)
-        ax.set_axis_off()
+        _dress_view(ax, f"view {name}", px_per_mm, cell_px)
     fig.suptitle(title, fontsize=13, y=0.97)
     fig.text(0.5, 0.875, summary, ha="center", fontsize=10.5, color="#b00000" if flagged else "black")
     bar_ax = fig.add_axes([0.12, 0.1, 0.76, 0.03])
@@ -334,7 +339,7 @@ def optimisation_figure(points_mm: np.ndarray, faces: np.ndarray, movement_mm: n
     face_rgb = cmap(norm(move[np.asarray(faces)].mean(axis=1)))[:, :3] if move.size else None
     fig = Figure(figsize=(13.0, 5.0), dpi=100)
     FigureCanvasAgg(fig)
-    curve = fig.add_axes([0.06, 0.22, 0.25, 0.6])
+    curve = fig.add_axes([0.08, 0.22, 0.22, 0.6])
     it = [r["iteration"] for r in rows]
     curve.plot(it, [r["objective"] for r in rows], "o-", color="black", label="objective")
     curve.set_xlabel("iteration")
@@ -352,14 +357,7 @@ def optimisation_figure(points_mm: np.ndarray, faces: np.ndarray, movement_mm: n
         screen = np.c_[cell_px / 2 + q[:, 0] * px_per_mm, cell_px / 2 - q[:, 1] * px_per_mm, q[:, 2]]
         rgb = face_rgb if face_rgb is not None else np.full((len(faces), 3), 0.8)
         ax.imshow(rasterize_meshes([(screen, faces, rgb)], (cell_px, cell_px)), interpolation="lanczos")
-        bar = scale_bar_mm(1.0 / px_per_mm, cell_px)
-        x0, y0 = 0.06 * cell_px, 0.94 * cell_px
-        ax.plot([x0, x0 + bar * px_per_mm], [y0, y0], color="black", lw=3, solid_capstyle="butt")
-        ax.text(x0, y0 - 0.02 * cell_px, f"{bar:g} mm", fontsize=10, va="bottom")
-        ax.set_title(f"mean shape, view {name}", fontsize=11)
-        ax.set_xlim(0, cell_px)
-        ax.set_ylim(cell_px, 0)
-        ax.set_axis_off()
+        _dress_view(ax, f"mean shape, view {name}", px_per_mm, cell_px)
     fig.suptitle(title, fontsize=13, y=0.97)
     bar_ax = fig.add_axes([0.42, 0.1, 0.5, 0.03])
     fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), cax=bar_ax, orientation="horizontal")
