@@ -41,7 +41,7 @@ from ..meshutil import MeshLocator, vertex_normals
 
 __all__ = ["FitResult", "ModelErrorField", "Pose", "Target", "correlation_length", "farthest_point_indices",
            "fit_any_pose", "fit_model", "loo_residuals", "model_error_field", "model_error_variance", "outlier_limit",
-           "rigid_screen", "start_poses"]
+           "rigid_screen", "start_poses", "weighted_pose"]
 
 
 @dataclass(frozen=True)
@@ -181,6 +181,12 @@ def _procrustes(src: np.ndarray, dst: np.ndarray, w: np.ndarray, scale: bool) ->
     rot = u @ corr @ vt
     s = float((sv * np.diag(corr)).sum() / max((w * (a * a).sum(axis=1)).sum(), 1e-300)) if scale else 1.0
     return Pose(rot, md - s * rot @ ms, s)
+
+
+def weighted_pose(src: np.ndarray, dst: np.ndarray, weights: np.ndarray, scale: bool = False) -> Pose:
+    """The weighted least-squares rigid (or, with ``scale``, similarity) pose taking the points
+    ``src`` (M, 3) onto ``dst`` (M, 3), mm (Umeyama 1991)."""
+    return _procrustes(np.asarray(src, float), np.asarray(dst, float), np.asarray(weights, float), scale)
 
 
 def _skew(v: np.ndarray) -> np.ndarray:

@@ -1,0 +1,13 @@
+"""Segmenting images with a model: learned boundary appearance, the active shape model search, the files.
+
+Every public name of the subpackage's modules, imported on first use (:mod:`ssm_addon._lazy`).
+"""
+
+from .._lazy import lazy_exports
+
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {
+    "appearance": ("Appearance", "LEVEL_SIGMAS_MM", "appearance_from_arrays", "learn_appearance", "normalised_derivative"),
+    "files": ("SEGMENT_FILES", "segment_figure", "segmentation_mask", "write_segmentation"),
+    "image": ("GreyImage", "read_image"),
+    "segment": ("SegmentParams", "SegmentResult", "segment_image", "start_pose", "typical_rotation", "volume_centroid"),
+})

@@ -1,0 +1,112 @@
+"""A segmentation's files: the label map on the image's own grid, the surface, the record, the picture."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..base.errors import InputError
+from ..formats.label_maps import write_label_map
+from ..formats.meshes import write_ply
+from ..instances.voxelize import voxelize_mesh
+from .image import GreyImage
+
+__all__ = ["SEGMENT_FILES", "segmentation_mask", "segment_figure", "write_segmentation"]
+
+SEGMENT_FILES = ("segmentation.nii.gz", "segmented.ply", "segment.json", "segment.png")
+
+
+def segmentation_mask(points_world: np.ndarray, faces: np.ndarray, image: GreyImage) -> np.ndarray:
+    """(I, J, K) bool on ``image``'s grid: the voxels whose centres lie inside the closed surface.
+
+    The surface is taken into the image's voxel-index coordinates (its affine's inverse, so
+    an oblique or LPS-stored grid is handled exactly) and voxelized there by ray parity
+    (:func:`ssm_addon.instances.voxelize.voxelize_mesh` at unit spacing).
+    """
+    ijk = image.to_index(np.asarray(points_world, float))
+    vol = voxelize_mesh(ijk, faces, 1.0, source="segmented surface")
+    origin = np.rint(vol.affine[:3, 3]).astype(np.int64)
+    out = np.zeros(image.shape, bool)
+    lo = np.maximum(origin, 0)
+    hi = np.minimum(origin + np.asarray(vol.mask.shape), np.asarray(image.shape))
+    if np.any(hi <= lo):
+        return out
+    src = tuple(slice(int(a - o), int(b - o)) for a, b, o in zip(lo, hi, origin))
+    dst = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
+    out[dst] = vol.mask[src]
+    return out
+
+
+def segment_figure(image: GreyImage, mask: np.ndarray, path, *, title: str = "", reference: np.ndarray | None = None,
+                   window=(-200.0, 1200.0)) -> Path:
+    """Three slices (one per voxel axis) through the segmentation's centre, the image in grey
+    (``window`` low/high), the segmentation's outline in orange and, when given, a
+    reference mask's in cyan (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    idx = np.argwhere(mask)
+    centre = idx.mean(axis=0).round().astype(int) if len(idx) else np.asarray(image.shape) // 2
+    fig, axes = plt.subplots(1, 3, figsize=(12, 4.4))
+    sp = image.spacing_mm
+    for axis, ax in enumerate(axes):
+        sl = [slice(None)] * 3
+        sl[axis] = int(centre[axis])
+        img = np.asarray(image.data[tuple(sl)], float)
+        m = mask[tuple(sl)]
+        others = [a for a in range(3) if a != axis]
+        aspect = sp[others[0]] / sp[others[1]]
+        ax.imshow(img, cmap="gray", vmin=window[0], vmax=window[1], origin="lower", aspect=1.0 / aspect,
+                  interpolation="nearest")
+        if m.any():
+            ax.contour(m.astype(float), levels=[0.5], colors=["#ff8c00"], linewidths=1.2)
+        if reference is not None and reference[tuple(sl)].any():
+            ax.contour(reference[tuple(sl)].astype(float), levels=[0.5], colors=["#00c8ff"], linewidths=0.8,
+                       linestyles="dashed")
+        ax.set_title(f"voxel axis {'ijk'[axis]} = {int(centre[axis])}", fontsize=9)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.suptitle(title or "segmentation (orange)" + (", reference (cyan, dashed)" if reference is not None else ""),
+                 fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return Path(path)
+
+
+def write_segmentation(result, image: GreyImage, out_dir, *, model_source: str = "", extra: dict | None = None,
+                       overwrite: bool = False) -> dict:
+    """Write ``segmentation.nii.gz`` (label 1 on the image's grid, its affine), ``segmented.ply``
+    (world mm, RAS, with the posterior SD per vertex), ``segment.json`` and ``segment.png``.
+
+    Existing files of these names are refused unless ``overwrite`` (they may not be ours).
+    Returns the paths by kind.
+    """
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: exists and is not a folder")
+    clash = [n for n in SEGMENT_FILES if (out / n).exists()]
+    if clash and not overwrite:
+        raise InputError(f"{out}: already holds {', '.join(clash)}; choose another --out (a segmentation never "
+                         "overwrites files it did not write)")
+    out.mkdir(parents=True, exist_ok=True)
+    mask = segmentation_mask(result.points, result.faces, image)
+    if not mask.any():
+        raise InputError(f"{image.path}: the segmented surface encloses no voxel of the image")
+    files = {"segmentation": out / "segmentation.nii.gz", "surface": out / "segmented.ply",
+             "record": out / "segment.json", "picture": out / "segment.png"}
+    write_label_map(files["segmentation"], mask.astype(np.uint8), image.affine)
+    write_ply(files["surface"], result.points, result.faces,
+              vertex_scalars={"posterior_sd_mm": result.posterior_sd_mm, "deviation_mm": result.deviation_mm},
+              space="RAS")
+    vox = float(abs(np.linalg.det(image.affine[:3, :3])))
+    doc = {"image": str(image.path), "model": str(model_source), **result.to_dict(),
+           "segmentation": {"voxels": int(mask.sum()), "volume_mm3": float(mask.sum() * vox)},
+           "files": {k: p.name for k, p in files.items()}, **(extra or {})}
+    files["record"].write_text(json.dumps(doc, indent=1))
+    segment_figure(image, mask, files["picture"], title=f"{Path(image.path).name}: segmentation (orange)")
+    return files

@@ -1,0 +1,133 @@
+"""Grey-value images (CT) in world mm: reading, smoothing and sampling along normals.
+
+An image is its voxel values with the affine that maps voxel indices to world RAS mm (the
+same convention as the label maps of :mod:`ssm_addon.formats.label_maps`). Sampling
+takes world points, so a model's surface, its normals and the search along them stay in
+world mm whatever the grid's spacing, orientation or obliqueness.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from nibabel.affines import apply_affine, voxel_sizes
+from scipy import ndimage
+
+from ..base.errors import InputError
+from ..formats import label_maps as lm
+
+__all__ = ["GreyImage", "read_image"]
+
+
+@dataclass(frozen=True, eq=False)
+class GreyImage:
+    """A grey-value image and its voxel -> world (RAS mm) affine.
+
+    Attributes
+    ----------
+    data : (I, J, K) float32 ndarray
+        Voxel values (Hounsfield units for CT).
+    affine : (4, 4) float ndarray
+        Voxel index (i, j, k, 1) -> world (x, y, z, 1), mm, RAS.
+    path : str
+        The file it came from (for messages).
+    """
+
+    data: np.ndarray
+    affine: np.ndarray
+    path: str = ""
+    _smoothed: dict = field(default_factory=dict, repr=False, compare=False)
+
+    @property
+    def spacing_mm(self) -> np.ndarray:
+        """(3,) voxel edge lengths (mm)."""
+        return voxel_sizes(self.affine)
+
+    @property
+    def shape(self) -> tuple:
+        return tuple(self.data.shape)
+
+    def to_index(self, points_world: np.ndarray) -> np.ndarray:
+        """(…, 3) world mm -> continuous voxel indices."""
+        return apply_affine(np.linalg.inv(self.affine), np.asarray(points_world, float))
+
+    def to_world(self, ijk: np.ndarray) -> np.ndarray:
+        """(…, 3) voxel indices -> world mm."""
+        return apply_affine(self.affine, np.asarray(ijk, float))
+
+    def contains(self, points_world: np.ndarray) -> np.ndarray:
+        """(M,) bool: the world points lie inside the image's voxel grid (centres' hull, ±½ voxel)."""
+        ijk = self.to_index(np.atleast_2d(points_world))
+        return np.all((ijk >= -0.5) & (ijk <= np.asarray(self.data.shape) - 0.5), axis=1)
+
+    def extent_world(self) -> np.ndarray:
+        """(2, 3) the lowest and highest world coordinates of the grid's corners (mm)."""
+        s = np.asarray(self.data.shape, float) - 1.0
+        corners = np.array([[i, j, k] for i in (0, s[0]) for j in (0, s[1]) for k in (0, s[2])])
+        w = self.to_world(corners)
+        return np.stack([w.min(axis=0), w.max(axis=0)])
+
+    def smoothed(self, sigma_mm: float) -> np.ndarray:
+        """The image blurred by a Gaussian of ``sigma_mm`` (world mm, per axis by its spacing); cached."""
+        key = round(float(sigma_mm), 6)
+        if key not in self._smoothed:
+            if key <= 0:
+                self._smoothed[key] = np.asarray(self.data, np.float32)
+            else:
+                sig = key / self.spacing_mm
+                self._smoothed[key] = ndimage.gaussian_filter(np.asarray(self.data, np.float32), sig, mode="nearest")
+        return self._smoothed[key]
+
+    def sample(self, points_world: np.ndarray, *, sigma_mm: float = 0.0) -> np.ndarray:
+        """Trilinear values at world points (…, 3) of the image blurred by ``sigma_mm``; outside: the nearest edge."""
+        pts = np.asarray(points_world, float)
+        ijk = self.to_index(pts.reshape(-1, 3))
+        vals = ndimage.map_coordinates(self.smoothed(sigma_mm), ijk.T, order=1, mode="nearest")
+        return vals.reshape(pts.shape[:-1])
+
+    def profiles(self, points_world: np.ndarray, normals: np.ndarray, offsets_mm: np.ndarray, *,
+                 sigma_mm: float = 0.0) -> np.ndarray:
+        """(N, M) values along each point's normal at ``offsets_mm`` (M,), outward positive (mm)."""
+        pos = (np.asarray(points_world, float)[:, None, :]
+               + np.asarray(offsets_mm, float)[None, :, None] * np.asarray(normals, float)[:, None, :])
+        return self.sample(pos, sigma_mm=sigma_mm)
+
+
+def read_image(path) -> GreyImage:
+    """Read a grey-value image (NIfTI, NRRD, MetaImage) with its voxel -> world RAS mm affine.
+
+    The affine is read as for label maps (NIfTI: the scanner's form, as 3D Slicer reads it;
+    NRRD and MetaImage in LPS turned into RAS).
+
+    Raises
+    ------
+    InputError
+        A missing, unreadable, 4-D or non-numeric file, or a degenerate affine (the message
+        names the file).
+    """
+    path, ext = lm._check_file(path, (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd"))
+    readers = {".nii": lm._read_nifti, ".nii.gz": lm._read_nifti, ".nrrd": lm._read_nrrd, ".nhdr": lm._read_nrrd,
+               ".mha": lm._read_metaimage, ".mhd": lm._read_metaimage}
+    try:
+        data, affine = readers[ext](Path(path))
+        data = np.asarray(data)
+    except InputError:
+        raise
+    except MemoryError:
+        raise
+    except Exception as err:  # noqa: BLE001 - every reader failure becomes a named InputError
+        raise InputError(f"{path}: cannot read the image, corrupt or truncated? ({type(err).__name__}: {err})") from err
+    data = np.squeeze(data) if data.ndim > 3 else data
+    if data.ndim != 3:
+        raise InputError(f"{path}: the image has {data.ndim} dimensions (shape {data.shape}); a 3-D image is needed")
+    if not np.issubdtype(data.dtype, np.number) or np.issubdtype(data.dtype, np.complexfloating):
+        raise InputError(f"{path}: voxel type {data.dtype} is not a grey value")
+    affine = np.asarray(affine, float)
+    if not np.all(np.isfinite(affine)) or abs(np.linalg.det(affine[:3, :3])) < 1e-12:
+        raise InputError(f"{path}: degenerate voxel -> world affine {affine.tolist()}")
+    values = data.astype(np.float32)
+    if not np.all(np.isfinite(values)):
+        raise InputError(f"{path}: {int(np.sum(~np.isfinite(values)))} voxel(s) are NaN or infinite")
+    return GreyImage(values, affine, str(path))

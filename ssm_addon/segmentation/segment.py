@@ -1,0 +1,481 @@
+"""Segmenting a grey-value image with a shape model: an active shape model search.
+
+From a start pose (a point inside the structure, landmarks clicked on the image, or a
+rough mask), every level of the search (coarse to fine: the image blurred by 2, 1 and
+0.5 mm, the search range along the normals shrinking with it) repeats
+
+1. each model point looks along its normal for the position the boundary evidence
+   prefers (learned profiles, or the image gradient: :mod:`.appearance`);
+2. the pose (rigid) and the mode weights b that bring the shape closest to those
+   positions under the model's prior: the posterior mean of
+   n_iᵀ(T⁻¹y_i − p̄_i) = n_iᵀ Q_i b + ε, ε ~ N(0, σ²), b ~ N(0, Λ/η) (paper eq. 7; the
+   point-to-plane step of :func:`ssm_addon.fitting.fit_model`),
+
+until the points stop moving (Cootes et al. 1995, section 5; multi-resolution after
+Cootes, Taylor & Lanitis 1994). The coarse level starts from several turns of the
+model's typical pose and keeps the one whose boundary evidence fits best. Last, each
+point may leave the model's span along its normal by as much as the model's own error at
+that point (its leave-one-out residual) and the evidence call for; the offsets are
+smoothed over the mesh so the surface stays a surface.
+
+Frames: the model in its model frame (mm); the image, the start point, the result in
+the image's world frame (RAS mm); ``pose`` maps model -> world.
+
+References
+----------
+Cootes TF, Taylor CJ, Cooper DH, Graham J. Active shape models — their training and
+application. Computer Vision and Image Understanding 61(1):38–59, 1995.
+Cootes TF, Taylor CJ, Lanitis A. Active shape models: evaluation of a multi-resolution
+method for improving image search. BMVC 1994, 327–336.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.special import chdtrc
+
+from ..base.errors import InputError, check_cancelled
+from ..base.progress import CancelledFn, ProgressFn, report
+from ..fitting.fit import Pose, model_error_variance, outlier_limit, weighted_pose
+from ..meshutil import edges, vertex_normals
+from .appearance import LEVEL_SIGMAS_MM, Appearance, normalised_derivative
+from .image import GreyImage
+
+__all__ = ["SegmentParams", "SegmentResult", "segment_image", "start_pose", "typical_rotation", "volume_centroid"]
+
+
+@dataclass(frozen=True)
+class SegmentParams:
+    """The active shape model search (``ssm segment``).
+
+    Attributes
+    ----------
+    search_mm : (L,) mm
+        How far each level looks along the normals, both ways (coarse to fine).
+    search_step_mm : mm
+        Candidate spacing along the normal.
+    iterations : int
+        Most search-and-fit steps per level.
+    tolerance_mm : mm
+        A level ends when the points move less than this (RMS).
+    noise_mm : mm
+        σ of a suggested position around the shape (larger trusts the model more).
+    prior_weight : float
+        η of the model's prior.
+    n_modes : int or None
+        Modes used (None: all).
+    turns_deg : degrees
+        The coarse level also starts from the typical pose turned by ± this about each axis.
+    deviation : bool
+        Let the surface leave the model's span as far as the model's error and the evidence allow.
+    evidence : {"auto", "learned", "gradient"}
+        The boundary evidence: the model's learned appearance when it has one (auto), or the gradient.
+    """
+
+    search_mm: tuple = (12.0, 6.0, 3.0)
+    search_step_mm: float = 0.5
+    iterations: int = 12
+    tolerance_mm: float = 0.05
+    noise_mm: float = 1.0
+    prior_weight: float = 1.0
+    n_modes: int | None = None
+    turns_deg: float = 15.0
+    deviation: bool = True
+    evidence: str = "auto"
+
+    def __post_init__(self):
+        if len(self.search_mm) != len(LEVEL_SIGMAS_MM) or min(self.search_mm) <= 0:
+            raise InputError(f"segment parameters: search_mm needs {len(LEVEL_SIGMAS_MM)} positive lengths (mm), got "
+                             f"{self.search_mm!r}")
+        if self.evidence not in ("auto", "learned", "gradient"):
+            raise InputError(f"segment parameters: evidence must be auto, learned or gradient, got {self.evidence!r}")
+        for name in ("search_step_mm", "noise_mm"):
+            if not getattr(self, name) > 0:
+                raise InputError(f"segment parameters: {name} must be a positive number of mm")
+
+
+@dataclass(frozen=True, eq=False)
+class SegmentResult:
+    """A model's segmentation of an image.
+
+    Attributes
+    ----------
+    points : (N, 3) mm
+        The segmented surface (world, RAS), the model's triangles ``faces``.
+    model_points : (N, 3) mm
+        The shape within the model's span (before the deviation step), world.
+    pose : Pose
+        Model -> world.
+    coefficients : (K,) SD
+        b_k/√λ_k.
+    posterior_sd_mm : (N,) mm
+        Per point √(trace of its posterior covariance), the model's own error included.
+    deviation_mm : (N,) mm
+        How far each point left the model's span along its normal.
+    evidence : str
+        "learned" or "gradient".
+    boundary : dict
+        How well the boundary evidence fits at the result.
+    findings : list of (str, str)
+        (kind, message): ``outlier``, ``not_converged``, ``weak_evidence``, ``intensities``, ``orientation``.
+    """
+
+    points: np.ndarray
+    faces: np.ndarray
+    model_points: np.ndarray
+    pose: Pose
+    coefficients: np.ndarray
+    posterior_sd_mm: np.ndarray
+    deviation_mm: np.ndarray
+    mahalanobis: float
+    p_value: float
+    evidence: str
+    boundary: dict
+    levels: list
+    start: dict
+    iterations: int
+    converged: bool
+    findings: list = field(default_factory=list)
+    seconds: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {"pose": self.pose.to_dict(), "coefficients": [float(x) for x in self.coefficients],
+                "mahalanobis": float(self.mahalanobis), "p_value": float(self.p_value),
+                "posterior_sd_mm": {"mean": float(self.posterior_sd_mm.mean()),
+                                    "max": float(self.posterior_sd_mm.max()),
+                                    "per_point": [round(float(x), 4) for x in self.posterior_sd_mm]},
+                "deviation_mm": {"mean": float(np.abs(self.deviation_mm).mean()),
+                                 "max": float(np.abs(self.deviation_mm).max())},
+                "evidence": self.evidence, "boundary": self.boundary, "levels": self.levels, "start": self.start,
+                "iterations": int(self.iterations), "converged": bool(self.converged),
+                "verdict": {"outlier": any(k == "outlier" for k, _ in self.findings),
+                            "not_converged": any(k == "not_converged" for k, _ in self.findings),
+                            "boundary_evidence_weak": any(k == "weak_evidence" for k, _ in self.findings),
+                            "findings": [{"kind": k, "message": m} for k, m in self.findings]},
+                "seconds": float(self.seconds)}
+
+
+def volume_centroid(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(3,) mm: the centroid of the solid a closed mesh bounds (signed tetrahedra from the origin);
+    the points' mean for a mesh without volume."""
+    p = np.asarray(points, float)
+    f = np.asarray(faces)
+    if len(f) == 0:
+        return p.mean(axis=0)
+    o = p.mean(axis=0)
+    a, b, c = p[f[:, 0]] - o, p[f[:, 1]] - o, p[f[:, 2]] - o
+    vol = np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0
+    if abs(vol.sum()) < 1e-9:
+        return o
+    return o + ((a + b + c) / 4.0 * vol[:, None]).sum(axis=0) / vol.sum()
+
+
+def typical_rotation(model) -> np.ndarray:
+    """(3, 3) the rotation that takes the model frame to its training instances' world frames
+    on average (the rotation part of the mean shape's Procrustes fit to the instances' mean
+    world shape after each is centred); the identity for a model without world shapes."""
+    world = np.asarray(getattr(model, "instance_points_world", np.zeros((0,))), float)
+    if world.ndim != 3 or len(world) == 0:
+        return np.eye(3)
+    mean = np.asarray(model.mean, float)
+    acc = np.zeros((3, 3))
+    for w in world:
+        acc += weighted_pose(mean, w, np.ones(len(mean)), False).rotation
+    u, _s, vt = np.linalg.svd(acc)
+    r = u @ vt
+    if np.linalg.det(r) < 0:
+        r = u @ np.diag([1.0, 1.0, -1.0]) @ vt
+    return r
+
+
+def _axis_turn(axis: int, degrees: float) -> np.ndarray:
+    t = math.radians(degrees)
+    c, s = math.cos(t), math.sin(t)
+    i, j = [(1, 2), (2, 0), (0, 1)][axis]
+    r = np.eye(3)
+    r[i, i] = r[j, j] = c
+    r[i, j], r[j, i] = -s, s
+    return r
+
+
+def start_pose(model, *, at=None, rotation: np.ndarray | None = None) -> Pose:
+    """Model -> world pose that puts the mean shape's solid centroid at ``at`` (world mm) in the
+    model's typical orientation (or ``rotation``)."""
+    r = typical_rotation(model) if rotation is None else np.asarray(rotation, float)
+    c = volume_centroid(model.mean, model.faces)
+    return Pose(r, np.asarray(at, float) - r @ c)
+
+
+class _Evidence:
+    """Scores candidate positions along the normals at one level: lower is better."""
+
+    def __init__(self, image: GreyImage, appearance: Appearance | None, level: int, sigma_mm: float,
+                 step_mm: float):
+        self.image, self.appearance, self.level, self.sigma = image, appearance, level, sigma_mm
+        self.step = step_mm
+
+    def costs(self, x: np.ndarray, normals: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N, C) cost of each candidate offset (mm, (C,)) and (N, C) its strength (≥ 0: evidence, for weights)."""
+        h = self.step
+        if self.appearance is not None:
+            k = self.appearance.half_length
+            stride = max(1, int(round(self.appearance.step_mm / h)))
+            pad = k * stride
+            grid = np.concatenate([offsets[0] - h * np.arange(pad, 0, -1), offsets,
+                                   offsets[-1] + h * np.arange(1, pad + 1)])
+            prof = self.image.profiles(x, normals, grid, sigma_mm=self.sigma)  # (N, G)
+            idx = np.arange(len(offsets))[:, None] + pad + stride * np.arange(-k, k + 1)[None, :]  # (C, 2k + 1)
+            feats = normalised_derivative(prof[:, idx])  # (N, C, 2k)
+            dist = self.appearance.distance(self.level, feats)
+            typical = max(float(self.appearance.typical_distance[self.level]), 1e-6)
+            return dist / typical, np.exp(-0.5 * dist / (3.0 * typical))
+        grid = np.concatenate([[offsets[0] - h], offsets, [offsets[-1] + h]])
+        prof = self.image.profiles(x, normals, grid, sigma_mm=self.sigma)
+        e = -(prof[:, 2:] - prof[:, :-2]) / (2 * h)  # (N, C): bright inside, dark outside
+        scale = float(np.median(np.maximum(e.max(axis=1), 0.0))) or 1.0
+        return -e / scale, np.clip(e / scale, 0.0, None)
+
+
+def _normals_rows(q: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    return np.einsum("nd,ndk->nk", normals, q)
+
+
+def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None, appearance: Appearance | None = None,
+                  params: SegmentParams | None = None, progress: ProgressFn = None,
+                  cancelled: CancelledFn = None) -> SegmentResult:
+    """Segment ``image`` with ``model``: pose and shape from coarse to fine, then the deviation step.
+
+    Parameters
+    ----------
+    model : ShapeModel
+    image : GreyImage
+        World frame RAS mm.
+    at : (3,) mm, optional
+        A point inside the structure (world): the mean shape's solid centroid is put there.
+    pose : Pose, optional
+        A start pose (model -> world) instead of ``at`` (from landmarks or a rough mask).
+    appearance : Appearance, optional
+        Learned boundary profiles; without them (or with ``params.evidence == "gradient"``)
+        the image gradient is the evidence.
+    params : SegmentParams
+
+    Returns
+    -------
+    SegmentResult
+    """
+    t0 = time.perf_counter()
+    params = SegmentParams() if params is None else params
+    name = image.path or "image"
+    if params.evidence == "learned" and appearance is None:
+        raise InputError(f"{name}: the model has no learned appearance (it was built without images); segment with "
+                         "the image gradient (evidence 'gradient' or 'auto') or rebuild with images")
+    if params.evidence == "gradient":
+        appearance = None
+    mean = np.asarray(model.mean, float)
+    faces = np.asarray(model.faces, np.int64)
+    if len(faces) == 0:
+        raise InputError("model: it has no triangles, so it has no surface normals to search along")
+    if appearance is not None and appearance.n_points != len(mean):
+        raise InputError(f"model: its appearance covers {appearance.n_points} points, the shape {len(mean)}")
+    _check_units(model, image)
+    if pose is None:
+        if at is None:
+            raise InputError(f"{name}: a start is needed: a point inside the structure, landmarks or a rough mask")
+        at = np.asarray(at, float).reshape(3)
+        if not image.contains(at)[0]:
+            lo, hi = image.extent_world()
+            raise InputError(f"{name}: the start point ({', '.join(f'{v:.1f}' for v in at)}) mm lies outside the "
+                             f"image, which spans x {lo[0]:.1f}..{hi[0]:.1f}, y {lo[1]:.1f}..{hi[1]:.1f}, "
+                             f"z {lo[2]:.1f}..{hi[2]:.1f} mm (RAS); give the point in the image's world "
+                             "coordinates (RAS, as 3D Slicer shows them)")
+        base = start_pose(model, at=at)
+    else:
+        base = pose
+    k = model.n_modes if params.n_modes is None else min(int(params.n_modes), model.n_modes)
+    q = np.asarray(model.modes[:k], float).reshape(k, len(mean), 3).transpose(1, 2, 0)  # (N, 3, K)
+    lam = np.maximum(np.asarray(model.variances[:k], float), 1e-12)
+    error_var = model_error_variance(model, k)
+    evidence = "learned" if appearance is not None else "gradient"
+    levels = []
+    total_steps = len(LEVEL_SIGMAS_MM) * params.iterations
+    done = 0
+
+    def run_level(level, pose0, b0, iterations, record=True):
+        nonlocal done
+        sigma = LEVEL_SIGMAS_MM[level]
+        ev = _Evidence(image, appearance, level, sigma, params.search_step_mm)
+        reach = params.search_mm[level]
+        offsets = np.arange(-reach, reach + 0.5 * params.search_step_mm, params.search_step_mm)
+        sigma2 = max(params.noise_mm, sigma) ** 2
+        pose_, b = pose0, b0.copy()
+        shape = mean + q @ b
+        last = pose_.apply(shape)
+        converged, it, fit_cost = False, 0, math.inf
+        strength = np.zeros(len(mean))
+        for it in range(1, iterations + 1):
+            check_cancelled(cancelled)
+            x = pose_.apply(shape)
+            nrm_model = vertex_normals(shape, faces)
+            nrm = nrm_model @ pose_.rotation.T
+            cost, strong = ev.costs(x, nrm, offsets)
+            cost = cost + 0.02 * (offsets[None, :] / reach) ** 2  # ties go to the nearer candidate
+            best = np.argmin(cost, axis=1)
+            rows = np.arange(len(mean))
+            chosen = offsets[best]
+            strength = strong[rows, best]
+            fit_cost = float(np.mean(cost[rows, best]))
+            w = np.clip(strength, 0.0, 1.0)
+            if w.sum() < 1e-6:
+                w = np.ones(len(mean))
+            y = x + chosen[:, None] * nrm
+            pose_ = weighted_pose(shape, y, w, False)
+            # coefficients: each suggestion observes the distance along the shape's normal (point to plane)
+            yl = pose_.inverse(y) - mean
+            qn = _normals_rows(q, nrm_model)  # (N, K)
+            r = np.einsum("nd,nd->n", nrm_model, yl)
+            a = (qn * w[:, None]).T @ qn
+            precision = a / sigma2 + params.prior_weight * np.diag(1.0 / lam)
+            b = np.linalg.solve(precision + 1e-12 * np.eye(k) * max(1.0, float(np.abs(precision).max())),
+                                qn.T @ (w * r) / sigma2)
+            shape = mean + q @ b
+            x_new = pose_.apply(shape)
+            move = float(np.sqrt(((x_new - last) ** 2).sum(axis=1).mean()))
+            last = x_new
+            if record:
+                done += 1
+                report(progress, done / total_steps, f"segment level {level + 1} ({sigma:g} mm) step {it}: "
+                                                      f"{move:.3f} mm, evidence {fit_cost:.3f}")
+            if move < params.tolerance_mm:
+                converged = True
+                break
+        return pose_, b, {"level": level + 1, "blur_mm": sigma, "search_mm": reach, "iterations": it,
+                          "converged": converged, "evidence_cost": fit_cost,
+                          "weak_share": float(np.mean(strength < 0.25))}
+
+    # the coarse level from several turns of the start: the best boundary evidence wins
+    starts = [("start", np.eye(3))]
+    if params.turns_deg > 0:
+        for axis in range(3):
+            for sign in (1, -1):
+                starts.append((f"turned {sign * params.turns_deg:+g}° about {'xyz'[axis]}",
+                               _axis_turn(axis, sign * params.turns_deg)))
+    starts.append(("turned 180° about z", _axis_turn(2, 180.0)))
+    centre = base.apply(volume_centroid(mean, faces))
+    tried = []
+    for label, turn in starts:
+        rot = turn @ base.rotation
+        p0 = Pose(rot, centre - base.scale * rot @ volume_centroid(mean, faces), base.scale)
+        p1, b1, info = run_level(0, p0, np.zeros(k), 3, record=False)
+        tried.append((info["evidence_cost"], label, p1, b1))
+    order = sorted(range(len(tried)), key=lambda i: (tried[i][0], i))
+    cost0, chosen_start, pose_, b = tried[order[0]][0], tried[order[0]][1], tried[order[0]][2], tried[order[0]][3]
+    start_doc = {"chosen": chosen_start, "candidates": [{"name": t[1], "evidence_cost": float(t[0])} for t in tried]}
+    converged = True
+    iterations = 0
+    for level in range(len(LEVEL_SIGMAS_MM)):
+        pose_, b, info = run_level(level, pose_, b, params.iterations)
+        levels.append(info)
+        iterations += info["iterations"]
+        converged = info["converged"]
+    shape = mean + q @ b
+    model_points = pose_.apply(shape)
+    normals_w = vertex_normals(shape, faces) @ pose_.rotation.T
+    # posterior of b at the fine level (weights as the last step used)
+    ev = _Evidence(image, appearance, len(LEVEL_SIGMAS_MM) - 1, LEVEL_SIGMAS_MM[-1], params.search_step_mm)
+    fine = np.arange(-params.search_mm[-1], params.search_mm[-1] + 0.5 * params.search_step_mm,
+                     params.search_step_mm)
+    cost, strong = ev.costs(model_points, normals_w, fine)
+    zero = int(np.argmin(np.abs(fine)))
+    w_final = np.clip(strong[:, zero], 0.0, 1.0)
+    qn = _normals_rows(q, vertex_normals(shape, faces))
+    sigma2 = max(params.noise_mm, LEVEL_SIGMAS_MM[-1]) ** 2
+    cov_b = np.linalg.inv((qn * w_final[:, None]).T @ qn / sigma2 + params.prior_weight * np.diag(1.0 / lam))
+    per_point = np.einsum("ndk,kl,ndl->n", q, cov_b, q)
+    if error_var is not None:
+        per_point = per_point + error_var
+    sd = pose_.scale * np.sqrt(np.maximum(per_point, 0.0))
+    # the deviation step: leave the span along the normal by what the model's error allows
+    deviation = np.zeros(len(mean))
+    points = model_points
+    if params.deviation:
+        allowed = np.sqrt(np.maximum(error_var if error_var is not None else np.full(len(mean), 1.0), 1e-6) / 3.0)
+        allowed = np.clip(allowed, 0.25, 3.0)
+        penalty = (fine[None, :] / allowed[:, None]) ** 2
+        best = np.argmin(cost + penalty, axis=1)
+        raw = fine[best]
+        raw = np.clip(raw, -2.0 * allowed, 2.0 * allowed)
+        weight = np.clip(strong[np.arange(len(mean)), best], 0.0, 1.0)
+        deviation = _smooth_on_mesh(raw * weight, weight, faces, rounds=3)
+        points = model_points + deviation[:, None] * normals_w
+    z = b / np.sqrt(lam)
+    d2 = float(np.sum(z * z))
+    mahal = math.sqrt(d2)
+    # how well the evidence fits at the result
+    cost_at, strong_at = ev.costs(points, vertex_normals(points, faces), fine)
+    weak_share = float(np.mean(strong_at[:, zero] < 0.25))
+    boundary = {"evidence_cost": float(np.mean(cost_at[:, zero])), "weak_share": weak_share}
+    inner = image.profiles(points, vertex_normals(points, faces), np.array([-3.0, -2.0, -1.0]), sigma_mm=0.5)
+    outer = image.profiles(points, vertex_normals(points, faces), np.array([1.0, 2.0, 3.0]), sigma_mm=0.5)
+    boundary["inside_mean"], boundary["outside_mean"] = float(inner.mean()), float(outer.mean())
+    findings = []
+    limit = outlier_limit(k)
+    if mahal > limit:
+        findings.append(("outlier", f"the segmented shape lies {mahal:.2f} SD from the model's mean (99 % of the "
+                                    f"model's shapes lie within {limit:.2f}): an unusual shape or a wrong one"))
+    if not converged:
+        findings.append(("not_converged", f"the fine level did not settle in {params.iterations} steps (last move "
+                                          f"above {params.tolerance_mm} mm)"))
+    if weak_share > 0.4:
+        findings.append(("weak_evidence", f"{100 * weak_share:.0f} % of the surface has weak boundary evidence "
+                                          f"({evidence}); the boundary there follows the model, not the image"))
+    if appearance is not None:
+        c_train = float(appearance.boundary_mm[0] - appearance.boundary_mm[1])
+        c_here = boundary["inside_mean"] - boundary["outside_mean"]
+        if c_train != 0 and not (0.25 <= c_here / c_train <= 4.0):
+            findings.append(("intensities", f"the grey values across the segmented boundary (inside "
+                                            f"{boundary['inside_mean']:.0f}, outside {boundary['outside_mean']:.0f}) "
+                                            f"are not those of the appearance's training images (inside "
+                                            f"{appearance.boundary_mm[0]:.0f}, outside {appearance.boundary_mm[1]:.0f}):"
+                                            " another modality or intensity scale?"))
+    if chosen_start == "turned 180° about z":
+        findings.append(("orientation", "the image fits best with the model turned 180° about the "
+                                        "superior axis: is the image's orientation LPS stored as RAS (x and y "
+                                        "negated)?"))
+    return SegmentResult(points=points, faces=faces, model_points=model_points, pose=pose_, coefficients=z,
+                         posterior_sd_mm=sd, deviation_mm=deviation, mahalanobis=mahal,
+                         p_value=float(chdtrc(k, d2)) if k else 1.0, evidence=evidence, boundary=boundary,
+                         levels=levels, start={**start_doc, "coarse_cost": float(cost0)}, iterations=iterations,
+                         converged=converged, findings=findings, seconds=time.perf_counter() - t0)
+
+
+def _smooth_on_mesh(values: np.ndarray, weights: np.ndarray, faces: np.ndarray, *, rounds: int) -> np.ndarray:
+    """Weighted averages of ``values`` over each vertex and its mesh neighbours, ``rounds`` times."""
+    e = edges(faces)
+    n = len(values)
+    v = np.asarray(values, float)
+    w = np.asarray(weights, float) + 1e-3
+    num = v * 0.0
+    for _ in range(rounds):
+        num = v * w
+        den = w.copy()
+        np.add.at(num, e[:, 0], v[e[:, 1]] * w[e[:, 1]])
+        np.add.at(num, e[:, 1], v[e[:, 0]] * w[e[:, 0]])
+        np.add.at(den, e[:, 0], w[e[:, 1]])
+        np.add.at(den, e[:, 1], w[e[:, 0]])
+        v = num / den
+    return v[:n]
+
+
+def _check_units(model, image: GreyImage) -> None:
+    """The image must span at least the model's size (mm): a smaller one is in metres or cm."""
+    size = float(np.linalg.norm(np.ptp(np.asarray(model.mean, float), axis=0)))
+    lo, hi = image.extent_world()
+    span = float(np.linalg.norm(hi - lo))
+    if span < 0.5 * size or float(image.spacing_mm.min()) < 0.01:
+        raise InputError(f"{image.path or 'image'}: the image spans {span:.3g} mm (voxels "
+                         f"{', '.join(f'{s:.3g}' for s in image.spacing_mm)} mm) but the model is {size:.3g} mm "
+                         "across: is the image in metres or centimetres? Rewrite it in mm (its header's units)")
