@@ -9,5 +9,6 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "appearance": ("Appearance", "LEVEL_SIGMAS_MM", "appearance_from_arrays", "learn_appearance", "normalised_derivative"),
     "files": ("SEGMENT_FILES", "segment_figure", "segmentation_mask", "write_segmentation"),
     "image": ("GreyImage", "read_image"),
+    "scores": ("degrade_image", "mask_surface_points", "segmentation_scores"),
     "segment": ("SegmentParams", "SegmentResult", "segment_image", "start_pose", "typical_rotation", "volume_centroid"),
 })

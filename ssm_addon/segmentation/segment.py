@@ -211,15 +211,26 @@ def start_pose(model, *, at=None, rotation: np.ndarray | None = None) -> Pose:
 
 
 class _Evidence:
-    """Scores candidate positions along the normals at one level: lower is better."""
+    """Scores candidate positions along the normals at one level: lower is better.
+
+    Learned: the profile's Mahalanobis distance over the training's median at the true
+    boundary. Gradient: minus the outward derivative over ``scale`` (a fixed value per image and
+    level, so the costs of different poses compare)."""
 
     def __init__(self, image: GreyImage, appearance: Appearance | None, level: int, sigma_mm: float,
-                 step_mm: float):
+                 step_mm: float, scale: float = 1.0):
         self.image, self.appearance, self.level, self.sigma = image, appearance, level, sigma_mm
-        self.step = step_mm
+        self.step, self.scale = step_mm, scale
+
+    def edge(self, x: np.ndarray, normals: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+        """(N, C) the negated derivative along the outward normal at the offsets (grey value per mm)."""
+        h = self.step
+        grid = np.concatenate([[offsets[0] - h], offsets, [offsets[-1] + h]])
+        prof = self.image.profiles(x, normals, grid, sigma_mm=self.sigma)
+        return -(prof[:, 2:] - prof[:, :-2]) / (2 * h)
 
     def costs(self, x: np.ndarray, normals: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(N, C) cost of each candidate offset (mm, (C,)) and (N, C) its strength (≥ 0: evidence, for weights)."""
+        """(N, C) cost of each candidate offset (mm, (C,)) and (N, C) its strength in [0, 1] (for weights)."""
         h = self.step
         if self.appearance is not None:
             k = self.appearance.half_length
@@ -233,11 +244,39 @@ class _Evidence:
             dist = self.appearance.distance(self.level, feats)
             typical = max(float(self.appearance.typical_distance[self.level]), 1e-6)
             return dist / typical, np.exp(-0.5 * dist / (3.0 * typical))
-        grid = np.concatenate([[offsets[0] - h], offsets, [offsets[-1] + h]])
-        prof = self.image.profiles(x, normals, grid, sigma_mm=self.sigma)
-        e = -(prof[:, 2:] - prof[:, :-2]) / (2 * h)  # (N, C): bright inside, dark outside
-        scale = float(np.median(np.maximum(e.max(axis=1), 0.0))) or 1.0
-        return -e / scale, np.clip(e / scale, 0.0, None)
+        e = self.edge(x, normals, offsets) / self.scale
+        # the object's own boundary is the first strong edge met going outwards: an edge beyond
+        # it of the same polarity is a neighbour's inner edge (the next vertebra's endplate)
+        strong = e >= FIRST_EDGE * np.maximum(e.max(axis=1, keepdims=True), 1e-12)
+        first = np.argmax(strong, axis=1)
+        beyond = np.arange(len(offsets))[None, :] > first[:, None] + int(round(FIRST_EDGE_MM / h))
+        cost = -e + np.where(beyond, np.maximum(e, 0.0), 0.0)
+        return cost, np.clip(e, 0.0, 1.0)
+
+
+def _refined_offsets(cost: np.ndarray, best: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """The chosen offsets moved to the vertex of the parabola through the cost at the best candidate
+    and its two neighbours (at most half a step): suggestions between the candidates."""
+    n, c = cost.shape
+    rows = np.arange(n)
+    inner = (best > 0) & (best < c - 1)
+    lo, hi = np.clip(best - 1, 0, c - 1), np.clip(best + 1, 0, c - 1)
+    c0, cm, cp = cost[rows, best], cost[rows, lo], cost[rows, hi]
+    curv = cm - 2 * c0 + cp
+    shift = np.where(inner & (curv > 1e-12), 0.5 * (cm - cp) / np.where(curv > 1e-12, curv, 1.0), 0.0)
+    step = offsets[1] - offsets[0] if len(offsets) > 1 else 0.0
+    return offsets[best] + np.clip(shift, -0.5, 0.5) * step
+
+
+FIRST_EDGE = 0.5
+"""Gradient evidence: an edge at least this share of the strongest along a normal counts as strong."""
+FIRST_EDGE_MM = 1.0
+"""Gradient evidence: edges more than this beyond the first strong one (outwards) lose their evidence."""
+UPSIDE = "turned 180° about z"
+COARSE_STEPS = 4
+"""Steps of the coarse level from each start pose before they are ranked."""
+FINISHED_STARTS = 2
+"""The best-ranked starts taken through every level."""
 
 
 def _normals_rows(q: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -300,22 +339,45 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
     lam = np.maximum(np.asarray(model.variances[:k], float), 1e-12)
     error_var = model_error_variance(model, k)
     evidence = "learned" if appearance is not None else "gradient"
-    levels = []
-    total_steps = len(LEVEL_SIGMAS_MM) * params.iterations
+    n_levels = len(LEVEL_SIGMAS_MM)
+    step = params.search_step_mm
+
+    def grid(reach):
+        return np.arange(-reach, reach + 0.5 * step, step)
+
+    # gradient evidence: one scale per level, from the start (so every pose's costs compare)
+    scales = []
+    shape0 = base.apply(mean)
+    nrm0 = vertex_normals(mean, faces) @ base.rotation.T
+    for level, sigma in enumerate(LEVEL_SIGMAS_MM):
+        e = _Evidence(image, None, level, sigma, step).edge(shape0, nrm0, grid(params.search_mm[level]))
+        scales.append(float(np.median(np.maximum(e.max(axis=1), 0.0))) or 1.0)
+    evidences = [_Evidence(image, appearance, level, sigma, step, scales[level])
+                 for level, sigma in enumerate(LEVEL_SIGMAS_MM)]
+    total_steps = n_levels * params.iterations
     done = 0
+
+    def score(pose_, b, level):
+        """Mean best cost within ±2 mm of the shape's surface at a level: how well it sits on the boundary."""
+        shape = mean + q @ b
+        x = pose_.apply(shape)
+        nrm = vertex_normals(shape, faces) @ pose_.rotation.T
+        cost, _ = evidences[level].costs(x, nrm, grid(2.0))
+        return float(np.mean(cost.min(axis=1)))
 
     def run_level(level, pose0, b0, iterations, record=True):
         nonlocal done
         sigma = LEVEL_SIGMAS_MM[level]
-        ev = _Evidence(image, appearance, level, sigma, params.search_step_mm)
+        ev = evidences[level]
         reach = params.search_mm[level]
-        offsets = np.arange(-reach, reach + 0.5 * params.search_step_mm, params.search_step_mm)
+        offsets = grid(reach)
         sigma2 = max(params.noise_mm, sigma) ** 2
         pose_, b = pose0, b0.copy()
         shape = mean + q @ b
         last = pose_.apply(shape)
-        converged, it, fit_cost = False, 0, math.inf
+        converged, it, fit_cost, move = False, 0, math.inf, math.inf
         strength = np.zeros(len(mean))
+        rows = np.arange(len(mean))
         for it in range(1, iterations + 1):
             check_cancelled(cancelled)
             x = pose_.apply(shape)
@@ -324,8 +386,7 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
             cost, strong = ev.costs(x, nrm, offsets)
             cost = cost + 0.02 * (offsets[None, :] / reach) ** 2  # ties go to the nearer candidate
             best = np.argmin(cost, axis=1)
-            rows = np.arange(len(mean))
-            chosen = offsets[best]
+            chosen = _refined_offsets(cost, best, offsets)
             strength = strong[rows, best]
             fit_cost = float(np.mean(cost[rows, best]))
             w = np.clip(strength, 0.0, 1.0)
@@ -353,41 +414,51 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
                 converged = True
                 break
         return pose_, b, {"level": level + 1, "blur_mm": sigma, "search_mm": reach, "iterations": it,
-                          "converged": converged, "evidence_cost": fit_cost,
+                          "converged": converged, "last_move_mm": move, "evidence_cost": fit_cost,
                           "weak_share": float(np.mean(strength < 0.25))}
 
-    # the coarse level from several turns of the start: the best boundary evidence wins
+    # the coarse level from several turns of the start, ranked by how well each then sits on the
+    # boundary at the middle level; the best two go through every level and the better one wins
     starts = [("start", np.eye(3))]
     if params.turns_deg > 0:
         for axis in range(3):
             for sign in (1, -1):
                 starts.append((f"turned {sign * params.turns_deg:+g}° about {'xyz'[axis]}",
                                _axis_turn(axis, sign * params.turns_deg)))
-    starts.append(("turned 180° about z", _axis_turn(2, 180.0)))
+    starts.append((UPSIDE, _axis_turn(2, 180.0)))
     centre = base.apply(volume_centroid(mean, faces))
+    c_model = volume_centroid(mean, faces)
     tried = []
     for label, turn in starts:
+        check_cancelled(cancelled)
         rot = turn @ base.rotation
-        p0 = Pose(rot, centre - base.scale * rot @ volume_centroid(mean, faces), base.scale)
-        p1, b1, info = run_level(0, p0, np.zeros(k), 3, record=False)
-        tried.append((info["evidence_cost"], label, p1, b1))
-    order = sorted(range(len(tried)), key=lambda i: (tried[i][0], i))
-    cost0, chosen_start, pose_, b = tried[order[0]][0], tried[order[0]][1], tried[order[0]][2], tried[order[0]][3]
-    start_doc = {"chosen": chosen_start, "candidates": [{"name": t[1], "evidence_cost": float(t[0])} for t in tried]}
-    converged = True
-    iterations = 0
-    for level in range(len(LEVEL_SIGMAS_MM)):
-        pose_, b, info = run_level(level, pose_, b, params.iterations)
-        levels.append(info)
-        iterations += info["iterations"]
-        converged = info["converged"]
+        p0 = Pose(rot, centre - base.scale * rot @ c_model, base.scale)
+        p1, b1, _info = run_level(0, p0, np.zeros(k), COARSE_STEPS, record=False)
+        tried.append({"name": label, "pose": p1, "b": b1, "screened": score(p1, b1, 1)})
+    order = sorted(range(len(tried)), key=lambda i: (tried[i]["screened"], i))[:FINISHED_STARTS]
+    finished = []
+    for i in order:
+        pose_, b = tried[i]["pose"], tried[i]["b"]
+        lv = []
+        for level in range(n_levels):
+            pose_, b, info = run_level(level, pose_, b, params.iterations)
+            lv.append(info)
+        tried[i]["final"] = score(pose_, b, n_levels - 1)
+        finished.append((tried[i]["final"], i, pose_, b, lv))
+    finished.sort(key=lambda t: (t[0], t[1]))
+    _final, win, pose_, b, levels = finished[0]
+    chosen_start = tried[win]["name"]
+    start_doc = {"chosen": chosen_start,
+                 "candidates": [{"name": t["name"], "screened_cost": t["screened"], "final_cost": t.get("final")}
+                                for t in tried]}
+    converged = levels[-1]["converged"] or levels[-1]["last_move_mm"] < 2 * params.tolerance_mm
+    iterations = sum(lv["iterations"] for lv in levels)
     shape = mean + q @ b
     model_points = pose_.apply(shape)
     normals_w = vertex_normals(shape, faces) @ pose_.rotation.T
-    # posterior of b at the fine level (weights as the last step used)
-    ev = _Evidence(image, appearance, len(LEVEL_SIGMAS_MM) - 1, LEVEL_SIGMAS_MM[-1], params.search_step_mm)
-    fine = np.arange(-params.search_mm[-1], params.search_mm[-1] + 0.5 * params.search_step_mm,
-                     params.search_step_mm)
+    # posterior of b at the fine level (weights as the evidence gives them at the result)
+    ev = evidences[-1]
+    fine = grid(params.search_mm[-1])
     cost, strong = ev.costs(model_points, normals_w, fine)
     zero = int(np.argmin(np.abs(fine)))
     w_final = np.clip(strong[:, zero], 0.0, 1.0)
@@ -441,14 +512,14 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
                                             f"are not those of the appearance's training images (inside "
                                             f"{appearance.boundary_mm[0]:.0f}, outside {appearance.boundary_mm[1]:.0f}):"
                                             " another modality or intensity scale?"))
-    if chosen_start == "turned 180° about z":
+    if chosen_start == UPSIDE:
         findings.append(("orientation", "the image fits best with the model turned 180° about the "
                                         "superior axis: is the image's orientation LPS stored as RAS (x and y "
                                         "negated)?"))
     return SegmentResult(points=points, faces=faces, model_points=model_points, pose=pose_, coefficients=z,
                          posterior_sd_mm=sd, deviation_mm=deviation, mahalanobis=mahal,
                          p_value=float(chdtrc(k, d2)) if k else 1.0, evidence=evidence, boundary=boundary,
-                         levels=levels, start={**start_doc, "coarse_cost": float(cost0)}, iterations=iterations,
+                         levels=levels, start=start_doc, iterations=iterations,
                          converged=converged, findings=findings, seconds=time.perf_counter() - t0)
 
 
