@@ -10,6 +10,7 @@ The subpackages follow the method (Lorenz & Krahnstöver):
 ``coating``         landmark warp, distance map, registration, relaxation (4)
 ``model``           PCA, model files, metrics, quality gates (5)
 ``fitting``         fitting a model to new data, the fit's verdicts, ``ssm fit``
+``segmentation``    segmenting images with a model: boundary appearance, the search, ``ssm segment``
 ``correspondence``  the model method's rounds, the self-check, landmark proposals (3.3, 7)
 ``analysis``        groups and covariates
 ``pipeline``        the orchestrator: the study, its stages, cache, project file, outputs, report
@@ -48,6 +49,8 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "model.files": ("load_npz", "save_npz"),
     "fitting.batch": ("load_model",),
     "fitting.fit": ("fit_model",),
+    "segmentation.segment": ("segment_image",),
+    "segmentation.image": ("read_image",),
 })
 
 #: Module paths of the flat layout (before the stage subpackages) -> where they live now.

@@ -25,6 +25,7 @@ import argparse
 import contextlib
 import dataclasses
 import os
+import re
 import signal
 import sys
 import tempfile
@@ -156,7 +157,7 @@ def argument_parser() -> argparse.ArgumentParser:
         description="SSM Builder: point-based 3D statistical shape models from segmented volumes (headless). "
                     "Also runs as `python -m ssm_addon` and `blender -b --command ssm`.",
     )
-    sub = parser.add_subparsers(dest="command", required=True, metavar="{info,template,build,fit,analyze,demo,params}",
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{info,template,build,fit,segment,analyze,demo,params}",
                                 parser_class=_ShortErrors)
 
     p = sub.add_parser("info", help="labels, voxel counts, spacing and affine of a label map")
@@ -217,6 +218,26 @@ def argument_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true",
                    help="write into a folder holding other files (they are kept, never replaced)")
     P.add_arguments(p.add_argument_group("fit parameters"), P.FitParams)
+
+    p = sub.add_parser("segment", help="segment a grey-value image (CT) with a model: pose and shape from coarse to "
+                                       "fine, the label map on the image's grid, the surface with its uncertainty")
+    p.add_argument("model", help="model.npz (ssm build; with its learned appearance when built with images) or a "
+                                 "statismo .h5 file")
+    p.add_argument("image", help="the image to segment (NIfTI, NRRD, MetaImage; world RAS mm from its header)")
+    p.add_argument("--at", action="append", default=[], metavar="X,Y,Z",
+                   help="a point inside the structure, world RAS mm (as 3D Slicer shows it); a joint model: "
+                        "STRUCTURE=X,Y,Z, repeated")
+    p.add_argument("--landmarks", help="the model's landmarks clicked on the image (any landmark file ssm reads)")
+    p.add_argument("--init-mask", help="a rough segmentation to refine (label map, world mm)")
+    p.add_argument("--label", type=int, default=None, help="the label of --init-mask (default: every non-zero voxel)")
+    p.add_argument("--evidence", choices=("auto", "learned", "gradient"), default="auto",
+                   help="boundary evidence: the model's learned appearance when it has one (auto, default), or "
+                        "the image gradient (bright structure, darker surroundings)")
+    p.add_argument("--no-deviation", action="store_true",
+                   help="keep the surface within the model's span (default: it may leave it by the model's own "
+                        "error where the image says so)")
+    p.add_argument("--out", required=True, help="output folder (written whole at the end)")
+    p.add_argument("--force", action="store_true", help="write into a folder holding other files (they are kept)")
 
     p = sub.add_parser("analyze", help="group differences and covariate effects of a built model: where on the "
                                        "surface, by how many mm, with permutation p-values")
@@ -488,6 +509,29 @@ def cmd_fit(args) -> int:
     return 0
 
 
+def cmd_segment(args) -> int:
+    from ..segmentation.files import segment_files
+    from ..segmentation.segment import SegmentParams
+
+    out = Path(args.out).expanduser().resolve()
+    params = SegmentParams(evidence=args.evidence, deviation=not args.no_deviation)
+    inputs = [args.model, args.image, args.landmarks, args.init_mask]
+    name = Path(args.image).name
+    with _output_folder(out, inputs, force=args.force, what="segmentation") as tmp:
+        doc = segment_files(args.model, args.image, tmp, at=args.at, landmarks_path=args.landmarks,
+                            init_mask_path=args.init_mask, label=args.label, params=params,
+                            progress=_print_progress(), say=lambda line: print(line, flush=True))
+    seg = doc["segmentation"]
+    print(f"{name}: segmented with {doc['evidence']} evidence in {doc['iterations']} steps ({doc['seconds']:.1f} s): "
+          f"{seg['voxels']} voxels ({seg['volume_mm3'] / 1000:.1f} cm³), Mahalanobis {doc['mahalanobis']:.2f}, "
+          f"posterior SD {doc['posterior_sd_mm']['mean']:.2f} mm (up to {doc['posterior_sd_mm']['max']:.2f})")
+    for f in doc["verdict"]["findings"]:
+        print(f"WARNING {name}: [{f['kind']}] {f['message']}", file=sys.stderr)
+    print(f"written: {out / 'segmentation.nii.gz'}, {out / 'segmented.ply'}, {out / 'segment.json'}, "
+          f"{out / 'segment.png'}")
+    return 0
+
+
 def cmd_analyze(args) -> int:
     from ..analysis.attributes import read_attributes
     from ..analysis.files import analysis_summary, run_analysis
@@ -549,6 +593,21 @@ def cmd_demo(args, writer) -> int:
     return _run_build(project, out / "model", args.jobs, not args.no_blend, writer)
 
 
+def _joined_points(argv: list) -> list:
+    """``--at -27,-160,-121`` as ``--at=-27,-160,-121``: a point whose first coordinate is negative
+    would otherwise read as an option."""
+    out, i = [], 0
+    while i < len(argv):
+        a = str(argv[i])
+        if a == "--at" and i + 1 < len(argv) and re.match(r"^-\d|^-\.\d", str(argv[i + 1])):
+            out.append(f"--at={argv[i + 1]}")
+            i += 2
+            continue
+        out.append(argv[i])
+        i += 1
+    return out
+
+
 def main(argv=None, in_blender: bool = False, blend_writer=None) -> int:
     """Run a subcommand; returns the exit status (0 ok, 2 bad input, 130 cancelled).
 
@@ -563,7 +622,7 @@ def main(argv=None, in_blender: bool = False, blend_writer=None) -> int:
         None: found from a source checkout when ``bpy`` is importable.
     """
     try:
-        args = argument_parser().parse_args(sys.argv[1:] if argv is None else list(argv))
+        args = argument_parser().parse_args(_joined_points(sys.argv[1:] if argv is None else list(argv)))
     except SystemExit as exc:  # argparse: --help (0) or a usage error (2); never exit Blender
         return exc.code if isinstance(exc.code, int) else EXIT_INPUT
     _written.clear()
@@ -601,6 +660,8 @@ def _dispatch(args, blend_writer) -> int:
         return cmd_demo(args, blend_writer)
     if args.command == "fit":
         return cmd_fit(args)
+    if args.command == "segment":
+        return cmd_segment(args)
     if args.command == "analyze":
         return cmd_analyze(args)
     if args.command == "params":

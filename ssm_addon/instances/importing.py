@@ -54,6 +54,9 @@ class InstanceSpec:
     space : {"RAS", "LPS"} or None
         The coordinate convention of the instance's files that state none (a project's
         per-instance ``space``); None: the study's ``[template] space``.
+    image_path : Path or None
+        The instance's grey-value image (CT) in the same world space as its label map or mesh:
+        the build learns the boundary's appearance from it (:mod:`ssm_addon.segmentation`).
     """
 
     name: str
@@ -64,6 +67,7 @@ class InstanceSpec:
     mesh_spacing_mm: float | None = None
     landmarks: LandmarkSet | None = None
     space: str | None = None
+    image_path: Path | None = None
 
     @property
     def source(self) -> Path:

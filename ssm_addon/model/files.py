@@ -84,6 +84,15 @@ def write_npz(path, arrays: dict) -> Path:
     return path
 
 
+def add_npz_arrays(path, arrays: dict) -> Path:
+    """Rewrite an npz this build wrote with ``arrays`` added (or replaced), the same way as :func:`write_npz`."""
+    path = Path(path)
+    with np.load(path, allow_pickle=False) as data:
+        current = {k: data[k] for k in data.files}
+    current.update(arrays)
+    return write_npz(path, current)
+
+
 def model_from_arrays(arrays: dict, where: str = "model") -> ShapeModel:
     """Check shapes of the model arrays and make a ShapeModel (errors name ``where``)."""
     mean = np.asarray(arrays["mean"], dtype=float)

@@ -40,8 +40,9 @@ from ..formats.meshes import write_ply
 from ..formats.vtk import write_vtp
 from ..instances.importing import file_names
 from ..model.figures import optimisation_figure, render_modes_figure
-from ..model.files import write_model_files
+from ..model.files import add_npz_arrays, write_model_files
 from ..model.metrics import write_plots
+from .appearance import appearance_stage
 from .report import Absent, Report, joint_report, model_report, study_report, write_report_html
 from .study import Study, carried_landmarks
 
@@ -433,6 +434,10 @@ def write_study(study: Study, folder, *, output: OutputParams, project: str | Ab
             say(f"picture: optimisation.png skipped ({err})")
     entries = _write_model_outputs(model, folder, files, output=output, say=say, drawn=drawn, analysis=analysis,
                                    extra=extra)
+    appearance, appearance_doc = appearance_stage(study, log=say)
+    if appearance is not None:  # beside the shape model in the model.npz just written
+        add_npz_arrays(folder / "model.npz", appearance.to_arrays())
+        entries["appearance"] = appearance_doc
     study.timings_s["write"] = time.perf_counter() - t0 - study.timings_s.get("blender", 0.0)
     if t_start is not None:
         study.timings_s["total"] = time.perf_counter() - t_start

@@ -75,6 +75,7 @@ INSTANCE_KEYS = {
     "mesh_spacing": "a number",
     "landmarks": "a file path (string)",
     "space": "\"RAS\" or \"LPS\" (the convention of this instance's files that state none)",
+    "image": "a file path (string): the instance's grey-value image (CT), whose boundary appearance the build learns",
     **STRUCTURE_KEYS,
     "attributes": "a table of attributes, e.g. { group = \"patient\", age = 63 }",
 }
@@ -325,6 +326,7 @@ def _instances(doc: dict, ctx: _Context, base: Path,
         space = space.upper() if space is not None else None
         volume = _existing_file(table["volume"], "volume", what, ctx, where, base) if has_volume else None
         mesh = _existing_file(table["mesh"], "mesh", what, ctx, where, base) if has_mesh else None
+        image = _existing_file(table["image"], "image", what, ctx, where, base) if "image" in table else None
         lm_path, lms = None, None
         if "landmarks" in table:
             lm_path = _existing_file(table["landmarks"], "landmarks", what, ctx, where, base)
@@ -345,7 +347,7 @@ def _instances(doc: dict, ctx: _Context, base: Path,
                     raise ctx.error(f"{what}: attribute {k!r} must be a number or a string, got {P.type_name(v)} "
                                     f"{v!r}", line)
         out.append(InstanceSpec(name=name, landmarks_path=lm_path, volume_path=volume, label=table.get("label"), mesh_path=mesh,
-                                mesh_spacing_mm=mesh_spacing, landmarks=lms, space=space))
+                                mesh_spacing_mm=mesh_spacing, landmarks=lms, space=space, image_path=image))
     return out
 
 
@@ -670,6 +672,8 @@ def project_text(project: Project, base: Path) -> str:
             lines.append(f"landmarks = {toml_value(_relative(inst.landmarks_path, base))}")
         if inst.space is not None:
             lines.append(f"space = {toml_value(inst.space)}")
+        if inst.image_path is not None:
+            lines.append(f"image = {toml_value(_relative(inst.image_path, base))}")
         own = project.instance_attributes.get(inst.name)
         if own:
             lines.append("attributes = { " + ", ".join(f"{_key(k)} = {toml_value(v)}" for k, v in own.items()) + " }")

@@ -6,9 +6,9 @@ Every public name of the subpackage's modules, imported on first use (:mod:`ssm_
 from .._lazy import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, {
-    "appearance": ("Appearance", "LEVEL_SIGMAS_MM", "appearance_from_arrays", "learn_appearance", "normalised_derivative"),
-    "files": ("SEGMENT_FILES", "segment_figure", "segmentation_mask", "write_segmentation"),
+    "appearance": ("Appearance", "LEVEL_SIGMAS_MM", "appearance_from_arrays", "learn_appearance", "load_appearance", "normalised_derivative"),
+    "files": ("SEGMENT_FILES", "parse_point", "segment_files", "segment_figure", "segmentation_mask", "write_segmentation"),
     "image": ("GreyImage", "read_image"),
     "scores": ("degrade_image", "mask_surface_points", "segmentation_scores"),
-    "segment": ("SegmentParams", "SegmentResult", "segment_image", "start_pose", "typical_rotation", "volume_centroid"),
+    "segment": ("SegmentParams", "SegmentResult", "landmark_pose", "segment_image", "start_pose", "typical_rotation", "volume_centroid"),
 })

@@ -35,7 +35,7 @@ from scipy.spatial import cKDTree
 from ..base.errors import InputError
 from ..meshutil import vertex_normals
 
-__all__ = ["Appearance", "LEVEL_SIGMAS_MM", "appearance_from_arrays", "learn_appearance", "normalised_derivative"]
+__all__ = ["Appearance", "LEVEL_SIGMAS_MM", "appearance_from_arrays", "learn_appearance", "load_appearance", "normalised_derivative"]
 
 LEVEL_SIGMAS_MM = (2.0, 1.0, 0.5)
 """The search's resolutions, coarse to fine: the Gaussian blur (mm) of the image at each level."""
@@ -141,6 +141,21 @@ def appearance_from_arrays(arrays, n_points: int, where: str = "model") -> Appea
                       boundary_sd=np.asarray(arrays[f"{p}boundary_sd"], float),
                       typical_distance=np.asarray(arrays[f"{p}typical_distance"], float),
                       images=tuple(str(s) for s in np.asarray(arrays[f"{p}images"]).reshape(-1)))
+
+
+def load_appearance(path, n_points: int) -> Appearance | None:
+    """The appearance stored in a ``model.npz`` (``allow_pickle=False``), or None: a statismo file or a
+    model built without images."""
+    from pathlib import Path
+
+    path = Path(path)
+    if not path.is_file() or not path.read_bytes()[:2] == b"PK":
+        return None
+    with np.load(path, allow_pickle=False) as data:
+        if f"{NPZ_PREFIX}mean" not in data.files:
+            return None
+        arrays = {k: data[k] for k in data.files if k.startswith(NPZ_PREFIX)}
+    return appearance_from_arrays(arrays, n_points, str(path))
 
 
 def _regularised(samples: np.ndarray, pooled: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -13,7 +13,7 @@ from ..formats.meshes import write_ply
 from ..instances.voxelize import voxelize_mesh
 from .image import GreyImage
 
-__all__ = ["SEGMENT_FILES", "segmentation_mask", "segment_figure", "write_segmentation"]
+__all__ = ["SEGMENT_FILES", "parse_point", "segment_files", "segmentation_mask", "segment_figure", "write_segmentation"]
 
 SEGMENT_FILES = ("segmentation.nii.gz", "segmented.ply", "segment.json", "segment.png")
 
@@ -110,3 +110,90 @@ def write_segmentation(result, image: GreyImage, out_dir, *, model_source: str =
     files["record"].write_text(json.dumps(doc, indent=1))
     segment_figure(image, mask, files["picture"], title=f"{Path(image.path).name}: segmentation (orange)")
     return files
+
+
+def parse_point(text: str, what: str = "--at") -> np.ndarray:
+    """(3,) mm from ``"X,Y,Z"``; a clear error otherwise."""
+    try:
+        values = [float(v) for v in str(text).replace(" ", "").split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not np.all(np.isfinite(values)):
+        raise InputError(f"{what} {text!r}: expected three numbers X,Y,Z in mm (world RAS)")
+    return np.asarray(values)
+
+
+def segment_files(model_path, image_path, out_dir, *, at=(), landmarks_path=None, init_mask_path=None,
+                  label: int | None = None, params=None, progress=None, cancelled=None, say=None) -> dict:
+    """``ssm segment``: read the model (``model.npz`` with its appearance, or a statismo file), the image
+    and the start (``at``: "X,Y,Z" or "STRUCTURE=X,Y,Z" strings; a landmark file; or a rough mask and
+    its label), segment and write the files into ``out_dir`` (a folder the caller owns).
+
+    Returns the ``segment.json`` document.
+    """
+    from ..fitting.batch import load_model
+    from ..fitting.fit import Target, fit_any_pose
+    from ..formats.label_maps import load_volume
+    from ..formats.landmarks import read_landmarks
+    from .appearance import load_appearance
+    from .image import read_image
+    from .scores import mask_surface_points
+    from .segment import SegmentParams, landmark_pose, segment_image, start_pose
+
+    say = say or (lambda _line: None)
+    params = SegmentParams() if params is None else params
+    model = load_model(model_path, say=say)
+    appearance = load_appearance(model_path, model.n_points)
+    if appearance is None:
+        say(f"{Path(model_path).name}: no learned appearance (built without images): the boundary evidence is the "
+            "image gradient (a bright structure on a darker background)")
+    elif params.evidence == "gradient":
+        say("evidence: the image gradient, as asked (the model's learned appearance is not used)")
+    else:
+        say(f"evidence: the appearance learned from {len(appearance.images)} training image(s)")
+    image = read_image(image_path)
+    named, pose, start = {}, None, {}
+    plain = [a for a in at if "=" not in a]
+    for a in at:
+        if "=" in a:
+            key, value = a.split("=", 1)
+            named[key.strip()] = parse_point(value, f"--at {key}")
+    if plain and named:
+        raise InputError("--at: give one point X,Y,Z, or STRUCTURE=X,Y,Z per structure, not both")
+    if len(plain) > 1:
+        raise InputError("--at: one point inside the structure (a joint model takes STRUCTURE=X,Y,Z each)")
+    starts = sum(bool(x) for x in (plain or named, landmarks_path, init_mask_path))
+    if starts != 1:
+        raise InputError("give one start: --at X,Y,Z (a point inside the structure), --landmarks FILE or "
+                         "--init-mask FILE")
+    at_point = parse_point(plain[0]) if plain else None
+    if named:
+        unknown = [n for n in named if n not in model.structure_names]
+        if unknown:
+            raise InputError(f"--at {unknown[0]}=…: the model has no structure {unknown[0]!r} (structures: "
+                             f"{', '.join(model.structure_names) or 'none: give --at X,Y,Z'})")
+        for n, p in named.items():
+            if not image.contains(p)[0]:
+                raise InputError(f"{image.path}: the point of {n} ({', '.join(f'{v:.1f}' for v in p)}) mm lies "
+                                 "outside the image")
+        pose = start_pose(model, named=named)
+        start = {"points": {n: p.tolist() for n, p in named.items()}}
+    elif landmarks_path is not None:
+        lms = read_landmarks(landmarks_path)
+        pose = landmark_pose(model, lms)
+        start = {"landmarks": str(landmarks_path), "names": list(lms.names)}
+    elif init_mask_path is not None:
+        vol = load_volume(init_mask_path, label)
+        if vol.mask.shape != image.shape or not np.allclose(vol.affine, image.affine, atol=1e-3):
+            say(f"{Path(init_mask_path).name}: its grid differs from the image's; it is used in world mm")
+        pts = mask_surface_points(vol.mask, vol.affine)
+        fit, _doc = fit_any_pose(model, Target.from_points(pts, source=str(init_mask_path)))
+        pose = fit.pose
+        start = {"init_mask": str(init_mask_path), "label": label, "mask_fit_mm": fit.mean_distance_mm}
+    else:
+        start = {"at": at_point.tolist()}
+    result = segment_image(model, image, at=at_point, pose=pose, appearance=appearance, params=params,
+                           progress=progress, cancelled=cancelled)
+    extra = {"start_given": start}
+    files = write_segmentation(result, image, out_dir, model_source=str(model_path), extra=extra, overwrite=True)
+    return json.loads(files["record"].read_text())

@@ -45,7 +45,8 @@ from ..meshutil import edges, vertex_normals
 from .appearance import LEVEL_SIGMAS_MM, Appearance, normalised_derivative
 from .image import GreyImage
 
-__all__ = ["SegmentParams", "SegmentResult", "segment_image", "start_pose", "typical_rotation", "volume_centroid"]
+__all__ = ["SegmentParams", "SegmentResult", "landmark_pose", "segment_image", "start_pose", "typical_rotation",
+           "volume_centroid"]
 
 
 @dataclass(frozen=True)
@@ -79,7 +80,7 @@ class SegmentParams:
     search_mm: tuple = (12.0, 6.0, 3.0)
     search_step_mm: float = 0.5
     iterations: int = 12
-    tolerance_mm: float = 0.05
+    tolerance_mm: float = 0.1
     noise_mm: float = 1.0
     prior_weight: float = 1.0
     n_modes: int | None = None
@@ -202,12 +203,38 @@ def _axis_turn(axis: int, degrees: float) -> np.ndarray:
     return r
 
 
-def start_pose(model, *, at=None, rotation: np.ndarray | None = None) -> Pose:
-    """Model -> world pose that puts the mean shape's solid centroid at ``at`` (world mm) in the
-    model's typical orientation (or ``rotation``)."""
+def start_pose(model, *, at=None, named: dict | None = None, rotation: np.ndarray | None = None) -> Pose:
+    """Model -> world pose in the model's typical orientation (or ``rotation``) that puts the mean
+    shape's solid centroid at ``at`` (world mm), or, for a joint model, each named structure's
+    centroid at its point of ``named`` {structure: (3,) mm} (their mean when several; three or
+    more also turn the model onto them)."""
     r = typical_rotation(model) if rotation is None else np.asarray(rotation, float)
-    c = volume_centroid(model.mean, model.faces)
-    return Pose(r, np.asarray(at, float) - r @ c)
+    mean = np.asarray(model.mean, float)
+    if named:
+        src, dst = [], []
+        for name, point in named.items():
+            sl = model.structure_slice(name)
+            src.append(volume_centroid(mean[sl], model.structure_faces(name)))
+            dst.append(np.asarray(point, float).reshape(3))
+        src, dst = np.asarray(src), np.asarray(dst)
+        if len(src) >= 3:
+            return weighted_pose(src, dst, np.ones(len(src)), False)
+        return Pose(r, dst.mean(axis=0) - r @ src.mean(axis=0))
+    c = volume_centroid(mean, model.faces)
+    return Pose(r, np.asarray(at, float).reshape(3) - r @ c)
+
+
+def landmark_pose(model, landmarks) -> Pose:
+    """Model -> world pose from landmarks clicked on the image (at least 3 the model knows)."""
+    located = model.landmark_locations
+    common = [n for n in located.names if n in landmarks.names]
+    if len(common) < 3:
+        raise InputError(f"{landmarks.source or 'landmarks'}: {len(common)} of the model's landmarks "
+                         f"({', '.join(located.names) or 'none'}) are given; at least 3 are needed for a start pose")
+    idx = [list(located.names).index(n) for n in common]
+    verts = np.asarray(model.faces)[located.triangles[idx]]
+    m = np.einsum("lk,lkj->lj", located.bary[idx], np.asarray(model.mean, float)[verts])
+    return weighted_pose(m, landmarks.subset(common).points_world, np.ones(len(common)), False)
 
 
 class _Evidence:
@@ -276,6 +303,11 @@ UPSIDE = "turned 180° about z"
 COARSE_STEPS = 4
 """Steps of the coarse level from each start pose before they are ranked."""
 FINISHED_STARTS = 2
+FULL_STEPS = 3
+"""Steps of a level that go the whole way to the suggested positions; later ones go half-way."""
+CENTRAL_SHARE = 0.9
+"""A level has converged when this share of the points chose a position within the central half
+of the search range (Cootes, Taylor & Lanitis 1994)."""
 """The best-ranked starts taken through every level."""
 
 
@@ -354,7 +386,7 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
         scales.append(float(np.median(np.maximum(e.max(axis=1), 0.0))) or 1.0)
     evidences = [_Evidence(image, appearance, level, sigma, step, scales[level])
                  for level, sigma in enumerate(LEVEL_SIGMAS_MM)]
-    total_steps = n_levels * params.iterations
+    total_steps = FINISHED_STARTS * n_levels * params.iterations
     done = 0
 
     def score(pose_, b, level):
@@ -375,7 +407,7 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
         pose_, b = pose0, b0.copy()
         shape = mean + q @ b
         last = pose_.apply(shape)
-        converged, it, fit_cost, move = False, 0, math.inf, math.inf
+        converged, it, fit_cost, move, central = False, 0, math.inf, math.inf, 0.0
         strength = np.zeros(len(mean))
         rows = np.arange(len(mean))
         for it in range(1, iterations + 1):
@@ -392,7 +424,9 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
             w = np.clip(strength, 0.0, 1.0)
             if w.sum() < 1e-6:
                 w = np.ones(len(mean))
-            y = x + chosen[:, None] * nrm
+            # after the first steps, half-steps towards the suggestions: a point whose best position
+            # flips between two candidates no longer keeps the whole shape moving
+            y = x + (1.0 if it <= FULL_STEPS else 0.5) * chosen[:, None] * nrm
             pose_ = weighted_pose(shape, y, w, False)
             # coefficients: each suggestion observes the distance along the shape's normal (point to plane)
             yl = pose_.inverse(y) - mean
@@ -410,11 +444,15 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
                 done += 1
                 report(progress, done / total_steps, f"segment level {level + 1} ({sigma:g} mm) step {it}: "
                                                       f"{move:.3f} mm, evidence {fit_cost:.3f}")
-            if move < params.tolerance_mm:
+            # Cootes et al. (1994): a level has converged when 90 % of the points found their best
+            # position within the central half of their search range (or nothing moves any more)
+            central = float(np.mean(np.abs(chosen) <= 0.5 * reach))
+            if move < params.tolerance_mm or (it >= 2 and central >= CENTRAL_SHARE):
                 converged = True
                 break
         return pose_, b, {"level": level + 1, "blur_mm": sigma, "search_mm": reach, "iterations": it,
                           "converged": converged, "last_move_mm": move, "evidence_cost": fit_cost,
+                          "central_share": central,
                           "weak_share": float(np.mean(strength < 0.25))}
 
     # the coarse level from several turns of the start, ranked by how well each then sits on the
@@ -451,7 +489,7 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
     start_doc = {"chosen": chosen_start,
                  "candidates": [{"name": t["name"], "screened_cost": t["screened"], "final_cost": t.get("final")}
                                 for t in tried]}
-    converged = levels[-1]["converged"] or levels[-1]["last_move_mm"] < 2 * params.tolerance_mm
+    converged = levels[-1]["converged"]
     iterations = sum(lv["iterations"] for lv in levels)
     shape = mean + q @ b
     model_points = pose_.apply(shape)
@@ -497,9 +535,11 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
     if mahal > limit:
         findings.append(("outlier", f"the segmented shape lies {mahal:.2f} SD from the model's mean (99 % of the "
                                     f"model's shapes lie within {limit:.2f}): an unusual shape or a wrong one"))
-    if not converged:
-        findings.append(("not_converged", f"the fine level did not settle in {params.iterations} steps (last move "
-                                          f"above {params.tolerance_mm} mm)"))
+    if not converged and levels[-1]["last_move_mm"] > 2 * params.tolerance_mm:
+        findings.append(("not_converged", f"the fine level did not settle in {params.iterations} steps: "
+                                          f"{100 * levels[-1]['central_share']:.0f} % of the points found the boundary "
+                                          f"within ±{0.5 * params.search_mm[-1]:g} mm (90 % needed), last move "
+                                          f"{levels[-1]['last_move_mm']:.2f} mm"))
     if weak_share > 0.4:
         findings.append(("weak_evidence", f"{100 * weak_share:.0f} % of the surface has weak boundary evidence "
                                           f"({evidence}); the boundary there follows the model, not the image"))
