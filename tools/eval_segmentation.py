@@ -32,7 +32,7 @@ from ssm_addon.pipeline.project import read_project  # noqa: E402
 from ssm_addon.segmentation import (  # noqa: E402
     SegmentParams,
     degrade_image,
-    learn_appearance,
+    load_appearance,
     read_image,
     segment_image,
     segmentation_scores,
@@ -65,12 +65,13 @@ def extremal_landmarks(mask: np.ndarray, affine: np.ndarray, path: Path) -> Path
     return path
 
 
-def build_lumbar_model(data: Path, work: Path, *, held: str, ct):
+def build_lumbar_model(data: Path, work: Path, *, held: str):
     """The lumbar model without verse005's ``held`` vertebra, and its appearance from verse005's CT."""
     work.mkdir(parents=True, exist_ok=True)
     out = work / "out"
     v4 = data / "verse004"
     v5_labels = data / "verse005" / "sub-verse005_seg-vert_msk.nii.gz"
+    v5_ct = data / "verse005" / "sub-verse005_ct.nii.gz"
     if not (out / "model.npz").is_file():
         labels = read_label_map(v5_labels)
         lines = ["[template]", 'instance = "v4_L1"', "spacing = 1.0", ""]
@@ -82,14 +83,11 @@ def build_lumbar_model(data: Path, work: Path, *, held: str, ct):
                 continue
             fcsv = extremal_landmarks(labels.labels == label, labels.affine, work / f"v5_{name}.fcsv")
             lines += ["[[instances]]", f'name = "v5_{name}"', f'volume = "{v5_labels.as_posix()}"', f"label = {label}",
-                      f'landmarks = "{fcsv.as_posix()}"', ""]
+                      f'landmarks = "{fcsv.as_posix()}"', f'image = "{v5_ct.as_posix()}"', ""]
         (work / "lumbar.toml").write_text("\n".join(lines))
         build(read_project(work / "lumbar.toml"), out, log=None, jobs=2, blend=False)
     model = load_npz(out / "model.npz")
-    names = [str(n) for n in model.instance_names]
-    rows = [i for i, n in enumerate(names) if n.startswith("v5_")]
-    appearance = learn_appearance(model.mean, model.faces, [model.instance_points_world[i] for i in rows],
-                                  [ct] * len(rows), names=[names[i] for i in rows])
+    appearance = load_appearance(out / "model.npz", model.n_points)  # learned by the build from the images
     return model, appearance
 
 
@@ -121,7 +119,7 @@ def main(argv=None) -> int:
     rows = []
     for held in args.held.split(","):
         t = time.perf_counter()
-        model, appearance = build_lumbar_model(data, work / f"loo_{held}", held=held, ct=ct)
+        model, appearance = build_lumbar_model(data, work / f"loo_{held}", held=held)
         print(f"{held}: model of {len(model.instance_names)} vertebrae, {model.n_points} points, "
               f"{model.n_modes} modes ({time.perf_counter() - t:.0f} s)", flush=True)
         truth = labels.labels == LUMBAR[held]

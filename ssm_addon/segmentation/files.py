@@ -59,8 +59,7 @@ def segment_figure(image: GreyImage, mask: np.ndarray, path, *, title: str = "",
         img = np.asarray(image.data[tuple(sl)], float)
         m = mask[tuple(sl)]
         others = [a for a in range(3) if a != axis]
-        aspect = sp[others[0]] / sp[others[1]]
-        ax.imshow(img, cmap="gray", vmin=window[0], vmax=window[1], origin="lower", aspect=1.0 / aspect,
+        ax.imshow(img, cmap="gray", vmin=window[0], vmax=window[1], origin="lower", aspect=sp[others[0]] / sp[others[1]],
                   interpolation="nearest")
         if m.any():
             ax.contour(m.astype(float), levels=[0.5], colors=["#ff8c00"], linewidths=1.2)

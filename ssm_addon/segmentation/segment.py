@@ -271,6 +271,10 @@ class _Evidence:
             dist = self.appearance.distance(self.level, feats)
             typical = max(float(self.appearance.typical_distance[self.level]), 1e-6)
             return dist / typical, np.exp(-0.5 * dist / (3.0 * typical))
+        return self._gradient(x, normals, offsets)
+
+    def _gradient(self, x, normals, offsets):
+        h = self.step
         e = self.edge(x, normals, offsets) / self.scale
         # the object's own boundary is the first strong edge met going outwards: an edge beyond
         # it of the same polarity is a neighbour's inner edge (the next vertebra's endplate)
