@@ -114,7 +114,8 @@ class SegmentResult:
     coefficients : (K,) SD
         b_k/√λ_k.
     posterior_sd_mm : (N,) mm
-        Per point √(trace of its posterior covariance), the model's own error included.
+        Per point √(trace of its posterior covariance + the boundary suggestions' scatter σ̂²), the
+        model's own error included: where the true surface lies around the point (predictive).
     deviation_mm : (N,) mm
         How far each point left the model's span along its normal.
     evidence : str
@@ -279,8 +280,13 @@ class _Evidence:
         # the object's own boundary is the first strong edge met going outwards: an edge beyond
         # it of the same polarity is a neighbour's inner edge (the next vertebra's endplate)
         strong = e >= FIRST_EDGE * np.maximum(e.max(axis=1, keepdims=True), 1e-12)
-        first = np.argmax(strong, axis=1)
-        beyond = np.arange(len(offsets))[None, :] > first[:, None] + int(round(FIRST_EDGE_MM / h))
+        cols = np.arange(len(offsets))[None, :]
+        first = np.argmax(strong, axis=1)[:, None]
+        # the first strong edge runs while the samples stay strong; its peak is the boundary's place
+        after = (cols > first) & ~strong
+        end = np.where(after.any(axis=1), np.argmax(after, axis=1), len(offsets))[:, None]
+        peak = np.argmax(np.where((cols >= first) & (cols < end), e, -np.inf), axis=1)[:, None]
+        beyond = cols > peak + int(round(FIRST_EDGE_MM / h))
         cost = -e + np.where(beyond, np.maximum(e, 0.0), 0.0)
         return cost, np.clip(e, 0.0, 1.0)
 
@@ -302,7 +308,7 @@ def _refined_offsets(cost: np.ndarray, best: np.ndarray, offsets: np.ndarray) ->
 FIRST_EDGE = 0.5
 """Gradient evidence: an edge at least this share of the strongest along a normal counts as strong."""
 FIRST_EDGE_MM = 1.0
-"""Gradient evidence: edges more than this beyond the first strong one (outwards) lose their evidence."""
+"""Gradient evidence: edges more than this beyond the peak of the first strong one (outwards) lose their evidence."""
 UPSIDE = "turned 180° about z"
 COARSE_STEPS = 4
 """Steps of the coarse level from each start pose before they are ranked."""
@@ -503,11 +509,16 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
     fine = grid(params.search_mm[-1])
     cost, strong = ev.costs(model_points, normals_w, fine)
     zero = int(np.argmin(np.abs(fine)))
-    w_final = np.clip(strong[:, zero], 0.0, 1.0)
+    best = np.argmin(cost + 0.02 * (fine[None, :] / fine[-1]) ** 2, axis=1)
+    w_final = np.clip(strong[np.arange(len(mean)), best], 0.0, 1.0)
+    residual = _refined_offsets(cost, best, fine)
+    # the suggestions' scatter about the fitted shape is the noise the posterior assumes (at least a
+    # quarter of the finest voxel edge): the SD follows how well the image pins the shape
+    sigma2 = max(float(np.sum(w_final * residual ** 2) / max(w_final.sum(), 1e-9)),
+                 (0.25 * float(image.spacing_mm.min())) ** 2)
     qn = _normals_rows(q, vertex_normals(shape, faces))
-    sigma2 = max(params.noise_mm, LEVEL_SIGMAS_MM[-1]) ** 2
     cov_b = np.linalg.inv((qn * w_final[:, None]).T @ qn / sigma2 + params.prior_weight * np.diag(1.0 / lam))
-    per_point = np.einsum("ndk,kl,ndl->n", q, cov_b, q)
+    per_point = np.einsum("ndk,kl,ndl->n", q, cov_b, q) + sigma2  # the shape's uncertainty and the boundary's scatter
     if error_var is not None:
         per_point = per_point + error_var
     sd = pose_.scale * np.sqrt(np.maximum(per_point, 0.0))
@@ -530,7 +541,8 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
     # how well the evidence fits at the result
     cost_at, strong_at = ev.costs(points, vertex_normals(points, faces), fine)
     weak_share = float(np.mean(strong_at[:, zero] < 0.25))
-    boundary = {"evidence_cost": float(np.mean(cost_at[:, zero])), "weak_share": weak_share}
+    boundary = {"evidence_cost": float(np.mean(cost_at[:, zero])), "weak_share": weak_share,
+                "residual_sd_mm": math.sqrt(sigma2)}
     inner = image.profiles(points, vertex_normals(points, faces), np.array([-3.0, -2.0, -1.0]), sigma_mm=0.5)
     outer = image.profiles(points, vertex_normals(points, faces), np.array([1.0, 2.0, 3.0]), sigma_mm=0.5)
     boundary["inside_mean"], boundary["outside_mean"] = float(inner.mean()), float(outer.mean())
