@@ -19,6 +19,7 @@ MODULES = (
     "coating",
     "model",
     "fit",
+    "segmentation",
     "analysis",
     "project",
 )

@@ -686,6 +686,10 @@ class SSM_OT_import_model(bpy.types.Operator, ImportHelper):
             self.report({"ERROR"}, str(err))
             return {"CANCELLED"}
         obj = create_model_object(context, model)
+        from .segmentation import store_appearance
+
+        if store_appearance(obj, self.filepath, model.n_points):
+            notes.append("with the boundary appearance learned from its training images (for Segment with Model)")
         self.report({"INFO"}, f"{os.path.basename(self.filepath)}: {model.n_modes} modes, {model.n_points} points"
                               f"{f', from {model.n_instances} instances' if model.n_instances else ''} as {obj.name!r}"
                               + (f"; structures {', '.join(model.structure_names)} (one mesh each)"

@@ -137,10 +137,19 @@ def appearance_from_arrays(arrays, n_points: int, where: str = "model") -> Appea
         raise InputError(f"{where}: the stored appearance has shape {mean.shape} / {cov.shape}; expected "
                          f"(levels, {n_points}, 2k) and (levels, {n_points}, 2k, 2k)")
     return Appearance(mean=mean, covariance=cov, sigmas_mm=np.asarray(arrays[f"{p}sigmas_mm"], float),
-                      step_mm=float(arrays[f"{p}step_mm"]), boundary_mm=np.asarray(arrays[f"{p}boundary_mm"], float),
+                      step_mm=float(np.asarray(arrays[f"{p}step_mm"]).reshape(-1)[0]), boundary_mm=np.asarray(arrays[f"{p}boundary_mm"], float),
                       boundary_sd=np.asarray(arrays[f"{p}boundary_sd"], float),
                       typical_distance=np.asarray(arrays[f"{p}typical_distance"], float),
-                      images=tuple(str(s) for s in np.asarray(arrays[f"{p}images"]).reshape(-1)))
+                      images=_names(arrays[f"{p}images"]))
+
+
+def _names(value) -> tuple:
+    """The training images' names: an array of str (npz) or a JSON list (a Blender scene's copy)."""
+    if isinstance(value, str):
+        import json
+
+        return tuple(str(s) for s in json.loads(value))
+    return tuple(str(s) for s in np.asarray(value).reshape(-1))
 
 
 def load_appearance(path, n_points: int) -> Appearance | None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,7 @@ from ..formats.meshes import write_ply
 from ..instances.voxelize import voxelize_mesh
 from .image import GreyImage
 
-__all__ = ["SEGMENT_FILES", "parse_point", "segment_files", "segmentation_mask", "segment_figure", "write_segmentation"]
+__all__ = ["SEGMENT_FILES", "SegmentationRecord", "parse_point", "segment_files", "segmentation_mask", "segment_figure", "write_segmentation"]
 
 SEGMENT_FILES = ("segmentation.nii.gz", "segmented.ply", "segment.json", "segment.png")
 
@@ -77,10 +78,28 @@ def segment_figure(image: GreyImage, mask: np.ndarray, path, *, title: str = "",
     return Path(path)
 
 
+@dataclass(frozen=True, eq=False)
+class SegmentationRecord:
+    """A segmentation as a scene keeps it (its surface, per-point SD and deviation, and the record of
+    :meth:`SegmentResult.to_dict`): what :func:`write_segmentation` needs."""
+
+    points: np.ndarray
+    faces: np.ndarray
+    posterior_sd_mm: np.ndarray
+    deviation_mm: np.ndarray
+    record: dict
+
+    def to_dict(self) -> dict:
+        return dict(self.record)
+
+
 def write_segmentation(result, image: GreyImage, out_dir, *, model_source: str = "", extra: dict | None = None,
                        overwrite: bool = False) -> dict:
     """Write ``segmentation.nii.gz`` (label 1 on the image's grid, its affine), ``segmented.ply``
     (world mm, RAS, with the posterior SD per vertex), ``segment.json`` and ``segment.png``.
+
+    ``result``: a :class:`~ssm_addon.segmentation.segment.SegmentResult` or a
+    :class:`SegmentationRecord`.
 
     Existing files of these names are refused unless ``overwrite`` (they may not be ours).
     Returns the paths by kind.

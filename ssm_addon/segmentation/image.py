@@ -18,7 +18,7 @@ from scipy import ndimage
 from ..base.errors import InputError
 from ..formats import label_maps as lm
 
-__all__ = ["GreyImage", "read_image"]
+__all__ = ["PLANES", "GreyImage", "read_image", "window_values", "world_slice"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -93,6 +93,53 @@ class GreyImage:
         pos = (np.asarray(points_world, float)[:, None, :]
                + np.asarray(offsets_mm, float)[None, :, None] * np.asarray(normals, float)[:, None, :])
         return self.sample(pos, sigma_mm=sigma_mm)
+
+
+PLANES = ("sagittal", "coronal", "axial")
+"""The slice planes, by the world axis they are perpendicular to (x: R, y: A, z: S)."""
+
+
+def world_slice(image: GreyImage, axis: int, position_mm: float, *, pixel_mm: float | None = None,
+                max_pixels: int = 512) -> tuple[np.ndarray, np.ndarray]:
+    """The image on the world plane perpendicular to ``axis`` (0: x, sagittal; 1: y, coronal; 2: z,
+    axial) at ``position_mm``, over the image's world extent in the other two axes.
+
+    Returns
+    -------
+    values : (H, W) float32
+        Trilinear grey values (NaN outside the image); rows run along the plane's second
+        axis, columns along its first (the two remaining world axes in x, y, z order).
+    corners : (4, 3) mm
+        World corners of the pixel grid's outer edges: (first-low, second-low), (first-high,
+        second-low), (first-high, second-high), (first-low, second-high).
+    """
+    lo, hi = image.extent_world()
+    u, v = [a for a in range(3) if a != axis]
+    step = float(pixel_mm or image.spacing_mm.min())
+    step = max(step, float(max(hi[u] - lo[u], hi[v] - lo[v])) / max_pixels)
+    nu = max(1, int(np.ceil((hi[u] - lo[u]) / step)) + 1)
+    nv = max(1, int(np.ceil((hi[v] - lo[v]) / step)) + 1)
+    gu = lo[u] + step * np.arange(nu)
+    gv = lo[v] + step * np.arange(nv)
+    pts = np.zeros((nv, nu, 3))
+    pts[..., u] = gu[None, :]
+    pts[..., v] = gv[:, None]
+    pts[..., axis] = position_mm
+    values = image.sample(pts).astype(np.float32)
+    values[~image.contains(pts.reshape(-1, 3)).reshape(nv, nu)] = np.nan
+    corners = np.zeros((4, 3))
+    corners[:, axis] = position_mm
+    for i, (a, b) in enumerate(((0, 0), (1, 0), (1, 1), (0, 1))):
+        corners[i, u] = gu[0] - step / 2 if a == 0 else gu[-1] + step / 2
+        corners[i, v] = gv[0] - step / 2 if b == 0 else gv[-1] + step / 2
+    return values, corners
+
+
+def window_values(values: np.ndarray, *, level: float, width: float) -> np.ndarray:
+    """Grey values mapped to [0, 1] by a display window (``level`` its centre, ``width`` its span);
+    NaN (outside the image) becomes 0."""
+    out = (np.asarray(values, np.float32) - (level - width / 2.0)) / max(float(width), 1e-6)
+    return np.nan_to_num(np.clip(out, 0.0, 1.0), nan=0.0)
 
 
 def read_image(path) -> GreyImage:

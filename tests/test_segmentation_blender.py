@@ -1,0 +1,87 @@
+"""Segmenting in Blender: the image as slice planes, Segment with Model from the 3D cursor, Save Segmentation;
+the same numbers and files as ``ssm segment``."""
+
+from __future__ import annotations
+
+import json
+
+import nibabel as nib
+import numpy as np
+import pytest
+from test_segmentation import bumped_shapes, posed, synthetic_image
+
+from ssm_addon.model.files import add_npz_arrays, save_npz
+from ssm_addon.model.pca import build_model
+from ssm_addon.segmentation import learn_appearance, segment_files, volume_centroid
+
+pytestmark = pytest.mark.blender
+
+
+@pytest.fixture()
+def files(tmp_path):
+    shapes, faces = bumped_shapes()
+    model = build_model(shapes[1:], faces, [f"s{i}" for i in range(1, len(shapes))], alignment="none")
+    truth = posed(shapes[0], shift=(-30.0, 10.0, 5.0))
+    image, mask = synthetic_image(truth, faces)
+    nib.save(nib.Nifti1Image(image.data, image.affine), str(tmp_path / "ct.nii.gz"))
+    train = [posed(s) for s in shapes[1:4]]
+    app = learn_appearance(model.mean, faces, train, [synthetic_image(s, faces, seed=5 + i)[0]
+                                                      for i, s in enumerate(train)], names=["a", "b", "c"])
+    save_npz(model, tmp_path / "model.npz")
+    add_npz_arrays(tmp_path / "model.npz", app.to_arrays())
+    at = volume_centroid(truth, faces) + np.array([2.0, -3.0, 2.5])
+    return tmp_path, at, image, mask
+
+
+def test_segment_with_model_equals_ssm_segment_and_saves_the_same_files(bpy_clean, files, layout_recorder):
+    bpy = bpy_clean
+    folder, at, image, mask = files
+    assert bpy.ops.ssm.import_model(filepath=str(folder / "model.npz")) == {"FINISHED"}
+    assert bpy.ops.ssm.import_image(filepath=str(folder / "ct.nii.gz")) == {"FINISHED"}
+    planes = [bpy.data.objects.get(f"SSM {p} slice") for p in ("sagittal", "coronal", "axial")]
+    assert all(p is not None for p in planes)
+    # the axial plane lies at the slider's z (world mm) and follows it; the window changes its pixels
+    scene = bpy.context.scene
+    axial = planes[2]
+    z0 = scene.ssm_image.position_z
+    assert np.allclose([v.co.z for v in axial.data.vertices], z0)
+    scene.ssm_image.position_z = z0 + 7.0
+    assert np.allclose([v.co.z for v in axial.data.vertices], z0 + 7.0)
+    before = np.array(bpy.data.images["SSM axial slice"].pixels[:])
+    scene.ssm_image.width = 300.0
+    assert not np.allclose(before, np.array(bpy.data.images["SSM axial slice"].pixels[:]))
+    # a cursor outside the image: refused with the reason, nothing added
+    scene.cursor.location = (5000.0, 0.0, 0.0)
+    n_objects = len(bpy.data.objects)
+    with pytest.raises(RuntimeError, match="outside the image"):
+        bpy.ops.ssm.segment_image()
+    assert len(bpy.data.objects) == n_objects
+    scene.cursor.location = tuple(at)
+    assert bpy.ops.ssm.segment_image() == {"FINISHED"}
+    obj = bpy.data.objects["ct segmented"]
+    doc = json.loads(obj["ssm_segment_json"])
+    assert doc["evidence"] == "learned"  # the appearance came with the imported model.npz
+    # the command line on the same files and the same point (the cursor holds float32 coordinates): the same surface
+    cursor = np.array(scene.cursor.location, float)
+    head = segment_files(folder / "model.npz", folder / "ct.nii.gz", folder / "cli", at=[",".join(map(repr, cursor))])
+    verts = np.array([v.co for v in obj.data.vertices])
+    ply = (folder / "cli" / "segmented.ply")
+    from ssm_addon.formats.meshes import read_ply
+
+    cli_points, _faces, _extra = read_ply(ply)
+    assert np.abs(verts - cli_points).max() < 1e-4  # both stored as float32
+    assert doc["mahalanobis"] == pytest.approx(head["mahalanobis"], abs=1e-9)
+    assert obj.data.attributes.get("posterior_sd") is not None
+    # Save Segmentation writes the command's files; the label maps are the same voxels
+    assert bpy.ops.ssm.save_segmentation(directory=str(folder / "blender")) == {"FINISHED"}
+    for name in ("segmentation.nii.gz", "segmented.ply", "segment.json", "segment.png"):
+        assert (folder / "blender" / name).is_file(), name
+    a = np.asarray(nib.load(str(folder / "blender" / "segmentation.nii.gz")).dataobj)
+    b = np.asarray(nib.load(str(folder / "cli" / "segmentation.nii.gz")).dataobj)
+    assert np.array_equal(a, b) and 2 * np.count_nonzero(a.astype(bool) & mask) / (a.sum() + mask.sum()) > 0.9
+    # saving again into the same folder never overwrites: refused, said
+    with pytest.raises(RuntimeError, match="never overwrites"):
+        bpy.ops.ssm.save_segmentation(directory=str(folder / "blender"))
+    log = []
+    bpy.types.SSM_PT_segment.draw(type("P", (), {"layout": layout_recorder(log)})(), bpy.context)
+    assert ("operator", "ssm.save_segmentation") in log and any("learned evidence" in t for k, t in log if k == "label")
