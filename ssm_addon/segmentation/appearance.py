@@ -80,6 +80,8 @@ class Appearance:
         Median Mahalanobis distance of the training profiles at the true boundary.
     images : tuple of str
         Names of the training instances whose images taught it.
+    voxel_mm : float
+        The training images' coarsest voxel edge (mm): images much coarser look otherwise.
     """
 
     mean: np.ndarray
@@ -90,6 +92,7 @@ class Appearance:
     boundary_sd: np.ndarray
     typical_distance: np.ndarray
     images: tuple = ()
+    voxel_mm: float = 1.0
 
     @property
     def half_length(self) -> int:
@@ -117,10 +120,12 @@ class Appearance:
         return {f"{p}mean": self.mean, f"{p}covariance": self.covariance, f"{p}sigmas_mm": self.sigmas_mm,
                 f"{p}step_mm": np.asarray(self.step_mm), f"{p}boundary_mm": self.boundary_mm,
                 f"{p}boundary_sd": self.boundary_sd, f"{p}typical_distance": self.typical_distance,
-                f"{p}images": np.asarray([str(s) for s in self.images] or np.zeros(0, "<U1"))}
+                f"{p}images": np.asarray([str(s) for s in self.images] or np.zeros(0, "<U1")),
+                f"{p}voxel_mm": np.asarray(self.voxel_mm)}
 
     def to_dict(self) -> dict:
         return {"kind": "learned profiles (Cootes et al. 1995)", "images": list(self.images),
+                "training_voxel_mm": float(self.voxel_mm),
                 "levels_sigma_mm": [float(s) for s in self.sigmas_mm], "step_mm": float(self.step_mm),
                 "profile_samples": 2 * self.half_length + 1,
                 "boundary_inside_outside": [float(x) for x in self.boundary_mm]}
@@ -140,7 +145,8 @@ def appearance_from_arrays(arrays, n_points: int, where: str = "model") -> Appea
                       step_mm=float(np.asarray(arrays[f"{p}step_mm"]).reshape(-1)[0]), boundary_mm=np.asarray(arrays[f"{p}boundary_mm"], float),
                       boundary_sd=np.asarray(arrays[f"{p}boundary_sd"], float),
                       typical_distance=np.asarray(arrays[f"{p}typical_distance"], float),
-                      images=_names(arrays[f"{p}images"]))
+                      images=_names(arrays[f"{p}images"]),
+                      voxel_mm=float(np.asarray(arrays.get(f"{p}voxel_mm", 1.0)).reshape(-1)[0]))
 
 
 def _names(value) -> tuple:
@@ -236,4 +242,5 @@ def learn_appearance(mean_shape: np.ndarray, faces: np.ndarray, shapes_world: li
     return Appearance(mean=np.stack(means), covariance=np.stack(covs), sigmas_mm=np.asarray(sigmas_mm, float),
                       step_mm=float(step_mm), boundary_mm=np.array([ins.mean(), outs.mean()]),
                       boundary_sd=np.array([ins.std(), outs.std()]), typical_distance=np.asarray(typical),
-                      images=tuple(str(s) for s in names))
+                      images=tuple(str(s) for s in names),
+                      voxel_mm=float(max(float(img.spacing_mm.max()) for img in images)))

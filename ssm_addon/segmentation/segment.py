@@ -71,6 +71,9 @@ class SegmentParams:
         Modes used (None: all).
     turns_deg : degrees
         The coarse level also starts from the typical pose turned by ± this about each axis.
+    placement_mm : mm
+        The mean shape is first placed on a grid within ± this of the start (4 mm steps); the best
+        places start the pose search.
     deviation : bool
         Let the surface leave the model's span as far as the model's error and the evidence allow.
     evidence : {"auto", "learned", "gradient"}
@@ -85,6 +88,7 @@ class SegmentParams:
     prior_weight: float = 1.0
     n_modes: int | None = None
     turns_deg: float = 15.0
+    placement_mm: float = 8.0
     deviation: bool = True
     evidence: str = "auto"
 
@@ -313,12 +317,43 @@ UPSIDE = "turned 180° about z"
 COARSE_STEPS = 4
 """Steps of the coarse level from each start pose before they are ranked."""
 FINISHED_STARTS = 2
+COARSER_THAN_TRAINING = 1.5
+"""Learned profiles are used when the image's coarsest voxel edge is at most this many times the
+training images' (profiles of thicker slices look otherwise); coarser images use the gradient."""
 FULL_STEPS = 3
 """Steps of a level that go the whole way to the suggested positions; later ones go half-way."""
 CENTRAL_SHARE = 0.9
 """A level has converged when this share of the points chose a position within the central half
 of the search range (Cootes, Taylor & Lanitis 1994)."""
 """The best-ranked starts taken through every level."""
+
+
+PLACEMENTS_KEPT = 3
+"""The best-placed positions of the mean shape around the start that the pose search starts from."""
+
+
+def _placements(base: Pose, mean, faces, evidence, grid, reach_mm: float, keep: int) -> list:
+    """Shifts (world mm) of the mean shape from ``base`` on a grid within ``reach_mm`` (4 mm steps),
+    ranked by how well the shape, unfitted, sits on the coarse level's boundary evidence (mean best
+    cost within ±3 mm); the ``keep`` best, the unshifted start always among them."""
+    if reach_mm <= 0:
+        return [np.zeros(3)]
+    ticks = np.arange(-reach_mm, reach_mm + 1e-9, 4.0)
+    shifts = np.array([[a, b, c] for a in ticks for b in ticks for c in ticks])
+    x = base.apply(mean)
+    nrm = vertex_normals(mean, faces) @ base.rotation.T
+    scores = []
+    for sh in shifts:
+        cost, _ = evidence.costs(x + sh, nrm, grid(3.0))
+        scores.append(float(np.mean(cost.min(axis=1))))
+    order = sorted(range(len(shifts)), key=lambda i: (scores[i], float(np.abs(shifts[i]).sum()), i))
+    out = [np.zeros(3)]
+    for i in order:
+        if len(out) >= keep:
+            break
+        if all(np.abs(shifts[i] - o).max() > 4.0 + 1e-9 for o in out):
+            out.append(shifts[i])
+    return out
 
 
 def _normals_rows(q: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -356,6 +391,15 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
                          "the image gradient (evidence 'gradient' or 'auto') or rebuild with images")
     if params.evidence == "gradient":
         appearance = None
+    resolution_note = ""
+    if appearance is not None and float(image.spacing_mm.max()) > COARSER_THAN_TRAINING * appearance.voxel_mm:
+        if params.evidence == "learned":
+            raise InputError(f"{name}: its voxels ({', '.join(f'{v:.3g}' for v in image.spacing_mm)} mm) are coarser "
+                             f"than the appearance's training images' ({appearance.voxel_mm:.3g} mm): learned "
+                             "profiles do not apply; segment with the gradient (evidence 'auto' or 'gradient')")
+        resolution_note = (f" (the image's {float(image.spacing_mm.max()):.3g} mm voxels are coarser than the "
+                           f"appearance's {appearance.voxel_mm:.3g} mm training images: learned profiles do not apply)")
+        appearance = None
     mean = np.asarray(model.mean, float)
     faces = np.asarray(model.faces, np.int64)
     if len(faces) == 0:
@@ -380,7 +424,7 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
     q = np.asarray(model.modes[:k], float).reshape(k, len(mean), 3).transpose(1, 2, 0)  # (N, 3, K)
     lam = np.maximum(np.asarray(model.variances[:k], float), 1e-12)
     error_var = model_error_variance(model, k)
-    evidence = "learned" if appearance is not None else "gradient"
+    evidence = ("learned" if appearance is not None else "gradient") + resolution_note
     n_levels = len(LEVEL_SIGMAS_MM)
     step = params.search_step_mm
 
@@ -474,15 +518,17 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
                 starts.append((f"turned {sign * params.turns_deg:+g}° about {'xyz'[axis]}",
                                _axis_turn(axis, sign * params.turns_deg)))
     starts.append((UPSIDE, _axis_turn(2, 180.0)))
-    centre = base.apply(volume_centroid(mean, faces))
     c_model = volume_centroid(mean, faces)
     tried = []
-    for label, turn in starts:
-        check_cancelled(cancelled)
-        rot = turn @ base.rotation
-        p0 = Pose(rot, centre - base.scale * rot @ c_model, base.scale)
-        p1, b1, _info = run_level(0, p0, np.zeros(k), COARSE_STEPS, record=False)
-        tried.append({"name": label, "pose": p1, "b": b1, "screened": score(p1, b1, 1)})
+    for shift in _placements(base, mean, faces, evidences[0], grid, params.placement_mm, PLACEMENTS_KEPT):
+        centre = base.apply(c_model) + shift
+        moved = "" if not np.any(shift) else f", moved ({', '.join(f'{v:+.0f}' for v in shift)}) mm"
+        for label, turn in starts:
+            check_cancelled(cancelled)
+            rot = turn @ base.rotation
+            p0 = Pose(rot, centre - base.scale * rot @ c_model, base.scale)
+            p1, b1, _info = run_level(0, p0, np.zeros(k), COARSE_STEPS, record=False)
+            tried.append({"name": label + moved, "pose": p1, "b": b1, "screened": score(p1, b1, 1)})
     order = sorted(range(len(tried)), key=lambda i: (tried[i]["screened"], i))[:FINISHED_STARTS]
     finished = []
     for i in order:
@@ -568,7 +614,7 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
                                             f"are not those of the appearance's training images (inside "
                                             f"{appearance.boundary_mm[0]:.0f}, outside {appearance.boundary_mm[1]:.0f}):"
                                             " another modality or intensity scale?"))
-    if chosen_start == UPSIDE:
+    if chosen_start.startswith(UPSIDE):
         findings.append(("orientation", "the image fits best with the model turned 180° about the "
                                         "superior axis: is the image's orientation LPS stored as RAS (x and y "
                                         "negated)?"))
