@@ -323,8 +323,10 @@ training images' (profiles of thicker slices look otherwise); coarser images use
 FULL_STEPS = 3
 """Steps of a level that go the whole way to the suggested positions; later ones go half-way."""
 CENTRAL_SHARE = 0.9
-"""A level has converged when this share of the points chose a position within the central half
-of the search range (Cootes, Taylor & Lanitis 1994)."""
+CENTRAL_BAND = 0.15
+"""A level has converged when CENTRAL_SHARE of the points chose a position within CENTRAL_BAND of the
+search range from where they are (Cootes, Taylor & Lanitis 1994 use the central half; a narrower band
+keeps a level going while the shape still moves)."""
 """The best-ranked starts taken through every level."""
 
 
@@ -500,8 +502,8 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
                                                       f"{move:.3f} mm, evidence {fit_cost:.3f}")
             # Cootes et al. (1994): a level has converged when 90 % of the points found their best
             # position within the central half of their search range (or nothing moves any more)
-            central = float(np.mean(np.abs(chosen) <= 0.5 * reach))
-            if move < params.tolerance_mm or (it >= 2 and central >= CENTRAL_SHARE):
+            central = float(np.mean(np.abs(chosen) <= CENTRAL_BAND * reach))
+            if move < params.tolerance_mm or (it >= 3 and central >= CENTRAL_SHARE):
                 converged = True
                 break
         return pose_, b, {"level": level + 1, "blur_mm": sigma, "search_mm": reach, "iterations": it,
@@ -600,7 +602,7 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
     if not converged and levels[-1]["last_move_mm"] > 2 * params.tolerance_mm:
         findings.append(("not_converged", f"the fine level did not settle in {params.iterations} steps: "
                                           f"{100 * levels[-1]['central_share']:.0f} % of the points found the boundary "
-                                          f"within ±{0.5 * params.search_mm[-1]:g} mm (90 % needed), last move "
+                                          f"within ±{CENTRAL_BAND * params.search_mm[-1]:g} mm (90 % needed), last move "
                                           f"{levels[-1]['last_move_mm']:.2f} mm"))
     if weak_share > 0.4:
         findings.append(("weak_evidence", f"{100 * weak_share:.0f} % of the surface has weak boundary evidence "
