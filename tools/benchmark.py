@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-STAGES = ("volume", "surface", "template", "coating", "model", "fit", "build")
+STAGES = ("volume", "surface", "template", "coating", "model", "fit", "segment", "build")
 
 
 def main(argv: list[str]) -> int:
