@@ -125,6 +125,16 @@ def load_arrays(idblock, key: str) -> dict | None:
     return out
 
 
+def sd_colours(sd: np.ndarray) -> np.ndarray:
+    """(N, 4) RGBA from posterior standard deviations: blue (certain) to red (uncertain)."""
+    rel = (sd - sd.min()) / max(float(np.ptp(sd)), 1e-12)
+    rgba = np.ones((len(sd), 4), dtype=np.float32)
+    rgba[:, 0] = 0.15 + 0.8 * rel
+    rgba[:, 1] = 0.35 + 0.3 * (1 - np.abs(2 * rel - 1))
+    rgba[:, 2] = 0.9 - 0.75 * rel
+    return rgba
+
+
 def position_colors(points: np.ndarray) -> np.ndarray:
     """(N, 4) RGBA: a smooth colour by position (each axis of the points' box -> R, G, B).
 

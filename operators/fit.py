@@ -44,16 +44,6 @@ def _target_object(context):
     return obj
 
 
-def sd_colours(sd: np.ndarray) -> np.ndarray:
-    """(N, 4) RGBA from posterior standard deviations: blue (certain) to red (uncertain)."""
-    rel = (sd - sd.min()) / max(float(np.ptp(sd)), 1e-12)
-    rgba = np.ones((len(sd), 4), dtype=np.float32)
-    rgba[:, 0] = 0.15 + 0.8 * rel
-    rgba[:, 1] = 0.35 + 0.3 * (1 - np.abs(2 * rel - 1))
-    rgba[:, 2] = 0.9 - 0.75 * rel
-    return rgba
-
-
 class SSM_OT_fit_model(BackgroundJob, bpy.types.Operator):
     """Fit the SSM model to the active mesh (its selected vertices in Edit Mode: completion); the model's sliders show the fit"""
 
@@ -126,7 +116,7 @@ class SSM_OT_fit_model(BackgroundJob, bpy.types.Operator):
             slider.value = float(z)
         obj = bridge.new_mesh_object(context, f"{target.name} fitted", result.points, faces,
                                      collection_name=FIT_COLLECTION, matrix_world=np.eye(4))
-        bridge.set_vertex_colors(obj.data, sd_colours(result.posterior_sd_mm), name="posterior_sd")
+        bridge.set_vertex_colors(obj.data, bridge.sd_colours(result.posterior_sd_mm), name="posterior_sd")
         bridge.set_point_attribute(obj.data, "posterior_sd_mm", result.posterior_sd_mm)
         mat = bridge.color_material("SSM Posterior SD", attribute="posterior_sd")
         if not obj.data.materials:

@@ -66,6 +66,7 @@ from .scene import (
     scene_instances,
     scene_optimisation,
     scene_structures,
+    store_appearance,
     store_model,
     study_from_scene,
 )
@@ -686,8 +687,6 @@ class SSM_OT_import_model(bpy.types.Operator, ImportHelper):
             self.report({"ERROR"}, str(err))
             return {"CANCELLED"}
         obj = create_model_object(context, model)
-        from .segmentation import store_appearance
-
         if store_appearance(obj, self.filepath, model.n_points):
             notes.append("with the boundary appearance learned from its training images (for Segment with Model)")
         self.report({"INFO"}, f"{os.path.basename(self.filepath)}: {model.n_modes} modes, {model.n_points} points"

@@ -56,6 +56,7 @@ from ssm_addon.pipeline.optimisation import optimisation_result, optimisation_st
 from ssm_addon.pipeline.stages import import_result
 from ssm_addon.pipeline.store import RECORD_FIELDS, apply_records, study_records
 from ssm_addon.pipeline.study import StageResult, Study, apply_stage, merge_findings
+from ssm_addon.segmentation.appearance import load_appearance
 from ssm_addon.template.template import Template
 
 from . import bridge
@@ -854,3 +855,18 @@ def finish_optimisation(op, context, imported, result) -> list:
 def scene_optimisation(context) -> dict:
     """The record of the correspondence optimisation of the coatings in this scene (empty when none ran)."""
     return scene_records(context).get("optimisation") or {}
+
+
+APPEARANCE_KEY = "ssm_appearance"
+"""The model object's ID property holding a model file's learned boundary appearance."""
+
+
+def store_appearance(obj, path, n_points: int) -> bool:
+    """Keep a model file's learned appearance on the model object (for *Segment with Model*)."""
+    appearance = load_appearance(path, n_points)
+    if appearance is None:
+        return False
+    arrays = appearance.to_arrays()
+    arrays["appearance_images"] = json.dumps(list(appearance.images))  # names as text (ID properties hold numbers)
+    bridge.store_arrays(obj, APPEARANCE_KEY, arrays)
+    return True

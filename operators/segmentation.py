@@ -19,20 +19,18 @@ from bpy.props import FloatProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
 from ssm_addon.base.errors import InputError
-from ssm_addon.segmentation.appearance import appearance_from_arrays, load_appearance
+from ssm_addon.segmentation.appearance import appearance_from_arrays
 from ssm_addon.segmentation.files import SEGMENT_FILES, SegmentationRecord, write_segmentation
 from ssm_addon.segmentation.image import PLANES, read_image, window_values, world_slice
 from ssm_addon.segmentation.segment import SegmentParams, segment_image
 
 from . import bridge
-from .fit import sd_colours
 from .jobs import BackgroundJob
 from .properties import SSMPanel
-from .scene import find_model_object, model_from_object
+from .scene import APPEARANCE_KEY, find_model_object, model_from_object
 
 IMAGE_COLLECTION = "SSM Image"
 SEGMENT_COLLECTION = "SSM Segmentations"
-APPEARANCE_KEY = "ssm_appearance"
 _IMAGES: dict = {}  # path -> GreyImage, read once per session
 
 
@@ -191,7 +189,7 @@ class SSM_OT_segment_image(BackgroundJob, bpy.types.Operator):
         name = f"{os.path.basename(path).split('.')[0]} segmented"
         obj = bridge.new_mesh_object(context, name, result.points, result.faces, collection_name=SEGMENT_COLLECTION,
                                      matrix_world=np.eye(4))
-        bridge.set_vertex_colors(obj.data, sd_colours(result.posterior_sd_mm), name="posterior_sd")
+        bridge.set_vertex_colors(obj.data, bridge.sd_colours(result.posterior_sd_mm), name="posterior_sd")
         bridge.set_point_attribute(obj.data, "posterior_sd_mm", result.posterior_sd_mm)
         bridge.set_point_attribute(obj.data, "deviation_mm", result.deviation_mm)
         mat = bridge.color_material("SSM Posterior SD", attribute="posterior_sd")
@@ -294,14 +292,3 @@ def register_properties():
 
 def unregister_properties():
     del bpy.types.Scene.ssm_image
-
-
-def store_appearance(obj, path, n_points: int) -> bool:
-    """Keep a model file's learned appearance on the model object (for *Segment with Model*)."""
-    appearance = load_appearance(path, n_points)
-    if appearance is None:
-        return False
-    arrays = appearance.to_arrays()
-    arrays["appearance_images"] = json.dumps(list(appearance.images))  # names as text (ID properties hold numbers)
-    bridge.store_arrays(obj, APPEARANCE_KEY, arrays)
-    return True

@@ -21,7 +21,7 @@ OPERATORS = ROOT / "operators"
 
 
 STAGE_PACKAGES = ("base", "formats", "instances", "template", "coating", "model", "fitting", "correspondence", "analysis",
-                  "pipeline", "cli")
+                  "segmentation", "pipeline", "cli")
 #: Blender modules every operators module may import; the stage modules import only these,
 #: ``project`` (which shows a whole study) and ``cli`` (its command) also the stage modules.
 SHARED_OPERATOR_MODULES = {"bridge", "jobs", "properties", "scene"}
@@ -340,7 +340,8 @@ def test_the_build_path_does_not_import_scipy_stats():
 #: layers below it and, within its own layer, only packages that do not import it back.
 LAYERS = (
     ("", "_lazy", "base", "meshutil"),  # foundation ("": the root package, whose names are lazy re-exports)
-    ("formats", "instances", "template", "coating", "model", "fitting", "correspondence", "analysis"),  # stages
+    ("formats", "instances", "template", "coating", "model", "fitting", "correspondence", "analysis",
+     "segmentation"),  # stages
     ("pipeline",),  # orchestrator: the study, its stage functions, cache, project file
     ("cli",),  # the command line
 )

@@ -556,6 +556,36 @@ def read_label_map(path, spacing_mm=None) -> LabelMap:
     return LabelMap(labels=labels, affine=affine, path=str(path))
 
 
+GREY_IMAGE_EXTENSIONS = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
+
+
+def read_image_array(path) -> tuple[np.ndarray, np.ndarray, Path]:
+    """The voxel array of any image (grey values kept as stored) and its voxel -> world RAS mm
+    affine, read as :func:`read_label_map` reads them (NIfTI, NRRD, MetaImage).
+
+    Raises
+    ------
+    InputError
+        Missing, unknown, unreadable or truncated file, or a degenerate affine.
+    """
+    path, ext = _check_file(path, GREY_IMAGE_EXTENSIONS)
+    readers = {".nii": _read_nifti, ".nii.gz": _read_nifti, ".nrrd": _read_nrrd, ".nhdr": _read_nrrd,
+               ".mha": _read_metaimage, ".mhd": _read_metaimage}
+    try:
+        data, affine = readers[ext](path)
+        data = np.asarray(data)
+    except InputError:
+        raise
+    except MemoryError:
+        raise
+    except Exception as err:  # noqa: BLE001 - every reader failure becomes a named InputError
+        raise InputError(f"{path}: cannot read the image, corrupt or truncated? ({type(err).__name__}: {err})") from err
+    affine = np.asarray(affine, dtype=float)
+    if not np.all(np.isfinite(affine)) or abs(np.linalg.det(affine[:3, :3])) < 1e-12:
+        raise InputError(f"{path}: degenerate voxel -> world affine {affine.tolist()}")
+    return data, affine, path
+
+
 def write_label_map(path, labels: np.ndarray, affine: np.ndarray, compress: bool = True) -> Path:
     """Write a label map with its affine (voxel -> world RAS mm) in the format of ``path``.
 

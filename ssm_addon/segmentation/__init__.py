@@ -7,8 +7,8 @@ from .._lazy import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "appearance": ("Appearance", "LEVEL_SIGMAS_MM", "appearance_from_arrays", "learn_appearance", "load_appearance", "normalised_derivative"),
-    "files": ("SEGMENT_FILES", "SegmentationRecord", "parse_point", "segment_files", "segment_figure", "segmentation_mask", "write_segmentation"),
-    "image": ("PLANES", "GreyImage", "read_image", "window_values", "world_slice"),
+    "files": ("SEGMENT_FILES", "SegmentationRecord", "parse_point", "segment_figure", "segment_files", "write_segmentation"),
+    "image": ("PLANES", "GreyImage", "read_image", "segmentation_mask", "window_values", "world_slice"),
     "scores": ("degrade_image", "mask_surface_points", "segmentation_scores"),
     "segment": ("SegmentParams", "SegmentResult", "landmark_pose", "segment_image", "start_pose", "typical_rotation", "volume_centroid"),
 })

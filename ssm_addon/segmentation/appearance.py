@@ -27,7 +27,9 @@ J Multivariate Analysis 88(2):365–411, 2004.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -152,8 +154,6 @@ def appearance_from_arrays(arrays, n_points: int, where: str = "model") -> Appea
 def _names(value) -> tuple:
     """The training images' names: an array of str (npz) or a JSON list (a Blender scene's copy)."""
     if isinstance(value, str):
-        import json
-
         return tuple(str(s) for s in json.loads(value))
     return tuple(str(s) for s in np.asarray(value).reshape(-1))
 
@@ -161,8 +161,6 @@ def _names(value) -> tuple:
 def load_appearance(path, n_points: int) -> Appearance | None:
     """The appearance stored in a ``model.npz`` (``allow_pickle=False``), or None: a statismo file or a
     model built without images."""
-    from pathlib import Path
-
     path = Path(path)
     if not path.is_file() or not path.read_bytes()[:2] == b"PK":
         return None

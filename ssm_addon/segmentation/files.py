@@ -9,35 +9,19 @@ from pathlib import Path
 import numpy as np
 
 from ..base.errors import InputError
-from ..formats.label_maps import write_label_map
+from ..fitting.batch import load_model
+from ..fitting.fit import Target, fit_any_pose
+from ..formats.label_maps import load_volume, write_label_map
+from ..formats.landmarks import read_landmarks
 from ..formats.meshes import write_ply
-from ..instances.voxelize import voxelize_mesh
-from .image import GreyImage
+from .appearance import load_appearance
+from .image import GreyImage, read_image, segmentation_mask
+from .scores import mask_surface_points
+from .segment import SegmentParams, landmark_pose, segment_image, start_pose
 
-__all__ = ["SEGMENT_FILES", "SegmentationRecord", "parse_point", "segment_files", "segmentation_mask", "segment_figure", "write_segmentation"]
+__all__ = ["SEGMENT_FILES", "SegmentationRecord", "parse_point", "segment_figure", "segment_files", "write_segmentation"]
 
 SEGMENT_FILES = ("segmentation.nii.gz", "segmented.ply", "segment.json", "segment.png")
-
-
-def segmentation_mask(points_world: np.ndarray, faces: np.ndarray, image: GreyImage) -> np.ndarray:
-    """(I, J, K) bool on ``image``'s grid: the voxels whose centres lie inside the closed surface.
-
-    The surface is taken into the image's voxel-index coordinates (its affine's inverse, so
-    an oblique or LPS-stored grid is handled exactly) and voxelized there by ray parity
-    (:func:`ssm_addon.instances.voxelize.voxelize_mesh` at unit spacing).
-    """
-    ijk = image.to_index(np.asarray(points_world, float))
-    vol = voxelize_mesh(ijk, faces, 1.0, source="segmented surface")
-    origin = np.rint(vol.affine[:3, 3]).astype(np.int64)
-    out = np.zeros(image.shape, bool)
-    lo = np.maximum(origin, 0)
-    hi = np.minimum(origin + np.asarray(vol.mask.shape), np.asarray(image.shape))
-    if np.any(hi <= lo):
-        return out
-    src = tuple(slice(int(a - o), int(b - o)) for a, b, o in zip(lo, hi, origin))
-    dst = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
-    out[dst] = vol.mask[src]
-    return out
 
 
 def segment_figure(image: GreyImage, mask: np.ndarray, path, *, title: str = "", reference: np.ndarray | None = None,
@@ -149,15 +133,6 @@ def segment_files(model_path, image_path, out_dir, *, at=(), landmarks_path=None
 
     Returns the ``segment.json`` document.
     """
-    from ..fitting.batch import load_model
-    from ..fitting.fit import Target, fit_any_pose
-    from ..formats.label_maps import load_volume
-    from ..formats.landmarks import read_landmarks
-    from .appearance import load_appearance
-    from .image import read_image
-    from .scores import mask_surface_points
-    from .segment import SegmentParams, landmark_pose, segment_image, start_pose
-
     say = say or (lambda _line: None)
     params = SegmentParams() if params is None else params
     model = load_model(model_path, say=say)

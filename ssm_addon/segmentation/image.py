@@ -9,16 +9,16 @@ world mm whatever the grid's spacing, orientation or obliqueness.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 from nibabel.affines import apply_affine, voxel_sizes
 from scipy import ndimage
 
 from ..base.errors import InputError
-from ..formats import label_maps as lm
+from ..formats.label_maps import read_image_array
+from ..instances.voxelize import voxelize_mesh
 
-__all__ = ["PLANES", "GreyImage", "read_image", "window_values", "world_slice"]
+__all__ = ["PLANES", "GreyImage", "read_image", "segmentation_mask", "window_values", "world_slice"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -154,27 +154,34 @@ def read_image(path) -> GreyImage:
         A missing, unreadable, 4-D or non-numeric file, or a degenerate affine (the message
         names the file).
     """
-    path, ext = lm._check_file(path, (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd"))
-    readers = {".nii": lm._read_nifti, ".nii.gz": lm._read_nifti, ".nrrd": lm._read_nrrd, ".nhdr": lm._read_nrrd,
-               ".mha": lm._read_metaimage, ".mhd": lm._read_metaimage}
-    try:
-        data, affine = readers[ext](Path(path))
-        data = np.asarray(data)
-    except InputError:
-        raise
-    except MemoryError:
-        raise
-    except Exception as err:  # noqa: BLE001 - every reader failure becomes a named InputError
-        raise InputError(f"{path}: cannot read the image, corrupt or truncated? ({type(err).__name__}: {err})") from err
+    data, affine, path = read_image_array(path)
     data = np.squeeze(data) if data.ndim > 3 else data
     if data.ndim != 3:
         raise InputError(f"{path}: the image has {data.ndim} dimensions (shape {data.shape}); a 3-D image is needed")
     if not np.issubdtype(data.dtype, np.number) or np.issubdtype(data.dtype, np.complexfloating):
         raise InputError(f"{path}: voxel type {data.dtype} is not a grey value")
-    affine = np.asarray(affine, float)
-    if not np.all(np.isfinite(affine)) or abs(np.linalg.det(affine[:3, :3])) < 1e-12:
-        raise InputError(f"{path}: degenerate voxel -> world affine {affine.tolist()}")
     values = data.astype(np.float32)
     if not np.all(np.isfinite(values)):
         raise InputError(f"{path}: {int(np.sum(~np.isfinite(values)))} voxel(s) are NaN or infinite")
     return GreyImage(values, affine, str(path))
+
+
+def segmentation_mask(points_world: np.ndarray, faces: np.ndarray, image: GreyImage) -> np.ndarray:
+    """(I, J, K) bool on ``image``'s grid: the voxels whose centres lie inside the closed surface.
+
+    The surface is taken into the image's voxel-index coordinates (its affine's inverse, so
+    an oblique or LPS-stored grid is handled exactly) and voxelized there by ray parity
+    (:func:`ssm_addon.instances.voxelize.voxelize_mesh` at unit spacing).
+    """
+    ijk = image.to_index(np.asarray(points_world, float))
+    vol = voxelize_mesh(ijk, faces, 1.0, source="segmented surface")
+    origin = np.rint(vol.affine[:3, 3]).astype(np.int64)
+    out = np.zeros(image.shape, bool)
+    lo = np.maximum(origin, 0)
+    hi = np.minimum(origin + np.asarray(vol.mask.shape), np.asarray(image.shape))
+    if np.any(hi <= lo):
+        return out
+    src = tuple(slice(int(a - o), int(b - o)) for a, b, o in zip(lo, hi, origin))
+    dst = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi))
+    out[dst] = vol.mask[src]
+    return out

@@ -6,9 +6,9 @@ import numpy as np
 from nibabel.affines import apply_affine
 from scipy import ndimage
 from scipy.spatial import cKDTree
+from skimage.measure import marching_cubes
 
-from .files import segmentation_mask
-from .image import GreyImage
+from .image import GreyImage, segmentation_mask
 
 __all__ = ["degrade_image", "mask_surface_points", "segmentation_scores"]
 
@@ -16,8 +16,6 @@ __all__ = ["degrade_image", "mask_surface_points", "segmentation_scores"]
 def mask_surface_points(mask: np.ndarray, affine: np.ndarray, *, step_mm: float = 0.5) -> np.ndarray:
     """(M, 3) world mm: points on the boundary of a voxel mask (marching cubes at 0.5 on the mask
     padded by a voxel, vertices taken through the affine)."""
-    from skimage.measure import marching_cubes
-
     box = ndimage.find_objects(mask.astype(np.uint8))[0]
     sub = np.pad(mask[box], 1).astype(np.float32)
     verts, _f, _n, _v = marching_cubes(sub, 0.5)
