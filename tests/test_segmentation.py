@@ -12,6 +12,7 @@ from scipy import ndimage
 
 from ssm_addon.base.errors import InputError
 from ssm_addon.cli.command import main
+from ssm_addon.formats.meshes import read_ply
 from ssm_addon.meshutil import MeshLocator
 from ssm_addon.model.files import add_npz_arrays, save_npz
 from ssm_addon.model.pca import build_model
@@ -110,7 +111,7 @@ def test_learned_appearance_segments_and_says_when_the_intensities_are_not_its_t
     train = [posed(s, 5.0 * i, (10.0 * i, 0.0, 0.0)) for i, s in enumerate(shapes[1:5])]
     images = [synthetic_image(s, faces, seed=10 + i)[0] for i, s in enumerate(train)]
     appearance = learn_appearance(model.mean, faces, train, images, names=[f"s{i}" for i in range(1, 5)])
-    assert appearance.mean.shape == (3, len(model.mean), 8) and appearance.boundary_mm[0] > appearance.boundary_mm[1]
+    assert appearance.mean.shape == (3, len(model.mean), 9) and appearance.boundary_mm[0] > appearance.boundary_mm[1]
     truth = posed(held_out)
     image, _ = synthetic_image(truth, faces, seed=3)
     at = volume_centroid(truth, faces) + np.array([-3.0, 4.0, 1.0])
@@ -229,6 +230,56 @@ def test_ssm_segment_writes_its_files_and_reads_the_models_appearance(population
     assert code == 2 and "one start" in capsys.readouterr().err
 
 
+def test_an_active_shape_model_in_scalismos_statismo_layout_opens_and_segments(population, tmp_path):
+    """The layout of scalismo-asm's ActiveShapeModelIO: /activeShapeModel with the Gaussian-gradient
+    preprocessor, the normal-direction feature and per-point profiles (here of every other point, as a
+    file that profiles a subset)."""
+    import dataclasses
+
+    import h5py
+
+    from ssm_addon.model.files import save_statismo
+    from ssm_addon.segmentation import write_scalismo_asm
+
+    model, held_out, faces = population
+    shapes, _ = bumped_shapes()
+    train = [posed(s) for s in shapes[1:5]]
+    app = learn_appearance(model.mean, faces, train, [synthetic_image(s, faces, seed=30 + i)[0]
+                                                      for i, s in enumerate(train)], names=["a", "b", "c", "d"])
+    subset = np.zeros(len(model.mean), bool)
+    subset[::2] = True
+    save_statismo(model, tmp_path / "asm.h5")
+    write_scalismo_asm(tmp_path / "asm.h5", dataclasses.replace(app, profiled=subset))
+    with h5py.File(tmp_path / "asm.h5", "r") as f:
+        g = f["activeShapeModel"]
+        assert (int(g.attrs["majorVersion"]), int(g.attrs["minorVersion"])) == (1, 0)
+        assert g["imagePreprocessor"].attrs["identifier"] == "builtin::GaussianGradient"
+        assert float(np.asarray(g["imagePreprocessor/stddev"])) == pytest.approx(0.5)
+        assert g["featureExtractor"].attrs["identifier"] == "builtin::NormalDirection"
+        assert int(np.asarray(g["featureExtractor/numberOfPoints"])) == 9
+        assert g["profiles/means"].shape == (subset.sum(), 9)
+        assert g["profiles/covariances"].shape == (subset.sum() * 9, 9)
+        assert int(g["profiles"].attrs["profileLength"]) == 9
+    back = load_appearance(tmp_path / "asm.h5", model.n_points)
+    assert back.sigmas_mm.tolist() == [0.5] and np.array_equal(back.profiled, subset)
+    assert np.allclose(back.mean[0, subset], app.mean[-1, subset], atol=1e-6)
+    truth = posed(held_out)
+    image, _ = synthetic_image(truth, faces, seed=4)
+    nib.save(nib.Nifti1Image(image.data, image.affine), str(tmp_path / "ct.nii.gz"))
+    at = volume_centroid(truth, faces) + 3.0
+    doc = segment_files(tmp_path / "asm.h5", tmp_path / "ct.nii.gz", tmp_path / "out",
+                        at=[",".join(map(repr, at))])
+    assert doc["evidence"] == "learned"
+    seg = read_image(tmp_path / "out" / "segmentation.nii.gz")
+    result_points = read_ply(tmp_path / "out" / "segmented.ply")[0]
+    assert surface_distance(result_points, truth, faces).mean() < 0.5 and seg.data.sum() > 1000
+    # another preprocessor is named, not misread
+    with h5py.File(tmp_path / "asm.h5", "a") as f:
+        f["activeShapeModel/imagePreprocessor"].attrs["identifier"] = "builtin::Identity"
+    with pytest.raises(InputError, match="builtin::Identity"):
+        load_appearance(tmp_path / "asm.h5", model.n_points)
+
+
 @pytest.mark.slow
 def test_verse005_vertebrae_are_segmented_leave_one_out(tmp_path):
     """L3 of verse005 from a model of verse004's L1–L5 and verse005's others, appearance learned by the
@@ -248,6 +299,8 @@ def test_verse005_vertebrae_are_segmented_leave_one_out(tmp_path):
     assert appearance is not None and appearance.images == ("v5_L1", "v5_L2", "v5_L4", "v5_L5")
     report = json.loads((tmp_path / "loo" / "out" / "report.json").read_text())
     assert report["appearance"]["images"] == list(appearance.images)
+    in_statismo = load_appearance(tmp_path / "loo" / "out" / "model.h5", model.n_points)  # Scalismo's layout
+    assert in_statismo is not None and np.allclose(in_statismo.mean[0], appearance.mean[-1], atol=1e-6)
     ct = read_image(data / "verse005" / "sub-verse005_ct.nii.gz")
     labels = read_label_map(data / "verse005" / "sub-verse005_seg-vert_msk.nii.gz")
     truth = labels.labels == 22

@@ -42,6 +42,7 @@ from ..instances.importing import file_names
 from ..model.figures import optimisation_figure, render_modes_figure
 from ..model.files import add_npz_arrays, write_model_files
 from ..model.metrics import write_plots
+from ..segmentation.appearance import write_scalismo_asm
 from .appearance import appearance_stage
 from .report import Absent, Report, joint_report, model_report, study_report, write_report_html
 from .study import Study, carried_landmarks
@@ -437,6 +438,8 @@ def write_study(study: Study, folder, *, output: OutputParams, project: str | Ab
     appearance, appearance_doc = appearance_stage(study, log=say)
     if appearance is not None:  # beside the shape model in the model.npz just written
         add_npz_arrays(folder / "model.npz", appearance.to_arrays())
+        if "statismo" in files:  # and in the statismo file as Scalismo keeps an active shape model
+            write_scalismo_asm(folder / files["statismo"], appearance)
         entries["appearance"] = appearance_doc
     study.timings_s["write"] = time.perf_counter() - t0 - study.timings_s.get("blender", 0.0)
     if t_start is not None:

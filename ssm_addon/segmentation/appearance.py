@@ -1,9 +1,10 @@
 """How the boundary looks along the surface normal: learned profiles, or the image gradient.
 
 Learned appearance follows the active shape models of Cootes et al. (1995, section 4):
-for every model point, the grey values along its normal are sampled at ``2k + 1``
-offsets ``step_mm`` apart; the feature is the profile's derivative normalised by the sum
-of its absolute values (invariant to a global intensity scale), and the training
+for every model point, the image's derivative along its normal is sampled at ``2k + 1``
+offsets ``step_mm`` apart; the feature is that profile normalised by the sum of its
+absolute values (invariant to a global intensity scale; the feature of Scalismo's active
+shape models, so their files and ours share a layout), and the training
 profiles give a mean ḡ_i and a covariance S_i per point. A candidate position is scored
 by the Mahalanobis distance (g − ḡ_i)ᵀ S_i⁻¹ (g − ḡ_i) (Cootes et al. 1995, eq. 14).
 With few training images the covariance of a point pools the profiles of its nearest
@@ -37,7 +38,8 @@ from scipy.spatial import cKDTree
 from ..base.errors import InputError
 from ..meshutil import vertex_normals
 
-__all__ = ["Appearance", "LEVEL_SIGMAS_MM", "appearance_from_arrays", "learn_appearance", "load_appearance", "normalised_derivative"]
+__all__ = ["Appearance", "LEVEL_SIGMAS_MM", "appearance_from_arrays", "learn_appearance", "load_appearance", "normalised_derivative",
+           "profile_features", "read_scalismo_asm", "write_scalismo_asm"]
 
 LEVEL_SIGMAS_MM = (2.0, 1.0, 0.5)
 """The search's resolutions, coarse to fine: the Gaussian blur (mm) of the image at each level."""
@@ -49,15 +51,29 @@ POOL_NEIGHBOURS = 6
 """A point's covariance pools its profiles with those of this many nearest points on the mean shape."""
 SHRINKAGE = 20.0
 """Weight (in samples) of the pooled covariance of all points in each point's covariance."""
+DERIVATIVE_STEP_MM = 0.5
+"""Half the central difference (mm) that gives a profile sample's derivative along the normal."""
 NPZ_PREFIX = "appearance_"
 
 
-def normalised_derivative(profiles: np.ndarray) -> np.ndarray:
-    """(…, 2k) derivative of (…, 2k + 1) grey profiles, divided by the sum of its absolute values
-    (Cootes et al. 1995, section 4.1); a flat profile gives zeros."""
-    d = np.diff(np.asarray(profiles, float), axis=-1)
+def normalised_derivative(derivatives: np.ndarray) -> np.ndarray:
+    """(…, D) derivatives along the normal at a profile's samples, divided by the sum of their
+    absolute values (Cootes et al. 1995, section 4.1; Scalismo's normal-direction feature); a flat
+    profile gives zeros."""
+    d = np.asarray(derivatives, float)
     s = np.abs(d).sum(axis=-1, keepdims=True)
     return d / np.maximum(s, 1e-6)
+
+
+def profile_features(image, points, normals, offsets_mm, *, sigma_mm: float,
+                     h_mm: float = DERIVATIVE_STEP_MM) -> np.ndarray:
+    """(N, D) the feature of each point: the image's derivative along the normal (blurred by
+    ``sigma_mm``; central difference ±``h_mm``) at each of the offsets (mm), normalised."""
+    offsets_mm = np.asarray(offsets_mm, float)
+    grid = np.concatenate([offsets_mm - h_mm, offsets_mm + h_mm])
+    prof = image.profiles(points, normals, grid, sigma_mm=sigma_mm)
+    d = (prof[:, len(offsets_mm):] - prof[:, :len(offsets_mm)]) / (2 * h_mm)
+    return normalised_derivative(d)
 
 
 @dataclass(frozen=True, eq=False)
@@ -66,9 +82,9 @@ class Appearance:
 
     Attributes
     ----------
-    mean : (L, N, 2k) float
-        Mean normalised derivative profile per level and model point.
-    covariance : (L, N, 2k, 2k) float
+    mean : (L, N, 2k + 1) float
+        Mean feature per level and model point.
+    covariance : (L, N, 2k + 1, 2k + 1) float
         Its regularised covariance.
     sigmas_mm : (L,) float
         The image blur of each level (mm).
@@ -83,7 +99,10 @@ class Appearance:
     images : tuple of str
         Names of the training instances whose images taught it.
     voxel_mm : float
-        The training images' coarsest voxel edge (mm): images much coarser look otherwise.
+        The training images' coarsest voxel edge (mm): images much coarser look otherwise
+        (``inf``: not known, a file of another tool).
+    profiled : (N,) bool or None
+        The points that have a profile model (None: all; another tool may profile a subset).
     """
 
     mean: np.ndarray
@@ -95,14 +114,19 @@ class Appearance:
     typical_distance: np.ndarray
     images: tuple = ()
     voxel_mm: float = 1.0
+    profiled: np.ndarray | None = None
 
     @property
     def half_length(self) -> int:
-        return int(self.mean.shape[-1]) // 2
+        return (int(self.mean.shape[-1]) - 1) // 2
 
     @property
     def n_points(self) -> int:
         return int(self.mean.shape[1])
+
+    def level_of(self, level: int) -> int:
+        """The stored level that serves the search's ``level`` (a one-level file serves every level)."""
+        return min(int(level), len(self.sigmas_mm) - 1)
 
     def precision(self, level: int) -> np.ndarray:
         """(N, 2k, 2k) inverse covariances of a level (cached)."""
@@ -112,7 +136,8 @@ class Appearance:
         return cache[level]
 
     def distance(self, level: int, features: np.ndarray) -> np.ndarray:
-        """(N, C) Mahalanobis distances of (N, C, 2k) candidate features from each point's model."""
+        """(N, C) Mahalanobis distances of (N, C, 2k + 1) candidate features from each point's model."""
+        level = self.level_of(level)
         d = features - self.mean[level][:, None, :]
         return np.einsum("ncd,nde,nce->nc", d, self.precision(level), d)
 
@@ -159,16 +184,105 @@ def _names(value) -> tuple:
 
 
 def load_appearance(path, n_points: int) -> Appearance | None:
-    """The appearance stored in a ``model.npz`` (``allow_pickle=False``), or None: a statismo file or a
-    model built without images."""
+    """The appearance stored in a ``model.npz`` (``allow_pickle=False``) or a statismo file (Scalismo's
+    active shape model layout), or None: a model built without images."""
     path = Path(path)
-    if not path.is_file() or not path.read_bytes()[:2] == b"PK":
+    if not path.is_file():
+        return None
+    head = path.read_bytes()[:8]
+    if head.startswith(b"\x89HDF"):  # a statismo file: Scalismo's active shape model, if it holds one
+        return read_scalismo_asm(path, n_points)
+    if not head.startswith(b"PK"):
         return None
     with np.load(path, allow_pickle=False) as data:
         if f"{NPZ_PREFIX}mean" not in data.files:
             return None
         arrays = {k: data[k] for k in data.files if k.startswith(NPZ_PREFIX)}
     return appearance_from_arrays(arrays, n_points, str(path))
+
+
+ASM_GROUP = "/activeShapeModel"
+"""Where Scalismo keeps an active shape model in a statismo file (scalismo-asm ``ActiveShapeModelIO``)."""
+
+
+def write_scalismo_asm(path, appearance: Appearance, *, level: int = -1) -> None:
+    """Add ``appearance`` (one level: the finest by default) to a statismo file in the layout of
+    Scalismo's active shape models: ``/activeShapeModel`` (attributes majorVersion 1, minorVersion 0)
+    with ``imagePreprocessor`` (``builtin::GaussianGradient``, ``stddev`` in mm), ``featureExtractor``
+    (``builtin::NormalDirection``, ``numberOfPoints``, ``spacing`` in mm) and ``profiles``
+    (``pointIds``, ``means`` (N, D) and ``covariances`` (N·D, D), float32)."""
+    import h5py
+
+    lvl = appearance.level_of(level if level >= 0 else len(appearance.sigmas_mm) - 1)
+    ids = np.arange(appearance.n_points) if appearance.profiled is None else np.flatnonzero(appearance.profiled)
+    d = appearance.mean.shape[-1]
+    with h5py.File(path, "a") as f:
+        if ASM_GROUP in f:
+            del f[ASM_GROUP]
+        g = f.create_group(ASM_GROUP)
+        g.attrs["majorVersion"] = np.int32(1)
+        g.attrs["minorVersion"] = np.int32(0)
+        pp = g.create_group("imagePreprocessor")
+        for key, value in (("identifier", "builtin::GaussianGradient"), ("majorVersion", np.int32(1)),
+                           ("minorVersion", np.int32(0))):
+            pp.attrs[key] = value
+        pp.create_dataset("stddev", data=np.float32(appearance.sigmas_mm[lvl]))
+        fe = g.create_group("featureExtractor")
+        for key, value in (("identifier", "builtin::NormalDirection"), ("majorVersion", np.int32(1)),
+                           ("minorVersion", np.int32(0))):
+            fe.attrs[key] = value
+        fe.create_dataset("numberOfPoints", data=np.int32(d))
+        fe.create_dataset("spacing", data=np.float32(appearance.step_mm))
+        pr = g.create_group("profiles")
+        pr.attrs["numberOfPoints"] = np.int32(len(ids))
+        pr.attrs["profileLength"] = np.int32(d)
+        pr.attrs["comment"] = f"covariances consists of {len(ids)} concatenated {d}x{d} matrices"
+        pr.create_dataset("pointIds", data=ids.astype(np.int32))
+        pr.create_dataset("means", data=appearance.mean[lvl][ids].astype(np.float32))
+        pr.create_dataset("covariances", data=appearance.covariance[lvl][ids].reshape(-1, d).astype(np.float32))
+
+
+def read_scalismo_asm(path, n_points: int) -> Appearance | None:
+    """The active shape model profiles of a statismo file (Scalismo's layout, as
+    :func:`write_scalismo_asm` writes it), or None when it has none.
+
+    Raises
+    ------
+    InputError
+        A layout this reader does not know (another preprocessor or feature), named.
+    """
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        if ASM_GROUP not in f:
+            return None
+        g = f[ASM_GROUP]
+        where = f"{path}: {ASM_GROUP}"
+        pp, fe, pr = g.get("imagePreprocessor"), g.get("featureExtractor"), g.get("profiles")
+        if pp is None or fe is None or pr is None:
+            raise InputError(f"{where} lacks imagePreprocessor, featureExtractor or profiles")
+        ident = [str(x.attrs.get("identifier", b"")) for x in (pp, fe)]
+        ident = [i[2:-1] if i.startswith("b'") else i for i in ident]
+        if ident != ["builtin::GaussianGradient", "builtin::NormalDirection"]:
+            raise InputError(f"{where}: preprocessor {ident[0]!r} with feature {ident[1]!r}; this reader knows the "
+                             "Gaussian gradient along the normal (builtin::GaussianGradient, builtin::NormalDirection)")
+        stddev = float(np.asarray(pp["stddev"]))
+        d = int(np.asarray(fe["numberOfPoints"]))
+        spacing = float(np.asarray(fe["spacing"]))
+        ids = np.asarray(pr["pointIds"], np.int64).reshape(-1)
+        means = np.asarray(pr["means"], float).reshape(len(ids), d)
+        covs = np.asarray(pr["covariances"], float).reshape(len(ids), d, d)
+    if d % 2 != 1 or len(ids) == 0 or ids.min() < 0 or ids.max() >= n_points:
+        raise InputError(f"{where}: {len(ids)} profiles of length {d} for a model of {n_points} points")
+    mean = np.zeros((1, n_points, d))
+    cov = np.broadcast_to(np.eye(d), (1, n_points, d, d)).copy()
+    mean[0, ids], cov[0, ids] = means, 0.5 * (covs + covs.transpose(0, 2, 1))
+    profiled = np.zeros(n_points, bool)
+    profiled[ids] = True
+    return Appearance(mean=mean, covariance=cov, sigmas_mm=np.array([stddev]), step_mm=spacing,
+                      boundary_mm=np.array([np.nan, np.nan]), boundary_sd=np.array([np.nan, np.nan]),
+                      typical_distance=np.array([float(d)]), images=(f"{path.name} (active shape model)",),
+                      voxel_mm=float("inf"), profiled=profiled)
 
 
 def _regularised(samples: np.ndarray, pooled: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -219,8 +333,7 @@ def learn_appearance(mean_shape: np.ndarray, faces: np.ndarray, shapes_world: li
         for pts, img in zip(shapes_world, images):
             pts = np.asarray(pts, float)
             nrm = vertex_normals(pts, faces)
-            prof = img.profiles(pts, nrm, offsets, sigma_mm=sigma)
-            feats.append(normalised_derivative(prof))
+            feats.append(profile_features(img, pts, nrm, offsets, sigma_mm=sigma))
             if level == len(sigmas_mm) - 1:
                 inner = img.profiles(pts, nrm, np.array([-3.0, -2.0, -1.0]), sigma_mm=sigma)
                 outer = img.profiles(pts, nrm, np.array([1.0, 2.0, 3.0]), sigma_mm=sigma)

@@ -265,17 +265,27 @@ class _Evidence:
         """(N, C) cost of each candidate offset (mm, (C,)) and (N, C) its strength in [0, 1] (for weights)."""
         h = self.step
         if self.appearance is not None:
-            k = self.appearance.half_length
-            stride = max(1, int(round(self.appearance.step_mm / h)))
-            pad = k * stride
+            app = self.appearance
+            lvl = app.level_of(self.level)
+            k = app.half_length
+            stride = max(1, int(round(app.step_mm / h)))
+            pad = k * stride + 1
             grid = np.concatenate([offsets[0] - h * np.arange(pad, 0, -1), offsets,
                                    offsets[-1] + h * np.arange(1, pad + 1)])
-            prof = self.image.profiles(x, normals, grid, sigma_mm=self.sigma)  # (N, G)
+            # the derivative along the normal at every grid sample (central difference over ±h), at the
+            # blur the appearance was learned at
+            prof = self.image.profiles(x, normals, grid, sigma_mm=float(app.sigmas_mm[lvl]))  # (N, G)
+            deriv = np.zeros_like(prof)
+            deriv[:, 1:-1] = (prof[:, 2:] - prof[:, :-2]) / (2 * h)
             idx = np.arange(len(offsets))[:, None] + pad + stride * np.arange(-k, k + 1)[None, :]  # (C, 2k + 1)
-            feats = normalised_derivative(prof[:, idx])  # (N, C, 2k)
-            dist = self.appearance.distance(self.level, feats)
-            typical = max(float(self.appearance.typical_distance[self.level]), 1e-6)
-            return dist / typical, np.exp(-0.5 * dist / (3.0 * typical))
+            feats = normalised_derivative(deriv[:, idx])  # (N, C, 2k + 1)
+            dist = app.distance(lvl, feats)
+            typical = max(float(app.typical_distance[lvl]), 1e-6)
+            cost, strength = dist / typical, np.exp(-0.5 * dist / (3.0 * typical))
+            if app.profiled is not None:  # points without a profile model: no evidence, they follow the model
+                cost[~app.profiled] = 0.0
+                strength[~app.profiled] = 0.0
+            return cost, strength
         return self._gradient(x, normals, offsets)
 
     def _gradient(self, x, normals, offsets):
@@ -607,7 +617,7 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
     if weak_share > 0.4:
         findings.append(("weak_evidence", f"{100 * weak_share:.0f} % of the surface has weak boundary evidence "
                                           f"({evidence}); the boundary there follows the model, not the image"))
-    if appearance is not None:
+    if appearance is not None and np.all(np.isfinite(appearance.boundary_mm)):
         c_train = float(appearance.boundary_mm[0] - appearance.boundary_mm[1])
         c_here = boundary["inside_mean"] - boundary["outside_mean"]
         if c_train != 0 and not (0.25 <= c_here / c_train <= 4.0):
