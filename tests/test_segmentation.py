@@ -175,6 +175,29 @@ def test_a_dilated_rough_mask_is_refined_to_the_true_one(population, tmp_path):
     assert dice(seg, mask) > 0.93 and dice(seg, mask) > dice(rough, mask) + 0.1, (dice(seg, mask), dice(rough, mask))
 
 
+def test_a_joint_models_structures_are_segmented_together_from_a_point_each(tmp_path):
+    from conftest import joint_model, joint_population
+
+    a, b, fa, fb, _turns = joint_population(n=14, seed=3)
+    model = joint_model(a[1:], b[1:], fa, fb)
+    faces = np.concatenate([fa, fb + a.shape[1]])
+    truth = np.concatenate([a[0], b[0]]) + np.array([20.0, -10.0, 5.0])
+    image, _ = synthetic_image(truth, faces)
+    nib.save(nib.Nifti1Image(image.data, image.affine), str(tmp_path / "ct.nii.gz"))
+    save_npz(model, tmp_path / "joint.npz")
+    na = a.shape[1]
+    centres = {"a": volume_centroid(truth[:na], fa) + [2.0, 2.0, 0.0],
+               "b": volume_centroid(truth[na:], fb) + [-2.0, 1.0, 1.0]}
+    segment_files(tmp_path / "joint.npz", tmp_path / "ct.nii.gz", tmp_path / "out",
+                  at=[f"{k}={','.join(map(repr, v))}" for k, v in centres.items()])
+    points = read_ply(tmp_path / "out" / "segmented.ply")[0]
+    da, db = surface_distance(points[:na], truth[:na], fa), surface_distance(points[na:], truth[na:], fb)
+    assert da.mean() < 0.45  # measured 0.28 and 0.22 mm
+    assert db.mean() < 0.45
+    with pytest.raises(InputError, match="no structure 'c'"):
+        segment_files(tmp_path / "joint.npz", tmp_path / "ct.nii.gz", tmp_path / "out2", at=["c=0,0,0"])
+
+
 def test_bad_inputs_are_refused_or_said_by_name(population, tmp_path):
     model, held_out, faces = population
     truth = posed(held_out)
