@@ -520,7 +520,8 @@ def cmd_segment(args) -> int:
     with _output_folder(out, inputs, force=args.force, what="segmentation") as tmp:
         doc = segment_files(args.model, args.image, tmp, at=args.at, landmarks_path=args.landmarks,
                             init_mask_path=args.init_mask, label=args.label, params=params,
-                            progress=_print_progress(), say=lambda line: print(line, flush=True))
+                            progress=_print_progress(), cancelled=check_signals,
+                            say=lambda line: print(line, flush=True))
     seg = doc["segmentation"]
     print(f"{name}: segmented with {doc['evidence']} evidence in {doc['iterations']} steps ({doc['seconds']:.1f} s): "
           f"{seg['voxels']} voxels ({seg['volume_mm3'] / 1000:.1f} cm³), Mahalanobis {doc['mahalanobis']:.2f}, "
