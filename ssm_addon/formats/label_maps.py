@@ -114,6 +114,8 @@ def is_mesh_file(path) -> bool:
 
 def _check_file(path, kinds: tuple[str, ...]) -> tuple[Path, str]:
     path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder, not a file; give the file inside it ({', '.join(kinds)})")
     ext = file_extension(path)
     if ext not in kinds:
         raise InputError(f"{path}: unknown file extension {ext or '(none)'!r}; supported: {', '.join(kinds)}")

@@ -385,6 +385,8 @@ def read_landmarks(path, *, space: str | None = None, why: str = "") -> Landmark
         duplicate names, a file with no points; the message names the file.
     """
     path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder, not a landmark file (.fcsv, .mrk.json, .csv, .json)")
     fmt = landmark_format(path)
     if not path.is_file():
         raise InputError(f"{path}: landmark file not found")

@@ -371,6 +371,8 @@ def read_mesh(path, *, space: str | None = None) -> tuple[np.ndarray, np.ndarray
     faces : (F, 3) int ndarray
     """
     path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder, not a mesh file (STL, PLY, OBJ)")
     ext = path.suffix.lower()
     if ext not in MESH_EXTENSIONS:
         raise InputError(f"{path}: unknown file extension {ext or '(none)'!r}; supported: {', '.join(MESH_EXTENSIONS)}")

@@ -234,6 +234,8 @@ def _existing_file(value, key, what, ctx, where, base) -> Path:
     except (OSError, ValueError) as err:
         raise ctx.error(f"{what}: {key} {value!r}: cannot be used as a path ({err})", line) from None
     if not exists:
+        if path.is_dir():
+            raise ctx.error(f"{what}: {key} {path} is a folder, not a file", line)
         if os.path.islink(path):
             raise ctx.error(f"{what}: {key} {path} is a symbolic link to nothing (or a link loop)", line)
         raise ctx.error(f"{what}: {key} file not found: {path}", line)
@@ -423,12 +425,15 @@ def read_project(path) -> Project:
         where a line is known.
     """
     path = Path(path).expanduser().resolve()
+    if path.is_dir():
+        raise InputError(f"{path}: is a folder, not a project file (give the .toml file inside it)")
     if not path.is_file():
         raise InputError(f"{path}: project file not found")
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as err:
         raise InputError(f"{path}: cannot read project file ({err})") from None
+    text = text.removeprefix("\ufeff")  # a byte-order mark (Notepad writes one): TOML has none; read past it
     try:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
@@ -462,6 +467,7 @@ def read_project(path) -> Project:
                                           params=StudyParams(**st_tables), landmark_names=lm_names)
         first = per_structure[structures[0]]
         instances, template_instance, lm_names = list(first.instances), first.template_instance, first.landmark_names
+        _check_structures(per_structure, tables, ctx)
     names = [i.name for i in instances]
     analysis, inline_attributes, attributes = _attributes(doc, ctx, path.parent, names)
 
@@ -560,6 +566,31 @@ def _structure_names(doc: dict, ctx: _Context) -> tuple[str, ...]:
                             f"instance needs the same ({', '.join(names)})", ctx.lines.key("instances", i, key))
     order = [s.get("name") for s in doc.get("structures", []) if isinstance(s, dict)]
     return tuple(n for n in order if n in names) + tuple(n for n in names if n not in order)
+
+
+def _check_structures(per_structure: dict, tables: dict, ctx: _Context) -> None:
+    """Before anything is coated: the structures' folder names differ, ``[joint] reference`` names one
+    of them, and no subject gives two structures the same file and label (a copied entry)."""
+    names = list(per_structure)
+    try:
+        file_names(names)
+    except InputError as err:
+        raise ctx.error(f"structures: {str(err).replace('instances', 'structures', 1)} (structures/<name>/)",
+                        ctx.lines.key("instances", 0)) from None
+    reference = tables["joint"].reference
+    if reference and reference not in names:
+        raise ctx.error(f"[joint] reference {reference!r} is not a structure of the instances ({', '.join(names)})",
+                        ctx.lines.key("joint", "reference"))
+    for i, subject in enumerate(per_structure[names[0]].instances):
+        seen: dict = {}
+        for st in names:
+            spec = per_structure[st].instances[i]
+            key = (str(spec.source), spec.label)
+            if key in seen:
+                what = f"label {spec.label} of {spec.source}" if spec.label is not None else str(spec.source)
+                raise ctx.error(f"subject {subject.name!r}: structures {seen[key]!r} and {st!r} are the same input "
+                                f"({what}); each structure needs its own mesh or label", ctx.lines.table("instances", i))
+            seen[key] = st
 
 
 def _structure_tables(doc: dict, ctx: _Context, structures) -> dict:

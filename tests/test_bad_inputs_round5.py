@@ -1,0 +1,68 @@
+"""Hostile inputs, round five: folders for files, a byte-order mark, joint projects whose structures
+collide in their folder names, copy one another's input or name an unknown reference; all refused
+before anything is coated, naming the file, the structure and the fault."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+from conftest import joint_project
+
+from ssm_addon.base.errors import InputError
+from ssm_addon.cli import demo
+from ssm_addon.formats.label_maps import read_label_map
+from ssm_addon.formats.landmarks import read_landmarks
+from ssm_addon.formats.meshes import read_mesh
+from ssm_addon.pipeline.project import read_project
+
+
+def test_a_folder_where_a_file_belongs_is_named_as_a_folder(tmp_path):
+    folder = tmp_path / "case.nii.gz"
+    folder.mkdir()
+    for reader in (read_label_map, read_mesh, read_landmarks):
+        with pytest.raises(InputError, match="is a folder"):
+            reader(folder)
+    with pytest.raises(InputError, match="is a folder, not a project file"):
+        read_project(tmp_path)
+    project = demo.make_demo_population(tmp_path / "pop", n=3, seed=1)
+    text = project.read_text()
+    (tmp_path / "pop" / "demo_01.nii.gz").rename(tmp_path / "pop" / "moved.nii.gz")
+    (tmp_path / "pop" / "demo_01.nii.gz").mkdir()
+    with pytest.raises(InputError, match=r"demo_01.*is a folder, not a file"):
+        read_project(project)
+    assert text == project.read_text()
+
+
+def test_a_project_file_with_a_byte_order_mark_reads(tmp_path):
+    project = demo.make_demo_population(tmp_path / "pop", n=3, seed=1)
+    plain = read_project(project)
+    project.write_bytes(b"\xef\xbb\xbf" + project.read_bytes())  # as Windows Notepad saves UTF-8
+    assert [i.name for i in read_project(project).instances] == [i.name for i in plain.instances]
+
+
+def _joint(tmp_path, edit):
+    path = joint_project(tmp_path, 4)
+    path.write_text(edit(path.read_text()))
+    return path
+
+
+def test_joint_projects_that_cannot_build_are_refused_before_any_coating(tmp_path):
+    t0 = time.perf_counter()
+    # two structure names that write one folder
+    (tmp_path / "a").mkdir()
+    p = _joint(tmp_path / "a", lambda t: t.replace("meshes = { a = ", "meshes = { \"f b\" = ").replace(", b = ", ", f_b = ")
+               .replace("landmarks = { a = ", "landmarks = { \"f b\" = ").replace(", b = \"", ", f_b = \""))
+    with pytest.raises(InputError, match=r"structures 'f b' and 'f_b' would write the same files"):
+        read_project(p)
+    # a subject whose b entry is a copy of its a entry
+    (tmp_path / "c").mkdir()
+    p = _joint(tmp_path / "c", lambda t: t.replace('b = "S2_b.ply"', 'b = "S2_a.ply"'))
+    with pytest.raises(InputError, match=r"subject 'S2': structures 'a' and 'b' are the same input .*S2_a.ply"):
+        read_project(p)
+    # [joint] reference naming no structure: the file and its line
+    (tmp_path / "d").mkdir()
+    p = _joint(tmp_path / "d", lambda t: '[joint]\nreference = "femur"\n\n' + t)
+    with pytest.raises(InputError, match=r"project.toml:2: .*\[joint\] reference 'femur' is not a structure .*a, b"):
+        read_project(p)
+    assert time.perf_counter() - t0 < 60  # read, never coated (seconds; the bound only catches a build)
