@@ -66,3 +66,21 @@ def test_joint_projects_that_cannot_build_are_refused_before_any_coating(tmp_pat
     with pytest.raises(InputError, match=r"project.toml:2: .*\[joint\] reference 'femur' is not a structure .*a, b"):
         read_project(p)
     assert time.perf_counter() - t0 < 60  # read, never coated (seconds; the bound only catches a build)
+
+
+def test_one_structures_mesh_fitted_to_a_joint_model_asks_for_the_structure(tmp_path, capsys):
+    from conftest import joint_model, joint_population
+
+    from ssm_addon.cli.command import main
+    from ssm_addon.formats.meshes import write_ply
+    from ssm_addon.model.files import save_npz
+
+    a, b, fa, fb, _t = joint_population(n=10, seed=2)
+    save_npz(joint_model(a[1:], b[1:], fa, fb), tmp_path / "joint.npz")
+    write_ply(tmp_path / "a.ply", a[0], fa)
+    code = main(["fit", str(tmp_path / "joint.npz"), "--mesh", str(tmp_path / "a.ply"), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert code == 2 and "name the structure it is, e.g. --mesh a=" in err and not (tmp_path / "o").exists()
+    # named, it fits and predicts the other
+    code = main(["fit", str(tmp_path / "joint.npz"), "--mesh", f"a={tmp_path / 'a.ply'}", "--out", str(tmp_path / "o")])
+    assert code == 0, capsys.readouterr().err

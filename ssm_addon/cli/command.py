@@ -434,6 +434,21 @@ def _one_target(args, named: dict) -> None:
                          "(--project or --glob)")
 
 
+def _one_mesh_for_a_joint_model(model, mesh) -> None:
+    """A joint model fitted to one surface that holds fewer parts than the model has structures: the user
+    meant one structure (``--mesh femur=FILE``), not the whole joint model."""
+    from ..formats.meshes import read_mesh
+    from ..meshutil import connected_components
+
+    vertices, faces = read_mesh(mesh)
+    parts, _labels = connected_components(faces, len(vertices))
+    names = model.structure_names
+    if parts < len(names):
+        raise InputError(f"{mesh}: one surface of {parts} part(s) given to a joint model of {len(names)} structures "
+                         f"({', '.join(names)}); name the structure it is, e.g. --mesh {names[0]}={mesh} (the others are "
+                         "then predicted with their posterior SD)")
+
+
 def cmd_fit(args) -> int:
     from ..fitting import batch as apply
     from ..model.figures import p_value_text
@@ -452,6 +467,8 @@ def cmd_fit(args) -> int:
     args.jobs = _workers(args.jobs)
     inputs = [args.model, args.volume, args.mesh, args.points, args.landmarks, args.project, *named.values()]
     model = apply.load_model(args.model, say=lambda line: print(line, flush=True))  # says which modes are empty
+    if model.structure_names and args.mesh and not named and not args.partial:
+        _one_mesh_for_a_joint_model(model, args.mesh)
     if params.n_modes is not None and params.n_modes > model.n_modes:
         print(f"note: --n-modes {params.n_modes}: the model has {model.n_modes} modes; used {model.n_modes}",
               flush=True)
