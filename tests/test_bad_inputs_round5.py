@@ -84,3 +84,18 @@ def test_one_structures_mesh_fitted_to_a_joint_model_asks_for_the_structure(tmp_
     # named, it fits and predicts the other
     code = main(["fit", str(tmp_path / "joint.npz"), "--mesh", f"a={tmp_path / 'a.ply'}", "--out", str(tmp_path / "o")])
     assert code == 0, capsys.readouterr().err
+
+
+def test_a_joint_fit_says_a_structure_in_another_unit(tmp_path, capsys):
+    from conftest import joint_model, joint_population
+
+    from ssm_addon.cli.command import main
+    from ssm_addon.formats.meshes import write_ply
+    from ssm_addon.model.files import save_npz
+
+    a, b, fa, fb, _t = joint_population(n=10, seed=2)
+    save_npz(joint_model(a[1:], b[1:], fa, fb), tmp_path / "joint.npz")
+    write_ply(tmp_path / "a_m.ply", a[0] / 1000.0, fa)  # the same femur in metres
+    code = main(["fit", str(tmp_path / "joint.npz"), "--mesh", f"a={tmp_path / 'a_m.ply'}", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert code == 0 and "a: the target is 0.001 times the structure's size" in err and "another unit" in err

@@ -32,7 +32,7 @@ from ..base.params import FitParams, to_table
 from ..base.progress import CancelledFn, ProgressFn, report
 from ..coating.coating import CoatingStart, coat_from_start
 from ..fitting.fit import FitResult, Pose, Target, fit_any_pose
-from ..fitting.verdict import is_outlier, judge_fit, size_in_unit_range
+from ..fitting.verdict import UNIT_RATIO, is_outlier, judge_fit, size_in_unit_range
 from ..formats.label_maps import file_stem, is_mesh_file, read_label_map, select_label
 from ..formats.landmarks import read_landmarks
 from ..formats.meshes import read_mesh, read_ply, write_ply
@@ -336,11 +336,17 @@ def fit_structures_to_folder(model, targets: dict, out_dir, *, params: FitParams
         raise InputError(f"{model_path or 'model'}: no structure {', '.join(map(repr, unknown))} (structures: "
                          f"{', '.join(names)})")
     verts, faces, count = [], [], 0
-    for t in targets.values():
+    unit_warnings = []
+    for name, t in targets.items():
         target, _start = load_target(t, model, partial=True)
         if target.locator is None:
             raise InputError(f"{t.name}: a structure to fit is a closed mesh or a label map (surface), not points")
         v, f = np.asarray(target.locator.vertices, float), np.asarray(target.locator.faces)
+        size_m = float(np.ptp(np.asarray(model.mean, float)[model.structure_slice(name)], axis=0).max())
+        ratio = float(np.ptp(v, axis=0).max()) / size_m if size_m > 0 else 1.0
+        if not UNIT_RATIO[0] < ratio < UNIT_RATIO[1]:  # as a single fit says it
+            unit_warnings.append(f"{name}: the target is {ratio:.3g} times the structure's size ({ratio * size_m:.3g} "
+                                 f"against {size_m:.3g} mm): another unit (m, cm)?")
         verts.append(v)
         faces.append(f + count)
         count += len(v)
@@ -370,7 +376,7 @@ def fit_structures_to_folder(model, targets: dict, out_dir, *, params: FitParams
                 "structures": per, **{k: v for k, v in verdict.to_dict().items() if k != "coverage"},
                 "files": {"npz": "fit.npz", **{n: d["file"] for n, d in per.items()}},
                 "params": to_table(params), "pose_search": search})
-    doc["warnings"] = [w for k, w in verdict.warnings.items() if k != "coverage"]
+    doc["warnings"] = [w for k, w in verdict.warnings.items() if k != "coverage"] + unit_warnings
     (out_dir / "fit.json").write_text(json.dumps(doc, indent=1), encoding="utf-8")
     report(progress, 1.0, f"fitted {' + '.join(targets)}; predicted {', '.join(n for n in names if n not in targets)}")
     return doc
