@@ -166,14 +166,14 @@ def argument_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("template", help="build a template from one object (paper 3) and write it as PLY")
     p.add_argument("volume", help="label map or closed mesh (STL/PLY/OBJ)")
     p.add_argument("--label", type=int, default=None, help="label to use (default: all non-zero voxels)")
-    p.add_argument("--out", required=True, help="output PLY (vertices in world mm)")
+    p.add_argument("--out", required=True, metavar="FILE", help="output PLY (vertices in world mm)")
     P.add_arguments(p.add_argument_group("template parameters ([template] of a project; lengths in mm)"),
                     P.TemplateParams)
 
     p = sub.add_parser("build", help="build a shape model from a project file")
     p.add_argument("project", help="project file (TOML)")
-    p.add_argument("--out", required=True, help="output folder (written atomically)")
-    p.add_argument("--jobs", type=int, default=1, help="parallel workers for the per-instance work (default 1)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (written atomically)")
+    p.add_argument("--jobs", type=int, metavar="N", default=1, help="parallel workers for the per-instance work (default 1)")
     p.add_argument("--no-blend", action="store_true", help="do not write model.blend / modes.png even if bpy is available")
     p.add_argument("--force", action="store_true",
                    help="write into an existing folder that holds files an SSM build did not write (they are kept)")
@@ -207,12 +207,12 @@ def argument_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-landmarks", action="store_true",
                    help="a --project batch fits the surfaces alone, without the instances' landmarks")
     p.add_argument("--glob", help="fit every file of a glob pattern (a batch; --label applies)")
-    p.add_argument("--jobs", type=int, default=1, help="parallel workers of a batch")
+    p.add_argument("--jobs", type=int, metavar="N", default=1, help="parallel workers of a batch")
     p.add_argument("--scheduler", default="processes", metavar="WHERE",
                    help="where a batch runs: processes (default), dask-local, serial, or a Dask scheduler address")
     p.add_argument("--outlier-probability", type=float, default=0.99,
                    help="chi-square quantile of the Mahalanobis distance above which a target is an outlier")
-    p.add_argument("--out", required=True,
+    p.add_argument("--out", required=True, metavar="DIR",
                    help="output folder (written whole at the end; never one holding an input or files no SSM "
                         "command wrote)")
     p.add_argument("--force", action="store_true",
@@ -227,16 +227,18 @@ def argument_parser() -> argparse.ArgumentParser:
     p.add_argument("--at", action="append", default=[], metavar="X,Y,Z",
                    help="a point inside the structure, world RAS mm (as 3D Slicer shows it); a joint model: "
                         "STRUCTURE=X,Y,Z, repeated")
-    p.add_argument("--landmarks", help="the model's landmarks clicked on the image (any landmark file ssm reads)")
-    p.add_argument("--init-mask", help="a rough segmentation to refine (label map, world mm)")
-    p.add_argument("--label", type=int, default=None, help="the label of --init-mask (default: every non-zero voxel)")
+    p.add_argument("--landmarks", metavar="FILE",
+                   help="the model's landmarks clicked on the image (any landmark file ssm reads)")
+    p.add_argument("--init-mask", metavar="FILE", help="a rough segmentation to refine (label map, world mm)")
+    p.add_argument("--label", type=int, default=None, metavar="N",
+                   help="the label of --init-mask (default: every non-zero voxel)")
     p.add_argument("--evidence", choices=("auto", "learned", "gradient"), default="auto",
                    help="boundary evidence: the model's learned appearance when it has one (auto, default), or "
                         "the image gradient (bright structure, darker surroundings)")
     p.add_argument("--no-deviation", action="store_true",
                    help="keep the surface within the model's span (default: it may leave it by the model's own "
                         "error where the image says so)")
-    p.add_argument("--out", required=True, help="output folder (written whole at the end)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (written whole at the end)")
     p.add_argument("--force", action="store_true", help="write into a folder holding other files (they are kept)")
 
     p = sub.add_parser("analyze", help="group differences and covariate effects of a built model: where on the "
@@ -256,17 +258,17 @@ def argument_parser() -> argparse.ArgumentParser:
                    help="scale every shape to the mean centroid size first (shape without size)")
     p.add_argument("--structure", help="a joint model: analyse this structure's rows alone (its exact sub-model); "
                                        "default: the whole joint model, with the effects on the relative pose")
-    p.add_argument("--out", required=True, help="output folder (written whole at the end)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (written whole at the end)")
     p.add_argument("--force", action="store_true", help="write into a folder holding other files (they are kept)")
 
     p = sub.add_parser("demo", help="generate the synthetic demo population and build its model",
                        description="Generate the built-in synthetic population of vertebra-like label maps (with "
                                    "landmark files in four formats, a group and an age of known effect) in "
                                    "OUT/population, then build its shape model into OUT/model.")
-    p.add_argument("--out", required=True, help="output folder: population in OUT/population, model in OUT/model")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder: population in DIR/population, model in DIR/model")
     p.add_argument("--n", type=int, default=24, help="number of instances (default 24)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the population (default 0)")
-    p.add_argument("--jobs", type=int, default=2, help="parallel workers (default 2)")
+    p.add_argument("--jobs", type=int, metavar="N", default=2, help="parallel workers (default 2)")
     p.add_argument("--no-blend", action="store_true", help="do not write model.blend / modes.png")
     return parser
 
