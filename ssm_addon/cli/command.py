@@ -203,6 +203,9 @@ def argument_parser() -> argparse.ArgumentParser:
     p.add_argument("--partial", action="store_true",
                    help="the target covers part of the shape: predict the rest with its uncertainty")
     p.add_argument("--free", action="store_true", help="also relax the fit freely onto the target (fitted_free.ply)")
+    p.add_argument("--floor", action="store_true",
+                   help="also the best the model can do for the target (closest points within its span from 13 "
+                        "starts, no prior): fit.json floor_mm, and how far the fit is above it (slow)")
     p.add_argument("--project", help="fit every instance of a project file (a batch; with its landmarks)")
     p.add_argument("--no-landmarks", action="store_true",
                    help="a --project batch fits the surfaces alone, without the instances' landmarks")
@@ -466,6 +469,9 @@ def cmd_fit(args) -> int:
         raise InputError("--mesh: several meshes are STRUCTURE=FILE each (a joint model's structures)")
     args.mesh = meshes[0] if meshes and not named else None
     _one_target(args, named)
+    if args.floor and (args.project or args.glob or named or args.label_of):
+        raise InputError("--floor: the model's floor is computed for one target (--mesh, --volume or --points), "
+                         "not for a batch or a joint model's structures")
     args.jobs = _workers(args.jobs)
     inputs = [args.model, args.volume, args.mesh, args.points, args.landmarks, args.project, *named.values()]
     model = apply.load_model(args.model, say=lambda line: print(line, flush=True))  # says which modes are empty
@@ -516,12 +522,15 @@ def cmd_fit(args) -> int:
     with _output_folder(out, inputs, force=args.force, what="fitting") as tmp:
         doc = apply.fit_to_folder(model, t, tmp, params=params, partial=args.partial, free=args.free,
                                   outlier_probability=args.outlier_probability, model_path=str(args.model),
-                                  progress=_print_progress())
+                                  floor=args.floor, progress=_print_progress(), cancelled=check_signals)
     if doc.get("landmarks_used"):
         print(f"landmarks used: {', '.join(doc['landmarks_used'])}")
     print(f"{name}: Mahalanobis distance {doc['mahalanobis']:.2f} on {doc['n_modes']} modes ({p_value_text(doc['p_value'])})"
           f"{': an OUTLIER' if doc['outlier'] else ''}; mean distance {doc['mean_distance_mm']:.2f} mm, largest "
           f"{doc['max_distance_mm']:.2f} mm (pose from the start {doc['pose_search']['chosen']!r})")
+    if "floor_mm" in doc:
+        print(f"floor: the model reaches {doc['floor_mm']:.3f} mm from the target at best; this fit is "
+              f"{doc['above_floor_mm']:+.3f} mm from that")
     for w in doc.get("warnings", []):
         print(f"WARNING {name}: {w}", file=sys.stderr)
     print(f"written: {out / 'fitted.ply'}, {out / 'fit.json'}, {out / 'fit.npz'}, {out / 'fit.png'}")

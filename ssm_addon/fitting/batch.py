@@ -31,7 +31,7 @@ from ..base.errors import InputError
 from ..base.params import FitParams, to_table
 from ..base.progress import CancelledFn, ProgressFn, report
 from ..coating.coating import CoatingStart, coat_from_start
-from ..fitting.fit import FitResult, Pose, Target, fit_any_pose
+from ..fitting.fit import FitResult, Pose, Target, fit_any_pose, fit_floor
 from ..fitting.verdict import UNIT_RATIO, is_outlier, judge_fit, size_in_unit_range
 from ..formats.label_maps import file_stem, is_mesh_file, read_label_map, select_label
 from ..formats.landmarks import read_landmarks
@@ -213,8 +213,10 @@ def fit_picture(result: FitResult, faces: np.ndarray, target: Target, path, *, t
 
 def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = None, partial: bool = False,
                   free: bool = False, outlier_probability: float = 0.99, model_path: str = "",
-                  progress: ProgressFn = None, cancelled: CancelledFn = None) -> dict:
-    """Fit ``model`` to one target and write its files into ``out_dir``; returns ``fit.json``'s content."""
+                  floor: bool = False, progress: ProgressFn = None, cancelled: CancelledFn = None) -> dict:
+    """Fit ``model`` to one target and write its files into ``out_dir``; returns ``fit.json``'s content.
+    ``floor``: also the best the model can do (:func:`~ssm_addon.fitting.fit.fit_floor`), as ``floor_mm``
+    beside the fit's distance."""
     params = FitParams() if params is None else params
     target, start = load_target(t, model, partial=partial)
     if partial and t.landmarks is not None:
@@ -238,6 +240,11 @@ def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = No
                 "files": {"fitted": "fitted.ply", "npz": "fit.npz", "picture": "fit.png"},
                 "params": to_table(params), "pose_search": search})
     doc["landmarks_used"] = sorted(result.landmark_residuals_mm)
+    if floor and target.has_surface:
+        report(progress, 0.95, "the model's floor: closest points within its span from 13 starts")
+        yardstick = fit_floor(model, target, result.pose, partial=partial, cancelled=cancelled)
+        doc.update({"floor_mm": yardstick["floor_mm"], "floor": yardstick,
+                    "above_floor_mm": float(result.mean_distance_mm - yardstick["floor_mm"])})
     if free and target.locator is not None:
         doc["files"]["free"] = "fitted_free.ply"
         doc["free"] = _free_fit(result, faces, t, model, out_dir / "fitted_free.ply")
