@@ -483,6 +483,9 @@ def test_workers_started_ahead_run_the_map_and_an_error_stops_them(monkeypatch):
         assert set(ex.map(_pid_of_worker, range(6))) <= started
         with pytest.raises(ValueError, match="a bad item"):
             ex.map(_pid_of_worker, [1, "fail", 2])
+        deadline = time.monotonic() + 30.0  # stopped, not necessarily gone yet on a loaded machine
+        while started & {c.pid for c in multiprocessing.active_children()} and time.monotonic() < deadline:
+            time.sleep(0.05)
         assert not started & {c.pid for c in multiprocessing.active_children()}
         assert set(ex.map(_pid_of_worker, range(4))).isdisjoint(started)  # a new pool after the error
     with compute.Executor("serial") as ex:

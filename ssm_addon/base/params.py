@@ -432,6 +432,12 @@ class TemplateParams:
     roughly 600 points and 1,200 triangles). All lengths in mm.
     """
 
+    max_distance_mm: float | None = param(None, kind="float", unit="mm", minimum=0.0, exclusive_minimum=True,
+                                          maximum=100.0, none_means="off: the radii of eq. 1 (r_min, r_max, p)",
+                                          label="Max distance",
+                                          help="the template's density from one tolerance: the largest distance "
+                                               "between its triangles and the surface (radii from the curvature, "
+                                               "then refined where a triangle lies farther; r_max caps them)")
     spacing_mm: float = param(1.0, key="spacing", aliases=("spacing_mm",), unit="mm", minimum=0.0,
                               exclusive_minimum=True, maximum=50.0, label="Spacing",
                               help="isotropic resampling step of every instance along its object axes (paper 2)")
@@ -475,7 +481,6 @@ class TemplateParams:
                                                   "below the point spacing are closed; opening at a third of it)")
     max_refinements: int = param(30, minimum=0, maximum=1000, label="Max refinements", advanced=True,
                                  help="rounds of seed insertion where the geodesic Voronoi regions are not disks")
-
     _where = "template parameters:"
 
     def __post_init__(self):

@@ -225,7 +225,11 @@ def study_report(study: Study, *, project: str | Absent, timings_unknown: dict |
         parameters=study_parameters(study, model.params.get("landmarks", ())),
         model=model_summary(model),
         template={"instance": study.template_instance, "points": int(len(tpl.points_object)),
-                  "triangles": int(len(tpl.faces)), "genus": int(genus(len(tpl.points_object), tpl.faces))},
+                  "triangles": int(len(tpl.faces)), "genus": int(genus(len(tpl.points_object), tpl.faces)),
+                  **({"max_distance_mm": study.params.template.max_distance_mm,
+                      **{k: tpl.params[k] for k in ("largest_distance_mm", "mean_distance_mm", "tolerance_rounds")
+                         if k in (tpl.params or {})}}
+                     if study.params.template.max_distance_mm is not None else {})},
         correspondence=correspondence,
         quality={"parameters": dataclasses.asdict(study.params.quality),
                  "findings": [f.to_dict() for f in study.findings], "outlier_scores": study.outlier_scores},

@@ -64,6 +64,8 @@ __all__ = [
     "reduce_points",
     "reduction_radii",
     "save_template",
+    "tolerance_radii",
+    "triangle_deviation_vox",
     "triangulate",
 ]
 
@@ -275,6 +277,51 @@ def reduction_radii(c: np.ndarray, r_min: float, r_max: float, p: float, percent
         return np.full(len(c), float(r_max))
     t = (np.clip(c, cmin, cmax) - cmin) / (cmax - cmin)
     return t ** (1.0 / p) * (r_min - r_max) + r_max
+
+
+TOLERANCE_MIN_RADIUS_VOX = 1.5
+"""The smallest reduction radius of the tolerance scheme (voxels): neighbouring surface voxels stay apart."""
+TOLERANCE_ROUNDS = 4
+"""Refinement rounds of the tolerance scheme: radii shrink where a triangle lies beyond the tolerance."""
+TOLERANCE_SHRINK = 0.6
+"""Factor on the radii around a triangle beyond the tolerance, per round."""
+
+
+def tolerance_radii(curvature: np.ndarray, tolerance: float, r_lo: float, r_hi: float) -> np.ndarray:
+    """Reduction radii from one tolerance: a chord of half-length r across a surface of curvature κ
+    lies r²κ/2 from it (the sagitta), so r = √(2·tolerance/κ), clipped to [r_lo, r_hi].
+
+    Parameters
+    ----------
+    curvature : (M,) 1/voxel
+        The largest absolute principal curvature per surface voxel.
+    tolerance : voxel
+    r_lo, r_hi : voxel
+
+    >>> tolerance_radii(np.array([0.5, 0.02, 0.0]), 0.25, 1.5, 10.0).round(3).tolist()
+    [1.5, 5.0, 10.0]
+    """
+    k = np.maximum(np.abs(np.asarray(curvature, float)), 1e-12)
+    return np.clip(np.sqrt(2.0 * float(tolerance) / k), r_lo, r_hi)
+
+
+def _signed_distance_vox(mask: np.ndarray) -> np.ndarray:
+    """Signed distance (voxels) of every voxel centre from the mask's boundary: negative inside (the
+    boundary between voxel centres, where it crosses 0)."""
+    m = np.pad(mask, 1)
+    out = ndi.distance_transform_edt(~m) - ndi.distance_transform_edt(m)
+    return (out - np.sign(out) * 0.5)[1:-1, 1:-1, 1:-1]
+
+
+def triangle_deviation_vox(signed: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F,) voxels: how far each flat triangle departs from the level of the surface its corners sit on
+    (the signed distance at its centre and edge midpoints against its corners' mean)."""
+    tri = np.asarray(vertices, float)[np.asarray(faces)]
+    samples = np.stack([tri.mean(axis=1), (tri[:, 0] + tri[:, 1]) / 2, (tri[:, 1] + tri[:, 2]) / 2,
+                        (tri[:, 2] + tri[:, 0]) / 2], axis=1)  # (F, 4, 3)
+    level = ndi.map_coordinates(signed, tri.reshape(-1, 3).T, order=1, mode="nearest").reshape(-1, 3).mean(axis=1)
+    at = ndi.map_coordinates(signed, samples.reshape(-1, 3).T, order=1, mode="nearest").reshape(-1, 4)
+    return np.abs(at - level[:, None]).max(axis=1)
 
 
 def reduce_points(
@@ -706,7 +753,11 @@ def build_template(object_volume: ObjectVolume, params: TemplateParams | None = 
 
     t = time.perf_counter()
     report(progress, 0.45, "template: point density reduction")
-    if params.radius == "curvature":
+    tolerance = None if params.max_distance_mm is None else float(params.max_distance_mm) / h
+    if tolerance is not None:
+        r = tolerance_radii(np.maximum(np.abs(geo.k1), np.abs(geo.k2)), tolerance, TOLERANCE_MIN_RADIUS_VOX,
+                            params.r_max_mm / h)
+    elif params.radius == "curvature":
         r = reduction_radii(geo.c, params.r_min_mm / h, params.r_max_mm / h, params.p, params.curvature_percentiles)
     else:
         r = np.full(len(geo.voxels), params.r_max_mm / h)
@@ -720,6 +771,35 @@ def build_template(object_volume: ObjectVolume, params: TemplateParams | None = 
     tri = triangulate(mask, geo.voxels[sel], max_refinements=params.max_refinements,
                       progress=sub_progress(progress, 0.55, 0.98), cancelled=cancelled)
     timings["triangulation"] = time.perf_counter() - t
+    tolerance_info = {}
+    if tolerance is not None:  # refine where a triangle lies farther from the surface than the tolerance
+        signed = _signed_distance_vox(mask)
+        rounds = 0
+        deviation = triangle_deviation_vox(signed, tri.vertices, tri.faces)
+        while deviation.max() > tolerance and rounds < TOLERANCE_ROUNDS:
+            check_cancelled(cancelled)
+            rounds += 1
+            bad = deviation > tolerance
+            centres = tri.vertices[tri.faces[bad]].mean(axis=1)
+            near = cKDTree(geo.voxels).query_ball_point(centres, r=float(r.max()))
+            hit = np.zeros(len(r), bool)
+            for c, idx in zip(centres, near):  # the surface voxels whose selection made the triangle
+                idx = np.asarray(idx, np.int64)
+                if len(idx):
+                    d = np.linalg.norm(geo.voxels[idx] - c, axis=1)
+                    hit[idx[d <= r[idx] * 1.5]] = True
+            if not hit.any():
+                break
+            r = np.where(hit, np.maximum(r * TOLERANCE_SHRINK, TOLERANCE_MIN_RADIUS_VOX), r)
+            report(progress, 0.9, f"template: {int(bad.sum())} triangles beyond {params.max_distance_mm:g} mm, "
+                                  f"round {rounds}")
+            sel = reduce_points(geo.graph, r, curvature=geo.c, selection=params.selection, seed=params.seed,
+                                cancelled=cancelled)
+            tri = triangulate(mask, geo.voxels[sel], max_refinements=params.max_refinements, cancelled=cancelled)
+            deviation = triangle_deviation_vox(signed, tri.vertices, tri.faces)
+        tolerance_info = {"tolerance_rounds": rounds, "largest_distance_mm": float(deviation.max() * h),
+                          "mean_distance_mm": float(deviation.mean() * h)}
+        timings["tolerance"] = time.perf_counter() - t - timings["triangulation"]
 
     # curvature per vertex: the selected voxel's, or (inserted seeds) the nearest surface voxel's
     curv = np.empty(len(tri.seeds))
@@ -740,6 +820,7 @@ def build_template(object_volume: ObjectVolume, params: TemplateParams | None = 
         "mask_volume_mm3": float(ov.volume_mm3),
         "cleaned_volume_mm3": float(np.count_nonzero(mask)) * h**3,
         "timings_s": {k: round(v, 4) for k, v in timings.items()},
+        **tolerance_info,
     }
     report(progress, 1.0, f"template: {len(points_object)} points, {len(tri.faces)} triangles, genus {tri.genus}")
     return Template(points_object=points_object, faces=tri.faces, curvature=curv / h, frame=ov.frame, params=info)
