@@ -99,3 +99,24 @@ def test_a_joint_fit_says_a_structure_in_another_unit(tmp_path, capsys):
     code = main(["fit", str(tmp_path / "joint.npz"), "--mesh", f"a={tmp_path / 'a_m.ply'}", "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert code == 0 and "a: the target is 0.001 times the structure's size" in err and "another unit" in err
+
+
+def test_the_demos_findings_are_read_against_its_truth(tmp_path):
+    """`ssm demo` ends by saying whether an instance a gate named lies at the population's edge in its
+    true shape parameters (an expected finding) or not (one to look at)."""
+    import json
+
+    from ssm_addon.cli.demo import explain_findings
+
+    truth = {"modes": {"body_height": {}, "body_radius": {}},
+             "instances": [{"name": "d0", "b": [-2.3, 0.2]}, {"name": "d1", "b": [0.4, -0.9]},
+                           {"name": "d2", "b": [1.1, 0.1]}]}
+    report = {"quality": {"findings": [{"instance": "d0", "gate": "reconstruction"},
+                                       {"instance": "d1", "gate": "outlier"}]}}
+    (tmp_path / "truth.json").write_text(json.dumps(truth))
+    (tmp_path / "report.json").write_text(json.dumps(report))
+    lines = explain_findings(tmp_path / "report.json", tmp_path / "truth.json")
+    assert lines[0].startswith("demo: d0 [reconstruction] is at the population's edge: its true body_height is "
+                               "-2.30 SD (truth.json; the most extreme of 3), so the model of the others "
+                               "reconstructs it worst; expected")
+    assert lines[1].startswith("demo: d1 [outlier] is not at the population's edge") and "look at it" in lines[1]

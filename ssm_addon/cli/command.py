@@ -619,7 +619,12 @@ def cmd_demo(args, writer) -> int:
     project = make_demo_population(out / "population", n=args.n, seed=args.seed)
     print(f"demo population: {args.n} synthetic vertebrae in {out / 'population'} ({time.perf_counter() - t0:.1f} s)",
           flush=True)
-    return _run_build(project, out / "model", args.jobs, not args.no_blend, writer)
+    code = _run_build(project, out / "model", args.jobs, not args.no_blend, writer)
+    from ..cli.demo import explain_findings
+
+    for line in explain_findings(out / "model" / "report.json", out / "population" / "truth.json"):
+        print(line, flush=True)
+    return code
 
 
 def _joined_points(argv: list) -> list:

@@ -315,3 +315,30 @@ def make_demo_population(
     project = out / "project.toml"
     project.write_text("\n".join(lines))
     return project
+
+
+def explain_findings(report_path, truth_path) -> list[str]:
+    """The demo's findings read against its truth: for each instance a gate named, how far its true
+    shape parameters lie from the mean (SD) and whether that is the population's edge (lines to print)."""
+    import json
+
+    report = json.loads(Path(report_path).read_text())
+    truth = json.loads(Path(truth_path).read_text())
+    modes = list(truth["modes"])
+    b = {inst["name"]: np.asarray(inst["b"], float) for inst in truth["instances"]}
+    findings = report.get("quality", {}).get("findings", []) if isinstance(report.get("quality"), dict) else []
+    extreme = {n: float(np.abs(v).max()) for n, v in b.items()}
+    ranked = sorted(extreme, key=lambda n: -extreme[n])
+    lines = []
+    for name in sorted({f.get("instance") for f in findings if f.get("instance") in b}):
+        gates = sorted({f["gate"] for f in findings if f.get("instance") == name})
+        k = int(np.argmax(np.abs(b[name])))
+        rank = ranked.index(name) + 1
+        where = ("at the population's edge" if extreme[name] >= 2.0 else "not at the population's edge")
+        order = "the most extreme" if rank == 1 else f"number {rank} by extremity"
+        why = ", so the model of the others reconstructs it worst" if "reconstruction" in gates else ""
+        verdict = ("; expected of a random population, not a fault" if extreme[name] >= 2.0 else
+                   "; look at it")
+        lines.append(f"demo: {name} [{', '.join(gates)}] is {where}: its true {modes[k]} is {b[name][k]:+.2f} SD "
+                     f"(truth.json; {order} of {len(b)}){why}{verdict} (report.html, Instances: {name})")
+    return lines
