@@ -32,6 +32,7 @@ import numpy as np
 
 from ..base.records import jsonable
 from ..formats.vtk import write_vtp
+from ..model.figures import p_value_text
 from ..model.files import write_npz
 from .shape_analysis import Analysis, analyze
 
@@ -336,11 +337,18 @@ def analysis_summary(result: Analysis) -> list[str]:
         where = (f"; {int(np.sum(t.p_fdr <= FDR_LEVEL))} of {t.p_fdr.size} points significant at FDR {FDR_LEVEL:g}"
                  if t.p_fdr.size else "")
         adj = [o for o in result.tests if o != term]
-        lines.append(f"{term}: p = {t.p_value:.3g} (Pillai {t.global_pillai:.3f} on {t.global_modes} modes; "
-                     f"Goodall F = {t.f:.3g}, p = {t.p_value_f:.3g}; partial R² = {t.r_squared:.3f}; "
+        lines.append(f"{term}: {p_value_text(t.p_value)} (Pillai {t.global_pillai:.3f} on {t.global_modes} modes; "
+                     f"Goodall F = {t.f:.3g}, {p_value_text(t.p_value_f)}; partial R² = {t.r_squared:.3f}; "
                      f"{t.permutations} permutations{', adjusted for ' + ', '.join(adj) if adj else ''}){where}")
+        if (t.p_value <= 0.05) != (t.p_value_f <= 0.05):
+            lines.append(f"  the two tests of {term} disagree: Pillai's trace (the verdict, its p first) tests the "
+                         f"change in the {t.global_modes} leading residual modes; Goodall's F spreads it over all "
+                         "coordinates, where a change confined to a few modes is diluted by the rest"
+                         if t.p_value <= 0.05 else
+                         f"  the two tests of {term} disagree: Goodall's F sees a change spread over many coordinates "
+                         f"that the {t.global_modes} leading residual modes of Pillai's trace (the verdict) miss")
     for pair, t in result.pairwise.items():
-        lines.append(f"  {pair}: p = {t.p_value:.3g}")
+        lines.append(f"  {pair}: {p_value_text(t.p_value)}")
     for e in result.effects:
         lines.append(f"  effect {e.name} ({e.unit}): largest {np.linalg.norm(e.displacement, axis=1).max():.3g} mm, "
                      f"normal {e.normal.min():.3g} to {e.normal.max():.3g} mm")

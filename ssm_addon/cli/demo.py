@@ -320,8 +320,6 @@ def make_demo_population(
 def explain_findings(report_path, truth_path) -> list[str]:
     """The demo's findings read against its truth: for each instance a gate named, how far its true
     shape parameters lie from the mean (SD) and whether that is the population's edge (lines to print)."""
-    import json
-
     report = json.loads(Path(report_path).read_text())
     truth = json.loads(Path(truth_path).read_text())
     modes = list(truth["modes"])
