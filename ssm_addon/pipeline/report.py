@@ -685,8 +685,8 @@ FIGURES = (("variability.png", "Eigenvalue spectrum and concentration of variabi
                                 "shape points moved (mm)"))
 
 
-ANALYSIS_FIGURES = (("analysis_map.png", "Group difference along the surface normal on the mean shape (mm); faded: "
-                                          "not significant at FDR 5 %"),
+ANALYSIS_FIGURES = (("analysis_map.png", "Group difference along the surface normal on the mean shape (mm); grey: "
+                                          "not significant at FDR 5 % (as the picture's legend says)"),
                     ("analysis_scores.png", "Mode scores of the instances by group (SD)"))
 
 
