@@ -29,6 +29,8 @@ PACKAGE_NAME = "ssm"
 #: What Blender's offscreen GPU set-up prints on machines without a display although it draws:
 #: not an error a user can act on.
 EGL_NOISE = re.compile(r"^EGL Error \(0x[0-9A-Fa-f]+\): ")
+#: Lines Blender itself prints when it writes a file (its render log and its save note): not the build's.
+BLENDER_NOTES = re.compile(r"^((\d\d:)?\d\d:\d\d\.\d+\s+render\s+\| Saved: |Info: Saved copy as )")
 
 
 def bpy_available() -> bool:
@@ -92,11 +94,20 @@ def blend_writer_in_child():
                 cmd.append("--quiet")
             env = {**os.environ, "PYTHONPATH": os.pathsep.join(
                 filter(None, [str(Path(__file__).resolve().parents[2]), os.environ.get("PYTHONPATH")]))}
-            child = subprocess.Popen(cmd, start_new_session=True, env=env, stderr=subprocess.PIPE, text=True,
-                                     errors="replace")
+            child = subprocess.Popen(cmd, start_new_session=True, env=env, stderr=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, text=True, errors="replace")
             said: list[str] = []
             reader = threading.Thread(target=lambda: said.extend(child.stderr), daemon=True)
             reader.start()
+
+            def relay():  # the step's own lines go on; Blender's file notes ("Saved: …") are not the build's
+                for line in child.stdout:
+                    if not BLENDER_NOTES.match(line):
+                        sys.stdout.write(line)
+                        sys.stdout.flush()
+
+            relayer = threading.Thread(target=relay, daemon=True)
+            relayer.start()
             try:
                 while child.poll() is None:
                     try:
@@ -104,6 +115,7 @@ def blend_writer_in_child():
                     except subprocess.TimeoutExpired:
                         pass
                 reader.join(10.0)
+                relayer.join(10.0)
             except BaseException:
                 child.terminate()
                 try:
@@ -116,7 +128,8 @@ def blend_writer_in_child():
             shutil.rmtree(handover, ignore_errors=True)
         # Blender's offscreen GPU set-up says "EGL Error (0x3009): EGL_BAD_MATCH …" while the pictures are
         # drawn all the same: not shown when the step succeeded; everything it said is shown when it failed
-        shown = said if child.returncode != 0 else [ln for ln in said if not EGL_NOISE.match(ln)]
+        shown = said if child.returncode != 0 else [ln for ln in said if not (EGL_NOISE.match(ln)
+                                                                              or BLENDER_NOTES.match(ln))]
         sys.stderr.write("".join(shown))
         if child.returncode != 0:
             raise SSMError(f"the Blender step (model.blend, modes.png) failed in its process (exit "
