@@ -120,3 +120,24 @@ def test_the_demos_findings_are_read_against_its_truth(tmp_path):
                                "-2.30 SD (truth.json; the most extreme of 3), so the model of the others "
                                "reconstructs it worst; expected")
     assert lines[1].startswith("demo: d1 [outlier] is not at the population's edge") and "look at it" in lines[1]
+
+
+@pytest.mark.parametrize("fault", ["empty", "flat"])
+def test_an_empty_or_flat_structure_mesh_is_refused_before_any_coating(tmp_path, fault):
+    import numpy as np
+
+    from ssm_addon.cli.project_build import build
+    from ssm_addon.formats.meshes import read_mesh, write_ply
+
+    path = joint_project(tmp_path, 4)
+    v, f = read_mesh(tmp_path / "S2_b.ply")
+    if fault == "empty":
+        write_ply(tmp_path / "S2_b.ply", np.zeros((0, 3)), np.zeros((0, 3), int), space="RAS")
+    else:
+        v = v.copy()
+        v[:, 2] = 0.0
+        write_ply(tmp_path / "S2_b.ply", v, f, space="RAS")
+    t0 = time.perf_counter()
+    with pytest.raises(InputError, match=rf"subject 'S2', structure 'b': .*S2_b.ply.*({fault}|no faces|empty)"):
+        build(read_project(path), tmp_path / "out", log=None)
+    assert time.perf_counter() - t0 < 60 and not (tmp_path / "out").exists()  # before any coating

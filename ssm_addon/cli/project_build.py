@@ -14,11 +14,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from ..analysis.attributes import write_attributes
 from ..analysis.files import analysis_summary, run_analysis
 from ..base.compute import Executor
 from ..base.errors import InputError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
+from ..formats.meshes import read_mesh
 from ..model.quality import QualityError, warnings_text
 from ..pipeline.cache import BuildCache
 from ..pipeline.joint import JointStudy, run_joint
@@ -255,6 +258,27 @@ def build(
     return dataclasses.replace(result, files=final, report=final_report.to_dict())
 
 
+def _check_joint_meshes(project: Project) -> None:
+    """Every structure's mesh of every subject read before anything is coated: an empty or flat mesh is
+    refused naming the subject, the structure and the file (one structure's fault would otherwise stop
+    the build after the others were coated)."""
+    for name, structure in project.structures.items():
+        for spec in structure.instances:
+            if spec.mesh_path is None:
+                continue
+            where = f"subject {spec.name!r}, structure {name!r}: {spec.mesh_path}"
+            try:
+                vertices, faces = read_mesh(spec.mesh_path, space=spec.given_space(structure.params.template.space))
+            except InputError as err:
+                raise InputError(f"subject {spec.name!r}, structure {name!r}: {err}") from None
+            if len(faces) == 0 or len(vertices) < 4:
+                raise InputError(f"{where}: the mesh is empty ({len(vertices)} vertices, {len(faces)} triangles)")
+            extent = np.ptp(np.asarray(vertices, float), axis=0)
+            if np.sort(extent)[0] <= 1e-6 * max(float(extent.max()), 1e-12):
+                raise InputError(f"{where}: the mesh is flat (its extent is {', '.join(f'{e:.3g}' for e in extent)} "
+                                 "mm): a closed surface of the structure is needed")
+
+
 def build_joint(project: Project, out_dir: Path, *, jobs: int = 1, progress: ProgressFn = None,
                 cancelled: CancelledFn = None, log: Callable[[str], None] | None = None, force: bool = False,
                 scheduler: str | None = None, cache=None, blender_hook: Callable | None = None) -> BuildResult:
@@ -264,6 +288,7 @@ def build_joint(project: Project, out_dir: Path, *, jobs: int = 1, progress: Pro
     objects (an empty with one slider per mode driving a mesh per structure)."""
     say = log or (lambda _msg: None)
     inputs = _check_before_build(project, out_dir, force=force, what="subjects")
+    _check_joint_meshes(project)
     t_total = time.perf_counter()
     joint = JointStudy.from_project(project)
     build_cache = open_cache(project, out_dir, cache)

@@ -183,6 +183,9 @@ def _parse_ply(path: Path, raw: bytes) -> dict:
                 pos += dt.itemsize * count
                 result[name] = {p[0]: arr[p[0]] for p in props}
                 continue
+            if count == 0:  # an empty element has no bytes to probe
+                result[name] = {p[0]: np.zeros((0, 3) if len(p) != 2 else 0) for p in props}
+                continue
             # Fast path: every list has the length of the first one.
             fields, first_len = [], None
             probe = pos
