@@ -141,3 +141,23 @@ def test_an_empty_or_flat_structure_mesh_is_refused_before_any_coating(tmp_path,
     with pytest.raises(InputError, match=rf"subject 'S2', structure 'b': .*S2_b.ply.*({fault}|no faces|empty)"):
         build(read_project(path), tmp_path / "out", log=None)
     assert time.perf_counter() - t0 < 60 and not (tmp_path / "out").exists()  # before any coating
+
+
+def test_structures_the_inputs_put_inside_each_other_are_a_finding():
+    """Every subject's b placed 8 mm into its a (b from another coordinate system, say): the data collide,
+    so a finding names the inputs, not the model."""
+    import numpy as np
+    from conftest import joint_model, joint_population
+
+    from ssm_addon.model.joint import collision_findings, collisions
+
+    a, b, fa, fb, _t = joint_population(n=12)
+    inside = b - [14.0, 0.0, 0.0]  # b's inner face 8 mm within a's outer one, in every subject
+    model = joint_model(a, inside, fa, fb)
+    figures = collisions(model, samples=30, depth_mm=0.5)
+    assert figures["a-b"]["data"]["colliding_share"] == 1.0 and figures["a-b"]["data"]["max_mm"] > 5.0
+    found = [f for f in collision_findings(figures, 0.2) if "the inputs put one inside the other" in f.message]
+    assert found and found[0].gate == "collision" and "a-b" in found[0].message
+    assert not [f for f in collision_findings(collisions(joint_model(a, b, fa, fb), samples=30), 0.2)
+                if "inputs" in f.message]
+    assert np.isfinite(found[0].value)

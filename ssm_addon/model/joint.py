@@ -26,7 +26,7 @@ from ..meshutil import MeshLocator, connected_components, face_normals
 from .pca import ShapeModel, procrustes_fit
 from .quality import Finding
 
-__all__ = ["collision_findings", "collisions", "joined_parts", "relative_pose", "relative_poses", "shape_and_pose",
+__all__ = ["INPUT_OVERLAP_MM", "INPUT_OVERLAP_SHARE", "collision_findings", "collisions", "joined_parts", "relative_pose", "relative_poses", "shape_and_pose",
            "structure_model"]
 
 #: A part of a joined reference needs at least this many points to count as a structure.
@@ -231,12 +231,25 @@ def collisions(model: ShapeModel, *, samples: int = 200, depth_mm: float = 0.5, 
     return out
 
 
+INPUT_OVERLAP_SHARE = 0.5
+INPUT_OVERLAP_MM = 5.0
+"""Structures of at least INPUT_OVERLAP_SHARE of the subjects that overlap deeper than INPUT_OVERLAP_MM
+(mm): the inputs, not the model, put one inside the other."""
+
+
 def collision_findings(figures: dict, excess: float) -> list[Finding]:
     """A structure pair whose model shapes collide in ``excess`` more of the draws than the training
     subjects do: the model lets the structures overlap where the data never do (relative pose left
-    out of the model, or too few subjects)."""
+    out of the model, or too few subjects); and a pair whose subjects' own structures overlap deeply in
+    most subjects: the inputs put one inside the other."""
     out = []
     for pair, f in figures.items():
+        data = f["data"]
+        if data["colliding_share"] >= INPUT_OVERLAP_SHARE and data["max_mm"] > INPUT_OVERLAP_MM:
+            out.append(Finding("", "collision", f"{pair}: the subjects' own structures overlap in "
+                               f"{100 * data['colliding_share']:.0f} % of them, up to {data['max_mm']:.1f} mm deep: the "
+                               "inputs put one inside the other (a structure from another coordinate system, or the "
+                               "wrong file?)", data["colliding_share"], INPUT_OVERLAP_SHARE))
         more = f["model"]["colliding_share"] - f["data"]["colliding_share"]
         if more > excess:
             out.append(Finding("", "collision", f"{pair}: {100 * f['model']['colliding_share']:.0f} % of the model's "
