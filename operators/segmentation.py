@@ -240,9 +240,7 @@ class SSM_OT_save_segmentation(bpy.types.Operator):
                 raise InputError("save segmentation: choose a folder")
             image = _IMAGES.get(obj["ssm_segment_image"]) or read_image(obj["ssm_segment_image"])
             mesh = obj.data
-            points = bridge.mesh_vertices(mesh) @ np.asarray(obj.matrix_world)[:3, :3].T + \
-                np.asarray(obj.matrix_world)[:3, 3]
-            record = SegmentationRecord(points=points, faces=bridge.mesh_triangles(mesh),
+            record = SegmentationRecord(points=bridge.object_world_vertices(obj), faces=bridge.mesh_triangles(mesh),
                                         posterior_sd_mm=bridge.get_point_attribute(mesh, "posterior_sd_mm"),
                                         deviation_mm=bridge.get_point_attribute(mesh, "deviation_mm"),
                                         record=json.loads(obj["ssm_segment_json"]))

@@ -14,7 +14,7 @@ from ssm_addon.base.errors import InputError
 from ssm_addon.cli.command import main
 from ssm_addon.formats.meshes import read_ply
 from ssm_addon.meshutil import MeshLocator
-from ssm_addon.model.files import add_npz_arrays, save_npz
+from ssm_addon.model.files import save_npz
 from ssm_addon.model.pca import build_model
 from ssm_addon.segmentation import (
     GreyImage,
@@ -234,8 +234,7 @@ def test_ssm_segment_writes_its_files_and_reads_the_models_appearance(population
     train = [posed(s) for s in shapes[1:4]]
     app = learn_appearance(model.mean, faces, train, [synthetic_image(s, faces, seed=20 + i)[0]
                                                       for i, s in enumerate(train)], names=["a", "b", "c"])
-    save_npz(model, tmp_path / "model.npz")
-    add_npz_arrays(tmp_path / "model.npz", app.to_arrays())
+    save_npz(model, tmp_path / "model.npz", extra=app.to_arrays())
     assert load_appearance(tmp_path / "model.npz", model.n_points).images == ("a", "b", "c")
     at = volume_centroid(truth, faces) + 3.0
     code = main(["segment", str(tmp_path / "model.npz"), str(tmp_path / "ct.nii.gz"), "--at",

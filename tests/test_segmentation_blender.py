@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from test_segmentation import bumped_shapes, posed, synthetic_image
 
-from ssm_addon.model.files import add_npz_arrays, save_npz
+from ssm_addon.model.files import save_npz
 from ssm_addon.model.pca import build_model
 from ssm_addon.segmentation import learn_appearance, segment_files, volume_centroid
 
@@ -27,8 +27,7 @@ def files(tmp_path):
     train = [posed(s) for s in shapes[1:4]]
     app = learn_appearance(model.mean, faces, train, [synthetic_image(s, faces, seed=5 + i)[0]
                                                       for i, s in enumerate(train)], names=["a", "b", "c"])
-    save_npz(model, tmp_path / "model.npz")
-    add_npz_arrays(tmp_path / "model.npz", app.to_arrays())
+    save_npz(model, tmp_path / "model.npz", extra=app.to_arrays())
     at = volume_centroid(truth, faces) + np.array([2.0, -3.0, 2.5])
     return tmp_path, at, image, mask
 

@@ -36,11 +36,12 @@ NPZ_KEYS = (
 # ---------------------------------------------------------------------------------------
 # Files: model.npz (contract) and statismo HDF5
 # ---------------------------------------------------------------------------------------
-def save_npz(model: ShapeModel, path) -> Path:
+def save_npz(model: ShapeModel, path, extra: dict | None = None) -> Path:
     """Write ``model.npz`` per the contract (no pickled objects; names as fixed-width unicode).
 
     Keys: mean (N,3), faces (F,3), modes (K,N,3), variances (K,), instance_names (n,),
-    instance_points (n,N,3), instance_points_world (n,N,3), params_json (0-d str).
+    instance_points (n,N,3), instance_points_world (n,N,3), params_json (0-d str); ``extra``:
+    further arrays stored beside them (e.g. the learned appearance's ``appearance_*``).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -60,6 +61,7 @@ def save_npz(model: ShapeModel, path) -> Path:
     if model.structure_names:  # a joint model: its structures' point ranges
         arrays["structure_names"] = np.asarray([str(s) for s in model.structure_names])
         arrays["structure_offsets"] = np.asarray(model.structure_offsets, dtype=np.int64)
+    arrays.update(extra or {})
     write_npz(path, arrays)
     return path
 
@@ -82,15 +84,6 @@ def write_npz(path, arrays: dict) -> Path:
             zf.writestr(info, buf.getvalue())
     os.replace(tmp, path)
     return path
-
-
-def add_npz_arrays(path, arrays: dict) -> Path:
-    """Rewrite an npz this build wrote with ``arrays`` added (or replaced), the same way as :func:`write_npz`."""
-    path = Path(path)
-    with np.load(path, allow_pickle=False) as data:
-        current = {k: data[k] for k in data.files}
-    current.update(arrays)
-    return write_npz(path, current)
 
 
 def model_from_arrays(arrays: dict, where: str = "model") -> ShapeModel:
@@ -404,7 +397,8 @@ def _write_vtk_set(folder: Path, mean, faces, variance, sd, modes, sigmas: float
 
 
 def write_model_files(model: ShapeModel, out_dir, *, statismo: bool = True, statismo_name: str = "model.h5",
-                      tables: bool = True, gltf: bool = False, vtk: bool = False, exchange_modes: int = 5) -> dict:
+                      tables: bool = True, gltf: bool = False, vtk: bool = False, exchange_modes: int = 5,
+                      npz_extra: dict | None = None) -> dict:
     """Write ``model.npz``, (``statismo``) the statismo file, (``tables``) the score tables
     (:func:`write_score_tables`) and (``gltf``, ``vtk``) the exchange meshes
     (:func:`write_exchange_meshes`) into ``out_dir``.
@@ -414,7 +408,7 @@ def write_model_files(model: ShapeModel, out_dir, *, statismo: bool = True, stat
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    written = {"npz": str(save_npz(model, out_dir / "model.npz"))}
+    written = {"npz": str(save_npz(model, out_dir / "model.npz", extra=npz_extra))}
     if statismo:
         written["statismo"] = str(save_statismo(model, out_dir / statismo_name))
     if tables and model.n_instances:

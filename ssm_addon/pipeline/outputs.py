@@ -40,7 +40,7 @@ from ..formats.meshes import write_ply
 from ..formats.vtk import write_vtp
 from ..instances.importing import file_names
 from ..model.figures import optimisation_figure, render_modes_figure
-from ..model.files import add_npz_arrays, write_model_files
+from ..model.files import write_model_files
 from ..model.metrics import write_plots
 from ..segmentation.appearance import write_scalismo_asm
 from .appearance import appearance_stage
@@ -346,7 +346,7 @@ def study_inputs(study: Study) -> list[Path]:
 
 
 def _write_model_outputs(model, folder: Path, files: dict, *, output: OutputParams, say, drawn: Callable,
-                         analysis: Callable | None, extra: dict | None) -> dict:
+                         analysis: Callable | None, extra: dict | None, npz_extra: dict | None = None) -> dict:
     """The model's files and tables, the analysis, and the pictures begun by :func:`start_drawings`
     (``drawn``: its ``finish``) into ``folder``; adds what it wrote to ``files`` and returns the
     report's further entries (``extra`` with the analysis's)."""
@@ -354,7 +354,7 @@ def _write_model_outputs(model, folder: Path, files: dict, *, output: OutputPara
         say(f"note: [output] exchange_modes = {output.exchange_modes}: the model has {model.n_modes} modes; "
             f"model.glb and vtk/ hold {model.n_modes}")
     written = write_model_files(model, folder, statismo=output.statismo, tables=output.scores, gltf=output.gltf,
-                                vtk=output.vtk, exchange_modes=output.exchange_modes)
+                                vtk=output.vtk, exchange_modes=output.exchange_modes, npz_extra=npz_extra)
     entries = dict(extra or {})
     found = entry = None
     if analysis is not None:
@@ -433,12 +433,11 @@ def write_study(study: Study, folder, *, output: OutputParams, project: str | Ab
             files["optimisation"] = "optimisation.png"
         except ImportError as err:
             say(f"picture: optimisation.png skipped ({err})")
-    entries = _write_model_outputs(model, folder, files, output=output, say=say, drawn=drawn, analysis=analysis,
-                                   extra=extra)
     appearance, appearance_doc = appearance_stage(study, log=say)
-    if appearance is not None:  # beside the shape model in the model.npz just written
-        add_npz_arrays(folder / "model.npz", appearance.to_arrays())
-        if "statismo" in files:  # and in the statismo file as Scalismo keeps an active shape model
+    entries = _write_model_outputs(model, folder, files, output=output, say=say, drawn=drawn, analysis=analysis,
+                                   extra=extra, npz_extra=appearance.to_arrays() if appearance is not None else None)
+    if appearance is not None:  # in model.npz beside the shape model (above), and in the statismo file as
+        if "statismo" in files:  # Scalismo keeps an active shape model
             write_scalismo_asm(folder / files["statismo"], appearance)
         entries["appearance"] = appearance_doc
     study.timings_s["write"] = time.perf_counter() - t0 - study.timings_s.get("blender", 0.0)

@@ -38,7 +38,7 @@ from scipy.spatial import cKDTree
 from ..base.errors import InputError
 from ..meshutil import vertex_normals
 
-__all__ = ["Appearance", "LEVEL_SIGMAS_MM", "appearance_from_arrays", "learn_appearance", "load_appearance", "normalised_derivative",
+__all__ = ["Appearance", "LEVEL_SIGMAS_MM", "appearance_from_arrays", "boundary_grey_values", "learn_appearance", "load_appearance", "normalised_derivative",
            "profile_features", "read_scalismo_asm", "write_scalismo_asm"]
 
 LEVEL_SIGMAS_MM = (2.0, 1.0, 0.5)
@@ -63,6 +63,14 @@ def normalised_derivative(derivatives: np.ndarray) -> np.ndarray:
     d = np.asarray(derivatives, float)
     s = np.abs(d).sum(axis=-1, keepdims=True)
     return d / np.maximum(s, 1e-6)
+
+
+def boundary_grey_values(image, points, normals, *, sigma_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """(N,), (N,): each point's mean grey value 1–3 mm inside and 1–3 mm outside the surface along its normal
+    (the image blurred by ``sigma_mm``): what the boundary separates."""
+    inner = image.profiles(points, normals, np.array([-3.0, -2.0, -1.0]), sigma_mm=sigma_mm).mean(axis=1)
+    outer = image.profiles(points, normals, np.array([1.0, 2.0, 3.0]), sigma_mm=sigma_mm).mean(axis=1)
+    return inner, outer
 
 
 def profile_features(image, points, normals, offsets_mm, *, sigma_mm: float,
@@ -328,17 +336,16 @@ def learn_appearance(mean_shape: np.ndarray, faces: np.ndarray, shapes_world: li
     near = cKDTree(mean_shape).query(mean_shape, k=min(POOL_NEIGHBOURS + 1, n))[1]
     means, covs, typical = [], [], []
     inside, outside = [], []
+    shapes = [np.asarray(pts, float) for pts in shapes_world]
+    normals = [vertex_normals(pts, faces) for pts in shapes]
     for level, sigma in enumerate(sigmas_mm):
         feats = []
-        for pts, img in zip(shapes_world, images):
-            pts = np.asarray(pts, float)
-            nrm = vertex_normals(pts, faces)
+        for pts, nrm, img in zip(shapes, normals, images):
             feats.append(profile_features(img, pts, nrm, offsets, sigma_mm=sigma))
             if level == len(sigmas_mm) - 1:
-                inner = img.profiles(pts, nrm, np.array([-3.0, -2.0, -1.0]), sigma_mm=sigma)
-                outer = img.profiles(pts, nrm, np.array([1.0, 2.0, 3.0]), sigma_mm=sigma)
-                inside.append(inner.mean(axis=1))
-                outside.append(outer.mean(axis=1))
+                inner, outer = boundary_grey_values(img, pts, nrm, sigma_mm=sigma)
+                inside.append(inner)
+                outside.append(outer)
         f = np.stack(feats, axis=1)  # (N, n_images, D)
         pooled_samples = f[near].reshape(n, -1, f.shape[-1])  # (N, (P+1)·n_images, D)
         allc = f.reshape(-1, f.shape[-1])

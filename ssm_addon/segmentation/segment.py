@@ -42,7 +42,7 @@ from ..base.errors import InputError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn, report
 from ..fitting.fit import Pose, model_error_variance, outlier_limit, weighted_pose
 from ..meshutil import edges, vertex_normals
-from .appearance import LEVEL_SIGMAS_MM, Appearance, normalised_derivative
+from .appearance import LEVEL_SIGMAS_MM, Appearance, boundary_grey_values, normalised_derivative
 from .image import GreyImage
 
 __all__ = ["SegmentParams", "SegmentResult", "landmark_pose", "segment_image", "start_pose", "typical_rotation",
@@ -237,8 +237,7 @@ def landmark_pose(model, landmarks) -> Pose:
         raise InputError(f"{landmarks.source or 'landmarks'}: {len(common)} of the model's landmarks "
                          f"({', '.join(located.names) or 'none'}) are given; at least 3 are needed for a start pose")
     idx = [list(located.names).index(n) for n in common]
-    verts = np.asarray(model.faces)[located.triangles[idx]]
-    m = np.einsum("lk,lkj->lj", located.bary[idx], np.asarray(model.mean, float)[verts])
+    m = located.evaluate(model.mean, model.faces)[idx]
     return weighted_pose(m, landmarks.subset(common).points_world, np.ones(len(common)), False)
 
 
@@ -597,12 +596,12 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
     d2 = float(np.sum(z * z))
     mahal = math.sqrt(d2)
     # how well the evidence fits at the result
-    cost_at, strong_at = ev.costs(points, vertex_normals(points, faces), fine)
+    normals_at = vertex_normals(points, faces)
+    cost_at, strong_at = ev.costs(points, normals_at, fine)
     weak_share = float(np.mean(strong_at[:, zero] < 0.25))
     boundary = {"evidence_cost": float(np.mean(cost_at[:, zero])), "weak_share": weak_share,
                 "residual_sd_mm": math.sqrt(sigma2)}
-    inner = image.profiles(points, vertex_normals(points, faces), np.array([-3.0, -2.0, -1.0]), sigma_mm=0.5)
-    outer = image.profiles(points, vertex_normals(points, faces), np.array([1.0, 2.0, 3.0]), sigma_mm=0.5)
+    inner, outer = boundary_grey_values(image, points, normals_at, sigma_mm=LEVEL_SIGMAS_MM[-1])
     boundary["inside_mean"], boundary["outside_mean"] = float(inner.mean()), float(outer.mean())
     findings = []
     limit = outlier_limit(k)
@@ -640,19 +639,14 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
 def _smooth_on_mesh(values: np.ndarray, weights: np.ndarray, faces: np.ndarray, *, rounds: int) -> np.ndarray:
     """Weighted averages of ``values`` over each vertex and its mesh neighbours, ``rounds`` times."""
     e = edges(faces)
-    n = len(values)
+    i, j = np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]])
     v = np.asarray(values, float)
     w = np.asarray(weights, float) + 1e-3
-    num = v * 0.0
+    n = len(v)
+    den = w + np.bincount(i, weights=w[j], minlength=n)
     for _ in range(rounds):
-        num = v * w
-        den = w.copy()
-        np.add.at(num, e[:, 0], v[e[:, 1]] * w[e[:, 1]])
-        np.add.at(num, e[:, 1], v[e[:, 0]] * w[e[:, 0]])
-        np.add.at(den, e[:, 0], w[e[:, 1]])
-        np.add.at(den, e[:, 1], w[e[:, 0]])
-        v = num / den
-    return v[:n]
+        v = (v * w + np.bincount(i, weights=v[j] * w[j], minlength=n)) / den
+    return v
 
 
 def _check_units(model, image: GreyImage) -> None:

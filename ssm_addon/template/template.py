@@ -774,6 +774,7 @@ def build_template(object_volume: ObjectVolume, params: TemplateParams | None = 
     tolerance_info = {}
     if tolerance is not None:  # refine where a triangle lies farther from the surface than the tolerance
         signed = _signed_distance_vox(mask)
+        voxel_tree = cKDTree(geo.voxels)
         rounds = 0
         deviation = triangle_deviation_vox(signed, tri.vertices, tri.faces)
         while deviation.max() > tolerance and rounds < TOLERANCE_ROUNDS:
@@ -781,7 +782,7 @@ def build_template(object_volume: ObjectVolume, params: TemplateParams | None = 
             rounds += 1
             bad = deviation > tolerance
             centres = tri.vertices[tri.faces[bad]].mean(axis=1)
-            near = cKDTree(geo.voxels).query_ball_point(centres, r=float(r.max()))
+            near = voxel_tree.query_ball_point(centres, r=float(r.max()))
             hit = np.zeros(len(r), bool)
             for c, idx in zip(centres, near):  # the surface voxels whose selection made the triangle
                 idx = np.asarray(idx, np.int64)
