@@ -30,12 +30,15 @@ def appearance_stage(study, *, log=None):
     model = study.model
     names = [str(n) for n in model.instance_names]
     rows, images = [], []
+    read: dict = {}  # several instances (the vertebrae of one CT) often name one image: read it once
     for i, name in enumerate(names):
         spec = study.instance(name)
         path = getattr(spec, "image_path", None)
         if path is None:
             continue
-        img = read_image(path)
+        if path not in read:
+            read[path] = read_image(path)
+        img = read[path]
         inside = img.contains(model.instance_points_world[i])
         if inside.mean() < 0.95:
             raise InputError(f"instance {name!r}: its image {path} covers {100 * inside.mean():.0f} % of the "
