@@ -37,7 +37,7 @@ from ssm_addon.fitting.batch import load_model
 from ssm_addon.model import metrics as core_metrics
 from ssm_addon.model.pca import ShapeModel
 from ssm_addon.model.quality import check_model
-from ssm_addon.pipeline.outputs import owned_output_folder, save_study_outputs, write_joint, write_outputs
+from ssm_addon.pipeline.outputs import owned_output_folder, save_joint_outputs, save_study_outputs, write_outputs
 from ssm_addon.pipeline.report import Absent, write_report_html
 from ssm_addon.pipeline.stages import metrics_stage, model_stage
 from ssm_addon.pipeline.study import apply_stage
@@ -514,10 +514,10 @@ class SSM_OT_save_model(BackgroundJob, bpy.types.Operator):
         with_metrics, plots, force, title = self.metrics, self.plots, self.force, f"SSM Builder: {obj.name}"
         output = scene_params(context, "ssm_output")
         extra = {"model_object": obj.name, "blend_file": bpy.data.filepath or ""}
-        joint = joint_study_of(obj, model) if model.structure_names else None
-        if model.structure_names:  # a joint model: its build's study lives in this session only
-            study, why = None, ("" if joint is not None else "a joint model whose build is not in this Blender "
-                                "session (a reopened file or an imported model): the model's own files")
+        joint = None
+        if model.structure_names:  # a joint model: its build's study, kept in the session and in the .blend
+            joint, why = joint_study_of(context, obj, model)
+            study = None
         else:
             study, why = saved_study(context, model)  # read here: the worker thread must not touch bpy
         mp = context.scene.ssm_model
@@ -526,11 +526,10 @@ class SSM_OT_save_model(BackgroundJob, bpy.types.Operator):
         self._metrics_result = None
 
         def work(progress, cancelled):
-            if joint is not None:  # built in this session: the joint build's writer
-                with owned_output_folder(out_dir, [], force=force, what="saving") as tmp:
-                    write_joint(joint, tmp, output=output, title=title, extra=extra, progress=progress,
-                                cancelled=cancelled, project=Absent(
-                                    f"built interactively in Blender ({bpy_file or 'an unsaved .blend'})"))
+            if joint is not None:  # the joint build's writer, under the build's rules (never into an input's folder)
+                save_joint_outputs(joint, out_dir, force=force, output=output, title=title, extra=extra,
+                                   progress=progress, cancelled=cancelled, project=Absent(
+                                       f"built interactively in Blender ({bpy_file or 'an unsaved .blend'})"))
                 return out_dir, ""
             if study is None:  # a model on its own (opened from a file): its files and what it knows
                 mets = core_metrics.evaluate(model, n_samples=samples or context_samples, seed=seed, max_loo=max_loo,

@@ -1,7 +1,7 @@
 """Project files in Blender (Save / Open Project) and the Blender part of a headless build.
 
 * ``ssm.save_project`` writes the scene's study as a ``project.toml`` (the format of
-  :mod:`ssm_addon.cli.project_build`): every instance with its source, the landmarks as
+  :mod:`ssm_addon.pipeline.project_build`): every instance with its source, the landmarks as
   ``landmarks/<instance>.fcsv`` (full precision, so the headless build reads the same
   float64 numbers), Blender-mesh instances as ``meshes/<instance>.ply``, and every
   parameter of the scene (the same numbers the operators use). Saving, opening and
@@ -35,7 +35,7 @@ from ssm_addon.formats.meshes import write_ply
 from ssm_addon.instances.importing import InstanceSpec, file_names, import_instance
 from ssm_addon.instances.volume import display_surface
 from ssm_addon.pipeline import project as core
-from ssm_addon.pipeline.joint import run_joint
+from ssm_addon.pipeline.joint import JointStudy, run_joint
 from ssm_addon.pipeline.store import study_records
 
 from . import bridge, register
@@ -84,6 +84,23 @@ def place_landmarks(context, obj, landmarks) -> None:
         set_landmark(context, obj, name, file_world=p, order=i)
 
 
+def _instance_object(context, study, spec, order: int, name: str):
+    """An instance of ``study`` as the scene shows it: the display surface of its resampled volume
+    (read again when a streamed build kept none: the same frame), its records and landmarks."""
+    ov = study.volumes.get(spec.name)
+    if ov is None:
+        ov = import_instance(spec, spacing_mm=study.params.template.spacing_mm, space=study.params.template.space,
+                             frame_method=study.params.template.frame)
+    verts, faces = display_surface(ov)
+    obj = bridge.new_mesh_object(context, name, verts, faces, collection_name=bridge.INSTANCES_COLLECTION,
+                                 matrix_world=ov.frame.matrix_world)
+    obj.ssm.order = order
+    write_instance(context, obj, spec, kind="VOLUME" if spec.volume_path is not None else "MESH_FILE", frame=ov.frame,
+                   volume_mm3=ov.volume_mm3, voxels=int(np.count_nonzero(ov.mask)))
+    place_landmarks(context, obj, spec.landmarks)
+    return obj
+
+
 def show_study(context, study) -> dict:
     """Put a study's products into the scene: instances, landmarks, template, coatings, model.
 
@@ -93,20 +110,8 @@ def show_study(context, study) -> dict:
     scene = context.scene
     bridge.ensure_mm_units(scene)
     set_scene_study_params(scene, study.params)
-    objs = {}
-    for order, spec in enumerate(study.instances):
-        ov = study.volumes.get(spec.name)
-        if ov is None:  # a streamed build keeps no volumes: read this one again (the same frame)
-            ov = import_instance(spec, spacing_mm=study.params.template.spacing_mm, space=study.params.template.space,
-                                 frame_method=study.params.template.frame)
-        verts, faces = display_surface(ov)
-        obj = bridge.new_mesh_object(context, spec.name, verts, faces, collection_name=bridge.INSTANCES_COLLECTION,
-                                     matrix_world=ov.frame.matrix_world)
-        obj.ssm.order = order
-        write_instance(context, obj, spec, kind="VOLUME" if spec.volume_path is not None else "MESH_FILE", frame=ov.frame,
-                       volume_mm3=ov.volume_mm3, voxels=int(np.count_nonzero(ov.mask)))
-        objs[spec.name] = obj
-        place_landmarks(context, obj, spec.landmarks)
+    objs = {spec.name: _instance_object(context, study, spec, order, spec.name)
+            for order, spec in enumerate(study.instances)}
     scene.ssm_display.template_instance = objs[study.template_instance]
     out = {}
     if study.template is not None:
@@ -130,31 +135,58 @@ def _write_blend(path, fill) -> str:
     return path
 
 
+def show_joint_study(context, joint) -> dict:
+    """Put a joint study's products into the scene as *Open Project* and *Build Joint Model* leave
+    it: one object per structure per subject (``"<subject> <structure>"``) with its landmarks and
+    coated mesh, the project's parameters and each structure's own tables, the joint model (an
+    empty with one slider per mode driving a mesh per structure) keeping its joint study
+    (:func:`~.scene.remember_joint_study`, so *Save Model* writes the build's files after the
+    .blend is reopened) and the build's findings for the Model panel."""
+    scene = context.scene
+    bridge.ensure_mm_units(scene)
+    set_scene_study_params(scene, joint.params)
+    scene[JOINT_KEY] = json.dumps({"tables": core.structure_overrides(joint), "template_instances": {
+        name: study.template_instance for name, study in joint.structures.items()}})
+    first = None
+    for name, study in joint.structures.items():
+        for order, spec in enumerate(study.instances):
+            obj = _instance_object(context, study, spec, order, f"{spec.name} {name}")
+            obj.ssm.structure, obj.ssm.subject = name, spec.name
+            write_coated(context, obj, study.coatings[spec.name], study.template.faces, study.template.points_object)
+            if first is None and spec.name == study.template_instance:
+                first = obj
+    scene.ssm_display.template_instance = first
+    obj = create_model_object(context, joint.model, activate=False)
+    remember_joint_study(obj, joint)
+    scene[JOINT_FINDINGS_KEY] = json.dumps(joint_findings_lines(joint))
+    return {"model": obj}
+
+
+def joint_findings_lines(joint) -> list[str]:
+    """A joint build's findings, one line each, named ``structure/subject`` (the Model panel's)."""
+    lines = [f"{name}/{f.instance or 'study'} [{f.gate}]: {f.message}" for name, study in
+             joint.structures.items() for f in study.findings]
+    return lines + [f"joint model [{f.gate}]: {f.message}" for f in joint.findings]
+
+
+def _hide_coated_instances(context) -> None:
+    """Opened as saved: the correspondence colours in Solid shading, and the coated meshes not hidden
+    by the voxel surfaces they sit on (the instances are hidden, Alt+H shows them)."""
+    coated = {o.ssm.instance.name for o in bpy.data.objects if o.ssm.role == "COATED" and o.ssm.instance}
+    for layer in context.scene.view_layers:
+        layer.update()  # synced with the collections the objects were just linked to
+        for obj in layer.objects:
+            if obj.ssm.role == "INSTANCE" and obj.name in coated:
+                obj.hide_set(True, view_layer=layer)
+
+
 def write_model_blend(study, path) -> str:
-    """Write ``model.blend`` for a built study: an empty file plus the study's objects."""
+    """Write ``model.blend`` for a built study (a :class:`~ssm_addon.pipeline.joint.JointStudy`
+    too): an empty file plus the study's objects."""
 
     def fill(context):
-        show_study(context, study)
-        # opened as saved: the correspondence colours in Solid shading (set when show_study coloured the
-        # meshes), and the coated meshes not hidden by the voxel surfaces they sit on (the instances are
-        # hidden, Alt+H shows them)
-        coated = {o.ssm.instance.name for o in bpy.data.objects if o.ssm.role == "COATED" and o.ssm.instance}
-        for layer in context.scene.view_layers:
-            layer.update()  # synced with the collections the objects were just linked to
-            for obj in layer.objects:
-                if obj.ssm.role == "INSTANCE" and obj.name in coated:
-                    obj.hide_set(True, view_layer=layer)
-
-    return _write_blend(path, fill)
-
-
-def write_joint_model_blend(model, path) -> str:
-    """Write ``model.blend`` for a joint model: an empty file plus the joint model's objects (the
-    empty with one slider per mode, one mesh per structure)."""
-
-    def fill(context):
-        bridge.ensure_mm_units(context.scene)
-        create_model_object(context, model)
+        (show_joint_study if isinstance(study, JointStudy) else show_study)(context, study)
+        _hide_coated_instances(context)
 
     return _write_blend(path, fill)
 
@@ -173,8 +205,9 @@ def write_build_outputs(study, output: OutputParams, out_dir: Path, log=print) -
     log : callable or None
         Gets one line per file written.
 
-    A study whose model is a joint model (``structure_names``) gets ``modes.png`` of the joint
-    model and a ``model.blend`` of the joint model's objects alone.
+    A :class:`~ssm_addon.pipeline.joint.JointStudy` gets ``modes.png`` of the joint model and a
+    ``model.blend`` with every structure's instances, landmarks and coated meshes and the joint
+    model, as *Open Project* and *Build Joint Model* leave the scene.
 
     Returns ``{"picture": "modes.png", "blend": "model.blend"}`` (names inside ``out_dir``).
     """
@@ -185,16 +218,13 @@ def write_build_outputs(study, output: OutputParams, out_dir: Path, log=print) -
         out["picture"] = "modes.png"
         if log:
             log("picture: modes.png (mean and ±2σ of the first modes, axial / sagittal / coronal)")
-    if study.model.structure_names:  # a joint model: its objects alone
-        write_joint_model_blend(study.model, Path(out_dir) / "model.blend")
-        if log:
-            log("blend: model.blend (the joint model: an empty with one slider per mode driving a mesh per "
-                "structure)")
-    else:
-        write_model_blend(dataclasses.replace(study, params=study.params.replace(output=output)),
-                          Path(out_dir) / "model.blend")
-        if log:
-            log("blend: model.blend (instances, landmarks, template, coated instances, model with shape keys)")
+    write_model_blend(dataclasses.replace(study, params=study.params.replace(output=output)),
+                      Path(out_dir) / "model.blend")
+    if log:
+        log("blend: model.blend (" + ("every structure's instances, landmarks and coated meshes; the joint model: an "
+                                      "empty with one slider per mode driving a mesh per structure)"
+                                      if isinstance(study, JointStudy) else
+                                      "instances, landmarks, template, coated instances, model with shape keys)"))
     out["blend"] = "model.blend"
     return out
 
@@ -367,10 +397,8 @@ class SSM_OT_build_joint_model(BackgroundJob, bpy.types.Operator):
                 if inst is not None:
                     write_coated(context, inst, coating, study.template.faces, study.template.points_object)
         obj = create_model_object(context, joint.model, activate=False)
-        remember_joint_study(obj, joint)  # Save Model writes it as ssm build does
-        findings = [f"{name}/{f.instance or 'study'} [{f.gate}]: {f.message}" for name, study in
-                    joint.structures.items() for f in study.findings]
-        findings += [f"joint model [{f.gate}]: {f.message}" for f in joint.findings]
+        remember_joint_study(obj, joint)  # Save Model writes it as ssm build does, in this session and after
+        findings = joint_findings_lines(joint)
         context.scene[JOINT_FINDINGS_KEY] = json.dumps(findings)
         share = joint.model.variability_concentration()
         k3 = min(3, joint.model.n_modes)

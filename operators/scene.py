@@ -54,7 +54,7 @@ from ssm_addon.model.quality import Finding
 from ssm_addon.pipeline.joint import JointStudy
 from ssm_addon.pipeline.optimisation import optimisation_result, optimisation_stage
 from ssm_addon.pipeline.stages import import_result
-from ssm_addon.pipeline.store import RECORD_FIELDS, apply_records, study_records
+from ssm_addon.pipeline.store import RECORD_FIELDS, apply_joint_records, apply_records, joint_records, study_records
 from ssm_addon.pipeline.study import StageResult, Study, apply_stage, merge_findings
 from ssm_addon.segmentation.appearance import load_appearance
 from ssm_addon.template.template import Template
@@ -706,28 +706,74 @@ JOINT_FINDINGS_KEY = "ssm_joint_findings"
 
 
 #: The joint study last built in this Blender session, by its model object's session id: what
-#: *Save Model* writes through the build's writer. Not kept in the .blend (a reopened file's joint
-#: model saves its own files, saying the study is not in the session).
+#: *Save Model* writes through the build's writer. The .blend keeps it too, on the model object
+#: (:data:`JOINT_RECORDS_KEY`, :data:`JOINT_TEMPLATE_KEY`), with the scene's instances and coatings.
 _JOINT_BUILDS: dict = {}
+#: Model object property (JSON): the joint build's records (:func:`~ssm_addon.pipeline.store.joint_records`).
+JOINT_RECORDS_KEY = "ssm_joint_records"
+#: Model object property (arrays): structure ``k``'s template (``JOINT_TEMPLATE_KEY.format(k)``).
+JOINT_TEMPLATE_KEY = "ssm_joint_template_{}"
 
 
 def remember_joint_study(obj, joint: JointStudy) -> None:
-    """Keep the joint study a *Build Joint Model* made ``obj`` from, for this session: the last
-    build only, without its resampled volumes (its writer needs frames, templates and coatings)."""
+    """Keep the joint study a *Build Joint Model* (or a headless joint build) made ``obj`` from: for
+    this session (the last build only, without its resampled volumes: its writer needs frames,
+    templates and coatings), and in the .blend (its records and each structure's template on
+    ``obj``; the instances, their frames and coatings are the scene's objects)."""
     for study in joint.structures.values():
+        for name, ov in study.volumes.items():
+            study.frames.setdefault(name, ov.frame)
         study.volumes.clear()
     _JOINT_BUILDS.clear()
     _JOINT_BUILDS[obj.session_uid] = joint
+    obj[JOINT_RECORDS_KEY] = json.dumps(joint_records(joint))
+    for k, study in enumerate(joint.structures.values()):
+        bridge.store_arrays(obj, JOINT_TEMPLATE_KEY.format(k), study.template.to_arrays())
 
 
-def joint_study_of(obj, model: ShapeModel) -> JointStudy | None:
-    """The joint study ``obj``'s model was built from in this session, when its model is still
-    that study's (the same arrays), else None."""
+def joint_study_of(context, obj, model: ShapeModel) -> tuple[JointStudy | None, str]:
+    """The joint study ``obj``'s model was built from: this session's build, else the one the .blend
+    keeps (:func:`remember_joint_study`) with the scene's instances and coatings. Returns
+    ``(joint, "")``, or ``(None, why)`` when the scene does not hold it (a model imported from a
+    file, a model changed since, instances or coatings removed)."""
     joint = _JOINT_BUILDS.get(obj.session_uid)
-    if joint is None or joint.model is None:
-        return None
-    same = all(np.array_equal(getattr(joint.model, k), getattr(model, k)) for k in ("mean", "modes", "variances"))
-    return joint if same else None
+    if joint is not None and joint.model is not None:
+        same = all(np.array_equal(getattr(joint.model, k), getattr(model, k)) for k in ("mean", "modes", "variances"))
+        if same:
+            return joint, ""
+    raw = obj.get(JOINT_RECORDS_KEY)
+    if raw is None:
+        return None, "a joint model without its build in this scene (an imported model): the model's own files"
+    records = json.loads(raw)
+    try:
+        joint = joint_study_from_scene(context)
+    except InputError as err:
+        return None, f"a joint model whose instances are no longer in the scene ({err}): the model's own files"
+    order = list(records.get("structures") or {})
+    if list(joint.names) != list(model.structure_names) or sorted(order) != sorted(joint.names) \
+            or [str(n) for n in model.instance_names] != list(joint.subjects):
+        return None, (f"a joint model of {', '.join(model.structure_names)} whose scene now holds "
+                      f"{', '.join(joint.names)} of other subjects: the model's own files")
+    objs = {(o.ssm.structure, o.ssm.subject or o.name): o for o in scene_instances(context)}
+    coated = {(o.ssm.instance.ssm.structure, o.ssm.instance.ssm.subject or o.ssm.instance.name): o
+              for o in coated_objects(context) if COATING_KEY in o}
+    for name, study in joint.structures.items():
+        study.template_instance = records["structures"][name]["template_instance"]
+        for subject in joint.subjects:
+            frame = stored_frame(objs[(name, subject)])
+            if frame is not None:
+                study.frames[subject] = frame
+            if (name, subject) not in coated:
+                return None, (f"a joint model whose coated {name} of {subject} is no longer in the scene: the "
+                              "model's own files")
+            study.coatings[subject] = dataclasses.replace(coating_from_object(coated[(name, subject)]), name=subject)
+        arrays = bridge.load_arrays(obj, JOINT_TEMPLATE_KEY.format(order.index(name)))
+        if arrays is None:
+            return None, f"a joint model without structure {name}'s template: the model's own files"
+        study.template = Template.from_arrays(arrays, study.frame(study.template_instance))
+    apply_joint_records(joint, records)
+    joint.model = model
+    return joint, ""
 
 
 def scene_structures(context) -> list[str]:

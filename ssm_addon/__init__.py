@@ -41,7 +41,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "base.params": ("StudyParams",),
     "pipeline.project": ("Project", "read_project", "write_project"),
     "formats.landmarks": ("LandmarkSet", "read_landmarks", "write_landmarks"),
-    "cli.project_build": ("BuildResult", "build"),
+    "pipeline.project_build": ("BuildResult", "build"),
     "instances.importing": ("InstanceSpec", "import_instance"),
     "template.template": ("Template", "build_template"),
     "coating.coating": ("CoatingResult", "coat"),
@@ -60,7 +60,7 @@ MOVED_MODULES = {
     "compute": "base.compute", "demo": "cli.demo",
     "distance_map": "coating.distance_map", "errors": "base.errors", "frame": "instances.frame",
     "imageio": "formats.label_maps", "landmarks": "formats.landmarks", "metrics": "model.metrics",
-    "params": "base.params", "progress": "base.progress", "project": "cli.project_build",
+    "params": "base.params", "progress": "base.progress", "project": "pipeline.project_build",
     "proposal": "correspondence.proposal", "quality": "model.quality", "registration": "coating.registration",
     "relaxation": "coating.relaxation", "report": "pipeline.report", "resample": "instances.resampling",
     "resources": "base.resources", "store": "pipeline.store", "study": "pipeline.study",
@@ -71,7 +71,7 @@ MOVED_MODULES = {
     "pipeline.progress": "base.progress", "pipeline.records": "base.records", "pipeline.resources": "base.resources",
     "formats.project_file": "pipeline.project", "formats.blender_store": "pipeline.store",
     "fitting.correspondence": "correspondence.rounds", "coating.proposal": "correspondence.proposal",
-    "cli.report": "pipeline.report",
+    "cli.report": "pipeline.report", "cli.project_build": "pipeline.project_build",
 }
 
 

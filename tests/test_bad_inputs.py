@@ -12,10 +12,10 @@ import pytest
 from ssm_addon.base.errors import InputError
 from ssm_addon.cli import demo
 from ssm_addon.cli.command import main
-from ssm_addon.cli.project_build import build
 from ssm_addon.model.files import save_npz, save_statismo
 from ssm_addon.model.pca import build_model
 from ssm_addon.pipeline.project import read_project
+from ssm_addon.pipeline.project_build import build
 
 
 @pytest.fixture(scope="module")

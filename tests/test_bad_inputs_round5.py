@@ -126,8 +126,8 @@ def test_the_demos_findings_are_read_against_its_truth(tmp_path):
 def test_an_empty_or_flat_structure_mesh_is_refused_before_any_coating(tmp_path, fault):
     import numpy as np
 
-    from ssm_addon.cli.project_build import build
     from ssm_addon.formats.meshes import read_mesh, write_ply
+    from ssm_addon.pipeline.project_build import build
 
     path = joint_project(tmp_path, 4)
     v, f = read_mesh(tmp_path / "S2_b.ply")

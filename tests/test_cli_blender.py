@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from ssm_addon.cli import demo
-from ssm_addon.cli.project_build import build
 from ssm_addon.pipeline.project import read_project
+from ssm_addon.pipeline.project_build import build
 
 pytestmark = pytest.mark.blender
 

@@ -19,9 +19,9 @@ from conftest import as_from_a_terminal
 from ssm_addon.base.compute import Executor, check_scheduler, time_left_text
 from ssm_addon.base.errors import InputError
 from ssm_addon.cli import demo
-from ssm_addon.cli.project_build import build
 from ssm_addon.pipeline.cache import BuildCache
 from ssm_addon.pipeline.project import read_project
+from ssm_addon.pipeline.project_build import build
 
 ROOT = Path(__file__).resolve().parents[1]
 ARRAYS = ("mean", "modes", "variances", "instance_points", "instance_points_world")

@@ -15,10 +15,10 @@ from conftest import project_variant, template_of
 
 from ssm_addon.base.errors import InputError
 from ssm_addon.cli import demo
-from ssm_addon.cli.project_build import build
 from ssm_addon.correspondence.rounds import refine_instance, round_landmarks
 from ssm_addon.formats.landmarks import read_landmarks
 from ssm_addon.pipeline.project import read_project
+from ssm_addon.pipeline.project_build import build
 
 QUICK = {"spacing = 1.0": "spacing = 1.0\nr_min_mm = 4.0\nr_max_mm = 8.0",
          "[model]": "[model]\nspecificity_samples = 50"}

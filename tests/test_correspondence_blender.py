@@ -9,9 +9,9 @@ import pytest
 from conftest import project_variant, template_of
 
 from ssm_addon.cli import demo
-from ssm_addon.cli.project_build import build
 from ssm_addon.formats.landmarks import read_landmarks
 from ssm_addon.pipeline.project import read_project
+from ssm_addon.pipeline.project_build import build
 
 pytestmark = pytest.mark.blender
 

@@ -15,11 +15,11 @@ import pytest
 from conftest import ellipsoid_mesh, synthetic_population
 from foreign_data import LPS, knee30_in_scanner_poses, scalismo_landmarks, slicer_obj, slicer_ply, slicer_stl
 
-from ssm_addon.cli.project_build import build
 from ssm_addon.formats.label_maps import read_label_map
 from ssm_addon.formats.meshes import mesh_space, read_mesh, write_ply
 from ssm_addon.meshutil import MeshLocator
 from ssm_addon.pipeline.project import read_project
+from ssm_addon.pipeline.project_build import build
 
 WRITERS = {"ply": slicer_ply, "stl": slicer_stl, "obj": slicer_obj}
 

@@ -166,8 +166,8 @@ def test_bad_inputs_are_named(model, tmp_path):
 def verse_models(verse_dir, tmp_path_factory):
     """The nine VerSe vertebrae built into a model (landmarks known), for leave-one-out fits."""
 
-    from ssm_addon.cli.project_build import build
     from ssm_addon.pipeline.project import read_project
+    from ssm_addon.pipeline.project_build import build
 
     folder = tmp_path_factory.mktemp("verse_fit")
     project = read_project(write_verse_project(folder, verse_dir))
@@ -289,8 +289,8 @@ def test_fit_out_follows_the_build_output_rules(model, tmp_path, capsys):
 def demo_build(tmp_path_factory):
     """A small demo build (6 instances) and its label maps."""
     from ssm_addon.cli.demo import make_demo_population
-    from ssm_addon.cli.project_build import build
     from ssm_addon.pipeline.project import read_project
+    from ssm_addon.pipeline.project_build import build
 
     folder = tmp_path_factory.mktemp("posefit")
     proj = make_demo_population(folder / "pop", n=6, seed=3)

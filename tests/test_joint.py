@@ -132,8 +132,8 @@ def test_knee30_joint_build_predicts_the_tibia_from_the_femur(tmp_path):
     from eval_joint import evaluate, knee_project
 
     from ssm_addon.cli.command import main
-    from ssm_addon.cli.project_build import build
     from ssm_addon.model.files import load_npz
+    from ssm_addon.pipeline.project_build import build
 
     project = knee_project(tmp_path / "in", 8, 12)
     result = build(read_project(project), tmp_path / "out", jobs=2, log=None)
@@ -166,7 +166,7 @@ def test_a_lumbar_spine_from_label_maps_gives_its_relative_pose_spread(verse_dir
     from conftest import VERSE_FILE
     from foreign_data import _log_rotation_for_tests, verse_spine_population
 
-    from ssm_addon.cli.project_build import build
+    from ssm_addon.pipeline.project_build import build
 
     labels = {"L1": 20, "L2": 21, "L3": 22, "L4": 23, "L5": 24}
     project, moves = verse_spine_population(tmp_path / "in", VERSE_FILE, verse_dir / "landmarks", labels, n=6)
@@ -326,7 +326,7 @@ def test_a_joint_build_draws_the_same_pictures_on_worker_processes_as_serially(t
     the build's worker processes while the files are written, the same bytes as drawn in the main
     process; the same joint model, and the same metrics of it and of each structure (computed on
     the workers while the main process finds the collisions)."""
-    from ssm_addon.cli.project_build import build
+    from ssm_addon.pipeline.project_build import build
 
     project = joint_project(tmp_path, 4, ["[template]", "spacing = 1.0", ""])
     outs = {}

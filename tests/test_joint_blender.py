@@ -164,18 +164,48 @@ def test_blenders_gltf_importer_opens_a_joint_model_glb_with_shared_mode_keys(bp
     np.testing.assert_allclose(got.max(axis=0), model.mean.max(axis=0) / 1000, atol=1e-6)
 
 
-def test_a_joint_models_blend_file_keeps_its_sliders_driving_every_structure(bpy_clean, tmp_path):
-    """model.blend of a joint build, reopened: the empty, a mesh per structure, and the drivers
-    (one slider moves both structures)."""
+def test_a_headless_joint_builds_blend_holds_every_structure_and_saves_the_build_when_reopened(bpy_clean, tmp_path):
+    """``ssm build`` of a joint project inside Blender: ``model.blend`` holds every structure's instances
+    (with their landmarks) and coated meshes as Open Project + Build Joint Model leave the scene, the
+    joint model's sliders drive every structure, and *Save Model* of the reopened file writes the build's
+    files (each structure's template and coated meshes, the same report), refusing the inputs' folder."""
+    import json
+    import sys
+
     from ssm.operators import bridge
-    from ssm.operators.project import write_joint_model_blend
-    from ssm.operators.scene import find_model_object, mode_sliders, model_parts
+    from ssm.operators.scene import (
+        COATING_KEY,
+        find_model_object,
+        mode_sliders,
+        model_parts,
+        scene_instances,
+        scene_structures,
+    )
+
+    from ssm_addon.model.files import load_npz
 
     bpy = bpy_clean
-    a, b, fa, fb, _t = joint_population(n=8)
-    model = joint_model(a, b, fa, fb)
-    write_joint_model_blend(model, tmp_path / "model.blend")
-    bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "model.blend"))
+    path = joint_project(tmp_path, 4, ["[template]", "spacing = 1.0", ""])
+    cli = sys.modules["ssm.operators.cli"]
+    assert cli.command(["build", str(path), "--out", str(tmp_path / "out")]) == 0
+    model = load_npz(tmp_path / "out" / "model.npz")
+    bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "out" / "model.blend"))
+    assert scene_structures(bpy.context) == ["a", "b"]
+    objs = scene_instances(bpy.context)
+    assert sorted(o.name for o in objs) == sorted(f"S{i} {s}" for i in range(4) for s in "ab")
+    assert all(len([c for c in o.children if c.ssm.role == "LANDMARK"]) == 4 for o in objs)
+    coated = [o for o in bpy.data.objects if o.ssm.role == "COATED"]
+    assert len(coated) == 8
+    for o in coated:  # each coated mesh is the build's: its world points are the model's rows of that subject
+        inst = o.ssm.instance
+        i = list(model.instance_names).index(inst.ssm.subject)
+        pts = bridge.load_arrays(o, COATING_KEY)["points_object"]
+        sl = model.structure_slice(inst.ssm.structure)
+        assert pts.shape == (sl.stop - sl.start, 3)
+        ply = (tmp_path / "out" / "structures" / inst.ssm.structure / "coated" / f"{inst.ssm.subject}.ply")
+        assert ply.is_file()
+        np.testing.assert_allclose(model.instance_points_world[i][sl].mean(axis=0), np.asarray(
+            inst.matrix_world)[:3, :3] @ pts.mean(axis=0) + np.asarray(inst.matrix_world)[:3, 3], atol=2.0)
     empty = find_model_object(bpy.context)
     parts = model_parts(empty)
     assert [p.name for p in parts] == ["SSM Model a", "SSM Model b"]
@@ -186,6 +216,30 @@ def test_a_joint_models_blend_file_keeps_its_sliders_driving_every_structure(bpy
         got = bridge.evaluated_vertices(bpy.context, part)
         np.testing.assert_allclose(got, model.mean[sl] + 1.5 * model.standard_deviations[0] * model.modes[0][sl],
                                    atol=1e-4 * np.abs(model.mean).max())
+    mode_sliders(empty)[0].value = 0.0
+    # Save Model of the reopened file: the build's writer, from what the .blend keeps
+    assert bpy.ops.ssm.save_model(directory=str(tmp_path / "saved")) == {"FINISHED"}
+    saved = json.loads((tmp_path / "saved" / "report.json").read_text())
+    built = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert saved["joint"]["structures"] == built["joint"]["structures"]
+    assert saved["joint"]["shape_pose"] == built["joint"]["shape_pose"]
+    assert saved["metrics"] == built["metrics"] and saved["instances"] == built["instances"]
+    assert sorted((f["instance"], f["gate"]) for f in saved["quality"]["findings"]) == sorted(
+        (f["instance"], f["gate"]) for f in built["quality"]["findings"])
+    for name in "ab":
+        assert (tmp_path / "saved" / "structures" / name / "template.ply").read_bytes() == (
+            tmp_path / "out" / "structures" / name / "template.ply").read_bytes()
+        for i in range(4):
+            assert (tmp_path / "saved" / "structures" / name / "coated" / f"S{i}.ply").read_bytes() == (
+                tmp_path / "out" / "structures" / name / "coated" / f"S{i}.ply").read_bytes()
+    resaved = load_npz(tmp_path / "saved" / "model.npz")
+    for key in ("mean", "modes", "variances", "instance_points_world"):
+        np.testing.assert_array_equal(getattr(resaved, key), getattr(model, key), err_msg=key)
+    # the build's rule: never into the folder of an input (the subjects' meshes are in tmp_path)
+    before = sorted(p.name for p in tmp_path.iterdir())
+    with pytest.raises(RuntimeError, match="input"):
+        bpy.ops.ssm.save_model(directory=str(tmp_path))
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
 
 
 def test_a_joint_project_opened_and_built_in_blender_gives_the_headless_model(bpy_clean, tmp_path, layout_recorder):
@@ -195,9 +249,9 @@ def test_a_joint_project_opened_and_built_in_blender_gives_the_headless_model(bp
     The single-structure operators step aside."""
     from ssm.operators.scene import find_model_object, model_from_object, scene_instances, scene_structures
 
-    from ssm_addon.cli.project_build import build
     from ssm_addon.model.files import load_npz
     from ssm_addon.pipeline.project import read_project
+    from ssm_addon.pipeline.project_build import build
 
     bpy = bpy_clean
     path = joint_project(tmp_path, 4, ["[template]", "spacing = 1.0", "", "[[structures]]", 'name = "b"',

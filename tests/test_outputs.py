@@ -13,9 +13,9 @@ import pytest
 from ssm_addon.__main__ import main
 from ssm_addon.base.errors import InputError
 from ssm_addon.cli import demo
-from ssm_addon.cli.project_build import build
 from ssm_addon.pipeline.outputs import MANIFEST
 from ssm_addon.pipeline.project import read_project
+from ssm_addon.pipeline.project_build import build
 
 
 @pytest.fixture(scope="module")

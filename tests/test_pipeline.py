@@ -11,10 +11,10 @@ import pytest
 
 from ssm_addon.base.compute import Executor
 from ssm_addon.cli import demo
-from ssm_addon.cli.project_build import build
 from ssm_addon.pipeline.cache import BuildCache
 from ssm_addon.pipeline.model_method import refine_correspondence
 from ssm_addon.pipeline.project import read_project
+from ssm_addon.pipeline.project_build import build
 from ssm_addon.pipeline.runner import run
 from ssm_addon.pipeline.stages import import_stage, template_stage
 from ssm_addon.pipeline.study import Study, apply_stage

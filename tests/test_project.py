@@ -18,9 +18,9 @@ import pytest
 from ssm_addon.__main__ import main
 from ssm_addon.base.errors import Cancelled, InputError
 from ssm_addon.cli import demo
-from ssm_addon.cli.project_build import build
 from ssm_addon.formats.landmarks import LandmarkSet, read_landmarks, write_landmarks
 from ssm_addon.pipeline.project import read_project, write_project
+from ssm_addon.pipeline.project_build import build
 
 NAMES = ("a", "b", "c", "d", "e")
 

@@ -14,11 +14,11 @@ from ssm_addon.__main__ import main
 from ssm_addon.base.errors import InputError
 from ssm_addon.base.params import CoatingParams, QualityParams
 from ssm_addon.cli import demo
-from ssm_addon.cli.project_build import build
 from ssm_addon.formats.landmarks import LandmarkSet, read_landmarks, write_landmarks
 from ssm_addon.model import quality as Q
 from ssm_addon.model.pca import build_model
 from ssm_addon.pipeline.project import read_project
+from ssm_addon.pipeline.project_build import build
 
 
 @pytest.fixture(scope="module")

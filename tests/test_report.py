@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from ssm_addon.cli import demo
-from ssm_addon.cli.project_build import build
 from ssm_addon.pipeline import report as report_module
 from ssm_addon.pipeline.project import read_project
+from ssm_addon.pipeline.project_build import build
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",

@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 from conftest import VERSE_FILE, VERSE_LABELS
 
-from ssm_addon.cli.project_build import build
 from ssm_addon.pipeline.project import read_project
+from ssm_addon.pipeline.project_build import build
 
 pytestmark = [pytest.mark.blender, pytest.mark.slow]
 

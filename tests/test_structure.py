@@ -329,7 +329,7 @@ def test_panels_draw_without_scanning_every_object():
 def test_the_build_path_does_not_import_scipy_stats():
     """``scipy.stats`` costs about 0.5 s and 20 MB per process to import; the build's modules
     (and every worker process that runs them) use ``scipy.special`` for distribution tails."""
-    code = ("import sys\nimport ssm_addon.cli.project_build, ssm_addon.pipeline.study, ssm_addon.correspondence.rounds, "
+    code = ("import sys\nimport ssm_addon.pipeline.project_build, ssm_addon.pipeline.study, ssm_addon.correspondence.rounds, "
             "ssm_addon.fitting.fit, ssm_addon.coating.coating\nprint('scipy.stats' in sys.modules)")
     proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
                           env={**os.environ, "PYTHONPATH": str(ROOT)})

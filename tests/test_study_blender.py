@@ -14,8 +14,8 @@ import pytest
 from conftest import VERSE_FILE, VERSE_LABELS, add_coated, coated_population
 
 from ssm_addon.base import params as P
-from ssm_addon.cli.project_build import build
 from ssm_addon.pipeline.project import read_project
+from ssm_addon.pipeline.project_build import build
 
 pytestmark = pytest.mark.blender
 

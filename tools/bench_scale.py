@@ -38,8 +38,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from ssm_addon.cli import demo  # noqa: E402
-from ssm_addon.cli.project_build import build  # noqa: E402
 from ssm_addon.pipeline.project import read_project  # noqa: E402
+from ssm_addon.pipeline.project_build import build  # noqa: E402
 
 
 class MemorySampler:

@@ -5,7 +5,7 @@ Usage::
     python tools/eval_builds.py verse [--landmarks-on L1,T11,L4] [--jobs 2]
     python tools/eval_builds.py demo [--n 24] [--jobs 2]
 
-For each method it builds the project (``ssm_addon.cli.project_build.build``) and prints the
+For each method it builds the project (``ssm_addon.pipeline.project_build.build``) and prints the
 leave-one-out generalization and the specificity at the first modes, the coating time,
 folds left and relaxation convergence; for ``verse`` with landmarks on a few instances
 only, the distance of every carried-over landmark (``landmarks/<name>.fcsv`` of the build)
@@ -27,9 +27,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from ssm_addon import demo  # noqa: E402
-from ssm_addon.cli.project_build import build  # noqa: E402
 from ssm_addon.formats.landmarks import read_landmarks  # noqa: E402
 from ssm_addon.pipeline.project import read_project  # noqa: E402
+from ssm_addon.pipeline.project_build import build  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 VERSE = {"T9": 16, "T10": 17, "T11": 18, "T12": 19, "L1": 20, "L2": 21, "L3": 22, "L4": 23, "L5": 24}

@@ -37,13 +37,13 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from ssm_addon.base.params import FitParams  # noqa: E402
 from ssm_addon.cli import demo  # noqa: E402
-from ssm_addon.cli.project_build import build  # noqa: E402
 from ssm_addon.coating.coating import coat_from_start  # noqa: E402
 from ssm_addon.coating.distance_map import DistanceMap  # noqa: E402
 from ssm_addon.fitting.fit import Pose, Target, fit_model  # noqa: E402
 from ssm_addon.meshutil import Mesh, marching_cubes  # noqa: E402
 from ssm_addon.model.pca import build_model  # noqa: E402
 from ssm_addon.pipeline.project import read_project  # noqa: E402
+from ssm_addon.pipeline.project_build import build  # noqa: E402
 from ssm_addon.pipeline.stages import import_instances  # noqa: E402
 
 NOISE_MM = [FitParams().noise_mm]  # the completion's target noise (--noise)

@@ -33,9 +33,9 @@ import numpy as np  # noqa: E402
 from foreign_data import knee30_in_scanner_poses, verse_slicer_meshes  # noqa: E402
 
 from ssm_addon.base.params import CORRESPONDENCE_METHODS  # noqa: E402
-from ssm_addon.cli.project_build import build  # noqa: E402
 from ssm_addon.formats.meshes import read_mesh  # noqa: E402
 from ssm_addon.pipeline.project import read_project  # noqa: E402
+from ssm_addon.pipeline.project_build import build  # noqa: E402
 
 DATA = Path(os.environ.get("SSM_SHARED_DATA") or ROOT.parent / "shared" / "data")
 VERSE = {"T9": 16, "T10": 17, "T11": 18, "T12": 19, "L1": 20, "L2": 21, "L3": 22, "L4": 23, "L5": 24}

@@ -5,7 +5,7 @@ Each stage's parameters are a frozen dataclass whose fields carry their descript
 from these definitions, so it cannot drift:
 
 * the project file's tables and their validation (:func:`from_table`, :func:`to_table`,
-  used by :mod:`ssm_addon.cli.project_build`);
+  used by :mod:`ssm_addon.pipeline.project_build`);
 * the command line's options (:func:`add_arguments`, :func:`from_arguments`);
 * the Blender properties and panels (``operators/properties.py`` builds one property
   group per class from :func:`specs`).

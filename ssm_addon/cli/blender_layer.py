@@ -22,7 +22,8 @@ import threading
 from pathlib import Path
 
 from ..base.errors import SSMError
-from ..pipeline.store import load_study, save_study
+from ..pipeline.joint import JointStudy
+from ..pipeline.store import load_study_or_joint, save_joint_study, save_study
 
 PACKAGE_NAME = "ssm"
 
@@ -63,7 +64,8 @@ def extension_package():
 
 
 def blend_writer():
-    """``write_build_outputs(study, output, out_dir, log)`` of the Blender layer, or None."""
+    """``write_build_outputs(study, output, out_dir, log)`` of the Blender layer (``study``: a
+    :class:`~ssm_addon.pipeline.study.Study` or a :class:`~ssm_addon.pipeline.joint.JointStudy`), or None."""
     if not bpy_available():
         return None
     pkg = extension_package()
@@ -75,8 +77,8 @@ def blend_writer():
 def blend_writer_in_child():
     """Like :func:`blend_writer`, but the Blender step runs in its own process and session.
 
-    The study is handed over on disk (:mod:`ssm_addon.pipeline.store`: arrays and JSON, no
-    pickles). A signal (Ctrl-C, SIGTERM, SIGHUP) reaches only this process, which stops
+    The study (or joint study) is handed over on disk (:mod:`ssm_addon.pipeline.store`: arrays
+    and JSON, no pickles). A signal (Ctrl-C, SIGTERM, SIGHUP) reaches only this process, which stops
     the child and cleans up: it cannot interrupt Blender's C code half-way (that
     segfaulted). Returns None when the Blender layer is not available.
     """
@@ -88,7 +90,8 @@ def blend_writer_in_child():
         out_dir = Path(out_dir)
         handover = Path(tempfile.mkdtemp(prefix="ssm-blender-step-"))
         try:
-            save_study(dataclasses.replace(study, params=study.params.replace(output=output)), handover)
+            given = dataclasses.replace(study, params=study.params.replace(output=output))
+            (save_joint_study if isinstance(study, JointStudy) else save_study)(given, handover)
             cmd = [sys.executable, "-m", "ssm_addon.cli.blender_layer", str(handover), str(out_dir)]
             if log is None:
                 cmd.append("--quiet")
@@ -142,7 +145,7 @@ def blend_writer_in_child():
 
 def _child_main(argv) -> int:
     """``python -m ssm_addon.cli.blender_layer STUDY_DIR OUT_DIR [--quiet]``: the Blender step."""
-    study, _extra = load_study(argv[0])
+    study, _extra = load_study_or_joint(argv[0])
     writer = blend_writer()
     if writer is None:
         print("the Blender layer is not available", file=sys.stderr)

@@ -8,7 +8,7 @@ Subcommands
     Build a template (paper 3) and write it as PLY in world mm; prints vertices, faces,
     Euler characteristic and genus.
 ``build PROJECT.toml --out DIR [--jobs N] [--no-blend]``
-    The whole pipeline from a project file (see :mod:`ssm_addon.cli.project_build`).
+    The whole pipeline from a project file (see :mod:`ssm_addon.pipeline.project_build`).
 ``analyze MODEL_DIR [--attributes CSV] --group COLUMN [--covariate COLUMN …] --out DIR``
     Group differences and covariate effects of a built model (:mod:`ssm_addon.analysis`).
 ``demo --out DIR [--n N] [--jobs N] [--seed S] [--no-blend]``
@@ -369,7 +369,7 @@ def with_overrides(project, args):
 
 def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> int:
     from ..cli import blender_layer
-    from ..cli.project_build import build, read_project
+    from ..pipeline.project_build import build, read_project
 
     jobs = _workers(jobs)
     project = with_overrides(read_project(project_path), args)

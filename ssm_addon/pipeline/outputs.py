@@ -47,8 +47,8 @@ from .appearance import appearance_stage
 from .report import Absent, Report, joint_report, model_report, study_report, write_report_html
 from .study import Study, carried_landmarks
 
-__all__ = ["MANIFEST", "check_output_folder", "check_writable", "drawing_copy", "owned_output_folder", "peak_memory_mb",
-           "relative_files", "save_study_outputs", "start_drawings", "study_inputs", "write_joint", "write_outputs", "write_study"]
+__all__ = ["MANIFEST", "absolute_files", "check_output_folder", "check_writable", "drawing_copy", "owned_output_folder", "peak_memory_mb",
+           "relative_files", "save_joint_outputs", "save_study_outputs", "start_drawings", "study_inputs", "write_joint", "write_outputs", "write_study"]
 
 
 def peak_memory_mb() -> dict:
@@ -455,6 +455,25 @@ def write_study(study: Study, folder, *, output: OutputParams, project: str | Ab
     return files, final
 
 
+def absolute_files(files: dict, out_dir: Path) -> dict:
+    """``files`` (names relative to the output folder, or lists of them) as full paths."""
+    return {k: ([str(out_dir / x) for x in v] if isinstance(v, list) else str(out_dir / v)) for k, v in files.items()}
+
+
+def save_joint_outputs(joint, out_dir, *, force: bool = False, inputs=(), **kw) -> tuple[Path, dict, Report]:
+    """:func:`write_joint` into ``out_dir`` under the build's ownership rules, as
+    :func:`save_study_outputs` writes a study: a folder holding any structure's inputs is refused.
+
+    Returns (the output folder, ``{output name: absolute path}``, the report).
+    """
+    out_dir = Path(out_dir).expanduser().resolve()
+    every = [p for study in joint.structures.values() for p in study_inputs(study)]
+    with owned_output_folder(out_dir, [*every, *inputs], force=force, what="saving",
+                             cancelled=kw.get("cancelled")) as tmp:
+        files, final = write_joint(joint, tmp, **kw)
+    return out_dir, absolute_files(files, out_dir), final
+
+
 def save_study_outputs(study: Study, out_dir, *, force: bool = False, inputs=(), **kw) -> tuple[Path, dict, Report]:
     """:func:`write_study` into ``out_dir`` under the build's ownership rules
     (:func:`owned_output_folder`): a folder holding inputs or files no SSM command wrote is
@@ -466,8 +485,7 @@ def save_study_outputs(study: Study, out_dir, *, force: bool = False, inputs=(),
     with owned_output_folder(out_dir, [*study_inputs(study), *inputs], force=force, what="saving",
                              cancelled=kw.get("cancelled")) as tmp:
         files, final = write_study(study, tmp, **kw)
-    absolute = {k: ([str(out_dir / x) for x in v] if isinstance(v, list) else str(out_dir / v)) for k, v in files.items()}
-    return out_dir, absolute, final
+    return out_dir, absolute_files(files, out_dir), final
 
 
 def write_joint(joint, folder, *, output: OutputParams, project: str | Absent, title: str, extra: dict | None = None,

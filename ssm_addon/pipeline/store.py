@@ -28,10 +28,12 @@ from ..instances.volume import ObjectVolume, frame_from_arrays, frame_to_arrays
 from ..model.files import model_from_arrays, write_npz
 from ..model.metrics import ModelMetrics
 from ..model.quality import Finding
+from ..pipeline.joint import JointStudy
 from ..pipeline.study import Study
 from ..template.template import Template
 
-__all__ = ["RECORD_FIELDS", "apply_records", "load_study", "save_study", "study_records"]
+__all__ = ["RECORD_FIELDS", "apply_joint_records", "apply_records", "joint_records", "load_joint_study", "load_study",
+           "load_study_or_joint", "save_joint_study", "save_study", "study_records"]
 
 #: The study's records beside its arrays: what its stages found, decided and took.
 RECORD_FIELDS = ("findings", "outlier_scores", "coating_start", "correspondence_rounds", "correspondence_check",
@@ -118,15 +120,8 @@ def save_study(study: Study, folder, *, extra: dict | None = None) -> Path:
         arrays[f"coating/{k}/points_object"] = np.asarray(c.points_object, float)
         arrays[f"coating/{k}/warped_points_object"] = np.asarray(c.warped_points_object, float)
         arrays[f"coating/{k}/fit_json"] = np.asarray(c.fit.to_json())
-    m = study.model
-    if m is not None:
-        for key in ("mean", "faces", "modes", "variances", "instance_points", "instance_points_world"):
-            arrays[f"model/{key}"] = np.asarray(getattr(m, key))
-        arrays["model/instance_names"] = np.asarray([str(s) for s in m.instance_names])
-        arrays["model/params_json"] = np.asarray(json.dumps(jsonable(m.params)))
-        if m.structure_names:  # a joint model
-            arrays["model/structure_names"] = np.asarray([str(s) for s in m.structure_names])
-            arrays["model/structure_offsets"] = np.asarray(m.structure_offsets, np.int64)
+    if study.model is not None:
+        _model_arrays(study.model, arrays)
     doc = {
         "instances": insts,
         "template_instance": study.template_instance,
@@ -176,10 +171,102 @@ def load_study(folder) -> tuple[Study, dict]:
     if "template/points_object" in a:
         study.template = Template.from_arrays({k.removeprefix("template/"): v for k, v in a.items()
                                                if k.startswith("template/")}, frame_from_arrays("template/frame", a))
-    if "model/mean" in a:
-        keys = ("mean", "faces", "modes", "variances", "instance_names", "instance_points", "instance_points_world",
-                "structure_names", "structure_offsets")
-        study.model = model_from_arrays({**{k: a[f"model/{k}"] for k in keys if f"model/{k}" in a},
-                                         "params": json.loads(str(a["model/params_json"]))}, str(folder))
+    study.model = _model_from_arrays(a, folder)
     apply_records(study, doc.get("records") or {})
     return study, doc.get("extra", {})
+
+
+def _model_arrays(m, arrays: dict) -> None:
+    """A model's arrays into ``arrays`` (keys ``model/<field>``)."""
+    for key in ("mean", "faces", "modes", "variances", "instance_points", "instance_points_world"):
+        arrays[f"model/{key}"] = np.asarray(getattr(m, key))
+    arrays["model/instance_names"] = np.asarray([str(s) for s in m.instance_names])
+    arrays["model/params_json"] = np.asarray(json.dumps(jsonable(m.params)))
+    if m.structure_names:  # a joint model
+        arrays["model/structure_names"] = np.asarray([str(s) for s in m.structure_names])
+        arrays["model/structure_offsets"] = np.asarray(m.structure_offsets, np.int64)
+
+
+def _model_from_arrays(a: dict, folder):
+    """The model :func:`_model_arrays` wrote, or None."""
+    if "model/mean" not in a:
+        return None
+    keys = ("mean", "faces", "modes", "variances", "instance_names", "instance_points", "instance_points_world",
+            "structure_names", "structure_offsets")
+    return model_from_arrays({**{k: a[f"model/{k}"] for k in keys if f"model/{k}" in a},
+                              "params": json.loads(str(a["model/params_json"]))}, str(folder))
+
+
+# ------------------------------------------------------------------------------ a joint study
+def joint_records(joint: JointStudy) -> dict:
+    """A joint study's records as JSON-ready values: each structure's template instance and
+    :func:`study_records`, and the joint model's own (metrics, each structure's metrics, shape and
+    relative pose, collisions, findings, outlier scores, wall times). With the arrays (templates,
+    frames, coatings, the model) they are what the joint build's writer needs; Blender keeps them
+    in the .blend so *Save Model* of a reopened joint model writes the build's files."""
+    return jsonable({
+        "subjects": list(joint.subjects),
+        "structures": {name: {"template_instance": study.template_instance, "records": study_records(study)}
+                       for name, study in joint.structures.items()},
+        "joint": {"metrics": joint.metrics.to_dict() if joint.metrics is not None else None,
+                  "structure_metrics": joint.structure_metrics, "shape_pose": joint.shape_pose,
+                  "collisions": joint.collisions, "findings": [f.to_dict() for f in joint.findings],
+                  "outlier_scores": joint.outlier_scores, "timings_s": joint.timings_s},
+    })
+
+
+def apply_joint_records(joint: JointStudy, records: dict) -> JointStudy:
+    """Put :func:`joint_records`' values into ``joint`` and its structures' studies (in place)."""
+    for name, rec in (records.get("structures") or {}).items():
+        if name in joint.structures:
+            apply_records(joint.structures[name], rec.get("records") or {})
+    j = records.get("joint") or {}
+    joint.metrics = ModelMetrics.from_dict(j.get("metrics")) if j.get("metrics") else None
+    joint.structure_metrics = dict(j.get("structure_metrics") or {})
+    joint.shape_pose = dict(j.get("shape_pose") or {})
+    joint.collisions = dict(j.get("collisions") or {})
+    joint.findings = [Finding.from_dict(f) for f in j.get("findings") or ()]
+    joint.outlier_scores = dict(j.get("outlier_scores") or {})
+    joint.timings_s = {k: float(v) for k, v in (j.get("timings_s") or {}).items()}
+    return joint
+
+
+def save_joint_study(joint: JointStudy, folder, *, extra: dict | None = None) -> Path:
+    """Write a joint study into ``folder`` (created): ``joint.json`` (subjects, structure order, the
+    project's parameters, :func:`joint_records`), each structure's study under ``structures/<k>/``
+    (:func:`save_study`) and the joint model in ``model.npz``. Returns the folder."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    for k, study in enumerate(joint.structures.values()):
+        save_study(study, folder / "structures" / str(k))
+    arrays: dict[str, np.ndarray] = {}
+    if joint.model is not None:
+        _model_arrays(joint.model, arrays)
+    write_npz(folder / "model.npz", arrays)
+    doc = {"structures": list(joint.structures), "parameters": joint.params.to_tables(),
+           "records": joint_records(joint), "extra": extra or {}}
+    (folder / "joint.json").write_text(json.dumps(jsonable(doc)), encoding="utf-8")
+    return folder
+
+
+def load_joint_study(folder) -> tuple[JointStudy, dict]:
+    """Read a joint study written by :func:`save_joint_study`; returns (joint study, extra)."""
+    folder = Path(folder)
+    try:
+        doc = json.loads((folder / "joint.json").read_text(encoding="utf-8"))
+        npz = np.load(folder / "model.npz", allow_pickle=False)
+    except (OSError, ValueError) as err:
+        raise InputError(f"{folder}: not a stored joint study ({err})") from None
+    studies = {name: load_study(folder / "structures" / str(k))[0] for k, name in enumerate(doc["structures"])}
+    records = doc.get("records") or {}
+    joint = JointStudy(subjects=tuple(records.get("subjects") or next(iter(studies.values())).names),
+                       structures=studies, params=P.StudyParams.from_tables(doc["parameters"], where=f"{folder}:"))
+    joint.model = _model_from_arrays({k: npz[k] for k in npz.files}, folder)
+    joint.metrics = None
+    apply_joint_records(joint, {"joint": records.get("joint") or {}})  # each study's records came with it
+    return joint, doc.get("extra", {})
+
+
+def load_study_or_joint(folder):
+    """:func:`load_joint_study` or :func:`load_study`, whichever ``folder`` holds."""
+    return load_joint_study(folder) if (Path(folder) / "joint.json").is_file() else load_study(folder)

@@ -149,7 +149,7 @@ class Study:
 
     @classmethod
     def from_project(cls, project) -> Study:
-        """The study of a parsed project file (:func:`ssm_addon.cli.project_build.read_project`)."""
+        """The study of a parsed project file (:func:`ssm_addon.pipeline.project_build.read_project`)."""
         return cls(instances=project.instances, template_instance=project.template_instance, params=project.params)
 
     @property

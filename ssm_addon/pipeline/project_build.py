@@ -23,12 +23,12 @@ from ..base.errors import InputError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..formats.meshes import read_mesh
 from ..model.quality import QualityError, warnings_text
-from ..pipeline.cache import BuildCache
-from ..pipeline.joint import JointStudy, run_joint
-from ..pipeline.outputs import check_output_folder, check_writable, owned_output_folder, write_joint, write_study
-from ..pipeline.project import Project, project_text, read_project, write_project  # noqa: F401 (the flat layout's imports)
-from ..pipeline.runner import run
-from ..pipeline.study import Study
+from .cache import BuildCache
+from .joint import JointStudy, run_joint
+from .outputs import absolute_files, check_output_folder, check_writable, owned_output_folder, write_joint, write_study
+from .project import Project, project_text, read_project, write_project  # noqa: F401 (the flat layout's imports)
+from .runner import run
+from .study import Study
 
 
 @dataclass(frozen=True)
@@ -112,11 +112,6 @@ def write_analysis_files(project: Project, model, folder: Path, *, timings: dict
     if timings is not None:
         timings["analysis"] = time.perf_counter() - t0
     return files, adoc
-
-
-def _absolute_files(files: dict, out_dir: Path) -> dict:
-    """``files`` (names relative to the output folder, or lists of them) as full paths."""
-    return {k: ([str(out_dir / x) for x in v] if isinstance(v, list) else str(out_dir / v)) for k, v in files.items()}
 
 
 def _check_before_build(project: Project, out_dir: Path, *, force: bool, what: str) -> list[Path]:
@@ -220,7 +215,7 @@ def build(
     out_dir = Path(out_dir).expanduser().resolve()
     if project.structures:
         return build_joint(project, out_dir, jobs=jobs, progress=progress, cancelled=cancelled, log=say, force=force,
-                           scheduler=scheduler, cache=cache, blender_hook=blender_hook)
+                           scheduler=scheduler, cache=cache, blend=blend, blender_hook=blender_hook)
     inputs = _check_before_build(project, out_dir, force=force, what="instances")
     t_total = time.perf_counter()
     study = Study.from_project(project)
@@ -253,7 +248,7 @@ def build(
                 extra={"compute": compute}, log=say, progress=progress, cancelled=cancelled, t_start=t_total,
                 executor=executor)
         result = BuildResult(out_dir=out_dir, project=project, study=study, files={}, report={})
-    final = _absolute_files(files, out_dir)
+    final = absolute_files(files, out_dir)
     report(progress, 1.0, f"done: {out_dir}")
     return dataclasses.replace(result, files=final, report=final_report.to_dict())
 
@@ -281,11 +276,13 @@ def _check_joint_meshes(project: Project) -> None:
 
 def build_joint(project: Project, out_dir: Path, *, jobs: int = 1, progress: ProgressFn = None,
                 cancelled: CancelledFn = None, log: Callable[[str], None] | None = None, force: bool = False,
-                scheduler: str | None = None, cache=None, blender_hook: Callable | None = None) -> BuildResult:
+                scheduler: str | None = None, cache=None, blend: bool | None = None,
+                blender_hook: Callable | None = None) -> BuildResult:
     """:func:`build` of a project whose instances hold several structures: every structure's study,
     then the joint model (:mod:`ssm_addon.pipeline.joint`), with the same output rules.
-    ``blender_hook`` writes ``modes.png`` of the joint model and a ``model.blend`` of its
-    objects (an empty with one slider per mode driving a mesh per structure)."""
+    ``blender_hook(joint, output, folder, log)`` gets the :class:`JointStudy` and writes ``modes.png``
+    of the joint model and a ``model.blend`` with every structure's instances, landmarks and coated
+    meshes and the joint model (when ``blend``, or the project's ``[output] blend`` if None)."""
     say = log or (lambda _msg: None)
     inputs = _check_before_build(project, out_dir, force=force, what="subjects")
     _check_joint_meshes(project)
@@ -308,11 +305,11 @@ def build_joint(project: Project, out_dir: Path, *, jobs: int = 1, progress: Pro
                                    f"to {out_dir}:\n" + warnings_text(every))
             first = next(iter(joint.structures.values()))
             blender_files = {}
-            if blender_hook is not None:  # the first structure's study carries the joint model over
+            use_blend = project.params.output.blend if blend is None else blend
+            if blender_hook is not None and use_blend:
                 t_blender = time.perf_counter()
                 report(progress, 0.95, "Blender: model.blend and pictures")
-                blender_files = blender_hook(dataclasses.replace(first, model=joint.model), project.params.output, tmp,
-                                             say) or {}
+                blender_files = blender_hook(joint, project.params.output, tmp, say) or {}
                 joint.timings_s["blender"] = time.perf_counter() - t_blender
             files, final_report = write_joint(joint, tmp, output=project.params.output, project=str(project.path),
                                               files=blender_files,
@@ -323,7 +320,7 @@ def build_joint(project: Project, out_dir: Path, *, jobs: int = 1, progress: Pro
                                                   progress=progress, cancelled=cancelled),
                                               extra={"compute": {"scheduler": executor.scheduler, "workers": executor.jobs}},
                                               executor=executor)
-    final = _absolute_files(files, out_dir)
+    final = absolute_files(files, out_dir)
     report(progress, 1.0, f"done: {out_dir}")
     first.model = joint.model
     first.metrics = joint.metrics
