@@ -179,7 +179,11 @@ def test_a_lumbar_spine_from_label_maps_gives_its_relative_pose_spread(verse_dir
         pair = pairs[f"L1-L{k}"]
         assert pair["data"]["turn_sd_deg"] == pytest.approx(truth, rel=0.25), (k, pair, truth)
         assert pair["model"]["turn_sd_deg"] == pytest.approx(pair["data"]["turn_sd_deg"], rel=0.25)
-    assert result.report["joint"]["shape_pose"]["modes_pose_share"][0] > 0.8
+    sp = result.report["joint"]["shape_pose"]
+    assert sp["modes_pose_share"][0] > 0.8
+    assert sp["total_variance_mm2"] == pytest.approx(sum(sp["variances_mm2"]))  # its own PCA, said so
+    assert "not the joint model's modes" in sp["variances_of"]
+    assert "not the joint model's modes" in (tmp_path / "out" / "report.html").read_text()
     assert result.report["model"]["n_instances"] == 6
 
 
@@ -195,6 +199,7 @@ def test_ssm_build_of_a_joint_project_says_each_structures_findings_last(tmp_pat
     assert main(["build", str(tmp_path / "joint.toml"), "--out", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
     assert load_npz(tmp_path / "out" / "model.npz").structure_names == ("a", "b")
+    assert "(4 subjects, 2 structures: a 4 landmarks, b 4 landmarks)" in out  # each structure's own count
     tail = out[out.index("outputs in"):]
     assert "structure a: WARNINGS (4 in 4" in tail and "structure b: WARNINGS (4 in 4" in tail
     assert tail.index("structure a:") < tail.index("structure b:")

@@ -18,9 +18,9 @@ from ssm_addon.model.metrics import (
     compactness,
     evaluate,
     generalization,
+    metric_bars,
     specificity,
     write_plots,
-    write_report,
 )
 from ssm_addon.model.pca import build_model
 from ssm_addon.pipeline.outputs import write_outputs
@@ -161,16 +161,25 @@ def test_aggregate_fit_summarises_numeric_figures():
     assert "note" not in agg
 
 
-def test_report_and_plots(tmp_path, population):
+def test_metric_bars_never_reach_below_the_smallest_distance_measured(population):
+    """metrics.png's bars: one SD above the mean; below, one SD or down to the smallest distance the
+    metric measured (never below 0 mm), for specificity (its own minimum) and generalization (its
+    left-out instances')."""
+    _, model = population
+    mets = evaluate(model, ks=[1, 2, 3], n_samples=200)
+    for m in (mets.generalization, mets.specificity):
+        mean, bars = metric_bars(m)
+        smallest = np.asarray(m["min_mm"] if "min_mm" in m else np.min(m["per_instance_mm"], axis=0))
+        assert np.all(mean - bars[0] >= smallest - 1e-12) and np.all(bars >= 0)
+        np.testing.assert_allclose(bars[1], m["std_mm"])
+    mean, bars = metric_bars({"mean_mm": [0.5, 2.0], "std_mm": [1.0, 1.0]})  # no record of the smallest: 0
+    np.testing.assert_allclose(bars, [[0.5, 1.0], [1.0, 1.0]])
+
+
+def test_plots(tmp_path, population):
     _, model = population
     metrics = evaluate(model, ks=[1, 2, 3, 4], n_samples=100)
-    path = write_report(tmp_path / "report.json", model, metrics=metrics, per_instance={"inst00": {"rms_mm": 0.4}},
-                        extra={"note": "test"})
-    doc = json.loads(path.read_text())
-    assert doc["model"]["n_modes"] == model.n_modes
-    assert doc["metrics"]["generalization"]["k"] == [1, 2, 3, 4]
-    assert doc["fit_summary"]["rms_mm"]["mean"] == 0.4
-    assert doc["note"] == "test"
+    assert metrics.to_dict()["generalization"]["k"] == [1, 2, 3, 4]
     files = write_plots(model, tmp_path, metrics)["files"]
     assert [os.path.basename(f) for f in files] == [
         "spectrum.png",

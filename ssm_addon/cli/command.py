@@ -381,8 +381,13 @@ def _run_build(project_path, out, jobs: int, blend: bool, writer, args=None) -> 
                    "the Blender layer is not installed with this core (run `blender -b --command ssm build ...` "
                    "with the extension, or from a source checkout)")
             print(f"skipping model.blend: {why}; modes.png is drawn without Blender", flush=True)
-    print(f"project: {project.path} ({len(project.instances)} instances, {len(project.landmark_names)} landmarks)",
-          flush=True)
+    if project.structures:
+        print(f"project: {project.path} ({len(project.instances)} subjects, {len(project.structures)} structures: "
+              + ", ".join(f"{name} {len(st.landmark_names)} landmarks" for name, st in project.structures.items()) + ")",
+              flush=True)
+    else:
+        print(f"project: {project.path} ({len(project.instances)} instances, {len(project.landmark_names)} landmarks)",
+              flush=True)
     if args is not None and getattr(args, "strict", False) and not project.params.quality.strict:
         strict = dataclasses.replace(project.params.quality, strict=True)
         project = dataclasses.replace(project, params=project.params.replace(quality=strict))

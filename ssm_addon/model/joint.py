@@ -181,6 +181,10 @@ def shape_and_pose(model: ShapeModel, *, reference: str, samples: int = 300, see
     return {"reference": reference, "weighting": "rotation vector and log scale times the structure's RMS radius, "
                                                  "translation in mm; each times the square root of its point count",
             "modes_pose_share": [float(x) for x in pose_share], "variances_mm2": [float(x) for x in var[keep]],
+            "variances_of": "this decomposition's own PCA (each structure's shape similarity-aligned in its own frame, "
+                            "beside the weighted relative poses), not the joint model's modes: their λ are of the "
+                            "structures' coordinates together in the reference structure's frame",
+            "total_variance_mm2": float(var[keep].sum()),
             "pairs": {f"{reference}-{n}": {"data": spread(poses[n]), "model": spread(poses_m[n])} for n in names}}
 
 

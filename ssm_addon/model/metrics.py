@@ -423,6 +423,7 @@ def specificity(
     # row, so the blocks are the same numbers as one (n_samples, kmax) draw
     block = max(1, min(total, (1 << 22) // max(n + kmax, 1)))
     sums = np.zeros((len(ks), 3))  # per k: sum of errors, of squared errors, of RMS distances
+    lowest = np.full(len(ks), np.inf)  # per k: the smallest error (the plot's bars stop there)
     done = 0
     while done < total:
         z = rng.standard_normal((min(block, total - done), kmax))
@@ -439,6 +440,7 @@ def specificity(
                 err[sl] = _point_errors(diff)
             rms_b = np.sqrt(np.maximum(d2[np.arange(len(b)), nearest], 0.0) / model.n_points)
             sums[j] += (err.sum(), (err * err).sum(), rms_b.sum())
+            lowest[j] = min(lowest[j], float(err.min()))
         done += len(z)
     means = [float(s[0] / total) for s in sums]
     stds = [float(np.sqrt(max(s[1] / total - (s[0] / total) ** 2, 0.0))) for s in sums]
@@ -448,6 +450,7 @@ def specificity(
         "k": ks,
         "mean_mm": means,
         "std_mm": stds,
+        "min_mm": lowest.tolist(),
         "rms_mean_mm": rms,
         "n_samples": int(n_samples),
         "seed": seed,
@@ -548,33 +551,6 @@ def model_summary(model: ShapeModel) -> dict:
             "params": model.params,
         }
     )
-
-
-def report_document(model: ShapeModel, *, metrics: ModelMetrics | None = None, per_instance: dict | None = None,
-                    extra: dict | None = None) -> dict:
-    """The content of ``report.json`` (JSON-ready): model summary, metrics, per-instance fit figures, their summary.
-
-    ``extra`` entries are added at the top level (a build adds its parameters, findings,
-    correspondence and timings).
-    """
-    per = {str(k): _as_dict(v) for k, v in (per_instance or {}).items()}
-    doc = {
-        "model": model_summary(model),
-        "metrics": metrics.to_dict() if metrics is not None else {},
-        "instances": per,
-        "fit_summary": aggregate_fit(per),
-    }
-    doc.update(extra or {})
-    return jsonable(doc)
-
-
-def write_report(path, model: ShapeModel, *, metrics: ModelMetrics | None = None, per_instance: dict | None = None, extra=None):
-    """Write ``report.json`` (:func:`report_document`); returns the path written."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    doc = report_document(model, metrics=metrics, per_instance=per_instance, extra=extra)
-    path.write_text(json.dumps(doc, indent=1))
-    return path
 
 
 # ---------------------------------------------------------------------------------------
@@ -784,6 +760,21 @@ def plot_model_figure(model: ShapeModel, path_png, coordinate=None):
     return _save(fig, path_png)
 
 
+def metric_bars(m: dict) -> tuple[np.ndarray, np.ndarray]:
+    """A generalization or specificity record's means and error bars (mm, per k): ``(mean, bars)``,
+    ``bars`` (2, K) below and above the mean, one SD each, the lower one stopping at the smallest
+    distance the metric measured (its ``min_mm``, else its left-out instances' smallest, else 0):
+    a distance bar never reaches below what was measured, nor below 0."""
+    mean, sd = np.asarray(m["mean_mm"], float), np.asarray(m["std_mm"], float)
+    if m.get("min_mm") is not None:
+        smallest = np.asarray(m["min_mm"], float)
+    elif m.get("per_instance_mm"):
+        smallest = np.asarray(m["per_instance_mm"], float).min(axis=0)
+    else:
+        smallest = np.zeros_like(mean)
+    return mean, np.stack([np.clip(mean - np.maximum(smallest, 0.0), 0.0, sd), sd])
+
+
 def plot_metrics(metrics: ModelMetrics, path_png):
     """Compactness (cumulative share of the variance, %) and generalization and specificity (mean
     ± std, mm) over the number of modes k, side by side. Returns the PNG path."""
@@ -801,8 +792,12 @@ def plot_metrics(metrics: ModelMetrics, path_png):
                                ("specificity", "#ee6677", "specificity: mean ± SD over the random model shapes")):
         m = getattr(metrics, key)
         if m:
-            right.errorbar(m["k"], m["mean_mm"], yerr=m["std_mm"], fmt="o-", ms=3, capsize=2, color=colour,
-                           label=label)
+            mean, bars = metric_bars(m)
+            right.errorbar(m["k"], mean, yerr=bars, fmt="o-", ms=3, capsize=2, color=colour, label=label)
+    if right.get_legend_handles_labels()[0]:
+        right.set_ylim(bottom=0.0)
+        right.text(0.01, 0.01, "a bar below the mean stops at the smallest distance measured", fontsize=7,
+                   transform=right.transAxes, color="#555555")
     right.set_xlabel("number of modes k")
     right.set_ylabel("mean point distance (mm)")
     right.set_title("Generalization and specificity")

@@ -779,9 +779,14 @@ def _joint_section(doc: dict) -> list[str]:
     sp = j.get("shape_pose") or {}
     if sp:
         shares = sp.get("modes_pose_share", [])[:8]
+        total = sp.get("total_variance_mm2")
         parts.append("<p>Shape and relative pose (" + html.escape(sp.get("weighting", "")) + "): share of each mode "
                      "that is relative pose: " + ", ".join(f"{i + 1}: {100 * s:.0f} %" for i, s in enumerate(shares))
-                     + ".</p>")
+                     + ". These modes are a PCA of their own (each structure's shape aligned in its own frame, beside "
+                     "the relative poses"
+                     + (f"; total variance {_num(total, 0)} mm²" if total is not None else "")
+                     + "), not the joint model's modes, whose λ are of every structure's coordinates together in "
+                     "the reference structure's frame.</p>")
         parts.append(_table([[html.escape(pair), _num(f["data"]["turn_sd_deg"], 2), _num(f["model"]["turn_sd_deg"], 2),
                               _num(f["data"]["shift_sd_mm"], 2), _num(f["model"]["shift_sd_mm"], 2)]
                              for pair, f in sp.get("pairs", {}).items()],
