@@ -89,18 +89,21 @@ def _require_model(context) -> bpy.types.Object:
 def model_location(context, model: ShapeModel) -> np.ndarray:
     """Where the model object goes (Blender world mm): right of the instances, level with them.
 
-    The mean shape is in the model frame (object mm); the object's origin is put one
-    model width to the right (+x) of the instances' bounding box, at the height and depth
-    of their centre, so the model is seen beside the population.
+    The mean shape is in the model frame (object mm), turned as shown (:func:`display_axes`);
+    the object's origin is put a quarter model width to the right (+x) of the instances'
+    bounding box, at the height and depth of their centre, so the model is seen beside the
+    population.
     """
     insts = scene_instances(context)
-    width = float(np.ptp(model.mean[:, 0])) if model.n_points else 0.0
+    shown = np.asarray(model.mean, float) @ core_metrics.display_axes(model).T
+    width = float(np.ptp(shown[:, 0])) if model.n_points else 0.0
     if not insts:
         return np.zeros(3)
     corners = np.concatenate([np.array([ob.matrix_world @ Vector(c) for c in ob.bound_box]) for ob in insts])
     lo, hi = corners.min(axis=0), corners.max(axis=0)
     centre = (lo + hi) / 2.0
-    return np.array([hi[0] + 0.25 * width - float(model.mean[:, 0].min()), centre[1], centre[2]])
+    return np.array([hi[0] + 0.25 * width - float(shown[:, 0].min()) if model.n_points else hi[0], centre[1],
+                     centre[2]])
 
 
 def _remove_model_objects(name: str) -> None:
@@ -148,6 +151,7 @@ def create_joint_model_object(context, model: ShapeModel, name: str = MODEL_NAME
     empty.empty_display_size = 0.1 * float(np.ptp(model.mean, axis=0).max()) if model.n_points else 1.0
     bridge.ensure_collection(scene, MODEL_COLLECTION).objects.link(empty)
     matrix = np.eye(4)
+    matrix[:3, :3] = core_metrics.display_axes(model)  # stands as its instances lay in their files
     matrix[:3, 3] = model_location(context, model)
     bridge.set_matrix_world(empty, matrix)
     k = model.n_modes if n_keys is None else min(int(n_keys), model.n_modes)
@@ -208,6 +212,7 @@ def create_model_object(context, model: ShapeModel, name: str = MODEL_NAME, n_ke
     bridge.ensure_mm_units(scene)
     _remove_model_objects(name)  # a joint model of the same name: replaced by the mesh
     matrix = np.eye(4)
+    matrix[:3, :3] = core_metrics.display_axes(model)  # stands as its instances lay in their files
     matrix[:3, 3] = model_location(context, model)
     obj = bridge.new_mesh_object(context, name, model.mean, model.faces, collection_name=MODEL_COLLECTION,
                                  matrix_world=matrix)
@@ -435,8 +440,8 @@ class SSM_OT_random_shape(bpy.types.Operator):
         z = model.project(points, k=min(k, model.n_modes)) / model.standard_deviations[: min(k, model.n_modes)]
         name = f"SSM Sample {self.seed}"
         matrix = np.array(obj.matrix_world, dtype=float)
-        width = float(np.ptp(model.mean[:, 0])) if model.n_points else 0.0
-        matrix[:3, 3] += matrix[:3, 0] * 1.3 * width
+        width = float(np.ptp(np.asarray(model.mean, float) @ matrix[:3, :3].T, axis=0)[0]) if model.n_points else 0.0
+        matrix[0, 3] += 1.3 * width  # beside the model, to its right as it is shown
         sample = bridge.new_mesh_object(context, name, points, model.faces, collection_name=MODEL_COLLECTION,
                                         matrix_world=matrix)
         bridge.colour_correspondence(sample, model.mean, context.scene.ssm_display.colouring)

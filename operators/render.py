@@ -18,6 +18,7 @@ import bpy
 import numpy as np
 
 from ssm_addon.model.figures import FIGURE_COLOURS, FIGURE_VIEWS, label_modes_figure, mode_shapes, modes_figure_cell
+from ssm_addon.model.metrics import display_axes
 
 from . import bridge
 
@@ -64,9 +65,10 @@ def render_modes_figure(
     scene = bpy.data.scenes.new("SSM Modes Figure")
     made_objects, made_meshes = [], []
     try:
+        shown = display_axes(model)  # as the instances lay in their files (identity for patient axes)
         for r, (_, shapes) in enumerate(rows):
             for c, view in enumerate(views):
-                rot = VIEWS[view]
+                rot = VIEWS[view] @ shown
                 loc = np.array([(c - (n_cols - 1) / 2) * cell, ((n_rows - 1) / 2 - r) * cell, 0.0])
                 for kind, pts in shapes:
                     name = f"SSM fig {r}-{view}-{kind}"

@@ -88,3 +88,56 @@ def test_a_headless_build_without_blender_writes_fig_10(tmp_path, capsys):
     assert (tmp_path / "out" / "modes.png").is_file()
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert report["files"]["picture"] == "modes.png"
+
+
+def _standing_population(turn: np.ndarray, *, frame_methods):
+    """Ten cigars 60 mm long along the model's x, whose files held them turned by ``turn``
+    (and a few degrees more, a different few for each) and moved."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(3)
+    points, faces = icosphere(1.0, 2)
+    base = np.asarray(points, float) * [30.0, 8.0, 5.0]  # a cigar along the model's x
+    shapes = np.stack([base * (1 + rng.normal(0, 0.03, 3)) for _ in range(10)])
+    world = np.stack([s @ (Rotation.from_rotvec(rng.normal(0, 0.1, 3)).as_matrix() @ turn).T + rng.normal(0, 50, 3)
+                      for s in shapes])
+    return build_model(shapes, faces, [f"i{k}" for k in range(10)], instance_points_world=world,
+                       params={"frame_methods": frame_methods})
+
+
+@pytest.mark.parametrize("turn", [np.array([[0.0, 0, -1], [0, 1, 0], [1, 0, 0]]),  # model x -> world z
+                                  np.array([[0.0, 1, 0], [0, 0, 1], [1, 0, 0]]),  # x -> z, y -> x, z -> y
+                                  np.eye(3)])
+def test_a_moments_frame_model_is_shown_as_its_instances_lay_in_their_files(turn):
+    """Moments frames put the longest axis on x (a femur lies down); the pictures, model.blend and
+    model.glb turn the model by the signed axis permutation nearest the instances' turn into their
+    files (a bone scanned standing stands), a proper rotation. Patient-axis models are shown as
+    they are."""
+    from ssm_addon.model.metrics import display_axes
+
+    model = _standing_population(turn, frame_methods=["moments"])
+    shown = display_axes(model)
+    np.testing.assert_array_equal(shown, turn)
+    assert np.linalg.det(shown) == pytest.approx(1.0)
+    from ssm_addon.pipeline.outputs import drawing_copy
+
+    np.testing.assert_array_equal(display_axes(drawing_copy(model, 1)[0]), turn)  # a worker draws it the same
+    patient = _standing_population(turn, frame_methods=["patient"])
+    np.testing.assert_array_equal(display_axes(patient), np.eye(3))
+
+
+def test_the_modes_figure_draws_a_moments_model_standing(tmp_path):
+    """The core's modes.png of cigars that stood along z in their files: in the coronal view (z up on
+    screen) the mean cell's drawn pixels are taller than wide."""
+    import matplotlib.image as mpimg
+
+    model = _standing_population(np.array([[0.0, 0, -1], [0, 1, 0], [1, 0, 0]]), frame_methods=["moments"])
+    render_modes_figure(model, tmp_path / "modes.png", n_modes=1, cell_px=200)
+    img = mpimg.imread(tmp_path / "modes.png")[..., :3]
+    # the grid sits below the title/labels and right of the row labels; find the coronal (third) mean cell
+    h, w = img.shape[:2]
+    dark = img.max(axis=2) < 0.5  # the outlines (not the grey grid lines)
+    cell = dark[h - 2 * 200:h - 200, w - 200:w]
+    rows, cols = np.flatnonzero(cell.any(axis=1)), np.flatnonzero(cell.any(axis=0))
+    assert rows.size and cols.size
+    assert (rows[-1] - rows[0]) > 3 * (cols[-1] - cols[0]), (rows[[0, -1]], cols[[0, -1]])

@@ -147,6 +147,18 @@ def test_knee30_joint_build_predicts_the_tibia_from_the_femur(tmp_path):
         assert (tmp_path / "out" / "structures" / name / "template.ply").is_file()
     assert set(joint["collisions"]) == {"femur-tibia"} and joint["shape_pose"]["pairs"]["femur-tibia"]
     assert "Joint model: 2 structures" in (tmp_path / "out" / "report.html").read_text()
+    # meshes in no stated convention: moments frames (the femur's long axis is the model's x), yet the
+    # model is shown standing as the knees lay in their files (z up, the femur above the tibia)
+    from ssm_addon.formats.gltf import read_glb
+    from ssm_addon.model.metrics import display_axes
+
+    assert model.params["frame_methods"] == ["moments"]
+    assert int(np.argmax(np.ptp(model.mean[model.structure_slice("femur")], axis=0))) == 0
+    shown = model.mean @ display_axes(model).T
+    femur, tibia = shown[model.structure_slice("femur")], shown[model.structure_slice("tibia")]
+    assert int(np.argmax(np.ptp(femur, axis=0))) == 2 and femur[:, 2].mean() > tibia[:, 2].mean()
+    doc, _ = read_glb(tmp_path / "out" / "model.glb")
+    assert "rotation" in doc["nodes"][0]
     code = main(["fit", str(tmp_path / "out" / "model.npz"), "--mesh", f"femur={KNEE30_DIR / 'S010_Femur.ply'}",
                  "--out", str(tmp_path / "fit")])
     assert code == 0 and (tmp_path / "fit" / "fitted_tibia.ply").is_file()

@@ -23,6 +23,7 @@ import struct
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 __all__ = ["MM_TO_M", "Z_UP_TO_Y_UP", "read_glb", "read_glb_mesh", "write_glb"]
 
@@ -36,7 +37,7 @@ _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
 
 
 def write_glb(path, points_mm, faces, morph_targets_mm: dict | None = None, *, name: str = "SSM model",
-              parts: dict | None = None) -> Path:
+              parts: dict | None = None, display_turn=None) -> Path:
     """Write a mesh and its morph targets as a binary glTF file, coordinates in metres.
 
     Parameters
@@ -57,6 +58,9 @@ def write_glb(path, points_mm, faces, morph_targets_mm: dict | None = None, *, n
         the mesh, with its own vertices, triangles (those wholly inside it) and morph targets
         and a material named after it, so the mesh's morph weights, one per target, move every
         structure together, and an importer keeps them apart (Blender: *Separate by Material*).
+    display_turn : (3, 3) array_like, optional
+        A rotation of the points' frame (``D @ p``) that shows the mesh upright, written as the
+        node's ``rotation`` (the vertices stay in the points' frame); None or the identity: none.
     """
     pts = np.asarray(points_mm, dtype=np.float64).reshape(-1, 3) @ Z_UP_TO_Y_UP.T * MM_TO_M
     tris = np.asarray(faces, dtype=np.uint32).reshape(-1, 3)
@@ -103,7 +107,7 @@ def write_glb(path, points_mm, faces, morph_targets_mm: dict | None = None, *, n
         mesh["extras"] = {"targetNames": list(targets)}  # the names viewers show on the sliders
     binary = b"".join(blobs)
     doc = {"asset": {"version": "2.0", "generator": "SSM Builder"}, "scene": 0,
-           "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0, "name": name}], "meshes": [mesh],
+           "scenes": [{"nodes": [0]}], "nodes": [_node(name, display_turn)], "meshes": [mesh],
            "accessors": accessors, "bufferViews": views, "buffers": [{"byteLength": len(binary)}],
            "extras": {"unit": "metre (the model's mm times 0.001)",
                       "up": "+Y, glTF's (the model's +Z: (x, y, z) written as (x, z, -y))"}}
@@ -116,6 +120,15 @@ def write_glb(path, points_mm, faces, morph_targets_mm: dict | None = None, *, n
     path = Path(path)
     path.write_bytes(out)
     return path
+
+
+def _node(name: str, display_turn) -> dict:
+    """The mesh's node, with ``display_turn`` (model frame) as its rotation in glTF's frame."""
+    node = {"mesh": 0, "name": name}
+    if display_turn is not None and not np.allclose(display_turn, np.eye(3)):
+        turn = Z_UP_TO_Y_UP @ np.asarray(display_turn, float) @ Z_UP_TO_Y_UP.T
+        node["rotation"] = [float(round(v, 12)) + 0.0 for v in Rotation.from_matrix(turn).as_quat()]  # x, y, z, w
+    return node
 
 
 def read_glb(path) -> tuple[dict, bytes]:

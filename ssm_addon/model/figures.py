@@ -2,7 +2,8 @@
 
 The layout, colours and labels are those of the Blender picture (``operators/render.py``):
 columns axial, sagittal, coronal (or the axes a view looks along, for frames that are not
-patient axes); rows the mean (grey), then one row per mode with the shapes
+patient axes: then the model is turned as its instances lay in their files,
+:func:`~ssm_addon.model.metrics.display_axes`, and the views look along the files' axes); rows the mean (grey), then one row per mode with the shapes
 b_k = -2√λ_k (blue) and +2√λ_k (red) of eq. (7) overlaid, opaque, so each colour shows
 where its shape reaches further. Here the shapes are drawn by an orthographic z-buffer
 rasterizer of our own (numpy), with two-sided Lambert shading and silhouette outlines, so
@@ -23,6 +24,7 @@ import numpy as np
 
 from .metrics import (
     axis_letters,
+    display_axes,
     label_grid_picture,
     modes_figure_labels,
     scale_bar_mm,
@@ -174,9 +176,10 @@ def render_modes_figure(model: ShapeModel, path, n_modes: int = 2, sigmas: float
     px_per_mm = cell_px / cell
     n_rows, n_cols = len(rows), len(views)
     meshes = []
+    shown = display_axes(model)  # as the instances lay in their files
     for r, (_label, shapes) in enumerate(rows):
         for c, view in enumerate(views):
-            rot = FIGURE_VIEWS[view]
+            rot = FIGURE_VIEWS[view] @ shown
             for kind, pts in shapes:
                 q = (pts - centre) @ rot.T
                 screen = np.c_[(c + 0.5) * cell_px + q[:, 0] * px_per_mm, (r + 0.5) * cell_px - q[:, 1] * px_per_mm,

@@ -18,6 +18,7 @@ from ..base.errors import InputError
 from ..base.records import jsonable
 from ..formats.gltf import write_glb
 from ..formats.vtk import write_vtk, write_vtp
+from ..model.metrics import display_axes
 from ..model.pca import ShapeModel
 
 NPZ_KEYS = (
@@ -369,7 +370,8 @@ def write_exchange_meshes(model: ShapeModel, out_dir, *, gltf: bool = True, vtk:
     if gltf:
         targets = {f"Mode {i + 1} (+1 SD)": sd[i] * model.modes[i] for i in range(k)}
         parts = {n: model.structure_slice(n) for n in model.structure_names} or None
-        written["gltf"] = str(write_glb(out_dir / "model.glb", model.mean, model.faces, targets, parts=parts))
+        written["gltf"] = str(write_glb(out_dir / "model.glb", model.mean, model.faces, targets, parts=parts,
+                                        display_turn=display_axes(model)))
     if vtk:
         folder = out_dir / "vtk"
         _write_vtk_set(folder, model.mean, model.faces, model.point_variance, sd[:k], model.modes[:k], sigmas)

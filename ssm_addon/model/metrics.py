@@ -660,6 +660,43 @@ def patient_oriented(model: ShapeModel) -> bool:
     return model.params.get("frame_method") in ("auto", "patient")
 
 
+_PERMUTATIONS = ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0))
+
+
+def display_axes(model: ShapeModel) -> np.ndarray:
+    """(3, 3) the turn that shows a model as its instances lay in their files: ``D @ p`` for a point
+    ``p`` of the model frame.
+
+    A model frame that follows the patient axes (:func:`patient_oriented`) is shown as it is (the
+    identity). Other frames (second-moment axes of meshes in no stated convention: the longest axis
+    is x, so a femur would lie down) are turned by the proper signed axis permutation nearest to the
+    instances' mean turn from the model frame to their file coordinates (a rigid fit of each
+    instance's aligned points to its world points, ``instance_points_world``): a bone scanned
+    standing stands. Only how the model is shown changes (pictures, ``model.blend``'s object
+    rotation, ``model.glb``'s node); the model's arrays stay in the model frame. A copy of the
+    model without its training shapes carries the turn in ``params["display_axes"]``.
+    """
+    if model.params.get("display_axes") is not None:
+        return np.asarray(model.params["display_axes"], float).reshape(3, 3)
+    world = model.instance_points_world
+    if (patient_oriented(model) or world is None or not model.n_instances or len(world) != model.n_instances
+            or np.shape(world)[1:] != np.shape(model.instance_points)[1:] or not np.shape(world)[1]):
+        return np.eye(3)
+    turn = np.zeros((3, 3))
+    for x, w in zip(np.asarray(model.instance_points, float), np.asarray(world, float)):
+        u, _s, vt = np.linalg.svd((w - w.mean(axis=0)).T @ (x - x.mean(axis=0)))  # w ≈ R x: R = U diag(1, 1, d) Vᵀ
+        d = np.sign(np.linalg.det(u @ vt)) or 1.0
+        turn += u @ np.diag([1.0, 1.0, d]) @ vt
+    best = max(_PERMUTATIONS, key=lambda perm: sum(abs(turn[perm[j], j]) for j in range(3)))
+    out = np.zeros((3, 3))
+    for j, i in enumerate(best):
+        out[i, j] = 1.0 if turn[i, j] >= 0 else -1.0
+    if np.linalg.det(out) < 0:  # a mirror: the weakest pairing's sign gives way
+        j = min(range(3), key=lambda j: abs(turn[best[j], j]))
+        out[best[j], j] *= -1.0
+    return out
+
+
 def axis_letters(model: ShapeModel):
     """:data:`AXIS_LETTERS` for a model whose frames follow the patient axes, else :data:`AXIS_NAMES`."""
     return AXIS_LETTERS if patient_oriented(model) else AXIS_NAMES

@@ -41,7 +41,7 @@ from ..formats.vtk import write_vtp
 from ..instances.importing import file_names
 from ..model.figures import optimisation_figure, render_modes_figure
 from ..model.files import write_model_files
-from ..model.metrics import write_plots
+from ..model.metrics import display_axes, write_plots
 from ..segmentation.appearance import write_scalismo_asm
 from .appearance import appearance_stage
 from .report import Absent, Report, joint_report, model_report, study_report, write_report_html
@@ -300,7 +300,8 @@ def drawing_copy(model, n_modes: int):
     shapes the copy no longer holds."""
     coordinate = model.variability_concentration("coordinate")[: max(model.n_modes, 1)]
     drawn = dataclasses.replace(model, modes=model.modes[:n_modes], instance_points=model.instance_points[:, :0],
-                                instance_points_world=model.instance_points_world[:, :0])
+                                instance_points_world=model.instance_points_world[:, :0],
+                                params={**model.params, "display_axes": display_axes(model).tolist()})
     return drawn, coordinate
 
 
