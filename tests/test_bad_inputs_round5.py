@@ -161,3 +161,25 @@ def test_structures_the_inputs_put_inside_each_other_are_a_finding():
     assert not [f for f in collision_findings(collisions(joint_model(a, b, fa, fb), samples=30), 0.2)
                 if "inputs" in f.message]
     assert np.isfinite(found[0].value)
+
+
+def test_every_option_that_takes_a_value_names_the_value():
+    """Help a new user reads in one pass: an option's value is named for what it is (``FILE``,
+    ``MM``, ``N``, ``NAME``…) or its choices are listed; never argparse's upper-cased option name
+    (``--volume VOLUME``, ``--scheduler COMPUTE__SCHEDULER``)."""
+    import argparse
+
+    from ssm_addon.cli.command import argument_parser
+
+    parser = argument_parser()
+    subparsers = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    unnamed = []
+    for command, sub in subparsers.choices.items():
+        for action in sub._actions:
+            if not action.option_strings or action.nargs == 0 or action.choices is not None:
+                continue
+            if isinstance(action, argparse._HelpAction | argparse.BooleanOptionalAction):
+                continue
+            if action.metavar is None:
+                unnamed.append(f"ssm {command} {action.option_strings[-1]}")
+    assert not unnamed, unnamed

@@ -106,6 +106,9 @@ class Spec:
         Shown in the panel's "Advanced" sub-panel.
     aliases : tuple of str
         Other accepted project keys.
+    metavar : str
+        The command line's name for a value (``NAME``, ``FILE``, ``WHERE``); default from the
+        kind and unit (``MM``, ``N``, ``X``, ``TEXT``).
     """
 
     name: str
@@ -123,6 +126,7 @@ class Spec:
     size: int | None = None
     advanced: bool = False
     aliases: tuple = ()
+    metavar: str = ""
 
     @property
     def optional(self) -> bool:
@@ -158,11 +162,12 @@ def _num(x) -> str:
 
 def param(default, *, help: str, label: str | None = None, unit: str = "", minimum=None, maximum=None,
           exclusive_minimum: bool = False, choices=(), none_means: str | None = None, size: int | None = None,
-          advanced: bool = False, key: str | None = None, aliases=(), kind: str | None = None):
+          advanced: bool = False, key: str | None = None, aliases=(), kind: str | None = None, metavar: str = ""):
     """A dataclass field with its parameter description (see :class:`Spec`)."""
     meta = {"ssm": {"label": label, "help": help, "unit": unit, "minimum": minimum, "maximum": maximum,
                     "exclusive_minimum": exclusive_minimum, "choices": tuple(choices), "none_means": none_means,
-                    "size": size, "advanced": advanced, "key": key, "aliases": tuple(aliases), "kind": kind}}
+                    "size": size, "advanced": advanced, "key": key, "aliases": tuple(aliases), "kind": kind,
+                    "metavar": metavar}}
     return field(default=default, metadata=meta)
 
 
@@ -192,7 +197,7 @@ def specs(cls) -> tuple[Spec, ...]:
                         label=label, help=meta["help"], unit=meta["unit"], minimum=meta["minimum"],
                         maximum=meta["maximum"], exclusive_minimum=meta["exclusive_minimum"],
                         choices=meta["choices"], none_means=meta["none_means"], size=meta["size"],
-                        advanced=meta["advanced"], aliases=meta["aliases"]))
+                        advanced=meta["advanced"], aliases=meta["aliases"], metavar=meta.get("metavar", "")))
     out = tuple(out)
     setattr(cls, "_specs_cache", out)  # noqa: B010 - a class attribute, not a field
     return out
@@ -406,7 +411,7 @@ def add_arguments(parser: argparse.ArgumentParser | argparse._ArgumentGroup, cls
             parser.add_argument(_flag(prefix, s), dest=dest, choices=s.choices, default=None, help=text)
         else:
             typ = {"int": int, "float": float, "str": str}[s.kind]
-            metavar = "MM" if s.unit == "mm" else {"int": "N", "float": "X", "str": "TEXT"}[s.kind]
+            metavar = s.metavar or ("MM" if s.unit == "mm" else {"int": "N", "float": "X", "str": "TEXT"}[s.kind])
             parser.add_argument(_flag(prefix, s), dest=dest, type=typ, default=None, metavar=metavar, help=text)
 
 
@@ -892,10 +897,10 @@ class ComputeParams:
     :mod:`ssm_addon.pipeline.cache`.
     """
 
-    scheduler: str = param("processes", kind="str", label="Scheduler",
+    scheduler: str = param("processes", kind="str", label="Scheduler", metavar="WHERE",
                            help="'processes' (local, --jobs of them), 'dask-local' (a Dask LocalCluster of --jobs "
                                 "workers), 'serial', or a Dask scheduler address such as tcp://host:8786")
-    cache: str = param("auto", kind="str", label="Cache",
+    cache: str = param("auto", kind="str", label="Cache", metavar="PATH",
                        help="per-instance cache folder for resuming: 'auto' (DIR.cache beside the output folder), "
                             "'off', or a folder (relative to the project file)")
     connect_timeout_s: float = param(10.0, unit="s", minimum=0.5, maximum=600.0, label="Connect timeout",
@@ -920,7 +925,7 @@ class JointParams:
     ``labels = { … }``); see :mod:`ssm_addon.pipeline.joint`.
     """
 
-    reference: str = param("", kind="str", label="Reference structure",
+    reference: str = param("", kind="str", label="Reference structure", metavar="NAME",
                            help="the structure whose object frame holds the joint model (with [model] alignment = "
                                 "\"none\") and against which the others' relative pose is measured; empty: the first")
     align_on: str = param("all", choices=("all", "reference"), label="Align on",
@@ -945,14 +950,14 @@ class AnalysisParams:
     built model). See :mod:`ssm_addon.analysis`.
     """
 
-    attributes: str = param("", kind="str", label="Attributes",
+    attributes: str = param("", kind="str", label="Attributes", metavar="FILE",
                             help="CSV of per-instance attributes joined by instance name (relative to the project "
                                  "file); fills what the instances' own 'attributes' tables leave out")
-    group: str = param("", kind="str", label="Group", help="attribute column whose groups are compared ('' none)")
+    group: str = param("", kind="str", label="Group", metavar="COLUMN", help="attribute column whose groups are compared ('' none)")
     covariates: tuple = param((), kind="strs", label="Covariates",
                               help="attribute columns modelled with the group (numbers; 'centroid_size' in mm is "
                                    "always available)")
-    reference: str = param("", kind="str", label="Reference group",
+    reference: str = param("", kind="str", label="Reference group", metavar="GROUP",
                            help="the group the others are compared to ('' the first in sorted order)")
     permutations: int = param(1000, minimum=99, maximum=1_000_000, label="Permutations",
                               help="random permutations of every test (p-values resolve 1/(permutations+1))")

@@ -165,7 +165,7 @@ def argument_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("template", help="build a template from one object (paper 3) and write it as PLY")
     p.add_argument("volume", help="label map or closed mesh (STL/PLY/OBJ)")
-    p.add_argument("--label", type=int, default=None, help="label to use (default: all non-zero voxels)")
+    p.add_argument("--label", type=int, default=None, metavar="N", help="label to use (default: all non-zero voxels)")
     p.add_argument("--out", required=True, metavar="FILE", help="output PLY (vertices in world mm)")
     P.add_arguments(p.add_argument_group("template parameters ([template] of a project; lengths in mm)"),
                     P.TemplateParams)
@@ -192,29 +192,30 @@ def argument_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("fit", help="fit a built model to new data: coefficients, pose, completion, outlier score")
     p.add_argument("model", help="model.npz (ssm build) or a statismo .h5 file")
-    p.add_argument("--volume", help="label map of the target")
-    p.add_argument("--label", type=int, default=None, help="label of the target in --volume")
+    p.add_argument("--volume", metavar="FILE", help="label map of the target")
+    p.add_argument("--label", type=int, default=None, metavar="N", help="label of the target in --volume")
     p.add_argument("--label-of", action="append", default=[], metavar="STRUCTURE=LABEL",
                    help="for a joint model: the label of a structure in --volume, repeated")
-    p.add_argument("--mesh", action="append", help="closed surface mesh of the target (STL/PLY/OBJ, world mm); for a "
+    p.add_argument("--mesh", action="append", metavar="[STRUCTURE=]FILE", help="closed surface mesh of the target (STL/PLY/OBJ, world mm); for a "
                    "joint model STRUCTURE=FILE, repeated (the structures not given are predicted)")
-    p.add_argument("--points", help="point cloud of the target (CSV x,y,z or PLY, world mm)")
-    p.add_argument("--landmarks", help="landmarks of the target (matched by name to the model's)")
+    p.add_argument("--points", metavar="FILE", help="point cloud of the target (CSV x,y,z or PLY, world mm)")
+    p.add_argument("--landmarks", metavar="FILE", help="landmarks of the target (matched by name to the model's)")
     p.add_argument("--partial", action="store_true",
                    help="the target covers part of the shape: predict the rest with its uncertainty")
     p.add_argument("--free", action="store_true", help="also relax the fit freely onto the target (fitted_free.ply)")
     p.add_argument("--floor", action="store_true",
                    help="also the best the model can do for the target (closest points within its span from 13 "
                         "starts, no prior): fit.json floor_mm, and how far the fit is above it (slow)")
-    p.add_argument("--project", help="fit every instance of a project file (a batch; with its landmarks)")
+    p.add_argument("--project", metavar="FILE", help="fit every instance of a project file (a batch; with its landmarks)")
     p.add_argument("--no-landmarks", action="store_true",
                    help="a --project batch fits the surfaces alone, without the instances' landmarks")
-    p.add_argument("--glob", help="fit every file of a glob pattern (a batch; --label applies)")
+    p.add_argument("--glob", metavar="PATTERN", help="fit every file of a glob pattern (a batch; --label applies)")
     p.add_argument("--jobs", type=int, metavar="N", default=1, help="parallel workers of a batch")
     p.add_argument("--scheduler", default="processes", metavar="WHERE",
                    help="where a batch runs: processes (default), dask-local, serial, or a Dask scheduler address")
-    p.add_argument("--outlier-probability", type=float, default=0.99,
-                   help="chi-square quantile of the Mahalanobis distance above which a target is an outlier")
+    p.add_argument("--outlier-probability", type=float, default=0.99, metavar="P",
+                   help="chi-square quantile of the Mahalanobis distance above which a target is an outlier "
+                        "(default 0.99)")
     p.add_argument("--out", required=True, metavar="DIR",
                    help="output folder (written whole at the end; never one holding an input or files no SSM "
                         "command wrote)")
@@ -250,16 +251,16 @@ def argument_parser() -> argparse.ArgumentParser:
     p.add_argument("--attributes", metavar="CSV",
                    help="per-instance attributes joined by instance name (default: the build folder's "
                         "attributes.csv, written from the project's attributes)")
-    p.add_argument("--group", help="attribute column whose groups are compared")
+    p.add_argument("--group", metavar="COLUMN", help="attribute column whose groups are compared")
     p.add_argument("--covariate", dest="covariates", action="append", default=None, metavar="COLUMN",
                    help="a covariate modelled with the group (repeat for several; 'centroid_size' in mm is always "
                         "available)")
-    p.add_argument("--reference", help="the group the others are compared to (default: first in sorted order)")
-    p.add_argument("--permutations", type=int, default=None, help="random permutations of every test (default 1000)")
-    p.add_argument("--seed", type=int, default=None, help="seed of the permutations (default 0)")
+    p.add_argument("--reference", metavar="GROUP", help="the group the others are compared to (default: first in sorted order)")
+    p.add_argument("--permutations", type=int, default=None, metavar="N", help="random permutations of every test (default 1000)")
+    p.add_argument("--seed", type=int, default=None, metavar="N", help="seed of the permutations (default 0)")
     p.add_argument("--size-removed", action="store_true", default=None,
                    help="scale every shape to the mean centroid size first (shape without size)")
-    p.add_argument("--structure", help="a joint model: analyse this structure's rows alone (its exact sub-model); "
+    p.add_argument("--structure", metavar="NAME", help="a joint model: analyse this structure's rows alone (its exact sub-model); "
                                        "default: the whole joint model, with the effects on the relative pose")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (written whole at the end)")
     p.add_argument("--force", action="store_true", help="write into a folder holding other files (they are kept)")
@@ -269,8 +270,8 @@ def argument_parser() -> argparse.ArgumentParser:
                                    "landmark files in four formats, a group and an age of known effect) in "
                                    "OUT/population, then build its shape model into OUT/model.")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder: population in DIR/population, model in DIR/model")
-    p.add_argument("--n", type=int, default=24, help="number of instances (default 24)")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the population (default 0)")
+    p.add_argument("--n", type=int, default=24, metavar="N", help="number of instances (default 24)")
+    p.add_argument("--seed", type=int, default=0, metavar="N", help="random seed of the population (default 0)")
     p.add_argument("--jobs", type=int, metavar="N", default=2, help="parallel workers (default 2)")
     p.add_argument("--no-blend", action="store_true", help="do not write model.blend / modes.png")
     return parser
