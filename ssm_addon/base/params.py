@@ -738,6 +738,10 @@ class FitParams:
                            help="joint: pose and mode weights in one point-to-plane step (a pose that must slide "
                                 "along a smooth surface gets there); alternating: a point-to-point pose, then the "
                                 "weights (stays nearer the start pose)")
+    pose_freedom: bool = param(True, label="Pose freedom", advanced=True,
+                               help="a partial target: the fit is turned about the given part's long axis and "
+                                    "fitted again; the turns and the search's other starts that fit nearly as well "
+                                    "are the pose's uncertainty, said and added to the posterior SD")
     model_error: bool = param(True, label="Model error", advanced=True,
                               help="the posterior SD includes the model's own error (its training instances' "
                                    "leave-one-out residuals), not only the target's noise: for a partial target "

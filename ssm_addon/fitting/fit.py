@@ -31,6 +31,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 from scipy.special import chdtrc, chdtri
 
 from ..base.errors import InputError, check_cancelled
@@ -41,7 +42,7 @@ from ..meshutil import MeshLocator, vertex_normals
 
 __all__ = ["FitResult", "ModelErrorField", "Pose", "Target", "correlation_length", "farthest_point_indices",
            "fit_any_pose", "fit_floor", "fit_model", "loo_residuals", "model_error_field", "model_error_variance", "outlier_limit",
-           "rigid_screen", "start_poses", "weighted_pose"]
+           "pose_freedom", "rigid_screen", "start_poses", "weighted_pose"]
 
 
 @dataclass(frozen=True)
@@ -141,6 +142,9 @@ class FitResult:
     landmark_residuals_mm : dict name -> mm
     iterations : int
     converged : bool
+    pose_freedom : dict or None
+        A partial target's pose freedom (:func:`pose_freedom`): the turns about the given part's
+        long axis that fit nearly as well; its spread is then inside ``posterior_sd_mm``.
     """
 
     points: np.ndarray
@@ -157,6 +161,7 @@ class FitResult:
     converged: bool
     n_modes: int
     b_covariance: np.ndarray | None = None
+    pose_freedom: dict | None = None
 
     def to_dict(self) -> dict:
         return {"coefficients": [float(x) for x in self.coefficients], "b_mm": [float(x) for x in self.b],
@@ -166,7 +171,8 @@ class FitResult:
                 "landmark_residuals_mm": {k: float(v) for k, v in self.landmark_residuals_mm.items()},
                 "iterations": int(self.iterations), "converged": bool(self.converged),
                 "posterior_sd_mm": {"mean": float(self.posterior_sd_mm.mean()),
-                                    "max": float(self.posterior_sd_mm.max())}}
+                                    "max": float(self.posterior_sd_mm.max())},
+                **({"pose_freedom": self.pose_freedom} if self.pose_freedom is not None else {})}
 
 
 def _procrustes(src: np.ndarray, dst: np.ndarray, w: np.ndarray, scale: bool) -> Pose:
@@ -843,6 +849,105 @@ def rigid_screen(mean: np.ndarray, target: Target, pose: Pose, *, partial: bool,
 PRIORITY_TOLERANCE = 1.1
 
 
+#: Turns (degrees) about the given part's long axis, and slides (mm) along it, at which a partial
+#: fit is fitted again.
+FREEDOM_TURNS_DEG = (-180.0, -135.0, -90.0, -60.0, -40.0, -20.0, 20.0, 40.0, 60.0, 90.0, 135.0)
+FREEDOM_SLIDES_MM = (-40.0, -20.0, -10.0, 10.0, 20.0, 40.0)
+#: A turn or start "fits nearly as well" within this share of the chosen fit's distance (at least
+#: :data:`FREEDOM_MIN_MM`).
+FREEDOM_SHARE = 0.1
+FREEDOM_MIN_MM = 0.05
+
+
+def _free_range(steps, fit_at, near) -> tuple[list[float], dict]:
+    """Walk out from step 0 each way through ``steps`` (signed), fitting at each (``fit_at(step)``)
+    until a fit is not ``near(step, fit)``. Returns ([lowest, highest] step reached, {step: fit})."""
+    fits, bounds = {}, []
+    for side in (sorted((t for t in steps if t < 0), reverse=True), sorted(t for t in steps if t > 0)):
+        reached = 0.0
+        for t in side:
+            fits[t] = fit_at(t)
+            if not near(t, fits[t]):
+                break
+            reached = t
+        bounds.append(reached)
+    return bounds, fits
+
+
+def pose_freedom(model, target: Target, chosen: FitResult, *, params: FitParams, others=(), points=None,
+                 cancelled: CancelledFn = None) -> tuple[dict, np.ndarray]:
+    """How far a partial target leaves its pose free, and what that does to the missing part.
+
+    The chosen fit is turned about the given part's long axis (its points' principal axis,
+    through their centre) by each of :data:`FREEDOM_TURNS_DEG`, and slid along it by each of
+    :data:`FREEDOM_SLIDES_MM`, and fitted again (pose and shape, ``params`` as the search's),
+    walking out from the chosen pose each way until a fit lies beyond the tolerance.
+    The turns and slides contiguous with the chosen pose whose fit lies within the tolerance
+    (``FREEDOM_SHARE`` of the chosen distance, at least ``FREEDOM_MIN_MM``) and stays turned or
+    slid at least half way (a fit that goes back is pinned by the part) are the pose's free
+    ranges (a shaft leaves both: a round section turns, a straight one slides); those fits, with
+    the search's other candidates (``others``: fits of other starts) within the tolerance, are
+    the poses that fit nearly as well.
+
+    Returns
+    -------
+    freedom : dict
+        ``axis`` (unit, target frame), ``centre`` (mm), ``range_deg`` and ``range_mm``
+        ([lowest, highest] turn and slide within the tolerance), ``width_deg``, ``width_mm``,
+        ``distance_mm`` (the chosen fit's, the search's measure), ``tolerance_mm``, ``turns``
+        and ``slides`` ({step: distance mm} of the steps fitted), ``candidates`` (how many fits entered the
+        spread), ``spread_mm`` ({mean, max} over the points).
+    spread : (N,) ndarray
+        Per point, the RMS distance (mm) of its places in those fits from its place in the chosen
+        fit (the shape reported): the pose's share of the uncertainty (0 where every candidate
+        puts it alike).
+    """
+    pts = np.asarray(target.samples, float)
+    centre, vecs = _principal_axes(pts)
+    axis = vecs[:, 0] * np.sign(vecs[np.argmax(np.abs(vecs[:, 0])), 0])  # eigh's sign is arbitrary
+    base = float(chosen.mean_distance_mm)
+    tol = max(FREEDOM_MIN_MM, FREEDOM_SHARE * base)
+    rot, shift = chosen.pose.rotation, chosen.pose.translation
+
+    def refit(pose):
+        check_cancelled(cancelled)
+        return fit_model(model, target, params=params, pose=pose, partial=True, tangential_pull=1.0, points=points,
+                         cancelled=cancelled)
+
+    def turn(t):
+        r = _axis_rotation(axis, t)
+        return refit(Pose(r @ rot, r @ (shift - centre) + centre, chosen.pose.scale))
+
+    def turned_by(f) -> float:  # the refit's own turn about the axis from the chosen pose (degrees)
+        rel = Rotation.from_matrix(f.pose.rotation @ rot.T).as_rotvec()
+        return float(np.degrees(rel @ axis))
+
+    def slid_by(f) -> float:  # the refit's own slide along the axis (mm)
+        return float((np.asarray(f.points, float).mean(axis=0) - np.asarray(chosen.points, float).mean(axis=0)) @ axis)
+
+    # a step counts when its refit fits within the tolerance AND stays where it was put (at least half
+    # way): a fit that turns or slides back is pinned by the given part, not free
+    range_deg, turned = _free_range(FREEDOM_TURNS_DEG, turn, lambda t, f: float(f.mean_distance_mm) <= base + tol
+                                    and turned_by(f) * t >= 0.5 * t * t)
+    range_mm, slid = _free_range(FREEDOM_SLIDES_MM, lambda mm: refit(Pose(rot, shift + mm * axis, chosen.pose.scale)),
+                                 lambda t, f: float(f.mean_distance_mm) <= base + tol and slid_by(f) * t >= 0.5 * t * t)
+    turns = {t: float(f.mean_distance_mm) for t, f in turned.items()}
+    slides = {t: float(f.mean_distance_mm) for t, f in slid.items()}
+    members = [chosen] + [f for t, f in turned.items() if range_deg[0] <= t <= range_deg[1]]
+    members += [f for t, f in slid.items() if range_mm[0] <= t <= range_mm[1]]
+    members += [f for f in others if float(f.mean_distance_mm) <= base + tol]
+    places = np.stack([np.asarray(f.points, float) for f in members])
+    # from the chosen fit's places (the shape reported), not from the candidates' mean: a place
+    # equally likely anywhere on a circle of radius r is 2r from the reported one at worst, √2 r RMS
+    spread = np.sqrt(((places - places[0]) ** 2).sum(axis=2).mean(axis=0))
+    freedom = {"axis": [float(x) for x in axis], "centre": [float(x) for x in centre], "range_deg": range_deg,
+               "width_deg": range_deg[1] - range_deg[0], "range_mm": range_mm, "width_mm": range_mm[1] - range_mm[0],
+               "distance_mm": base, "tolerance_mm": tol, "turns": {f"{t:g}": d for t, d in sorted(turns.items())},
+               "slides": {f"{t:g}": d for t, d in sorted(slides.items())}, "candidates": len(members),
+               "spread_mm": {"mean": float(spread.mean()), "max": float(spread.max())}}
+    return freedom, spread
+
+
 def fit_any_pose(model, target: Target, *, params: FitParams | None = None, frame_pose: Pose | None = None,
                  partial: bool = False, keep: int = 3, points: np.ndarray | None = None, progress: ProgressFn = None,
                  cancelled: CancelledFn = None) -> tuple[FitResult, dict]:
@@ -900,8 +1005,15 @@ def fit_any_pose(model, target: Target, *, params: FitParams | None = None, fram
         if fitted[mine] <= PRIORITY_TOLERANCE * fitted[chosen] + 1e-9:
             chosen = mine
     best = results[chosen]
+    freedom = None
+    if partial and params.pose_freedom:
+        report(progress, 0.9, "pose freedom: the fit turned about the given part's long axis")
+        freedom, spread = pose_freedom(model, target, best, params=search, points=points, cancelled=cancelled,
+                                       others=[r for n, r in results.items() if n != chosen])
     if partial:
         best = fit_model(model, target, params=params, pose=best.pose, partial=True, points=points, cancelled=cancelled)
+    if freedom is not None:  # the pose's share of the uncertainty joins the shape's
+        best = replace(best, posterior_sd_mm=np.sqrt(best.posterior_sd_mm ** 2 + spread ** 2), pose_freedom=freedom)
     doc = {"starts": [{"name": n, "screened_mm": (None if not np.isfinite(d) else d), "fitted_mm": fitted.get(n)}
                       for n, _p, d in screened], "chosen": chosen}
     return best, doc

@@ -16,13 +16,44 @@ from scipy.spatial import cKDTree
 from ..base.params import FitParams
 from .fit import FitResult, Target, outlier_limit
 
-__all__ = ["UNIT_RATIO", "FitVerdict", "coverage", "coverage_radius_mm", "is_outlier", "judge_fit", "size_in_unit_range"]
+__all__ = ["FREE_SLIDE_MM", "FREE_TURN_DEG", "UNIT_RATIO", "FitVerdict", "calibration", "coverage", "coverage_radius_mm", "is_outlier", "judge_fit", "size_in_unit_range"]
 
 #: A partial target covering less than this share of the model's surface: the completion rests
 #: on the model's prior.
 LOW_COVERAGE = 0.1
+#: A partial target whose fits turned about its long axis fit nearly as well over this many
+#: degrees or more: its pose is said to be free.
+FREE_TURN_DEG = 30.0
+#: … or slid along it over this many mm or more.
+FREE_SLIDE_MM = 20.0
 #: A target whose size is outside this factor range of the model's is likely in another unit.
 UNIT_RATIO = (0.2, 5.0)
+
+
+def calibration(errors_mm, sd_mm) -> dict:
+    """How well posterior SDs follow true errors, where the truth is known (evaluations, tests).
+
+    Parameters
+    ----------
+    errors_mm, sd_mm : (M,) array_like
+        Per point: the distance from its true place and its posterior SD (mm).
+
+    Returns
+    -------
+    dict
+        ``within_2sd``: the share of errors within 2 SD (0.95 for a calibrated Gaussian);
+        ``sd_mean_mm``: the mean SD (the sharpness: a share bought with a huge SD says little);
+        ``error_mean_mm``; ``correlation``: Pearson's r of per-point SD and error (does the SD
+        say *where* the error is?), NaN when either is constant.
+
+    >>> c = calibration([1.0, 2.0, 3.0], [1.0, 1.5, 1.0])
+    >>> round(c["within_2sd"], 3), c["sd_mean_mm"] == 3.5 / 3
+    (0.667, True)
+    """
+    err, sd = np.asarray(errors_mm, float).ravel(), np.asarray(sd_mm, float).ravel()
+    corr = float(np.corrcoef(err, sd)[0, 1]) if err.size > 1 and err.std() > 0 and sd.std() > 0 else float("nan")
+    return {"within_2sd": float(np.mean(err <= 2.0 * sd)), "sd_mean_mm": float(sd.mean()),
+            "error_mean_mm": float(err.mean()), "correlation": corr}
 
 
 def is_outlier(mahalanobis: float, n_modes: int, probability: float = 0.99) -> bool:
@@ -80,7 +111,8 @@ class FitVerdict:
         Share of the fitted shape's points a target point covers (:func:`coverage`).
     warnings : dict kind -> message
         What the fit rests on, said: ``convergence``, ``outlier``, ``coverage`` (a partial
-        target covering little), ``unit`` (a target of another size than the model's: metres
+        target covering little), ``pose`` (a partial target whose turn about its long axis is
+        free), ``unit`` (a target of another size than the model's: metres
         or centimetres?), ``labels`` (a label map fitted with its labels merged).
     """
 
@@ -127,6 +159,16 @@ def judge_fit(result: FitResult, target: Target, model, *, params: FitParams | N
         ratio = size_ratio(target.samples, model)
         warnings["unit"] = (f"the target is {ratio:.3g} times the model's size ({ratio * size_m:.3g} against "
                             f"{size_m:.3g} mm): another unit (m, cm)?")
+    free = result.pose_freedom
+    if free is not None and (free["width_deg"] >= FREE_TURN_DEG or free.get("width_mm", 0.0) >= FREE_SLIDE_MM):
+        lo, hi = free["range_deg"]
+        slo, shi = free.get("range_mm", (0.0, 0.0))
+        moves = ([f"turned about its long axis from {lo:+.0f}° to {hi:+.0f}°"] if hi > lo else []) + (
+            [f"slid along it from {slo:+.0f} to {shi:+.0f} mm"] if shi > slo else [])
+        warnings["pose"] = (f"the given part leaves its pose free: {' and '.join(moves)} it fits within "
+                            f"{free['tolerance_mm']:.2f} mm of the chosen pose; {free['candidates']} fits that near "
+                            f"move the missing part by up to {free['spread_mm']['max']:.1f} mm RMS (included in the "
+                            "posterior SD)")
     labels = target.merged_labels
     if len(labels) > 1:
         warnings["labels"] = (f"{target.source} holds {len(labels)} labels ({', '.join(str(x) for x in labels[:6])}"
