@@ -35,6 +35,7 @@ import numpy as np  # noqa: E402
 from foreign_data import random_rigid  # noqa: E402
 
 from ssm_addon.fitting.fit import FitParams, Target, fit_any_pose  # noqa: E402
+from ssm_addon.fitting.verdict import calibration  # noqa: E402
 from ssm_addon.formats.meshes import read_mesh  # noqa: E402
 from ssm_addon.meshutil import MeshLocator  # noqa: E402
 from ssm_addon.model.pca import build_model, procrustes_fit  # noqa: E402
@@ -112,26 +113,30 @@ def evaluate(n: int = 30, landmarks: int = 12, jobs: int = 2, max_turn: float = 
         true_surface = MeshLocator(move(tv), tf).query(pred, k=12)[1]
         true_points = move(full.instance_points_world[i][tib])  # the subject's own tibia coating, moved alike
         err = np.linalg.norm(pred - true_points, axis=1)
-        within = float((err <= 2.0 * result.posterior_sd_mm[tib]).mean())
+        cal = calibration(err, result.posterior_sd_mm[tib])
+        within = cal["within_2sd"]
         # separate models: the mean tibia where the similarity of the mean femur onto the fitted femur puts it
         sc, r, t = procrustes_fit(np.asarray(loo.mean[fem])[None], result.points[fem], True)
         base = sc[0] * np.asarray(loo.mean[tib]) @ r[0].T + t[0]
         base_surface = MeshLocator(move(tv), tf).query(base, k=12)[1]
         rows.append({"subject": s, "joint_surface_mm": float(true_surface.mean()),
-                     "joint_points_mm": float(err.mean()), "within_2sd": within,
+                     "joint_points_mm": float(err.mean()), "within_2sd": within, "sd_mean_mm": cal["sd_mean_mm"],
+                     "sd_error_correlation": cal["correlation"],
                      "baseline_surface_mm": float(base_surface.mean()),
                      "baseline_points_mm": float(np.linalg.norm(base - true_points, axis=1).mean()),
                      "femur_fit_mm": float(result.mean_distance_mm), "seconds": time.perf_counter() - t1})
         r_ = rows[-1]
         log(f"{s}: tibia from the femur {r_['joint_surface_mm']:.3f} mm from the true surface "
-            f"({r_['joint_points_mm']:.3f} mm from its true points, {100 * within:.0f} % within 2 SD); baseline "
+            f"({r_['joint_points_mm']:.3f} mm from its true points, {100 * within:.0f} % within 2 SD of mean "
+            f"{cal['sd_mean_mm']:.2f} mm, SD-error r {cal['correlation']:.2f}); baseline "
             f"{r_['baseline_surface_mm']:.3f} mm; femur fitted {r_['femur_fit_mm']:.3f} mm ({r_['seconds']:.1f} s)")
     summary = {k: float(np.mean([r[k] for r in rows])) for k in rows[0] if k != "subject"}
     summary["ratio"] = summary["joint_surface_mm"] / summary["baseline_surface_mm"]
     summary["build_s"] = build_s
     log(f"mean: joint {summary['joint_surface_mm']:.3f} mm, baseline {summary['baseline_surface_mm']:.3f} mm "
         f"({summary['ratio']:.2f}×); true points {summary['joint_points_mm']:.3f} mm against "
-        f"{summary['baseline_points_mm']:.3f}; {100 * summary['within_2sd']:.1f} % within 2 SD; build {build_s:.0f} s")
+        f"{summary['baseline_points_mm']:.3f}; {100 * summary['within_2sd']:.1f} % within 2 SD (mean SD "
+        f"{summary['sd_mean_mm']:.2f} mm, SD-error r {summary['sd_error_correlation']:.2f}); build {build_s:.0f} s")
     return {"rows": rows, "summary": summary}
 
 
