@@ -8,6 +8,7 @@ only when the whole build succeeded.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 from collections.abc import Callable
@@ -129,6 +130,17 @@ def _check_before_build(project: Project, out_dir: Path, *, force: bool, what: s
     return inputs
 
 
+@contextlib.contextmanager
+def _executor(project: Project, jobs: int, scheduler: str | None, say):
+    """The build's executor (``scheduler`` or the project's ``[compute]``), its note said; its
+    workers draw the pictures while the files are written."""
+    with Executor(scheduler or project.params.compute.scheduler, jobs, tasks=len(project.instances),
+                  connect_timeout_s=project.params.compute.connect_timeout_s) as executor:
+        if executor.note:
+            say(f"compute: {executor.note}")
+        yield executor
+
+
 def open_cache(project: Project, out_dir: Path, cache=None):
     """The build's :class:`~ssm_addon.pipeline.cache.BuildCache`, or None when it is off.
 
@@ -224,11 +236,7 @@ def build(
         say("cache: not used by [correspondence] method = \"model\" (its rounds depend on every instance)")
         build_cache = None
     with owned_output_folder(out_dir, inputs, force=force, cancelled=cancelled) as tmp:
-        with Executor(scheduler or project.params.compute.scheduler, jobs, tasks=len(project.instances),
-                      connect_timeout_s=project.params.compute.connect_timeout_s) as executor:
-            # open until the files are written: its workers draw the pictures meanwhile
-            if executor.note:
-                say(f"compute: {executor.note}")
+        with _executor(project, jobs, scheduler, say) as executor:  # open until the files are written
             run(study, jobs=jobs, progress=sub_progress(progress, 0.0, 0.95), cancelled=cancelled, log=say,
                 executor=executor, cache=build_cache)
             check_cancelled(cancelled)
@@ -292,10 +300,7 @@ def build_joint(project: Project, out_dir: Path, *, jobs: int = 1, progress: Pro
     if any(st.params.correspondence.method == "model" for st in project.structures.values()):
         build_cache = None
     with owned_output_folder(out_dir, inputs, force=force, cancelled=cancelled) as tmp:
-        with Executor(scheduler or project.params.compute.scheduler, jobs, tasks=len(project.instances),
-                      connect_timeout_s=project.params.compute.connect_timeout_s) as executor:
-            if executor.note:
-                say(f"compute: {executor.note}")
+        with _executor(project, jobs, scheduler, say) as executor:
             run_joint(joint, jobs=jobs, progress=sub_progress(progress, 0.0, 0.95), cancelled=cancelled, log=say,
                       executor=executor, cache=build_cache)
             check_cancelled(cancelled)

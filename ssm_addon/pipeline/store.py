@@ -134,15 +134,20 @@ def save_study(study: Study, folder, *, extra: dict | None = None) -> Path:
     return folder
 
 
+def _read_stored(folder: Path, doc_name: str, arrays_name: str, what: str) -> tuple[dict, dict]:
+    """A stored folder's JSON document and arrays (read without pickles)."""
+    try:
+        doc = json.loads((folder / doc_name).read_text(encoding="utf-8"))
+        with np.load(folder / arrays_name, allow_pickle=False) as npz:
+            return doc, {k: npz[k] for k in npz.files}
+    except (OSError, ValueError) as err:
+        raise InputError(f"{folder}: not a stored {what} ({err})") from None
+
+
 def load_study(folder) -> tuple[Study, dict]:
     """Read a study written by :func:`save_study`; returns (study, extra)."""
     folder = Path(folder)
-    try:
-        doc = json.loads((folder / "study.json").read_text(encoding="utf-8"))
-        npz = np.load(folder / "arrays.npz", allow_pickle=False)
-    except (OSError, ValueError) as err:
-        raise InputError(f"{folder}: not a stored study ({err})") from None
-    a = {k: npz[k] for k in npz.files}
+    doc, a = _read_stored(folder, "study.json", "arrays.npz", "study")
     specs = []
     for i, d in enumerate(doc["instances"]):
         lm = None
@@ -252,16 +257,12 @@ def save_joint_study(joint: JointStudy, folder, *, extra: dict | None = None) ->
 def load_joint_study(folder) -> tuple[JointStudy, dict]:
     """Read a joint study written by :func:`save_joint_study`; returns (joint study, extra)."""
     folder = Path(folder)
-    try:
-        doc = json.loads((folder / "joint.json").read_text(encoding="utf-8"))
-        npz = np.load(folder / "model.npz", allow_pickle=False)
-    except (OSError, ValueError) as err:
-        raise InputError(f"{folder}: not a stored joint study ({err})") from None
+    doc, a = _read_stored(folder, "joint.json", "model.npz", "joint study")
     studies = {name: load_study(folder / "structures" / str(k))[0] for k, name in enumerate(doc["structures"])}
     records = doc.get("records") or {}
     joint = JointStudy(subjects=tuple(records.get("subjects") or next(iter(studies.values())).names),
                        structures=studies, params=P.StudyParams.from_tables(doc["parameters"], where=f"{folder}:"))
-    joint.model = _model_from_arrays({k: npz[k] for k in npz.files}, folder)
+    joint.model = _model_from_arrays(a, folder)
     joint.metrics = None
     apply_joint_records(joint, {"joint": records.get("joint") or {}})  # each study's records came with it
     return joint, doc.get("extra", {})
