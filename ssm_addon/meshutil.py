@@ -463,17 +463,28 @@ def distance_figures(distances: np.ndarray) -> dict:
     return {"mean_mm": float(d.mean()), "p95_mm": float(np.percentile(d, 95)), "max_mm": float(d.max())}
 
 
-def two_way_distances(points: np.ndarray, faces: np.ndarray, other_points: np.ndarray, other_faces: np.ndarray) -> dict:
+def two_way_distances(points: np.ndarray, faces: np.ndarray, other_points: np.ndarray, other_faces: np.ndarray, *,
+                      beyond_mm: float | None = None) -> dict:
     """Surface distances between two meshes in one frame (mm), both ways.
 
     ``"to_other"``: each vertex of the first to the second's surface; ``"from_other"``:
     each vertex of the second to the first's surface (where the first, e.g. a coating with
     a few hundred points, cuts off a thin process of the second, this is large). Each as
-    :func:`distance_figures`.
+    :func:`distance_figures`. With ``beyond_mm``, ``"from_other"`` also holds ``"beyond"``:
+    how many of the second's vertices lie farther than that (``count``, ``share``) and where
+    (``centre_offset_mm``: their centre minus the second mesh's vertex centre, in the frame).
     """
     _c, to_other, _t, _b = MeshLocator(other_points, other_faces).query(points, k=12)
     _c, from_other, _t, _b = MeshLocator(points, faces).query(other_points, k=12)
-    return {"to_other": distance_figures(to_other), "from_other": distance_figures(from_other)}
+    out = {"to_other": distance_figures(to_other), "from_other": distance_figures(from_other)}
+    if beyond_mm is not None:
+        far = from_other > beyond_mm
+        other = np.asarray(other_points, float)
+        centre = (other[far].mean(axis=0) - other.mean(axis=0)) if far.any() else np.zeros(3)
+        out["from_other"]["beyond"] = {"mm": float(beyond_mm), "count": int(far.sum()),
+                                       "share": float(far.mean()) if len(far) else 0.0,
+                                       "centre_offset_mm": [float(x) for x in centre]}
+    return out
 
 
 @dataclass(frozen=True)

@@ -208,6 +208,11 @@ def test_a_template_too_coarse_for_a_thin_process_is_named(tmp_path):
     named = [f for f in result.report["quality"]["findings"] if f["gate"] == "input_surface"]
     assert named, json.dumps(result.report["instances"]["s0"].get("input_surface_mm"))
     assert "thin process" in named[0]["message"] and "r_min_mm" in named[0]["message"]
+    assert "max_distance_mm = 1" in named[0]["message"]  # the one number first
+    beyond = result.report["instances"][named[0]["instance"]]["input_surface_mm"]["from_input"]["beyond"]
+    x, y, z = beyond["centre_offset_mm"]  # where: out along the spike (+x), not around the body
+    assert beyond["count"] > 0 and x > 15.0 and abs(y) < 5.0 and abs(z) < 5.0, beyond
+    assert f"{beyond['count']:,} of its vertices" in named[0]["message"]
     assert all(result.report["instances"][f["instance"]]["input_surface_mm"]["from_input"]["max_mm"] > 3.0
                for f in named)
 

@@ -306,12 +306,24 @@ def check_input_surface(name: str, distances: dict, params: QualityParams, templ
     if not (math.isfinite(worst) and worst > params.max_input_distance_mm):
         return []
     mean = float(distances["from_input"]["mean_mm"])
-    remedy = ("use a denser template (smaller [template] r_min_mm and r_max_mm, now "
-              f"{template.r_min_mm:g} and {template.r_max_mm:g} mm) or a finer spacing (now {template.spacing_mm:g} mm)"
-              if template is not None else "use a denser template or a finer spacing")
+    if template is None:
+        remedy = "use a denser template or a finer spacing"
+    elif template.max_distance_mm is None:
+        remedy = ("give the template a tolerance ([template] max_distance_mm = 1, now off) or make it denser "
+                  f"(smaller r_min_mm and r_max_mm, now {template.r_min_mm:g} and {template.r_max_mm:g} mm)")
+    else:
+        remedy = (f"a smaller [template] max_distance_mm (now {template.max_distance_mm:g} mm) or a finer spacing (now "
+                  f"{template.spacing_mm:g} mm); where that does not help, the coating does not reach a part the "
+                  "template's instance holds smaller: a template from an instance that has it ([template] instance)")
+    beyond = distances["from_input"].get("beyond") or {}
+    where = ""
+    if beyond.get("count"):
+        x, y, z = beyond["centre_offset_mm"]
+        where = (f"; {beyond['count']:,} of its vertices ({100 * beyond['share']:.2g} %) lie beyond, centred "
+                 f"({x:+.0f}, {y:+.0f}, {z:+.0f}) mm from its centre (x, y, z, RAS)")
     return [Finding(name, "input_surface", f"its mesh lies up to {worst:.1f} mm from its coating (mean {mean:.2f} mm; "
-                    f"allowed {params.max_input_distance_mm:g} mm): a part of the surface, a thin process, is cut off "
-                    f"by the template's points; {remedy}", worst, params.max_input_distance_mm)]
+                    f"allowed {params.max_input_distance_mm:g} mm{where}): a part of the surface, a thin process or a "
+                    f"notch, is cut off by the coating; {remedy}", worst, params.max_input_distance_mm)]
 
 
 def check_landmark_transfer(check, params: QualityParams) -> list[Finding]:

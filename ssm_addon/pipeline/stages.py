@@ -294,9 +294,9 @@ def template_stage(study: Study, *, progress: ProgressFn = None, cancelled: Canc
 
 
 def _input_distance_job(args):
-    path, convention, points_world, faces = args
+    path, convention, points_world, faces, beyond_mm = args
     vertices, mesh_faces = read_mesh(path, space=convention)
-    d = two_way_distances(points_world, faces, vertices, mesh_faces)
+    d = two_way_distances(points_world, faces, vertices, mesh_faces, beyond_mm=beyond_mm)
     return {"to_input": d["to_other"], "from_input": d["from_other"]}
 
 
@@ -305,7 +305,8 @@ def input_distances(study: Study, coated: dict[str, CoatingResult], faces: np.nd
     """For every coated instance given as a mesh file: the coating against the user's own mesh
     (world mm, the file read as the import reads it), both ways (:func:`~ssm_addon.meshutil.two_way_distances`:
     ``to_input`` from the coated points to the mesh, ``from_input`` from the mesh's vertices to
-    the coated surface: large where the template's points do not reach a thin process).
+    the coated surface: large where the template's points do not reach a thin process; its
+    ``beyond``: the vertices farther than ``[quality] max_input_distance_mm``, how many and where).
 
     ``executor``: where the instances are measured (the build's workers; default this process).
     """
@@ -317,7 +318,8 @@ def input_distances(study: Study, coated: dict[str, CoatingResult], faces: np.nd
             continue
         convention, _note = mesh_coordinates(spec.mesh_path, spec.given_space(study.params.template.space))
         names.append(name)
-        args.append((spec.mesh_path, convention, frames[name].to_world(c.points_object), np.asarray(faces)))
+        args.append((spec.mesh_path, convention, frames[name].to_world(c.points_object), np.asarray(faces),
+                     float(study.params.quality.max_input_distance_mm)))
     if not args:
         return {}
     with executor_or_local(executor, 1) as pool:
