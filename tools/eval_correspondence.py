@@ -45,7 +45,6 @@ import os
 import sys
 import tempfile
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -341,14 +340,16 @@ TEMPLATE_CHOICE = [None]
 ROUND_STATES: list = []  # the model method's re-sampled coatings of every round (object frames)
 LANDMARK_NOISE = [None]
 COATING = [None]  # the [coating] parameters, with the --coating-* options given
+TEMPLATE = [{}]  # the [template] keys given with --template-*
 OPTIMISE = [None]  # the correspondence optimisation's [correspondence] keys, with --optimise
 BEFORE_OPTIMISATION: dict = {}  # the coatings the optimisation started from (object frames)
 
 
 def run_study(specs, template_name: str, method: str, iterations: int, jobs: int, spacing: float | None = None):
     study = Study(instances=specs, template_instance=template_name)
-    if spacing:
-        study.params = study.params.replace(template=replace(study.params.template, spacing_mm=spacing))
+    if spacing or TEMPLATE[0]:
+        table = {**P.to_table(study.params.template), **TEMPLATE[0], **({"spacing": spacing} if spacing else {})}
+        study.params = study.params.replace(template=P.from_table(P.TemplateParams, table, where="--template-*"))
     extra = {} if LANDMARK_WEIGHT[0] is None else {"landmark_weight": LANDMARK_WEIGHT[0]}
     if ROUND_TEMPLATE[0] is not None:
         extra["round_template"] = ROUND_TEMPLATE[0]
@@ -490,6 +491,8 @@ def main(argv=None):
                     help="[correspondence] optimise_tolerance_mm")
     P.add_arguments(ap.add_argument_group("[coating] values other than the defaults (as ssm build takes them)"),
                     P.CoatingParams, prefix="coating")
+    P.add_arguments(ap.add_argument_group("[template] values other than the defaults (as ssm build takes them)"),
+                    P.TemplateParams, prefix="template")
     args = ap.parse_args(argv)
     if args.population not in MESH_SETS and args.population != "deformed" and not args.population.startswith("folder:"):
         ap.error(f"unknown population {args.population!r}")
@@ -501,6 +504,10 @@ def main(argv=None):
         "population_weight", "landmark_hold", "min_variance", "optimise_iterations", "optimise_tolerance_mm") if getattr(args, k) is not None}
     try:
         COATING[0] = P.from_arguments(args, P.CoatingParams, prefix="coating")
+    except InputError as err:
+        ap.error(str(err))
+    try:
+        TEMPLATE[0] = P.to_table(P.from_arguments(args, P.TemplateParams, prefix="template"), only_changed=True)
     except InputError as err:
         ap.error(str(err))
     args.coating = [f"{k}={v}" for k, v in P.to_table(COATING[0], only_changed=True).items()]  # the JSON rows'
