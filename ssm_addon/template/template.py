@@ -782,13 +782,11 @@ def build_template(object_volume: ObjectVolume, params: TemplateParams | None = 
             rounds += 1
             bad = deviation > tolerance
             centres = tri.vertices[tri.faces[bad]].mean(axis=1)
-            near = voxel_tree.query_ball_point(centres, r=float(r.max()))
+            # the surface voxels whose selection made the triangle: within 1.5 of their own radius of its centre
+            # (and the largest radius)
+            pairs = cKDTree(centres).sparse_distance_matrix(voxel_tree, float(r.max()), output_type="ndarray")
             hit = np.zeros(len(r), bool)
-            for c, idx in zip(centres, near):  # the surface voxels whose selection made the triangle
-                idx = np.asarray(idx, np.int64)
-                if len(idx):
-                    d = np.linalg.norm(geo.voxels[idx] - c, axis=1)
-                    hit[idx[d <= r[idx] * 1.5]] = True
+            hit[pairs["j"][pairs["v"] <= 1.5 * r[pairs["j"]]]] = True
             if not hit.any():
                 break
             r = np.where(hit, np.maximum(r * TOLERANCE_SHRINK, TOLERANCE_MIN_RADIUS_VOX), r)
