@@ -86,16 +86,18 @@ def _require_model(context) -> bpy.types.Object:
     return obj
 
 
-def model_location(context, model: ShapeModel) -> np.ndarray:
+def model_location(context, model: ShapeModel, turn: np.ndarray | None = None) -> np.ndarray:
     """Where the model object goes (Blender world mm): right of the instances, level with them.
 
-    The mean shape is in the model frame (object mm), turned as shown (:func:`display_axes`);
+    The mean shape is in the model frame (object mm), turned as shown (``turn``, default
+    :func:`~ssm_addon.model.metrics.display_axes`);
     the object's origin is put a quarter model width to the right (+x) of the instances'
     bounding box, at the height and depth of their centre, so the model is seen beside the
     population.
     """
     insts = scene_instances(context)
-    shown = np.asarray(model.mean, float) @ core_metrics.display_axes(model).T
+    turn = core_metrics.display_axes(model) if turn is None else turn
+    shown = np.asarray(model.mean, float) @ turn.T
     width = float(np.ptp(shown[:, 0])) if model.n_points else 0.0
     if not insts:
         return np.zeros(3)
@@ -152,7 +154,7 @@ def create_joint_model_object(context, model: ShapeModel, name: str = MODEL_NAME
     bridge.ensure_collection(scene, MODEL_COLLECTION).objects.link(empty)
     matrix = np.eye(4)
     matrix[:3, :3] = core_metrics.display_axes(model)  # stands as its instances lay in their files
-    matrix[:3, 3] = model_location(context, model)
+    matrix[:3, 3] = model_location(context, model, matrix[:3, :3])
     bridge.set_matrix_world(empty, matrix)
     k = model.n_modes if n_keys is None else min(int(n_keys), model.n_modes)
     for i in range(k):
@@ -213,7 +215,7 @@ def create_model_object(context, model: ShapeModel, name: str = MODEL_NAME, n_ke
     _remove_model_objects(name)  # a joint model of the same name: replaced by the mesh
     matrix = np.eye(4)
     matrix[:3, :3] = core_metrics.display_axes(model)  # stands as its instances lay in their files
-    matrix[:3, 3] = model_location(context, model)
+    matrix[:3, 3] = model_location(context, model, matrix[:3, :3])
     obj = bridge.new_mesh_object(context, name, model.mean, model.faces, collection_name=MODEL_COLLECTION,
                                  matrix_world=matrix)
     if obj.data.shape_keys is not None and obj.data.shape_keys.animation_data is not None:

@@ -467,11 +467,15 @@ def save_joint_outputs(joint, out_dir, *, force: bool = False, inputs=(), **kw) 
 
     Returns (the output folder, ``{output name: absolute path}``, the report).
     """
-    out_dir = Path(out_dir).expanduser().resolve()
     every = [p for study in joint.structures.values() for p in study_inputs(study)]
-    with owned_output_folder(out_dir, [*every, *inputs], force=force, what="saving",
-                             cancelled=kw.get("cancelled")) as tmp:
-        files, final = write_joint(joint, tmp, **kw)
+    return _save_outputs(write_joint, joint, out_dir, [*every, *inputs], force=force, **kw)
+
+
+def _save_outputs(write, study, out_dir, inputs, *, force: bool, **kw) -> tuple[Path, dict, Report]:
+    """``write(study, folder, **kw)`` into ``out_dir`` under :func:`owned_output_folder`'s rules."""
+    out_dir = Path(out_dir).expanduser().resolve()
+    with owned_output_folder(out_dir, inputs, force=force, what="saving", cancelled=kw.get("cancelled")) as tmp:
+        files, final = write(study, tmp, **kw)
     return out_dir, absolute_files(files, out_dir), final
 
 
@@ -482,11 +486,7 @@ def save_study_outputs(study: Study, out_dir, *, force: bool = False, inputs=(),
 
     Returns (the output folder, ``{output name: absolute path}``, the report).
     """
-    out_dir = Path(out_dir).expanduser().resolve()
-    with owned_output_folder(out_dir, [*study_inputs(study), *inputs], force=force, what="saving",
-                             cancelled=kw.get("cancelled")) as tmp:
-        files, final = write_study(study, tmp, **kw)
-    return out_dir, absolute_files(files, out_dir), final
+    return _save_outputs(write_study, study, out_dir, [*study_inputs(study), *inputs], force=force, **kw)
 
 
 def write_joint(joint, folder, *, output: OutputParams, project: str | Absent, title: str, extra: dict | None = None,
