@@ -122,7 +122,8 @@ def _blender_property(s: P.Spec):
 def param_group(cls, name: str, extra: dict | None = None) -> type:
     """A ``bpy.types.PropertyGroup`` subclass with one property per parameter of ``cls``.
 
-    Optional parameters (None allowed) get a companion ``<name>_auto`` toggle; ``extra``
+    Optional parameters (None allowed) get a companion ``<name>_auto`` toggle ("Auto", or
+    "Off" for a field whose default is a value and whose None is its ``off`` word); ``extra``
     adds further (UI-only) annotations.
     """
     annotations = {}
@@ -130,7 +131,9 @@ def param_group(cls, name: str, extra: dict | None = None) -> type:
         annotations[s.name] = _blender_property(s)
         if s.optional:
             annotations[_auto_name(s.name)] = BoolProperty(
-                name="Auto", default=s.default is None, description=f"Automatic: {s.none_means}")
+                name="Off" if s.off else "Auto", default=s.default is None,
+                description=(f"Off: {s.none_means.removeprefix(s.off + ': ')}" if s.off else
+                             f"Automatic: {s.none_means}"))
     annotations.update(extra or {})
     doc = f"{cls.__name__} as Blender properties (derived from ssm_addon.base.params)."
     return type(name, (bpy.types.PropertyGroup,), {"__annotations__": annotations, "__doc__": doc,
@@ -200,14 +203,22 @@ class SSMPanel:
 
 
 def draw_params(layout, group, cls, *, advanced: bool = False, skip=()) -> None:
-    """Draw the (plain or advanced) parameters of ``cls`` from its group."""
+    """Draw the (plain or advanced) parameters of ``cls`` from its group; those the others leave
+    unused (``cls.inactive``) greyed out."""
     col = layout.column(align=True)
+    rule = getattr(cls, "inactive", None)
+    unused = rule(lambda name: _read(P.spec(cls, name), group)) if rule is not None else frozenset()
     for s in P.specs(cls):
         if s.advanced != advanced or s.name in skip:
             continue
+        if s.name in unused:
+            row = col.row(align=True)
+            row.active = False
+            row.prop(group, s.name)
+            continue
         if s.optional:
             row = col.row(align=True)
-            row.prop(group, _auto_name(s.name), text="", icon="AUTO")
+            row.prop(group, _auto_name(s.name), text="", icon="CANCEL" if s.off else "AUTO")
             sub = row.row(align=True)
             sub.enabled = not getattr(group, _auto_name(s.name))
             sub.prop(group, s.name)

@@ -133,6 +133,61 @@ def test_template_keys_follow_template_params(files):
     assert f"unknown key '{key}_typo'" in msg and f"did you mean '{key}'" in msg
 
 
+@pytest.mark.parametrize("table, expected", [
+    ("", 1.0),                                          # the default: one tolerance, 1 mm
+    ("max_distance_mm = 0.5", 0.5),
+    ('max_distance_mm = "off"', None),                  # eq. 1
+    ('max_distance_mm = "OFF"', None),
+    ("r_min_mm = 3.0\nr_max_mm = 8.0", None),           # a project written before the tolerance: eq. 1
+    ("p = 3.0", None),
+    ("r_max_mm = 8.0\nmax_distance_mm = 1.5", 1.5),     # both stated: the tolerance, capped by r_max
+    ("normal_radius_mm = 4.0", 1.0),                    # not one of eq. 1's keys
+])
+def test_the_template_tolerance_is_the_default_and_old_projects_keep_eq_1(files, tmp_path, table, expected):
+    """The template's density follows from max_distance_mm (1 mm) unless the table says "off" or
+    states eq. 1's radii or exponent without a tolerance; a saved project reads back the same."""
+    text = VALID.replace("spacing = 1.5", f"spacing = 1.5\n{table}")
+    proj = read_project(_write(files, text))
+    assert proj.params.template.max_distance_mm == expected
+    again = read_project(write_project(tmp_path / "copy.toml", proj))
+    assert again.params.template == proj.params.template
+    if expected is None:
+        assert 'max_distance_mm = "off"' in (tmp_path / "copy.toml").read_text()
+
+
+def test_a_bad_template_tolerance_names_the_off_word(files):
+    msg = _error(files, VALID.replace("spacing = 1.5", 'spacing = 1.5\nmax_distance_mm = "none"'))
+    assert "max_distance_mm must be a number > 0 mm and <= 100 mm (or 'off': the radii of eq. 1" in msg
+    assert "got string 'none'" in msg
+
+
+def test_the_command_line_takes_off_for_the_template_tolerance():
+    import argparse
+
+    from ssm_addon.base.params import TemplateParams, add_arguments, from_arguments
+
+    ap = argparse.ArgumentParser()
+    add_arguments(ap, TemplateParams, prefix="template")
+    assert from_arguments(ap.parse_args(["--template-max-distance-mm", "off"]), TemplateParams,
+                          prefix="template").max_distance_mm is None
+    assert from_arguments(ap.parse_args(["--template-max-distance-mm", "0.75"]), TemplateParams,
+                          prefix="template").max_distance_mm == 0.75
+    base = TemplateParams(max_distance_mm=None)  # a project with eq. 1, an option that does not touch it
+    assert from_arguments(ap.parse_args(["--template-seed", "3"]), TemplateParams, prefix="template",
+                          base=base).max_distance_mm is None
+    with pytest.raises(SystemExit):
+        ap.parse_args(["--template-max-distance-mm", "of"])
+    assert "default 1.0 ('off': the radii of eq. 1 (r_min, r_max, p))" in " ".join(ap.format_help().split())
+
+
+def test_the_panel_greys_out_what_the_tolerance_leaves_unused():
+    from ssm_addon.base.params import TemplateParams
+
+    on, off = TemplateParams(), TemplateParams(max_distance_mm=None)
+    assert TemplateParams.inactive(lambda k: getattr(on, k)) == {"p", "radius", "curvature_percentiles"}
+    assert TemplateParams.inactive(lambda k: getattr(off, k)) == frozenset()
+
+
 def test_the_exact_landmarks_key_of_earlier_versions_is_read_as_the_landmark_error(files):
     """``exact_landmarks = true`` (earlier versions) is ``landmark_noise_mm = 0``; ``false`` the estimate."""
     for old, new in (("true", 0.0), ("false", None)):

@@ -100,6 +100,10 @@ class Spec:
         Allowed values of a ``choice``.
     none_means : str or None
         When set, ``None`` is allowed and means this (e.g. "r_min_mm").
+    off : str
+        For an optional field whose default is a value: the word that gives ``None`` in a
+        project file, on the command line and in stored parameters (``"off"``), since
+        leaving the key out gives the default. Empty: leaving the key out gives ``None``.
     size : int or None
         Length of a fixed ``floats`` tuple.
     advanced : bool
@@ -127,6 +131,7 @@ class Spec:
     advanced: bool = False
     aliases: tuple = ()
     metavar: str = ""
+    off: str = ""
 
     @property
     def optional(self) -> bool:
@@ -150,7 +155,9 @@ class Spec:
         if self.kind == "floats" and self.size:
             what = f"{self.size} numbers"
         text = what + (" " + " and ".join(parts) if parts else "")
-        if self.optional:
+        if self.off:
+            text += f" (or {self.off!r}: {self.none_means.removeprefix(self.off + ': ')})"
+        elif self.optional:
             text += f" (or omitted: {self.none_means})"
         return text
 
@@ -162,12 +169,15 @@ def _num(x) -> str:
 
 def param(default, *, help: str, label: str | None = None, unit: str = "", minimum=None, maximum=None,
           exclusive_minimum: bool = False, choices=(), none_means: str | None = None, size: int | None = None,
-          advanced: bool = False, key: str | None = None, aliases=(), kind: str | None = None, metavar: str = ""):
+          advanced: bool = False, key: str | None = None, aliases=(), kind: str | None = None, metavar: str = "",
+          off: str = ""):
     """A dataclass field with its parameter description (see :class:`Spec`)."""
+    if off and (default is None or none_means is None):
+        raise TypeError("off= is for an optional parameter (none_means) whose default is a value")
     meta = {"ssm": {"label": label, "help": help, "unit": unit, "minimum": minimum, "maximum": maximum,
                     "exclusive_minimum": exclusive_minimum, "choices": tuple(choices), "none_means": none_means,
                     "size": size, "advanced": advanced, "key": key, "aliases": tuple(aliases), "kind": kind,
-                    "metavar": metavar}}
+                    "metavar": metavar, "off": off}}
     return field(default=default, metadata=meta)
 
 
@@ -197,7 +207,8 @@ def specs(cls) -> tuple[Spec, ...]:
                         label=label, help=meta["help"], unit=meta["unit"], minimum=meta["minimum"],
                         maximum=meta["maximum"], exclusive_minimum=meta["exclusive_minimum"],
                         choices=meta["choices"], none_means=meta["none_means"], size=meta["size"],
-                        advanced=meta["advanced"], aliases=meta["aliases"], metavar=meta.get("metavar", "")))
+                        advanced=meta["advanced"], aliases=meta["aliases"], metavar=meta.get("metavar", ""),
+                        off=meta.get("off", "")))
     out = tuple(out)
     setattr(cls, "_specs_cache", out)  # noqa: B010 - a class attribute, not a field
     return out
@@ -224,6 +235,8 @@ def convert(s: Spec, value, where: str = ""):
     Accepts what TOML, JSON and the command line give (int for float, list for tuple).
     """
     what = f"{where} {s.key}".strip()
+    if s.off and isinstance(value, str) and value.strip().lower() == s.off:
+        return None
     if value is None:
         if s.optional:
             return None
@@ -325,6 +338,10 @@ def keys(cls) -> dict[str, Spec]:
 def from_table(cls, table: Mapping, *, where: str = "", lines: Mapping | None = None):
     """Parameters from a project table (keys as in the file), validated.
 
+    A class may say what a table that leaves a key out means beyond its default
+    (``cls.implied(names given) -> {name: value}``: a ``[template]`` table that states
+    eq. 1's radii and no tolerance keeps eq. 1).
+
     Parameters
     ----------
     cls : parameter class
@@ -346,6 +363,10 @@ def from_table(cls, table: Mapping, *, where: str = "", lines: Mapping | None = 
         converted = convert(s, value, at)
         check_value(s, converted, at)
         values[s.name], seen[s.name] = converted, key
+    implied = getattr(cls, "implied", None)
+    if implied is not None:
+        for name, value in implied(frozenset(values)).items():
+            values.setdefault(name, value)
     try:
         params = cls(**values)
     except InputError as err:
@@ -354,10 +375,14 @@ def from_table(cls, table: Mapping, *, where: str = "", lines: Mapping | None = 
 
 
 def to_table(params, *, only_changed: bool = False) -> dict[str, Any]:
-    """``{project key: value}`` of every field (TOML-ready: tuples as lists; None left out)."""
+    """``{project key: value}`` of every field (TOML-ready: tuples as lists; None left out, or
+    written as the field's ``off`` word where leaving it out would give its default)."""
     out = {}
     for s in specs(type(params)):
         v = getattr(params, s.name)
+        if v is None and s.off and not (only_changed and v == s.default):
+            out[s.key] = s.off
+            continue
         if v is None or (only_changed and v == s.default):
             continue
         out[s.key] = list(v) if isinstance(v, tuple) else v
@@ -385,6 +410,14 @@ def _flag(prefix: str, s: Spec) -> str:
     return "--" + (f"{prefix}-" if prefix else "") + s.key.replace("_", "-")
 
 
+def _or_word(typ, word: str):
+    """An argparse type: ``typ`` of the text, or ``word`` itself (an optional field's 'off')."""
+    def parse(text: str):
+        return word if text.strip().lower() == word else typ(text)
+    parse.__name__ = typ.__name__  # argparse names the type in its error message
+    return parse
+
+
 def add_arguments(parser: argparse.ArgumentParser | argparse._ArgumentGroup, cls, *, prefix: str = "",
                   skip=()) -> None:
     """One command-line option per field of ``cls`` (``--<prefix>-<key>``), default: unset.
@@ -397,6 +430,7 @@ def add_arguments(parser: argparse.ArgumentParser | argparse._ArgumentGroup, cls
         dest = f"{prefix}__{s.name}"
         unit = f" ({s.unit})" if s.unit else ""
         shown = (s.none_means if s.default is None and s.none_means else
+                 f"{s.default!r} ({s.off!r}: {s.none_means.removeprefix(s.off + ': ')})" if s.off else
                  ("on" if s.default else "off") if s.kind == "bool" else repr(s.default))
         text = f"{s.help}{unit}; default {shown}".replace("%", "%%")
         if s.kind == "bool":
@@ -411,6 +445,8 @@ def add_arguments(parser: argparse.ArgumentParser | argparse._ArgumentGroup, cls
             parser.add_argument(_flag(prefix, s), dest=dest, choices=s.choices, default=None, help=text)
         else:
             typ = {"int": int, "float": float, "str": str}[s.kind]
+            if s.off:
+                typ = _or_word(typ, s.off)
             metavar = s.metavar or ("MM" if s.unit == "mm" else {"int": "N", "float": "X", "str": "TEXT"}[s.kind])
             parser.add_argument(_flag(prefix, s), dest=dest, type=typ, default=None, metavar=metavar, help=text)
 
@@ -433,16 +469,20 @@ def from_arguments(args: argparse.Namespace, cls, *, prefix: str = "", base=None
 class TemplateParams:
     """Import and template parameters (paper 2 and 3); the project's ``[template]`` table.
 
-    The defaults give about the paper's scale on a lumbar vertebra at 1 mm (VerSe L1:
-    roughly 600 points and 1,200 triangles). All lengths in mm.
+    The default density follows from one tolerance (``max_distance_mm``, 1 mm: the paper's
+    section 3.1 hope, "the maximal allowed distance between a triangle in the surface
+    triangulation and the actual object surface"); ``max_distance_mm = "off"`` gives the
+    radii of eq. 1 from ``r_min_mm``, ``r_max_mm`` and ``p``. All lengths in mm.
     """
 
-    max_distance_mm: float | None = param(None, kind="float", unit="mm", minimum=0.0, exclusive_minimum=True,
+    max_distance_mm: float | None = param(1.0, kind="float", unit="mm", minimum=0.0, exclusive_minimum=True,
                                           maximum=100.0, none_means="off: the radii of eq. 1 (r_min, r_max, p)",
-                                          label="Max distance",
+                                          off="off", label="Max distance",
                                           help="the template's density from one tolerance: the largest distance "
                                                "between its triangles and the surface (radii from the curvature, "
-                                               "then refined where a triangle lies farther; r_max caps them)")
+                                               "then refined where a triangle lies farther; r_max caps them). A "
+                                               "table that states r_min_mm, r_max_mm or p and no max_distance_mm "
+                                               "keeps eq. 1, as projects written before the tolerance mean")
     spacing_mm: float = param(1.0, key="spacing", aliases=("spacing_mm",), unit="mm", minimum=0.0,
                               exclusive_minimum=True, maximum=50.0, label="Spacing",
                               help="isotropic resampling step of every instance along its object axes (paper 2)")
@@ -488,8 +528,29 @@ class TemplateParams:
                                  help="rounds of seed insertion where the geodesic Voronoi regions are not disks")
     _where = "template parameters:"
 
+    #: eq. 1's own parameters: a table that states one of them and no tolerance means eq. 1
+    EQ1_KEYS = frozenset({"r_min_mm", "r_max_mm", "p"})
+
     def __post_init__(self):
         check(self, self._where)
+
+    @classmethod
+    def implied(cls, given: frozenset) -> dict:
+        """What a ``[template]`` table that leaves ``max_distance_mm`` out means: eq. 1 when it
+        states eq. 1's radii or exponent (projects and stored models written before the
+        tolerance, whose ``r_min_mm``/``r_max_mm`` were eq. 1's), else the default tolerance."""
+        if "max_distance_mm" not in given and given & cls.EQ1_KEYS:
+            return {"max_distance_mm": None}
+        return {}
+
+    @classmethod
+    def inactive(cls, value) -> frozenset:
+        """The fields that the others leave unused (``value(name)`` gives a field's value): under
+        a tolerance eq. 1's exponent, radius rule and curvature percentiles (r_min_mm still sets
+        the topology radius, r_max_mm caps the radii). The panel greys them out."""
+        if value("max_distance_mm") is not None:
+            return frozenset({"p", "radius", "curvature_percentiles"})
+        return frozenset()
 
     def consistency(self) -> str:
         if self.r_min_mm > self.r_max_mm:
@@ -549,10 +610,11 @@ class CoatingParams:
     max_iterations: int = param(2000, minimum=0, maximum=100000, label="Max iterations",
                                 help="most relaxation steps in all, a safety limit: it stops earlier, converged, "
                                      "when the largest speed falls below the velocity tolerance")
-    fold_iterations: int = param(25, minimum=0, maximum=100000, label="Fold steps", advanced=True,
+    fold_iterations: int = param(100, minimum=0, maximum=100000, label="Fold steps", advanced=True,
                                  help="first steps with the paper's fold handling (vertices of folded triangles lose "
                                       "the surface force); then every vertex is held to the surface and the mesh "
-                                      "settles")
+                                      "settles. The umbrella force spreads about one edge ring per few steps, so a "
+                                      "denser template needs more of them to unfold the same patch")
     springs: str = param("tension", choices=("tension", "linear"), label="Springs",
                          help="'linear': eq. (3) as printed; 'tension': an edge spring pulls when stretched and never "
                               "pushes, so a compressed mesh cannot buckle into folds when it settles")
@@ -1065,6 +1127,8 @@ def markdown_tables() -> str:
             unit = f" {s.unit}" if s.unit and s.unit != "deg" else ("°" if s.unit == "deg" else "")
             if s.default is None:
                 default = f"auto ({s.none_means})"
+            elif s.off:
+                default = f"`{s.default!r}`{unit}; `\"{s.off}\"`: {s.none_means.removeprefix(s.off + ': ')}"
             else:
                 value = list(s.default) if isinstance(s.default, tuple) else s.default
                 default = f"`{value!r}`".replace("'", '"') + unit
