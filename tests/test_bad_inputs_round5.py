@@ -110,16 +110,25 @@ def test_the_demos_findings_are_read_against_its_truth(tmp_path):
 
     truth = {"modes": {"body_height": {}, "body_radius": {}},
              "instances": [{"name": "d0", "b": [-2.3, 0.2]}, {"name": "d1", "b": [0.4, -0.9]},
-                           {"name": "d2", "b": [1.1, 0.1]}]}
+                           {"name": "d2", "b": [1.1, 0.1]}, {"name": "d3", "b": [1.9, 1.9]}]}
     report = {"quality": {"findings": [{"instance": "d0", "gate": "reconstruction"},
-                                       {"instance": "d1", "gate": "outlier"}]}}
+                                       {"instance": "d1", "gate": "outlier"},
+                                       {"instance": "d3", "gate": "reconstruction"}]}}
     (tmp_path / "truth.json").write_text(json.dumps(truth))
     (tmp_path / "report.json").write_text(json.dumps(report))
     lines = explain_findings(tmp_path / "report.json", tmp_path / "truth.json")
+    # |b| = 2.31 SD: exp(-2.31² / 2) = 7 % of a normal population (2 degrees of freedom) lies farther
     assert lines[0].startswith("demo: d0 [reconstruction] is at the population's edge: its true body_height is "
-                               "-2.30 SD (truth.json; the most extreme of 3), so the model of the others "
-                               "reconstructs it worst; expected")
+                               "-2.30 SD (truth.json; the most extreme of 4; all 2 together 2.31 SD from the "
+                               "mean, number 2, 7 % of a normal population farther), so the model of the others "
+                               "reconstructs it poorly; expected")
     assert lines[1].startswith("demo: d1 [outlier] is not at the population's edge") and "look at it" in lines[1]
+    assert "so the model" not in lines[1]
+    # no parameter beyond 2 SD, but both together 2.69 SD: 3 % farther, the edge
+    assert lines[2].startswith("demo: d3 [reconstruction] is at the population's edge: its true body_height is "
+                               "+1.90 SD (truth.json; number 2 by extremity of 4; all 2 together 2.69 SD from the "
+                               "mean, number 1")
+    assert "3 % of a normal population farther" in lines[2] and lines[2].endswith("(report.html, Instances: d3)")
 
 
 @pytest.mark.parametrize("fault", ["empty", "flat"])

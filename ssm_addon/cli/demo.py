@@ -319,7 +319,12 @@ def make_demo_population(
 
 def explain_findings(report_path, truth_path) -> list[str]:
     """The demo's findings read against its truth: for each instance a gate named, how far its true
-    shape parameters lie from the mean (SD) and whether that is the population's edge (lines to print)."""
+    shape parameters lie from the mean (SD: the largest one, and all together, whose square is a
+    chi-square of as many degrees of freedom as parameters) and whether that is the population's
+    edge (one parameter beyond 2 SD, or all together farther than 90 % of a normal population),
+    as lines to print."""
+    from scipy.special import chdtrc
+
     report = json.loads(Path(report_path).read_text())
     truth = json.loads(Path(truth_path).read_text())
     modes = list(truth["modes"])
@@ -327,16 +332,23 @@ def explain_findings(report_path, truth_path) -> list[str]:
     findings = report.get("quality", {}).get("findings", []) if isinstance(report.get("quality"), dict) else []
     extreme = {n: float(np.abs(v).max()) for n, v in b.items()}
     ranked = sorted(extreme, key=lambda n: -extreme[n])
+    overall = {n: float(np.linalg.norm(v)) for n, v in b.items()}
+    ranked_all = sorted(overall, key=lambda n: -overall[n])
     lines = []
     for name in sorted({f.get("instance") for f in findings if f.get("instance") in b}):
         gates = sorted({f["gate"] for f in findings if f.get("instance") == name})
         k = int(np.argmax(np.abs(b[name])))
         rank = ranked.index(name) + 1
-        where = ("at the population's edge" if extreme[name] >= 2.0 else "not at the population's edge")
+        farther = float(chdtrc(len(b[name]), overall[name] ** 2))  # share of a normal population farther
+        edge = extreme[name] >= 2.0 or farther < 0.10
+        where = "at the population's edge" if edge else "not at the population's edge"
         order = "the most extreme" if rank == 1 else f"number {rank} by extremity"
-        why = ", so the model of the others reconstructs it worst" if "reconstruction" in gates else ""
-        verdict = ("; expected of a random population, not a fault" if extreme[name] >= 2.0 else
-                   "; look at it")
+        together = ""
+        if len(b[name]) > 1:
+            together = (f"; all {len(b[name])} together {overall[name]:.2f} SD from the mean, number "
+                        f"{ranked_all.index(name) + 1}, {100 * farther:.0f} % of a normal population farther")
+        why = ", so the model of the others reconstructs it poorly" if edge and "reconstruction" in gates else ""
+        verdict = "; expected of a random population, not a fault" if edge else "; look at it"
         lines.append(f"demo: {name} [{', '.join(gates)}] is {where}: its true {modes[k]} is {b[name][k]:+.2f} SD "
-                     f"(truth.json; {order} of {len(b)}){why}{verdict} (report.html, Instances: {name})")
+                     f"(truth.json; {order} of {len(b)}{together}){why}{verdict} (report.html, Instances: {name})")
     return lines
