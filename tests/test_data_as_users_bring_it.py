@@ -213,6 +213,9 @@ def test_a_template_too_coarse_for_a_thin_process_is_named(tmp_path):
     x, y, z = beyond["centre_offset_mm"]  # where: out along the spike (+x), not around the body
     assert beyond["count"] > 0 and x > 15.0 and abs(y) < 5.0 and abs(z) < 5.0, beyond
     assert f"{beyond['count']:,} of its vertices" in named[0]["message"]
+    # the spike (3.2 mm thick) is in the 1 mm voxels: the coating, not the import, lost it
+    assert beyond["voxels"]["count"] == 0 and beyond["voxels"]["spacing_mm"] == 1.0, beyond
+    assert beyond["voxels"]["max_mm"] < 1.0, beyond
     assert all(result.report["instances"][f["instance"]]["input_surface_mm"]["from_input"]["max_mm"] > 3.0
                for f in named)
 

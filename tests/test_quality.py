@@ -244,3 +244,27 @@ def test_outlier_scores_of_the_rank_one_downdate_equal_the_exact_ones(n, npts):
     for key in ("mahalanobis2", "loo_error_mm", "max_t"):
         np.testing.assert_allclose(fast[key], exact[key], rtol=1e-7, atol=1e-9, err_msg=key)
     assert int(np.argmax(fast["mahalanobis2"])) == 7 and fast["mahalanobis2"][11] < 1e-9
+
+
+@pytest.mark.parametrize("lost, says", [
+    (0, "cut off by the coating; give the template a tolerance"),
+    (4, "4 of them lie as far from the instance's 1 mm voxels (finer than a voxel: a finer [template] spacing "
+        "(now 1 mm) or the instance's own mesh_spacing keeps a part finer than a voxel), the others are cut off by "
+        "the coating"),
+    (10, "they lie as far from the instance's 1 mm voxels, which the coating follows: a part finer than a voxel, "
+         "lost at the import, not by the coating; a finer [template] spacing (now 1 mm)"),
+])
+def test_the_input_surface_finding_says_whether_the_voxels_or_the_coating_lost_the_part(lost, says):
+    """Of the mesh's vertices beyond the limit from its coating, those that lie as far from the
+    instance's own voxels were lost at the import (a part finer than the spacing), not by the
+    coating: the finding says which, with the remedy for each."""
+    from ssm_addon.base.params import QualityParams, TemplateParams
+    from ssm_addon.model.quality import check_input_surface
+
+    beyond = {"mm": 3.0, "count": 10, "share": 0.001, "centre_offset_mm": [12.0, -3.0, 20.0]}
+    if lost:
+        beyond["voxels"] = {"count": lost, "spacing_mm": 1.0, "max_mm": 3.4}
+    distances = {"from_input": {"max_mm": 4.2, "mean_mm": 0.4, "beyond": beyond}}
+    (finding,) = check_input_surface("L4", distances, QualityParams(), TemplateParams(max_distance_mm=None))
+    assert finding.gate == "input_surface" and "10 of its vertices (0.1 %) lie beyond" in finding.message
+    assert says in finding.message, finding.message

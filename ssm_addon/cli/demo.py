@@ -29,6 +29,7 @@ from pathlib import Path
 
 import nibabel as nib
 import numpy as np
+from scipy.special import chdtrc
 
 from ..formats.landmarks import LandmarkSet, write_landmarks
 
@@ -323,8 +324,6 @@ def explain_findings(report_path, truth_path) -> list[str]:
     chi-square of as many degrees of freedom as parameters) and whether that is the population's
     edge (one parameter beyond 2 SD, or all together farther than 90 % of a normal population),
     as lines to print."""
-    from scipy.special import chdtrc
-
     report = json.loads(Path(report_path).read_text())
     truth = json.loads(Path(truth_path).read_text())
     modes = list(truth["modes"])

@@ -317,13 +317,24 @@ def check_input_surface(name: str, distances: dict, params: QualityParams, templ
                   "template's instance holds smaller: a template from an instance that has it ([template] instance)")
     beyond = distances["from_input"].get("beyond") or {}
     where = ""
+    cause = f"a part of the surface, a thin process or a notch, is cut off by the coating; {remedy}"
     if beyond.get("count"):
         x, y, z = beyond["centre_offset_mm"]
         where = (f"; {beyond['count']:,} of its vertices ({100 * beyond['share']:.2g} %) lie beyond, centred "
                  f"({x:+.0f}, {y:+.0f}, {z:+.0f}) mm from its centre (x, y, z, RAS)")
+        voxels = beyond.get("voxels") or {}
+        lost, h = int(voxels.get("count", 0)), float(voxels.get("spacing_mm", 0.0))
+        finer = (f"a finer [template] spacing (now {h:g} mm) or the instance's own mesh_spacing keeps a part "
+                 "finer than a voxel")
+        if lost and lost >= beyond["count"]:
+            cause = (f"they lie as far from the instance's {h:g} mm voxels, which the coating follows: a part "
+                     f"finer than a voxel, lost at the import, not by the coating; {finer}")
+        elif lost:
+            cause = (f"{lost:,} of them lie as far from the instance's {h:g} mm voxels (finer than a voxel: "
+                     f"{finer}), the others are cut off by the coating, a thin process or a notch; {remedy}")
     return [Finding(name, "input_surface", f"its mesh lies up to {worst:.1f} mm from its coating (mean {mean:.2f} mm; "
-                    f"allowed {params.max_input_distance_mm:g} mm{where}): a part of the surface, a thin process or a "
-                    f"notch, is cut off by the coating; {remedy}", worst, params.max_input_distance_mm)]
+                    f"allowed {params.max_input_distance_mm:g} mm{where}): {cause}", worst,
+                    params.max_input_distance_mm)]
 
 
 def check_landmark_transfer(check, params: QualityParams) -> list[Finding]:

@@ -21,7 +21,7 @@ from ..formats.label_maps import read_label_map
 from ..formats.meshes import read_mesh
 from ..instances.importing import InstanceSpec, import_instance, mesh_coordinates
 from ..instances.volume import ObjectVolume
-from ..meshutil import Mesh, genus, two_way_distances
+from ..meshutil import Mesh, MeshLocator, genus, marching_cubes, two_way_distances
 from ..model import metrics
 from ..model.metrics import ModelMetrics
 from ..model.pca import ShapeModel, build_model
@@ -294,10 +294,28 @@ def template_stage(study: Study, *, progress: ProgressFn = None, cancelled: Canc
 
 
 def _input_distance_job(args):
-    path, convention, points_world, faces, beyond_mm = args
+    path, convention, points_world, faces, beyond_mm, spec, import_args = args
     vertices, mesh_faces = read_mesh(path, space=convention)
     d = two_way_distances(points_world, faces, vertices, mesh_faces, beyond_mm=beyond_mm)
+    beyond = d["from_other"].get("beyond")
+    if beyond and beyond["count"]:
+        beyond["voxels"] = _beyond_the_voxels(vertices, points_world, faces, beyond_mm, spec, import_args)
     return {"to_input": d["to_other"], "from_input": d["from_other"]}
+
+
+def _beyond_the_voxels(vertices: np.ndarray, points_world: np.ndarray, faces: np.ndarray, beyond_mm: float,
+                       spec: InstanceSpec, import_args: dict) -> dict:
+    """Of a mesh's vertices farther than ``beyond_mm`` from its coating, how many lie as far from
+    the instance's own voxels (the import at the study's spacing, which the coating follows: a
+    part finer than a voxel is lost there, not by the coating) (``count``, mm of the spacing)."""
+    _c, from_coating, _t, _b = MeshLocator(points_world, faces).query(vertices, k=12)
+    far = vertices[from_coating > beyond_mm]
+    ov = import_instance(spec, **import_args)
+    grid, grid_faces = marching_cubes(ov.mask)
+    surface = ov.frame.to_world(ov.voxel_to_object(grid))
+    _c, from_voxels, _t, _b = MeshLocator(surface, grid_faces).query(far, k=12)
+    return {"count": int((from_voxels > beyond_mm).sum()), "spacing_mm": float(ov.spacing_mm),
+            "max_mm": float(from_voxels.max()) if len(far) else 0.0}
 
 
 def input_distances(study: Study, coated: dict[str, CoatingResult], faces: np.ndarray,
@@ -306,20 +324,24 @@ def input_distances(study: Study, coated: dict[str, CoatingResult], faces: np.nd
     (world mm, the file read as the import reads it), both ways (:func:`~ssm_addon.meshutil.two_way_distances`:
     ``to_input`` from the coated points to the mesh, ``from_input`` from the mesh's vertices to
     the coated surface: large where the template's points do not reach a thin process; its
-    ``beyond``: the vertices farther than ``[quality] max_input_distance_mm``, how many and where).
+    ``beyond``: the vertices farther than ``[quality] max_input_distance_mm``, how many and where,
+    and ``beyond["voxels"]``: how many of them lie as far from the instance's voxels, so the
+    import's spacing, not the coating, lost them).
 
     ``executor``: where the instances are measured (the build's workers; default this process).
     """
     frames = {**study.frames, **(frames or {})}
+    tp = study.params.template
     names, args = [], []
     for name, c in coated.items():
         spec = study.instance(name)
         if spec.mesh_path is None or name not in frames:
             continue
-        convention, _note = mesh_coordinates(spec.mesh_path, spec.given_space(study.params.template.space))
+        convention, _note = mesh_coordinates(spec.mesh_path, spec.given_space(tp.space))
         names.append(name)
         args.append((spec.mesh_path, convention, frames[name].to_world(c.points_object), np.asarray(faces),
-                     float(study.params.quality.max_input_distance_mm)))
+                     float(study.params.quality.max_input_distance_mm), spec,
+                     {"spacing_mm": tp.spacing_mm, "frame_method": tp.frame, "space": tp.space}))
     if not args:
         return {}
     with executor_or_local(executor, 1) as pool:
