@@ -288,16 +288,19 @@ def template_of_count(study: Study, count: int, *, cancelled: CancelledFn = None
     The same parameters give another instance of the population another number of points (eq. 1
     follows its curvature; on real femurs 2,939 against 4,079): a template from the medoid would
     then sample every instance more coarsely or finely than the given one. The radii of eq. (1)
-    (``r_min_mm``, ``r_max_mm``) are scaled by the square root of the ratio of the counts (with a
-    tolerance, ``max_distance_mm`` by the ratio itself, since a radius grows as the square root
-    of the tolerance, and its cap ``r_max_mm`` by the square root), the
+    (``r_min_mm``, ``r_max_mm``) are scaled by the square root of the ratio of the counts, the
     topology cleaning's radius kept at the parameters' own, until the count is within the
     tolerance (at most :data:`POINT_COUNT_TRIES` templates; the nearest is kept). The study's
     parameters, and so the report's, are unchanged.
+
+    With a tolerance (``[template] max_distance_mm``) the count is the one the tolerance gives on
+    this instance's surface: the template's triangles keep within it there, which a count taken
+    from another instance would break (lumbar vertebrae: 1,411 points matched to the given
+    template's 1,422 reached 1.05 mm, against 1.00 at their own count).
     """
     tp = study.params.template
     template = make_template(study, cancelled=cancelled)
-    if count <= 0:
+    if count <= 0 or tp.max_distance_mm is not None:
         return template
     best = template
     fixed = dataclasses.replace(tp, topology_radius_mm=tp.topology_radius_mm if tp.topology_radius_mm is not None
@@ -309,9 +312,7 @@ def template_of_count(study: Study, count: int, *, cancelled: CancelledFn = None
             break
         check_cancelled(cancelled)
         factor *= float(np.sqrt(have / count))
-        scaled = dataclasses.replace(fixed, r_min_mm=tp.r_min_mm * factor, r_max_mm=tp.r_max_mm * factor,
-                                     max_distance_mm=None if tp.max_distance_mm is None else
-                                     min(tp.max_distance_mm * factor**2, 100.0))
+        scaled = dataclasses.replace(fixed, r_min_mm=tp.r_min_mm * factor, r_max_mm=tp.r_max_mm * factor)
         template = make_template(study, cancelled=cancelled, params=scaled)
         if abs(len(template.points_object) - count) < abs(len(best.points_object) - count):
             best = template
