@@ -168,6 +168,7 @@ def params_from_group(cls, group):
     typed in the sidebar is 0.2, the same number as 0.2 in a project file.
     """
     values = {s.key: _read(s, group) for s in P.specs(cls)}
+    values = {s.key: s.off if values[s.key] is None and s.off else values[s.key] for s in P.specs(cls)}
     return P.from_table(cls, {k: v for k, v in values.items() if v is not None},
                         where=f"{cls.__name__.removesuffix('Params')} settings:")
 

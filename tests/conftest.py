@@ -200,6 +200,8 @@ class RecordingLayout:
         else:
             assert prop in data.bl_rna.properties, f"{type(data).__name__}.{prop}"
         self.log.append(("prop", prop))
+        if self.__dict__.get("active", True) is False:  # greyed out (row.active = False)
+            self.log.append(("inactive", prop))
 
     def operator(self, idname, **kw):
         import bpy

@@ -116,6 +116,31 @@ def test_template_panel_is_registered_in_the_ssm_tab(bpy_clean):
     assert hasattr(bpy.context.scene, "ssm_template")
 
 
+def test_the_template_panel_offers_the_tolerance_first_and_greys_out_what_it_leaves_unused(bpy_clean,
+                                                                                          layout_recorder):
+    """The Template panel's first field is the one number (Max distance, with its "Off" toggle);
+    under the tolerance eq. 1's exponent and radius rule are greyed out, with "Off" they are not;
+    the toggle gives the core eq. 1."""
+    from ssm.operators.properties import params_from_group
+
+    from ssm_addon.base.params import TemplateParams
+
+    bpy = bpy_clean
+    scene = bpy.context.scene
+    log = []
+    bpy.types.SSM_PT_template.draw(type("P", (), {"layout": layout_recorder(log)})(), bpy.context)
+    props = [x[1] for x in log if x[0] == "prop"]
+    assert props[:2] == ["max_distance_mm_auto", "max_distance_mm"]
+    assert {x[1] for x in log if x[0] == "inactive"} == {"p", "radius"}  # curvature percentiles: advanced
+    assert params_from_group(TemplateParams, scene.ssm_template).max_distance_mm == pytest.approx(1.0)
+    scene.ssm_template.max_distance_mm_auto = True
+    log.clear()
+    bpy.types.SSM_PT_template.draw(type("P", (), {"layout": layout_recorder(log)})(), bpy.context)
+    assert not [x for x in log if x[0] == "inactive"]
+    assert params_from_group(TemplateParams, scene.ssm_template).max_distance_mm is None
+    assert TemplateParams.__dataclass_fields__["max_distance_mm"].default == 1.0
+
+
 def test_build_template_of_verse_l1_has_genus_one(bpy_clean, verse_dir):
     from ssm.operators import bridge
 
