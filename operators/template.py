@@ -21,7 +21,7 @@ import bpy
 
 from ssm_addon.base.errors import InputError
 from ssm_addon.base.params import TemplateParams
-from ssm_addon.pipeline.stages import import_result, template_stage
+from ssm_addon.pipeline.stages import import_result, template_density, template_stage
 from ssm_addon.pipeline.study import apply_stage
 
 from . import bridge
@@ -74,7 +74,7 @@ class SSM_OT_build_template(BackgroundJob, bpy.types.Operator):
                              "Segmentation)")
         study = study_from_scene(context, template_instance=instance.name, coatings=False)
         loader = VolumeLoader(context, [instance])
-        self._instance_name, self._loader = instance.name, loader
+        self._instance_name, self._loader, self._params = instance.name, loader, study.params.template
 
         def work(progress, cancelled):
             t0 = time.perf_counter()
@@ -95,7 +95,8 @@ class SSM_OT_build_template(BackgroundJob, bpy.types.Operator):
         obj = write_template_object(context, instance, template)
         found = record_stage(context, imported) + record_stage(context, result)
         msg = (f"template: {len(template.points_object)} points, {len(template.faces)} triangles, "
-               f"genus {template.params.get('genus')} from {instance.name}")
+               f"genus {template.params.get('genus')} from {instance.name}"
+               f"{template_density(template, self._params)}")
         report_stage(self, msg, found)
         bridge.select_only(context, [obj])
         return {"FINISHED"}

@@ -327,3 +327,18 @@ def test_one_tolerance_sets_the_density_and_every_triangle_keeps_to_it(shape):
     assert volume[0] < volume[1] < 1.0
     assert len(tight.points_object) > len(loose.points_object)
     assert _hausdorff_to_surface(tight, mask) < _hausdorff_to_surface(paper, mask)
+
+
+def test_the_template_summary_says_how_its_density_was_set():
+    """The build's template line (and Blender's report) states the tolerance and the largest
+    distance the template reached, or eq. 1's radii."""
+    from ssm_addon.pipeline.stages import template_density
+
+    ov = object_volume(sphere(12.0))
+    tol = T.TemplateParams(max_distance_mm=0.75)
+    t = T.build_template(ov, tol)
+    line = template_density(t, tol)
+    reached = t.params["largest_distance_mm"]
+    assert line == f", within {reached:.2f} mm of its surface (tolerance 0.75 mm)" and 0 < reached <= 0.75
+    eq1 = T.TemplateParams(max_distance_mm=None, r_min_mm=2.0, r_max_mm=5.0)
+    assert template_density(T.build_template(ov, eq1), eq1) == ", radii of eq. 1 (2-5 mm)"

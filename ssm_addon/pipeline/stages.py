@@ -289,8 +289,20 @@ def template_stage(study: Study, *, progress: ProgressFn = None, cancelled: Canc
     seconds = time.perf_counter() - t0
     return StageResult("template", {"template": t}, (), {"template": seconds},
                        (f"template: {len(t.points_object)} points, {len(t.faces)} triangles, "
-                        f"genus {genus(len(t.points_object), t.faces)} from {study.template_instance} in "
-                        f"{seconds:.2f} s",))
+                        f"genus {genus(len(t.points_object), t.faces)} from {study.template_instance}"
+                        f"{template_density(t, study.params.template)} in {seconds:.2f} s",))
+
+
+def template_density(template: Template, params) -> str:
+    """How the template's density was set, for its summary line: the tolerance and the largest
+    distance reached (``[template] max_distance_mm``), or eq. 1's radii."""
+    found = template.params or {}
+    if params.max_distance_mm is not None and "largest_distance_mm" in found:
+        return (f", within {found['largest_distance_mm']:.2f} mm of its surface (tolerance "
+                f"{params.max_distance_mm:g} mm)")
+    if params.max_distance_mm is None:
+        return f", radii of eq. 1 ({params.r_min_mm:g}-{params.r_max_mm:g} mm)"
+    return ""
 
 
 def _input_distance_job(args):
