@@ -153,3 +153,19 @@ def test_a_report_without_its_quality_section_never_says_passed(tmp_path):
     # with the section and no findings, it does say so
     passed = report.replace(quality={"parameters": {}, "findings": [], "outlier_scores": {}})
     assert "Every quality gate passed" in write_html_report(tmp_path / "c.html", passed).read_text()
+
+
+def test_the_report_page_says_how_the_templates_density_was_set(built, tmp_path):
+    """report.html's Model section names the template's instance, its points and how its density
+    was set: the tolerance and the distance it reached, or eq. 1's radii."""
+    from ssm_addon.pipeline.report import Report, write_html_report
+
+    out, result = built  # the fixture's project states eq. 1's radii
+    page = (out / "report.html").read_text()
+    tpl = json.loads((out / "report.json").read_text())["template"]
+    assert "max_distance_mm" not in tpl
+    assert f"Template: {tpl['points']:,} points from <b>{tpl['instance']}</b>, its density from the radii of eq. 1" in page
+    doc = json.loads((out / "report.json").read_text())
+    doc["template"].update(max_distance_mm=1.0, largest_distance_mm=0.987, mean_distance_mm=0.41, tolerance_rounds=1)
+    page = write_html_report(tmp_path / "t.html", Report.from_dict(doc)).read_text()
+    assert "its triangles within 0.99 mm of the instance's surface (mean 0.41 mm; tolerance 1.00 mm" in page

@@ -511,6 +511,16 @@ def write_html_report(path, report: Report | dict, *, images: dict[str, bytes] |
     parts.append("<h2>Model</h2>")
     parts.append(f"<p>{_num(n)} instances, {_num(npts)} points, {_num(model.get('n_faces'))} triangles, {_num(k)} "
                  f"modes; total variance {_num(model.get('total_variance_mm2'))} mm².</p>")
+    tpl = report.section("template") or {}
+    if isinstance(tpl, dict) and tpl.get("points"):
+        if tpl.get("max_distance_mm") is not None:
+            density = (f"its triangles within {_num(tpl.get('largest_distance_mm'), 2)} mm of the instance's surface "
+                       f"(mean {_num(tpl.get('mean_distance_mm'), 2)} mm; tolerance {_num(tpl['max_distance_mm'])} "
+                       f"mm, <code>[template] max_distance_mm</code>)")
+        else:
+            density = "its density from the radii of eq. 1 (<code>[template] max_distance_mm = \"off\"</code>)"
+        parts.append(f"<p>Template: {_num(tpl['points'])} points from <b>{html.escape(str(tpl.get('instance')))}</b>, "
+                     f"{density}.</p>")
     var = model.get("variances_mm2", [])[:12]
     conc = model.get("concentration_eigen", [])[:12]
     per_point = max(int(npts or 1), 1)
