@@ -18,8 +18,12 @@ Pipeline of :func:`build_template` on an :class:`~ssm_addon.instances.volume.Obj
    curvature c = sqrt(k1² + k2²).
 3. **Point density reduction** (:func:`reduce_points`, paper 3.1): candidates picked by
    curvature (highest c first) or at random (seeded); each pick eliminates every
-   candidate within surface distance r of it; r constant or from eq. (1)
-   (:func:`reduction_radii`).
+   candidate within surface distance r of it. By default r follows from one tolerance
+   (``max_distance_mm``, the paper's section 3.1 suggestion: the largest distance between a
+   triangle and the surface), r = √(2·tol/κ) from the largest principal curvature
+   (:func:`tolerance_radii`), and step 4 is repeated with smaller radii around every
+   triangle farther than the tolerance; with ``max_distance_mm = "off"``, r constant or
+   from eq. (1) (:func:`reduction_radii`).
 4. **Triangulation** (:func:`triangulate`, paper 3.3): the dual of the discrete geodesic
    Voronoi diagram of the selected points, computed on the marching-cubes surface of the
    cleaned mask (see the function for why, and for the closed-ball check that makes the
