@@ -512,9 +512,9 @@ def test_template_command_reports_genus_one_for_a_demo_vertebra(demo_population,
     assert f"vertices: {len(verts)}" in text and f"faces:    {len(faces)}" in text
     assert "genus:    1" in text and genus(len(verts), faces) == 1
     assert "Euler characteristic: 0" in text
-    assert "density:  tolerance 1 mm; largest distance reached " in text  # the default, and what it reached
-    reached = float(text.split("largest distance reached ")[1].split(" mm")[0])
+    assert "density:  within " in text and "; tolerance 1 mm)" in text  # the default, and what it reached
+    reached = float(text.split("density:  within ")[1].split(" mm")[0])
     assert 0.0 < reached <= 1.0
     assert main(["template", str(inst.volume_path), "--label", "20", "--max-distance-mm", "off", "--out",
                  str(tmp_path / "eq1.ply")]) == 0
-    assert "density:  eq. 1, radii 4-10 mm, p 2 (no tolerance)" in capsys.readouterr().out
+    assert "density:  radii of eq. 1 (4-10 mm)" in capsys.readouterr().out

@@ -339,6 +339,8 @@ def test_the_template_summary_says_how_its_density_was_set():
     t = T.build_template(ov, tol)
     line = template_density(t, tol)
     reached = t.params["largest_distance_mm"]
-    assert line == f", within {reached:.2f} mm of its surface (tolerance 0.75 mm)" and 0 < reached <= 0.75
+    mean = t.params["mean_distance_mm"]
+    assert line == f", within {reached:.2f} mm of its surface (mean {mean:.2f} mm; tolerance 0.75 mm)"
+    assert 0 < mean < reached <= 0.75
     eq1 = T.TemplateParams(max_distance_mm=None, r_min_mm=2.0, r_max_mm=5.0)
     assert template_density(T.build_template(ov, eq1), eq1) == ", radii of eq. 1 (2-5 mm)"

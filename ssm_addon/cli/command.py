@@ -318,6 +318,7 @@ def cmd_template(args) -> int:
     from ..formats.meshes import write_ply
     from ..instances.importing import load_object
     from ..meshutil import euler_characteristic, genus
+    from ..pipeline.stages import template_density
     from ..template.template import build_template
 
     params = P.from_arguments(args, P.TemplateParams)
@@ -348,14 +349,7 @@ def cmd_template(args) -> int:
     print(f"faces:    {len(faces)}")
     print(f"Euler characteristic: {euler_characteristic(n_v, faces)}")
     print(f"genus:    {genus(n_v, faces)}")
-    found = template.params or {}
-    if params.max_distance_mm is not None:
-        rounds = int(found.get("tolerance_rounds", 0))
-        print(f"density:  tolerance {params.max_distance_mm:g} mm; largest distance reached "
-              f"{found.get('largest_distance_mm', float('nan')):.2f} mm, mean {found.get('mean_distance_mm', float('nan')):.2f}"
-              f" mm ({rounds} refinement round{'s' if rounds != 1 else ''})")
-    else:
-        print(f"density:  eq. 1, radii {params.r_min_mm:g}-{params.r_max_mm:g} mm, p {params.p:g} (no tolerance)")
+    print(f"density:  {template_density(template, params).removeprefix(', ')}")
     print(f"written:  {out} (world mm) in {time.perf_counter() - t0:.2f} s")
     return 0
 

@@ -298,8 +298,8 @@ def template_density(template: Template, params) -> str:
     distance reached (``[template] max_distance_mm``), or eq. 1's radii."""
     found = template.params or {}
     if params.max_distance_mm is not None and "largest_distance_mm" in found:
-        return (f", within {found['largest_distance_mm']:.2f} mm of its surface (tolerance "
-                f"{params.max_distance_mm:g} mm)")
+        return (f", within {found['largest_distance_mm']:.2f} mm of its surface (mean "
+                f"{found.get('mean_distance_mm', float('nan')):.2f} mm; tolerance {params.max_distance_mm:g} mm)")
     if params.max_distance_mm is None:
         return f", radii of eq. 1 ({params.r_min_mm:g}-{params.r_max_mm:g} mm)"
     return ""
