@@ -155,6 +155,18 @@ def test_the_template_tolerance_is_the_default_and_old_projects_keep_eq_1(files,
         assert 'max_distance_mm = "off"' in (tmp_path / "copy.toml").read_text()
 
 
+def test_a_table_of_the_changed_keys_reads_back_the_same_template():
+    """Writing only the changed keys must not turn a tolerance into eq. 1: r_min_mm changed with the
+    default tolerance writes the tolerance too."""
+    from ssm_addon.base.params import TemplateParams, from_table, to_table
+
+    for params in (TemplateParams(r_min_mm=3.0), TemplateParams(r_min_mm=3.0, max_distance_mm=None),
+                   TemplateParams(max_distance_mm=None), TemplateParams()):
+        table = to_table(params, only_changed=True)
+        assert from_table(TemplateParams, table) == params, table
+    assert to_table(TemplateParams(r_min_mm=3.0), only_changed=True) == {"r_min_mm": 3.0, "max_distance_mm": 1.0}
+
+
 def test_a_bad_template_tolerance_names_the_off_word(files):
     msg = _error(files, VALID.replace("spacing = 1.5", 'spacing = 1.5\nmax_distance_mm = "none"'))
     assert "max_distance_mm must be a number > 0 mm and <= 100 mm (or 'off': the radii of eq. 1" in msg

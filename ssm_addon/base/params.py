@@ -386,6 +386,14 @@ def to_table(params, *, only_changed: bool = False) -> dict[str, Any]:
         if v is None or (only_changed and v == s.default):
             continue
         out[s.key] = list(v) if isinstance(v, tuple) else v
+    implied = getattr(type(params), "implied", None)
+    if only_changed and implied is not None:  # a left-out key must read back as it is, not as it is implied
+        by_name = {s.name: s for s in specs(type(params))}
+        written = frozenset(n for n, s in by_name.items() if s.key in out)
+        for name, value in implied(written).items():
+            actual = getattr(params, name)
+            if actual != value:
+                out[by_name[name].key] = by_name[name].off if actual is None and by_name[name].off else actual
     return out
 
 
