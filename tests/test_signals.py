@@ -185,8 +185,12 @@ class _SignalsWhenCollected:
 
     def __del__(self):
         os.kill(os.getpid(), self.signum)
-        for _ in range(10_000):  # the handler runs here, between two of these steps
-            pass
+        # the handler runs here and its exception ends the loop; on a loaded machine the signal can
+        # take longer than a fixed count of steps (10,000 were too few once), so wait for it, with
+        # a bound against a hang only
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline:
+            time.sleep(0.001)
 
 
 @pytest.mark.parametrize(("signum", "raised"), [(signal.SIGHUP, "Interrupted"), (signal.SIGTERM, "Interrupted"),
