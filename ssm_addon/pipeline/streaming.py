@@ -25,7 +25,7 @@ from ..model.quality import (
     content_digest,
 )
 from ..pipeline.cache import InstanceProduct, digest, file_digest
-from .stages import coating_result, label_map_once, make_template, self_check
+from .stages import coating_result, label_map_once, make_template, self_check, template_density
 from .study import Log, StageResult, Study, common_landmark_names, instance_sources
 
 __all__ = ["InstanceJob", "coat_from_source", "stream_instances", "template_key"]
@@ -156,7 +156,8 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
         if cache is not None:
             cache.put_template(tkey, template)
         say(f"template: {len(template.points_object)} points, {len(template.faces)} triangles, genus "
-            f"{genus(len(template.points_object), template.faces)} from {tname} in {time.perf_counter() - t0:.2f} s")
+            f"{genus(len(template.points_object), template.faces)} from {tname}"
+            f"{template_density(template, study.params.template)} in {time.perf_counter() - t0:.2f} s")
     else:
         say("import: the coating workers read every instance (the template is in the cache)")
         say(f"template: {len(template.points_object)} points from the cache ({tname})")
