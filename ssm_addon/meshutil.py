@@ -464,7 +464,7 @@ def distance_figures(distances: np.ndarray) -> dict:
 
 
 def two_way_distances(points: np.ndarray, faces: np.ndarray, other_points: np.ndarray, other_faces: np.ndarray, *,
-                      beyond_mm: float | None = None) -> dict:
+                      beyond_mm: float | None = None, return_far: bool = False):
     """Surface distances between two meshes in one frame (mm), both ways.
 
     ``"to_other"``: each vertex of the first to the second's surface; ``"from_other"``:
@@ -472,7 +472,8 @@ def two_way_distances(points: np.ndarray, faces: np.ndarray, other_points: np.nd
     a few hundred points, cuts off a thin process of the second, this is large). Each as
     :func:`distance_figures`. With ``beyond_mm``, ``"from_other"`` also holds ``"beyond"``:
     how many of the second's vertices lie farther than that (``count``, ``share``) and where
-    (``centre_offset_mm``: their centre minus the second mesh's vertex centre, in the frame).
+    (``centre_offset_mm``: their centre minus the second mesh's vertex centre, in the frame);
+    ``return_far``: also the (M,) bool mask of those vertices, as ``(figures, mask)``.
     """
     _c, to_other, _t, _b = MeshLocator(other_points, other_faces).query(points, k=12)
     _c, from_other, _t, _b = MeshLocator(points, faces).query(other_points, k=12)
@@ -484,6 +485,8 @@ def two_way_distances(points: np.ndarray, faces: np.ndarray, other_points: np.nd
         out["from_other"]["beyond"] = {"mm": float(beyond_mm), "count": int(far.sum()),
                                        "share": float(far.mean()) if len(far) else 0.0,
                                        "centre_offset_mm": [float(x) for x in centre]}
+    if return_far:
+        return out, (from_other > beyond_mm if beyond_mm is not None else np.zeros(len(from_other), bool))
     return out
 
 

@@ -288,9 +288,14 @@ def template_stage(study: Study, *, progress: ProgressFn = None, cancelled: Canc
     t = make_template(study, progress=progress, cancelled=cancelled)
     seconds = time.perf_counter() - t0
     return StageResult("template", {"template": t}, (), {"template": seconds},
-                       (f"template: {len(t.points_object)} points, {len(t.faces)} triangles, "
-                        f"genus {genus(len(t.points_object), t.faces)} from {study.template_instance}"
-                        f"{template_density(t, study.params.template)} in {seconds:.2f} s",))
+                       (template_line(t, study.template_instance, study.params.template, seconds),))
+
+
+def template_line(template: Template, instance: str, params, seconds: float) -> str:
+    """The template's summary line, the same in the staged and the streamed build."""
+    n = len(template.points_object)
+    return (f"template: {n} points, {len(template.faces)} triangles, genus {genus(n, template.faces)} from "
+            f"{instance}{template_density(template, params)} in {seconds:.2f} s")
 
 
 def template_density(template: Template, params) -> str:
@@ -308,20 +313,18 @@ def template_density(template: Template, params) -> str:
 def _input_distance_job(args):
     path, convention, points_world, faces, beyond_mm, spec, import_args = args
     vertices, mesh_faces = read_mesh(path, space=convention)
-    d = two_way_distances(points_world, faces, vertices, mesh_faces, beyond_mm=beyond_mm)
+    d, far = two_way_distances(points_world, faces, vertices, mesh_faces, beyond_mm=beyond_mm, return_far=True)
     beyond = d["from_other"].get("beyond")
     if beyond and beyond["count"]:
-        beyond["voxels"] = _beyond_the_voxels(vertices, points_world, faces, beyond_mm, spec, import_args)
+        beyond["voxels"] = _beyond_the_voxels(vertices[far], beyond_mm, spec, import_args)
     return {"to_input": d["to_other"], "from_input": d["from_other"]}
 
 
-def _beyond_the_voxels(vertices: np.ndarray, points_world: np.ndarray, faces: np.ndarray, beyond_mm: float,
-                       spec: InstanceSpec, import_args: dict) -> dict:
-    """Of a mesh's vertices farther than ``beyond_mm`` from its coating, how many lie as far from
-    the instance's own voxels (the import at the study's spacing, which the coating follows: a
-    part finer than a voxel is lost there, not by the coating) (``count``, mm of the spacing)."""
-    _c, from_coating, _t, _b = MeshLocator(points_world, faces).query(vertices, k=12)
-    far = vertices[from_coating > beyond_mm]
+def _beyond_the_voxels(far: np.ndarray, beyond_mm: float, spec: InstanceSpec, import_args: dict) -> dict:
+    """Of a mesh's vertices farther than ``beyond_mm`` from its coating (``far``, world mm), how
+    many lie as far from the instance's own voxels (the import at the study's spacing, which the
+    coating follows: a part finer than a voxel is lost there, not by the coating) (``count``, mm
+    of the spacing)."""
     ov = import_instance(spec, **import_args)
     grid, grid_faces = marching_cubes(ov.mask)
     surface = ov.frame.to_world(ov.voxel_to_object(grid))

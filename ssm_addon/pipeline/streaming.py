@@ -15,7 +15,7 @@ from ..base.params import CoatingParams, QualityParams
 from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..coating.coating import coat
 from ..instances.importing import InstanceSpec, import_instance
-from ..meshutil import Mesh, genus
+from ..meshutil import Mesh
 from ..model.metrics import import_plotting_in_background
 from ..model.quality import (
     check_duplicate_instances,
@@ -25,7 +25,7 @@ from ..model.quality import (
     content_digest,
 )
 from ..pipeline.cache import InstanceProduct, digest, file_digest
-from .stages import coating_result, label_map_once, make_template, self_check, template_density
+from .stages import coating_result, label_map_once, make_template, self_check, template_line
 from .study import Log, StageResult, Study, common_landmark_names, instance_sources
 
 __all__ = ["InstanceJob", "coat_from_source", "stream_instances", "template_key"]
@@ -155,9 +155,7 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
         template = make_template(with_volume, progress=sub_progress(progress, 0.05, 0.2), cancelled=cancelled)
         if cache is not None:
             cache.put_template(tkey, template)
-        say(f"template: {len(template.points_object)} points, {len(template.faces)} triangles, genus "
-            f"{genus(len(template.points_object), template.faces)} from {tname}"
-            f"{template_density(template, study.params.template)} in {time.perf_counter() - t0:.2f} s")
+        say(template_line(template, tname, study.params.template, time.perf_counter() - t0))
     else:
         say("import: the coating workers read every instance (the template is in the cache)")
         say(f"template: {len(template.points_object)} points from the cache ({tname})")
