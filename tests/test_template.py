@@ -344,3 +344,61 @@ def test_the_template_summary_says_how_its_density_was_set():
     assert 0 < mean < reached <= 0.75
     eq1 = T.TemplateParams(max_distance_mm=None, r_min_mm=2.0, r_max_mm=5.0)
     assert template_density(T.build_template(ov, eq1), eq1) == ", radii of eq. 1 (2-5 mm)"
+
+
+def _notched_block():
+    """A 30 x 30 x 20 block with a slot 3 voxels wide and 13 deep, a 2 x 2 tunnel through it and
+    a spur of 1 x 1 voxels sticking out 5 voxels: (mask, slot, spur) boolean masks."""
+    m = np.zeros((44, 40, 30), bool)
+    m[5:35, 5:35, 5:25] = True
+    slot = np.zeros_like(m)
+    slot[18:21, 5:35, 12:25] = True
+    m[slot] = False
+    m[9:11, 9:11, 5:25] = False  # the tunnel, far from the slot
+    spur = np.zeros_like(m)
+    spur[35:40, 25, 10] = True
+    return m | spur, slot, spur
+
+
+def test_clean_topology_keeping_the_shape_closes_the_tunnel_and_keeps_the_notch_and_the_spur():
+    """``keep_depth_vox``: the closing fills only what changes the topology (the tunnel), the
+    opening cuts only handles; the slot (3 voxels wide, 13 deep: a 4-voxel closing fills it) and
+    the spur (1 voxel thick: the opening cuts it) stay as they are. The plain closing and opening
+    fill the slot and cut the spur."""
+    m, slot, spur = _notched_block()
+    v, f = T.surface_mesh(m)
+    assert mu.genus(len(v), f) == 1
+    kept = T.clean_topology(m, 4.0, keep_depth_vox=1.0)
+    v, f = T.surface_mesh(kept)
+    assert mu.genus(len(v), f) == 0 and mu.connected_components(f, len(v))[0] == 1
+    assert not kept[slot].any() and kept[spur].all()
+    tunnel = np.zeros_like(m)
+    tunnel[9:11, 9:11, 5:25] = True
+    changed = kept != m
+    assert changed.any() and not (changed & ~tunnel).any()  # a plug in the tunnel and nothing else
+    plain = T.clean_topology(m, 4.0)
+    assert plain[slot].mean() > 0.8 and not plain[39, 25, 10]  # the slot filled but for its mouth, the tip cut
+
+
+def test_a_thin_fin_stays_on_the_template_at_the_default_tolerance_and_goes_at_a_coarse_one():
+    """A sphere (radius 12 voxels) with a fin 2 voxels thick that stands 8 voxels out of it: the
+    default tolerance keeps the fin on the template (its tip within 1.5 voxels, every surface point
+    within 2.5 voxels of the triangles); a 6 mm tolerance does not (the fin is shallower than it),
+    nor did the 4 mm closing and the opening the template's topology cleaning used before."""
+    m = sphere(12.0)
+    pad = np.zeros((m.shape[0], 10, m.shape[2]), bool)
+    m = np.concatenate([m, pad], axis=1)  # room on +y for the fin
+    c = (np.array(sphere(12.0).shape) - 1) // 2
+    fin = np.zeros_like(m)
+    fin[c[0] : c[0] + 2, c[1] : c[1] + 21, c[2] - 5 : c[2] + 6] = True
+    m |= fin
+    tip = c[1] + 20
+    ov = object_volume(m)
+    default = T.build_template(ov)
+    coarse = T.build_template(ov, T.TemplateParams(max_distance_mm=6.0))
+    paper = T.build_template(ov, T.TemplateParams(max_distance_mm=None))
+    reach = [ov.object_to_voxel(t.points_object)[:, 1].max() for t in (default, coarse, paper)]
+    assert reach[0] >= tip - 1.5 and reach[1] < tip - 3.0 and reach[2] < tip - 3.0, reach
+    assert _hausdorff_to_surface(default, m) < 2.5
+    f, n = default.faces, len(default.points_object)
+    assert mu.is_closed_manifold(f).ok and mu.genus(n, f) == 0
