@@ -44,7 +44,7 @@ def test_build_prints_a_line_per_step_and_instance(verse_build):
     assert "left" in stdout and "taken from the cache" in stdout
     # the template's line says how its density was set: the default tolerance and what it reached
     assert re.search(r"template: \d+ points, \d+ triangles, genus 1 from L1, within [01]\.\d\d mm of its surface "
-                     r"\(mean 0\.\d\d mm; tolerance 1 mm\) in ", stdout), stdout[:3000]
+                     r"\(mean 0\.\d\d mm; tolerance 1 mm\), its surface within \d\.\d\d mm of it in ", stdout), stdout[:3000]
 
 
 def test_model_npz_contract(verse_build):

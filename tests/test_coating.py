@@ -551,12 +551,13 @@ def test_verse_template_on_its_own_surface_has_no_fold(verse_dir):
     assert RX.folded_triangles(pts, faces, dm).sum() == 0
     raw = int(RX.folded_triangles(pts, faces, dm, normal_sigma_mm=0.0).sum())
     print(f"L1 template on L1: folds with the raw gradient {raw}, with the 3 mm smoothed normal 0")
-    # the default tolerance template (1,430 points): a triangle or two of 1.4-2.5 mm in the thinnest parts
-    # turns more than 90 degrees from the smoothed normal; the coating unfolds such places (the test above)
+    # the default tolerance template (1,462 points), whose topology cleaning keeps the notches: 9 of its
+    # 2,924 triangles, in the thinnest parts and the narrowest notches, turn more than 90 degrees from the
+    # 3 mm smoothed normal (with the 4 mm closing 2 of 2,860); the coating unfolds such places (the test above)
     dense = build_template(ov, TemplateParams())
     flagged = int(RX.folded_triangles(dense.points_object, dense.faces, dm).sum())
     print(f"tolerance template on L1: {flagged} of {len(dense.faces)} flagged")
-    assert flagged <= 0.002 * len(dense.faces)
+    assert flagged <= 0.005 * len(dense.faces)
 
 
 def _relax_per_axis(points, faces, rest_lengths, dm, params):

@@ -169,3 +169,6 @@ def test_the_report_page_says_how_the_templates_density_was_set(built, tmp_path)
     doc["template"].update(max_distance_mm=1.0, largest_distance_mm=0.987, mean_distance_mm=0.41, tolerance_rounds=1)
     page = write_html_report(tmp_path / "t.html", Report.from_dict(doc)).read_text()
     assert "its triangles within 0.99 mm of the instance's surface (mean 0.41 mm; tolerance 1.00 mm" in page
+    # and the other way: the instance's own surface from the template's triangles (built, not made up)
+    back = tpl["surface_largest_distance_mm"]
+    assert 0 < back < 10 and f"the instance's surface within {back:.2f} mm of its triangles" in page

@@ -331,7 +331,8 @@ def test_one_tolerance_sets_the_density_and_every_triangle_keeps_to_it(shape):
 
 def test_the_template_summary_says_how_its_density_was_set():
     """The build's template line (and Blender's report) states the tolerance and the largest
-    distance the template reached, or eq. 1's radii."""
+    distance the template reached, or eq. 1's radii, and how far the instance's own surface lies
+    from the template's triangles (the marching-cubes vertices of its mask, exact distances)."""
     from ssm_addon.pipeline.stages import template_density
 
     ov = object_volume(sphere(12.0))
@@ -340,10 +341,18 @@ def test_the_template_summary_says_how_its_density_was_set():
     line = template_density(t, tol)
     reached = t.params["largest_distance_mm"]
     mean = t.params["mean_distance_mm"]
-    assert line == f", within {reached:.2f} mm of its surface (mean {mean:.2f} mm; tolerance 0.75 mm)"
+    back = t.params["surface_largest_distance_mm"]
+    assert line == (f", within {reached:.2f} mm of its surface (mean {mean:.2f} mm; tolerance 0.75 mm), its surface "
+                    f"within {back:.2f} mm of it")
     assert 0 < mean < reached <= 0.75
+    mv, _ = T.surface_mesh(ov.mask)
+    triangles = mu.MeshLocator(ov.object_to_voxel(t.points_object), t.faces)
+    assert back == pytest.approx(triangles.query(mv, k=12)[1].max() * ov.spacing_mm, rel=1e-9)
+    assert 0 < back < 1.5
     eq1 = T.TemplateParams(max_distance_mm=None, r_min_mm=2.0, r_max_mm=5.0)
-    assert template_density(T.build_template(ov, eq1), eq1) == ", radii of eq. 1 (2-5 mm)"
+    t1 = T.build_template(ov, eq1)
+    assert template_density(t1, eq1) == (f", radii of eq. 1 (2-5 mm), its surface within "
+                                         f"{t1.params['surface_largest_distance_mm']:.2f} mm of it")
 
 
 def _notched_block():
@@ -383,7 +392,7 @@ def test_clean_topology_keeping_the_shape_closes_the_tunnel_and_keeps_the_notch_
 def test_a_thin_fin_stays_on_the_template_at_the_default_tolerance_and_goes_at_a_coarse_one():
     """A sphere (radius 12 voxels) with a fin 2 voxels thick that stands 8 voxels out of it: the
     default tolerance keeps the fin on the template (its tip within 1.5 voxels, every surface point
-    within 2.5 voxels of the triangles); a 6 mm tolerance does not (the fin is shallower than it),
+    within 2.5 voxels of the triangles); a 6 mm tolerance does not (the fin is shallower than twice it),
     nor did the 4 mm closing and the opening the template's topology cleaning used before."""
     m = sphere(12.0)
     pad = np.zeros((m.shape[0], 10, m.shape[2]), bool)

@@ -531,7 +531,9 @@ class TemplateParams:
     topology_radius_mm: float | None = param(None, kind="float", unit="mm", minimum=0.0, maximum=1000.0,
                                              none_means="r_min", label="Topology radius", advanced=True,
                                              help="closing radius of the topology cleaning (tunnels and cavities "
-                                                  "below the point spacing are closed; opening at a third of it)")
+                                                  "below the point spacing are closed; opening at a third of it; "
+                                                  "under the tolerance they change the shape only where they change "
+                                                  "the topology or no deeper than twice the tolerance)")
     max_refinements: int = param(30, minimum=0, maximum=1000, label="Max refinements", advanced=True,
                                  help="rounds of seed insertion where the geodesic Voronoi regions are not disks")
     _where = "template parameters:"

@@ -229,7 +229,8 @@ def study_report(study: Study, *, project: str | Absent, timings_unknown: dict |
                   **({"max_distance_mm": study.params.template.max_distance_mm,
                       **{k: tpl.params[k] for k in ("largest_distance_mm", "mean_distance_mm", "tolerance_rounds")
                          if k in (tpl.params or {})}}
-                     if study.params.template.max_distance_mm is not None else {})},
+                     if study.params.template.max_distance_mm is not None else {}),
+                  **{k: tpl.params[k] for k in ("surface_largest_distance_mm",) if k in (tpl.params or {})}},
         correspondence=correspondence,
         quality={"parameters": dataclasses.asdict(study.params.quality),
                  "findings": [f.to_dict() for f in study.findings], "outlier_scores": study.outlier_scores},
@@ -519,6 +520,9 @@ def write_html_report(path, report: Report | dict, *, images: dict[str, bytes] |
                        f"mm, <code>[template] max_distance_mm</code>)")
         else:
             density = "its density from the radii of eq. 1 (<code>[template] max_distance_mm = \"off\"</code>)"
+        if tpl.get("surface_largest_distance_mm") is not None:
+            density += (f"; the instance's surface within {_num(tpl['surface_largest_distance_mm'], 2)} mm of its "
+                        "triangles")
         parts.append(f"<p>Template: {_num(tpl['points'])} points from <b>{html.escape(str(tpl.get('instance')))}</b>, "
                      f"{density}.</p>")
     var = model.get("variances_mm2", [])[:12]

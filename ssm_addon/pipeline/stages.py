@@ -300,14 +300,18 @@ def template_line(template: Template, instance: str, params, seconds: float) -> 
 
 def template_density(template: Template, params) -> str:
     """How the template's density was set, for its summary line: the tolerance and the largest
-    distance reached (``[template] max_distance_mm``), or eq. 1's radii."""
+    distance reached (``[template] max_distance_mm``), or eq. 1's radii; then how far the
+    instance's own surface lies from the template's triangles at most (a notch or a tip the
+    template cuts off)."""
     found = template.params or {}
+    back = found.get("surface_largest_distance_mm")
+    back = "" if back is None else f", its surface within {back:.2f} mm of it"
     if params.max_distance_mm is not None and "largest_distance_mm" in found:
         return (f", within {found['largest_distance_mm']:.2f} mm of its surface (mean "
-                f"{found.get('mean_distance_mm', float('nan')):.2f} mm; tolerance {params.max_distance_mm:g} mm)")
+                f"{found.get('mean_distance_mm', float('nan')):.2f} mm; tolerance {params.max_distance_mm:g} mm){back}")
     if params.max_distance_mm is None:
-        return f", radii of eq. 1 ({params.r_min_mm:g}-{params.r_max_mm:g} mm)"
-    return ""
+        return f", radii of eq. 1 ({params.r_min_mm:g}-{params.r_max_mm:g} mm){back}"
+    return back
 
 
 def _input_distance_job(args):
