@@ -551,13 +551,14 @@ def test_verse_template_on_its_own_surface_has_no_fold(verse_dir):
     assert RX.folded_triangles(pts, faces, dm).sum() == 0
     raw = int(RX.folded_triangles(pts, faces, dm, normal_sigma_mm=0.0).sum())
     print(f"L1 template on L1: folds with the raw gradient {raw}, with the 3 mm smoothed normal 0")
-    # the default tolerance template (1,462 points), whose topology cleaning keeps the notches: 9 of its
-    # 2,924 triangles, in the thinnest parts and the narrowest notches, turn more than 90 degrees from the
-    # 3 mm smoothed normal (with the 4 mm closing 2 of 2,860); the coating unfolds such places (the test above)
+    # the default tolerance template (1,462 points), whose topology cleaning keeps the notches: 2 of its
+    # 2,924 triangles turn more than 90 degrees from the raw gradient (spanning thin parts), 9 from the 3 mm
+    # smoothed normal (on the walls of the narrowest notches), none from both: the fold test's rule
     dense = build_template(ov, TemplateParams())
+    by_raw = int(RX.folded_triangles(dense.points_object, dense.faces, dm, normal_sigma_mm=0.0).sum())
     flagged = int(RX.folded_triangles(dense.points_object, dense.faces, dm).sum())
-    print(f"tolerance template on L1: {flagged} of {len(dense.faces)} flagged")
-    assert flagged <= 0.005 * len(dense.faces)
+    print(f"tolerance template on L1: {flagged} of {len(dense.faces)} flagged, {by_raw} by the raw gradient")
+    assert flagged == 0 < by_raw
 
 
 def _relax_per_axis(points, faces, rest_lengths, dm, params):

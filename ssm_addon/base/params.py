@@ -656,8 +656,9 @@ class CoatingParams:
                                   help="Laplacian force on vertices of folded triangles (their surface force is off)")
     fold_normal_sigma_mm: float = param(3.0, unit="mm", minimum=0.0, maximum=100.0, label="Fold normal width",
                                         advanced=True,
-                                        help="smoothing of the surface normal the fold test compares with "
-                                             "(0: raw gradient)")
+                                        help="smoothing of the surface normal the fold test compares with; a "
+                                             "triangle is folded when it turns from this and from the raw "
+                                             "normal (0: the raw gradient alone)")
     fold_check_interval: int = param(5, minimum=1, maximum=10000, label="Fold check interval", advanced=True,
                                      help="the relaxation re-detects folds every this many steps")
     untangle_iterations: int = param(60, minimum=0, maximum=100000, label="Untangle rounds", advanced=True,

@@ -23,10 +23,11 @@ onto every other instance in five steps:
    (:func:`~ssm_addon.coating.relaxation.untangle`).
 
 A triangle is folded when its normal is more than 90° from the surface normal at its
-centroid (paper 4.2); the surface normal is taken from the distance field smoothed at
-3 mm (:func:`~ssm_addon.coating.relaxation.folded_triangles`), because with the raw gradient the template's
-triangles that span a thin process (centroid inside, near the medial surface) count
-as folded even on the template's own instance.
+centroid (paper 4.2), both the raw gradient's and the distance field's smoothed at 3 mm
+(:func:`~ssm_addon.coating.relaxation.folded_triangles`): with the raw gradient alone the
+template's triangles that span a thin process (centroid inside, near the medial surface)
+count as folded even on the template's own instance, with the smoothed one alone those on
+the walls of a narrow notch.
 
 Steps 2, 5 and the fold handling exist because the paper's scheme alone left folds on
 real vertebrae, and the object-frame start because extremal-point landmarks can mis-map

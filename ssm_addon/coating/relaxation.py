@@ -31,20 +31,26 @@ def folded_triangles(
 ):
     """(F,) bool: triangles whose normal deviates from the surface normal by > fold_angle_deg.
 
-    The surface normal is taken at the triangle's centroid (paper 4.2) from the
-    distance map smoothed at ``normal_sigma_mm`` (:meth:`DistanceMap.smooth_normals`):
-    the raw gradient flags correct triangles that span a thin process or lamina (their
-    centroid lies inside, near the medial surface, where the raw gradient flips), the
-    smoothed one does not (figures in ``docs/measurements.md``, Coating).
-    ``normal_sigma_mm`` 0: the raw gradient (the paper's test). Degenerate
-    (zero-area) triangles count as folded.
+    The surface normal is taken at the triangle's centroid (paper 4.2), both from the
+    distance map's raw gradient and from the distance map smoothed at ``normal_sigma_mm``
+    (:meth:`DistanceMap.smooth_normals`), and a triangle is folded when it turns from
+    both. Each alone flags correct triangles: the raw gradient those that span a thin
+    process or lamina (their centroid lies inside, near the medial surface, where the raw
+    gradient flips), the smoothed one those on the walls of a notch narrower than its
+    width (where the smoothed field sees the notch filled); a triangle turned over turns
+    from both (figures in ``docs/measurements.md``, Coating, and "The template keeps the
+    instance's shape"). ``normal_sigma_mm`` 0: the raw gradient alone (the paper's test).
+    Degenerate (zero-area) triangles count as folded.
     """
     fn = face_normals(points, faces)
     cen = face_centroids(points, faces)
     sn = distance_map.smooth_normals(cen, normal_sigma_mm)
-    cosang = np.einsum("ij,ij->i", fn, sn)
+    limit = math.cos(math.radians(fold_angle_deg))
+    turned = np.einsum("ij,ij->i", fn, sn) < limit
+    if normal_sigma_mm > 0:
+        turned &= np.einsum("ij,ij->i", fn, distance_map.normals(cen)) < limit
     zero = ~np.any(fn, axis=1)
-    return (cosang < math.cos(math.radians(fold_angle_deg))) | zero
+    return turned | zero
 
 
 UNTANGLE_PATIENCE = 10  # rounds without fewer folds before the untangling widens by one ring
