@@ -751,3 +751,21 @@ def test_default_relaxation_converges_without_folds_on_the_demo(tmp_path):
     assert len(fits) == 24
     assert all(f.converged and f.iterations < study.params.coating.max_iterations for f in fits.values()), fits
     assert sum(f.folded_after for f in fits.values()) == 0
+
+
+def test_a_triangle_turned_over_is_folded_by_the_raw_and_the_smoothed_normal_alike():
+    """The fold test's rule: folded when a triangle turns from both the raw and the smoothed
+    surface normal. On the wall of a slot 3 voxels wide (the raw normal across the slot, the
+    3 mm smoothed one tilted 32 degrees towards its mouth) the wall's own triangle is not folded
+    by either, the same triangle turned over is folded by each and by both."""
+    m = np.zeros((44, 40, 30), bool)
+    m[5:35, 5:35, 5:25] = True
+    m[18:21, 5:35, 12:25] = False
+    dm = DM.DistanceMap.from_object_volume(ObjectVolume(m, 1.0, np.zeros(3), ObjectFrame(np.zeros(3), np.eye(3))))
+    wall = np.array([[17.5, 19.0, 19.0], [17.5, 21.0, 19.0], [17.5, 20.0, 21.0]])  # normal +x, out of the material
+    faces = np.array([[0, 1, 2]])
+    for sigma in (0.0, 3.0):
+        assert not RX.folded_triangles(wall, faces, dm, normal_sigma_mm=sigma).any()
+        assert RX.folded_triangles(wall, faces[:, ::-1], dm, normal_sigma_mm=sigma).all()
+    smooth = dm.smooth_normals(wall.mean(axis=0)[None], 3.0)[0]
+    assert 0.5 < smooth[0] < 0.95 and smooth[2] > 0.3  # tilted towards the mouth (+z), still on the wall's side
