@@ -344,13 +344,13 @@ TOLERANCE_MIN_RADIUS_VOX = 1.5
 TOLERANCE_ROUNDS = 4
 """Refinement rounds of the tolerance scheme: radii shrink where a triangle lies beyond the tolerance."""
 TOLERANCE_SHRINK = 0.6
-#: Under the tolerance, the topology cleaning changes the shape no deeper than this many
-#: tolerances where it does not change the topology (:func:`clean_topology`, ``keep_depth_vox``).
-#: At one tolerance the L1 template coated onto the other VerSe vertebrae left folds on three
-#: (narrow notches the fold test's smoothed normal does not see); at two none, with the same
-#: correspondence against the truth (docs/measurements.md).
-KEEP_DEPTH_TOLERANCES = 2.0
 """Factor on the radii around a triangle beyond the tolerance, per round."""
+KEEP_DEPTH_TOLERANCES = 2.0
+"""Under the tolerance, the topology cleaning changes the shape no deeper than this many
+tolerances where it does not change the topology (:func:`clean_topology`, ``keep_depth_vox``).
+At one tolerance the L1 template coated onto the other VerSe vertebrae left folds on three
+(measured with the fold test's smoothed normal alone); at two none, with the same
+correspondence against the truth (docs/measurements.md)."""
 
 
 def tolerance_radii(curvature: np.ndarray, tolerance: float, r_lo: float, r_hi: float) -> np.ndarray:
