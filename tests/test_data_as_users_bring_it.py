@@ -271,3 +271,47 @@ def test_verse_vertebrae_as_slicer_meshes_build_the_label_map_model(verse_dir, t
     assert share[1] == pytest.approx(share[0], rel=0.05), share
     gen = [r["metrics"]["generalization"]["mean_mm"][0] for r in (a, b)]
     assert gen[1] == pytest.approx(gen[0], rel=0.08), gen
+
+
+@pytest.mark.slow
+def test_l1_vertebrae_as_slicer_meshes_keep_their_surface_at_the_defaults(tmp_path, verse_dir):
+    """Six L1 vertebrae as a 3D Slicer user brings them: verse004's L1 surface (marching cubes of
+    its label map in world RAS) and five known smooth deformations of it (those of
+    ``tools/eval_correspondence.py deformed``), each written as an LPS PLY with Scalismo landmarks
+    (its 14, moved by the deformation). With the defaults the coatings keep the users' surfaces:
+    no mesh lies beyond the 3 mm gate from its coating (2.41-2.74 mm at most) and none is folded.
+    Before the template kept its instance's shape (its topology cleaning filled the notches and
+    cut the spurs) 4 of the 6 lay beyond it (3.09-3.74 mm) and one coating was folded."""
+    import sys
+    from pathlib import Path
+
+    from conftest import VERSE_FILE, VERSE_LABELS
+    from skimage.measure import marching_cubes
+
+    from ssm_addon.formats.landmarks import read_landmarks
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+    from eval_correspondence import deformations
+
+    img = nib.load(str(VERSE_FILE))
+    mask = np.asarray(img.dataobj) == VERSE_LABELS["L1"]
+    verts, faces, _n, _v = marching_cubes(np.pad(mask, 1).astype(np.float32), 0.5)
+    verts = (verts - 1.0) @ img.affine[:3, :3].T + img.affine[:3, 3]
+    if np.linalg.det(img.affine[:3, :3]) < 0:
+        faces = faces[:, ::-1]
+    voxels = np.argwhere(mask) @ img.affine[:3, :3].T + img.affine[:3, 3]
+    given = read_landmarks(verse_dir / "landmarks" / "L1.fcsv")
+    names, lines = [], []
+    for k, u in enumerate(deformations(6, 0, voxels)):
+        name = f"L1_{k}"
+        names.append(name)
+        slicer_ply(tmp_path / f"{name}.ply", verts + u(verts), faces)
+        scalismo_landmarks(tmp_path / f"{name}.json", given.names, (given.points_world + u(given.points_world)) * LPS)
+        lines += ["[[instances]]", f'name = "{name}"', f'mesh = "{name}.ply"', f'landmarks = "{name}.json"', ""]
+    (tmp_path / "project.toml").write_text("\n".join(lines))
+    result = build(read_project(tmp_path / "project.toml"), tmp_path / "out", log=None)
+    findings = result.report["quality"]["findings"]
+    far = {n: result.report["instances"][n]["input_surface_mm"]["from_input"]["max_mm"] for n in names}
+    assert max(far.values()) < 3.0, far
+    assert not [f for f in findings if f["gate"] in ("input_surface", "folds", "frame")], findings
+    assert result.report["template"]["surface_largest_distance_mm"] < 3.5

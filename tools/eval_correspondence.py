@@ -285,6 +285,27 @@ def invert(u, y: np.ndarray, iterations: int = 60) -> np.ndarray:
     return x
 
 
+def deformations(n: int, seed: int, points_world: np.ndarray) -> list:
+    """The ``n`` displacements of :func:`deformed_population` (the first zero) for a shape whose
+    voxel centres are ``points_world`` (world mm): each scaled down until det(I + du/dx) >= 0.4
+    over the points, so it stays invertible with a margin."""
+    pts = np.asarray(points_world, float)
+    centre, size = pts.mean(axis=0), float(np.ptp(pts, axis=0).max())
+    rng = np.random.default_rng(seed)
+    maps = []
+    for k in range(n):
+        if k == 0:
+            maps.append(lambda x: np.zeros_like(np.asarray(x, float)))
+            continue
+        amplitude = 0.35
+        u = deformation_field(rng, centre, size, amplitude=amplitude)
+        while jacobian_min(u, pts[::5]) < 0.4:
+            amplitude *= 0.7
+            u = deformation_field(rng, centre, size, amplitude=amplitude)
+        maps.append(u)
+    return maps
+
+
 def deformed_population(n: int, label: int, seed: int, workdir: Path):
     """verse004 ``label`` deformed n-1 times (instance 0 undeformed): NIfTI files + truth maps."""
     import nibabel as nib
@@ -302,23 +323,13 @@ def deformed_population(n: int, label: int, seed: int, workdir: Path):
     affine = img.affine.copy()
     affine[:3, 3] = img.affine[:3, :3] @ lo + img.affine[:3, 3]
     pts = np.argwhere(sub) @ affine[:3, :3].T + affine[:3, 3]
-    centre, size = pts.mean(axis=0), float(np.ptp(pts, axis=0).max())
-    rng = np.random.default_rng(seed)
     grid = np.stack(np.meshgrid(*[np.arange(s) for s in sub.shape], indexing="ij"), -1).reshape(-1, 3)
     world = grid @ affine[:3, :3].T + affine[:3, 3]
     from scipy.ndimage import map_coordinates
 
     inv_aff = np.linalg.inv(affine)
     names, files, maps = [], [], []
-    for k in range(n):
-        if k == 0:
-            u = lambda x: np.zeros_like(np.asarray(x, float))  # noqa: E731
-        else:
-            amplitude = 0.35
-            u = deformation_field(rng, centre, size, amplitude=amplitude)
-            while jacobian_min(u, pts[::5]) < 0.4:  # keep it invertible with margin
-                amplitude *= 0.7
-                u = deformation_field(rng, centre, size, amplitude=amplitude)
+    for k, u in enumerate(deformations(n, seed, pts)):
         path = workdir / f"def{k:02d}.nii.gz"
         names.append(f"def{k:02d}")
         files.append(path)
