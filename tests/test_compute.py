@@ -123,6 +123,21 @@ def test_cache_resumes_and_invalidates_exactly(population, tmp_path):
     assert '"computed": 5' in report
 
 
+def test_an_entry_written_by_other_code_is_not_read(population, tmp_path, monkeypatch):
+    """The package's own source is part of every key (``code_digest``): the same project and
+    version, but other code, recomputes the template and every coating."""
+    from ssm_addon.pipeline import cache as cache_module
+
+    proj = _project(population, tmp_path, 4)
+    cache = tmp_path / "cache"
+    assert _build(proj, tmp_path / "a", cache=cache).study.streamed == {"cached": 0, "computed": 4}
+    assert _build(proj, tmp_path / "b", cache=cache).study.streamed == {"cached": 4, "computed": 0}
+    monkeypatch.setattr(cache_module, "code_digest", lambda: "other code")
+    lines: list = []
+    assert _build(proj, tmp_path / "c", lines, cache=cache).study.streamed == {"cached": 0, "computed": 4}
+    assert not any(m.startswith("template") and "from the cache" in m for m in lines)
+
+
 @pytest.mark.slow
 def test_killed_build_resumes_with_only_the_missing_instances(population, tmp_path):
     """SIGKILL mid-coating; the rerun coats only what the cache lacks and equals a fresh build."""

@@ -8,7 +8,10 @@ SHA-256 of everything that determines it:
   its label and voxelization step, its landmarks (names and world mm), the import
   parameters (spacing, frame method), the template (points, faces, landmark points),
   the coating parameters and the quality thresholds that can stop an import;
-* the template (paper 3): its instance's inputs, the template and import parameters.
+* the template (paper 3): its instance's inputs, the template and import parameters;
+
+and every key the package's version and its own source (:func:`code_digest`), so an entry
+written by other code is never read.
 
 So a rerun of a killed build recomputes only what is missing, a new instance costs
 only its own coating, and a changed coating parameter invalidates exactly the
@@ -19,6 +22,7 @@ anyone's is ever touched. Deleting the folder is always safe.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -36,7 +40,7 @@ from ..instances.volume import ObjectFrame, frame_from_arrays, frame_to_arrays
 from ..model.quality import Finding
 from ..template.template import Template
 
-__all__ = ["BuildCache", "InstanceProduct", "file_digest", "digest"]
+__all__ = ["BuildCache", "InstanceProduct", "code_digest", "file_digest", "digest"]
 
 FORMAT = 1
 """Cache layout version; part of every key, so a new layout never reads an old entry."""
@@ -84,6 +88,20 @@ def _feed(h, value) -> None:
         h.update(b";")
 
 
+@functools.cache
+def code_digest() -> str:
+    """SHA-256 (hex) of the package's own source: every ``.py`` file under ``ssm_addon``, by its
+    path relative to the package and its bytes. Part of every key, so a changed computation never
+    reads what older code wrote under the same version number (a source checkout that is
+    updated, a development build)."""
+    root = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for path in sorted(root.rglob("*.py"), key=lambda q: q.relative_to(root).as_posix()):
+        h.update(path.relative_to(root).as_posix().encode() + b"\0")
+        h.update(hashlib.sha256(path.read_bytes()).digest())
+    return h.hexdigest()
+
+
 def digest(*parts) -> str:
     """SHA-256 (hex) of nested dicts, lists, arrays and JSON scalars, in a canonical order.
 
@@ -91,7 +109,7 @@ def digest(*parts) -> str:
     True
     """
     h = hashlib.sha256()
-    _feed(h, ["ssm-cache", FORMAT, __version__])
+    _feed(h, ["ssm-cache", FORMAT, __version__, code_digest()])
     for p in parts:
         _feed(h, p)
     return h.hexdigest()
