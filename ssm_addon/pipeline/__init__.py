@@ -11,7 +11,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "report": ("MAX_THUMBNAILS", "SECTIONS", "Absent", "Report", "instance_thumbnails", "joint_report", "model_alignment", "model_report", "study_report", "thumbnail_names", "write_html_report", "write_report_html"),
     "project": ("STRUCTURE_KEYS", "Project", "Structure", "project_text", "read_project", "structure_overrides", "targets_from_project", "toml_value", "write_project"),
     "store": ("RECORD_FIELDS", "apply_joint_records", "apply_records", "joint_records", "load_joint_study", "load_study", "load_study_or_joint", "save_joint_study", "save_study", "study_records"),
-    "cache": ("BuildCache", "InstanceProduct", "digest", "file_digest"),
+    "cache": ("BuildCache", "InstanceProduct", "code_digest", "digest", "file_digest"),
     "joint": ("JointStudy", "joint_model", "run_joint", "structure_metrics"),
     "model_method": ("MEDOID_TIE", "POINT_COUNT_TOLERANCE", "coat_without_landmarks_stage", "confirmed_landmark_medoid", "distance_maps_ahead", "distance_maps_kept", "keep_distance_map", "landmarked", "landmark_medoid", "landmark_medoid_template", "medoid_template", "population", "population_medoid", "refine_correspondence", "start_coatings", "template_of_count"),
     "runner": ("coating_stage", "run"),
