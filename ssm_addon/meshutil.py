@@ -666,7 +666,8 @@ class Mesh:
 def marching_cubes(mask, *, level: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """The surface of a binary mask: marching cubes at ``level``, faces outward.
 
-    The one marching-cubes call of the package (scikit-image): the mask is cropped to
+    The package's marching cubes (scikit-image; :func:`mask_surface_euler` takes the same
+    surface's Euler characteristic, without the crop and the orientation): the mask is cropped to
     its bounding box and padded by one background voxel, so objects touching the array
     border are closed.
 

@@ -245,7 +245,7 @@ def clean_topology(mask: np.ndarray, radius_vox: float, opening_radius_vox: floa
     they change its topology, and elsewhere no deeper than ``keep_depth_vox``. The closing
     then runs at radii 1, 2, … voxels up to r, and at each radius only its fills that close
     a tunnel or a cavity are applied (the smallest closing that closes a tunnel fills least
-    around it), then the fills of radius r no deeper than ``keep_depth_vox`` (depth: the
+    around it), and at radius r also its fills no deeper than ``keep_depth_vox`` (depth: the
     distance inside the closed mask); the opening removes only the handles it cuts and
     the parts no deeper than ``keep_depth_vox`` (outside the opened mask). Notches,
     the gaps between processes and thin spurs stay, so the template's surface keeps the
@@ -282,14 +282,12 @@ def clean_topology(mask: np.ndarray, radius_vox: float, opening_radius_vox: floa
     keep = keep_depth_vox is not None
     if r > 0 and not keep:
         m = _close(m, r)
-    elif r > 0:
-        for rk in [*np.arange(1.0, r, 1.0), r]:
+    elif r > 0:  # the last radius also applies its fills no deeper than keep_depth_vox
+        radii = [*np.arange(1.0, r, 1.0), r]
+        for rk in radii:
             closed = _close(m, rk)
             m = m | _applied_changes(m, closed & ~m, ndi.distance_transform_edt(closed), adding=True,
-                                     keep_depth_vox=0.0)
-        closed = _close(m, r)
-        m = m | _applied_changes(m, closed & ~m, ndi.distance_transform_edt(closed), adding=True,
-                                 keep_depth_vox=float(keep_depth_vox))
+                                     keep_depth_vox=float(keep_depth_vox) if rk == radii[-1] else 0.0)
     if ro > 0:
         opened = _ball_dilate(_ball_erode(m, ro), ro)
         if keep:
