@@ -122,3 +122,38 @@ def test_import_on_worker_processes_gives_the_volumes_of_the_import_here(project
         assert np.array_equal(here[n].origin_object, there[n].origin_object)
         assert np.array_equal(here[n].frame.matrix_world, there[n].frame.matrix_world)
     assert not np.array_equal(here["left"].frame.matrix_world, here["right"].frame.matrix_world)
+
+
+@pytest.mark.parametrize("thickness_mm, spacing_mm, lost", [(0.4, 1.0, True), (3.0, 1.0, False), (0.4, 0.25, False)])
+def test_a_fin_finer_than_a_voxel_is_said_lost_at_the_import_not_by_the_coating(tmp_path, thickness_mm, spacing_mm,
+                                                                                lost):
+    """The input-surface finding's cause: a mesh's fin 0.4 mm thick is not in the instance's 1 mm
+    voxels, so its tip is far from the coating because the import lost it (each far vertex
+    farther from the voxels than those voxels from the coating); a 3 mm fin is in the voxels,
+    so a coating that stops at the body cut it off; at the finer spacing the finding names
+    (0.25 mm), the thin fin is in the voxels too."""
+    from ssm_addon.formats.meshes import write_ply
+    from ssm_addon.instances.importing import InstanceSpec
+    from ssm_addon.meshutil import MeshLocator, marching_cubes
+    from ssm_addon.pipeline.stages import beyond_the_voxels
+
+    h = 0.25
+    x, y, z = np.meshgrid(np.arange(-14, 25, h), np.arange(-12, 12, h), np.arange(-10, 10, h), indexing="ij")
+    body = (x / 12) ** 2 + (y / 10) ** 2 + (z / 8) ** 2 <= 1
+    fin = (x >= 6) & (x <= 22) & (np.abs(y) < 3) & (np.abs(z - 0.37) < thickness_mm / 2)
+    origin = np.array([-14.0, -12.0, -10.0])
+    verts, faces = marching_cubes(body | fin)
+    verts = verts * h + origin
+    coat_v, coat_f = marching_cubes(body)  # a coating that stops at the body
+    coat_v = coat_v * h + origin
+    write_ply(tmp_path / "finned.ply", verts, faces, space="RAS")
+    spec = InstanceSpec("finned", mesh_path=tmp_path / "finned.ply")
+    far = verts[MeshLocator(coat_v, coat_f).query(verts)[1] > 3.0]
+    assert len(far) > 20 and far[:, 0].min() > 14.0  # the fin's tip, out along x
+    found = beyond_the_voxels(far, coat_v, coat_f, spec, {"spacing_mm": spacing_mm, "frame_method": "auto",
+                                                          "space": "RAS"})
+    assert found["spacing_mm"] == spacing_mm
+    if lost:
+        assert found["count"] == len(far) and found["max_mm"] > 3.0, found
+    else:
+        assert found["count"] == 0 and found["max_mm"] < 1.0, found

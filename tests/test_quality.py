@@ -248,16 +248,18 @@ def test_outlier_scores_of_the_rank_one_downdate_equal_the_exact_ones(n, npts):
 
 @pytest.mark.parametrize("lost, says", [
     (0, "cut off by the coating; give the template a tolerance"),
-    (4, "4 of them lie as far from the instance's 1 mm voxels (finer than a voxel: a finer [template] spacing "
-        "(now 1 mm) or the instance's own mesh_spacing keeps a part finer than a voxel), the others are cut off by "
-        "the coating"),
-    (10, "they lie as far from the instance's 1 mm voxels, which the coating follows: a part finer than a voxel, "
-         "lost at the import, not by the coating; a finer [template] spacing (now 1 mm)"),
+    (4, "4 of them lie farther from the instance's 1 mm voxels than those voxels lie from the coating (finer "
+        "than a voxel: a finer [template] spacing (now 1 mm) keeps a part finer than a voxel), the others are cut "
+        "off by the coating"),
+    (10, "they lie farther from the instance's 1 mm voxels, which the coating follows, than those voxels lie from "
+         "the coating: a part finer than a voxel, lost at the import more than by the coating; a finer [template] "
+         "spacing (now 1 mm)"),
 ])
 def test_the_input_surface_finding_says_whether_the_voxels_or_the_coating_lost_the_part(lost, says):
-    """Of the mesh's vertices beyond the limit from its coating, those that lie as far from the
-    instance's own voxels were lost at the import (a part finer than the spacing), not by the
-    coating: the finding says which, with the remedy for each."""
+    """Of the mesh's vertices beyond the limit from its coating, those that lie farther from the
+    instance's own voxels than those voxels lie from the coating were lost at the import (a part
+    finer than the spacing) more than by the coating: the finding says which, with the remedy for
+    each."""
     from ssm_addon.base.params import QualityParams, TemplateParams
     from ssm_addon.model.quality import check_input_surface
 

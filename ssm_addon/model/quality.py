@@ -324,14 +324,17 @@ def check_input_surface(name: str, distances: dict, params: QualityParams, templ
                  f"({x:+.0f}, {y:+.0f}, {z:+.0f}) mm from its centre (x, y, z, RAS)")
         voxels = beyond.get("voxels") or {}
         lost, h = int(voxels.get("count", 0)), float(voxels.get("spacing_mm", 0.0))
-        finer = (f"a finer [template] spacing (now {h:g} mm) or the instance's own mesh_spacing keeps a part "
-                 "finer than a voxel")
+        # the instance's mesh_spacing sets only the voxels its object frame is found on; the
+        # coating follows the voxels at the [template] spacing
+        finer = f"a finer [template] spacing (now {h:g} mm) keeps a part finer than a voxel"
         if lost and lost >= beyond["count"]:
-            cause = (f"they lie as far from the instance's {h:g} mm voxels, which the coating follows: a part "
-                     f"finer than a voxel, lost at the import, not by the coating; {finer}")
+            cause = (f"they lie farther from the instance's {h:g} mm voxels, which the coating follows, than "
+                     f"those voxels lie from the coating: a part finer than a voxel, lost at the import more "
+                     f"than by the coating; {finer}")
         elif lost:
-            cause = (f"{lost:,} of them lie as far from the instance's {h:g} mm voxels (finer than a voxel: "
-                     f"{finer}), the others are cut off by the coating, a thin process or a notch; {remedy}")
+            cause = (f"{lost:,} of them lie farther from the instance's {h:g} mm voxels than those voxels lie "
+                     f"from the coating (finer than a voxel: {finer}), the others are cut off by the coating, "
+                     f"a thin process or a notch; {remedy}")
     return [Finding(name, "input_surface", f"its mesh lies up to {worst:.1f} mm from its coating (mean {mean:.2f} mm; "
                     f"allowed {params.max_input_distance_mm:g} mm{where}): {cause}", worst,
                     params.max_input_distance_mm)]

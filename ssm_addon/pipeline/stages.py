@@ -320,20 +320,24 @@ def _input_distance_job(args):
     d, far = two_way_distances(points_world, faces, vertices, mesh_faces, beyond_mm=beyond_mm, return_far=True)
     beyond = d["from_other"].get("beyond")
     if beyond and beyond["count"]:
-        beyond["voxels"] = _beyond_the_voxels(vertices[far], beyond_mm, spec, import_args)
+        beyond["voxels"] = beyond_the_voxels(vertices[far], points_world, faces, spec, import_args)
     return {"to_input": d["to_other"], "from_input": d["from_other"]}
 
 
-def _beyond_the_voxels(far: np.ndarray, beyond_mm: float, spec: InstanceSpec, import_args: dict) -> dict:
-    """Of a mesh's vertices farther than ``beyond_mm`` from its coating (``far``, world mm), how
-    many lie as far from the instance's own voxels (the import at the study's spacing, which the
-    coating follows: a part finer than a voxel is lost there, not by the coating) (``count``, mm
-    of the spacing)."""
+def beyond_the_voxels(far: np.ndarray, points_world: np.ndarray, faces: np.ndarray, spec: InstanceSpec,
+                       import_args: dict) -> dict:
+    """Of a mesh's vertices far from its coating (``far``, world mm), how many are far mostly
+    because the import lost the part (``count``): the vertex lies farther from the instance's
+    own voxels (the import at the study's spacing, which the coating follows) than the voxel
+    surface nearest to it lies from the coating (``points_world``, ``faces``); a part finer
+    than a voxel is lost there, not by the coating. ``max_mm``: the largest of those vertices'
+    distances to the voxels; ``spacing_mm``: the voxels' edge."""
     ov = import_instance(spec, **import_args)
     grid, grid_faces = marching_cubes(ov.mask)
     surface = ov.frame.to_world(ov.voxel_to_object(grid))
-    _c, from_voxels, _t, _b = MeshLocator(surface, grid_faces).query(far, k=12)
-    return {"count": int((from_voxels > beyond_mm).sum()), "spacing_mm": float(ov.spacing_mm),
+    on_voxels, from_voxels, _t, _b = MeshLocator(surface, grid_faces).query(far, k=12)
+    _c, voxels_from_coating, _t, _b = MeshLocator(points_world, faces).query(on_voxels, k=12)
+    return {"count": int((from_voxels >= voxels_from_coating).sum()), "spacing_mm": float(ov.spacing_mm),
             "max_mm": float(from_voxels.max()) if len(far) else 0.0}
 
 
@@ -344,8 +348,8 @@ def input_distances(study: Study, coated: dict[str, CoatingResult], faces: np.nd
     ``to_input`` from the coated points to the mesh, ``from_input`` from the mesh's vertices to
     the coated surface: large where the template's points do not reach a thin process; its
     ``beyond``: the vertices farther than ``[quality] max_input_distance_mm``, how many and where,
-    and ``beyond["voxels"]``: how many of them lie as far from the instance's voxels, so the
-    import's spacing, not the coating, lost them).
+    and ``beyond["voxels"]``: how many of them are far mostly because the import's spacing, not
+    the coating, lost the part, :func:`beyond_the_voxels`).
 
     ``executor``: where the instances are measured (the build's workers; default this process).
     """
