@@ -127,8 +127,14 @@ def param_group(cls, name: str, extra: dict | None = None) -> type:
     adds further (UI-only) annotations.
     """
     annotations = {}
+    implied = getattr(cls, "implied", None)
     for s in P.specs(cls):
         annotations[s.name] = _blender_property(s)
+        chosen = tuple(implied(frozenset({s.key}))) if implied is not None else ()
+        if chosen:
+            # set in this version, a setting that would imply others in a scene of an older
+            # version (eq. 1's radii: no tolerance) marks them as chosen too
+            annotations[s.name].keywords["update"] = _marking_chosen(chosen)
         if s.optional:
             annotations[_auto_name(s.name)] = BoolProperty(
                 name="Off" if s.off else "Auto", default=s.default is None,
@@ -138,6 +144,32 @@ def param_group(cls, name: str, extra: dict | None = None) -> type:
     doc = f"{cls.__name__} as Blender properties (derived from ssm_addon.base.params)."
     return type(name, (bpy.types.PropertyGroup,), {"__annotations__": annotations, "__doc__": doc,
                                                     "params_class": cls})
+
+
+def _marking_chosen(names: tuple):
+    def update(group, _context):
+        for name in names:
+            setattr(group, name, getattr(group, name))
+            if hasattr(group, _auto_name(name)):
+                setattr(group, _auto_name(name), getattr(group, _auto_name(name)))
+    return update
+
+
+def _given(s: P.Spec, group) -> bool:
+    return group.is_property_set(s.name) or (s.optional and group.is_property_set(_auto_name(s.name)))
+
+
+def implied_by_an_older_scene(cls, group) -> dict:
+    """``{name: value}`` a group of an older version's scene means where it differs from the
+    defaults: the class's ``implied`` (see :func:`ssm_addon.base.params.from_table`) of the
+    settings the scene holds, for those it does not hold. A ``[template]`` group whose eq. 1
+    radii were set before the tolerance existed keeps eq. 1, as a project file does; in this
+    version, setting a radius marks the tolerance as chosen (:func:`param_group`)."""
+    implied = getattr(cls, "implied", None)
+    if implied is None:
+        return {}
+    given = frozenset(s.key for s in P.specs(cls) if _given(s, group))
+    return {name: value for name, value in implied(given).items() if name not in given}
 
 
 def _read(s: P.Spec, group):
@@ -165,9 +197,11 @@ def params_from_group(cls, group):
     """The parameter object of ``cls`` from a group made by :func:`param_group` (validated).
 
     Floats are read as the shortest decimal of their single-precision value, so 0.2
-    typed in the sidebar is 0.2, the same number as 0.2 in a project file.
+    typed in the sidebar is 0.2, the same number as 0.2 in a project file. A group of an
+    older version's scene means what its project file would (:func:`implied_by_an_older_scene`).
     """
     values = {s.key: _read(s, group) for s in P.specs(cls)}
+    values.update(implied_by_an_older_scene(cls, group))
     values = {s.key: s.off if values[s.key] is None and s.off else values[s.key] for s in P.specs(cls)}
     return P.from_table(cls, {k: v for k, v in values.items() if v is not None},
                         where=f"{cls.__name__.removesuffix('Params')} settings:")
@@ -299,14 +333,41 @@ classes = (SSMObjectProperties, SSMTemplateSettings, SSMCoatingSettings, SSMMode
            SSMJointSettings, SSMStudySettings)
 
 
+def keep_older_scene_settings(scene) -> dict:
+    """Write into ``scene``'s groups what an older version's settings mean
+    (:func:`implied_by_an_older_scene`), so the panels show what a build uses; returns
+    ``{group: {name: value}}`` of what was written."""
+    written = {}
+    for key, (_group_cls, cls) in SCENE_GROUPS.items():
+        group = getattr(scene, key)
+        implied = implied_by_an_older_scene(cls, group)
+        for name, value in implied.items():
+            if value is None:
+                setattr(group, _auto_name(name), True)
+            else:
+                setattr(group, name, value)
+        if implied:
+            written[key] = implied
+    return written
+
+
+@bpy.app.handlers.persistent
+def _older_scenes_on_load(_path=None):
+    for scene in bpy.data.scenes:
+        keep_older_scene_settings(scene)
+
+
 def register_properties():
     bpy.types.Object.ssm = PointerProperty(type=SSMObjectProperties)
     for key, (group_cls, _cls) in SCENE_GROUPS.items():
         setattr(bpy.types.Scene, key, PointerProperty(type=group_cls))
     bpy.types.Scene.ssm_display = PointerProperty(type=SSMStudySettings)
+    bpy.app.handlers.load_post.append(_older_scenes_on_load)
 
 
 def unregister_properties():
+    if _older_scenes_on_load in bpy.app.handlers.load_post:
+        bpy.app.handlers.load_post.remove(_older_scenes_on_load)
     del bpy.types.Scene.ssm_display
     for key in reversed(SCENE_GROUPS):
         delattr(bpy.types.Scene, key)

@@ -141,6 +141,45 @@ def test_the_template_panel_offers_the_tolerance_first_and_greys_out_what_it_lea
     assert TemplateParams.__dataclass_fields__["max_distance_mm"].default == 1.0
 
 
+def test_a_scene_saved_before_the_tolerance_keeps_eq_1_and_one_saved_now_keeps_its_tolerance(bpy_clean, tmp_path):
+    """A .blend whose [template] radii were set before the tolerance existed (no tolerance
+    setting stored) builds eq. 1 when opened, as its project file would, and its panel shows
+    "Off"; in this version setting a radius marks the tolerance as chosen, so a scene saved now
+    keeps its tolerance; a scene that set no radius takes the default tolerance."""
+    from ssm.operators.properties import params_from_group
+
+    from ssm_addon.base.params import TemplateParams
+
+    bpy = bpy_clean
+    blend = tmp_path / "older.blend"
+    group = bpy.context.scene.ssm_template
+    group.r_min_mm, group.r_max_mm = 3.0, 9.0
+    assert group.is_property_set("max_distance_mm_auto")  # marked as chosen by setting a radius
+    assert params_from_group(TemplateParams, group).max_distance_mm == pytest.approx(1.0)
+    for name in ("max_distance_mm", "max_distance_mm_auto"):  # as an older version stored it
+        group.property_unset(name)
+    assert params_from_group(TemplateParams, group).max_distance_mm is None
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    bpy.ops.wm.read_homefile(use_empty=True)
+    bpy.ops.wm.open_mainfile(filepath=str(blend))
+    group = bpy.context.scene.ssm_template
+    assert group.max_distance_mm_auto and group.r_min_mm == pytest.approx(3.0)  # the panel shows "Off"
+    older = params_from_group(TemplateParams, group)
+    assert older.max_distance_mm is None and older.r_min_mm == pytest.approx(3.0)
+
+    bpy.ops.wm.read_homefile(use_empty=True)
+    group = bpy.context.scene.ssm_template
+    assert params_from_group(TemplateParams, group).max_distance_mm == pytest.approx(1.0)  # nothing set
+    group.r_min_mm = 3.0
+    bpy.ops.wm.save_as_mainfile(filepath=str(tmp_path / "now.blend"))
+    bpy.ops.wm.read_homefile(use_empty=True)
+    bpy.ops.wm.open_mainfile(filepath=str(tmp_path / "now.blend"))
+    group = bpy.context.scene.ssm_template
+    now = params_from_group(TemplateParams, group)
+    assert not group.max_distance_mm_auto and now.max_distance_mm == pytest.approx(1.0)
+    assert now.r_min_mm == pytest.approx(3.0)
+
+
 def test_build_template_of_verse_l1_has_genus_one(bpy_clean, verse_dir):
     from ssm.operators import bridge
 
