@@ -647,11 +647,6 @@ class CoatingParams:
                                                "warp and projection (empty: the paper's scheme)")
     registration_iterations: int = param(5, minimum=0, maximum=1000, label="Registration steps", advanced=True,
                                          help="iterations per registration width")
-    reach_mm: float = param(0.0, unit="mm", minimum=0.0, maximum=100.0, label="Reach",
-                            help="at the registration's widths up to 4 mm, a surface point farther than this "
-                                 "from the coating pulls its nearest point in full, not only along the normal: "
-                                 "the coating reaches a process longer than the template's (0: off; on, it also "
-                                 "moves the correspondence a little, docs/measurements.md)")
     final_projection: bool = param(True, label="Final projection", advanced=True,
                                    help="project every vertex onto the surface after the relaxation")
     fold_free_warp: bool = param(True, label="Fold-free warp",

@@ -258,7 +258,7 @@ def coat_from_start(
     def registered(initial, widths):
         if widths:
             return register_to_surface(initial, faces, dm, sigmas_mm=widths, iterations=params.registration_iterations,
-                                       cancelled=cancelled, reach_mm=params.reach_mm or None)
+                                       cancelled=cancelled)
         return initial
 
     # the smoothed field of the fold test (a Gaussian filter of the whole grid; scipy

@@ -16,14 +16,9 @@ from ..base.compute import inner_threads
 from ..base.errors import check_cancelled
 from ..base.progress import CancelledFn
 from ..coating.distance_map import DistanceMap
-from ..meshutil import MeshLocator, vertex_normals
+from ..meshutil import vertex_normals
 
 __all__ = ["register_to_surface"]
-
-#: The widths (mm) at which the registration's reach acts (``reach_mm``): at wider ones a far
-#: point's pull, smoothed over the width, drags larger parts along the surface (femur10 truth
-#: 2.317 -> 2.318 mm at every width, unchanged at <= 4 mm; docs/measurements.md)
-REACH_WIDTH_MM = 4.0
 
 QUERY_WORKERS = 2  # threads of the registration's k-d tree search in the main process (identical results)
 
@@ -134,7 +129,6 @@ def register_to_surface(
     cancelled: CancelledFn = None,
     normal_only: bool = True,
     target_density: int = 8,
-    reach_mm: float | None = None,
 ) -> np.ndarray:
     """Move a mesh onto a surface by a smooth, coarse-to-fine displacement field.
 
@@ -153,12 +147,6 @@ def register_to_surface(
     sigmas_mm : decreasing Gaussian widths in mm; ``iterations`` steps each.
     target_density : surface points used for the backward term per mesh vertex
         (every k-th marching-cubes vertex; 0: all).
-    reach_mm : mm, optional
-        At the widths up to ``REACH_WIDTH_MM``, a surface point farther than this from the mesh
-        (its triangles) pulls its nearest vertex in full, whatever the normals, not only along
-        the normal: the mesh reaches the tip of a process the warp fell short of (a longer
-        process of another subject) instead of stopping where the normal pull balances the
-        forward one. None: off.
 
     Returns
     -------
@@ -189,23 +177,14 @@ def register_to_surface(
             j = _nearest_vertex(cKDTree(p, leafsize=16), targets, workers, ties=first)
             first = False
             ok = np.einsum("ij,ij->i", vn[j], target_normals) > cos_min
-            pull = targets - p[j]
-            along_normal = normal_only
-            if reach_mm is not None and sigma <= REACH_WIDTH_MM:
-                far = MeshLocator(p, faces).query(targets, k=6)[1] > reach_mm
-                if normal_only:  # each pull along its vertex's normal, but the far points' in full
-                    along = np.einsum("ij,ij->i", pull, vn[j])[:, None] * vn[j]
-                    pull = np.where(far[:, None], pull, along)
-                    along_normal = False
-                ok |= far
             jj = j[ok]
             count = np.bincount(jj, minlength=n).astype(float)
             back = np.empty_like(p)
             for k in range(3):
-                back[:, k] = np.bincount(jj, pull[ok, k], minlength=n)
+                back[:, k] = np.bincount(jj, targets[ok, k] - p[jj, k], minlength=n)
             has_back = count > 0
             back[has_back] /= count[has_back, None]
-            if along_normal:
+            if normal_only:
                 back = np.einsum("ij,ij->i", back, vn)[:, None] * vn
             u = w_fwd[:, None] * (near - p) + back
             w = w_fwd + has_back
