@@ -269,4 +269,5 @@ def test_the_input_surface_finding_says_whether_the_voxels_or_the_coating_lost_t
     distances = {"from_input": {"max_mm": 4.2, "mean_mm": 0.4, "beyond": beyond}}
     (finding,) = check_input_surface("L4", distances, QualityParams(), TemplateParams(max_distance_mm=None))
     assert finding.gate == "input_surface" and "10 of its vertices (0.1 %) lie beyond" in finding.message
+    assert finding.message.startswith("its mesh lies up to 4.20 mm")  # not "3.0 mm, allowed 3 mm" at 3.04
     assert says in finding.message, finding.message

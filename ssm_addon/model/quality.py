@@ -335,7 +335,7 @@ def check_input_surface(name: str, distances: dict, params: QualityParams, templ
             cause = (f"{lost:,} of them lie farther from the instance's {h:g} mm voxels than those voxels lie "
                      f"from the coating (finer than a voxel: {finer}), the others are cut off by the coating, "
                      f"a thin process or a notch; {remedy}")
-    return [Finding(name, "input_surface", f"its mesh lies up to {worst:.1f} mm from its coating (mean {mean:.2f} mm; "
+    return [Finding(name, "input_surface", f"its mesh lies up to {worst:.2f} mm from its coating (mean {mean:.2f} mm; "
                     f"allowed {params.max_input_distance_mm:g} mm{where}): {cause}", worst,
                     params.max_input_distance_mm)]
 
