@@ -130,7 +130,7 @@ def param_group(cls, name: str, extra: dict | None = None) -> type:
     implied = getattr(cls, "implied", None)
     for s in P.specs(cls):
         annotations[s.name] = _blender_property(s)
-        chosen = tuple(implied(frozenset({s.key}))) if implied is not None else ()
+        chosen = tuple(implied(frozenset({s.name}))) if implied is not None else ()
         if chosen:
             # set in this version, a setting that would imply others in a scene of an older
             # version (eq. 1's radii: no tolerance) marks them as chosen too
@@ -168,7 +168,7 @@ def implied_by_an_older_scene(cls, group) -> dict:
     implied = getattr(cls, "implied", None)
     if implied is None:
         return {}
-    given = frozenset(s.key for s in P.specs(cls) if _given(s, group))
+    given = frozenset(s.name for s in P.specs(cls) if _given(s, group))
     return {name: value for name, value in implied(given).items() if name not in given}
 
 
@@ -200,8 +200,8 @@ def params_from_group(cls, group):
     typed in the sidebar is 0.2, the same number as 0.2 in a project file. A group of an
     older version's scene means what its project file would (:func:`implied_by_an_older_scene`).
     """
-    values = {s.key: _read(s, group) for s in P.specs(cls)}
-    values.update(implied_by_an_older_scene(cls, group))
+    older = implied_by_an_older_scene(cls, group)  # field names, as the class's implied gives them
+    values = {s.key: older[s.name] if s.name in older else _read(s, group) for s in P.specs(cls)}
     values = {s.key: s.off if values[s.key] is None and s.off else values[s.key] for s in P.specs(cls)}
     return P.from_table(cls, {k: v for k, v in values.items() if v is not None},
                         where=f"{cls.__name__.removesuffix('Params')} settings:")
@@ -333,22 +333,18 @@ classes = (SSMObjectProperties, SSMTemplateSettings, SSMCoatingSettings, SSMMode
            SSMJointSettings, SSMStudySettings)
 
 
-def keep_older_scene_settings(scene) -> dict:
+def keep_older_scene_settings(scene) -> None:
     """Write into ``scene``'s groups what an older version's settings mean
-    (:func:`implied_by_an_older_scene`), so the panels show what a build uses; returns
-    ``{group: {name: value}}`` of what was written."""
-    written = {}
+    (:func:`implied_by_an_older_scene`), so the panels show what a build uses (a scene
+    appended later, which no load handler sees, is read the same way by
+    :func:`params_from_group`)."""
     for key, (_group_cls, cls) in SCENE_GROUPS.items():
         group = getattr(scene, key)
-        implied = implied_by_an_older_scene(cls, group)
-        for name, value in implied.items():
+        for name, value in implied_by_an_older_scene(cls, group).items():
             if value is None:
                 setattr(group, _auto_name(name), True)
             else:
                 setattr(group, name, value)
-        if implied:
-            written[key] = implied
-    return written
 
 
 @bpy.app.handlers.persistent

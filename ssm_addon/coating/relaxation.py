@@ -47,8 +47,9 @@ def folded_triangles(
     sn = distance_map.smooth_normals(cen, normal_sigma_mm)
     limit = math.cos(math.radians(fold_angle_deg))
     turned = np.einsum("ij,ij->i", fn, sn) < limit
-    if normal_sigma_mm > 0:
-        turned &= np.einsum("ij,ij->i", fn, distance_map.normals(cen)) < limit
+    if normal_sigma_mm > 0:  # the raw normal only where the smoothed one says turned (few)
+        at = np.flatnonzero(turned)
+        turned[at] = np.einsum("ij,ij->i", fn[at], distance_map.normals(cen[at])) < limit
     zero = ~np.any(fn, axis=1)
     return turned | zero
 
