@@ -307,6 +307,60 @@ def test_registration_does_not_leave_exact_ties_to_the_k_d_tree(monkeypatch):
     assert np.array_equal(RG.register_to_surface(*args, sigmas_mm=(8.0, 4.0), iterations=3), balanced)
 
 
+def _ellipsoid_with_rod(rod_mm, radius_mm=3.0, axes_mm=(20.0, 12.0, 10.0)):
+    """An ellipsoid with a round process along +x, ``rod_mm`` beyond its tip (identity frame, 1 mm)."""
+    axes = np.asarray(axes_mm)
+
+    def inside(p):
+        rod = (np.hypot(p[:, 1], p[:, 2]) <= radius_mm) & (p[:, 0] >= 0) & (p[:, 0] <= axes[0] + rod_mm)
+        return (((p / axes) ** 2).sum(1) <= 1.0) | rod
+
+    return object_volume(inside, axes.max() + rod_mm + 2, 1.0, f"ellipsoid with a {rod_mm} mm rod")
+
+
+@pytest.mark.skipif(build_template is None, reason="needs the template stage")
+def test_the_reach_extends_the_coating_into_a_process_longer_than_the_templates():
+    # the template's process is 4 mm long, the instance's 12 mm: the registration's pull
+    # along the normals leaves the coating's tip 4.9 mm short of the instance's; the reach
+    # (thick far parts pull in full) brings it to within the 3 mm the input-surface check allows
+    template = build_template(_ellipsoid_with_rod(4.0), TemplateParams())
+    target = _ellipsoid_with_rod(12.0)
+    dm = DM.DistanceMap.from_object_volume(target)
+    samples, _normals = dm.surface_samples(1)
+
+    def coated(reach_mm):
+        result = C.coat_from_start(template, target, params=P.CoatingParams(reach_mm=reach_mm), distance_map=dm)
+        return mu.MeshLocator(result.points_object, template.faces).query(samples, k=12)[1], result.fit
+
+    short, _fit = coated(0.0)
+    reached, fit = coated(2.5)
+    assert short.max() > 4.0 and (short > 3.0).sum() > 40
+    assert reached.max() < 3.5 and (reached > 3.0).sum() <= 5
+    assert fit.folded_after == 0 and fit.mean_distance_mm < 0.3
+
+
+@pytest.mark.skipif(build_template is None, reason="needs the template stage")
+def test_the_reach_leaves_thin_fins_and_the_templates_own_instance_alone():
+    # a fin 1 mm thick that the template lacks is not a process: the reach does not pull
+    # the mesh into it (the points are those without the reach), nor anything on the
+    # template's own instance, where no thick part lies far from the mesh
+    axes = np.array([20.0, 12.0, 10.0])
+
+    def ellipsoid(p):
+        return ((p / axes) ** 2).sum(1) <= 1.0
+
+    def with_fin(p):
+        return ellipsoid(p) | ((np.abs(p[:, 2]) <= 0.5) & (np.abs(p[:, 0]) <= 6) & (p[:, 1] >= 0) & (p[:, 1] <= 17))
+
+    own = object_volume(ellipsoid, 22, 1.0)
+    template = build_template(own, TemplateParams())
+    for target in (own, object_volume(with_fin, 22, 1.0)):
+        dm = DM.DistanceMap.from_object_volume(target)
+        off, on = (C.coat_from_start(template, target, params=P.CoatingParams(reach_mm=r), distance_map=dm)
+                   for r in (0.0, 2.5))
+        assert np.array_equal(off.points_object, on.points_object), target.source
+
+
 def test_projection_lands_on_marching_cubes_surface_at_subvoxel_accuracy():
     axes = np.array([18.0, 12.0, 9.0])
     ov = ellipsoid_volume(axes)

@@ -9,7 +9,9 @@ onto every other instance in five steps:
    (:func:`~ssm_addon.coating.warp.fold_free_warp`; the λ used is reported);
 2. (not in the paper) a smooth coarse-to-fine surface registration (Gaussian widths
    16, 8, 4, 2 mm) moves the warped mesh onto the surface without folding it
-   (:mod:`ssm_addon.coating.registration`);
+   (:mod:`ssm_addon.coating.registration`); thick parts of the surface it leaves more
+   than ``reach_mm`` away (a process longer than the template's) then pull their nearest
+   vertices in full (:func:`~ssm_addon.coating.registration.reach_far_parts`);
 3. every vertex is projected onto the instance surface by a sub-voxel signed distance
    map (:mod:`ssm_addon.coating.distance_map`, paper 4.2);
 4. a mass-spring relaxation, eq. (3), unfolds the mesh while a zero-length spring keeps
@@ -64,7 +66,7 @@ from ..base.errors import Cancelled, InputError, check_cancelled
 from ..base.params import CoatingParams
 from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..coating.distance_map import DistanceMap
-from ..coating.registration import register_to_surface
+from ..coating.registration import reach_far_parts, register_to_surface
 from ..coating.relaxation import folded_triangles, relax, untangle
 from ..coating.warp import fold_free_warp, landmark_warp
 from ..instances.volume import ObjectVolume
@@ -290,6 +292,10 @@ def coat_from_start(
             if folds(dm.project(alt, params.projection_iterations)) < coarse_folds:
                 moved, start_from = alt, CoatingStart.OBJECT_FRAMES
     moved = registered(moved, sigmas[n_coarse:])
+    if sigmas and params.reach_mm > 0:
+        report(progress, 0.18, "reaching far parts")
+        moved = reach_far_parts(moved, faces, dm, far_mm=params.reach_mm, sigma_mm=sigmas[-1],
+                                iterations=params.registration_iterations, cancelled=cancelled)
     report(progress, 0.2, "projection")
     projected = dm.project(moved, params.projection_iterations)
     folded_before = folds(projected)

@@ -3,7 +3,8 @@
 The warp of eq. (2) with few or inconsistent landmarks leaves vertices many mm off the
 surface; projecting those onto the nearest surface point folds the mesh. The
 registration moves the warped mesh onto the surface by a Gaussian-smoothed displacement
-field at decreasing widths (16, 8, 4, 2 mm by default), see :func:`register_to_surface`.
+field at decreasing widths (16, 8, 4, 2 mm by default), see :func:`register_to_surface`;
+:func:`reach_far_parts` then extends it into thick parts it falls short of.
 Coordinates in mm, the target's object frame.
 """
 
@@ -16,9 +17,9 @@ from ..base.compute import inner_threads
 from ..base.errors import check_cancelled
 from ..base.progress import CancelledFn
 from ..coating.distance_map import DistanceMap
-from ..meshutil import vertex_normals
+from ..meshutil import MeshLocator, vertex_normals
 
-__all__ = ["register_to_surface"]
+__all__ = ["reach_far_parts", "register_to_surface"]
 
 QUERY_WORKERS = 2  # threads of the registration's k-d tree search in the main process (identical results)
 
@@ -163,30 +164,118 @@ def register_to_surface(
     targets = distance_map.surface_vertices
     stride = max(1, len(targets) // (target_density * n)) if target_density > 0 else 1
     targets, target_normals = distance_map.surface_samples(stride)
-    cos_min = 0.3
     workers = inner_threads(QUERY_WORKERS)
     first = True
     for sigma in sigmas_mm:
         for _ in range(iterations):
             check_cancelled(cancelled)
-            vn = vertex_normals(p, faces)
-            near = distance_map.project(p, 2)
-            w_fwd = (np.einsum("ij,ij->i", vn, distance_map.normals(near)) > cos_min).astype(float)
-            # the search over ~5,000 surface points was 40 % of an iteration: both cores
-            # (the same result as one; workers only splits the query points)
-            j = _nearest_vertex(cKDTree(p, leafsize=16), targets, workers, ties=first)
+            p += _registration_step(p, faces, distance_map, targets, target_normals, sigma, workers,
+                                    ties=first, normal_only=normal_only)
             first = False
-            ok = np.einsum("ij,ij->i", vn[j], target_normals) > cos_min
-            jj = j[ok]
-            count = np.bincount(jj, minlength=n).astype(float)
-            back = np.empty_like(p)
-            for k in range(3):
-                back[:, k] = np.bincount(jj, targets[ok, k] - p[jj, k], minlength=n)
-            has_back = count > 0
-            back[has_back] /= count[has_back, None]
-            if normal_only:
-                back = np.einsum("ij,ij->i", back, vn)[:, None] * vn
-            u = w_fwd[:, None] * (near - p) + back
-            w = w_fwd + has_back
-            p += _gaussian_smooth(p, u / np.maximum(w, 1.0)[:, None], w, sigma)
+    return p
+
+
+#: Cosine between a vertex's normal and the surface normal below which a pull is ignored
+#: (the nearest point is on the far side of a thin part, or the other wall of a notch).
+COS_MIN = 0.3
+
+
+def _registration_step(p, faces, distance_map, targets, target_normals, sigma, workers, *, ties, normal_only,
+                       full=None):
+    """One step of :func:`register_to_surface`: the smoothed displacement (N, 3) mm.
+
+    ``full`` (M,) bool, optional: surface samples whose backward pull counts in full even
+    with ``normal_only`` (:func:`reach_far_parts`); such samples pull whatever the normals.
+    """
+    n = len(p)
+    vn = vertex_normals(p, faces)
+    near = distance_map.project(p, 2)
+    w_fwd = (np.einsum("ij,ij->i", vn, distance_map.normals(near)) > COS_MIN).astype(float)
+    # the search over ~5,000 surface points was 40 % of an iteration: both cores
+    # (the same result as one; workers only splits the query points)
+    j = _nearest_vertex(cKDTree(p, leafsize=16), targets, workers, ties=ties)
+    ok = np.einsum("ij,ij->i", vn[j], target_normals) > COS_MIN
+    if full is not None:
+        ok |= full
+    jj = j[ok]
+    count = np.bincount(jj, minlength=n).astype(float)
+    back = np.empty_like(p)
+    for k in range(3):
+        back[:, k] = np.bincount(jj, targets[ok, k] - p[jj, k], minlength=n)
+    has_back = count > 0
+    back[has_back] /= count[has_back, None]
+    if normal_only:
+        along = np.einsum("ij,ij->i", back, vn)[:, None] * vn
+        if full is None:
+            back = along
+        else:
+            back = np.where((np.bincount(j[full], minlength=n) > 0)[:, None], back, along)
+    u = w_fwd[:, None] * (near - p) + back
+    w = w_fwd + has_back
+    return _gaussian_smooth(p, u / np.maximum(w, 1.0)[:, None], w, sigma)
+
+
+def reach_far_parts(
+    points: np.ndarray,
+    faces: np.ndarray,
+    distance_map: DistanceMap,
+    *,
+    far_mm: float = 2.5,
+    thickness_mm: float = 1.5,
+    sigma_mm: float = 2.0,
+    iterations: int = 5,
+    rounds: int = 6,
+    target_density: int = 8,
+    cancelled: CancelledFn = None,
+) -> np.ndarray:
+    """Extend a registered mesh into thick parts of the surface it falls short of (mm).
+
+    Not in the paper. After :func:`register_to_surface`, whose backward pull acts along
+    the vertex normals only (a full pull slides the template's points and costs
+    correspondence), a process of the instance that is longer than the template's can
+    be left a few mm beyond the mesh's tip. Here the surface samples farther than
+    ``far_mm`` from the mesh's triangles, where the object is at least ``thickness_mm``
+    deep behind them (a process, not a spur or a fin the template leaves out by its
+    tolerance), pull their nearest vertex in full; only vertices within 2σ of such
+    samples move, by the steps of :func:`register_to_surface` at width ``sigma_mm``.
+    Rounds of ``iterations`` steps repeat while the number of far samples falls, at most
+    ``rounds`` times.
+
+    Parameters
+    ----------
+    points : (N, 3) mm, the registered mesh (object frame of the distance map).
+    faces : (F, 3) outward triangles.
+    far_mm : distance from the mesh (mm) beyond which a surface sample pulls in full.
+    thickness_mm : a sample pulls only where the distance map is below -thickness_mm/2
+        at thickness_mm inwards along its normal.
+
+    Returns
+    -------
+    (N, 3) mm; ``points`` unchanged where no thick part lies farther than ``far_mm``.
+    """
+    p = np.array(points, dtype=float)
+    n = len(p)
+    if n == 0 or rounds <= 0 or iterations <= 0:
+        return p
+    targets = distance_map.surface_vertices
+    stride = max(1, len(targets) // (target_density * n)) if target_density > 0 else 1
+    targets, target_normals = distance_map.surface_samples(stride)
+    thick = distance_map.distance(targets - thickness_mm * target_normals) < -0.5 * thickness_mm
+    workers = inner_threads(QUERY_WORKERS)
+    last = None
+    for _ in range(rounds):
+        check_cancelled(cancelled)
+        far = thick & (MeshLocator(p, faces).query(targets, k=6)[1] > far_mm)
+        count = int(far.sum())
+        if count == 0 or (last is not None and count >= last):
+            break
+        last = count
+        region = np.zeros(n, bool)
+        for near_far in cKDTree(p).query_ball_point(targets[far], 2.0 * sigma_mm):
+            region[near_far] = True
+        for _ in range(iterations):
+            check_cancelled(cancelled)
+            step = _registration_step(p, faces, distance_map, targets, target_normals, sigma_mm, workers,
+                                      ties=False, normal_only=True, full=far)
+            p[region] += step[region]
     return p
