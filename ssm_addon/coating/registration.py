@@ -265,7 +265,12 @@ def reach_far_parts(
     last = None
     for _ in range(rounds):
         check_cancelled(cancelled)
-        far = thick & (MeshLocator(p, faces).query(targets, k=6)[1] > far_mm)
+        # a sample within far_mm of a vertex is within far_mm of the mesh: the exact
+        # triangle distance only for the others (most coatings have none)
+        far = thick.copy()
+        far[thick] = np.isinf(cKDTree(p).query(targets[thick], distance_upper_bound=far_mm)[0])
+        if far.any():
+            far[far] = MeshLocator(p, faces).query(targets[far], k=6)[1] > far_mm
         count = int(far.sum())
         if count == 0 or (last is not None and count >= last):
             break
