@@ -647,7 +647,7 @@ class CoatingParams:
                                                "warp and projection (empty: the paper's scheme)")
     registration_iterations: int = param(5, minimum=0, maximum=1000, label="Registration steps", advanced=True,
                                          help="iterations per registration width")
-    reach_mm: float = param(2.5, unit="mm", minimum=0.0, maximum=100.0, label="Reach",
+    reach_mm: float = param(2.5, unit="mm", minimum=0.0, maximum=100.0, label="Reach", advanced=True,
                             help="after the registration, thick parts of the surface (a process longer than the "
                                  "template's) farther than this from the mesh pull their nearest points in full "
                                  "until reached (0: off)")
