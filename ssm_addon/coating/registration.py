@@ -248,6 +248,9 @@ def reach_far_parts(
     far_mm : distance from the mesh (mm) beyond which a surface sample pulls in full.
     thickness_mm : a sample pulls only where the distance map is below -thickness_mm/2
         at thickness_mm inwards along its normal.
+    sigma_mm : Gaussian width of the steps (mm; the registration's finest).
+    iterations : steps per round; rounds : most rounds.
+    target_density : surface samples per mesh vertex, as in :func:`register_to_surface`.
 
     Returns
     -------
