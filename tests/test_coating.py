@@ -361,6 +361,23 @@ def test_the_reach_leaves_thin_fins_and_the_templates_own_instance_alone():
         assert np.array_equal(off.points_object, on.points_object), target.source
 
 
+@pytest.mark.skipif(build_template is None, reason="needs the template stage")
+def test_the_reach_stops_when_cancelled():
+    from ssm_addon.base.errors import Cancelled
+
+    template = build_template(_ellipsoid_with_rod(4.0), TemplateParams())
+    dm = DM.DistanceMap.from_object_volume(_ellipsoid_with_rod(12.0))
+    calls = []
+
+    def cancelled():  # cancelled at the reach's second check: after its first round of steps began
+        calls.append(1)
+        return len(calls) > 1
+
+    with pytest.raises(Cancelled):
+        RG.reach_far_parts(template.points_object, template.faces, dm, cancelled=cancelled)
+    assert len(calls) == 2
+
+
 def test_projection_lands_on_marching_cubes_surface_at_subvoxel_accuracy():
     axes = np.array([18.0, 12.0, 9.0])
     ov = ellipsoid_volume(axes)
