@@ -157,13 +157,7 @@ def register_to_surface(
     n = len(p)
     if not len(sigmas_mm) or iterations <= 0 or n == 0:
         return p
-    # the backward term needs the target surface sampled a few times denser than the
-    # mesh, not all marching-cubes vertices (20,000 on a vertebra: the k-d tree query
-    # was 80 % of the registration's time); MC vertices are ordered slice by slice, so
-    # a stride thins them evenly
-    targets = distance_map.surface_vertices
-    stride = max(1, len(targets) // (target_density * n)) if target_density > 0 else 1
-    targets, target_normals = distance_map.surface_samples(stride)
+    targets, target_normals = _surface_targets(distance_map, n, target_density)
     workers = inner_threads(QUERY_WORKERS)
     first = True
     for sigma in sigmas_mm:
@@ -173,6 +167,18 @@ def register_to_surface(
                                     ties=first, normal_only=normal_only)
             first = False
     return p
+
+
+def _surface_targets(distance_map: DistanceMap, n: int, target_density: int):
+    """The surface samples (M, 3) mm and their normals that pull a mesh of ``n`` vertices.
+
+    The backward term needs the target surface sampled a few times denser than the mesh,
+    not all marching-cubes vertices (20,000 on a vertebra: the k-d tree query was 80 % of
+    the registration's time); MC vertices are ordered slice by slice, so a stride thins
+    them evenly (``target_density`` per vertex; 0: all).
+    """
+    stride = max(1, len(distance_map.surface_vertices) // (target_density * n)) if target_density > 0 else 1
+    return distance_map.surface_samples(stride)
 
 
 #: Cosine between a vertex's normal and the surface normal below which a pull is ignored
@@ -260,9 +266,7 @@ def reach_far_parts(
     n = len(p)
     if n == 0 or rounds <= 0 or iterations <= 0:
         return p
-    targets = distance_map.surface_vertices
-    stride = max(1, len(targets) // (target_density * n)) if target_density > 0 else 1
-    targets, target_normals = distance_map.surface_samples(stride)
+    targets, target_normals = _surface_targets(distance_map, n, target_density)
     thick = distance_map.distance(targets - thickness_mm * target_normals) < -0.5 * thickness_mm
     workers = inner_threads(QUERY_WORKERS)
     last = None
@@ -270,8 +274,9 @@ def reach_far_parts(
         check_cancelled(cancelled)
         # a sample within far_mm of a vertex is within far_mm of the mesh: the exact
         # triangle distance only for the others (most coatings have none)
+        tree = cKDTree(p)
         far = thick.copy()
-        far[thick] = np.isinf(cKDTree(p).query(targets[thick], distance_upper_bound=far_mm)[0])
+        far[thick] = np.isinf(tree.query(targets[thick], distance_upper_bound=far_mm)[0])
         if far.any():
             far[far] = MeshLocator(p, faces).query(targets[far], k=6)[1] > far_mm
         count = int(far.sum())
@@ -279,7 +284,7 @@ def reach_far_parts(
             break
         last = count
         region = np.zeros(n, bool)
-        for near_far in cKDTree(p).query_ball_point(targets[far], 2.0 * sigma_mm):
+        for near_far in tree.query_ball_point(targets[far], 2.0 * sigma_mm):
             region[near_far] = True
         for _ in range(iterations):
             check_cancelled(cancelled)
