@@ -389,6 +389,26 @@ def test_clean_topology_keeping_the_shape_closes_the_tunnel_and_keeps_the_notch_
     assert plain[slot].mean() > 0.8 and not plain[39, 25, 10]  # the slot filled but for its mouth, the tip cut
 
 
+@pytest.mark.parametrize("hole_vox", [1.5, 2.0, 2.5])
+def test_clean_topology_keeping_the_shape_never_cuts_a_thin_membrane_into_a_tunnel(hole_vox):
+    """Two blind holes of radius ``hole_vox`` from either side of a block, one voxel of membrane
+    between them: the opening (radius 4 / 3 voxels) would cut the membrane, a shallow change
+    that makes a tunnel through the block. Keeping the shape, the cleaning removes handles and
+    never adds one: the block stays sphere-like, the membrane in place. (The cleaning did cut it,
+    genus 0 -> 1; on a mesh of verse004's L4 imported at 0.75 mm such a cut gave the template a
+    second handle, 4,052 inserted points and folds on every coating.)"""
+    m = np.zeros((40, 40, 25), bool)
+    m[4:36, 4:36, 2:23] = True
+    i, j = np.mgrid[:40, :40]
+    hole = (i - 20) ** 2 + (j - 20) ** 2 <= hole_vox**2
+    m[hole, 2:12] = False
+    m[hole, 13:23] = False
+    assert mu.mask_surface_euler(m) == 2
+    kept = T.clean_topology(m, 4.0, keep_depth_vox=2.0)
+    assert mu.mask_surface_euler(kept) == 2 and kept[20, 20, 12]
+    assert not kept[20, 20, 5] and not kept[20, 20, 18]  # the blind holes stay as they are
+
+
 def test_a_thin_fin_stays_on_the_template_at_the_default_tolerance_and_goes_at_a_coarse_one():
     """A sphere (radius 12 voxels) with a fin 2 voxels thick that stands 8 voxels out of it: the
     default tolerance keeps the fin on the template (its tip within 1.5 voxels, every surface point

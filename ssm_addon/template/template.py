@@ -203,22 +203,28 @@ def _largest_component(mask: np.ndarray) -> np.ndarray:
 def _applied_changes(base: np.ndarray, change: np.ndarray, depth: np.ndarray, *, adding: bool,
                      keep_depth_vox: float) -> np.ndarray:
     """The part of a morphological ``change`` of ``base`` to apply: its 26-connected components
-    that reach no deeper than ``keep_depth_vox`` (the largest ``depth`` over the component,
-    voxels) or whose addition (``adding``) or removal raises the Euler characteristic of the
-    marching-cubes surface: a fill that closes a tunnel or a cavity, a cut through a handle.
-    A deeper fill of a notch or cut of a spur changes the shape, not the topology, and is
-    not applied."""
+    whose addition (``adding``) or removal raises the Euler characteristic of the
+    marching-cubes surface (a fill that closes a tunnel or a cavity, a cut through a handle),
+    and those that reach no deeper than ``keep_depth_vox`` (the largest ``depth`` over the
+    component, voxels) and leave it as it was. A deeper fill of a notch or cut of a spur
+    changes the shape, not the topology, and is not applied; nor is a change that lowers
+    the Euler characteristic (it would make a tunnel or a handle), however shallow."""
     lab, n = ndi.label(change, structure=np.ones((3, 3, 3), bool))
     if n == 0:
         return change
+    shallow = np.zeros(n + 1, bool)
+    shallow[1:] = ndi.maximum(depth, lab, index=np.arange(1, n + 1)) <= keep_depth_vox
     keep = np.zeros(n + 1, bool)
-    keep[1:] = ndi.maximum(depth, lab, index=np.arange(1, n + 1)) <= keep_depth_vox
     boxes = ndi.find_objects(lab)
-    for i in np.flatnonzero(~keep[1:]) + 1:  # the Euler characteristic changes only around the part
+    for i in range(1, n + 1):  # the Euler characteristic changes only around the part
         grown = tuple(slice(max(s.start - 2, 0), s.stop + 2) for s in boxes[i - 1])
         before, part = base[grown], lab[grown] == i
         after = (before | part) if adding else (before & ~part)
-        keep[i] = meshutil.mask_surface_euler(after) > meshutil.mask_surface_euler(before)
+        rise = meshutil.mask_surface_euler(after) - meshutil.mask_surface_euler(before)
+        # a shallow change that makes a tunnel or a handle (a cut through a thin plate, a
+        # fill that bridges two processes) is not applied: the cleaning removes handles,
+        # it never adds one
+        keep[i] = rise > 0 or (shallow[i] and rise == 0)
     return keep[lab]
 
 
