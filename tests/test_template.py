@@ -394,9 +394,9 @@ def test_clean_topology_keeping_the_shape_never_cuts_a_thin_membrane_into_a_tunn
     """Two blind holes of radius ``hole_vox`` from either side of a block, one voxel of membrane
     between them: the opening (radius 4 / 3 voxels) would cut the membrane, a shallow change
     that makes a tunnel through the block. Keeping the shape, the cleaning removes handles and
-    never adds one: the block stays sphere-like, the membrane in place. (The cleaning did cut it,
-    genus 0 -> 1; on a mesh of verse004's L4 imported at 0.75 mm such a cut gave the template a
-    second handle, 4,052 inserted points and folds on every coating.)"""
+    never adds one: the block stays sphere-like, the membrane in place (such a cut gave a
+    vertebra's template a second handle: docs/measurements.md, "The cleaning never adds a
+    handle")."""
     m = np.zeros((40, 40, 25), bool)
     m[4:36, 4:36, 2:23] = True
     i, j = np.mgrid[:40, :40]

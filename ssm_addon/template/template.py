@@ -221,9 +221,6 @@ def _applied_changes(base: np.ndarray, change: np.ndarray, depth: np.ndarray, *,
         before, part = base[grown], lab[grown] == i
         after = (before | part) if adding else (before & ~part)
         rise = meshutil.mask_surface_euler(after) - meshutil.mask_surface_euler(before)
-        # a shallow change that makes a tunnel or a handle (a cut through a thin plate, a
-        # fill that bridges two processes) is not applied: the cleaning removes handles,
-        # it never adds one
         keep[i] = rise > 0 or (shallow[i] and rise == 0)
     return keep[lab]
 
@@ -253,7 +250,8 @@ def clean_topology(mask: np.ndarray, radius_vox: float, opening_radius_vox: floa
     a tunnel or a cavity are applied (the smallest closing that closes a tunnel fills least
     around it), and at radius r also its fills no deeper than ``keep_depth_vox`` (depth: the
     distance inside the closed mask); the opening removes only the handles it cuts and
-    the parts no deeper than ``keep_depth_vox`` (outside the opened mask). Notches,
+    the parts no deeper than ``keep_depth_vox`` (outside the opened mask). A shallow fill or
+    cut that would make a tunnel or a handle is not applied: the cleaning never adds one. Notches,
     the gaps between processes and thin spurs stay, so the template's surface keeps the
     instance's (a closing of 4 mm moved a vertebra's surface by up to 7.4 mm, figures in
     ``docs/measurements.md``).
