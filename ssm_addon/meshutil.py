@@ -47,6 +47,7 @@ __all__ = [
     "genus",
     "is_closed_manifold",
     "signed_volume",
+    "surface_samples",
     "vertex_normals",
 ]
 
@@ -404,6 +405,31 @@ def face_centroids(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
     c += points[faces[:, 2]]
     c /= 3.0
     return c
+
+
+def surface_samples(points: np.ndarray, faces: np.ndarray, step: float) -> np.ndarray:
+    """Points covering a triangle mesh no more than ``step`` apart along every edge (the units of
+    ``points``): each triangle's vertices and, where its longest edge exceeds ``step``, the nodes of
+    a barycentric grid with ``ceil(longest / step)`` intervals per edge. Shared points repeat.
+
+    >>> tri = np.array([[0.0, 0, 0], [2, 0, 0], [0, 2, 0]])
+    >>> len(surface_samples(tri, np.array([[0, 1, 2]]), 1.0))  # the 3 vertices, then 3 intervals: 10 nodes
+    13
+    """
+    points = np.asarray(points, float)
+    faces = as_faces(faces)
+    out = [points]
+    if len(faces):
+        a, b, c = points[faces[:, 0]], points[faces[:, 1]], points[faces[:, 2]]
+        longest = np.sqrt(np.maximum.reduce([((b - a) ** 2).sum(1), ((c - b) ** 2).sum(1), ((a - c) ** 2).sum(1)]))
+        n = np.ceil(longest / float(step)).astype(np.int64)
+        for k in np.unique(n[n > 1]):  # one barycentric grid per interval count, in increasing order
+            i, j = np.triu_indices(k + 1)
+            u, v = (j - i) / k, i / k  # all (u, v) with u + v <= 1
+            sel = n == k
+            out.append((a[sel, None] * (1.0 - u - v)[:, None] + b[sel, None] * u[:, None]
+                        + c[sel, None] * v[:, None]).reshape(-1, 3))
+    return np.concatenate(out)
 
 
 class MeshLocator:

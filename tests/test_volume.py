@@ -363,6 +363,74 @@ def test_voxelizing_a_cube_whose_edges_and_vertices_hit_voxel_centres_is_exact()
     assert vol.volume_mm3 == pytest.approx(1000.0)
 
 
+SPUR_DIRECTION = np.array([1.0, 0.8, 0.5]) / np.linalg.norm([1.0, 0.8, 0.5])  # oblique to the ellipsoid's axes
+
+
+def ellipsoid_with_spur(radius_mm: float, length_mm: float = 16.0, step_mm: float = 0.25):
+    """A closed mesh (mm): an ellipsoid of semi-axes 12, 8, 6 mm and a rod of ``radius_mm``
+    from its centre along SPUR_DIRECTION to ``length_mm`` (about 6 mm beyond its surface), the
+    zero set of the union's distance field traced at ``step_mm``."""
+    from skimage.measure import marching_cubes
+
+    semi_axes = np.array([12.0, 8.0, 6.0])
+    p = np.stack(np.meshgrid(*[np.arange(-20.0, 20.0, step_mm)] * 3, indexing="ij"), axis=-1)
+    ellipsoid = (np.linalg.norm(p / semi_axes, axis=-1) - 1.0) * semi_axes.min()
+    along = np.clip(p @ SPUR_DIRECTION, 0.0, length_mm)
+    rod = np.linalg.norm(p - along[..., None] * SPUR_DIRECTION, axis=-1) - radius_mm
+    v, f, _n, _v = marching_cubes(np.minimum(ellipsoid, rod).astype(np.float32), 0.0, spacing=(step_mm,) * 3)
+    return v - 20.0, f[:, ::-1]
+
+
+def _tip_from_voxel_surface(mask, voxel_to_object, tip_object):
+    """Distance (mm) from ``tip_object`` to the marching-cubes surface of the mask's largest part,
+    and the mask's count of face-connected parts."""
+    from scipy import ndimage
+
+    labels, parts = ndimage.label(mask)
+    body = labels == 1 + np.argmax(np.bincount(labels.ravel())[1:])
+    gv, gf = mu.marching_cubes(body)
+    return mu.MeshLocator(voxel_to_object(gv), gf).query(tip_object[None], k=12)[1][0], parts
+
+
+@pytest.mark.parametrize("radius", [0.25, 0.35])
+def test_a_spur_thinner_than_a_voxel_is_kept_by_the_mesh_import(radius):
+    """A rod 0.5-0.7 mm across encloses almost no voxel centre at 1 mm: voxelized plainly, its
+    6 mm beyond the ellipsoid are lost (a few centres, apart from the object); the import puts it
+    back, joined to the object, its tip on the voxel surface within half a voxel, and adds
+    voxels nowhere else (on the rod, and at its root on the ellipsoid's skin)."""
+    v, f = ellipsoid_with_spur(radius)
+    ov = INS.object_from_mesh(v, f, spacing_mm=1.0, frame_method="moments")
+    tip = ov.frame.to_object(16.0 * SPUR_DIRECTION)
+    plain = VX.voxelize_mesh(ov.frame.to_object(v), f, 1.0)
+    lost, _ = _tip_from_voxel_surface(plain.mask, lambda g: g + plain.affine[:3, 3], tip)
+    assert lost > 5.0
+    kept, parts = _tip_from_voxel_surface(ov.mask, ov.voxel_to_object, tip)
+    assert kept < 0.5 and parts == 1
+    # the same grid (both start at multiples of the spacing): the voxels added lie on the rod
+    offset = np.rint((ov.origin_object - plain.affine[:3, 3]) / 1.0).astype(int)
+    before = plain.mask[tuple(slice(o, o + n) for o, n in zip(offset, ov.mask.shape))]
+    assert not (before & ~ov.mask).any()
+    added = ov.voxel_to_object(np.argwhere(ov.mask & ~before))
+    centre = ov.frame.to_object(np.zeros((1, 3)))[0]
+    axis = ov.frame.to_object(SPUR_DIRECTION[None])[0] - centre
+    along = np.clip((added - centre) @ axis, 0.0, 16.0)
+    off_axis = np.linalg.norm(added - centre - along[:, None] * axis, axis=1)
+    assert len(added) >= 6 and off_axis.max() < 3.0  # the rod, and at its root a few voxels of the ellipsoid's skin
+    to_mesh = mu.MeshLocator(ov.frame.to_object(v), f).query(added, k=12)[1]
+    assert to_mesh.max() <= np.sqrt(3.0) / 2  # voxels the mesh passes through
+
+
+def test_the_import_adds_no_voxel_where_every_part_is_thicker_than_a_voxel():
+    """A rod 3 mm across and a smooth sphere: the mask is the plain voxelization's, the same array."""
+    v, f = ellipsoid_with_spur(1.5)
+    grid = VX.voxelize_mesh(v, f, 1.0)
+    kept, added = VX.keep_thin_parts(grid.mask, v - grid.affine[:3, 3], f)
+    assert added == 0 and kept is grid.mask
+    v, f = icosphere(20.0, 4)
+    grid = VX.voxelize_mesh(v + np.array([0.31, -0.47, 0.12]), f, 1.0)
+    assert VX.keep_thin_parts(grid.mask, v + np.array([0.31, -0.47, 0.12]) - grid.affine[:3, 3], f)[1] == 0
+
+
 # ----------------------------------------------------------------------------- VerSe
 
 

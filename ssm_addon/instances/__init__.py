@@ -10,5 +10,5 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "importing": ("InstanceSpec", "file_names", "import_instance", "instance_frame", "landmark_space", "load_object", "mesh_coordinates", "mesh_instance", "object_from_mesh", "object_from_volume", "read_instance", "safe_file_name"),
     "resampling": ("resample",),
     "volume": ("ObjectFrame", "ObjectVolume", "bounding_box", "display_surface", "frame_from_arrays", "frame_to_arrays", "summary"),
-    "voxelize": ("load_mesh_volume", "mesh_edge_defects", "voxelize_mesh"),
+    "voxelize": ("THIN_PART_FAR_VOX", "keep_thin_parts", "load_mesh_volume", "mesh_edge_defects", "voxelize_mesh"),
 })

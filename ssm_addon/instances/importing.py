@@ -25,7 +25,7 @@ from ..formats.meshes import mesh_space, read_mesh
 from ..instances.frame import object_frame
 from ..instances.resampling import resample
 from ..instances.volume import ObjectFrame, ObjectVolume, bounding_box
-from ..instances.voxelize import load_mesh_volume, voxelize_mesh
+from ..instances.voxelize import keep_thin_parts, load_mesh_volume, voxelize_mesh
 
 __all__ = ["InstanceSpec", "file_names", "import_instance", "instance_frame", "load_object", "object_from_mesh", "object_from_volume",
            "landmark_space", "mesh_coordinates", "mesh_instance", "read_instance", "safe_file_name"]
@@ -247,9 +247,11 @@ def object_from_mesh(vertices_world: np.ndarray, faces: np.ndarray, *, spacing_m
         frame = instance_frame(vol, frame_method)
         del vol
     check_cancelled(cancelled)
-    grid = voxelize_mesh(frame.to_object(np.asarray(vertices_world, float)), faces, spacing_mm, source=source,
-                         cancelled=cancelled)
+    vertices_object = frame.to_object(np.asarray(vertices_world, float))
+    grid = voxelize_mesh(vertices_object, faces, spacing_mm, source=source, cancelled=cancelled)
     h = float(spacing_mm)
+    kept, _added = keep_thin_parts(grid.mask, (vertices_object - grid.affine[:3, 3]) / h, faces)
+    grid = replace(grid, mask=kept)
     tight = bounding_box(grid.mask)
     starts = np.array([max(s.start - 2, 0) for s in tight])
     stops = np.array([min(s.stop + 2, n) for s, n in zip(tight, grid.mask.shape)])

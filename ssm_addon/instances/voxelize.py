@@ -8,11 +8,23 @@ moments method (``patient_oriented=False``).
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from ..base.errors import InputError, check_cancelled
 from ..base.resources import BYTES_PER_OBJECT_VOXEL, check_allocation
 from ..formats.label_maps import Volume
 from ..formats.meshes import read_mesh
+from ..meshutil import surface_samples
+
+# a part of a mesh thinner than a voxel encloses no voxel centre, so voxelizing loses it. A mesh
+# point farther than THIN_PART_FAR_VOX voxels from every voxel centre inside is on such a part
+# (thick parts' points lie nearer: docs/measurements.md)
+THIN_PART_FAR_VOX = 2.0
+# mesh samples at most this far apart (voxels) find the voxels a thin part passes through
+THIN_PART_STEP_VOX = 0.5
+# steps (voxels) from a thin part's far voxels down to the object, at most
+MAX_ROOT_STEPS = 8
 
 
 def mesh_edge_defects(faces: np.ndarray) -> tuple[int, int, int]:
@@ -167,6 +179,97 @@ def voxelize_mesh(
     affine = np.diag([h, h, h, 1.0])
     affine[:3, 3] = origin
     return Volume(mask=mask, affine=affine, source=source, label=None, patient_oriented=patient_oriented)
+
+
+def keep_thin_parts(mask: np.ndarray, vertices_vox: np.ndarray, faces: np.ndarray, *,
+                    far_vox: float = THIN_PART_FAR_VOX) -> tuple[np.ndarray, int]:
+    """The voxelized ``mask`` of a closed mesh with the parts thinner than a voxel put back.
+
+    A thin process or plate of the mesh that encloses no voxel centre is missing from the
+    mask, which holds only the centres inside (or a few of its centres lie apart from the
+    object). Points of the mesh (its surface sampled every half voxel,
+    :func:`ssm_addon.meshutil.surface_samples`) farther than ``far_vox`` voxels from every
+    centre of the object (the mask's largest face-connected part) lie on such a part. The
+    voxels they lie in become object voxels, and so do the voxels the mesh passes through
+    from there down to the object (the part's root): a voxel joins next to (26-neighbours) a
+    joined one that lies farther from the object, never sideways along the object's own
+    surface. The part comes back about one voxel thick (its surface within half a voxel of
+    the mesh's at the tip); everywhere else the mask is unchanged.
+
+    Parameters
+    ----------
+    mask : (X, Y, Z) bool ndarray
+        Voxel centres inside the mesh (:func:`voxelize_mesh`).
+    vertices_vox : (V, 3) float ndarray
+        The mesh's vertices in the mask's voxel-index coordinates (centres at integers).
+    faces : (F, 3) int ndarray
+    far_vox : float
+        How far from the inside centres (voxels) a mesh point must lie to be on a lost part.
+
+    Returns
+    -------
+    mask : (X, Y, Z) bool ndarray
+        A new array where voxels were added, else ``mask`` itself.
+    added : int
+        The number of voxels added.
+    """
+    mask = np.asarray(mask, bool)
+    vertices_vox = np.asarray(vertices_vox, float)
+    faces = np.asarray(faces, np.int64).reshape(-1, 3)
+    labels, count = ndimage.label(mask)  # the object: its largest face-connected part (voxel
+    if not count or not len(faces):       # centres a thin part holds here and there are not)
+        return mask, 0
+    body = labels == 1 + int(np.argmax(np.bincount(labels.ravel())[1:]))
+    border = np.argwhere(body & ~ndimage.binary_erosion(body))
+    tree = cKDTree(border)
+    # a point of a triangle lies within its circumradius (acute) or half its longest edge (else)
+    # of one of its vertices: only the triangles that may hold a far point are sampled
+    corners = vertices_vox[faces]
+    sq = np.sort(((corners - np.roll(corners, 1, axis=1)) ** 2).sum(2), axis=1)
+    longest = np.sqrt(sq[:, 2])
+    double_area = np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        circumradius = np.sqrt(sq.prod(1)) / (2.0 * double_area)
+    cover = np.where(sq[:, 2] >= sq[:, 0] + sq[:, 1], longest / 2.0, np.fmin(circumradius, longest))
+    to_border = tree.query(vertices_vox)[0]
+    maybe = to_border[faces].min(1) + cover > far_vox
+    if not maybe.any():
+        return mask, 0
+    samples = surface_samples(vertices_vox, faces[maybe], THIN_PART_STEP_VOX)
+    far = ~(tree.query(samples, distance_upper_bound=float(far_vox) + 1e-9)[0] <= far_vox)
+    if not far.any():
+        return mask, 0
+    reach = int(np.ceil(far_vox)) + 2  # the box holds the far voxels' roots and the object there
+    far_cells = np.rint(samples[far]).astype(np.int64)
+    lo = np.maximum(far_cells.min(axis=0) - reach, 0)
+    hi = np.minimum(far_cells.max(axis=0) + reach + 1, mask.shape)
+    # the voxels the mesh passes through in the box around the far points (its triangles near the box)
+    near = np.all((corners.max(1) + longest[:, None] >= lo) & (corners.min(1) - longest[:, None] < hi), axis=1)
+    samples = np.concatenate([samples[far], surface_samples(vertices_vox, faces[near], THIN_PART_STEP_VOX)])
+    far = np.arange(len(samples)) < len(far_cells)
+    cells = np.clip(np.rint(samples).astype(np.int64), 0, np.array(mask.shape) - 1)
+    inbox = np.all((cells >= lo) & (cells < hi), axis=1)
+    crossed = np.zeros(tuple(hi - lo), bool)  # the voxels the mesh passes through, in the box
+    crossed[tuple((cells[inbox] - lo).T)] = True
+    box = tuple(slice(a, b) for a, b in zip(lo, hi))
+    crossed &= ~body[box]
+    seeds = np.zeros_like(crossed)
+    seeds[tuple((cells[far] - lo).T)] = True
+    seeds &= crossed
+    # from the far voxels down to the object: a crossed voxel joins next to a joined one that lies
+    # farther from the object (the part's root; not sideways along the object's own surface)
+    to_body = ndimage.distance_transform_edt(~body[box])
+    grown = seeds
+    for _ in range(MAX_ROOT_STEPS):
+        above = ndimage.grey_dilation(np.where(grown, to_body, -1.0), size=(3, 3, 3))
+        more = crossed & ~grown & (above > to_body)
+        if not more.any():
+            break
+        grown = grown | more
+    out = mask.copy()
+    added = grown & ~mask[box]
+    out[box] |= added
+    return out, int(np.count_nonzero(added))
 
 
 def load_mesh_volume(path, spacing_mm: float, patient_oriented: bool = False, space: str | None = None,
