@@ -250,7 +250,7 @@ def object_from_mesh(vertices_world: np.ndarray, faces: np.ndarray, *, spacing_m
     vertices_object = frame.to_object(np.asarray(vertices_world, float))
     grid = voxelize_mesh(vertices_object, faces, spacing_mm, source=source, cancelled=cancelled)
     h = float(spacing_mm)
-    kept, _added = keep_thin_parts(grid.mask, (vertices_object - grid.affine[:3, 3]) / h, faces)
+    kept, _added, _opened = keep_thin_parts(grid.mask, (vertices_object - grid.affine[:3, 3]) / h, faces)
     grid = replace(grid, mask=kept)
     tight = bounding_box(grid.mask)
     starts = np.array([max(s.start - 2, 0) for s in tight])

@@ -182,48 +182,48 @@ def voxelize_mesh(
 
 
 def keep_thin_parts(mask: np.ndarray, vertices_vox: np.ndarray, faces: np.ndarray, *,
-                    far_vox: float = THIN_PART_FAR_VOX) -> tuple[np.ndarray, int]:
-    """The voxelized ``mask`` of a closed mesh with the parts thinner than a voxel put back.
+                    far_vox: float = THIN_PART_FAR_VOX) -> tuple[np.ndarray, int, int]:
+    """The voxelized ``mask`` of a closed mesh with its parts and gaps thinner than a voxel put back.
 
     A thin process or plate of the mesh that encloses no voxel centre is missing from the
     mask, which holds only the centres inside (or a few of its centres lie apart from the
-    object). Points of the mesh (its surface sampled every half voxel,
-    :func:`ssm_addon.meshutil.surface_samples`) farther than ``far_vox`` voxels from every
-    centre of the object (the mask's largest face-connected part) lie on such a part. The
-    voxels they lie in become object voxels, and so do the voxels the mesh passes through
-    from there down to the object (the part's root): a voxel joins next to (26-neighbours) a
-    joined one that lies farther from the object, never sideways along the object's own
-    surface. The part comes back about one voxel thick (its surface within half a voxel of
-    the mesh's at the tip); everywhere else the mask is unchanged.
+    object); a notch or pit narrower than a voxel is filled. Points of the mesh (its surface
+    sampled every half voxel, :func:`ssm_addon.meshutil.surface_samples`) farther than
+    ``far_vox`` voxels from every centre of the object (the mask's largest face-connected
+    part) lie on such a part. The voxels they lie in become object voxels, and so do the
+    voxels the mesh passes through from there down to the object (the part's root): a voxel
+    joins next to (26-neighbours) a joined one that lies farther from the object, never
+    sideways along the object's own surface; what joins the object is kept. The same, with
+    inside and outside swapped (the outside: the background around the grid's corner), opens
+    the gaps. A part comes back about one voxel thick, a gap one voxel wide (the voxel
+    surface within half a voxel of the mesh at a tip or a pit's floor); everywhere else the
+    mask is unchanged.
 
     Parameters
     ----------
     mask : (X, Y, Z) bool ndarray
-        Voxel centres inside the mesh (:func:`voxelize_mesh`).
+        Voxel centres inside the mesh (:func:`voxelize_mesh`), background at the corner.
     vertices_vox : (V, 3) float ndarray
         The mesh's vertices in the mask's voxel-index coordinates (centres at integers).
     faces : (F, 3) int ndarray
     far_vox : float
-        How far from the inside centres (voxels) a mesh point must lie to be on a lost part.
+        How far (voxels) from the object's centres a mesh point must lie to be on a lost part
+        (from the outside's centres: in a filled gap).
 
     Returns
     -------
     mask : (X, Y, Z) bool ndarray
-        A new array where voxels were added, else ``mask`` itself.
-    added : int
-        The number of voxels added.
+        A new array where voxels changed, else ``mask`` itself.
+    added, opened : int
+        The voxels added (thin parts) and taken away (thin gaps).
     """
     mask = np.asarray(mask, bool)
     vertices_vox = np.asarray(vertices_vox, float)
     faces = np.asarray(faces, np.int64).reshape(-1, 3)
-    labels, count = ndimage.label(mask)  # the object: its largest face-connected part (voxel
-    if not count or not len(faces):       # centres a thin part holds here and there are not)
-        return mask, 0
-    body = labels == 1 + int(np.argmax(np.bincount(labels.ravel())[1:]))
-    border = np.argwhere(body & ~ndimage.binary_erosion(body))
-    tree = cKDTree(border)
-    # a point of a triangle lies within its circumradius (acute) or half its longest edge (else)
-    # of one of its vertices: only the triangles that may hold a far point are sampled
+    if not mask.any() or not len(faces):
+        return mask, 0, 0
+    # every point of a triangle lies within ``cover`` of one of its vertices: its circumradius
+    # (acute) or half its longest edge (else)
     corners = vertices_vox[faces]
     sq = np.sort(((corners - np.roll(corners, 1, axis=1)) ** 2).sum(2), axis=1)
     longest = np.sqrt(sq[:, 2])
@@ -231,45 +231,76 @@ def keep_thin_parts(mask: np.ndarray, vertices_vox: np.ndarray, faces: np.ndarra
     with np.errstate(divide="ignore", invalid="ignore"):
         circumradius = np.sqrt(sq.prod(1)) / (2.0 * double_area)
     cover = np.where(sq[:, 2] >= sq[:, 0] + sq[:, 1], longest / 2.0, np.fmin(circumradius, longest))
-    to_border = tree.query(vertices_vox)[0]
-    maybe = to_border[faces].min(1) + cover > far_vox
+    mesh = (vertices_vox, faces, corners, longest, cover)
+    labels, _count = ndimage.label(mask)
+    body = labels == 1 + int(np.argmax(np.bincount(labels.ravel())[1:]))
+    out = mask.copy()
+    added = _thin_voxels(out, body, mesh, far_vox)
+    labels, _count = ndimage.label(~out)
+    opened = _thin_voxels(~out, labels == labels[0, 0, 0], mesh, far_vox)
+    if added is None and opened is None:
+        return mask, 0, 0
+    for box, voxels, value in ((added or (None, None)) + (True,), (opened or (None, None)) + (False,)):
+        if box is not None:
+            out[box][voxels] = value
+    return (out, 0 if added is None else int(np.count_nonzero(added[1])),
+            0 if opened is None else int(np.count_nonzero(opened[1])))
+
+
+def _thin_voxels(solid: np.ndarray, body: np.ndarray, mesh: tuple, far_vox: float):
+    """The voxels of :func:`keep_thin_parts` for one side: ``solid`` (that side's voxels),
+    ``body`` (its main part), ``mesh`` (vertices, faces, corners, longest edge and covering
+    radius per triangle, voxels). Returns ``(box, voxels)`` (a box of the grid and the voxels in
+    it that join ``solid``), or None."""
+    vertices_vox, faces, corners, longest, cover = mesh
+    border = np.argwhere(body & ~ndimage.binary_erosion(body, border_value=1))  # next to the other side
+    if not len(border):
+        return None
+    tree = cKDTree(border)
+    # only triangles that may hold a far point are sampled: a point lies no farther than the
+    # farthest of its triangle's vertices plus ``cover``
+    maybe = tree.query(vertices_vox)[0][faces].max(1) + cover > far_vox
     if not maybe.any():
-        return mask, 0
+        return None
     samples = surface_samples(vertices_vox, faces[maybe], THIN_PART_STEP_VOX)
+    if far_vox >= 1.0 + np.sqrt(3.0) / 2:
+        # a point whose voxel is the body's or touches it face to face lies within 1 + sqrt(3)/2
+        # of a body centre: only the others are measured
+        cells = np.clip(np.rint(samples).astype(np.int64), 0, np.array(solid.shape) - 1)
+        samples = samples[~ndimage.binary_dilation(body)[tuple(cells.T)]]
     far = ~(tree.query(samples, distance_upper_bound=float(far_vox) + 1e-9)[0] <= far_vox)
     if not far.any():
-        return mask, 0
-    reach = int(np.ceil(far_vox)) + 2  # the box holds the far voxels' roots and the object there
+        return None
+    reach = int(np.ceil(far_vox)) + 2  # the box holds the far voxels' roots and the body there
     far_cells = np.rint(samples[far]).astype(np.int64)
     lo = np.maximum(far_cells.min(axis=0) - reach, 0)
-    hi = np.minimum(far_cells.max(axis=0) + reach + 1, mask.shape)
+    hi = np.minimum(far_cells.max(axis=0) + reach + 1, solid.shape)
     # the voxels the mesh passes through in the box around the far points (its triangles near the box)
     near = np.all((corners.max(1) + longest[:, None] >= lo) & (corners.min(1) - longest[:, None] < hi), axis=1)
     samples = np.concatenate([samples[far], surface_samples(vertices_vox, faces[near], THIN_PART_STEP_VOX)])
-    far = np.arange(len(samples)) < len(far_cells)
-    cells = np.clip(np.rint(samples).astype(np.int64), 0, np.array(mask.shape) - 1)
+    cells = np.clip(np.rint(samples).astype(np.int64), 0, np.array(solid.shape) - 1)
     inbox = np.all((cells >= lo) & (cells < hi), axis=1)
+    box = tuple(slice(a, b) for a, b in zip(lo, hi))
     crossed = np.zeros(tuple(hi - lo), bool)  # the voxels the mesh passes through, in the box
     crossed[tuple((cells[inbox] - lo).T)] = True
-    box = tuple(slice(a, b) for a, b in zip(lo, hi))
     crossed &= ~body[box]
-    seeds = np.zeros_like(crossed)
-    seeds[tuple((cells[far] - lo).T)] = True
-    seeds &= crossed
-    # from the far voxels down to the object: a crossed voxel joins next to a joined one that lies
-    # farther from the object (the part's root; not sideways along the object's own surface)
+    grown = np.zeros_like(crossed)
+    grown[tuple((cells[: len(far_cells)] - lo).T)] = True
+    grown &= crossed
+    # from the far voxels down to the body: a crossed voxel joins next to a joined one that lies
+    # farther from the body (the part's root; not sideways along the body's own surface)
     to_body = ndimage.distance_transform_edt(~body[box])
-    grown = seeds
     for _ in range(MAX_ROOT_STEPS):
         above = ndimage.grey_dilation(np.where(grown, to_body, -1.0), size=(3, 3, 3))
         more = crossed & ~grown & (above > to_body)
         if not more.any():
             break
-        grown = grown | more
-    out = mask.copy()
-    added = grown & ~mask[box]
-    out[box] |= added
-    return out, int(np.count_nonzero(added))
+        grown |= more
+    # what joins the body (face to face, as its surface will): a part apart from it is not its own
+    parts, _n = ndimage.label(grown | solid[box])
+    joined = np.unique(parts[body[box]])
+    grown &= np.isin(parts, joined[joined > 0]) & ~solid[box]
+    return (box, grown) if grown.any() else None
 
 
 def load_mesh_volume(path, spacing_mm: float, patient_oriented: bool = False, space: str | None = None,
