@@ -366,28 +366,31 @@ def test_voxelizing_a_cube_whose_edges_and_vertices_hit_voxel_centres_is_exact()
 SPUR_DIRECTION = np.array([1.0, 0.8, 0.5]) / np.linalg.norm([1.0, 0.8, 0.5])  # oblique to the ellipsoid's axes
 
 
-def ellipsoid_with_spur(radius_mm: float, length_mm: float = 16.0, step_mm: float = 0.25):
+def ellipsoid_with_spur(radius_mm: float, length_mm: float = 16.0, step_mm: float = 0.25, *, pit: bool = False):
     """A closed mesh (mm): an ellipsoid of semi-axes 12, 8, 6 mm and a rod of ``radius_mm``
     from its centre along SPUR_DIRECTION to ``length_mm`` (about 6 mm beyond its surface), the
-    zero set of the union's distance field traced at ``step_mm``."""
+    zero set of the union's distance field traced at ``step_mm``. ``pit``: the rod runs from
+    ``length_mm`` outward and is cut out of the ellipsoid, a hole from its surface to
+    ``length_mm`` from its centre."""
     from skimage.measure import marching_cubes
 
     semi_axes = np.array([12.0, 8.0, 6.0])
     p = np.stack(np.meshgrid(*[np.arange(-20.0, 20.0, step_mm)] * 3, indexing="ij"), axis=-1)
     ellipsoid = (np.linalg.norm(p / semi_axes, axis=-1) - 1.0) * semi_axes.min()
-    along = np.clip(p @ SPUR_DIRECTION, 0.0, length_mm)
+    along = np.clip(p @ SPUR_DIRECTION, *((length_mm, 40.0) if pit else (0.0, length_mm)))
     rod = np.linalg.norm(p - along[..., None] * SPUR_DIRECTION, axis=-1) - radius_mm
-    v, f, _n, _v = marching_cubes(np.minimum(ellipsoid, rod).astype(np.float32), 0.0, spacing=(step_mm,) * 3)
+    field = np.maximum(ellipsoid, -rod) if pit else np.minimum(ellipsoid, rod)
+    v, f, _n, _v = marching_cubes(field.astype(np.float32), 0.0, spacing=(step_mm,) * 3)
     return v - 20.0, f[:, ::-1]
 
 
 def _tip_from_voxel_surface(mask, voxel_to_object, tip_object):
-    """Distance (mm) from ``tip_object`` to the marching-cubes surface of the mask's largest part,
-    and the mask's count of face-connected parts."""
+    """Distance (mm) from ``tip_object`` to the marching-cubes surface of the mask's largest part
+    (its cavities filled), and the mask's count of face-connected parts."""
     from scipy import ndimage
 
     labels, parts = ndimage.label(mask)
-    body = labels == 1 + np.argmax(np.bincount(labels.ravel())[1:])
+    body = ndimage.binary_fill_holes(labels == 1 + np.argmax(np.bincount(labels.ravel())[1:]))
     gv, gf = mu.marching_cubes(body)
     return mu.MeshLocator(voxel_to_object(gv), gf).query(tip_object[None], k=12)[1][0], parts
 
@@ -418,6 +421,30 @@ def test_a_spur_thinner_than_a_voxel_is_kept_by_the_mesh_import(radius):
     assert len(added) >= 6 and off_axis.max() < 3.0  # the rod, and at its root a few voxels of the ellipsoid's skin
     to_mesh = mu.MeshLocator(ov.frame.to_object(v), f).query(added, k=12)[1]
     assert to_mesh.max() <= np.sqrt(3.0) / 2  # voxels the mesh passes through
+
+
+def test_a_pit_narrower_than_a_voxel_is_opened_by_the_mesh_import():
+    """A hole 0.6 mm across, 6 mm deep (its floor 3 mm from the ellipsoid's centre), holds no
+    voxel centre of the outside at 1 mm (or one, apart): voxelized plainly it is filled, its
+    floor more than 3 mm under the voxel surface; the import opens it to within 0.6 voxel of its floor, and takes
+    voxels away only along it."""
+    v, f = ellipsoid_with_spur(0.3, 3.0, pit=True)
+    ov = INS.object_from_mesh(v, f, spacing_mm=1.0, frame_method="moments")
+    floor = ov.frame.to_object(3.0 * SPUR_DIRECTION)
+    plain = VX.voxelize_mesh(ov.frame.to_object(v), f, 1.0)
+    filled, _ = _tip_from_voxel_surface(plain.mask, lambda g: g + plain.affine[:3, 3], floor)
+    assert filled > 3.0
+    opened, parts = _tip_from_voxel_surface(ov.mask, ov.voxel_to_object, floor)
+    assert opened < 0.6 and parts == 1  # the floor in a voxel opened: within 1/sqrt(3) of its surface
+    offset = np.rint((ov.origin_object - plain.affine[:3, 3]) / 1.0).astype(int)
+    before = plain.mask[tuple(slice(o, o + n) for o, n in zip(offset, ov.mask.shape))]
+    assert not (ov.mask & ~before).any()
+    taken = ov.voxel_to_object(np.argwhere(before & ~ov.mask))
+    centre = ov.frame.to_object(np.zeros((1, 3)))[0]
+    axis = ov.frame.to_object(SPUR_DIRECTION[None])[0] - centre
+    along = np.clip((taken - centre) @ axis, 3.0, 40.0)
+    off_axis = np.linalg.norm(taken - centre - along[:, None] * axis, axis=1)
+    assert len(taken) >= 3 and off_axis.max() < 3.0
 
 
 def test_the_import_adds_no_voxel_where_every_part_is_thicker_than_a_voxel():

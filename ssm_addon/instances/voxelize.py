@@ -195,9 +195,9 @@ def keep_thin_parts(mask: np.ndarray, vertices_vox: np.ndarray, faces: np.ndarra
     joins next to (26-neighbours) a joined one that lies farther from the object, never
     sideways along the object's own surface; what joins the object is kept. The same, with
     inside and outside swapped (the outside: the background around the grid's corner), opens
-    the gaps. A part comes back about one voxel thick, a gap one voxel wide (the voxel
-    surface within half a voxel of the mesh at a tip or a pit's floor); everywhere else the
-    mask is unchanged.
+    the gaps. A part comes back about one voxel thick, a gap one voxel wide (a tip or a pit's
+    floor lies in a voxel that changed side, within 1/sqrt(3) voxel of the voxel surface);
+    everywhere else the mask is unchanged.
 
     Parameters
     ----------
