@@ -24,7 +24,9 @@ Pipeline of :func:`build_template` on an :class:`~ssm_addon.instances.volume.Obj
    (``max_distance_mm``, the paper's section 3.1 suggestion: the largest distance between a
    triangle and the surface), r = √(2·tol/κ) from the largest principal curvature
    (:func:`tolerance_radii`), and step 4 is repeated with smaller radii around every
-   triangle farther than the tolerance; with ``max_distance_mm = "off"``, r constant or
+   triangle farther than the tolerance from the surface and every marching-cubes vertex
+   farther from the triangles than the tolerance and its staircase (``SURFACE_GAP_STAIRS_VOX``:
+   a tip the triangles pass over); with ``max_distance_mm = "off"``, r constant or
    from eq. (1) (:func:`reduction_radii`).
 4. **Triangulation** (:func:`triangulate`, paper 3.3): the dual of the discrete geodesic
    Voronoi diagram of the selected points, computed on the marching-cubes surface of the
@@ -344,7 +346,8 @@ def reduction_radii(c: np.ndarray, r_min: float, r_max: float, p: float, percent
 TOLERANCE_MIN_RADIUS_VOX = 1.5
 """The smallest reduction radius of the tolerance scheme (voxels): neighbouring surface voxels stay apart."""
 TOLERANCE_ROUNDS = 4
-"""Refinement rounds of the tolerance scheme: radii shrink where a triangle lies beyond the tolerance."""
+"""Refinement rounds of the tolerance scheme: radii shrink where a triangle lies beyond the
+tolerance, or the surface beyond it from the triangles."""
 TOLERANCE_SHRINK = 0.6
 """Factor on the radii around a triangle beyond the tolerance, per round."""
 SURFACE_GAP_STAIRS_VOX = 0.5
