@@ -277,10 +277,7 @@ def test_template_of_verse_vertebra_is_closed_manifold_of_genus_one(verse_object
     ov = verse_objects[name]
     t = T.build_template(ov)  # the default: one tolerance, 1 mm
     _check_template(t, ov, 1)
-    assert t.params["largest_distance_mm"] <= 1.0 + 1e-9  # reached on every VerSe vertebra
-    # the other way: no tip or ridge of the surface farther from the triangles than the tolerance and
-    # its staircase (1.5 mm; 1.43-1.58 reached; 1.71-2.05 mm when only the triangles were measured)
-    assert t.params["cleaned_surface_largest_distance_mm"] < 1.6
+    assert t.params["largest_distance_mm"] <= 1.0 + 1e-9  # reached on every VerSe vertebra (958-1,519 points)
     assert 800 < len(t.points_object) < 2000
     assert len(t.faces) == 2 * len(t.points_object)  # genus 1: F = 2 V
     if name == "L1":  # eq. 1 (the tolerance off): the paper's scale, about 600 points, 1200 triangles

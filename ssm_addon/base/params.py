@@ -488,9 +488,7 @@ class TemplateParams:
                                           off="off", label="Max distance",
                                           help="the template's density from one tolerance: the largest distance "
                                                "between its triangles and the surface (radii from the curvature, "
-                                               "then refined where a triangle lies farther, or a tip or ridge of "
-                                               "the surface lies farther from the triangles than it and half a "
-                                               "voxel; r_max caps them). A "
+                                               "then refined where a triangle lies farther; r_max caps them). A "
                                                "table that states r_min_mm, r_max_mm or p and no max_distance_mm "
                                                "keeps eq. 1, as projects written before the tolerance mean")
     spacing_mm: float = param(1.0, key="spacing", aliases=("spacing_mm",), unit="mm", minimum=0.0,

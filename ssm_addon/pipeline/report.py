@@ -227,8 +227,7 @@ def study_report(study: Study, *, project: str | Absent, timings_unknown: dict |
         template={"instance": study.template_instance, "points": int(len(tpl.points_object)),
                   "triangles": int(len(tpl.faces)), "genus": int(genus(len(tpl.points_object), tpl.faces)),
                   **({"max_distance_mm": study.params.template.max_distance_mm,
-                      **{k: tpl.params[k] for k in ("largest_distance_mm", "mean_distance_mm", "tolerance_rounds",
-                                                    "cleaned_surface_largest_distance_mm")
+                      **{k: tpl.params[k] for k in ("largest_distance_mm", "mean_distance_mm", "tolerance_rounds")
                          if k in (tpl.params or {})}}
                      if study.params.template.max_distance_mm is not None else {}),
                   **{k: tpl.params[k] for k in ("surface_largest_distance_mm",) if k in (tpl.params or {})}},

@@ -24,9 +24,7 @@ Pipeline of :func:`build_template` on an :class:`~ssm_addon.instances.volume.Obj
    (``max_distance_mm``, the paper's section 3.1 suggestion: the largest distance between a
    triangle and the surface), r = √(2·tol/κ) from the largest principal curvature
    (:func:`tolerance_radii`), and step 4 is repeated with smaller radii around every
-   triangle farther than the tolerance from the surface and every marching-cubes vertex
-   farther from the triangles than the tolerance and its staircase (``SURFACE_GAP_STAIRS_VOX``:
-   a tip the triangles pass over); with ``max_distance_mm = "off"``, r constant or
+   triangle farther than the tolerance; with ``max_distance_mm = "off"``, r constant or
    from eq. (1) (:func:`reduction_radii`).
 4. **Triangulation** (:func:`triangulate`, paper 3.3): the dual of the discrete geodesic
    Voronoi diagram of the selected points, computed on the marching-cubes surface of the
@@ -346,13 +344,9 @@ def reduction_radii(c: np.ndarray, r_min: float, r_max: float, p: float, percent
 TOLERANCE_MIN_RADIUS_VOX = 1.5
 """The smallest reduction radius of the tolerance scheme (voxels): neighbouring surface voxels stay apart."""
 TOLERANCE_ROUNDS = 4
-"""Refinement rounds of the tolerance scheme: radii shrink where a triangle lies beyond the
-tolerance, or the surface beyond it from the triangles."""
+"""Refinement rounds of the tolerance scheme: radii shrink where a triangle lies beyond the tolerance."""
 TOLERANCE_SHRINK = 0.6
 """Factor on the radii around a triangle beyond the tolerance, per round."""
-SURFACE_GAP_STAIRS_VOX = 0.5
-"""What the tolerance allows the marching-cubes surface beyond it, from the triangles (voxels):
-its staircase, which the smooth signed distance of the triangles' measure does not hold."""
 KEEP_DEPTH_TOLERANCES = 2.0
 """Under the tolerance, the topology cleaning changes the shape no deeper than this many
 tolerances where it does not change the topology (:func:`clean_topology`, ``keep_depth_vox``).
@@ -396,15 +390,6 @@ def triangle_deviation_vox(signed: np.ndarray, vertices: np.ndarray, faces: np.n
     level = ndi.map_coordinates(signed, tri.reshape(-1, 3).T, order=1, mode="nearest").reshape(-1, 3).mean(axis=1)
     at = ndi.map_coordinates(signed, samples.reshape(-1, 3).T, order=1, mode="nearest").reshape(-1, 4)
     return np.abs(at - level[:, None]).max(axis=1)
-
-
-def _tolerance_misses(signed: np.ndarray, tri) -> tuple[np.ndarray, np.ndarray]:
-    """Both ways of the tolerance (voxels): each triangle's departure from the surface
-    (:func:`triangle_deviation_vox`), and each marching-cubes vertex's distance from the
-    triangles (a tip or a ridge the triangles pass over)."""
-    deviation = triangle_deviation_vox(signed, tri.vertices, tri.faces)
-    gap = meshutil.MeshLocator(tri.vertices, tri.faces).query(tri.mesh_vertices, k=12)[1]
-    return deviation, gap
 
 
 def reduce_points(
@@ -856,36 +841,32 @@ def build_template(object_volume: ObjectVolume, params: TemplateParams | None = 
                       progress=sub_progress(progress, 0.55, 0.98), cancelled=cancelled)
     timings["triangulation"] = time.perf_counter() - t
     tolerance_info = {}
-    if tolerance is not None:  # refine where a triangle lies farther from the surface than the tolerance,
-        signed = _signed_distance_vox(mask)  # or the surface (a tip between the points) from the triangles
+    if tolerance is not None:  # refine where a triangle lies farther from the surface than the tolerance
+        signed = _signed_distance_vox(mask)
         voxel_tree = cKDTree(geo.voxels)
         rounds = 0
-        deviation, gap = _tolerance_misses(signed, tri)
-        while (deviation.max() > tolerance or gap.max() > tolerance + SURFACE_GAP_STAIRS_VOX) \
-                and rounds < TOLERANCE_ROUNDS:
+        deviation = triangle_deviation_vox(signed, tri.vertices, tri.faces)
+        while deviation.max() > tolerance and rounds < TOLERANCE_ROUNDS:
             check_cancelled(cancelled)
             rounds += 1
             bad = deviation > tolerance
-            out = gap > tolerance + SURFACE_GAP_STAIRS_VOX
-            centres = np.concatenate([tri.vertices[tri.faces[bad]].mean(axis=1), tri.mesh_vertices[out]])
-            # the surface voxels whose selection made the triangle (or the triangle that cuts off the
-            # surface point): within 1.5 of their own radius of its centre (and the largest radius)
+            centres = tri.vertices[tri.faces[bad]].mean(axis=1)
+            # the surface voxels whose selection made the triangle: within 1.5 of their own radius of its centre
+            # (and the largest radius)
             pairs = cKDTree(centres).sparse_distance_matrix(voxel_tree, float(r.max()), output_type="ndarray")
             hit = np.zeros(len(r), bool)
             hit[pairs["j"][pairs["v"] <= 1.5 * r[pairs["j"]]]] = True
-            shrunk = np.where(hit, np.maximum(r * TOLERANCE_SHRINK, TOLERANCE_MIN_RADIUS_VOX), r)
-            if np.array_equal(shrunk, r):  # none hit, or all at the smallest radius already
+            if not hit.any():
                 break
-            r = shrunk
-            report(progress, 0.9, f"template: {int(bad.sum())} triangles and {int(out.sum())} surface points beyond "
-                                  f"{params.max_distance_mm:g} mm, round {rounds}")
+            r = np.where(hit, np.maximum(r * TOLERANCE_SHRINK, TOLERANCE_MIN_RADIUS_VOX), r)
+            report(progress, 0.9, f"template: {int(bad.sum())} triangles beyond {params.max_distance_mm:g} mm, "
+                                  f"round {rounds}")
             sel = reduce_points(geo.graph, r, curvature=geo.c, selection=params.selection, seed=params.seed,
                                 cancelled=cancelled)
             tri = triangulate(mask, geo.voxels[sel], max_refinements=params.max_refinements, cancelled=cancelled)
-            deviation, gap = _tolerance_misses(signed, tri)
+            deviation = triangle_deviation_vox(signed, tri.vertices, tri.faces)
         tolerance_info = {"tolerance_rounds": rounds, "largest_distance_mm": float(deviation.max() * h),
-                          "mean_distance_mm": float(deviation.mean() * h),
-                          "cleaned_surface_largest_distance_mm": float(gap.max() * h)}
+                          "mean_distance_mm": float(deviation.mean() * h)}
         timings["tolerance"] = time.perf_counter() - t - timings["triangulation"]
 
     # the other way: the instance's own surface (before the topology cleaning) from the triangles
