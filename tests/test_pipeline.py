@@ -124,19 +124,26 @@ def test_import_on_worker_processes_gives_the_volumes_of_the_import_here(project
     assert not np.array_equal(here["left"].frame.matrix_world, here["right"].frame.matrix_world)
 
 
-@pytest.mark.parametrize("thickness_mm, spacing_mm, lost", [(0.4, 1.0, True), (3.0, 1.0, False), (0.4, 0.25, False)])
-def test_a_fin_finer_than_a_voxel_is_said_lost_at_the_import_not_by_the_coating(tmp_path, thickness_mm, spacing_mm,
+@pytest.mark.parametrize("thickness_mm, spacing_mm, import_keeps_thin_parts, lost",
+                         [(0.4, 1.0, False, True), (0.4, 1.0, True, False), (3.0, 1.0, True, False),
+                          (0.4, 0.25, True, False)])
+def test_a_fin_finer_than_a_voxel_is_said_lost_at_the_import_not_by_the_coating(tmp_path, monkeypatch, thickness_mm,
+                                                                                spacing_mm, import_keeps_thin_parts,
                                                                                 lost):
-    """The input-surface finding's cause: a mesh's fin 0.4 mm thick is not in the instance's 1 mm
-    voxels, so its tip is far from the coating because the import lost it (each far vertex
-    farther from the voxels than those voxels from the coating); a 3 mm fin is in the voxels,
-    so a coating that stops at the body cut it off; at the finer spacing the finding names
-    (0.25 mm), the thin fin is in the voxels too."""
+    """The input-surface finding's cause. A mesh's fin 0.4 mm thick holds no voxel centre at 1 mm:
+    an import that loses it (the plain voxelization) makes its tip far from the coating because of
+    the import (each far vertex farther from the voxels than those voxels from the coating). The
+    import keeps it (:func:`~ssm_addon.instances.voxelize.keep_thin_parts`), so a coating that stops
+    at the body cut it off, as it cuts off a 3 mm fin, which is in the voxels; at the finer spacing
+    the finding names (0.25 mm) the thin fin is in the voxels too."""
     from ssm_addon.formats.meshes import write_ply
+    from ssm_addon.instances import importing
     from ssm_addon.instances.importing import InstanceSpec
     from ssm_addon.meshutil import MeshLocator, marching_cubes
     from ssm_addon.pipeline.stages import beyond_the_voxels
 
+    if not import_keeps_thin_parts:
+        monkeypatch.setattr(importing, "keep_thin_parts", lambda mask, *_a, **_k: (mask, 0, 0))
     h = 0.25
     x, y, z = np.meshgrid(np.arange(-14, 25, h), np.arange(-12, 12, h), np.arange(-10, 10, h), indexing="ij")
     body = (x / 12) ** 2 + (y / 10) ** 2 + (z / 8) ** 2 <= 1
