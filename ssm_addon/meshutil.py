@@ -407,14 +407,11 @@ def face_centroids(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return c
 
 
-def surface_samples(points: np.ndarray, faces: np.ndarray, step: float, *, return_faces: bool = False):
+def surface_samples(points: np.ndarray, faces: np.ndarray, step: float) -> np.ndarray:
     """Points covering a triangle mesh no more than ``step`` apart along every edge (the units of
-    ``points``): the mesh's points, then, on each triangle whose longest edge exceeds ``step``, the
+    ``points``): all of ``points``, then, on each triangle whose longest edge exceeds ``step``, the
     nodes of a barycentric grid with ``k = ceil(longest / step)`` intervals per edge (its
     sub-triangles are the triangle scaled by 1/k). Shared points repeat.
-
-    ``return_faces``: also the index into ``faces`` of each sample's triangle (-1 for the
-    mesh's points).
 
     >>> tri = np.array([[0.0, 0, 0], [2, 0, 0], [0, 2, 0]])
     >>> len(surface_samples(tri, np.array([[0, 1, 2]]), 1.0))  # the 3 points, then 3 intervals: 10 nodes
@@ -422,7 +419,7 @@ def surface_samples(points: np.ndarray, faces: np.ndarray, step: float, *, retur
     """
     points = np.asarray(points, float)
     faces = as_faces(faces)
-    out, which = [points], [np.full(len(points), -1, np.int64)]
+    out = [points]
     if len(faces):
         a, b, c = points[faces[:, 0]], points[faces[:, 1]], points[faces[:, 2]]
         longest = np.sqrt(np.maximum.reduce([((b - a) ** 2).sum(1), ((c - b) ** 2).sum(1), ((a - c) ** 2).sum(1)]))
@@ -430,12 +427,10 @@ def surface_samples(points: np.ndarray, faces: np.ndarray, step: float, *, retur
         for k in np.unique(n[n > 1]):  # one barycentric grid per interval count, in increasing order
             i, j = np.triu_indices(k + 1)
             u, v = (j - i) / k, i / k  # all (u, v) with u + v <= 1
-            sel = np.flatnonzero(n == k)
+            sel = n == k
             out.append((a[sel, None] * (1.0 - u - v)[:, None] + b[sel, None] * u[:, None]
                         + c[sel, None] * v[:, None]).reshape(-1, 3))
-            which.append(np.repeat(sel, len(u)))
-    samples = np.concatenate(out)
-    return (samples, np.concatenate(which)) if return_faces else samples
+    return np.concatenate(out)
 
 
 class MeshLocator:

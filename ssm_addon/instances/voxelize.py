@@ -237,7 +237,7 @@ def keep_thin_parts(mask: np.ndarray, vertices_vox: np.ndarray, faces: np.ndarra
     out = mask.copy()
     added = _thin_voxels(out, body, mesh, far_vox)
     labels, _count = ndimage.label(~out)
-    opened = _thin_voxels(~out, labels == labels[0, 0, 0], mesh, far_vox)
+    opened = None if mask[0, 0, 0] else _thin_voxels(~out, labels == labels[0, 0, 0], mesh, far_vox)
     if added is None and opened is None:
         return mask, 0, 0
     for box, voxels, value in ((added or (None, None)) + (True,), (opened or (None, None)) + (False,)):
