@@ -395,56 +395,53 @@ def _tip_from_voxel_surface(mask, voxel_to_object, tip_object):
     return mu.MeshLocator(voxel_to_object(gv), gf).query(tip_object[None], k=12)[1][0], parts
 
 
+def _import_against_plain(v, f, end_mm, along_mm):
+    """The import of mesh ``(v, f)`` at 1 mm and the plain voxelization on its object grid: the
+    distances (mm) of the rod's end, ``end_mm`` along SPUR_DIRECTION, from both voxel surfaces,
+    the import's count of face-connected parts, and the voxels that changed side, as (added,
+    taken away, their largest distance (mm) from the rod's axis between ``along_mm``)."""
+    ov = INS.object_from_mesh(v, f, spacing_mm=1.0, frame_method="moments")
+    end = ov.frame.to_object(end_mm * SPUR_DIRECTION)
+    plain = VX.voxelize_mesh(ov.frame.to_object(v), f, 1.0)
+    before_mm, _ = _tip_from_voxel_surface(plain.mask, lambda g: g + plain.affine[:3, 3], end)
+    now_mm, parts = _tip_from_voxel_surface(ov.mask, ov.voxel_to_object, end)
+    # the same grid (both start at multiples of the spacing)
+    offset = np.rint(ov.origin_object - plain.affine[:3, 3]).astype(int)
+    before = plain.mask[tuple(slice(o, o + n) for o, n in zip(offset, ov.mask.shape))]
+    changed = ov.voxel_to_object(np.argwhere(before != ov.mask))
+    centre = ov.frame.to_object(np.zeros((1, 3)))[0]
+    axis = ov.frame.to_object(SPUR_DIRECTION[None])[0] - centre
+    along = np.clip((changed - centre) @ axis, *along_mm)
+    off_axis = np.linalg.norm(changed - centre - along[:, None] * axis, axis=1)
+    to_mesh = mu.MeshLocator(ov.frame.to_object(v), f).query(changed, k=12)[1]
+    added, taken = int((ov.mask & ~before).sum()), int((before & ~ov.mask).sum())
+    return before_mm, now_mm, parts, added, taken, off_axis.max(initial=0.0), to_mesh.max(initial=0.0)
+
+
 @pytest.mark.parametrize("radius", [0.25, 0.35])
 def test_a_spur_thinner_than_a_voxel_is_kept_by_the_mesh_import(radius):
     """A rod 0.5-0.7 mm across encloses almost no voxel centre at 1 mm: voxelized plainly, its
     6 mm beyond the ellipsoid are lost (a few centres, apart from the object); the import puts it
     back, joined to the object, its tip within 1/sqrt(3) voxel of the voxel surface, and adds
     voxels nowhere else (on the rod, and at its root on the ellipsoid's skin)."""
-    v, f = ellipsoid_with_spur(radius)
-    ov = INS.object_from_mesh(v, f, spacing_mm=1.0, frame_method="moments")
-    tip = ov.frame.to_object(16.0 * SPUR_DIRECTION)
-    plain = VX.voxelize_mesh(ov.frame.to_object(v), f, 1.0)
-    lost, _ = _tip_from_voxel_surface(plain.mask, lambda g: g + plain.affine[:3, 3], tip)
-    assert lost > 5.0
-    kept, parts = _tip_from_voxel_surface(ov.mask, ov.voxel_to_object, tip)
-    assert kept < 0.6 and parts == 1
-    # the same grid (both start at multiples of the spacing): the voxels added lie on the rod
-    offset = np.rint((ov.origin_object - plain.affine[:3, 3]) / 1.0).astype(int)
-    before = plain.mask[tuple(slice(o, o + n) for o, n in zip(offset, ov.mask.shape))]
-    assert not (before & ~ov.mask).any()
-    added = ov.voxel_to_object(np.argwhere(ov.mask & ~before))
-    centre = ov.frame.to_object(np.zeros((1, 3)))[0]
-    axis = ov.frame.to_object(SPUR_DIRECTION[None])[0] - centre
-    along = np.clip((added - centre) @ axis, 0.0, 16.0)
-    off_axis = np.linalg.norm(added - centre - along[:, None] * axis, axis=1)
-    assert len(added) >= 6 and off_axis.max() < 3.0  # the rod, and at its root a few voxels of the ellipsoid's skin
-    to_mesh = mu.MeshLocator(ov.frame.to_object(v), f).query(added, k=12)[1]
-    assert to_mesh.max() <= np.sqrt(3.0) / 2  # voxels the mesh passes through
+    lost, kept, parts, added, taken, off_axis, to_mesh = _import_against_plain(*ellipsoid_with_spur(radius), 16.0,
+                                                                               (0.0, 16.0))
+    assert lost > 5.0 and kept < 0.6 and parts == 1
+    assert added >= 6 and taken == 0
+    assert off_axis < 3.0  # the rod, and at its root a few voxels of the ellipsoid's skin
+    assert to_mesh <= np.sqrt(3.0) / 2  # voxels the mesh passes through
 
 
 def test_a_pit_narrower_than_a_voxel_is_opened_by_the_mesh_import():
     """A hole 0.6 mm across, 6 mm deep (its floor 3 mm from the ellipsoid's centre), holds no
     voxel centre of the outside at 1 mm (or one, apart): voxelized plainly it is filled, its
-    floor more than 3 mm under the voxel surface; the import opens it to within 0.6 voxel of its floor, and takes
-    voxels away only along it."""
-    v, f = ellipsoid_with_spur(0.3, 3.0, pit=True)
-    ov = INS.object_from_mesh(v, f, spacing_mm=1.0, frame_method="moments")
-    floor = ov.frame.to_object(3.0 * SPUR_DIRECTION)
-    plain = VX.voxelize_mesh(ov.frame.to_object(v), f, 1.0)
-    filled, _ = _tip_from_voxel_surface(plain.mask, lambda g: g + plain.affine[:3, 3], floor)
-    assert filled > 3.0
-    opened, parts = _tip_from_voxel_surface(ov.mask, ov.voxel_to_object, floor)
-    assert opened < 0.6 and parts == 1  # the floor in a voxel opened: within 1/sqrt(3) of its surface
-    offset = np.rint((ov.origin_object - plain.affine[:3, 3]) / 1.0).astype(int)
-    before = plain.mask[tuple(slice(o, o + n) for o, n in zip(offset, ov.mask.shape))]
-    assert not (ov.mask & ~before).any()
-    taken = ov.voxel_to_object(np.argwhere(before & ~ov.mask))
-    centre = ov.frame.to_object(np.zeros((1, 3)))[0]
-    axis = ov.frame.to_object(SPUR_DIRECTION[None])[0] - centre
-    along = np.clip((taken - centre) @ axis, 3.0, 40.0)
-    off_axis = np.linalg.norm(taken - centre - along[:, None] * axis, axis=1)
-    assert len(taken) >= 3 and off_axis.max() < 3.0
+    floor more than 3 mm under the voxel surface; the import opens it to within 1/sqrt(3) voxel
+    of its floor, and takes voxels away only along it."""
+    filled, opened, parts, added, taken, off_axis, to_mesh = _import_against_plain(
+        *ellipsoid_with_spur(0.3, 3.0, pit=True), 3.0, (3.0, 40.0))
+    assert filled > 3.0 and opened < 0.6 and parts == 1
+    assert taken >= 3 and added == 0
+    assert off_axis < 3.0 and to_mesh <= np.sqrt(3.0) / 2
 
 
 def test_the_import_adds_no_voxel_where_every_part_is_thicker_than_a_voxel():
