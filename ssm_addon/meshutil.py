@@ -409,7 +409,7 @@ def face_centroids(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 def surface_samples(points: np.ndarray, faces: np.ndarray, step: float) -> np.ndarray:
     """Points covering a triangle mesh no more than ``step`` apart along every edge (the units of
-    ``points``): all of ``points``, then, on each triangle whose longest edge exceeds ``step``, the
+    ``points``): the points ``faces`` use, then, on each triangle whose longest edge exceeds ``step``, the
     nodes of a barycentric grid with ``k = ceil(longest / step)`` intervals per edge (its
     sub-triangles are the triangle scaled by 1/k). Shared points repeat.
 
@@ -419,7 +419,7 @@ def surface_samples(points: np.ndarray, faces: np.ndarray, step: float) -> np.nd
     """
     points = np.asarray(points, float)
     faces = as_faces(faces)
-    out = [points]
+    out = [points[np.unique(faces)]]
     if len(faces):
         a, b, c = points[faces[:, 0]], points[faces[:, 1]], points[faces[:, 2]]
         longest = np.sqrt(np.maximum.reduce([((b - a) ** 2).sum(1), ((c - b) ** 2).sum(1), ((a - c) ** 2).sum(1)]))

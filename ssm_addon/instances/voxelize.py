@@ -240,11 +240,13 @@ def keep_thin_parts(mask: np.ndarray, vertices_vox: np.ndarray, faces: np.ndarra
     opened = None if mask[0, 0, 0] else _thin_voxels(~out, labels == labels[0, 0, 0], mesh, far_vox)
     if added is None and opened is None:
         return mask, 0, 0
-    for box, voxels, value in ((added or (None, None)) + (True,), (opened or (None, None)) + (False,)):
-        if box is not None:
+    counts = []
+    for found, value in ((added, True), (opened, False)):
+        if found is not None:
+            box, voxels = found
             out[box][voxels] = value
-    return (out, 0 if added is None else int(np.count_nonzero(added[1])),
-            0 if opened is None else int(np.count_nonzero(opened[1])))
+        counts.append(0 if found is None else int(np.count_nonzero(found[1])))
+    return out, counts[0], counts[1]
 
 
 def _thin_voxels(solid: np.ndarray, body: np.ndarray, mesh: tuple, far_vox: float):
