@@ -340,10 +340,12 @@ def test_the_reach_extends_the_coating_into_a_process_longer_than_the_templates(
 
 
 @pytest.mark.skipif(build_template is None, reason="needs the template stage")
-def test_the_reach_leaves_thin_fins_and_the_templates_own_instance_alone():
-    # a fin 1 mm thick that the template lacks is not a process: the reach does not pull
-    # the mesh into it (the points are those without the reach), nor anything on the
-    # template's own instance, where no thick part lies far from the mesh
+def test_the_reach_follows_a_fin_a_voxel_thick_and_leaves_the_templates_own_instance_alone():
+    # a fin one voxel thick standing 5 mm out of the ellipsoid, which the template lacks:
+    # without the reach its edge lies beyond the 3 mm the input-surface check allows; the
+    # reach pulls the mesh into it (a part of the object, if a thin one) without folding it
+    # and moves only vertices near it; on the template's own instance, where nothing lies
+    # far from the mesh, the points are those without the reach
     axes = np.array([20.0, 12.0, 10.0])
 
     def ellipsoid(p):
@@ -354,11 +356,23 @@ def test_the_reach_leaves_thin_fins_and_the_templates_own_instance_alone():
 
     own = object_volume(ellipsoid, 22, 1.0)
     template = build_template(own, TemplateParams())
-    for target in (own, object_volume(with_fin, 22, 1.0)):
-        dm = DM.DistanceMap.from_object_volume(target)
-        off, on = (C.coat_from_start(template, target, params=P.CoatingParams(reach_mm=r), distance_map=dm)
-                   for r in (0.0, 2.5))
-        assert np.array_equal(off.points_object, on.points_object), target.source
+    dm = DM.DistanceMap.from_object_volume(own)
+    off, on = (C.coat_from_start(template, own, params=P.CoatingParams(reach_mm=r), distance_map=dm)
+               for r in (0.0, 2.5))
+    assert np.array_equal(off.points_object, on.points_object)
+
+    fin = object_volume(with_fin, 22, 1.0)
+    dm = DM.DistanceMap.from_object_volume(fin)
+    samples, _normals = dm.surface_samples(1)
+    off, on = (C.coat_from_start(template, fin, params=P.CoatingParams(reach_mm=r), distance_map=dm)
+               for r in (0.0, 2.5))
+    far_off, far_on = (mu.MeshLocator(c.points_object, template.faces).query(samples, k=12)[1] for c in (off, on))
+    assert far_off.max() > 3.0 and far_on.max() < 3.0
+    assert on.fit.folded_after == 0 and on.fit.mean_distance_mm < 0.1
+    moved = np.linalg.norm(on.points_object - off.points_object, axis=1) > 1e-9
+    assert moved.any()
+    near_fin = RG.cKDTree(samples[far_off > 2.5]).query(off.points_object[moved])[0]
+    assert near_fin.max() < 5.0
 
 
 @pytest.mark.skipif(build_template is None, reason="needs the template stage")

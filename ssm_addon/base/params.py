@@ -648,9 +648,9 @@ class CoatingParams:
     registration_iterations: int = param(5, minimum=0, maximum=1000, label="Registration steps", advanced=True,
                                          help="iterations per registration width")
     reach_mm: float = param(2.5, unit="mm", minimum=0.0, maximum=100.0, label="Reach", advanced=True,
-                            help="after the registration, thick parts of the surface (a process longer than the "
-                                 "template's) farther than this from the mesh pull their nearest points in full "
-                                 "until reached (0: off)")
+                            help="after the registration, parts of the surface at least a voxel thick (a process "
+                                 "longer than the template's) farther than this from the mesh pull their nearest "
+                                 "points in full until reached (0: off)")
     final_projection: bool = param(True, label="Final projection", advanced=True,
                                    help="project every vertex onto the surface after the relaxation")
     fold_free_warp: bool = param(True, label="Fold-free warp",

@@ -9,9 +9,9 @@ onto every other instance in five steps:
    (:func:`~ssm_addon.coating.warp.fold_free_warp`; the λ used is reported);
 2. (not in the paper) a smooth coarse-to-fine surface registration (Gaussian widths
    16, 8, 4, 2 mm) moves the warped mesh onto the surface without folding it
-   (:mod:`ssm_addon.coating.registration`); thick parts of the surface it leaves more
-   than ``reach_mm`` away (a process longer than the template's) then pull their nearest
-   vertices in full (:func:`~ssm_addon.coating.registration.reach_far_parts`);
+   (:mod:`ssm_addon.coating.registration`); parts of the surface at least a voxel thick
+   it leaves more than ``reach_mm`` away (a process longer than the template's) then pull
+   their nearest vertices in full (:func:`~ssm_addon.coating.registration.reach_far_parts`);
 3. every vertex is projected onto the instance surface by a sub-voxel signed distance
    map (:mod:`ssm_addon.coating.distance_map`, paper 4.2);
 4. a mass-spring relaxation, eq. (3), unfolds the mesh while a zero-length spring keeps

@@ -4,7 +4,7 @@ The warp of eq. (2) with few or inconsistent landmarks leaves vertices many mm o
 surface; projecting those onto the nearest surface point folds the mesh. The
 registration moves the warped mesh onto the surface by a Gaussian-smoothed displacement
 field at decreasing widths (16, 8, 4, 2 mm by default), see :func:`register_to_surface`;
-:func:`reach_far_parts` then extends it into thick parts it falls short of.
+:func:`reach_far_parts` then extends it into parts it falls short of.
 Coordinates in mm, the target's object frame.
 """
 
@@ -227,23 +227,23 @@ def reach_far_parts(
     distance_map: DistanceMap,
     *,
     far_mm: float = 2.5,
-    thickness_mm: float = 1.5,
+    thickness_mm: float | None = None,
     sigma_mm: float = 2.0,
     iterations: int = 5,
     rounds: int = 6,
     target_density: int = 8,
     cancelled: CancelledFn = None,
 ) -> np.ndarray:
-    """Extend a registered mesh into thick parts of the surface it falls short of (mm).
+    """Extend a registered mesh into parts of the surface it falls short of (mm).
 
     Not in the paper. After :func:`register_to_surface`, whose backward pull acts along
     the vertex normals only (a full pull slides the template's points and costs
     correspondence), a process of the instance that is longer than the template's can
     be left a few mm beyond the mesh's tip. Here the surface samples farther than
-    ``far_mm`` from the mesh's triangles, where the object is at least ``thickness_mm``
-    deep behind them (a process, not a spur or a fin the template leaves out by its
-    tolerance), pull their nearest vertex in full; only vertices within 2σ of such
-    samples move, by the steps of :func:`register_to_surface` at width ``sigma_mm``.
+    ``far_mm`` from the mesh's triangles, where the object lies behind them (a part of
+    the object, a process or the tip of a lamina, not a sample whose inside is thinner
+    than ``thickness_mm``), pull their nearest vertex in full; only vertices within 2σ of
+    such samples move, by the steps of :func:`register_to_surface` at width ``sigma_mm``.
     Rounds of ``iterations`` steps repeat while the number of far samples falls, at most
     ``rounds`` times.
 
@@ -253,21 +253,23 @@ def reach_far_parts(
     faces : (F, 3) outward triangles.
     far_mm : distance from the mesh (mm) beyond which a surface sample pulls in full.
     thickness_mm : a sample pulls only where the distance map is below -thickness_mm/2
-        at thickness_mm inwards along its normal.
+        at thickness_mm inwards along its normal (a part thicker than 1.5 thickness_mm);
+        None: half the distance map's voxel, so every part at least a voxel thick pulls.
     sigma_mm : Gaussian width of the steps (mm; the registration's finest).
     iterations : steps per round; rounds : most rounds.
     target_density : surface samples per mesh vertex, as in :func:`register_to_surface`.
 
     Returns
     -------
-    (N, 3) mm; ``points`` unchanged where no thick part lies farther than ``far_mm``.
+    (N, 3) mm; ``points`` unchanged where no part lies farther than ``far_mm``.
     """
     p = np.array(points, dtype=float)
     n = len(p)
     if n == 0 or rounds <= 0 or iterations <= 0:
         return p
     targets, target_normals = _surface_targets(distance_map, n, target_density)
-    thick = distance_map.distance(targets - thickness_mm * target_normals) < -0.5 * thickness_mm
+    depth = 0.5 * distance_map.spacing_mm if thickness_mm is None else float(thickness_mm)
+    thick = distance_map.distance(targets - depth * target_normals) < -0.5 * depth
     workers = inner_threads(QUERY_WORKERS)
     last = None
     for _ in range(rounds):
