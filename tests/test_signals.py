@@ -198,8 +198,9 @@ class _SignalsWhenCollected:
 def test_a_signal_dropped_in_a_finalizer_is_raised_again_at_the_next_check(capsys, signum, raised):
     from ssm_addon.cli.command import check_signals, signals_as_exceptions
 
-    # a command starts with the signal at its default, not ignored, not blocked (what another test
-    # file left in this worker process is not the command's start: it failed so, for SIGINT, twice)
+    # a command started from a terminal has the signal at its default, not ignored, not blocked; a
+    # suite started in the background by a shell without job control has SIGINT ignored in every
+    # process (POSIX), and this test failed so, for SIGINT, twice
     default = signal.default_int_handler if signum == signal.SIGINT else signal.SIG_DFL
     found, mask = signal.signal(signum, default), signal.pthread_sigmask(signal.SIG_UNBLOCK, [signum])
     try:
