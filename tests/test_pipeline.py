@@ -164,3 +164,22 @@ def test_a_fin_finer_than_a_voxel_is_said_lost_at_the_import_not_by_the_coating(
         assert found["count"] == len(far) and found["max_mm"] > 3.0, found
     else:
         assert found["count"] == 0 and found["max_mm"] < 1.0, found
+
+
+def test_the_coating_stretch_is_the_ratio_of_the_triangles_where_the_mesh_lies_far():
+    """:func:`~ssm_addon.pipeline.stages.coating_stretch`: the coating's longest edges over the
+    template's on the triangles around the far points: 1 where the coating keeps the template's
+    spacing, 2 on a coating twice the template's size, and only the triangles near the far points
+    count (a coating stretched along x on its +x half: points far on its -x side 1, on its +x side
+    more, and at most 2)."""
+    from conftest import icosphere
+
+    from ssm_addon.pipeline.stages import coating_stretch
+
+    template, faces = icosphere(10.0, 2)
+    far = np.array([[-16.0, 0.0, 0.0], [-12.0, 5.0, 3.0]])
+    assert coating_stretch(far, template, faces, template) == pytest.approx(1.0, abs=1e-12)
+    assert coating_stretch(2 * far, 2 * template, faces, template) == pytest.approx(2.0, abs=1e-12)
+    half = template * np.where(template[:, :1] > 0, [2.0, 1.0, 1.0], 1.0)
+    assert coating_stretch(far, half, faces, template) == pytest.approx(1.0, abs=1e-12)
+    assert 1.2 < coating_stretch(-2 * far, half, faces, template) <= 2.0  # a doubling along x: at most twice

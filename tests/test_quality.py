@@ -271,3 +271,20 @@ def test_the_input_surface_finding_says_whether_the_voxels_or_the_coating_lost_t
     assert finding.gate == "input_surface" and "10 of its vertices (0.1 %) lie beyond" in finding.message
     assert finding.message.startswith("its mesh lies up to 4.20 mm")  # not "3.0 mm, allowed 3 mm" at 3.04
     assert says in finding.message, finding.message
+
+
+@pytest.mark.parametrize("stretch, says", [(None, False), (1.2, False), (1.9, True)])
+def test_the_input_surface_finding_says_when_the_template_is_stretched_there(stretch, says):
+    """A coating whose triangles are half as long again as the template's where the mesh lies far
+    (``beyond["stretch"]``, :func:`~ssm_addon.pipeline.stages.coating_stretch`) has a template too
+    sparse for that part: the finding says how much, and still names the remedy."""
+    from ssm_addon.base.params import QualityParams, TemplateParams
+    from ssm_addon.model.quality import check_input_surface
+
+    beyond = {"mm": 3.0, "count": 10, "share": 0.001, "centre_offset_mm": [12.0, -3.0, 20.0]}
+    if stretch is not None:
+        beyond["stretch"] = stretch
+    distances = {"from_input": {"max_mm": 3.6, "mean_mm": 0.4, "beyond": beyond}}
+    (finding,) = check_input_surface("v5", distances, QualityParams(), TemplateParams())
+    assert ("whose triangles there are up to 1.9× as long as the template's" in finding.message) == says
+    assert "a smaller [template] max_distance_mm (now 1 mm)" in finding.message, finding.message

@@ -297,11 +297,18 @@ def check_coating(name: str, fit, params: QualityParams) -> list[Finding]:
     return out
 
 
+#: The coating's triangles this many times as long as the template's where a mesh lies beyond the
+#: limit (``beyond["stretch"]``): the template stretched over a larger part, said in the finding
+#: (docs/measurements.md, "The reach pulls every part at least a voxel thick")
+STRETCHED = 1.5
+
+
 def check_input_surface(name: str, distances: dict, params: QualityParams, template=None) -> list[Finding]:
     """Gate on a mesh instance's coating against the user's own mesh (``from_input``: the mesh's
     vertices to the coated surface, mm): far apart where the template's points do not reach a
     thin part of the surface, which the model then does not hold. ``template``: the
-    ``[template]`` parameters, for the remedy."""
+    ``[template]`` parameters, for the remedy. Where the coating's triangles there are at least
+    ``STRETCHED`` times as long as the template's (``beyond["stretch"]``), the finding says so."""
     worst = float((distances.get("from_input") or {}).get("max_mm", float("nan")))
     if not (math.isfinite(worst) and worst > params.max_input_distance_mm):
         return []
@@ -317,7 +324,12 @@ def check_input_surface(name: str, distances: dict, params: QualityParams, templ
                   "template's instance holds smaller: a template from an instance that has it ([template] instance)")
     beyond = distances["from_input"].get("beyond") or {}
     where = ""
-    cause = f"a part of the surface, a thin process or a notch, is cut off by the coating; {remedy}"
+    cut = "cut off by the coating"
+    stretch = float(beyond.get("stretch") or 0.0)
+    if stretch >= STRETCHED:
+        cut += (f", whose triangles there are up to {stretch:.1f}× as long as the template's (a part larger than the "
+                "template instance's, and the template too sparse for it)")
+    cause = f"a part of the surface, a thin process or a notch, is {cut}; {remedy}"
     if beyond.get("count"):
         x, y, z = beyond["centre_offset_mm"]
         where = (f"; {beyond['count']:,} of its vertices ({100 * beyond['share']:.2g} %) lie beyond, centred "
@@ -333,8 +345,8 @@ def check_input_surface(name: str, distances: dict, params: QualityParams, templ
                      f"than by the coating; {finer}")
         elif lost:
             cause = (f"{lost:,} of them lie farther from the instance's {h:g} mm voxels than those voxels lie "
-                     f"from the coating (finer than a voxel: {finer}), the others are cut off by the coating, "
-                     f"a thin process or a notch; {remedy}")
+                     f"from the coating (finer than a voxel: {finer}), the others are {cut}, a thin process or a "
+                     f"notch; {remedy}")
     return [Finding(name, "input_surface", f"its mesh lies up to {worst:.2f} mm from its coating (mean {mean:.2f} mm; "
                     f"allowed {params.max_input_distance_mm:g} mm{where}): {cause}", worst,
                     params.max_input_distance_mm)]

@@ -315,13 +315,35 @@ def template_density(template: Template, params) -> str:
 
 
 def _input_distance_job(args):
-    path, convention, points_world, faces, beyond_mm, spec, import_args = args
+    path, convention, points_world, faces, beyond_mm, spec, import_args, template_points = args
     vertices, mesh_faces = read_mesh(path, space=convention)
     d, far = two_way_distances(points_world, faces, vertices, mesh_faces, beyond_mm=beyond_mm, return_far=True)
     beyond = d["from_other"].get("beyond")
     if beyond and beyond["count"]:
         beyond["voxels"] = beyond_the_voxels(vertices[far], points_world, faces, spec, import_args)
+        beyond["stretch"] = coating_stretch(vertices[far], points_world, faces, template_points)
     return {"to_input": d["to_other"], "from_input": d["from_other"]}
+
+
+def coating_stretch(far: np.ndarray, points: np.ndarray, faces: np.ndarray, template_points: np.ndarray) -> float:
+    """How many times as long as the template's own the coating's triangles are where ``far``
+    points lie (mm, the coating's frame): the largest ratio of longest edges over the coating's
+    triangles nearest to them and the triangles around those (sharing a corner: which of two
+    triangles is nearest to a point on their common edge does not matter), ``points``, ``faces``:
+    the coating; ``template_points``: the template's, any frame, the same ``faces``. Near 1 where
+    the coating keeps the template's spacing; well above where the template is stretched over a
+    part larger than its instance's, and too sparse for it."""
+    faces = np.asarray(faces)
+    _c, _d, tri, _b = MeshLocator(points, faces).query(np.asarray(far, float).reshape(-1, 3), k=12)
+    if not len(tri):
+        return 1.0
+    near = faces[np.isin(faces, faces[tri]).any(axis=1)]
+
+    def longest(p):
+        corners = np.asarray(p, float)[near]
+        return np.linalg.norm(corners - corners[:, [1, 2, 0]], axis=2).max(axis=1)
+
+    return float((longest(points) / np.maximum(longest(template_points), 1e-12)).max())
 
 
 def beyond_the_voxels(far: np.ndarray, points_world: np.ndarray, faces: np.ndarray, spec: InstanceSpec,
@@ -341,15 +363,16 @@ def beyond_the_voxels(far: np.ndarray, points_world: np.ndarray, faces: np.ndarr
             "max_mm": float(from_voxels.max()) if len(far) else 0.0}
 
 
-def input_distances(study: Study, coated: dict[str, CoatingResult], faces: np.ndarray,
+def input_distances(study: Study, coated: dict[str, CoatingResult], template: Template,
                     frames: dict | None = None, *, executor=None, cancelled: CancelledFn = None) -> dict[str, dict]:
     """For every coated instance given as a mesh file: the coating against the user's own mesh
     (world mm, the file read as the import reads it), both ways (:func:`~ssm_addon.meshutil.two_way_distances`:
     ``to_input`` from the coated points to the mesh, ``from_input`` from the mesh's vertices to
     the coated surface: large where the template's points do not reach a thin process; its
     ``beyond``: the vertices farther than ``[quality] max_input_distance_mm``, how many and where,
-    and ``beyond["voxels"]``: how many of them are far mostly because the import's spacing, not
-    the coating, lost the part, :func:`beyond_the_voxels`).
+    ``beyond["voxels"]``: how many of them are far mostly because the import's spacing, not
+    the coating, lost the part, :func:`beyond_the_voxels`; ``beyond["stretch"]``: how many times as
+    long as the template's (``template``) the coating's triangles are there, :func:`coating_stretch`).
 
     ``executor``: where the instances are measured (the build's workers; default this process).
     """
@@ -362,9 +385,10 @@ def input_distances(study: Study, coated: dict[str, CoatingResult], faces: np.nd
             continue
         convention, _note = mesh_coordinates(spec.mesh_path, spec.given_space(tp.space))
         names.append(name)
-        args.append((spec.mesh_path, convention, frames[name].to_world(c.points_object), np.asarray(faces),
+        args.append((spec.mesh_path, convention, frames[name].to_world(c.points_object), np.asarray(template.faces),
                      float(study.params.quality.max_input_distance_mm), spec,
-                     {"spacing_mm": tp.spacing_mm, "frame_method": tp.frame, "space": tp.space}))
+                     {"spacing_mm": tp.spacing_mm, "frame_method": tp.frame, "space": tp.space},
+                     np.asarray(template.points_object)))
     if not args:
         return {}
     with executor_or_local(executor, 1) as pool:
@@ -388,8 +412,8 @@ def coating_result(study: Study, coated: dict[str, CoatingResult], starts: dict[
     """
     qp = study.params.quality
     findings = tuple(f for n, c in coated.items() for f in check_coating(n, c.fit, qp))
-    faces = (template if template is not None else study.template).faces
-    distances = input_distances(study, coated, faces, frames, executor=executor, cancelled=cancelled)
+    distances = input_distances(study, coated, template if template is not None else study.template, frames,
+                                executor=executor, cancelled=cancelled)
     findings += tuple(f for n, d in distances.items() for f in check_input_surface(n, d, qp, study.params.template))
     findings += tuple(extra_findings)
     product = {"coatings": dict(coated), "coating_start": dict(starts), "input_distances": distances}
