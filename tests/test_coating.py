@@ -322,7 +322,7 @@ def _ellipsoid_with_rod(rod_mm, radius_mm=3.0, axes_mm=(20.0, 12.0, 10.0)):
 def test_the_reach_extends_the_coating_into_a_process_longer_than_the_templates():
     # the template's process is 4 mm long, the instance's 12 mm: the registration's pull
     # along the normals leaves the coating's tip 4.9 mm short of the instance's; the reach
-    # (thick far parts pull in full) brings it to within the 3 mm the input-surface check allows
+    # (far parts of the object pull in full) brings it to within the 3 mm the input-surface check allows
     template = build_template(_ellipsoid_with_rod(4.0), TemplateParams())
     target = _ellipsoid_with_rod(12.0)
     dm = DM.DistanceMap.from_object_volume(target)
