@@ -36,6 +36,7 @@ __all__ = [
     "closest_points_on_triangles",
     "face_centroids",
     "locate_on_mesh",
+    "longest_edges",
     "marching_cubes",
     "mask_surface_euler",
     "mesh_area",
@@ -407,6 +408,18 @@ def face_centroids(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return c
 
 
+def longest_edges(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F,) the longest edge of each triangle (the units of ``points``).
+
+    >>> longest_edges(np.array([[0.0, 0, 0], [3, 0, 0], [0, 4, 0]]), np.array([[0, 1, 2]])).tolist()
+    [5.0]
+    """
+    points = np.asarray(points, float)
+    faces = as_faces(faces)
+    a, b, c = points[faces[:, 0]], points[faces[:, 1]], points[faces[:, 2]]
+    return np.sqrt(np.maximum.reduce([((b - a) ** 2).sum(1), ((c - b) ** 2).sum(1), ((a - c) ** 2).sum(1)]))
+
+
 def surface_samples(points: np.ndarray, faces: np.ndarray, step: float) -> np.ndarray:
     """Points covering a triangle mesh no more than ``step`` apart along every edge (the units of
     ``points``): the points ``faces`` use, then, on each triangle whose longest edge exceeds ``step``, the
@@ -422,8 +435,7 @@ def surface_samples(points: np.ndarray, faces: np.ndarray, step: float) -> np.nd
     out = [points[np.unique(faces)]]
     if len(faces):
         a, b, c = points[faces[:, 0]], points[faces[:, 1]], points[faces[:, 2]]
-        longest = np.sqrt(np.maximum.reduce([((b - a) ** 2).sum(1), ((c - b) ** 2).sum(1), ((a - c) ** 2).sum(1)]))
-        n = np.ceil(longest / float(step)).astype(np.int64)
+        n = np.ceil(longest_edges(points, faces) / float(step)).astype(np.int64)
         for k in np.unique(n[n > 1]):  # one barycentric grid per interval count, in increasing order
             i, j = np.triu_indices(k + 1)
             u, v = (j - i) / k, i / k  # all (u, v) with u + v <= 1
@@ -501,10 +513,11 @@ def two_way_distances(points: np.ndarray, faces: np.ndarray, other_points: np.nd
     :func:`distance_figures`. With ``beyond_mm``, ``"from_other"`` also holds ``"beyond"``:
     how many of the second's vertices lie farther than that (``count``, ``share``) and where
     (``centre_offset_mm``: their centre minus the second mesh's vertex centre, in the frame);
-    ``return_far``: also the (M,) bool mask of those vertices, as ``(figures, mask)``.
+    ``return_far``: also the (M,) bool mask of those vertices and the index of each one's
+    nearest triangle of the first mesh, as ``(figures, mask, triangles)``.
     """
     _c, to_other, _t, _b = MeshLocator(other_points, other_faces).query(points, k=12)
-    _c, from_other, _t, _b = MeshLocator(points, faces).query(other_points, k=12)
+    _c, from_other, nearest, _b = MeshLocator(points, faces).query(other_points, k=12)
     out = {"to_other": distance_figures(to_other), "from_other": distance_figures(from_other)}
     if beyond_mm is not None:
         far = from_other > beyond_mm
@@ -514,7 +527,8 @@ def two_way_distances(points: np.ndarray, faces: np.ndarray, other_points: np.nd
                                        "share": float(far.mean()) if len(far) else 0.0,
                                        "centre_offset_mm": [float(x) for x in centre]}
     if return_far:
-        return out, (from_other > beyond_mm if beyond_mm is not None else np.zeros(len(from_other), bool))
+        far = from_other > beyond_mm if beyond_mm is not None else np.zeros(len(from_other), bool)
+        return out, far, nearest[far]
     return out
 
 

@@ -174,12 +174,16 @@ def test_the_coating_stretch_is_the_ratio_of_the_triangles_where_the_mesh_lies_f
     more, and at most 2)."""
     from conftest import icosphere
 
+    from ssm_addon.meshutil import MeshLocator
     from ssm_addon.pipeline.stages import coating_stretch
+
+    def stretch(far, coating):  # the far points' nearest triangles, as the input-surface measure finds them
+        return coating_stretch(MeshLocator(coating, faces).query(far, k=12)[2], coating, faces, template)
 
     template, faces = icosphere(10.0, 2)
     far = np.array([[-16.0, 0.0, 0.0], [-12.0, 5.0, 3.0]])
-    assert coating_stretch(far, template, faces, template) == pytest.approx(1.0, abs=1e-12)
-    assert coating_stretch(2 * far, 2 * template, faces, template) == pytest.approx(2.0, abs=1e-12)
+    assert stretch(far, template) == pytest.approx(1.0, abs=1e-12)
+    assert stretch(2 * far, 2 * template) == pytest.approx(2.0, abs=1e-12)
     half = template * np.where(template[:, :1] > 0, [2.0, 1.0, 1.0], 1.0)
-    assert coating_stretch(far, half, faces, template) == pytest.approx(1.0, abs=1e-12)
-    assert 1.2 < coating_stretch(-2 * far, half, faces, template) <= 2.0  # a doubling along x: at most twice
+    assert stretch(far, half) == pytest.approx(1.0, abs=1e-12)
+    assert 1.2 < stretch(-2 * far, half) <= 2.0  # a doubling along x: at most twice

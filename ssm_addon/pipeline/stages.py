@@ -21,7 +21,7 @@ from ..formats.label_maps import read_label_map
 from ..formats.meshes import read_mesh
 from ..instances.importing import InstanceSpec, import_instance, mesh_coordinates
 from ..instances.volume import ObjectVolume
-from ..meshutil import Mesh, MeshLocator, genus, marching_cubes, two_way_distances
+from ..meshutil import Mesh, MeshLocator, genus, longest_edges, marching_cubes, two_way_distances
 from ..model import metrics
 from ..model.metrics import ModelMetrics
 from ..model.pca import ShapeModel, build_model
@@ -317,33 +317,29 @@ def template_density(template: Template, params) -> str:
 def _input_distance_job(args):
     path, convention, points_world, faces, beyond_mm, spec, import_args, template_points = args
     vertices, mesh_faces = read_mesh(path, space=convention)
-    d, far = two_way_distances(points_world, faces, vertices, mesh_faces, beyond_mm=beyond_mm, return_far=True)
+    d, far, nearest = two_way_distances(points_world, faces, vertices, mesh_faces, beyond_mm=beyond_mm,
+                                        return_far=True)
     beyond = d["from_other"].get("beyond")
     if beyond and beyond["count"]:
         beyond["voxels"] = beyond_the_voxels(vertices[far], points_world, faces, spec, import_args)
-        beyond["stretch"] = coating_stretch(vertices[far], points_world, faces, template_points)
+        beyond["stretch"] = coating_stretch(nearest, points_world, faces, template_points)
     return {"to_input": d["to_other"], "from_input": d["from_other"]}
 
 
-def coating_stretch(far: np.ndarray, points: np.ndarray, faces: np.ndarray, template_points: np.ndarray) -> float:
-    """How many times as long as the template's own the coating's triangles are where ``far``
-    points lie (mm, the coating's frame): the largest ratio of longest edges over the coating's
-    triangles nearest to them and the triangles around those (sharing a corner: which of two
-    triangles is nearest to a point on their common edge does not matter), ``points``, ``faces``:
-    the coating; ``template_points``: the template's, any frame, the same ``faces``. Near 1 where
-    the coating keeps the template's spacing; well above where the template is stretched over a
-    part larger than its instance's, and too sparse for it."""
+def coating_stretch(triangles: np.ndarray, points: np.ndarray, faces: np.ndarray,
+                    template_points: np.ndarray) -> float:
+    """How many times as long as the template's own the coating's triangles are where far points
+    lie: the largest ratio of longest edges over ``triangles`` (the far points' nearest triangles
+    of the coating) and the triangles around those (sharing a corner: which of two triangles is
+    nearest to a point on their common edge does not matter). ``points``, ``faces``: the coating
+    (mm); ``template_points``: the template's, any frame, the same ``faces``. Near 1 where the
+    coating keeps the template's spacing; well above where the template is stretched over a part
+    larger than its instance's, and too sparse for it."""
     faces = np.asarray(faces)
-    _c, _d, tri, _b = MeshLocator(points, faces).query(np.asarray(far, float).reshape(-1, 3), k=12)
-    if not len(tri):
+    if not len(triangles):
         return 1.0
-    near = faces[np.isin(faces, faces[tri]).any(axis=1)]
-
-    def longest(p):
-        corners = np.asarray(p, float)[near]
-        return np.linalg.norm(corners - corners[:, [1, 2, 0]], axis=2).max(axis=1)
-
-    return float((longest(points) / np.maximum(longest(template_points), 1e-12)).max())
+    near = faces[np.isin(faces, faces[np.asarray(triangles)]).any(axis=1)]
+    return float((longest_edges(points, near) / np.maximum(longest_edges(template_points, near), 1e-12)).max())
 
 
 def beyond_the_voxels(far: np.ndarray, points_world: np.ndarray, faces: np.ndarray, spec: InstanceSpec,
