@@ -24,6 +24,7 @@ from ssm_addon.pipeline.model_method import refine_correspondence
 from ssm_addon.pipeline.runner import coating_stage
 from ssm_addon.pipeline.stages import coating_result, import_result
 from ssm_addon.pipeline.study import apply_stage
+from ssm_addon.pipeline.template_refinement import with_template_refined
 
 from .jobs import BackgroundJob
 from .properties import SSMPanel, draw_params, scene_params
@@ -133,6 +134,11 @@ class SSM_OT_coat_template(BackgroundJob, bpy.types.Operator):
             return finish_refinement(self, context, outcome)
         self._loader.keep()
         imported, result, was_cancelled = outcome
+        refined = result.product.get("template")  # built again where the coatings cut off parts of the meshes
+        if refined is not None and "refined_at" in (refined.params or {}):
+            instance = context.scene.ssm_display.template_instance or find_template(context).ssm.instance
+            write_template_object(context, instance, refined)
+            self._faces, self._template_points = refined.faces, refined.points_object
         written = self._write(context, result.product["coatings"])
         found = record_stage(context, imported) + record_stage(context, result)
         msg = f"coated {len(written)} instance(s)"
@@ -204,8 +210,12 @@ def prepare_refinement(op, context, *, fresh: bool):
         t0 = time.perf_counter()
         imported = import_result(study, loader.load(sub_progress(progress, 0.0, 0.1), stop), time.perf_counter() - t0)
         apply_stage(study, imported)
-        return imported, refine_correspondence(study, progress=sub_progress(progress, 0.1, 1.0), cancelled=stop,
-                                                on_coated=count)
+
+        def coat(s):
+            return refine_correspondence(s, progress=sub_progress(progress, 0.1, 1.0), cancelled=stop, on_coated=count)
+
+        first = coat(study)  # starting afresh, as a build does: the template refined where the coatings cut off parts
+        return imported, with_template_refined(study, first, coat, cancelled=stop) if fresh else first
 
     return work
 
@@ -222,6 +232,8 @@ def finish_refinement(op, context, outcome):
     if (medoid is not None and (current is None or current.name != medoid)
             and bpy.data.objects.get(medoid) is not None):  # the template built again from the medoid
         write_template_object(context, bpy.data.objects[medoid], result.product["template"])
+    elif "refined_at" in (result.product["template"].params or {}) and current is not None:  # built again, denser
+        write_template_object(context, current, result.product["template"])
     written = []
     for name, coating in coatings.items():
         inst = bpy.data.objects.get(name)

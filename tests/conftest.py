@@ -361,6 +361,52 @@ def ellipsoid_mesh(radii=(30.0, 20.0, 14.0), n=24, centre=(0.0, 0.0, 0.0)):
     return pts, faces
 
 
+def union_mesh(parts, spacing_mm: float = 0.5):
+    """One closed surface of overlapping closed meshes ``[(vertices, faces), ...]`` (mm): the
+    marching cubes of their voxelized union at ``spacing_mm``."""
+    from ssm_addon.instances.voxelize import voxelize_mesh
+    from ssm_addon.meshutil import marching_cubes
+
+    h = float(spacing_mm)
+    volumes = [voxelize_mesh(v, f, h) for v, f in parts]
+    lo = np.min([v.affine[:3, 3] for v in volumes], axis=0)
+    shape = np.max([np.array(v.mask.shape) + (v.affine[:3, 3] - lo) / h for v in volumes], axis=0).astype(int) + 2
+    union = np.zeros(shape, bool)
+    for v in volumes:
+        o = np.round((v.affine[:3, 3] - lo) / h).astype(int)
+        union[o[0]:o[0] + v.mask.shape[0], o[1]:o[1] + v.mask.shape[1], o[2]:o[2] + v.mask.shape[2]] |= v.mask
+    mv, mf = marching_cubes(union)
+    return mv * h + lo, mf
+
+
+def spiked_project(folder: Path, shapes, header=(), *, landmarks=None) -> Path:
+    """A project of ellipsoids with a thin spike along +x, as RAS PLY meshes (``s0``, ``s1``, …).
+
+    ``shapes``: ``(spike length, body radii)`` per instance (mm; the spike 3.2 mm thick, its root
+    3 mm inside the body); ``header``: the project's lines before the instances; ``landmarks``:
+    the instances given landmark files (default all: the spike's tip and the body's poles, CSV).
+    """
+    folder.mkdir(parents=True, exist_ok=True)
+    from ssm_addon.formats.meshes import write_ply
+
+    lines = list(header) + [""]
+    for i, (length, radii) in enumerate(shapes):
+        body, bf = ellipsoid_mesh(radii, n=32)
+        spike, sf = ellipsoid_mesh((length, 1.6, 1.6), n=16, centre=(radii[0] + length - 3.0, 0.0, 0.0))
+        verts, faces = union_mesh([(body, bf), (spike, sf)])
+        name = f"s{i}"
+        write_ply(folder / f"{name}.ply", verts, faces, space="RAS")
+        lines += ["[[instances]]", f'name = "{name}"', f'mesh = "{name}.ply"']
+        if landmarks is None or name in landmarks:
+            tips = verts[[np.argmax(verts[:, 0]), np.argmin(verts[:, 0]), np.argmax(verts[:, 1]),
+                          np.argmin(verts[:, 1]), np.argmax(verts[:, 2]), np.argmin(verts[:, 2])]]
+            (folder / f"{name}.csv").write_text("".join(f"{n},{x},{y},{z}\n" for n, (x, y, z) in zip("ABCDEF", tips)))
+            lines.append(f'landmarks = "{name}.csv"')
+        lines.append("")
+    (folder / "project.toml").write_text("\n".join(lines))
+    return folder / "project.toml"
+
+
 def write_foreign_statismo(model, path):
     """``model`` as another tool writes a statismo file (the 0.9 layout, float32, no SSM
     extras and no training instances); returns ``path``."""

@@ -12,7 +12,7 @@ import json
 import nibabel as nib
 import numpy as np
 import pytest
-from conftest import ellipsoid_mesh, synthetic_population
+from conftest import ellipsoid_mesh, spiked_project, synthetic_population
 from foreign_data import LPS, knee30_in_scanner_poses, scalismo_landmarks, slicer_obj, slicer_ply, slicer_stl
 
 from ssm_addon.formats.label_maps import read_label_map
@@ -174,36 +174,12 @@ def test_a_foreign_statismo_model_loses_its_empty_modes(tmp_path):
 
 def test_a_template_too_coarse_for_a_thin_process_is_named(tmp_path):
     """The user's mesh far from its coating (a thin spike the template's points do not reach) is
-    a finding naming the instance and the remedy, not a silence."""
-    lines = ["[template]", "spacing = 1.0", "r_min_mm = 6.0", "r_max_mm = 12.0", "", "[model]",
-             "specificity_samples = 20", ""]
-    for i, (length, radii) in enumerate(((26.0, (24.0, 20.0, 16.0)), (28.0, (25.0, 19.0, 16.0)),
-                                         (25.0, (23.0, 21.0, 15.0)))):
-        body, bf = ellipsoid_mesh(radii, n=32)
-        spike, sf = ellipsoid_mesh((length, 1.6, 1.6), n=16, centre=(radii[0] + length - 3.0, 0.0, 0.0))
-        verts = np.vstack([body, spike])
-        # one closed surface: the voxelized union's marching cubes (the spike fused to the body)
-        from ssm_addon.instances.voxelize import voxelize_mesh
-        from ssm_addon.meshutil import marching_cubes
-
-        a = voxelize_mesh(body, bf, 0.5)
-        b = voxelize_mesh(spike, sf, 0.5)
-        lo = np.minimum(a.affine[:3, 3], b.affine[:3, 3])
-        shape = np.maximum(np.array(a.mask.shape) + (a.affine[:3, 3] - lo) / 0.5,
-                           np.array(b.mask.shape) + (b.affine[:3, 3] - lo) / 0.5).astype(int) + 2
-        union = np.zeros(shape, bool)
-        for v in (a, b):
-            o = np.round((v.affine[:3, 3] - lo) / 0.5).astype(int)
-            union[o[0]:o[0] + v.mask.shape[0], o[1]:o[1] + v.mask.shape[1], o[2]:o[2] + v.mask.shape[2]] |= v.mask
-        mv, mf = marching_cubes(union)
-        verts = mv * 0.5 + lo
-        name = f"s{i}"
-        write_ply(tmp_path / f"{name}.ply", verts, mf, space="RAS")
-        tips = verts[[np.argmax(verts[:, 0]), np.argmin(verts[:, 0]), np.argmax(verts[:, 1]), np.argmin(verts[:, 1]),
-                      np.argmax(verts[:, 2]), np.argmin(verts[:, 2])]]
-        (tmp_path / f"{name}.csv").write_text("".join(f"{n},{x},{y},{z}\n" for n, (x, y, z) in zip("ABCDEF", tips)))
-        lines += ["[[instances]]", f'name = "{name}"', f'mesh = "{name}.ply"', f'landmarks = "{name}.csv"', ""]
-    (tmp_path / "project.toml").write_text("\n".join(lines))
+    a finding naming the instance and the remedy, not a silence (the template not refined where
+    the coatings cut off parts: tests/test_template_refinement.py)."""
+    spiked_project(tmp_path, ((26.0, (24.0, 20.0, 16.0)), (28.0, (25.0, 19.0, 16.0)), (25.0, (23.0, 21.0, 15.0))),
+                   ["[template]", "spacing = 1.0", "r_min_mm = 6.0", "r_max_mm = 12.0", "refine_where_cut_off = false",
+                    "", "[model]",
+                    "specificity_samples = 20"])
     result = build(read_project(tmp_path / "project.toml"), tmp_path / "out", log=None)
     named = [f for f in result.report["quality"]["findings"] if f["gate"] == "input_surface"]
     assert named, json.dumps(result.report["instances"]["s0"].get("input_surface_mm"))

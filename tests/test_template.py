@@ -431,3 +431,28 @@ def test_a_thin_fin_stays_on_the_template_at_the_default_tolerance_and_goes_at_a
     assert _hausdorff_to_surface(default, m) < 2.5
     f, n = default.faces, len(default.points_object)
     assert mu.is_closed_manifold(f).ok and mu.genus(n, f) == 0
+
+
+def test_the_template_is_denser_only_where_it_is_asked_to_be():
+    """``denser_at``: the radii at a place shrink by its factor, so the template has more points near
+    it (a pole of the sphere, factor 0.4) and the same points away from it (the opposite half kept
+    within a few points), the tolerance still holds and the surface stays a closed sphere."""
+    ov = object_volume(sphere(12.0))
+    params = T.TemplateParams(max_distance_mm=1.0)
+    plain = T.build_template(ov, params)
+    pole = np.array([[0.0, 0.0, 12.0]])
+    dense = T.build_template(ov, params, denser_at=(pole, np.array([0.4])))
+
+    def near(tpl, r):
+        return int((np.linalg.norm(tpl.points_object - pole, axis=1) < r).sum())
+
+    assert near(dense, 8.0) >= 2 * near(plain, 8.0) > 0, (near(dense, 8.0), near(plain, 8.0))
+    far = [int((t.points_object[:, 2] < -4.0).sum()) for t in (plain, dense)]
+    assert abs(far[1] - far[0]) <= max(3, 0.1 * far[0]), far
+    assert dense.params["denser_at"]["places"] == 1 and dense.params["denser_at"]["voxels"] > 0
+    assert "denser_at" not in plain.params
+    assert dense.params["largest_distance_mm"] <= 1.0 + 1e-9
+    assert mu.is_closed_manifold(dense.faces).ok and mu.genus(len(dense.points_object), dense.faces) == 0
+    # no places: the same template
+    same = T.build_template(ov, params, denser_at=(np.zeros((0, 3)), np.zeros(0)))
+    np.testing.assert_array_equal(same.points_object, plain.points_object)

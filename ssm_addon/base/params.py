@@ -536,6 +536,12 @@ class TemplateParams:
                                                   "the topology or no deeper than twice the tolerance)")
     max_refinements: int = param(30, minimum=0, maximum=1000, label="Max refinements", advanced=True,
                                  help="rounds of seed insertion where the geodesic Voronoi regions are not disks")
+    refine_where_cut_off: bool = param(True, label="Refine where cut off",
+                                       help="when the coating of an instance given as a mesh cuts off a part of its "
+                                            "surface (farther than [quality] max_input_distance_mm, and not lost at "
+                                            "the import), build the template again with smaller radii where those "
+                                            "parts lie on it and coat every instance again, once; the second coatings "
+                                            "are kept when they reach the meshes better")
     _where = "template parameters:"
 
     #: eq. 1's own parameters: a table that states one of them and no tolerance means eq. 1

@@ -230,7 +230,7 @@ def study_report(study: Study, *, project: str | Absent, timings_unknown: dict |
                       **{k: tpl.params[k] for k in ("largest_distance_mm", "mean_distance_mm", "tolerance_rounds")
                          if k in (tpl.params or {})}}
                      if study.params.template.max_distance_mm is not None else {}),
-                  **{k: tpl.params[k] for k in ("surface_largest_distance_mm",) if k in (tpl.params or {})}},
+                  **{k: tpl.params[k] for k in ("surface_largest_distance_mm", "refined_at") if k in (tpl.params or {})}},
         correspondence=correspondence,
         quality={"parameters": dataclasses.asdict(study.params.quality),
                  "findings": [f.to_dict() for f in study.findings], "outlier_scores": study.outlier_scores},
@@ -523,6 +523,11 @@ def write_html_report(path, report: Report | dict, *, images: dict[str, bytes] |
         if tpl.get("surface_largest_distance_mm") is not None:
             density += (f"; the instance's surface within {_num(tpl['surface_largest_distance_mm'], 2)} mm of its "
                         "triangles")
+        refined = tpl.get("refined_at")
+        if isinstance(refined, dict):
+            density += (f"; built again denser where the coatings of {len(refined.get('instances') or {})} "
+                        f"instance(s) cut off parts of their meshes ({_num(refined.get('points_before'))} points "
+                        f"before; <code>[template] refine_where_cut_off</code>)")
         parts.append(f"<p>Template: {_num(tpl['points'])} points from <b>{html.escape(str(tpl.get('instance')))}</b>, "
                      f"{density}.</p>")
     var = model.get("variances_mm2", [])[:12]

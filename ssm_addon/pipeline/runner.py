@@ -4,6 +4,7 @@ the coating stage by the study's correspondence method."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import time
 from collections.abc import Callable, Sequence
 
@@ -22,8 +23,9 @@ from .stages import (
     self_check,
     template_stage,
 )
-from .streaming import stream_instances
+from .streaming import stream_instances, template_key
 from .study import STAGES, Log, StageResult, Study, apply_stage
+from .template_refinement import with_template_refined
 
 __all__ = ["coating_stage", "run"]
 
@@ -35,8 +37,25 @@ def coating_stage(study: Study, *, names: Sequence[str] | None = None, jobs: int
 
     ``method = "landmarks"``: :func:`coat_instances` (the paper's single pass, ``names``);
     ``"model"``: :func:`refine_correspondence` (every instance). ``on_coated(name)`` is
-    called as each coating arrives (for counting; progress lines are for people).
+    called as each coating arrives (for counting; progress lines are for people). When every
+    instance is coated and some coatings cut off parts of their meshes, the template is refined
+    there and every instance coated again (:func:`with_template_refined`; ``[template]
+    refine_where_cut_off``).
     """
+    def coat(s: Study) -> StageResult:
+        return _coating_once(s, names=names, jobs=jobs, progress=progress, cancelled=cancelled, log=log,
+                             executor=executor, on_coated=on_coated)
+
+    first = coat(study)
+    if names is not None and set(names) != set(study.names):
+        return first
+    return with_template_refined(study, first, coat, log=log, progress=progress, cancelled=cancelled)
+
+
+def _coating_once(study: Study, *, names: Sequence[str] | None = None, jobs: int = 1, progress: ProgressFn = None,
+                  cancelled: CancelledFn = None, log: Log = None, executor=None,
+                  on_coated: Callable[[str], None] | None = None) -> StageResult:
+    """The coating stage by the study's correspondence method with its template as it is."""
     with_landmarks = landmarked(study)
     if not with_landmarks:
         return coat_without_landmarks_stage(study, jobs=jobs, executor=executor, cancelled=cancelled)
@@ -87,8 +106,14 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
             and len(landmarked(study)) == len(study.names)
             and all(s in stages for s in ("import", "template", "coating"))):
         report(progress, 0.0, f"import, template and coating: {n} instances on {executor.describe()}")
-        applied(stream_instances(study, executor, cache=cache, progress=sub_progress(progress, 0.0, 0.8),
-                                 cancelled=cancelled, log=say))
+        streamed = stream_instances(study, executor, cache=cache, progress=sub_progress(progress, 0.0, 0.8),
+                                    cancelled=cancelled, log=say)
+        with_volume = dataclasses.replace(study, template=streamed.product["template"],
+                                          volumes={**study.volumes, **streamed.product["volumes"]})
+        applied(with_template_refined(
+            with_volume, streamed,
+            lambda s: stream_instances(s, executor, cache=cache, template=s.template, cancelled=cancelled, log=say),
+            log=say, cancelled=cancelled, cache=cache, cache_key=template_key(study) if cache is not None else None))
         stages = [s for s in stages if s not in ("import", "template", "coating")]
     if "import" in stages:
         report(progress, 0.0, f"import: {n} instances at {study.params.template.spacing_mm:g} mm")

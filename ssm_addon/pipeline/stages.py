@@ -37,7 +37,7 @@ from ..model.quality import (
     check_volumes_together,
     content_digest,
 )
-from ..template.template import Template, build_template
+from ..template.template import TOLERANCE_SHRINK, Template, build_template
 from .study import (
     StageResult,
     Study,
@@ -47,7 +47,7 @@ from .study import (
     template_landmark_locations,
 )
 
-__all__ = ["coat_from_frames", "coat_instances", "coating_result", "evaluate_model", "import_instances", "import_result", "import_stage", "label_map_once", "make_model", "make_template", "metrics_stage", "model_stage", "self_check", "template_stage"]
+__all__ = ["coat_from_frames", "coat_instances", "coating_result", "cut_off_places", "evaluate_model", "import_instances", "import_result", "import_stage", "instance_mesh", "label_map_once", "make_model", "make_template", "metrics_stage", "model_stage", "self_check", "template_stage"]
 
 
 _LABEL_MAP_MEMO: dict = {}
@@ -131,13 +131,14 @@ def import_instances(study: Study, *, names: Sequence[str] | None = None, jobs: 
 
 
 def make_template(study: Study, *, progress: ProgressFn = None, cancelled: CancelledFn = None,
-                  params=None) -> Template:
+                  params=None, denser_at=None) -> Template:
     """The template (paper 3) from the study's template instance (``params``: template parameters
-    other than the study's, e.g. radii scaled to a given point count)."""
+    other than the study's, e.g. radii scaled to a given point count; ``denser_at``: places and
+    factors where it must be denser, :func:`~ssm_addon.template.template.build_template`)."""
     name = study.template_instance
     try:
         template = build_template(study.volume(name), params or study.params.template, progress=progress,
-                                  cancelled=cancelled)
+                                  cancelled=cancelled, denser_at=denser_at)
     except InputError as err:
         raise InputError(f"template from instance {name!r}: {err}") from None
     study_with = Study(instances=study.instances, template_instance=name, template=template, frames={
@@ -314,9 +315,15 @@ def template_density(template: Template, params) -> str:
     return back
 
 
+def instance_mesh(spec: InstanceSpec, space: str) -> tuple[np.ndarray, np.ndarray]:
+    """An instance's own mesh file as the import reads it (world mm, RAS; ``space``: ``[template] space``)."""
+    convention, _note = mesh_coordinates(spec.mesh_path, spec.given_space(space))
+    return read_mesh(spec.mesh_path, space=convention)
+
+
 def _input_distance_job(args):
-    path, convention, points_world, faces, beyond_mm, spec, import_args, template_points = args
-    vertices, mesh_faces = read_mesh(path, space=convention)
+    points_world, faces, beyond_mm, spec, import_args, template_points = args
+    vertices, mesh_faces = instance_mesh(spec, import_args["space"])
     d, far, nearest = two_way_distances(points_world, faces, vertices, mesh_faces, beyond_mm=beyond_mm,
                                         return_far=True)
     beyond = d["from_other"].get("beyond")
@@ -359,6 +366,56 @@ def beyond_the_voxels(far: np.ndarray, points_world: np.ndarray, faces: np.ndarr
             "max_mm": float(from_voxels.max()) if len(far) else 0.0}
 
 
+def cut_off_places(study: Study, coated: dict[str, CoatingResult], template: Template, names: Sequence[str], *,
+                   coated_from: Template | None = None, frames: dict | None = None,
+                   ) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
+    """Where the coatings of ``names`` (instances given as meshes) cut off parts of their own
+    meshes, as places of the template, and how much denser it must be there.
+
+    Each vertex of an instance's mesh farther than ``[quality] max_input_distance_mm`` from its
+    coating (world mm, the file read as the import reads it) is taken to its nearest point of the
+    coating, a triangle and barycentric weights, and that point to ``template`` (the same
+    triangles: object mm of the template's instance). The factor on the template's radii there
+    is :data:`~ssm_addon.template.template.TOLERANCE_SHRINK`, or less where the coating's
+    triangles around that one are more than 1/``TOLERANCE_SHRINK`` times as long as
+    ``coated_from``'s (the template the coatings were made from, default ``template``): the
+    inverse of that stretch, so the coated triangles there come out no longer than the template's
+    are now.
+
+    Returns
+    -------
+    places : (K, 3) object mm of ``template``
+    factors : (K,) in (0, TOLERANCE_SHRINK]
+    counts : dict name -> the instance's vertices taken
+    """
+    frames = {**study.frames, **(frames or {})}
+    faces = np.asarray(template.faces)
+    reference = longest_edges(np.asarray((coated_from or template).points_object, float), faces)
+    beyond = float(study.params.quality.max_input_distance_mm)
+    places, factors, counts = [], [], {}
+    for name in names:
+        spec = study.instance(name)
+        if spec.mesh_path is None or name not in coated or name not in frames:
+            continue
+        vertices, _faces = instance_mesh(spec, study.params.template.space)
+        points = frames[name].to_world(coated[name].points_object)
+        _c, distance, triangles, bary = MeshLocator(points, faces).query(vertices, k=12)
+        far = distance > beyond
+        if not far.any():
+            continue
+        ratio = longest_edges(points, faces) / np.maximum(reference, 1e-12)
+        at_vertex = np.zeros(len(points))
+        np.maximum.at(at_vertex, faces.ravel(), np.repeat(ratio, 3))  # the largest ratio of a vertex's triangles
+        corners = faces[triangles[far]]
+        stretch = at_vertex[corners].max(axis=1)  # over the triangles sharing a corner with the nearest one
+        places.append(np.einsum("kj,kjd->kd", bary[far], np.asarray(template.points_object, float)[corners]))
+        factors.append(np.minimum(TOLERANCE_SHRINK, 1.0 / np.maximum(stretch, 1e-12)))
+        counts[name] = int(far.sum())
+    if not places:
+        return np.zeros((0, 3)), np.zeros(0), counts
+    return np.concatenate(places), np.concatenate(factors), counts
+
+
 def input_distances(study: Study, coated: dict[str, CoatingResult], template: Template,
                     frames: dict | None = None, *, executor=None, cancelled: CancelledFn = None) -> dict[str, dict]:
     """For every coated instance given as a mesh file: the coating against the user's own mesh
@@ -379,9 +436,8 @@ def input_distances(study: Study, coated: dict[str, CoatingResult], template: Te
         spec = study.instance(name)
         if spec.mesh_path is None or name not in frames:
             continue
-        convention, _note = mesh_coordinates(spec.mesh_path, spec.given_space(tp.space))
         names.append(name)
-        args.append((spec.mesh_path, convention, frames[name].to_world(c.points_object), np.asarray(template.faces),
+        args.append((frames[name].to_world(c.points_object), np.asarray(template.faces),
                      float(study.params.quality.max_input_distance_mm), spec,
                      {"spacing_mm": tp.spacing_mm, "frame_method": tp.frame, "space": tp.space},
                      np.asarray(template.points_object)))

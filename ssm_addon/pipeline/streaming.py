@@ -110,7 +110,7 @@ def template_key(study: Study) -> str:
 
 
 def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn = None,
-                     cancelled: CancelledFn = None, log: Log = None) -> StageResult:
+                     cancelled: CancelledFn = None, log: Log = None, template=None) -> StageResult:
     """Import, template and coating with bounded memory (the landmarks method).
 
     Only the template instance's volume is held in this process; every other instance
@@ -118,7 +118,8 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
     (:class:`~ssm_addon.base.compute.Executor`) and only its points come back, so memory
     grows with n·N, not with the volumes. With ``cache`` (:class:`~ssm_addon.pipeline.cache.BuildCache`)
     the template and every finished coating are stored at once and taken from there on
-    a rerun. ``study`` is not changed: the result (stage ``"coating"``) carries the template,
+    a rerun. ``template``: coat this one (the template refined across the population), not the
+    one its instance and parameters give. ``study`` is not changed: the result (stage ``"coating"``) carries the template,
     the coatings, frames and starts, the import and coating findings, the three stages'
     timings and the counts ``streamed = {"cached": k, "computed": m}``.
     """
@@ -128,10 +129,12 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
     tname = study.template_instance
     t0 = time.perf_counter()
     timings, volumes, frames = {}, {}, {}
-    tkey = template_key(study) if cache is not None else None
-    template = cache.get_template(tkey) if cache is not None else None
-    for note in cache.take_notes() if cache is not None else ():
-        say(note)
+    given = template is not None
+    tkey = template_key(study) if cache is not None and not given else None
+    if tkey is not None:
+        template = cache.get_template(tkey)
+        for note in cache.take_notes():
+            say(note)
     if template is None:
         if len(names) > 1:  # the workers start (and import) while this process makes the template
             executor.start_workers(("ssm_addon.pipeline.streaming",))
@@ -156,10 +159,11 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
         if cache is not None:
             cache.put_template(tkey, template)
         say(template_line(template, tname, study.params.template, time.perf_counter() - t0))
-    else:
+    elif not given:
         say("import: the coating workers read every instance (the template is in the cache)")
         say(f"template: {len(template.points_object)} points from the cache ({tname})")
-    timings["template"] = time.perf_counter() - t0
+    if not given:
+        timings["template"] = time.perf_counter() - t0
     import_plotting_in_background()  # for the plots after the model, while the workers coat
     t0 = time.perf_counter()
     # the template's frame is its instance's object frame (the same numbers as study.frame)

@@ -63,6 +63,7 @@ __all__ = [
     "Triangulation",
     "build_template",
     "clean_topology",
+    "denser_radii",
     "geodesic_voronoi",
     "load_template",
     "mesh_graph",
@@ -371,6 +372,38 @@ def tolerance_radii(curvature: np.ndarray, tolerance: float, r_lo: float, r_hi: 
     """
     k = np.maximum(np.abs(np.asarray(curvature, float)), 1e-12)
     return np.clip(np.sqrt(2.0 * float(tolerance) / k), r_lo, r_hi)
+
+
+def denser_radii(radii: np.ndarray, voxels: np.ndarray, places: np.ndarray, factors: np.ndarray,
+                 r_lo: float) -> np.ndarray:
+    """Reduction radii made smaller around given places of the surface: every surface voxel
+    within 1.5 of its own radius of a place (as the tolerance rounds pick the voxels whose
+    selection made a triangle) takes its nearest such place's factor, not below ``r_lo``.
+
+    Parameters
+    ----------
+    radii : (M,) voxel
+        The surface voxels' radii (:func:`tolerance_radii` or eq. 1).
+    voxels : (M, 3) voxel
+        The surface voxels.
+    places : (K, 3) voxel
+        Where the template must be denser (e.g. where an instance's coating cut off a part of
+        its surface, :func:`ssm_addon.pipeline.stages.cut_off_places`).
+    factors : (K,)
+        The factor on the radii at each place, in (0, 1].
+    r_lo : voxel
+
+    >>> denser_radii(np.array([4.0, 4.0]), np.array([[0, 0, 0], [20, 0, 0]]), np.array([[1.0, 0, 0]]),
+    ...              np.array([0.5]), 1.5).tolist()
+    [2.0, 4.0]
+    """
+    radii = np.asarray(radii, float)
+    places = np.asarray(places, float).reshape(-1, 3)
+    if not len(places):
+        return radii
+    d, j = cKDTree(places).query(np.asarray(voxels, float))
+    hit = d <= 1.5 * radii
+    return np.where(hit, np.maximum(radii * np.asarray(factors, float)[j], r_lo), radii)
 
 
 def _signed_distance_vox(mask: np.ndarray) -> np.ndarray:
@@ -783,7 +816,7 @@ def object_volume_at_spacing(object_volume: ObjectVolume, spacing_mm: float) -> 
 
 
 def build_template(object_volume: ObjectVolume, params: TemplateParams | None = None, *, progress=None,
-                   cancelled=None) -> Template:
+                   cancelled=None, denser_at: tuple[np.ndarray, np.ndarray] | None = None) -> Template:
     """Build the template of paper 3 from one object volume.
 
     Stages (progress messages per stage, cancellation checked between them): topology
@@ -796,12 +829,17 @@ def build_template(object_volume: ObjectVolume, params: TemplateParams | None = 
         The template instance, resampled isotropically in its object frame.
     params : TemplateParams
     progress, cancelled : callables, optional
+    denser_at : ((K, 3) ndarray, (K,) ndarray), optional
+        Places (object mm) where the template must be denser than its parameters make it, and
+        the factor on the radii at each (:func:`denser_radii`, before the tolerance rounds):
+        where the coating of another instance cut off a part of its surface.
 
     Returns
     -------
     Template
         Vertices in object mm, curvature in 1/mm; ``params`` holds the parameters and
-        figures (points selected and inserted, genus, timings in s).
+        figures (points selected and inserted, genus, timings in s; ``denser_at``: how many
+        places, and how many surface voxels' radii they made smaller).
     """
     params = TemplateParams() if params is None else params
     ov = object_volume
@@ -830,6 +868,12 @@ def build_template(object_volume: ObjectVolume, params: TemplateParams | None = 
         r = reduction_radii(geo.c, params.r_min_mm / h, params.r_max_mm / h, params.p, params.curvature_percentiles)
     else:
         r = np.full(len(geo.voxels), params.r_max_mm / h)
+    denser_info = {}
+    if denser_at is not None and len(denser_at[0]):
+        before = r
+        r = denser_radii(r, geo.voxels, ov.object_to_voxel(denser_at[0]), denser_at[1],
+                         min(TOLERANCE_MIN_RADIUS_VOX, float(r.min())))
+        denser_info = {"denser_at": {"places": int(len(denser_at[0])), "voxels": int((r < before).sum())}}
     sel = reduce_points(geo.graph, r, curvature=geo.c, selection=params.selection, seed=params.seed,
                         cancelled=cancelled)
     timings["reduction"] = time.perf_counter() - t
@@ -894,6 +938,7 @@ def build_template(object_volume: ObjectVolume, params: TemplateParams | None = 
         "cleaned_volume_mm3": float(np.count_nonzero(mask)) * h**3,
         "timings_s": {k: round(v, 4) for k, v in timings.items()},
         **tolerance_info,
+        **denser_info,
     }
     report(progress, 1.0, f"template: {len(points_object)} points, {len(tri.faces)} triangles, genus {tri.genus}")
     return Template(points_object=points_object, faces=tri.faces, curvature=curv / h, frame=ov.frame, params=info)
