@@ -168,3 +168,41 @@ def bridge_centre(obj) -> np.ndarray:
     from ssm.operators import bridge
 
     return bridge.mesh_vertices(obj.data).mean(axis=0)
+
+
+@pytest.mark.slow
+def test_coat_template_refines_the_template_where_the_build_does(bpy_clean, tmp_path):
+    """Spiked ellipsoids whose spikes are longer than the template instance's (as meshes): Coat
+    Template builds the template again denser where the coatings cut off the spikes, as the
+    headless build of the same project does; the scene's template and (after Optimise
+    Correspondence, the build's next step) coatings equal the build's, and no ``input_surface``
+    finding is left in either."""
+    from conftest import spiked_project
+    from ssm.operators.scene import find_template, scene_findings, template_from_object
+    from test_template_refinement import HEADER, SHAPES
+
+    from ssm_addon.pipeline.project import read_project
+    from ssm_addon.pipeline.project_build import build
+
+    bpy = bpy_clean
+    project = spiked_project(tmp_path / "spikes", SHAPES, HEADER)
+    headless = build(read_project(project), tmp_path / "out", log=None)
+    refined = headless.study.template.params["refined_at"]
+    assert bpy.ops.ssm.open_project(filepath=str(project)) == {"FINISHED"}
+    assert bpy.ops.ssm.build_template() == {"FINISHED"}
+    assert len(template_from_object(find_template(bpy.context)).points_object) == refined["points_before"]
+    assert bpy.ops.ssm.coat_template() == {"FINISHED"}
+    template = template_from_object(find_template(bpy.context))
+    assert template.params["refined_at"] == refined
+    np.testing.assert_allclose(template.points_object, headless.study.template.points_object, atol=1e-9)
+    np.testing.assert_array_equal(template.faces, headless.study.template.faces)
+    assert bpy.ops.ssm.optimise_correspondence() == {"FINISHED"}  # the build's step after the coating
+    from ssm.operators import bridge
+
+    coated = {o.ssm.instance.name: bridge.load_arrays(o, "ssm_coating")["points_object"]
+              for o in bpy.data.objects if o.ssm.role == "COATED"}
+    assert set(coated) == set(headless.study.names)
+    for name, points in coated.items():
+        np.testing.assert_allclose(points, headless.study.coatings[name].points_object, atol=1e-9, err_msg=name)
+    assert not [f for f in scene_findings(bpy.context) if f.gate == "input_surface"]
+    assert not [f for f in headless.study.findings if f.gate == "input_surface"]
