@@ -541,7 +541,7 @@ class TemplateParams:
                                             "surface (farther than [quality] max_input_distance_mm, and not lost at "
                                             "the import), build the template again with smaller radii where those "
                                             "parts lie on it and coat every instance again, once; the second coatings "
-                                            "are kept when they reach the meshes better")
+                                            "are kept when fewer meshes are cut off and no other finding is added")
     _where = "template parameters:"
 
     #: eq. 1's own parameters: a table that states one of them and no tolerance means eq. 1

@@ -59,8 +59,9 @@ def with_template_refined(study: Study, first: StageResult, coat: Callable[[Stud
     radii smaller at those places (:func:`~ssm_addon.pipeline.stages.cut_off_places`,
     ``denser_at`` of :func:`~ssm_addon.template.template.build_template`) and ``coat`` (the same
     coating as ``first``'s, on a copy of ``study`` with that template and no coatings) runs again.
-    Its result is kept when it has fewer ``input_surface`` findings, or as many and a smaller
-    largest distance of a mesh from its coating, and no more findings of other gates; it then carries the refined template (the model
+    Its result is kept when it has fewer ``input_surface`` findings and no more findings of other
+    gates (a refinement that only brings a mesh nearer, its finding left, is not worth the change
+    of the template); it then carries the refined template (the model
     method's mean shape of it) with ``params["refined_at"]``: the instances, places and point
     counts. Esc during the second coating keeps ``first``.
 
@@ -113,7 +114,7 @@ def with_template_refined(study: Study, first: StageResult, coat: Callable[[Stud
         say("template: the coating with the refined template was cancelled; the first coatings are kept")
         return first
     before, after = _worst(first), _worst(second)
-    kept = (after[0] < before[0] or (after[0] == before[0] and after[1] < before[1])) and after[2] <= before[2]
+    kept = after[0] < before[0] and after[2] <= before[2]
     line = (f"template: refined where {len(counts)} coating(s) cut off parts, {n0:,} → {n1:,} points in "
             f"{t_template:.2f} s; input_surface findings {before[0]} → {after[0]}, largest mesh distance "
             f"{before[1]:.2f} → {after[1]:.2f} mm: ")
