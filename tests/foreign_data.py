@@ -93,28 +93,75 @@ def random_rigid(rng: np.random.Generator, *, max_turn_deg: float = 180.0, shift
     return rot, rng.uniform(-shift_mm, shift_mm, size=3)
 
 
+def label_surface(label_map: Path, label: int):
+    """One label's surface as a segmentation tool exports it: marching cubes of the label map
+    (world RAS mm, outward triangles), and the label's voxel centres (world mm)."""
+    import nibabel as nib
+    from skimage.measure import marching_cubes
+
+    img = nib.load(str(label_map))
+    mask = np.asarray(img.dataobj) == label
+    verts, faces, _n, _v = marching_cubes(np.pad(mask, 1).astype(np.float32), 0.5)
+    verts = (verts - 1.0) @ img.affine[:3, :3].T + img.affine[:3, 3]
+    if np.linalg.det(img.affine[:3, :3]) < 0:
+        faces = faces[:, ::-1]
+    return verts, faces, np.argwhere(mask) @ img.affine[:3, :3].T + img.affine[:3, 3]
+
+
+def deformed_slicer_meshes(folder: Path, label_map: Path, label: int, landmark_file: Path, n: int, prefix: str):
+    """One label's surface and ``n - 1`` known smooth deformations of it (those of
+    ``tools/eval_correspondence.py deformed``; the first is the identity), each as a 3D Slicer
+    LPS PLY ``{prefix}_{k}.ply`` with Scalismo JSON landmarks (``landmark_file``'s, moved by the
+    deformation). Returns the names and the project's instance lines."""
+    import sys
+
+    from ssm_addon.formats.landmarks import read_landmarks
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+    from eval_correspondence import deformations
+
+    folder.mkdir(parents=True, exist_ok=True)
+    verts, faces, voxels = label_surface(label_map, label)
+    given = read_landmarks(landmark_file)
+    names, lines = [], []
+    for k, u in enumerate(deformations(n, 0, voxels)):
+        name = f"{prefix}_{k}"
+        names.append(name)
+        slicer_ply(folder / f"{name}.ply", verts + u(verts), faces)
+        scalismo_landmarks(folder / f"{name}.json", given.names, (given.points_world + u(given.points_world)) * LPS)
+        lines += ["[[instances]]", f'name = "{name}"', f'mesh = "{name}.ply"', f'landmarks = "{name}.json"', ""]
+    return names, lines
+
+
+def two_subject_level(folder: Path, data_dir: Path, level: str, label: int) -> Path:
+    """One lumbar level of two subjects as a 3D Slicer user brings it: verse004's and three known
+    deformations of it (:func:`deformed_slicer_meshes`, ``v4_0`` … ``v4_3``, Scalismo landmarks) and
+    verse005's (``v5``, no landmarks), the template from ``v4_0``. Returns ``project.toml``."""
+    v4 = data_dir / "verse004"
+    _names, lines = deformed_slicer_meshes(folder, v4 / "sub-verse004_seg-vert_msk.nii.gz", label,
+                                           v4 / "landmarks" / f"{level}.fcsv", 4, "v4")
+    verts, faces, _voxels = label_surface(data_dir / "verse005" / "sub-verse005_seg-vert_msk.nii.gz", label)
+    slicer_ply(folder / "v5.ply", verts, faces)
+    lines += ["[[instances]]", 'name = "v5"', 'mesh = "v5.ply"', ""]
+    path = folder / "project.toml"
+    path.write_text("\n".join(["[template]", 'instance = "v4_0"', ""] + lines))
+    return path
+
+
 def verse_slicer_meshes(folder: Path, verse_file: Path, labels: dict, landmark_dir: Path, *, fmt: str = "ply",
                         landmarks: str = "scalismo") -> Path:
     """VerSe vertebrae as 3D Slicer exports them: each label's surface (marching cubes in
     world RAS mm, written in LPS with the statement) and its landmarks (``"scalismo"``: a JSON
     list in the mesh's LPS frame; ``"slicer"``: the .fcsv as given). Returns ``project.toml``
     with ``mesh =`` and ``landmarks =`` and nothing else."""
-    import nibabel as nib
-    from skimage.measure import marching_cubes
 
     from ssm_addon.formats.landmarks import read_landmarks
 
     folder.mkdir(parents=True, exist_ok=True)
-    img = nib.load(str(verse_file))
-    data = np.asarray(img.dataobj)
     writer = {"ply": slicer_ply, "stl": slicer_stl, "obj": slicer_obj}[fmt]
     lines = []
     for name, label in labels.items():
-        mask = np.pad(data == label, 1)
-        verts, faces, _n, _v = marching_cubes(mask.astype(np.float32), 0.5)
-        verts = (verts - 1.0) @ img.affine[:3, :3].T + img.affine[:3, 3]
-        if np.linalg.det(img.affine[:3, :3]) < 0:
-            faces = faces[:, ::-1]
+        verts, faces, _voxels = label_surface(verse_file, label)
         writer(folder / f"{name}.{fmt}", verts, faces)
         given = read_landmarks(landmark_dir / f"{name}.fcsv")  # RAS
         if landmarks == "scalismo":

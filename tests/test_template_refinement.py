@@ -88,3 +88,74 @@ def test_cut_off_places_lie_on_the_template_where_the_mesh_is_far(tmp_path):
     half = Template(points_object=v / 2.0, faces=f, curvature=np.zeros(len(v)), frame=frame)
     _p, factors, _c = cut_off_places(study, coated, template, ["a"], coated_from=half, frames={"a": frame})
     np.testing.assert_allclose(factors, 0.5)
+
+
+def _result(findings, distances, **product):
+    from ssm_addon.pipeline.study import StageResult
+
+    return StageResult("coating", {"coatings": {}, "input_distances": distances, **product}, tuple(findings))
+
+
+def _cut(name, far_mm, count, share, lost=0):
+    from ssm_addon.model.quality import Finding
+
+    beyond = {"mm": 3.0, "count": count, "share": share, "voxels": {"count": lost, "spacing_mm": 1.0}}
+    return (Finding(name, "input_surface", f"{name} cut off", far_mm, 3.0),
+            {"from_input": {"max_mm": far_mm, "mean_mm": 0.5, "beyond": beyond}})
+
+
+def test_only_parts_the_coating_cut_off_ask_for_a_denser_template():
+    """A few far vertices the coating lost: refine. All of them lost by the import's voxels (a
+    finer spacing mends that), or a tenth of the mesh and more (a wrong coating or a gate set too
+    tight): not."""
+    from ssm_addon.pipeline.template_refinement import CUT_OFF_SHARE, cut_off_instances
+
+    cases = {"tip": _cut("tip", 3.6, 13, 0.0004), "voxels": _cut("voxels", 3.4, 5, 0.0002, lost=5),
+             "most": _cut("most", 9.0, 6000, CUT_OFF_SHARE + 0.01), "near": _cut("near", 3.1, 3, 0.0001, lost=1)}
+    result = _result([f for f, _d in cases.values()], {n: d for n, (_f, d) in cases.items()})
+    assert cut_off_instances(result) == ["tip", "near"]
+
+
+@pytest.mark.parametrize("second", ["better", "worse", "other-finding", "cancelled"])
+def test_the_second_coating_is_kept_only_when_fewer_meshes_are_cut_off(monkeypatch, second):
+    """The coatings with the refined template replace the first only with fewer ``input_surface``
+    findings and no more findings of other gates; Esc during them keeps the first."""
+    import dataclasses
+
+    from ssm_addon.base.errors import Cancelled
+    from ssm_addon.model.quality import Finding
+    from ssm_addon.pipeline import template_refinement as R
+    from ssm_addon.pipeline.study import Study
+    from ssm_addon.template.template import Template
+
+    frame = ObjectFrame(np.zeros(3), np.eye(3))
+    built = Template(points_object=np.eye(3), faces=np.array([[0, 1, 2]]), curvature=np.zeros(3), frame=frame,
+                     params={})
+    refined = dataclasses.replace(built, points_object=2 * np.eye(3))
+    monkeypatch.setattr(R, "cut_off_places", lambda *a, **k: (np.ones((2, 3)), np.full(2, 0.6), {"a": 2}))
+    monkeypatch.setattr(R, "make_template", lambda study, **k: refined)
+    study = Study(instances=[], template_instance="t", template=built, volumes={"t": None})
+    finding, distance = _cut("a", 3.6, 2, 0.001)
+    first = _result([finding], {"a": distance})
+    near = {"from_input": {"max_mm": 2.5, "mean_mm": 0.5}}
+    seconds = {"better": _result([], {"a": near}), "worse": _result([finding], {"a": distance}),
+               "other-finding": _result([Finding("a", "folds", "folded", 2.0, 0.0)], {"a": near})}
+    seen = []
+
+    def coat(s):
+        seen.append(s.template)
+        if second == "cancelled":
+            raise Cancelled("Esc")
+        return seconds[second]
+
+    lines = []
+    out = R.with_template_refined(study, first, coat, log=lines.append)
+    assert seen == [refined]  # the second coating had the refined template
+    if second == "better":
+        assert out.product["template"].params["refined_at"]["input_surface_findings"] == [1, 0]
+        assert out.product["template"].points_object is not None and not out.findings
+        assert out.summary[-1].endswith("kept") and "1 → 0" in out.summary[-1]
+    else:
+        assert out.findings == first.findings and "template" not in out.product
+        assert out.summary[-1].endswith("the first coatings kept")
+        assert ("cancelled" in out.summary[-1]) == (second == "cancelled")

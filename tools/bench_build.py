@@ -20,6 +20,9 @@ Cases, each run as ``python -m ssm_addon build`` in a fresh process (``--cache o
 * ``knee30-femur``, ``knee30-tibia``, ``knee30-patella`` (and ``…-model``): each bone of ``knee30``
   (30 meshes) the same way;
 * ``dense-truth``: all eight of the above;
+* ``lumbar-L1`` … ``lumbar-L5``: one lumbar level of two subjects as 3D Slicer meshes (verse004's
+  and three known deformations of it with Scalismo landmarks, verse005's without: the model method;
+  ``tests/foreign_data.py``), when verse004 and verse005 are present;
 * ``joint``: the joint model of knee30's femur and tibia (30 subjects, 12 landmarks per bone;
   ``tools/eval_joint.py``'s project).
 
@@ -126,7 +129,7 @@ def mesh_set_project(folder: Path, data: Path, pattern: str, method: str, landma
 
 def make_cases(tmp: Path, names, n: int, template_choice: str | None = None) -> dict:
     """``{case: project file}`` of the cases asked for whose data are present."""
-    from conftest import VERSE_DIR, VERSE_FILE, shared_data_dir
+    from conftest import VERSE_DIR, VERSE_FILE, VERSE_LABELS, shared_data_dir
 
     from ssm_addon.cli.demo import make_demo_population
 
@@ -144,6 +147,14 @@ def make_cases(tmp: Path, names, n: int, template_choice: str | None = None) -> 
             from test_build_verse import write_verse_project
 
             cases[name] = write_verse_project(tmp, VERSE_DIR)
+        elif name.startswith("lumbar-") and name.removeprefix("lumbar-") in VERSE_LABELS:
+            level = name.removeprefix("lumbar-")
+            if not (shared_data_dir() / "verse005").is_dir() or not VERSE_FILE.exists():
+                print(f"{name}: skipped (verse004 or verse005 not found in {shared_data_dir()})")
+                continue
+            from foreign_data import two_subject_level
+
+            cases[name] = two_subject_level(tmp / name, shared_data_dir(), level, VERSE_LABELS[level])
         elif name == "joint":
             if not (shared_data_dir() / "knee30").is_dir():
                 print(f"joint: skipped ({shared_data_dir() / 'knee30'} not found)")
@@ -160,7 +171,7 @@ def make_cases(tmp: Path, names, n: int, template_choice: str | None = None) -> 
             cases[name] = mesh_set_project(tmp / name, data, pattern, "model" if name.endswith("-model") else "landmarks",
                                            template_choice=template_choice)
         else:
-            raise SystemExit(f"unknown case {name!r} (demo, verse, joint, dense-truth, or a set of "
+            raise SystemExit(f"unknown case {name!r} (demo, verse, lumbar-L1 … lumbar-L5, joint, dense-truth, or a set of "
                              f"{', '.join(MESH_SETS)} with or without -model)")
     return cases
 
@@ -221,7 +232,7 @@ def main(argv=None) -> int:
     parser.add_argument("--n", type=int, default=31, help="demo instances (paper: 31)")
     parser.add_argument("--blend", action="store_true", help="also write model.blend and modes.png (needs bpy)")
     parser.add_argument("--cases", default="demo,verse",
-                        help="comma-separated: demo, verse, joint, dense-truth, femur10, knee30-femur, knee30-tibia, "
+                        help="comma-separated: demo, verse, lumbar-L1 … lumbar-L5, joint, dense-truth, femur10, knee30-femur, knee30-tibia, "
                              "knee30-patella (each also with -model)")
     parser.add_argument("--against", metavar="REV", help="an earlier commit to pair every case against")
     parser.add_argument("--runs", type=int, default=3, help="runs of each case and side with --against or --ratio "
