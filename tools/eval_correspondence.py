@@ -391,6 +391,9 @@ def run_study(specs, template_name: str, method: str, iterations: int, jobs: int
         run(study, stages=("optimisation",), jobs=jobs, log=say)
     if not study.template.is_mean_shape:  # the template's own points (another instance's, when the medoid's)
         template_points = study.template.points_object.copy()
+    elif len(template_points) != len(study.template.points_object):  # the model method's template refined where
+        # coatings cut off parts ([template] refine_where_cut_off): its instance's coating stands for its points
+        template_points = study.coatings[study.template_instance].points_object.copy()
     return study, template_points, time.perf_counter() - t0
 
 
