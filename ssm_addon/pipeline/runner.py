@@ -112,7 +112,8 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
                                           volumes={**study.volumes, **streamed.product["volumes"]})
         applied(with_template_refined(
             with_volume, streamed,
-            lambda s: stream_instances(s, executor, cache=cache, template=s.template, cancelled=cancelled, log=say),
+            lambda s: stream_instances(s, executor, cache=cache, template=s.template, cancelled=cancelled, log=say,
+                                       progress=sub_progress(progress, 0.0, 0.8)),
             log=say, cancelled=cancelled, cache=cache, cache_key=template_key(study) if cache is not None else None))
         stages = [s for s in stages if s not in ("import", "template", "coating")]
     if "import" in stages:

@@ -119,8 +119,8 @@ def stream_instances(study: Study, executor, *, cache=None, progress: ProgressFn
     grows with n·N, not with the volumes. With ``cache`` (:class:`~ssm_addon.pipeline.cache.BuildCache`)
     the template and every finished coating are stored at once and taken from there on
     a rerun. ``template``: coat this one (the template refined across the population), not the
-    one its instance and parameters give. ``study`` is not changed: the result (stage ``"coating"``) carries the template,
-    the coatings, frames and starts, the import and coating findings, the three stages'
+    one its instance and parameters give. ``study`` is not changed: the result (stage
+    ``"coating"``) carries the template, the coatings, frames and starts, the import and coating findings, the three stages'
     timings and the counts ``streamed = {"cached": k, "computed": m}``.
     """
     say = log or (lambda _m: None)
