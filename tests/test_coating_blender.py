@@ -206,3 +206,38 @@ def test_coat_template_refines_the_template_where_the_build_does(bpy_clean, tmp_
         np.testing.assert_allclose(points, headless.study.coatings[name].points_object, atol=1e-9, err_msg=name)
     assert not [f for f in scene_findings(bpy.context) if f.gate == "input_surface"]
     assert not [f for f in headless.study.findings if f.gate == "input_surface"]
+
+
+@pytest.mark.slow
+def test_coat_template_refines_the_model_methods_template_as_the_build_does(bpy_clean, tmp_path, verse_dir):
+    """L4 of two subjects as 3D Slicer meshes, verse005's without landmarks (the model method supplies
+    its correspondence): Coat Template refines the template where verse005's processes were cut
+    off, as the headless build does; the scene's template and coatings (after Optimise
+    Correspondence) equal the build's."""
+    if not (verse_dir.parent / "verse005").is_dir():
+        pytest.skip(f"verse005 not found in {verse_dir.parent}")
+    from conftest import VERSE_LABELS
+    from foreign_data import two_subject_level
+    from ssm.operators import bridge
+    from ssm.operators.scene import find_template, scene_findings, template_from_object
+
+    from ssm_addon.pipeline.project import read_project
+    from ssm_addon.pipeline.project_build import build
+
+    bpy = bpy_clean
+    project = two_subject_level(tmp_path / "L4", verse_dir.parent, "L4", VERSE_LABELS["L4"])
+    headless = build(read_project(project), tmp_path / "out", log=None)
+    assert "v5" in headless.study.template.params["refined_at"]["instances"]
+    assert bpy.ops.ssm.open_project(filepath=str(project)) == {"FINISHED"}
+    assert bpy.ops.ssm.build_template() == {"FINISHED"}
+    assert bpy.ops.ssm.coat_template() == {"FINISHED"}
+    template = template_from_object(find_template(bpy.context))
+    assert template.params["refined_at"] == headless.study.template.params["refined_at"]
+    np.testing.assert_array_equal(template.faces, headless.study.template.faces)
+    assert bpy.ops.ssm.optimise_correspondence() == {"FINISHED"}
+    coated = {o.ssm.instance.name: bridge.load_arrays(o, "ssm_coating")["points_object"]
+              for o in bpy.data.objects if o.ssm.role == "COATED"}
+    assert set(coated) == set(headless.study.names)
+    for name, points in coated.items():
+        np.testing.assert_allclose(points, headless.study.coatings[name].points_object, atol=1e-9, err_msg=name)
+    assert not [f for f in scene_findings(bpy.context) if f.gate == "input_surface"]
