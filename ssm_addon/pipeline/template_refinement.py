@@ -67,9 +67,8 @@ def with_template_refined(study: Study, first: StageResult, coat: Callable[[Stud
     coating as ``first``'s, on a copy of ``study`` with that template and no coatings) runs again.
     Its result is kept when it has fewer ``input_surface`` findings and no more findings of other
     gates (a refinement that only brings a mesh nearer, its finding left, is not worth the change
-    of the template); it then carries the refined template (the model
-    method's mean shape of it) with ``params["refined_at"]``: the instances, places and point
-    counts. Esc during the second coating keeps ``first``.
+    of the template); it then carries the refined template (the model method's mean shape of it) with ``params["refined_at"]``: the instances, places and point
+    counts. Esc during the refinement (the template or the second coating) keeps ``first``.
 
     ``cache`` (:class:`~ssm_addon.pipeline.cache.BuildCache`) with ``cache_key`` (the unrefined
     template's key): the refined template is stored and taken from there.
@@ -102,23 +101,23 @@ def with_template_refined(study: Study, first: StageResult, coat: Callable[[Stud
         f"{len(places):,} places (radii × {float(factors.min()):.2f}–{float(factors.max()):.2f})")
     report(progress, 0.0, f"template: again, denser where {len(counts)} coating(s) cut off parts")
     key = digest("refined template", cache_key, places, factors) if cache is not None and cache_key else None
-    refined = cache.get_template(key) if key is not None else None
-    if refined is None:
-        if instance not in again.volumes:  # the streamed build took the template from its cache
-            tp = study.params.template
-            again.volumes[instance] = import_instance(study.instance(instance), spacing_mm=tp.spacing_mm,
-                                                      frame_method=tp.frame, space=tp.space, cancelled=cancelled)
-        refined = make_template(again, cancelled=cancelled, denser_at=(places, factors))
-        if key is not None:
-            cache.put_template(key, refined)
-    t_template = time.perf_counter() - t0
-    n0, n1 = len(built.points_object), len(refined.points_object)
-    again.template = refined
     try:
+        refined = cache.get_template(key) if key is not None else None
+        if refined is None:
+            if instance not in again.volumes:  # the streamed build took the template from its cache
+                tp = study.params.template
+                again.volumes[instance] = import_instance(study.instance(instance), spacing_mm=tp.spacing_mm,
+                                                          frame_method=tp.frame, space=tp.space, cancelled=cancelled)
+            refined = make_template(again, cancelled=cancelled, denser_at=(places, factors))
+            if key is not None:
+                cache.put_template(key, refined)
+        t_template = time.perf_counter() - t0
+        again.template = refined
         second = coat(again)
     except Cancelled:
         return dataclasses.replace(first, summary=tuple(first.summary) + (
-            "template: the coating with the refined template was cancelled: the first coatings kept",))
+            "template: the refinement was cancelled: the first coatings kept",))
+    n0, n1 = len(built.points_object), len(refined.points_object)
     before, after = _worst(first), _worst(second)
     kept = after[0] < before[0] and after[2] <= before[2]
     line = (f"template: refined where {len(counts)} coating(s) cut off parts, {n0:,} → {n1:,} points in "
