@@ -170,6 +170,16 @@ def bridge_centre(obj) -> np.ndarray:
     return bridge.mesh_vertices(obj.data).mean(axis=0)
 
 
+def _coatings_equal(bpy, study):
+    """The scene's coated points are the headless study's, to 1e-9 mm, instance by instance."""
+    from ssm.operators import bridge
+
+    coated = {o.ssm.instance.name: bridge.load_arrays(o, "ssm_coating")["points_object"]
+              for o in bpy.data.objects if o.ssm.role == "COATED"}
+    assert set(coated) == set(study.names)
+    for name, points in coated.items():
+        np.testing.assert_allclose(points, study.coatings[name].points_object, atol=1e-9, err_msg=name)
+
 @pytest.mark.slow
 def test_coat_template_refines_the_template_where_the_build_does(bpy_clean, tmp_path):
     """Spiked ellipsoids whose spikes are longer than the template instance's (as meshes): Coat
@@ -197,13 +207,7 @@ def test_coat_template_refines_the_template_where_the_build_does(bpy_clean, tmp_
     np.testing.assert_allclose(template.points_object, headless.study.template.points_object, atol=1e-9)
     np.testing.assert_array_equal(template.faces, headless.study.template.faces)
     assert bpy.ops.ssm.optimise_correspondence() == {"FINISHED"}  # the build's step after the coating
-    from ssm.operators import bridge
-
-    coated = {o.ssm.instance.name: bridge.load_arrays(o, "ssm_coating")["points_object"]
-              for o in bpy.data.objects if o.ssm.role == "COATED"}
-    assert set(coated) == set(headless.study.names)
-    for name, points in coated.items():
-        np.testing.assert_allclose(points, headless.study.coatings[name].points_object, atol=1e-9, err_msg=name)
+    _coatings_equal(bpy, headless.study)
     assert not [f for f in scene_findings(bpy.context) if f.gate == "input_surface"]
     assert not [f for f in headless.study.findings if f.gate == "input_surface"]
 
@@ -218,7 +222,6 @@ def test_coat_template_refines_the_model_methods_template_as_the_build_does(bpy_
         pytest.skip(f"verse005 not found in {verse_dir.parent}")
     from conftest import VERSE_LABELS
     from foreign_data import two_subject_level
-    from ssm.operators import bridge
     from ssm.operators.scene import find_template, scene_findings, template_from_object
 
     from ssm_addon.pipeline.project import read_project
@@ -235,9 +238,5 @@ def test_coat_template_refines_the_model_methods_template_as_the_build_does(bpy_
     assert template.params["refined_at"] == headless.study.template.params["refined_at"]
     np.testing.assert_array_equal(template.faces, headless.study.template.faces)
     assert bpy.ops.ssm.optimise_correspondence() == {"FINISHED"}
-    coated = {o.ssm.instance.name: bridge.load_arrays(o, "ssm_coating")["points_object"]
-              for o in bpy.data.objects if o.ssm.role == "COATED"}
-    assert set(coated) == set(headless.study.names)
-    for name, points in coated.items():
-        np.testing.assert_allclose(points, headless.study.coatings[name].points_object, atol=1e-9, err_msg=name)
+    _coatings_equal(bpy, headless.study)
     assert not [f for f in scene_findings(bpy.context) if f.gate == "input_surface"]
