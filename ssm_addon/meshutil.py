@@ -513,11 +513,12 @@ def two_way_distances(points: np.ndarray, faces: np.ndarray, other_points: np.nd
     :func:`distance_figures`. With ``beyond_mm``, ``"from_other"`` also holds ``"beyond"``:
     how many of the second's vertices lie farther than that (``count``, ``share``) and where
     (``centre_offset_mm``: their centre minus the second mesh's vertex centre, in the frame);
-    ``return_far``: also the (M,) bool mask of those vertices and the index of each one's
-    nearest triangle of the first mesh, as ``(figures, mask, triangles)``.
+    ``return_far``: also the (M,) bool mask of those vertices and each one's nearest point of the
+    first mesh (:class:`MeshLocation`: triangle and barycentric weights), as ``(figures, mask,
+    location)``.
     """
     _c, to_other, _t, _b = MeshLocator(other_points, other_faces).query(points, k=12)
-    _c, from_other, nearest, _b = MeshLocator(points, faces).query(other_points, k=12)
+    _c, from_other, nearest, bary = MeshLocator(points, faces).query(other_points, k=12)
     out = {"to_other": distance_figures(to_other), "from_other": distance_figures(from_other)}
     if beyond_mm is not None:
         far = from_other > beyond_mm
@@ -528,7 +529,7 @@ def two_way_distances(points: np.ndarray, faces: np.ndarray, other_points: np.nd
                                        "centre_offset_mm": [float(x) for x in centre]}
     if return_far:
         far = from_other > beyond_mm if beyond_mm is not None else np.zeros(len(from_other), bool)
-        return out, far, nearest[far]
+        return out, far, MeshLocation(nearest[far], bary[far])
     return out
 
 

@@ -59,15 +59,16 @@ def test_a_process_longer_than_the_template_instances_is_kept_by_refining_the_te
 
 
 def test_cut_off_places_lie_on_the_template_where_the_mesh_is_far(tmp_path):
-    """:func:`cut_off_places`: every far vertex of the mesh (beyond ``max_input_distance_mm``) is carried
-    to the template through its nearest coated triangle: on a coating that is the template itself
+    """:func:`cut_off_places`: every far vertex of the mesh (beyond ``max_input_distance_mm``, as the
+    coating stage's :func:`input_distances` finds them) is carried to the template through its
+    nearest coated triangle: on a coating that is the template itself
     (in an object frame 50 mm off the world's origin), the places lie on the template's sphere
     under the mesh's bulge. The factor is 0.6 where the coating keeps the template's size and 1/2
     where its triangles are twice as long."""
     from conftest import icosphere
 
     from ssm_addon.formats.meshes import write_ply
-    from ssm_addon.pipeline.stages import cut_off_places
+    from ssm_addon.pipeline.stages import cut_off_places, input_distances
     from ssm_addon.pipeline.study import Study
     from ssm_addon.template.template import Template
 
@@ -80,13 +81,14 @@ def test_cut_off_places_lie_on_the_template_where_the_mesh_is_far(tmp_path):
     template = Template(points_object=v, faces=f, curvature=np.zeros(len(v)), frame=frame)
     coated = {"a": CoatingResult(points_object=v - [50.0, 0.0, 0.0], warped_points_object=v, fit=None)}
     far = np.linalg.norm(mesh - v, axis=1) > study.params.quality.max_input_distance_mm
-    places, factors, counts = cut_off_places(study, coated, template, ["a"], frames={"a": frame})
+    _figures, cut_off = input_distances(study, coated, template, {"a": frame})  # the coating stage's measure
+    places, factors, counts = cut_off_places(coated, cut_off, template, ["a"])
     assert counts == {"a": int(far.sum())} and len(places) == far.sum() > 0
     assert np.all(np.linalg.norm(places, axis=1) <= 20.0 + 1e-9) and np.all(places[:, 0] > 15.0)
     np.testing.assert_allclose(factors, 0.6)
     # the coating twice the template's size: the template points halved, the same coating
     half = Template(points_object=v / 2.0, faces=f, curvature=np.zeros(len(v)), frame=frame)
-    _p, factors, _c = cut_off_places(study, coated, template, ["a"], coated_from=half, frames={"a": frame})
+    _p, factors, _c = cut_off_places(coated, cut_off, template, ["a"], coated_from=half)
     np.testing.assert_allclose(factors, 0.5)
 
 

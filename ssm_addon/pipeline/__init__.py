@@ -17,7 +17,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "runner": ("coating_stage", "run"),
     "optimisation": ("hold_weight", "optimisation_result", "optimisation_stage"),
     "appearance": ("appearance_stage",),
-    "stages": ("coat_from_frames", "coat_instances", "coating_result", "cut_off_places", "evaluate_model", "import_instances", "import_result", "import_stage", "instance_mesh", "label_map_once", "make_model", "make_template", "metrics_stage", "model_stage", "self_check", "template_stage"),
+    "stages": ("coat_from_frames", "coat_instances", "coating_result", "cut_off_places", "evaluate_model", "import_instances", "import_result", "import_stage", "label_map_once", "make_model", "make_template", "metrics_stage", "model_stage", "self_check", "template_stage"),
     "streaming": ("InstanceJob", "coat_from_source", "stream_instances", "template_key"),
     "template_refinement": ("CUT_OFF_SHARE", "cut_off_instances", "with_template_refined"),
     "study": ("STAGES", "input_coordinates", "StageResult", "Study", "apply_stage", "carried_landmarks", "common_landmark_names", "instance_sources", "landmark_distances", "merge_findings", "study_parameters", "template_landmark_locations"),

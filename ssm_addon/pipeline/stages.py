@@ -21,7 +21,7 @@ from ..formats.label_maps import read_label_map
 from ..formats.meshes import read_mesh
 from ..instances.importing import InstanceSpec, import_instance, mesh_coordinates
 from ..instances.volume import ObjectVolume
-from ..meshutil import Mesh, MeshLocator, genus, longest_edges, marching_cubes, two_way_distances
+from ..meshutil import Mesh, MeshLocation, MeshLocator, genus, longest_edges, marching_cubes, two_way_distances
 from ..model import metrics
 from ..model.metrics import ModelMetrics
 from ..model.pca import ShapeModel, build_model
@@ -47,7 +47,7 @@ from .study import (
     template_landmark_locations,
 )
 
-__all__ = ["coat_from_frames", "coat_instances", "coating_result", "cut_off_places", "evaluate_model", "import_instances", "import_result", "import_stage", "instance_mesh", "label_map_once", "make_model", "make_template", "metrics_stage", "model_stage", "self_check", "template_stage"]
+__all__ = ["coat_from_frames", "coat_instances", "coating_result", "cut_off_places", "evaluate_model", "import_instances", "import_result", "import_stage", "label_map_once", "make_model", "make_template", "metrics_stage", "model_stage", "self_check", "template_stage"]
 
 
 _LABEL_MAP_MEMO: dict = {}
@@ -315,22 +315,16 @@ def template_density(template: Template, params) -> str:
     return back
 
 
-def instance_mesh(spec: InstanceSpec, space: str) -> tuple[np.ndarray, np.ndarray]:
-    """An instance's own mesh file as the import reads it (world mm, RAS; ``space``: ``[template] space``)."""
-    convention, _note = mesh_coordinates(spec.mesh_path, spec.given_space(space))
-    return read_mesh(spec.mesh_path, space=convention)
-
-
 def _input_distance_job(args):
-    points_world, faces, beyond_mm, spec, import_args, template_points = args
-    vertices, mesh_faces = instance_mesh(spec, import_args["space"])
-    d, far, nearest = two_way_distances(points_world, faces, vertices, mesh_faces, beyond_mm=beyond_mm,
-                                        return_far=True)
+    path, convention, points_world, faces, beyond_mm, spec, import_args, template_points = args
+    vertices, mesh_faces = read_mesh(path, space=convention)
+    d, far, location = two_way_distances(points_world, faces, vertices, mesh_faces, beyond_mm=beyond_mm,
+                                         return_far=True)
     beyond = d["from_other"].get("beyond")
     if beyond and beyond["count"]:
         beyond["voxels"] = beyond_the_voxels(vertices[far], points_world, faces, spec, import_args)
-        beyond["stretch"] = coating_stretch(nearest, points_world, faces, template_points)
-    return {"to_input": d["to_other"], "from_input": d["from_other"]}
+        beyond["stretch"] = coating_stretch(location.triangles, points_world, faces, template_points)
+    return {"to_input": d["to_other"], "from_input": d["from_other"]}, location
 
 
 def coating_stretch(triangles: np.ndarray, points: np.ndarray, faces: np.ndarray,
@@ -366,21 +360,20 @@ def beyond_the_voxels(far: np.ndarray, points_world: np.ndarray, faces: np.ndarr
             "max_mm": float(from_voxels.max()) if len(far) else 0.0}
 
 
-def cut_off_places(study: Study, coated: dict[str, CoatingResult], template: Template, names: Sequence[str], *,
-                   coated_from: Template | None = None, frames: dict | None = None,
+def cut_off_places(coated: dict[str, CoatingResult], cut_off: dict[str, MeshLocation], template: Template,
+                   names: Sequence[str], *, coated_from: Template | None = None,
                    ) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
-    """Where the coatings of ``names`` (instances given as meshes) cut off parts of their own
-    meshes, as places of the template, and how much denser it must be there.
+    """Where the coatings of ``names`` cut off parts of their own meshes, as places of the template,
+    and how much denser it must be there.
 
-    Each vertex of an instance's mesh farther than ``[quality] max_input_distance_mm`` from its
-    coating (world mm, the file read as the import reads it) is taken to its nearest point of the
-    coating, a triangle and barycentric weights, and that point to ``template`` (the same
-    triangles: object mm of the template's instance). The factor on the template's radii there
-    is :data:`~ssm_addon.template.template.TOLERANCE_SHRINK`, or less where the coating's
-    triangles around that one are more than 1/``TOLERANCE_SHRINK`` times as long as
-    ``coated_from``'s (the template the coatings were made from, default ``template``): the
-    inverse of that stretch, so the coated triangles there come out no longer than the template's
-    are now.
+    ``cut_off``: each instance's mesh vertices beyond ``[quality] max_input_distance_mm``, as their
+    nearest points of its coating (:func:`input_distances`' ``cut_off``; a triangle and barycentric
+    weights), which are the same places of ``template`` (the same triangles: object mm of the
+    template's instance). The factor on the template's radii there is
+    :data:`~ssm_addon.template.template.TOLERANCE_SHRINK`, or less where the coating's triangles
+    around that one are more than 1/``TOLERANCE_SHRINK`` times as long as ``coated_from``'s (the
+    template the coatings were made from, default ``template``): the inverse of that stretch, so
+    the coated triangles there come out no longer than the template's are now.
 
     Returns
     -------
@@ -388,36 +381,28 @@ def cut_off_places(study: Study, coated: dict[str, CoatingResult], template: Tem
     factors : (K,) in (0, TOLERANCE_SHRINK]
     counts : dict name -> the instance's vertices taken
     """
-    frames = {**study.frames, **(frames or {})}
     faces = np.asarray(template.faces)
     reference = longest_edges(np.asarray((coated_from or template).points_object, float), faces)
-    beyond = float(study.params.quality.max_input_distance_mm)
     places, factors, counts = [], [], {}
     for name in names:
-        spec = study.instance(name)
-        if spec.mesh_path is None or name not in coated or name not in frames:
+        location = cut_off.get(name)
+        if location is None or name not in coated or not len(location.triangles):
             continue
-        vertices, _faces = instance_mesh(spec, study.params.template.space)
-        points = frames[name].to_world(coated[name].points_object)
-        _c, distance, triangles, bary = MeshLocator(points, faces).query(vertices, k=12)
-        far = distance > beyond
-        if not far.any():
-            continue
-        ratio = longest_edges(points, faces) / np.maximum(reference, 1e-12)
-        at_vertex = np.zeros(len(points))
+        ratio = longest_edges(coated[name].points_object, faces) / np.maximum(reference, 1e-12)
+        at_vertex = np.zeros(len(coated[name].points_object))
         np.maximum.at(at_vertex, faces.ravel(), np.repeat(ratio, 3))  # the largest ratio of a vertex's triangles
-        corners = faces[triangles[far]]
-        stretch = at_vertex[corners].max(axis=1)  # over the triangles sharing a corner with the nearest one
-        places.append(np.einsum("kj,kjd->kd", bary[far], np.asarray(template.points_object, float)[corners]))
+        stretch = at_vertex[faces[location.triangles]].max(axis=1)  # over the triangles sharing a corner
+        places.append(location.evaluate(template.points_object, faces))
         factors.append(np.minimum(TOLERANCE_SHRINK, 1.0 / np.maximum(stretch, 1e-12)))
-        counts[name] = int(far.sum())
+        counts[name] = int(len(location.triangles))
     if not places:
         return np.zeros((0, 3)), np.zeros(0), counts
     return np.concatenate(places), np.concatenate(factors), counts
 
 
 def input_distances(study: Study, coated: dict[str, CoatingResult], template: Template,
-                    frames: dict | None = None, *, executor=None, cancelled: CancelledFn = None) -> dict[str, dict]:
+                    frames: dict | None = None, *, executor=None, cancelled: CancelledFn = None,
+                    ) -> tuple[dict[str, dict], dict[str, MeshLocation]]:
     """For every coated instance given as a mesh file: the coating against the user's own mesh
     (world mm, the file read as the import reads it), both ways (:func:`~ssm_addon.meshutil.two_way_distances`:
     ``to_input`` from the coated points to the mesh, ``from_input`` from the mesh's vertices to
@@ -426,6 +411,8 @@ def input_distances(study: Study, coated: dict[str, CoatingResult], template: Te
     ``beyond["voxels"]``: how many of them are far mostly because the import's spacing, not
     the coating, lost the part, :func:`beyond_the_voxels`; ``beyond["stretch"]``: how many times as
     long as the template's (``template``) the coating's triangles are there, :func:`coating_stretch`).
+    Second, ``cut_off``: per instance with such vertices, their nearest points of its coating
+    (:class:`~ssm_addon.meshutil.MeshLocation`), where the template's refinement makes it denser.
 
     ``executor``: where the instances are measured (the build's workers; default this process).
     """
@@ -436,16 +423,18 @@ def input_distances(study: Study, coated: dict[str, CoatingResult], template: Te
         spec = study.instance(name)
         if spec.mesh_path is None or name not in frames:
             continue
+        convention, _note = mesh_coordinates(spec.mesh_path, spec.given_space(tp.space))
         names.append(name)
-        args.append((frames[name].to_world(c.points_object), np.asarray(template.faces),
+        args.append((spec.mesh_path, convention, frames[name].to_world(c.points_object), np.asarray(template.faces),
                      float(study.params.quality.max_input_distance_mm), spec,
                      {"spacing_mm": tp.spacing_mm, "frame_method": tp.frame, "space": tp.space},
                      np.asarray(template.points_object)))
     if not args:
-        return {}
+        return {}, {}
     with executor_or_local(executor, 1) as pool:
         found = pool.map(_input_distance_job, args, labels=names, verb="measured against its mesh", cancelled=cancelled)
-    return dict(zip(names, found))
+    return ({n: figures for n, (figures, _l) in zip(names, found)},
+            {n: location for n, (_f, location) in zip(names, found) if len(location.triangles)})
 
 
 def coating_result(study: Study, coated: dict[str, CoatingResult], starts: dict[str, str], seconds: float, *,
@@ -464,11 +453,12 @@ def coating_result(study: Study, coated: dict[str, CoatingResult], starts: dict[
     """
     qp = study.params.quality
     findings = tuple(f for n, c in coated.items() for f in check_coating(n, c.fit, qp))
-    distances = input_distances(study, coated, template if template is not None else study.template, frames,
+    distances, cut_off = input_distances(study, coated, template if template is not None else study.template, frames,
                                 executor=executor, cancelled=cancelled)
     findings += tuple(f for n, d in distances.items() for f in check_input_surface(n, d, qp, study.params.template))
     findings += tuple(extra_findings)
-    product = {"coatings": dict(coated), "coating_start": dict(starts), "input_distances": distances}
+    product = {"coatings": dict(coated), "coating_start": dict(starts), "input_distances": distances,
+               "cut_off": cut_off}
     if template is not None:
         product["template"] = template
     if rounds:

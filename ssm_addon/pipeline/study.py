@@ -110,6 +110,10 @@ class Study:
     input_distances : dict name -> dict
         Instances given as meshes: their coating against the mesh, both ways (mm:
         ``to_input``, ``from_input``, each mean, p95 and max).
+    cut_off : dict name -> MeshLocation
+        Of those, the mesh's vertices beyond ``[quality] max_input_distance_mm``, each as its
+        nearest point of the coating (a triangle and barycentric weights: the same places on the
+        template); what the template's refinement reads (not saved).
     fallbacks : list of Finding
         Optional refinements of the running stage that failed and fell back to what the study
         had (the medoid's template, the model's starts, the rounds); the stage reports them.
@@ -134,6 +138,7 @@ class Study:
     streamed: dict = field(default_factory=dict)
     fallbacks: list = field(default_factory=list)
     input_distances: dict = field(default_factory=dict)
+    cut_off: dict = field(default_factory=dict)
     optimisation: object | None = None
 
     def __post_init__(self):

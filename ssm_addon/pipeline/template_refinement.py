@@ -84,17 +84,17 @@ def with_template_refined(study: Study, first: StageResult, coat: Callable[[Stud
     # the places on the template built from the instance (the model method's coatings come from its
     # mean shape, with the same triangles; a template chosen from another instance: its mean shape)
     built = study.template if instance == study.template_instance and study.template is not None else coated_from
-    frames = {**study.frames, **product.get("frames", {})}
-    places, factors, counts = cut_off_places(study, product["coatings"], built, names, coated_from=coated_from,
-                                             frames=frames)
+    places, factors, counts = cut_off_places(product["coatings"], product.get("cut_off") or {}, built, names,
+                                             coated_from=coated_from)
     if not len(places):
         return first
     volumes = {**study.volumes, **product.get("volumes", {})}
     cp = study.params.correspondence
     params = study.params if instance == study.template_instance else dataclasses.replace(
         study.params, correspondence=dataclasses.replace(cp, template_choice="given"))
+    frames = {**study.frames, **product.get("frames", {})}
     again = dataclasses.replace(study, template_instance=instance, params=params, volumes=volumes, frames=frames,
-                                coatings={}, coating_start={}, correspondence_rounds=[], input_distances={},
+                                coatings={}, coating_start={}, correspondence_rounds=[], input_distances={}, cut_off={},
                                 findings=list(study.findings), timings_s={}, fallbacks=[])
     say(f"template: the coatings of {len(counts)} instance(s) cut off parts of their meshes "
         f"({', '.join(f'{n} {k:,} vertices' for n, k in counts.items())}); the template again, denser at "
