@@ -205,6 +205,69 @@ def test_a_template_too_coarse_for_a_thin_process_is_named(tmp_path):
                for f in named)
 
 
+def _hollow_ellipsoids(folder, radii, cavities):
+    """Ellipsoids as a segmentation tool exports them (marching cubes of a 0.5 mm mask, RAS PLY,
+    with the 6 extreme points as CSV landmarks); ``cavities``: per instance, balls (centre and
+    radius, mm) left out of the mask, which the tool writes as closed surfaces inside."""
+    from ssm_addon.meshutil import marching_cubes
+
+    h = 0.5
+    lines = []
+    for i, (r, holes) in enumerate(zip(radii, cavities)):
+        axes = [np.arange(-rk - 2.0, rk + 2.0 + h / 2, h) for rk in r]
+        x, y, z = np.meshgrid(*axes, indexing="ij")
+        mask = (x / r[0]) ** 2 + (y / r[1]) ** 2 + (z / r[2]) ** 2 <= 1.0
+        for centre, radius in holes:
+            mask &= (x - centre[0]) ** 2 + (y - centre[1]) ** 2 + (z - centre[2]) ** 2 > radius**2
+        v, f = marching_cubes(mask)
+        v = v * h + np.array([a[0] for a in axes])
+        name = f"e{i}"
+        write_ply(folder / f"{name}.ply", v, f, space="RAS")
+        tips = v[[np.argmax(v[:, 0]), np.argmin(v[:, 0]), np.argmax(v[:, 1]), np.argmin(v[:, 1]),
+                  np.argmax(v[:, 2]), np.argmin(v[:, 2])]]
+        (folder / f"{name}.csv").write_text("".join(f"{n},{a},{b},{c}\n" for n, (a, b, c) in zip("ABCDEF", tips)))
+        lines += ["[[instances]]", f'name = "{name}"', f'mesh = "{name}.ply"', f'landmarks = "{name}.csv"', ""]
+    (folder / "project.toml").write_text("\n".join(["[model]", "specificity_samples = 20", "", *lines]))
+    return folder / "project.toml"
+
+
+def test_the_cavities_a_segmentation_leaves_inside_a_mesh_are_not_its_surface(tmp_path):
+    """A segmentation's holes inside the object (voxels left out of a vertebral body) come out of
+    its marching cubes as small closed surfaces inside the mesh. The template fills cavities, so
+    the model holds the outer surface: the coating neither reaches for those walls (the surface it
+    follows is the outer one) nor is gated on them (the mesh is measured by its outer surface,
+    its cavities counted and said). The coatings are the same as those of the meshes without
+    the cavities, whose walls lie 4.5-7.5 mm under the coating."""
+    radii = ((24.0, 18.0, 14.0), (26.0, 17.0, 13.0), (23.0, 19.0, 15.0))
+    holes = ((), (((0.0, 0.0, 6.0), 1.5), ((8.0, 0.0, -5.0), 1.0)), (((-10.0, 4.0, 0.0), 1.5),))
+    results = {}
+    for label, cavities in (("hollow", holes), ("solid", ((), (), ()))):
+        (tmp_path / label).mkdir()
+        log = []
+        result = build(read_project(_hollow_ellipsoids(tmp_path / label, radii, cavities)), tmp_path / label / "out",
+                       log=log.append)
+        results[label] = (result, log)
+    hollow, log = results["hollow"]
+    solid, _ = results["solid"]
+    assert not [f for f in hollow.report["quality"]["findings"] if f["gate"] == "input_surface"]
+    measured = {n: hollow.report["instances"][n]["input_surface_mm"] for n in ("e0", "e1", "e2")}
+    assert "cavities" not in measured["e0"]
+    assert measured["e1"]["cavities"]["components"] == 2 and measured["e2"]["cavities"]["components"] == 1
+    assert measured["e1"]["cavities"]["vertices"] > 50, measured["e1"]
+    said = [line for line in log if "hold internal cavities" in line]
+    assert said and "e1 2" in said[0] and "e2 1" in said[0], log
+    for n in ("e1", "e2"):
+        assert measured[n]["from_input"]["max_mm"] < 1.5, measured[n]
+        alone = solid.report["instances"][n]["input_surface_mm"]["from_input"]
+        assert measured[n]["from_input"]["max_mm"] == pytest.approx(alone["max_mm"], abs=0.1)
+        # the same coating in the world, up to the object frame the cavity moves a little (0.006 and 0.02 mm)
+        a = hollow.study.frame(n).to_world(hollow.study.coatings[n].points_object)
+        b = solid.study.frame(n).to_world(solid.study.coatings[n].points_object)
+        assert np.abs(a - b).max() < 0.1, np.abs(a - b).max()  # 0.32 mm when the coating followed the walls
+    html = (tmp_path / "hollow" / "out" / "report.html").read_text()
+    assert "hold internal cavities" in html and "e1: 2" in html
+
+
 @pytest.mark.slow
 def test_knee30_bones_in_scanner_poses_build_the_model_of_the_data_set_poses(tmp_path):
     """Every tibia moved by its own random rigid transform (turns up to 180°, shifts up to 300 mm),

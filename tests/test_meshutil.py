@@ -108,3 +108,52 @@ def test_read_ply_rejects_a_non_ply_file(tmp_path):
     p.write_text("solid nothing\n")
     with pytest.raises(InputError, match="x.ply"):
         meshes.read_ply(p)
+
+
+def _shells(*parts):
+    """One mesh of several icospheres: (radius, centre, outward) each; faces reversed when inward."""
+    from conftest import icosphere
+
+    verts, faces = [], []
+    for radius, centre, outward in parts:
+        v, f = icosphere(radius, 3)
+        faces.append((f if outward else f[:, ::-1]) + sum(len(x) for x in verts))
+        verts.append(v + np.asarray(centre, float))
+    return np.vstack(verts), np.vstack(faces)
+
+
+def test_winding_number_is_one_inside_zero_outside_and_changes_sign_with_the_orientation():
+    v, f = _shells((10.0, (0, 0, 0), True))
+    inside = np.array([[0.0, 0, 0], [9.0, 0, 0], [0, -5.0, 5.0]])
+    outside = np.array([[11.0, 0, 0], [0, 40.0, 0], [-8.0, -8.0, 8.0]])
+    assert np.allclose(mu.winding_numbers(inside, v, f), 1.0, atol=1e-9)
+    assert np.allclose(mu.winding_numbers(outside, v, f), 0.0, atol=1e-9)
+    assert np.allclose(mu.winding_numbers(inside, v, f[:, ::-1]), -1.0, atol=1e-9)
+    # a closed surface subtends the whole sphere of directions however many blocks it is summed in
+    mu_block = mu.WINDING_BLOCK
+    try:
+        mu.WINDING_BLOCK = len(f)  # one query point per block
+        assert np.allclose(mu.winding_numbers(inside, v, f), 1.0, atol=1e-9)
+    finally:
+        mu.WINDING_BLOCK = mu_block
+
+
+def test_the_walls_of_internal_cavities_are_enclosed_a_second_part_and_an_island_in_a_cavity_are_not():
+    # the object (r 20), two cavities in it (inward walls, as marching cubes writes holes), an island
+    # inside the second cavity (outward), and a second part outside the first
+    v, f = _shells((20.0, (0, 0, 0), True), (3.0, (8, 0, 0), False), (6.0, (-8, 0, 0), False),
+                   (2.0, (-8, 0, 0), True), (5.0, (40, 0, 0), True))
+    n = len(v) // 5
+    enclosed = mu.enclosed_components(v, f)
+    assert enclosed.reshape(5, n).all(axis=1).tolist() == [False, True, True, False, False]
+    assert enclosed.reshape(5, n).any(axis=1).tolist() == [False, True, True, False, False]
+    # the same whatever the orientation the tool wrote the file in
+    assert np.array_equal(mu.enclosed_components(v, f[:, ::-1]), enclosed)
+    kept, kept_faces, left_out = mu.outer_surface(v, f)
+    assert left_out == {"components": 2, "vertices": 2 * n}
+    assert np.array_equal(kept, v[~enclosed])
+    assert np.array_equal(kept[kept_faces], v[f[~enclosed[f[:, 0]]]])  # the same triangles, re-indexed
+    assert mu.connected_components(kept_faces, len(kept))[0] == 3
+    # one closed surface has nothing enclosed and comes back as it was
+    one, one_f, none = mu.outer_surface(*_shells((20.0, (0, 0, 0), True)))
+    assert none == {"components": 0, "vertices": 0} and len(one) == n

@@ -1,7 +1,10 @@
 """The distance map of paper 4.2: sub-voxel signed distance to an instance's surface.
 
 The surface of an instance is the 0.5 iso-surface of its binary
-:class:`~ssm_addon.instances.volume.ObjectVolume` mask (its marching-cubes surface). The map gives
+:class:`~ssm_addon.instances.volume.ObjectVolume` mask (its marching-cubes surface), with the
+mask's cavities filled (:func:`~ssm_addon.instances.volume.fill_cavities`): the outer surface,
+which the template (its cleaning fills cavities too) coats; a cavity's wall a few mm under the
+surface would otherwise be a part the coating falls short of. The map gives
 signed distance (mm, negative inside) and its gradient anywhere in the object frame by
 trilinear interpolation, projects points onto the surface, and gives exact
 point-to-triangle distances for fit figures.
@@ -22,7 +25,7 @@ from scipy import ndimage
 
 from ..base.compute import inner_threads
 from ..base.errors import InputError
-from ..instances.volume import ObjectVolume
+from ..instances.volume import ObjectVolume, fill_cavities
 from ..meshutil import MeshLocator, marching_cubes
 
 __all__ = ["DistanceMap", "gradient_into"]
@@ -31,7 +34,7 @@ __all__ = ["DistanceMap", "gradient_into"]
 # this much of its disk free: beyond either, maps are computed each time as without a store
 STORE_BUDGET_BYTES = 4 << 30
 STORE_KEEP_FREE_BYTES = 2 << 30
-STORE_FORMAT = 1
+STORE_FORMAT = 2  # 2: the map of the mask with its cavities filled
 
 
 def gradient_into(f: np.ndarray, spacing: float, out: np.ndarray) -> np.ndarray:
@@ -63,7 +66,8 @@ def gradient_into(f: np.ndarray, spacing: float, out: np.ndarray) -> np.ndarray:
 class DistanceMap:
     """Sub-voxel signed distance to an instance's surface (paper 4.2), object frame, mm.
 
-    The surface is the marching-cubes 0.5 iso-surface of the binary mask. The field is
+    The surface is the marching-cubes 0.5 iso-surface of the binary mask, its cavities filled
+    (``mask`` is the filled one). The field is
     sampled on the mask's grid as ``edt_out - 0.5`` outside and ``-(edt_in - 0.5)``
     inside (Euclidean distance transforms to the nearest voxel centre of the other kind,
     in voxels, × spacing): across every grid edge that crosses the surface the two nodes
@@ -136,6 +140,7 @@ class DistanceMap:
         mask = np.asarray(ov.mask, dtype=bool)
         if mask.ndim != 3 or not mask.any():
             raise InputError(f"distance map: the object volume of {ov.source or 'an instance'} is empty")
+        mask = fill_cavities(mask)
         # inside: distance to the nearest outside centre; every outside voxel nearer than
         # one beyond the mask's bounding box + 1 voxel lies in that box (clamping a voxel
         # onto the box brings it closer and keeps it outside), so the EDT runs on the box
@@ -348,7 +353,8 @@ def _read_kept(store: Path, key: str, ov: ObjectVolume) -> DistanceMap | None:
     if vertices.ndim != 2 or faces.ndim != 2 or vertices.shape[1:] != (3,) or faces.shape[1:] != (3,):
         return None
     dm = DistanceMap.__new__(DistanceMap)
-    dm._set_up(fields, mask.shape, ov.spacing_mm, ov.origin_object, vertices, faces, mask, ov.source, None)
+    dm._set_up(fields, mask.shape, ov.spacing_mm, ov.origin_object, vertices, faces, fill_cavities(mask), ov.source,
+               None)
     return dm
 
 

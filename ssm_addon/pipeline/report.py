@@ -660,6 +660,14 @@ def write_html_report(path, report: Report | dict, *, images: dict[str, bytes] |
                                    "max landmark residual (mm)", "landmark transfer (mm)", "converged", "start",
                                    "Mahalanobis (LOO)", "p",
                                    "LOO error (mm)"]))
+        hollow = {n: (fit.get("input_surface_mm") or {}).get("cavities") for n, fit in inst.items()}
+        hollow = {n: c for n, c in hollow.items() if c}
+        if hollow:
+            parts.append(f'<p class="muted">The meshes of {len(hollow)} instance(s) hold internal cavities, closed '
+                         "surfaces inside the object (" + ", ".join(
+                             f"{html.escape(n)}: {c['components']}, {c['vertices']:,} vertices" for n, c in hollow.items())
+                         + "); the template fills cavities, so the input mesh's distance to its coating is that of "
+                         "its outer surface.</p>")
 
     inputs = doc.get("inputs") or {}
     if inputs:

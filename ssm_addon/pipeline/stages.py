@@ -21,7 +21,16 @@ from ..formats.label_maps import read_label_map
 from ..formats.meshes import read_mesh
 from ..instances.importing import InstanceSpec, import_instance, mesh_coordinates
 from ..instances.volume import ObjectVolume
-from ..meshutil import Mesh, MeshLocation, MeshLocator, genus, longest_edges, marching_cubes, two_way_distances
+from ..meshutil import (
+    Mesh,
+    MeshLocation,
+    MeshLocator,
+    genus,
+    longest_edges,
+    marching_cubes,
+    outer_surface,
+    two_way_distances,
+)
 from ..model import metrics
 from ..model.metrics import ModelMetrics
 from ..model.pca import ShapeModel, build_model
@@ -317,14 +326,17 @@ def template_density(template: Template, params) -> str:
 
 def _input_distance_job(args):
     path, convention, points_world, faces, beyond_mm, spec, import_args, template_points = args
-    vertices, mesh_faces = read_mesh(path, space=convention)
+    vertices, mesh_faces, cavities = outer_surface(*read_mesh(path, space=convention))
     d, far, location = two_way_distances(points_world, faces, vertices, mesh_faces, beyond_mm=beyond_mm,
                                          return_far=True)
     beyond = d["from_other"].get("beyond")
     if beyond and beyond["count"]:
         beyond["voxels"] = beyond_the_voxels(vertices[far], points_world, faces, spec, import_args)
         beyond["stretch"] = coating_stretch(location.triangles, points_world, faces, template_points)
-    return {"to_input": d["to_other"], "from_input": d["from_other"]}, location
+    figures = {"to_input": d["to_other"], "from_input": d["from_other"]}
+    if cavities["components"]:
+        figures["cavities"] = cavities
+    return figures, location
 
 
 def coating_stretch(triangles: np.ndarray, points: np.ndarray, faces: np.ndarray,
@@ -404,7 +416,9 @@ def input_distances(study: Study, coated: dict[str, CoatingResult], template: Te
                     frames: dict | None = None, *, executor=None, cancelled: CancelledFn = None,
                     ) -> tuple[dict[str, dict], dict[str, MeshLocation]]:
     """For every coated instance given as a mesh file: the coating against the user's own mesh
-    (world mm, the file read as the import reads it), both ways (:func:`~ssm_addon.meshutil.two_way_distances`:
+    (world mm, the file read as the import reads it; its outer surface: the walls of internal
+    cavities, closed parts inside the object, are left out, as the template fills cavities, and
+    counted in ``cavities``, :func:`~ssm_addon.meshutil.outer_surface`), both ways (:func:`~ssm_addon.meshutil.two_way_distances`:
     ``to_input`` from the coated points to the mesh, ``from_input`` from the mesh's vertices to
     the coated surface: large where the template's points do not reach a thin process; its
     ``beyond``: the vertices farther than ``[quality] max_input_distance_mm``, how many and where,
@@ -468,6 +482,12 @@ def coating_result(study: Study, coated: dict[str, CoatingResult], starts: dict[
     every = {**study.coatings, **coated}
     worst = max((c.fit.max_distance_mm for c in every.values()), default=float("nan"))
     lines = [f"coating: {len(coated)} instances in {seconds:.2f} s ({counts}largest surface distance {worst:.2f} mm)"]
+    hollow = {n: d["cavities"] for n, d in distances.items() if d.get("cavities")}
+    if hollow:
+        each = ", ".join(f"{n} {c['components']}" for n, c in hollow.items())
+        lines.append(f"coating: the meshes of {len(hollow)} instance(s) hold internal cavities, closed surfaces inside "
+                     f"the object ({each}); the template "
+                     "fills cavities, so their walls are not measured against the coatings")
     if check is not None and check.instance_mm:
         worst_n = max(check.instance_mm, key=check.instance_mm.get)
         lines.append(f"coating: correspondence self-check, landmark transfer error {check.study_mm:.2f} mm (mean over "

@@ -109,7 +109,8 @@ class Study:
         iterations, stop and how far each instance's points moved.
     input_distances : dict name -> dict
         Instances given as meshes: their coating against the mesh, both ways (mm:
-        ``to_input``, ``from_input``, each mean, p95 and max).
+        ``to_input``, ``from_input``, each mean, p95 and max; the mesh's outer surface, and in
+        ``cavities`` how many closed parts inside the object were left out).
     cut_off : dict name -> MeshLocation
         Of those, the mesh's vertices beyond ``[quality] max_input_distance_mm``, each as its
         nearest point of the coating (a triangle and barycentric weights: the same places on the

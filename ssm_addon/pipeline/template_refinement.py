@@ -97,8 +97,8 @@ def with_template_refined(study: Study, first: StageResult, coat: Callable[[Stud
                                 coatings={}, coating_start={}, correspondence_rounds=[], input_distances={}, cut_off={},
                                 findings=list(study.findings), timings_s={}, fallbacks=[])
     say(f"template: the coatings of {len(counts)} instance(s) cut off parts of their meshes "
-        f"({', '.join(f'{n} {k:,} vertices' for n, k in counts.items())}); the template again, denser at "
-        f"{len(places):,} places (radii × {float(factors.min()):.2f}–{float(factors.max()):.2f})")
+        f"({', '.join(f'{n} {k:,} vertex' if k == 1 else f'{n} {k:,} vertices' for n, k in counts.items())}); "
+        f"the template again, denser at {len(places):,} place(s) (radii × {float(factors.min()):.2f}–{float(factors.max()):.2f})")
     report(progress, 0.0, f"template: again, denser where {len(counts)} coating(s) cut off parts")
     key = digest("refined template", cache_key, places, factors) if cache is not None and cache_key else None
     try:

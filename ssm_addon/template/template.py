@@ -54,7 +54,7 @@ from .. import meshutil
 from ..base.errors import InputError, SSMError, check_cancelled
 from ..base.params import TemplateParams
 from ..base.progress import report, sub_progress
-from ..instances.volume import ObjectFrame, ObjectVolume
+from ..instances.volume import ObjectFrame, ObjectVolume, fill_cavities
 from ..template import surface
 
 __all__ = [
@@ -180,18 +180,6 @@ def _ball_erode(mask: np.ndarray, r: float) -> np.ndarray:
     return ~_ball_dilate(~mask, r)
 
 
-def _fill_cavities(mask: np.ndarray) -> np.ndarray:
-    """Fill background components (6-connected) that do not touch the array border."""
-    lab, n = ndi.label(~mask)
-    if n <= 1:
-        return mask
-    border = np.zeros(n + 1, bool)
-    for axis in range(3):
-        for idx in (0, -1):
-            border[np.unique(np.take(lab, idx, axis=axis))] = True
-    return ~border[lab]
-
-
 def _largest_component(mask: np.ndarray) -> np.ndarray:
     lab, n = ndi.label(mask)
     if n <= 1:
@@ -283,7 +271,7 @@ def clean_topology(mask: np.ndarray, radius_vox: float, opening_radius_vox: floa
     ro = r / 3.0 if opening_radius_vox is None else float(opening_radius_vox)
     pad = int(np.ceil(max(r, ro))) + 2
     m = np.pad(mask, pad)
-    m = _fill_cavities(m)
+    m = fill_cavities(m)
     keep = keep_depth_vox is not None
     if r > 0 and not keep:
         m = _close(m, r)
@@ -301,7 +289,7 @@ def clean_topology(mask: np.ndarray, radius_vox: float, opening_radius_vox: floa
         if opened.any():
             m = opened
     m = _largest_component(m)
-    m = _fill_cavities(m)
+    m = fill_cavities(m)
     return m[pad:-pad, pad:-pad, pad:-pad]
 
 
