@@ -321,29 +321,47 @@ def test_verse_vertebrae_as_slicer_meshes_build_the_label_map_model(verse_dir, t
     assert gen[1] == pytest.approx(gen[0], rel=0.08), gen
 
 
+#: per level: the truth the correspondence keeps (mean, worst mm) and the cavities of verse005's mesh
+LUMBAR_LEVELS = {"L2": (0.46, 3.0, 6), "L4": (0.44, 3.0, 1)}
+
+
 @pytest.mark.slow
-def test_lumbar_vertebrae_of_two_subjects_as_slicer_meshes_keep_their_surface_at_the_defaults(tmp_path, verse_dir):
-    """L4 as a 3D Slicer user brings it: verse004's and three known deformations of it as LPS PLY
-    with Scalismo landmarks, and verse005's (another subject, its transverse processes longer than
-    the template instance's) without landmarks, so the model method supplies its correspondence.
-    With the defaults no mesh lies beyond the 3 mm gate from its coating and none is folded: the
-    coatings of verse005 and of one deformation cut off process tips (3.58 and 3.43 mm), so the
-    template is built again denser there (1,416 -> 1,471 points) and every instance coated again
-    (2.93 and 2.51 mm). Against the known deformations the correspondence gets no worse (mean
-    0.434 -> 0.423 mm, worst 4.74 -> 2.34 mm, measured from verse004's own coating)."""
+@pytest.mark.parametrize("level", sorted(LUMBAR_LEVELS))
+def test_lumbar_vertebrae_of_two_subjects_as_slicer_meshes_keep_their_surface_at_the_defaults(tmp_path, verse_dir,
+                                                                                             level):
+    """A lumbar level as a 3D Slicer user brings it: verse004's and three known deformations of it
+    as LPS PLY with Scalismo landmarks, and verse005's (another subject) without landmarks, so
+    the model method supplies its correspondence. With the defaults no mesh lies beyond the 3 mm
+    gate from its coating and none is folded.
+
+    L4: verse005's transverse processes are longer than the template instance's; the coatings of
+    verse005 and of one deformation cut off process tips (3.58 and 3.43 mm), so the template is
+    built again denser there (1,416 -> 1,471 points) and every instance coated again (2.93 and
+    2.51 mm). Against the known deformations the correspondence gets no worse (mean 0.434 ->
+    0.423 mm, worst 4.74 -> 2.34 mm, measured from verse004's own coating).
+
+    L2: verse005's label map has six holes inside the body (1-9 voxels), which its marching cubes
+    writes as six closed surfaces 3-4 mm under the body's wall (3.81 mm from the coating when
+    they counted); they are not the surface (the template fills cavities) and are said, not
+    gated. One vertex of the outer surface lay 3.27 mm from its coating: the template is refined
+    there (1,418 -> 1,434 points, 2.59 mm), the truth the same (mean 0.4551 -> 0.4552 mm, worst
+    2.22 mm both)."""
     if not (verse_dir.parent / "verse005").is_dir():
         pytest.skip(f"verse005 not found in {verse_dir.parent}")
     from conftest import VERSE_LABELS
 
-    two_subject_level(tmp_path, verse_dir.parent, "L4", VERSE_LABELS["L4"])
+    mean_mm, worst_mm, cavities = LUMBAR_LEVELS[level]
+    two_subject_level(tmp_path, verse_dir.parent, level, VERSE_LABELS[level])
     names = ["v4_0", "v4_1", "v4_2", "v4_3"]
     out = []
     result = build(read_project(tmp_path / "project.toml"), tmp_path / "out", log=out.append)
     findings = result.report["quality"]["findings"]
-    far = {n: result.report["instances"][n]["input_surface_mm"]["from_input"]["max_mm"] for n in [*names, "v5"]}
+    measured = {n: result.report["instances"][n]["input_surface_mm"] for n in [*names, "v5"]}
+    far = {n: m["from_input"]["max_mm"] for n, m in measured.items()}
     print("largest distance of each mesh from its coating, mm:", far)
     assert max(far.values()) < 3.0, far
     assert not [f for f in findings if f["gate"] in ("input_surface", "folds", "frame")], findings
+    assert measured["v5"].get("cavities", {}).get("components") == cavities, measured["v5"]
     refined = result.report["template"]["refined_at"]
     assert "v5" in refined["instances"] and refined["points"] > refined["points_before"], refined
     assert any(line.startswith("template: refined where") and line.endswith("kept") for line in out), out
@@ -359,11 +377,11 @@ def test_lumbar_vertebrae_of_two_subjects_as_slicer_meshes_keep_their_surface_at
 
     study = result.study
     world = {n: study.frame(n).to_world(study.coatings[n].points_object) for n in names}
-    moves = deformations(4, 0, label_surface(VERSE_FILE, VERSE_LABELS["L4"])[2])
+    moves = deformations(4, 0, label_surface(VERSE_FILE, VERSE_LABELS[level])[2])
     errors = np.concatenate([np.linalg.norm(world[f"v4_{k}"] - (world["v4_0"] + moves[k](world["v4_0"])), axis=1)
                              for k in (1, 2, 3)])
     print(f"against the truth: mean {errors.mean():.3f}, worst {errors.max():.2f} mm")
-    assert errors.mean() < 0.44 and errors.max() < 3.0
+    assert errors.mean() < mean_mm and errors.max() < worst_mm
 
 
 @pytest.mark.slow

@@ -122,20 +122,39 @@ def _shells(*parts):
     return np.vstack(verts), np.vstack(faces)
 
 
+def _solid_angle_winding(points, v, f):
+    """The winding number by its definition: the triangles' signed solid angles over 4π (Van
+    Oosterom and Strackee's formula), for comparison."""
+    a, b, c = (v[f[:, k]][None] - points[:, None] for k in range(3))
+    la, lb, lc = (np.linalg.norm(x, axis=2) for x in (a, b, c))
+    det = np.einsum("pfi,pfi->pf", a, np.cross(b, c))
+    den = (la * lb * lc + np.einsum("pfi,pfi->pf", a, b) * lc + np.einsum("pfi,pfi->pf", a, c) * lb
+           + np.einsum("pfi,pfi->pf", b, c) * la)
+    return np.arctan2(det, den).sum(axis=1) / (2 * np.pi)
+
+
 def test_winding_number_is_one_inside_zero_outside_and_changes_sign_with_the_orientation():
     v, f = _shells((10.0, (0, 0, 0), True))
     inside = np.array([[0.0, 0, 0], [9.0, 0, 0], [0, -5.0, 5.0]])
     outside = np.array([[11.0, 0, 0], [0, 40.0, 0], [-8.0, -8.0, 8.0]])
-    assert np.allclose(mu.winding_numbers(inside, v, f), 1.0, atol=1e-9)
-    assert np.allclose(mu.winding_numbers(outside, v, f), 0.0, atol=1e-9)
-    assert np.allclose(mu.winding_numbers(inside, v, f[:, ::-1]), -1.0, atol=1e-9)
-    # a closed surface subtends the whole sphere of directions however many blocks it is summed in
-    mu_block = mu.WINDING_BLOCK
-    try:
-        mu.WINDING_BLOCK = len(f)  # one query point per block
-        assert np.allclose(mu.winding_numbers(inside, v, f), 1.0, atol=1e-9)
-    finally:
-        mu.WINDING_BLOCK = mu_block
+    assert mu.winding_numbers(inside, v, f).tolist() == [1, 1, 1]
+    assert mu.winding_numbers(outside, v, f).tolist() == [0, 0, 0]
+    assert mu.winding_numbers(inside, v, f[:, ::-1]).tolist() == [-1, -1, -1]
+    # nested shells of both orientations, at random points and at the vertices of a voxel surface:
+    # the count of the rays is the solid angles' sum
+    nested_v, nested_f = _shells((20.0, (0, 0, 0), True), (6.0, (-8, 0, 0), False), (2.0, (-8, 0, 0), True),
+                                 (5.0, (40, 0, 0), True))
+    rng = np.random.default_rng(7)
+    probe = rng.uniform((-25, -25, -25), (50, 25, 25), size=(300, 3))
+    assert np.array_equal(mu.winding_numbers(probe, nested_v, nested_f),
+                          np.round(_solid_angle_winding(probe, nested_v, nested_f)).astype(int))
+    mask = np.zeros((9, 9, 9), bool)
+    mask[1:8, 1:8, 1:8] = True
+    mask[3:6, 3:6, 3:6] = False
+    mask[4, 4, 4] = True  # a voxel in a cavity
+    mv, mf = mu.marching_cubes(mask)
+    at = np.vstack([mv + (0.11, 0.23, 0.07), mv - (0.11, 0.23, 0.07), np.argwhere(np.ones((9, 9, 9), bool)) + 0.01])
+    assert np.array_equal(mu.winding_numbers(at, mv, mf), np.round(_solid_angle_winding(at, mv, mf)).astype(int))
 
 
 def test_the_walls_of_internal_cavities_are_enclosed_a_second_part_and_an_island_in_a_cavity_are_not():
