@@ -395,8 +395,9 @@ def enclosed_components(vertices, faces) -> np.ndarray:
     A segmentation tool's marching cubes writes a hole inside the object (a cavity of a few
     voxels in a vertebral body) as a small closed surface inside the outer one. A component
     is enclosed when the winding number of the other components (:func:`winding_numbers`) is
-    not 0 at most of up to ``ENCLOSED_SAMPLES`` of its vertices (evenly spaced by index). A
-    second, separate part of the object (outside the first) is not enclosed, nor is a part
+    not 0 at most of up to ``ENCLOSED_SAMPLES`` of its vertices (evenly spaced by index); only
+    closed components count as enclosing (an open one, such as a partial scan, has no inside).
+    A second, separate part of the object (outside the first) is not enclosed, nor is a part
     inside a cavity (enclosed twice, with opposite orientations).
 
     The cube with a one-voxel cavity: the cavity's six vertices are enclosed.
@@ -427,7 +428,12 @@ def enclosed_components(vertices, faces) -> np.ndarray:
     j = np.arange(int(take.sum())) - np.repeat(np.cumsum(take) - take, take)
     step = (np.repeat(size, take) - 1) / np.maximum(np.repeat(take, take) - 1, 1)
     ask = order[np.repeat(start, take) + np.round(j * step).astype(np.int64)]
-    w = winding_numbers(v[ask], v, f, point_labels=component, face_labels=face_label)
+    # only closed components enclose anything: an open one (a partial scan) has no inside
+    undirected = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    _u, inverse, once = np.unique(undirected, axis=0, return_inverse=True, return_counts=True)
+    open_edge = once[inverse.ravel()] == 1
+    closed = ~np.isin(face_label, labels[undirected[open_edge, 0]])
+    w = winding_numbers(v[ask], v, f[closed], point_labels=component, face_labels=face_label[closed])
     votes = np.bincount(np.searchsorted(used, component), weights=(w != 0).astype(float), minlength=len(used))
     inside = used[votes * 2 > take]
     enclosed[np.isin(labels, inside)] = True

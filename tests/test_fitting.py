@@ -654,3 +654,17 @@ def test_a_half_that_leaves_its_turn_free_says_so_and_one_that_pins_it_does_not(
         assert free["width_deg"] == 0, free
         assert "turned" not in verdict.warnings.get("pose", "")
         assert calibration(err, res.posterior_sd_mm[~seen])["within_2sd"] >= 0.9
+
+
+def test_a_target_surface_is_its_outer_surface_not_the_walls_of_its_cavities():
+    """A label map's marching cubes (or a mesh a segmentation tool wrote) holds a closed surface
+    around every hole inside the object; the model fitted to it holds the outer surface only, so
+    the target's samples and closest points are on that."""
+    mask = np.zeros((12, 12, 12), bool)
+    mask[1:11, 1:11, 1:11] = True
+    mask[5, 5, 5] = False
+    v, f = meshutil.marching_cubes(mask)
+    target = Target.from_mesh(v, f)
+    assert len(target.samples) == len(v) - 6  # the cavity's six vertices are not samples
+    _closest, d = target.closest(np.array([[5.0, 5.0, 5.0]]))
+    assert d[0] == pytest.approx(4.5)  # to the outer wall (at 0.5), not the cavity's (0.5 away)

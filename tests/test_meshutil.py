@@ -173,6 +173,12 @@ def test_the_walls_of_internal_cavities_are_enclosed_a_second_part_and_an_island
     assert np.array_equal(kept, v[~enclosed])
     assert np.array_equal(kept[kept_faces], v[f[~enclosed[f[:, 0]]]])  # the same triangles, re-indexed
     assert mu.connected_components(kept_faces, len(kept))[0] == 3
+    # an open surface (a partial scan) encloses nothing: a closed part in its bowl stays
+    cup_v, cup_f = _shells((20.0, (0, 0, 0), True))
+    keep = cup_f[(cup_v[cup_f][:, :, 2] < 12.0).all(axis=1)]
+    bowl_v = np.vstack([cup_v, _shells((3.0, (0, 0, 0), True))[0]])
+    bowl_f = np.vstack([keep, _shells((3.0, (0, 0, 0), True))[1] + len(cup_v)])
+    assert not mu.enclosed_components(bowl_v, bowl_f).any()
     # one closed surface has nothing enclosed and comes back as it was
     one, one_f, none = mu.outer_surface(*_shells((20.0, (0, 0, 0), True)))
     assert none == {"components": 0, "vertices": 0} and len(one) == n

@@ -38,7 +38,7 @@ from ..base.errors import InputError, check_cancelled
 from ..base.params import FitParams
 from ..base.progress import CancelledFn, ProgressFn, report
 from ..formats.landmarks import LandmarkSet
-from ..meshutil import MeshLocator, vertex_normals
+from ..meshutil import MeshLocator, outer_surface, vertex_normals
 
 __all__ = ["FitResult", "ModelErrorField", "Pose", "Target", "correlation_length", "farthest_point_indices",
            "fit_any_pose", "fit_floor", "fit_model", "loo_residuals", "model_error_field", "model_error_variance", "outlier_limit",
@@ -87,9 +87,13 @@ class Target:
 
     @classmethod
     def from_mesh(cls, vertices, faces, *, source: str = "", landmarks=None, max_samples: int = 20000) -> Target:
-        v = np.asarray(vertices, float)
+        """The target's surface: the mesh's outer surface (:func:`~ssm_addon.meshutil.outer_surface`:
+        the walls of cavities inside the object, which a segmentation's marching cubes writes and
+        the model does not hold, are left out), every k-th vertex a sample (at most about
+        ``max_samples``)."""
+        v, f, _cavities = outer_surface(vertices, faces)
         step = max(1, len(v) // max_samples)
-        return cls(samples=v[::step], source=source, locator=MeshLocator(v, faces), landmarks=landmarks)
+        return cls(samples=v[::step], source=source, locator=MeshLocator(v, f), landmarks=landmarks)
 
     @classmethod
     def from_points(cls, points, *, source: str = "", landmarks=None) -> Target:
