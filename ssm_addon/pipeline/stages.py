@@ -20,7 +20,7 @@ from ..correspondence.rounds import check_correspondence, correspondence_fit_par
 from ..formats.label_maps import read_label_map
 from ..formats.meshes import read_mesh
 from ..instances.importing import InstanceSpec, import_instance, mesh_coordinates
-from ..instances.volume import ObjectVolume
+from ..instances.volume import ObjectVolume, fill_cavities
 from ..meshutil import (
     Mesh,
     MeshLocation,
@@ -364,7 +364,7 @@ def beyond_the_voxels(far: np.ndarray, points_world: np.ndarray, faces: np.ndarr
     than a voxel is lost there, not by the coating. ``max_mm``: the largest of those vertices'
     distances to the voxels; ``spacing_mm``: the voxels' edge."""
     ov = import_instance(spec, **import_args)
-    grid, grid_faces = marching_cubes(ov.mask)
+    grid, grid_faces = marching_cubes(fill_cavities(ov.mask))  # the surface the coating follows
     surface = ov.frame.to_world(ov.voxel_to_object(grid))
     on_voxels, from_voxels, _t, _b = MeshLocator(surface, grid_faces).query(far, k=12)
     _c, voxels_from_coating, _t, _b = MeshLocator(points_world, faces).query(on_voxels, k=12)
