@@ -214,10 +214,11 @@ def test_coat_template_refines_the_template_where_the_build_does(bpy_clean, tmp_
 
 @pytest.mark.slow
 def test_coat_template_refines_the_model_methods_template_as_the_build_does(bpy_clean, tmp_path, verse_dir):
-    """L4 of two subjects as 3D Slicer meshes, verse005's without landmarks (the model method supplies
-    its correspondence): Coat Template refines the template where verse005's processes were cut
-    off, as the headless build does; the scene's template and coatings (after Optimise
-    Correspondence) equal the build's."""
+    """L2 of two subjects as 3D Slicer meshes, verse005's without landmarks (the model method supplies
+    its correspondence) and with six cavities inside (closed surfaces its label map's holes give):
+    Coat Template leaves the cavities out and refines the template where verse005's outer surface
+    was cut off, as the headless build does; the scene's template and coatings (after Optimise
+    Correspondence) equal the build's, and neither has an ``input_surface`` finding."""
     if not (verse_dir.parent / "verse005").is_dir():
         pytest.skip(f"verse005 not found in {verse_dir.parent}")
     from conftest import VERSE_LABELS
@@ -228,9 +229,11 @@ def test_coat_template_refines_the_model_methods_template_as_the_build_does(bpy_
     from ssm_addon.pipeline.project_build import build
 
     bpy = bpy_clean
-    project = two_subject_level(tmp_path / "L4", verse_dir.parent, "L4", VERSE_LABELS["L4"])
+    project = two_subject_level(tmp_path / "L2", verse_dir.parent, "L2", VERSE_LABELS["L2"])
     headless = build(read_project(project), tmp_path / "out", log=None)
     assert "v5" in headless.study.template.params["refined_at"]["instances"]
+    assert headless.study.input_distances["v5"]["cavities"]["components"] == 6
+    assert not [f for f in headless.study.findings if f.gate == "input_surface"]
     assert bpy.ops.ssm.open_project(filepath=str(project)) == {"FINISHED"}
     assert bpy.ops.ssm.build_template() == {"FINISHED"}
     assert bpy.ops.ssm.coat_template() == {"FINISHED"}

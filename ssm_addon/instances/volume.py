@@ -20,6 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import ndimage
 
 from ..base.errors import InputError
 from ..formats.label_maps import Volume
@@ -157,8 +158,6 @@ def fill_cavities(mask: np.ndarray) -> np.ndarray:
     >>> bool(filled[2, 2, 2]), bool(filled[0, 0, 0]), int(filled.sum())
     (True, False, 124)
     """
-    from scipy import ndimage
-
     lab, n = ndimage.label(~mask)
     if n <= 1:
         return mask
