@@ -486,8 +486,8 @@ def coating_result(study: Study, coated: dict[str, CoatingResult], starts: dict[
     if hollow:
         each = ", ".join(f"{n} {c['components']}" for n, c in hollow.items())
         lines.append(f"coating: the meshes of {len(hollow)} instance(s) hold internal cavities, closed surfaces inside "
-                     f"the object ({each}); the template "
-                     "fills cavities, so their walls are not measured against the coatings")
+                     f"the object ({each}); the template fills cavities, so their walls are not measured against the "
+                     "coatings")
     if check is not None and check.instance_mm:
         worst_n = max(check.instance_mm, key=check.instance_mm.get)
         lines.append(f"coating: correspondence self-check, landmark transfer error {check.study_mm:.2f} mm (mean over "
