@@ -407,18 +407,19 @@ def enclosed_components(vertices, faces) -> np.ndarray:
     >>> np.flatnonzero(enclosed_components(v, f)).size, v[enclosed_components(v, f)].mean(axis=0).tolist()
     (6, [4.0, 4.0, 4.0])
     """
-    v = np.asarray(vertices, float)
-    f = as_faces(faces)
+    return _enclosed(np.asarray(vertices, float), as_faces(faces))[0]
+
+
+def _enclosed(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`enclosed_components`' mask, and the component label of every vertex."""
     enclosed = np.zeros(len(v), bool)
-    if not len(f):
-        return enclosed
-    n, labels = connected_components(f, len(v))
+    n, labels = connected_components(f, len(v)) if len(f) else (len(v), np.arange(len(v)))
     if n < 2:
-        return enclosed
+        return enclosed, labels
     face_label = labels[f[:, 0]]
     used = np.unique(face_label)
     if len(used) < 2:
-        return enclosed
+        return enclosed, labels
     # up to ENCLOSED_SAMPLES vertices of each component, evenly spaced by index
     order = np.argsort(labels, kind="stable")
     start = np.searchsorted(labels[order], used)
@@ -428,16 +429,13 @@ def enclosed_components(vertices, faces) -> np.ndarray:
     j = np.arange(int(take.sum())) - np.repeat(np.cumsum(take) - take, take)
     step = (np.repeat(size, take) - 1) / np.maximum(np.repeat(take, take) - 1, 1)
     ask = order[np.repeat(start, take) + np.round(j * step).astype(np.int64)]
-    # only closed components enclose anything: an open one (a partial scan) has no inside
-    undirected = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    _u, inverse, once = np.unique(undirected, axis=0, return_inverse=True, return_counts=True)
-    open_edge = once[inverse.ravel()] == 1
-    closed = ~np.isin(face_label, labels[undirected[open_edge, 0]])
+    # only closed components enclose anything: an open one (a partial scan) has a boundary edge
+    edge, uses = unique_rows(np.sort(f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), return_counts=True)
+    closed = ~np.isin(face_label, labels[edge[uses == 1, 0]])
     w = winding_numbers(v[ask], v, f[closed], point_labels=component, face_labels=face_label[closed])
     votes = np.bincount(np.searchsorted(used, component), weights=(w != 0).astype(float), minlength=len(used))
-    inside = used[votes * 2 > take]
-    enclosed[np.isin(labels, inside)] = True
-    return enclosed
+    enclosed[np.isin(labels, used[votes * 2 > take])] = True
+    return enclosed, labels
 
 
 def outer_surface(vertices, faces) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -452,10 +450,10 @@ def outer_surface(vertices, faces) -> tuple[np.ndarray, np.ndarray, dict]:
     """
     v = np.asarray(vertices, float)
     f = as_faces(faces)
-    enclosed = enclosed_components(v, f)
+    enclosed, labels = _enclosed(v, f)
     if not enclosed.any():
         return v, f, {"components": 0, "vertices": 0}
-    components = int(len(np.unique(connected_components(f, len(v))[1][enclosed])))
+    components = int(len(np.unique(labels[enclosed])))
     index = np.cumsum(~enclosed) - 1
     kept = f[~enclosed[f[:, 0]]]
     return v[~enclosed], index[kept], {"components": components, "vertices": int(enclosed.sum())}
