@@ -19,32 +19,69 @@ coated again from the other turns and the turn nearest the others' mean is kept
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..base.compute import executor_or_local
 from ..base.params import CoatingParams
 from ..base.progress import CancelledFn
 from ..coating.coating import CoatingResult, CoatingStart, coat_from_start
 from ..coating.distance_map import DistanceMap
-from ..fitting.fit import Pose, Target, rigid_screen
+from ..fitting.fit import Pose, weighted_pose
 from ..instances.volume import ObjectFrame, ObjectVolume
 from ..meshutil import Mesh
 from ..model.pca import procrustes_fit
 from .rounds import AXIS_TURNS, WORLD_POSE_TOLERANCE, aligned_to
 
-__all__ = ["TURN_NAMES", "TURNED_FACTOR", "FramesStart", "coat_from_template_pose", "coat_without_landmarks",
-           "far_from_population", "population_turns", "template_start"]
+__all__ = ["FRAME_ROTATIONS", "ROTATION_NAMES", "TURN_NAMES", "TURNED_FACTOR", "FramesStart", "area_samples", "coat_from_template_pose", "coat_without_landmarks",
+           "far_from_population", "population_turns", "surface_similarity", "template_start"]
 
-#: Names of :data:`~ssm_addon.correspondence.rounds.AXIS_TURNS` (the object frames' identity, then
-#: the turns by 180 degrees about the x, y and z axes of the object frame).
-TURN_NAMES = ("frames", "turned about x", "turned about y", "turned about z")
+
+
+def _frame_rotations() -> tuple[np.ndarray, ...]:
+    """The 24 proper rotations that map the coordinate axes onto themselves (signed permutation
+    matrices of determinant 1), the identity and the three turns of 180 degrees about x, y, z
+    (:data:`~ssm_addon.correspondence.rounds.AXIS_TURNS`) first, the rest in a fixed order."""
+    out = [np.asarray(r, float) for r in AXIS_TURNS]
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            r = np.zeros((3, 3))
+            r[np.arange(3), perm] = signs
+            if np.linalg.det(r) > 0 and not any(np.array_equal(r, q) for q in out):
+                out.append(r)
+    return tuple(out)
+
+
+#: The rotations a template's first pose on an instance is registered from: every way the object
+#: frames' axes (paper 2) can map onto each other, so that axes that came out swapped (two second
+#: moments nearly equal) or turned end for end (a near-symmetric shape) are found.
+FRAME_ROTATIONS = _frame_rotations()
+
+
+def _rotation_name(r: np.ndarray) -> str:
+    axes = "xyz"
+    return "axes " + " ".join(("-" if r[i, j] < 0 else "+") + axes[j] for i in range(3) for j in range(3) if r[i, j])
+
+
+#: Names of :data:`FRAME_ROTATIONS`: the object frames' identity, the turns by 180 degrees about
+#: the x, y and z axes of the object frame, then each other rotation by where it sends x, y and z.
+ROTATION_NAMES = ("frames", "turned about x", "turned about y", "turned about z") + tuple(
+    _rotation_name(r) for r in FRAME_ROTATIONS[4:])
+TURN_NAMES = ROTATION_NAMES
 #: A coating this many times farther from the population's mean shape than the median
 #: instance (RMS over the points, after a rigid alignment by its correspondence) is tried
 #: in the other turns.
 TURNED_FACTOR = 2.0
+#: Template samples (triangle centroids) and target samples of the start's similarity registration.
 SCREEN_SAMPLES = 1500
+TARGET_SAMPLES = 6000
+#: Steps of the registration from every rotation, and of the nearest ``FINALISTS`` in full.
+SCREEN_ITERATIONS = 6
+REGISTRATION_ITERATIONS = 30
+FINALISTS = 3
 
 
 @dataclass(frozen=True)
@@ -71,9 +108,17 @@ class FramesStart:
 
 
 def template_start(template_points: np.ndarray, target: ObjectVolume, *, template_frame: ObjectFrame | None = None,
-                   turns: tuple[int, ...] = (0, 1, 2, 3), distance_map: DistanceMap | None = None
-                   ) -> tuple[np.ndarray, FramesStart]:
+                   turns: tuple[int, ...] | None = None, distance_map: DistanceMap | None = None,
+                   template_faces: np.ndarray | None = None) -> tuple[np.ndarray, FramesStart]:
     """The template's points put onto ``target`` (its object frame, mm) without landmarks.
+
+    A dense similarity registration of the two surfaces (:func:`surface_similarity`: rotation,
+    translation and one scale, symmetric closest points weighted by surface area) from each of
+    the rotations in ``turns`` (the 24 rotations of :data:`FRAME_ROTATIONS`, which map the object
+    frame's axes onto themselves, so that a frame whose axes came out swapped or turned end for
+    end is still found) and from the pose the input coordinates give; the pose nearest the
+    surface wins, the input coordinates' unless another fits ``WORLD_POSE_TOLERANCE`` times
+    closer.
 
     Parameters
     ----------
@@ -83,49 +128,128 @@ def template_start(template_points: np.ndarray, target: ObjectVolume, *, templat
     template_frame : ObjectFrame, optional
         The template instance's frame: with the target's, the pose the input coordinates
         give, preferred to a turn that fits less than ``WORLD_POSE_TOLERANCE`` times closer.
-    turns : indices into :data:`~ssm_addon.correspondence.rounds.AXIS_TURNS` to try.
+    turns : indices into :data:`FRAME_ROTATIONS` to try (default: all 24).
+    template_faces : (F, 3), optional
+        The template's triangles: the surface is sampled by area (its points are denser where
+        it is curved, eq. 1, which would pull the centre and the scale there); without them
+        every point weighs the same.
 
     Returns
     -------
     (start points (N, 3) mm, FramesStart)
     """
     pts = np.asarray(template_points, float)
+    turns = tuple(range(len(FRAME_ROTATIONS))) if turns is None else tuple(turns)
     dm = distance_map if distance_map is not None else DistanceMap.from_object_volume(target)
-    surface = Target.from_mesh(dm.surface_vertices, dm.surface_faces, max_samples=4 * SCREEN_SAMPLES)
-    centre_t = dm.surface_vertices.mean(axis=0)
-    centre_s = pts.mean(axis=0)
-    size = np.sqrt(((dm.surface_vertices - centre_t) ** 2).sum(axis=1).mean())
-    scale = float(size / max(np.sqrt(((pts - centre_s) ** 2).sum(axis=1).mean()), 1e-12))
-    scaled = centre_s + scale * (pts - centre_s)
-    candidates = []
-    for k in turns:
-        rot = AXIS_TURNS[k]
-        candidates.append((TURN_NAMES[k], Pose(rot, centre_t - rot @ centre_s)))
+    src, src_w = area_samples(pts, template_faces, SCREEN_SAMPLES)
+    tgt, tgt_w = area_samples(dm.surface_vertices, dm.surface_faces, TARGET_SAMPLES)
+    centre_s, centre_t = src_w @ src / src_w.sum(), tgt_w @ tgt / tgt_w.sum()
+    scale = float(np.sqrt(tgt_w.sum() / max(src_w.sum(), 1e-12))) if template_faces is not None else float(
+        np.sqrt(((tgt - centre_t) ** 2).sum(axis=1) @ tgt_w / tgt_w.sum())
+        / max(np.sqrt(((src - centre_s) ** 2).sum(axis=1).mean()), 1e-12))
+    candidates = [(ROTATION_NAMES[k], Pose(FRAME_ROTATIONS[k], centre_t - scale * FRAME_ROTATIONS[k] @ centre_s, scale))
+                  for k in turns]
     world = None
     if template_frame is not None:
         there = target.frame.to_object(template_frame.to_world(pts))
-        _s, rot, t = procrustes_fit(pts[None], there, scale=False)
-        world = ("input coordinates", Pose(rot[0], centre_t - rot[0] @ centre_s))
+        _s, rot, _t = procrustes_fit(pts[None], there, scale=False)
+        world = ("input coordinates", Pose(rot[0], centre_t - scale * rot[0] @ centre_s, scale))
         candidates.insert(0, world)
-    screened = []
-    for name, pose in candidates:
-        refined, d = rigid_screen(scaled, surface, pose, partial=False, samples=SCREEN_SAMPLES)
-        screened.append((name, refined, d))
-    best = min(screened, key=lambda c: c[2])
-    if world is not None and screened[0][2] <= WORLD_POSE_TOLERANCE * best[2]:
-        best = screened[0]
-    start = best[1].apply(scaled)
-    return start, FramesStart(best[0], {name: d for name, _p, d in screened}, scale)
+    surface = _SurfacePairs(src, src_w, tgt, tgt_w)
+    screened = [(name, *surface.register(pose, SCREEN_ITERATIONS)) for name, pose in candidates]
+    # the nearest few screened poses registered in full; the input coordinates' pose always
+    finalists = sorted(range(len(screened)), key=lambda i: (screened[i][2], i))[:FINALISTS]
+    if world is not None and 0 not in finalists:
+        finalists.append(0)
+    final = {i: surface.register(screened[i][1], REGISTRATION_ITERATIONS) for i in finalists}
+    distances = {screened[i][0]: final[i][1] if i in final else screened[i][2] for i in range(len(screened))}
+    best = min(final, key=lambda i: (final[i][1], i))
+    if world is not None and final[0][1] <= WORLD_POSE_TOLERANCE * final[best][1]:
+        best = 0
+    pose = final[best][0]
+    return pose.apply(pts), FramesStart(screened[best][0], distances, float(pose.scale))
+
+
+def area_samples(vertices: np.ndarray, faces: np.ndarray | None, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """About ``count`` samples of a surface and the area (mm²) each stands for.
+
+    Every k-th triangle's centroid, weighted by k times its area (mm², the frame of
+    ``vertices``), so that sums over the samples approximate integrals over the surface;
+    without ``faces``, every k-th vertex with weight 1.
+    """
+    v = np.asarray(vertices, float)
+    if faces is None or not len(faces):
+        step = max(1, len(v) // max(count, 1))
+        return v[::step], np.ones(len(v[::step]))
+    f = np.asarray(faces)
+    step = max(1, len(f) // max(count, 1))
+    f = f[::step]
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    return (a + b + c) / 3.0, area * step
+
+
+class _SurfacePairs:
+    """The template's and the target's area samples, for :meth:`register`."""
+
+    def __init__(self, src, src_w, tgt, tgt_w):
+        self.src, self.tgt = src, tgt
+        self.w = np.concatenate([src_w / src_w.sum(), tgt_w / tgt_w.sum()])
+        self.tgt_tree = cKDTree(tgt)
+
+    def register(self, pose: Pose, iterations: int) -> tuple[Pose, float]:
+        """:func:`surface_similarity` from ``pose``: the pose and its symmetric mean distance (mm)."""
+        return surface_similarity(self.src, self.tgt, self.w, self.tgt_tree, pose, iterations)
+
+
+def surface_similarity(src: np.ndarray, tgt: np.ndarray, weights: np.ndarray, tgt_tree: cKDTree, pose: Pose,
+                       iterations: int) -> tuple[Pose, float]:
+    """A dense similarity registration of two sampled surfaces (symmetric ICP with scale).
+
+    Each step pairs every source sample with its nearest target sample and every target
+    sample with its nearest moved source sample, and solves the area-weighted least-squares
+    similarity of all pairs (Umeyama 1991); both directions, so that a part of either surface
+    the other lacks cannot hold the pose alone.
+
+    Parameters
+    ----------
+    src, tgt : (M, 3), (K, 3) mm
+        Surface samples (:func:`area_samples`), the source in its own frame, the target in its.
+    weights : (M + K,)
+        The samples' areas, each surface's summing to 1.
+    tgt_tree : the target samples' k-d tree.
+    pose : the start (source -> target).
+
+    Returns
+    -------
+    (Pose, mean distance mm)
+        The registered pose and the area-weighted mean of both directions' nearest distances.
+
+    References
+    ----------
+    Besl & McKay (1992), A method for registration of 3-D shapes; Umeyama (1991),
+    Least-squares estimation of transformation parameters between two point patterns.
+    """
+    n = len(src)
+    for _ in range(iterations):
+        x = pose.apply(src)
+        _d, j = tgt_tree.query(x)
+        _d, i = cKDTree(x).query(tgt)
+        pose = weighted_pose(np.vstack([src, src[i]]), np.vstack([tgt[j], tgt]), weights, scale=True)
+    x = pose.apply(src)
+    d_fwd = tgt_tree.query(x)[0]
+    d_bwd = cKDTree(x).query(tgt)[0]
+    return pose, float(0.5 * (weights[:n] @ d_fwd + weights[n:] @ d_bwd))
 
 
 def coat_from_template_pose(template: Mesh, target: ObjectVolume, *, coating: CoatingParams,
-                            template_frame: ObjectFrame | None = None, turns: tuple[int, ...] = (0, 1, 2, 3),
+                            template_frame: ObjectFrame | None = None, turns: tuple[int, ...] | None = None,
                             name: str = "") -> tuple[CoatingResult, FramesStart]:
     """:func:`template_start`, then the coating's registration, projection and relaxation from it
     (paper 4.2; ``fit.start`` = object frames)."""
     dm = DistanceMap.from_object_volume(target)
     start, how = template_start(template.vertices, target, template_frame=template_frame, turns=turns,
-                                distance_map=dm)
+                                distance_map=dm, template_faces=template.faces)
     result = coat_from_start(template, target, start=start, params=coating, distance_map=dm,
                              start_label=CoatingStart.OBJECT_FRAMES, name=name)
     return result, how
@@ -140,9 +264,9 @@ def coat_without_landmarks(template: Mesh, targets: dict, *, coating: CoatingPar
                            template_frame: ObjectFrame | None = None, turns: dict | None = None, jobs: int = 1,
                            executor=None, cancelled: CancelledFn = None) -> dict:
     """:func:`coat_from_template_pose` for every target (name -> ObjectVolume) on ``executor``;
-    ``turns``: per name, the turns to try (default all four). Returns name -> (CoatingResult, FramesStart)."""
+    ``turns``: per name, the rotations to try (default all 24). Returns name -> (CoatingResult, FramesStart)."""
     names = list(targets)
-    args = [(template, targets[n], coating, template_frame, (turns or {}).get(n, (0, 1, 2, 3)), n) for n in names]
+    args = [(template, targets[n], coating, template_frame, (turns or {}).get(n), n) for n in names]
     with executor_or_local(executor, jobs, len(args)) as pool:
         found = pool.map(_coat_job, args, labels=names, verb="coated", cancelled=cancelled)
     return dict(zip(names, found))

@@ -117,7 +117,7 @@ def _turned_back(study: Study, coated: dict, rest: Sequence[str], *, jobs: int =
     def retry(suspects):
         suspects = [n for n in suspects if n in rest]
         return frames_coat(template, {n: study.volume(n) for n in suspects}, coating=study.params.coating,
-                           template_frame=None, turns={n: (1, 2, 3) for n in suspects}, jobs=jobs, executor=executor,
+                           template_frame=None, turns={n: tuple(range(1, len(TURN_NAMES))) for n in suspects}, jobs=jobs, executor=executor,
                            cancelled=cancelled)
 
     kept, changed, _unresolved = population_turns(every, study.template_instance, retry)
