@@ -97,6 +97,33 @@ def mesh_population(population: str):
     return files, meshes
 
 
+def random_pose(rng: np.random.Generator, shift_mm: float = 200.0) -> tuple[np.ndarray, np.ndarray]:
+    """A rotation drawn uniformly from the rotation group (any axis, any angle up to 180°) and a
+    shift (mm, per axis)."""
+    q = rng.normal(size=4)
+    w, x, y, z = q / np.linalg.norm(q)
+    rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    return rot, rng.uniform(-shift_mm, shift_mm, size=3)
+
+
+def scanner_poses(files, meshes, seed: int, folder: Path):
+    """Each mesh moved by its own :func:`random_pose` and written as a 3D Slicer PLY (LPS, says so)
+    into ``folder``; the moved vertices are the truth's (shared faces). Returns (files, meshes)."""
+    sys.path.insert(0, str(ROOT / "tests"))
+    from foreign_data import slicer_ply
+
+    rng = np.random.default_rng(seed)
+    out_files, out_meshes = [], []
+    for f, (v, faces) in zip(files, meshes):
+        rot, shift = random_pose(rng)
+        moved = v @ rot.T + shift
+        out_files.append(slicer_ply(folder / f.name, moved, faces))
+        out_meshes.append((moved, faces))
+    return out_files, out_meshes
+
+
 def self_check(study) -> dict:
     """The build's own correspondence check per instance (mm), if it made one."""
     check = getattr(study, "correspondence_check", None)
@@ -172,7 +199,7 @@ def report_run(label: str, errors: dict, study, seconds: float, args, error_of=N
               f"folds {study.coatings[name].fit.folded_after}{c}")
     rounds = [(r.round, r.kept) for r in getattr(study, "correspondence_rounds", ()) if hasattr(r, "kept")]
     stop = getattr(getattr(study, "correspondence_check", None), "stop", "")
-    row = {"population": args.population, "method": args.method, "landmarks": args.landmarks, "on": args.on,
+    row = {"population": args.population, "pose_seed": getattr(args, "pose_seed", None), "method": args.method, "landmarks": args.landmarks, "on": args.on,
            "jitter": args.jitter, "landmark_noise": args.landmark_noise, "optimise": OPTIMISE[0] or {},
            "mean_mm": float(allv.mean()),
            "p95_mm": float(np.percentile(allv, 95)), "max_mm": float(allv.max()), "seconds": seconds,
@@ -202,6 +229,8 @@ def eval_meshes(args) -> dict:
     lm_idx = farthest_points(v0, max(args.landmarks, 1), int(np.argmax(v0[:, 2])))
     rng = np.random.default_rng(args.seed)
     with tempfile.TemporaryDirectory() as tmp:
+        if args.pose_seed is not None:  # every mesh in a random scanner pose, as 3D Slicer writes it (LPS PLY)
+            files, meshes = scanner_poses(files, meshes, args.pose_seed, Path(tmp))
         specs = []
         for i, (name, f, (v, _f)) in enumerate(zip(names, files, meshes)):
             lm = None
@@ -219,7 +248,7 @@ def eval_meshes(args) -> dict:
     error_of = truth_errors(study, {n: loc.evaluate(v, f0) for n, (v, _f) in zip(names, meshes)})
     errors = error_of({n: study.coatings[n].points_object for n in names})
     label = (f"{args.population} {args.method} landmarks={args.landmarks} on={min(args.on, len(names))} "
-             f"jitter={args.jitter}")
+             f"jitter={args.jitter}" + (f" poses={args.pose_seed}" if args.pose_seed is not None else ""))
     if args.fit_projection:
         fit_projection(study, names, error_of)
     return report_run(label, errors, study, seconds, args, error_of)
@@ -397,6 +426,27 @@ def run_study(specs, template_name: str, method: str, iterations: int, jobs: int
     return study, template_points, time.perf_counter() - t0
 
 
+def scanner_pose_volumes(files, maps, seed: int, folder: Path):
+    """Each label map's affine moved by its own :func:`random_pose` (written into ``folder``), and
+    each known displacement composed with it: x -> T(x + u(x)) - x, world mm. Returns (files,
+    maps, poses as (rotation, shift))."""
+    import nibabel as nib
+
+    rng = np.random.default_rng(seed)
+    out_files, out_maps, poses = [], [], []
+    for f, u in zip(files, maps):
+        rot, shift = random_pose(rng)
+        img = nib.load(str(f))
+        move = np.eye(4)
+        move[:3, :3], move[:3, 3] = rot, shift
+        path = folder / Path(f).name
+        nib.save(nib.Nifti1Image(np.asarray(img.dataobj), move @ img.affine), str(path))
+        out_files.append(path)
+        out_maps.append(lambda x, u=u, rot=rot, shift=shift: (np.asarray(x, float) + u(x)) @ rot.T + shift - x)
+        poses.append((rot, shift))
+    return out_files, out_maps, poses
+
+
 def jacobian_min(u, pts: np.ndarray, h: float = 0.5) -> float:
     """Smallest det(I + du/dx) over ``pts`` (central differences, mm)."""
     J = np.zeros((len(pts), 3, 3))
@@ -419,6 +469,9 @@ def eval_deformed(args):
     cache.mkdir(exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
         names, files, maps = deformed_population(args.n, args.label, args.seed, cache)
+        unmoved, poses = list(maps), [(np.eye(3), np.zeros(3))] * len(maps)
+        if args.pose_seed is not None:  # each label map in a random scanner pose (its affine moved)
+            files, maps, poses = scanner_pose_volumes(files, maps, args.pose_seed, Path(tmp))
         specs = []
         for i, (name, f, u) in enumerate(zip(names, files, maps)):
             lm = None
@@ -432,7 +485,8 @@ def eval_deformed(args):
                                       landmarks=read_landmarks(lm) if lm else None))
         study, template_points, seconds = run_study(specs, names[0], args.method, args.iterations, args.jobs)
     t = names.index(study.template_instance)  # the model method may build its template from another instance
-    p0 = invert(maps[t], study.frame(names[t]).to_world(template_points))  # the template's points, undeformed
+    rot, shift = poses[t]  # the template's points, undeformed and unmoved
+    p0 = invert(unmoved[t], (study.frame(names[t]).to_world(template_points) - shift) @ rot)
     error_of = truth_errors(study, {n: p0 + u(p0) for n, u in zip(names, maps)})
     errors = error_of({n: study.coatings[n].points_object for n in names})
     label = (f"deformed-{label_names[args.label]} n={args.n} {args.method} landmarks={len(given)} "
@@ -483,6 +537,9 @@ def main(argv=None):
     ap.add_argument("--n", type=int, default=20)
     ap.add_argument("--label", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--pose-seed", type=int, default=None,
+                    help="put every instance into a random scanner pose (any axis, 0-180 degrees; meshes written "
+                         "as 3D Slicer LPS PLY, label maps with their affine moved), drawn from this seed")
     ap.add_argument("--landmark-weight", type=float, default=None)
     ap.add_argument("--landmark-noise", type=float, default=None,
                     help="[correspondence] landmark_noise_mm (default: estimated; 0: exact landmarks)")

@@ -1,20 +1,22 @@
-"""Correspondence without landmarks: the template put onto each instance by its object frame
-(paper 2) and the turns of its principal axes, then coated (paper 4.2); turns the population
-disagrees with found and corrected.
+"""Correspondence without landmarks: the template put onto each instance by a dense similarity
+registration of the two surfaces from every rotation of the object frame's axes (paper 2), then
+coated (paper 4.2); turns the population disagrees with found and corrected.
 
 Without landmarks nothing but the shapes anchors the correspondence. The object frames
 (centre of mass, second-moment axes) align the template with an instance roughly (paper fig.
-8, left), but a near-symmetric shape's axes may come out turned end for end, and a turn of
-the template about an axis is then a correspondence that maps the front of one instance onto
-the back of another. So each instance's start is the template in the pose that fits its
-surface best: the frames' identity or one of the three proper turns of the axes
-(:data:`~ssm_addon.correspondence.rounds.AXIS_TURNS`), each refined by a few rigid ICP steps
-(:func:`~ssm_addon.fitting.fit.rigid_screen`), the pose of the input coordinates preferred
-unless a turn fits :data:`~ssm_addon.correspondence.rounds.WORLD_POSE_TOLERANCE` times closer,
-and the template scaled to the instance's size. After every instance is coated, an instance
-whose coating lies far from the population's mean shape (by its correspondence, rigidly) is
-coated again from the other turns and the turn nearest the others' mean is kept
-(:func:`population_turns`).
+8, left), but a near-symmetric shape's axes may come out turned end for end, two nearly equal
+second moments may swap two axes, and a mesh in scanner coordinates pairs its axes with the
+patient's however it lies; a turn of the template is then a correspondence that maps the front
+of one instance onto the back of another. So each instance's start is the template in the pose
+that fits its surface best (:func:`template_start`): registered as a similarity (rotation,
+translation, one scale; symmetric closest points weighted by area, :func:`surface_similarity`)
+from each of the 24 rotations that map the frame's axes onto themselves
+(:data:`FRAME_ROTATIONS`) and from the pose of the input coordinates, which is preferred unless
+another fits :data:`~ssm_addon.correspondence.rounds.WORLD_POSE_TOLERANCE` times closer. The
+surfaces are sampled by area, not by the template's points, which eq. (1) makes denser where
+the surface is curved. After every instance is coated, an instance whose coating lies far from
+the population's mean shape (by its correspondence, rigidly) is coated again from the other
+rotations and the one nearest the others' mean is kept (:func:`population_turns`).
 """
 
 from __future__ import annotations
@@ -320,3 +322,4 @@ def population_turns(coated: dict, reference: str, retry) -> tuple[dict, dict, d
         else:
             unresolved[n] = (far[n], median)
     return out, changed, unresolved
+
