@@ -19,7 +19,9 @@ Cases, each run as ``python -m ssm_addon build`` in a fresh process (``--cache o
   single pass and by the model method, when present;
 * ``knee30-femur``, ``knee30-tibia``, ``knee30-patella`` (and ``…-model``): each bone of ``knee30``
   (30 meshes) the same way;
-* ``dense-truth``: all eight of the above;
+* ``femur10-none``, ``knee30-tibia-none``, …: the same meshes without landmarks (the start of
+  :func:`ssm_addon.correspondence.frames.template_start`);
+* ``dense-truth``: all eight of the above (with landmarks);
 * ``lumbar-L1`` … ``lumbar-L5``: one lumbar level of two subjects as 3D Slicer meshes (verse004's
   and three known deformations of it with Scalismo landmarks, verse005's without: the model method;
   ``tests/foreign_data.py``), when verse004 and verse005 are present;
@@ -113,15 +115,18 @@ def mesh_set_project(folder: Path, data: Path, pattern: str, method: str, landma
 
     folder.mkdir(parents=True, exist_ok=True)
     files = sorted(data.glob(pattern))
-    chosen = farthest_points(read_mesh(files[0])[0], landmarks, 0)
+    chosen = farthest_points(read_mesh(files[0])[0], max(landmarks, 1), 0)
     lines = ["[correspondence]", f'method = "{method}"']
     if template_choice and method == "model":
         lines.append(f'template_choice = "{template_choice}"')
     lines.append("")
     for f in files:
         v, _f = read_mesh(f)
-        lm = scalismo_landmarks(folder / f"{f.stem}.json", [f"P{k}" for k in range(landmarks)], v[chosen])
-        lines += ["[[instances]]", f'name = "{f.stem}"', f'mesh = "{f.as_posix()}"', f'landmarks = "{lm.name}"', ""]
+        lines += ["[[instances]]", f'name = "{f.stem}"', f'mesh = "{f.as_posix()}"']
+        if landmarks:
+            lm = scalismo_landmarks(folder / f"{f.stem}.json", [f"P{k}" for k in range(landmarks)], v[chosen])
+            lines.append(f'landmarks = "{lm.name}"')
+        lines.append("")
     path = folder / f"{folder.name}_{method}.toml"
     path.write_text("\n".join(lines))
     return path
@@ -162,17 +167,17 @@ def make_cases(tmp: Path, names, n: int, template_choice: str | None = None) -> 
             from eval_joint import knee_project
 
             cases[name] = knee_project(tmp / "joint", 30, 12)
-        elif name.removesuffix("-model") in MESH_SETS:
-            sub, pattern = MESH_SETS[name.removesuffix("-model")]
+        elif name.removesuffix("-model").removesuffix("-none") in MESH_SETS:
+            sub, pattern = MESH_SETS[name.removesuffix("-model").removesuffix("-none")]
             data = shared_data_dir() / sub
             if not data.is_dir():
                 print(f"{name}: skipped ({data} not found)")
                 continue
             cases[name] = mesh_set_project(tmp / name, data, pattern, "model" if name.endswith("-model") else "landmarks",
-                                           template_choice=template_choice)
+                                           template_choice=template_choice, landmarks=0 if name.endswith("-none") else 15)
         else:
             raise SystemExit(f"unknown case {name!r} (demo, verse, lumbar-L1 … lumbar-L5, joint, dense-truth, or a set of "
-                             f"{', '.join(MESH_SETS)} with or without -model)")
+                             f"{', '.join(MESH_SETS)}, alone, with -model or with -none)")
     return cases
 
 
