@@ -80,7 +80,9 @@ TURNED_FACTOR = 2.0
 #: Template samples (triangle centroids) and target samples of the start's similarity registration.
 SCREEN_SAMPLES = 1500
 TARGET_SAMPLES = 6000
-#: Steps of the registration from every rotation, and of the nearest ``FINALISTS`` in full.
+#: Steps of the registration from every rotation (on every ``SCREEN_STRIDE``-th sample of both), and
+#: of the nearest ``FINALISTS`` in full.
+SCREEN_STRIDE = 3
 SCREEN_ITERATIONS = 6
 REGISTRATION_ITERATIONS = 30
 FINALISTS = 3
@@ -158,7 +160,8 @@ def template_start(template_points: np.ndarray, target: ObjectVolume, *, templat
         world = ("input coordinates", Pose(rot[0], centre_t - scale * rot[0] @ centre_s, scale))
         candidates.insert(0, world)
     surface = _SurfacePairs(src, src_w, tgt, tgt_w)
-    screened = [(name, *surface.register(pose, SCREEN_ITERATIONS)) for name, pose in candidates]
+    coarse = _SurfacePairs(src[::SCREEN_STRIDE], src_w[::SCREEN_STRIDE], tgt[::SCREEN_STRIDE], tgt_w[::SCREEN_STRIDE])
+    screened = [(name, *coarse.register(pose, SCREEN_ITERATIONS)) for name, pose in candidates]
     # the nearest few screened poses registered in full; the input coordinates' pose always
     finalists = sorted(range(len(screened)), key=lambda i: (screened[i][2], i))[:FINALISTS]
     if world is not None and 0 not in finalists:
