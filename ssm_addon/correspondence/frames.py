@@ -34,7 +34,7 @@ from ..coating.coating import CoatingResult, CoatingStart, coat_from_start
 from ..coating.distance_map import DistanceMap
 from ..fitting.fit import Pose, weighted_pose
 from ..instances.volume import ObjectFrame, ObjectVolume
-from ..meshutil import Mesh
+from ..meshutil import Mesh, face_centroids, face_normals
 from ..model.pca import procrustes_fit
 from .rounds import AXIS_TURNS, WORLD_POSE_TOLERANCE, aligned_to
 
@@ -189,9 +189,8 @@ def area_samples(vertices: np.ndarray, faces: np.ndarray | None, count: int) -> 
     f = np.asarray(faces)
     step = max(1, len(f) // max(count, 1))
     f = f[::step]
-    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    return (a + b + c) / 3.0, area * step
+    area = 0.5 * np.linalg.norm(face_normals(v, f, normalize=False), axis=1)
+    return face_centroids(v, f), area * step
 
 
 class _SurfacePairs:
