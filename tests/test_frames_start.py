@@ -69,3 +69,41 @@ def test_the_input_coordinates_pose_is_kept_where_it_fits_as_well(knobbed_egg):
     start, how = template_start(v, ov, distance_map=dm, template_faces=f, template_frame=ov.frame)
     assert how.turn == "input coordinates" and abs(how.scale - 1) < 0.01
     assert np.linalg.norm(start - v, axis=1).mean() < 0.3
+
+
+def _knobbed_spindle(dirs, length, width, knob, rng_turn=None):
+    """Points of a spindle with a circular section about x (half-length ``length``, radius ``width``,
+    mm) and a knob of ``knob`` mm off its axis, along the unit directions ``dirs`` (their radial
+    function): a shape that only its knob pins about its long axis. ``rng_turn``: the directions are
+    first turned about x by this many degrees: the same surface, its points in places turned."""
+    d = dirs
+    if rng_turn:
+        a = np.radians(rng_turn)
+        d = dirs @ np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]]).T
+    r = 1.0 / np.sqrt((d[:, 0] / length) ** 2 + (d[:, 1] / width) ** 2 + (d[:, 2] / width) ** 2)
+    k = np.array([0.3, 0.9, 0.3]) / np.linalg.norm([0.3, 0.9, 0.3])
+    r = r + knob * np.exp(-((d - k) ** 2).sum(axis=1) / 0.04)
+    return r[:, None] * d
+
+
+def test_a_coating_turned_about_its_long_axis_on_its_own_surface_is_named_a_twist():
+    """Eight spindles in correspondence, and one whose points lie on its own surface turned 12°
+    about the long axis (as a coating without landmarks slides round a bone): its correspondence
+    is turned against its surface's fit to the mean shape by about the 12° (within 3°), about the
+    long axis, and it alone is named; the others turn by less than 2°."""
+    from conftest import icosphere
+
+    from ssm_addon.correspondence.frames import coating_twists, twisted
+
+    dirs, faces = icosphere(1.0, 3)
+    rng = np.random.default_rng(3)
+    points = {}
+    for k in range(9):
+        shape = dict(length=40 * (1 + 0.05 * rng.normal()), width=14 * (1 + 0.05 * rng.normal()),
+                     knob=6 * (1 + 0.1 * rng.normal()))
+        points[f"s{k}"] = _knobbed_spindle(dirs, **shape, rng_turn=12.0 if k == 5 else None)
+    twists = coating_twists(points, faces, "s0")
+    named, limit = twisted(twists)
+    assert list(named) == ["s5"], {n: round(t.angle_deg, 1) for n, t in twists.items()}
+    assert abs(named["s5"].angle_deg - 12.0) < 3.0 and named["s5"].axis_name == "the mean shape's longest axis"
+    assert max(t.angle_deg for n, t in twists.items() if n != "s5") < 2.0 and limit >= 5.0

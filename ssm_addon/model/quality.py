@@ -19,6 +19,9 @@ gate                          figure                                          st
 ``rounds``                    model method's rounds stopped at their limit    coating
 ``frame``                     coating turned against the template instance's  model
                               (object frames that disagree; alignment none)
+``twist``                     coating's points turned on its own surface      model
+                              against the others' (degrees; correspondence
+                              against shape, :mod:`~ssm_addon.correspondence.frames`)
 ``folds``                     folded triangles left                           coating
 ``surface_distance``          largest vertex distance to the surface (voxels) coating
 ``convergence``               relaxation stopped by its iteration limit       coating

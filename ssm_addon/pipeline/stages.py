@@ -16,6 +16,7 @@ from ..base.compute import executor_or_local
 from ..base.errors import InputError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn, report
 from ..coating.coating import CoatingResult, coat_all, coat_from_start
+from ..correspondence.frames import TWIST_FACTOR, TWIST_MIN_DEG, coating_twists, twisted
 from ..correspondence.rounds import check_correspondence, correspondence_fit_params
 from ..formats.label_maps import read_label_map
 from ..formats.meshes import read_mesh
@@ -35,6 +36,7 @@ from ..model import metrics
 from ..model.metrics import ModelMetrics
 from ..model.pca import ShapeModel, build_model
 from ..model.quality import (
+    Finding,
     check_coating,
     check_duplicate_instances,
     check_frames,
@@ -527,9 +529,29 @@ def model_stage(study: Study, *, progress: ProgressFn = None, cancelled: Cancell
     names = list(model.instance_names)
     findings = check_frames(names, np.stack([study.coatings[n].points_object for n in names]),
                             study.template_instance, study.params.model.alignment) + list(findings)
+    findings += twist_findings(study, names)
     seconds = time.perf_counter() - t0
     return StageResult("model", {"model": model, "outlier_scores": scores}, tuple(findings), {"model": seconds},
                        (f"model: {model.n_modes} modes, {model.n_points} points in {seconds:.2f} s",))
+
+
+def twist_findings(study: Study, names: Sequence[str]) -> list[Finding]:
+    """The ``twist`` gate: coatings whose points are turned on their own surface against the others'
+    (:func:`~ssm_addon.correspondence.frames.coating_twists`), more than
+    :data:`~ssm_addon.correspondence.frames.TWIST_MIN_DEG` and
+    :data:`~ssm_addon.correspondence.frames.TWIST_FACTOR` times the median instance's turn."""
+    reference = study.template_instance if study.template_instance in names else names[0]
+    if len(names) < 3 or study.template is None:
+        return []
+    twists = coating_twists({n: study.coatings[n].points_object for n in names}, study.template.faces, reference)
+    named, limit = twisted(twists)
+    median = float(np.median([t.angle_deg for t in twists.values()]))
+    return [Finding(n, "twist", f"its coating is turned {t.angle_deg:.1f}° about {t.axis_name} against its own "
+                                f"surface's fit to the mean shape (allowed {limit:.1f}°: {TWIST_FACTOR:g}× the median "
+                                f"instance's {median:.1f}°, at least {TWIST_MIN_DEG:g}°): its points lie on its surface "
+                                "in places turned against the others', which the model reads as shape (or as relative "
+                                "pose); give it landmarks (three or more, around that axis)", t.angle_deg, limit)
+            for n, t in named.items()]
 
 
 def metrics_stage(study: Study, *, progress: ProgressFn = None, cancelled: CancelledFn = None,
