@@ -332,8 +332,8 @@ def population_turns(coated: dict, reference: str, retry) -> tuple[dict, dict, d
 #: instance's turn.
 TWIST_MIN_DEG = 5.0
 TWIST_FACTOR = 3.0
-TWIST_SAMPLES = 1500
-TWIST_ITERATIONS = 15
+TWIST_SAMPLES = 800
+TWIST_ITERATIONS = 8
 
 
 @dataclass(frozen=True)
