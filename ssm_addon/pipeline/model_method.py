@@ -547,11 +547,13 @@ def coat_without_landmarks_stage(study: Study, *, jobs: int = 1, executor=None,
                                  cancelled: CancelledFn = None) -> StageResult:
     """The coating stage of a study without landmarks on any instance.
 
-    The template is put onto every instance by the object frames and the turns of its
-    principal axes (:func:`ssm_addon.correspondence.frames.template_start`), coated from there
-    (registration, projection, relaxation: paper 4.2), and an instance the population disagrees
-    with is coated again from the other turns (:func:`~ssm_addon.correspondence.frames.population_turns`).
-    The summary says that no landmarks anchored the correspondence and which instances were turned.
+    The template is put onto every instance by a similarity registration of the surfaces from
+    every rotation of the object frame's axes (:func:`ssm_addon.correspondence.frames.template_start`),
+    coated from there (registration, projection, relaxation: paper 4.2), and an instance the
+    population disagrees with is coated again from the other rotations
+    (:func:`~ssm_addon.correspondence.frames.population_turns`). The summary says that no landmarks
+    anchored the correspondence, which instances were turned, and which no rotation brought nearer
+    the others (an unusual shape: the model's gates judge it; no frame finding).
     """
     t0 = time.perf_counter()
     names = list(study.names)
@@ -573,19 +575,19 @@ def coat_without_landmarks_stage(study: Study, *, jobs: int = 1, executor=None,
                                 executor=pool, cancelled=cancelled)
     turned = {n: h.turn for n, (_c, h) in coated.items() if h.turn not in ("frames", "input coordinates")}
     lines = [f"correspondence: no landmarks were given: the template was put onto every instance by its object "
-             f"frame (paper 2) and the turn of its principal axes that fits the surface best, then coated; "
+             f"frame (paper 2) and the rotation of its axes from which a similarity registration fits the surface "
+             f"best, then coated; "
              f"{len(turned)} instance(s) in a turned pose" + (f" ({', '.join(f'{n}: {t}' for n, t in turned.items())})"
                                                                if turned else "")]
     for n, (before, after) in changed.items():
         lines.append(f"correspondence: {n} was coated turned against the population ({before:.1f} mm from the others' "
                      f"mean shape); coated again {coated[n][1].turn}: {after:.1f} mm")
-    findings = [Finding(n, "frame", f"its coating lies {far:.1f} mm (RMS) from the mean shape of the others, more than "
-                                    f"{TURNED_FACTOR:g}x the median instance's {median:.1f} mm, and no turn of the "
-                                    "template's axes brings it nearer: a correspondence turned against the "
-                                    "population's, or an instance unlike the others; give it landmarks",
-                        far, TURNED_FACTOR * median)
-                for n, (far, median) in unresolved.items()]
+    # no rotation brought these nearer the others: an unusual shape, which the model's outlier and
+    # reconstruction gates judge, or a coating turned on its own surface, which the twist gate names
+    for n, (far, median) in unresolved.items():
+        lines.append(f"correspondence: {n} lies {far:.1f} mm (RMS) from the others' mean shape, more than "
+                     f"{TURNED_FACTOR:g}x the median instance's {median:.1f} mm, and no other rotation of the "
+                     "template brings it nearer: its shape is unlike the others' (the model's gates judge it)")
     product = dict(result.product)
     product["template_choice"] = {"by": "no landmarks", "starts": {n: h.to_dict() for n, (_c, h) in coated.items()}}
-    return dataclasses.replace(result, product=product, findings=tuple(result.findings) + tuple(findings),
-                               summary=tuple(lines) + tuple(result.summary))
+    return dataclasses.replace(result, product=product, summary=tuple(lines) + tuple(result.summary))
