@@ -45,7 +45,7 @@ from ..model.metrics import ModelMetrics
 from ..model.pca import ShapeModel, build_model, generalized_procrustes, procrustes_fit
 from ..model.quality import check_model
 from .runner import run
-from .stages import make_model
+from .stages import make_model, twist_findings
 from .study import Study, study_parameters
 
 __all__ = ["JointStudy", "joint_model", "run_joint", "structure_metrics"]
@@ -129,12 +129,18 @@ def run_joint(joint: JointStudy, *, jobs: int = 1, progress: ProgressFn = None, 
             cache=cache, progress=sub_progress(progress, 0.7 * k / n, 0.7 * (k + 1) / n, f"{name}: "),
             log=lambda line, name=name: say(f"{name}: {line}"))
         joint.timings_s[f"{name}"] = time.perf_counter() - t0
+        if study.params.correspondence.optimise:
+            say(f"{name}: correspondence: the optimisation across the population is not run in a joint build "
+                "(each structure's coatings as the coating stage left them)")
     check_cancelled(cancelled)
     t0 = time.perf_counter()
     report(progress, 0.7, "joint model: PCA of every structure together")
     joint.model = joint_model(joint, cancelled=cancelled)
     findings, joint.outlier_scores = check_model(joint.model, joint.params.quality)
     joint.findings = list(findings)
+    for name, study in joint.structures.items():  # a structure's coating turned on its own surface
+        joint.findings += [dataclasses.replace(f, message=f"{name}: {f.message}", stage="model")
+                           for f in twist_findings(study, [s for s in study.names if s in study.coatings])]
     joint.timings_s["model"] = time.perf_counter() - t0
     say(f"joint model: {joint.model.n_modes} modes, {joint.model.n_points} points of {n} structures "
         f"({', '.join(joint.names)}) in {joint.timings_s['model']:.2f} s")

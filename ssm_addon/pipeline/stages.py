@@ -540,9 +540,10 @@ def twist_findings(study: Study, names: Sequence[str]) -> list[Finding]:
     (:func:`~ssm_addon.correspondence.frames.coating_twists`), more than
     :data:`~ssm_addon.correspondence.frames.TWIST_MIN_DEG` and
     :data:`~ssm_addon.correspondence.frames.TWIST_FACTOR` times the median instance's turn."""
-    reference = study.template_instance if study.template_instance in names else names[0]
+    names = list(names)
     if len(names) < 3 or study.template is None:
         return []
+    reference = study.template_instance if study.template_instance in names else names[0]
     twists = coating_twists({n: study.coatings[n].points_object for n in names}, study.template.faces, reference)
     named, limit = twisted(twists)
     median = float(np.median([t.angle_deg for t in twists.values()]))
