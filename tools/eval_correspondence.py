@@ -489,8 +489,8 @@ def eval_deformed(args):
     p0 = invert(unmoved[t], (study.frame(names[t]).to_world(template_points) - shift) @ rot)
     error_of = truth_errors(study, {n: p0 + u(p0) for n, u in zip(names, maps)})
     errors = error_of({n: study.coatings[n].points_object for n in names})
-    label = (f"deformed-{label_names[args.label]} n={args.n} {args.method} landmarks={len(given)} "
-             f"on={min(args.on, args.n)} jitter={args.jitter}")
+    label = (f"deformed-{label_names[args.label]} n={args.n} {args.method} landmarks={len(given) if args.landmarks else 0} "
+             f"on={min(args.on, args.n)} jitter={args.jitter}" + (f" poses={args.pose_seed}" if args.pose_seed is not None else ""))
     return report_run(label, errors, study, seconds, args, error_of)
 
 
