@@ -152,15 +152,14 @@ def test_femurs_in_scanner_poses_without_landmarks_are_coated_as_unmoved(tmp_pat
     axes finds each femur however its moments axes were paired with the patient's, so every coating
     lies within 4 mm (mean) of its true places and the set within 10 % of the same femurs unmoved
     (before this start: femur03 coated end for end, 249 mm, in the coating alone)."""
-    from foreign_data import slicer_ply
+    from foreign_data import random_rigid, slicer_ply
 
     files, meshes = _meshes(DATA / "femur10", "femur*.ply", limit=5)
     rng = np.random.default_rng(7)
     moved_files, moved = [], []
     for f, (v, faces) in zip(files, meshes):
-        q = rng.normal(size=4)
-        rot = _rotation_of_quaternion(q / np.linalg.norm(q))
-        w = v @ rot.T + rng.uniform(-200, 200, size=3)
+        rot, shift = random_rigid(rng, shift_mm=200.0)
+        w = v @ rot.T + shift
         moved_files.append(slicer_ply(tmp_path / f.name, w, faces))
         moved.append((w, faces))
     _study, unmoved = _build(files, meshes, tmp_path, landmarks=0, on=0, method="landmarks")
@@ -171,9 +170,3 @@ def test_femurs_in_scanner_poses_without_landmarks_are_coated_as_unmoved(tmp_pat
     assert max(per.values()) < 4.0, per
     assert b < 1.1 * a, (a, b)
 
-
-def _rotation_of_quaternion(q: np.ndarray) -> np.ndarray:
-    w, x, y, z = q
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
