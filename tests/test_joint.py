@@ -369,3 +369,32 @@ def test_a_joint_build_draws_the_same_pictures_on_worker_processes_as_serially(t
     pictures = ("modes.png", "spectrum.png", "cumulative_variance.png", "variability.png", "metrics.png")
     for png in pictures:
         assert (outs["processes"] / png).read_bytes() == (outs["serial"] / png).read_bytes(), png
+
+
+def test_a_joint_report_records_what_anchored_each_structures_correspondence(tmp_path):
+    """report.json's joint.structures.<name>.correspondence says what ran, not only the parameter:
+    with landmarks on every subject the paper's single pass ("landmarks"); without any, "no
+    landmarks", with each subject's start (the rotation and scale the similarity registration chose,
+    and the candidates' distances), and a line per structure saying that the optimisation was not run."""
+    import re
+
+    from ssm_addon.pipeline.project_build import build
+
+    with_lm = joint_project(tmp_path, 4, ["[template]", "spacing = 1.0", ""])
+    text = re.sub(r"landmarks = \{[^}]*\}\n", "", with_lm.read_text())
+    without = tmp_path / "without.toml"
+    without.write_text(text)
+    lines = []
+    reports = {}
+    for name, project in (("with", with_lm), ("without", without)):
+        build(read_project(project), tmp_path / name, jobs=2, blend=False, log=lines.append, cache="off")
+        reports[name] = json.loads((tmp_path / name / "report.json").read_text())
+    for structure in ("a", "b"):
+        got = reports["with"]["joint"]["structures"][structure]["correspondence"]
+        assert got["used"] == "landmarks" and got["method"] == "landmarks"
+        got = reports["without"]["joint"]["structures"][structure]["correspondence"]
+        assert got["used"] == "no landmarks", got["used"]
+        starts = got["template_choice"]["starts"]
+        assert set(starts) == {f"S{i}" for i in range(4)} and all(len(s["distances_mm"]) == 25 for s in starts.values())
+        assert any(x.startswith(f"{structure}: correspondence: the optimisation across the population is not run")
+                   for x in lines), lines

@@ -53,6 +53,19 @@ SECTIONS = ("project", "parameters", "model", "template", "correspondence", "qua
             "timings_s")
 
 
+def correspondence_used(study) -> str:
+    """What anchored a study's correspondence, whatever ``[correspondence] method`` says:
+    ``"no landmarks"`` (the template's start registered from the object frames' rotations,
+    :mod:`~ssm_addon.correspondence.frames`), ``"model"`` (the model method: rounds, or landmarks on
+    some instances only) or ``"landmarks"`` (the paper's single pass)."""
+    names = list(study.names)
+    given = [n for n in names if study.landmarks(n) is not None]
+    if not given:
+        return "no landmarks"
+    if study.params.correspondence.method == "model" or len(given) < len(names) or study.correspondence_rounds:
+        return "model"
+    return "landmarks"
+
 def _section(value):
     return value.to_dict() if isinstance(value, Absent) else value
 
@@ -211,6 +224,7 @@ def study_report(study: Study, *, project: str | Absent, timings_unknown: dict |
     check = study.correspondence_check
     correspondence = {
         "method": study.params.correspondence.method,
+        "used": correspondence_used(study),
         "template_instance": study.template_instance,
         "template_choice": jsonable(study.template_choice),
         "start": {n: study.coating_start.get(n, study.coatings[n].fit.start) for n in names},
@@ -754,9 +768,11 @@ def joint_report(joint, *, project: str | Absent, extra: dict | None = None) -> 
         structures[name] = {
             "template": {"instance": study.template_instance, "points": int(len(tpl.points_object)),
                          "triangles": int(len(tpl.faces)), "genus": int(genus(len(tpl.points_object), tpl.faces))},
-            "correspondence": {"method": study.params.correspondence.method,
+            "correspondence": {"method": study.params.correspondence.method, "used": correspondence_used(study),
                                "start": {s: study.coating_start.get(s, study.coatings[s].fit.start)
                                          for s in joint.subjects},
+                               "template_choice": jsonable(study.template_choice),
+                               "rounds": [r.to_dict() for r in study.correspondence_rounds],
                                "self_check": check.to_dict() if check is not None else None},
             "metrics": joint.structure_metrics.get(name, {}),
             "points": [int(model.structure_offsets[list(model.structure_names).index(name)]),
