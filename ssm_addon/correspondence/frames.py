@@ -32,7 +32,7 @@ from ..base.params import CoatingParams
 from ..base.progress import CancelledFn
 from ..coating.coating import CoatingResult, CoatingStart, coat_from_start
 from ..coating.distance_map import DistanceMap
-from ..fitting.fit import Pose, weighted_pose
+from ..fitting.fit import Pose, axis_rotation, weighted_pose
 from ..instances.volume import ObjectFrame, ObjectVolume
 from ..meshutil import Mesh, MeshLocator, face_centroids, face_normals
 from ..model.pca import procrustes_fit
@@ -437,9 +437,7 @@ def _surface_to_surface(src, src_mesh, src_normals, tgt, tgt_mesh, tgt_normals, 
         step = np.linalg.lstsq(rows * sw, -e * sw[:, 0], rcond=None)[0]
         omega, shift, ds = step[:3], step[3:6], step[6]
         angle = float(np.linalg.norm(omega))
-        k = omega / angle if angle > 0 else np.zeros(3)
-        kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-        r_inc = np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * kx @ kx
+        r_inc = axis_rotation(omega, np.degrees(angle)) if angle > 1e-15 else np.eye(3)
         s_inc = 1.0 + ds
         pose = Pose(r_inc @ pose.rotation, s_inc * r_inc @ (pose.translation - g) + g + shift, s_inc * pose.scale)
     return pose

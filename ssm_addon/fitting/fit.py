@@ -42,7 +42,7 @@ from ..meshutil import MeshLocator, outer_surface, vertex_normals
 
 __all__ = ["FitResult", "ModelErrorField", "Pose", "Target", "correlation_length", "farthest_point_indices",
            "fit_any_pose", "fit_floor", "fit_model", "loo_residuals", "model_error_field", "model_error_variance", "outlier_limit",
-           "pose_freedom", "rigid_screen", "start_poses", "weighted_pose"]
+           "pose_freedom", "rigid_screen", "start_poses", "weighted_pose", "axis_rotation"]
 
 
 @dataclass(frozen=True)
@@ -537,7 +537,7 @@ def _joint_step(pose, b, shape, normals, modes, lam, rows_v, y, w, lm_pairs, w_l
     if angle > JOINT_MAX_TURN:  # far from the target the linear model of the turn is poor: a shorter step
         d *= JOINT_MAX_TURN / angle
         angle = JOINT_MAX_TURN
-    turn = _axis_rotation(d[:3], math.degrees(angle)) if angle > 1e-15 else np.eye(3)
+    turn = axis_rotation(d[:3], math.degrees(angle)) if angle > 1e-15 else np.eye(3)
     return Pose(turn @ rot, turn @ (pose.translation - centre) + centre + d[3:6], pose.scale), b + d[6:]
 
 
@@ -748,7 +748,7 @@ def fit_floor(model, target: Target, pose: Pose, *, partial: bool = False, point
     centre = pose.apply(np.asarray(model.mean, float)).mean(axis=0)
     for axis in range(3):
         for sign in (1.0, -1.0):
-            turn = _axis_rotation(np.eye(3)[axis], sign * FLOOR_TURN_DEG)
+            turn = axis_rotation(np.eye(3)[axis], sign * FLOOR_TURN_DEG)
             starts.append(Pose(turn @ pose.rotation, turn @ (pose.translation - centre) + centre, pose.scale))
             starts.append(Pose(pose.rotation, pose.translation + sign * FLOOR_SHIFT_MM * np.eye(3)[axis], pose.scale))
     best = None
@@ -777,7 +777,7 @@ def _principal_axes(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return c, v[:, np.argsort(w)[::-1]]
 
 
-def _axis_rotation(axis: np.ndarray, degrees: float) -> np.ndarray:
+def axis_rotation(axis: np.ndarray, degrees: float) -> np.ndarray:
     """The turn by ``degrees`` about ``axis`` (any length), as a matrix (Rodrigues)."""
     a = axis / np.linalg.norm(axis)
     k = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
@@ -817,7 +817,7 @@ def start_poses(model, target: Target, *, frame_pose: Pose | None = None, turns:
         if np.linalg.det(r0) < 0:  # the eigenvector bases differ in handedness
             r0 = at @ (d @ np.diag([1.0, 1.0, -1.0])) @ am.T
         for j in range(turns):
-            r = _axis_rotation(at[:, 0], 360.0 * j / turns) @ r0
+            r = axis_rotation(at[:, 0], 360.0 * j / turns) @ r0
             if any(np.abs(r - q).max() < 1e-6 for q in seen):
                 continue
             seen.append(r)
@@ -919,7 +919,7 @@ def pose_freedom(model, target: Target, chosen: FitResult, *, params: FitParams,
                          cancelled=cancelled)
 
     def turn(t):
-        r = _axis_rotation(axis, t)
+        r = axis_rotation(axis, t)
         return refit(Pose(r @ rot, r @ (shift - centre) + centre, chosen.pose.scale))
 
     def turned_by(f) -> float:  # the refit's own turn about the axis from the chosen pose (degrees)
