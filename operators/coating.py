@@ -22,6 +22,7 @@ from ssm_addon.base.progress import sub_progress
 from ssm_addon.coating import coating as core
 from ssm_addon.pipeline.model_method import refine_correspondence
 from ssm_addon.pipeline.runner import coating_stage
+from ssm_addon.pipeline.sides import sides_first, with_sides_product
 from ssm_addon.pipeline.stages import coating_result, import_result
 from ssm_addon.pipeline.study import apply_stage
 from ssm_addon.pipeline.template_refinement import with_template_refined
@@ -30,6 +31,7 @@ from .jobs import BackgroundJob
 from .properties import SSMPanel, draw_params, scene_params
 from .scene import (
     VolumeLoader,
+    apply_sides,
     coated_object_of,
     coated_objects,
     find_template,
@@ -134,6 +136,7 @@ class SSM_OT_coat_template(BackgroundJob, bpy.types.Operator):
             return finish_refinement(self, context, outcome)
         self._loader.keep()
         imported, result, was_cancelled = outcome
+        apply_sides(result.product.get("sides"))
         refined = result.product.get("template")  # built again where the coatings cut off parts of the meshes
         if refined is not None and "refined_at" in (refined.params or {}):
             instance = context.scene.ssm_display.template_instance or find_template(context).ssm.instance
@@ -214,8 +217,11 @@ def prepare_refinement(op, context, *, fresh: bool):
         def coat(s):
             return refine_correspondence(s, progress=sub_progress(progress, 0.1, 1.0), cancelled=stop, on_coated=count)
 
-        first = coat(study)  # starting afresh, as a build does: the template refined where the coatings cut off parts
-        return imported, with_template_refined(study, first, coat, cancelled=stop) if fresh else first
+        # the sides first, as the build's coating stage decides them
+        sided, decisions, seconds = sides_first(study, cancelled=stop)
+        first = coat(sided)  # starting afresh, as a build does: the template refined where the coatings cut off parts
+        result = with_template_refined(sided, first, coat, cancelled=stop) if fresh else first
+        return imported, with_sides_product(sided, result, decisions, seconds)
 
     return work
 
@@ -224,6 +230,7 @@ def finish_refinement(op, context, outcome):
     """Write the refined coatings and the rounds' figures into the scene."""
     op._loader.keep()
     imported, result = outcome
+    apply_sides(result.product.get("sides"))
     coatings, starts = result.product["coatings"], result.product["coating_start"]
     rounds = list(result.product.get("correspondence_rounds", ()))
     mean_points = result.product["template"].points_object

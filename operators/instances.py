@@ -40,6 +40,7 @@ from .scene import (
     next_order,
     relative_source,
     scene_instances,
+    set_side,
     write_frame,
 )
 
@@ -76,6 +77,7 @@ def write_instance(context, obj, spec: InstanceSpec, *, kind: str, frame, volume
     ssm.mesh_spacing_mm = float(spec.mesh_spacing_mm or 0.0)
     ssm.volume_mm3 = float(volume_mm3)
     write_frame(obj, frame, bridge.matrix_to_numpy(obj.matrix_world))
+    set_side(obj, mirror=spec.mirror, side=spec.side)
     obj[VOXELS_PROP] = int(voxels)
 
 

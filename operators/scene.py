@@ -47,7 +47,7 @@ from ssm_addon.correspondence.optimisation import OptimisationCancelled
 from ssm_addon.formats.landmarks import LandmarkSet
 from ssm_addon.instances import importing as core_instances
 from ssm_addon.instances.importing import InstanceSpec
-from ssm_addon.instances.volume import ObjectFrame, ObjectVolume
+from ssm_addon.instances.volume import ObjectFrame, ObjectVolume, mirrored, mirrored_frame
 from ssm_addon.model.files import model_from_arrays
 from ssm_addon.model.pca import ShapeModel
 from ssm_addon.model.quality import Finding
@@ -93,13 +93,50 @@ def next_order(context) -> int:
     return max((o.ssm.order for o in context.scene.objects if is_instance(o)), default=-1) + 1
 
 
+#: Instance property: 1 when the instance is mirrored into the template's side (its given side, or
+#: the coating stage's decision, :mod:`ssm_addon.correspondence.sides`), 0 when it is not; absent:
+#: not decided. The frame stored at import stays the file's; :func:`stored_frame` mirrors it.
+MIRROR_PROP = "ssm_mirror"
+#: Instance property: the side given for the instance ("left" or "right"), from a project.
+SIDE_PROP = "ssm_side"
+
+
 def stored_frame(obj) -> ObjectFrame | None:
-    """The object frame of an instance (file world mm, float64), or None."""
+    """The object frame of an instance (file world mm, float64), or None: mirrored
+    (:func:`~ssm_addon.instances.volume.mirrored_frame`) where the instance is mirrored into the
+    template's side, as the core's import of its spec gives it."""
     d = bridge.load_arrays(obj, FRAME_KEY)
     if d is None:
         return None
-    return ObjectFrame(origin_world=d["origin_world"], axes_world=d["axes_world"],
-                       second_moments_mm2=d.get("second_moments_mm2", np.zeros(3)), method=d.get("method", "moments"))
+    frame = ObjectFrame(origin_world=d["origin_world"], axes_world=d["axes_world"],
+                        second_moments_mm2=d.get("second_moments_mm2", np.zeros(3)), method=d.get("method", "moments"))
+    return mirrored_frame(frame) if obj.get(MIRROR_PROP) == 1 else frame
+
+
+def instance_mirror(obj) -> bool | None:
+    """Whether the instance is mirrored into the template's side (None: not decided)."""
+    return {1: True, 0: False}.get(obj.get(MIRROR_PROP))
+
+
+def set_side(obj, *, mirror: bool | None, side: str | None = None) -> None:
+    """Record an instance's side: ``mirror`` (None: not decided) and the ``side`` given, if any."""
+    if mirror is None:
+        obj.pop(MIRROR_PROP, None)
+    else:
+        obj[MIRROR_PROP] = int(bool(mirror))
+    if side:
+        obj[SIDE_PROP] = str(side)
+    else:
+        obj.pop(SIDE_PROP, None)
+
+
+def apply_sides(decisions: dict) -> None:
+    """Record a coating stage's side decisions (``product["sides"]``) on the instance objects, before
+    their coatings are written (a mirrored instance's coating is shown through its mirrored frame)."""
+    for name, decision in (decisions or {}).items():
+        obj = bpy.data.objects.get(name)
+        if obj is not None and obj.ssm.role == "INSTANCE":
+            obj[MIRROR_PROP] = int(bool(decision.mirror))
 
 
 def import_matrix(obj) -> np.ndarray:
@@ -109,6 +146,10 @@ def import_matrix(obj) -> np.ndarray:
 
 
 def write_frame(obj, frame: ObjectFrame, import_mat: np.ndarray) -> None:
+    """Store an instance's object frame as its file gives it (a mirrored frame unmirrored: the
+    instance's :data:`MIRROR_PROP` says it is mirrored, :func:`set_side`)."""
+    if frame.mirrored:
+        frame = mirrored_frame(frame)
     bridge.store_arrays(obj, FRAME_KEY, {
         "origin_world": frame.origin_world, "axes_world": frame.axes_world,
         "second_moments_mm2": frame.second_moments_mm2, "method": frame.method, "import_matrix": import_mat,
@@ -183,11 +224,13 @@ def instance_spec(context, obj) -> InstanceSpec:
     lm = lm if len(lm) else None
     path = Path(absolute_source_path(obj)) if obj.ssm.source else None
     mesh_spacing = float(ssm.mesh_spacing_mm) or None
+    sides = {"side": obj.get(SIDE_PROP) or None, "mirror": instance_mirror(obj)}
     if ssm.source_kind == "VOLUME":
-        return InstanceSpec(name=obj.name, volume_path=path, label=None if ssm.label < 0 else int(ssm.label), landmarks=lm)
+        return InstanceSpec(name=obj.name, volume_path=path, label=None if ssm.label < 0 else int(ssm.label), landmarks=lm,
+                            **sides)
     if ssm.source_kind == "MESH_FILE":
-        return InstanceSpec(name=obj.name, mesh_path=path, mesh_spacing_mm=mesh_spacing, landmarks=lm)
-    return InstanceSpec(name=obj.name, mesh_spacing_mm=mesh_spacing, landmarks=lm)
+        return InstanceSpec(name=obj.name, mesh_path=path, mesh_spacing_mm=mesh_spacing, landmarks=lm, **sides)
+    return InstanceSpec(name=obj.name, mesh_spacing_mm=mesh_spacing, landmarks=lm, **sides)
 
 
 # ---------------------------------------------------------------------------- landmarks
@@ -283,7 +326,8 @@ def set_landmark(context, instance, name: str, *, file_world=None, blender_world
 def _volume_key(context, obj):
     tp = scene_params(context, "ssm_template")
     ssm = obj.ssm
-    base = (tp.spacing_mm, tp.frame, tp.space, ssm.source_kind, ssm.label, float(ssm.mesh_spacing_mm))
+    base = (tp.spacing_mm, tp.frame, tp.space, ssm.source_kind, ssm.label, float(ssm.mesh_spacing_mm),
+            instance_mirror(obj))
     if ssm.source_kind == "BLENDER_MESH":
         verts, faces = mesh_file_world(obj)
         digest = hashlib.sha1(verts.astype(np.float32).tobytes() + faces.astype(np.int32).tobytes()).hexdigest()
@@ -331,6 +375,7 @@ class VolumeLoader:
                                                      mesh_spacing_mm=spec.mesh_spacing_mm,
                                                      frame_method=self.frame_method, source=spec.name,
                                                      cancelled=cancelled)
+                ov = mirrored(ov) if spec.mirror else ov
             else:
                 ov = core_instances.import_instance(spec, spacing_mm=self.spacing, frame_method=self.frame_method,
                                                     space=self.space,

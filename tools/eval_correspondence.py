@@ -124,6 +124,23 @@ def scanner_poses(files, meshes, seed: int, folder: Path):
     return out_files, out_meshes
 
 
+def mirror_half(files, meshes, folder: Path):
+    """Every second mesh (the 2nd, 4th, ...) mirrored through the world's x = 0 plane (left <-> right),
+    its triangles turned to face outwards, written into ``folder``; the mirrored vertices are the
+    truth's (the same vertex order). Returns (files, meshes)."""
+    from ssm_addon.formats.meshes import write_ply
+
+    out_files, out_meshes = [], []
+    for i, (f, (v, faces)) in enumerate(zip(files, meshes)):
+        if i % 2:
+            v, faces = v * np.array([-1.0, 1.0, 1.0]), faces[:, ::-1]
+            f = folder / f"{f.stem}_mirrored.ply"
+            write_ply(f, v, faces, space="RAS")
+        out_files.append(f)
+        out_meshes.append((v, faces))
+    return out_files, out_meshes
+
+
 def self_check(study) -> dict:
     """The build's own correspondence check per instance (mm), if it made one."""
     check = getattr(study, "correspondence_check", None)
@@ -229,6 +246,8 @@ def eval_meshes(args) -> dict:
     lm_idx = farthest_points(v0, max(args.landmarks, 1), int(np.argmax(v0[:, 2])))
     rng = np.random.default_rng(args.seed)
     with tempfile.TemporaryDirectory() as tmp:
+        if args.mirror_half:  # every second instance (not the template's) its own mirror image: a right bone
+            files, meshes = mirror_half(files, meshes, Path(tmp))
         if args.pose_seed is not None:  # every mesh in a random scanner pose, as 3D Slicer writes it (LPS PLY)
             files, meshes = scanner_poses(files, meshes, args.pose_seed, Path(tmp))
         specs = []
@@ -540,6 +559,8 @@ def main(argv=None):
     ap.add_argument("--pose-seed", type=int, default=None,
                     help="put every instance into a random scanner pose (any axis, 0-180 degrees; meshes written "
                          "as 3D Slicer LPS PLY, label maps with their affine moved), drawn from this seed")
+    ap.add_argument("--mirror-half", action="store_true",
+                    help="every second mesh mirrored left <-> right (a mixed-side set; meshes only)")
     ap.add_argument("--landmark-weight", type=float, default=None)
     ap.add_argument("--landmark-noise", type=float, default=None,
                     help="[correspondence] landmark_noise_mm (default: estimated; 0: exact landmarks)")

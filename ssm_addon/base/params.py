@@ -838,6 +838,7 @@ class FitParams:
 
 CORRESPONDENCE_METHODS = ("landmarks", "model")
 TEMPLATE_CHOICES = ("medoid", "landmark-medoid", "given")
+SIDES = ("detect", "given")
 ROUND_TEMPLATES = ("instance", "mean")
 
 
@@ -860,6 +861,11 @@ class CorrespondenceParams:
                              "model-driven refinement, landmarks optional but on the template instance")
     iterations: int = param(3, minimum=1, maximum=100, label="Rounds",
                             help="most refinement rounds of the 'model' method")
+    sides: str = param("detect", choices=SIDES, label="Sides",
+                       help="'detect': an instance without a given side that is a mirror image of the template's "
+                            "(a right bone among left ones; found by its landmarks, else its surface) is mirrored into "
+                            "the template's side before it is coated; 'given': only instances whose side is given and "
+                            "differs from the template instance's are mirrored")
     tolerance_mm: float = param(0.1, unit="mm", minimum=0.0, maximum=100.0, label="Stop below",
                                 help="stop the refinement when the mean shape moves less than this (RMS; a "
                                      "tenth of the default 1 mm voxel)")

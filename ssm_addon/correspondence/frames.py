@@ -154,7 +154,7 @@ def template_start(template_points: np.ndarray, target: ObjectVolume, *, templat
     candidates = [(ROTATION_NAMES[k], Pose(FRAME_ROTATIONS[k], centre_t - scale * FRAME_ROTATIONS[k] @ centre_s, scale))
                   for k in turns]
     world = None
-    if template_frame is not None:
+    if template_frame is not None and template_frame.mirrored == target.frame.mirrored:  # else no rotation
         there = target.frame.to_object(template_frame.to_world(pts))
         _s, rot, _t = procrustes_fit(pts[None], there, scale=False)
         world = ("input coordinates", Pose(rot[0], centre_t - scale * rot[0] @ centre_s, scale))

@@ -24,7 +24,7 @@ from ..formats.landmarks import LandmarkSet
 from ..formats.meshes import mesh_space, read_mesh
 from ..instances.frame import object_frame
 from ..instances.resampling import resample
-from ..instances.volume import ObjectFrame, ObjectVolume, bounding_box
+from ..instances.volume import ObjectFrame, ObjectVolume, bounding_box, mirrored
 from ..instances.voxelize import keep_thin_parts, load_mesh_volume, voxelize_mesh
 
 __all__ = ["InstanceSpec", "file_names", "import_instance", "instance_frame", "load_object", "object_from_mesh", "object_from_volume",
@@ -57,6 +57,13 @@ class InstanceSpec:
     image_path : Path or None
         The instance's grey-value image (CT) in the same world space as its label map or mesh:
         the build learns the boundary's appearance from it (:mod:`ssm_addon.segmentation`).
+    side : str or None
+        The side given for the instance (a project's ``side``, e.g. ``"left"``), or None.
+    mirror : bool or None
+        Whether the instance is a mirror image of the template's side and is imported
+        mirrored (:func:`~ssm_addon.instances.volume.mirrored`: the same world points, object
+        coordinates of its mirror image); None: not decided yet (the coating stage decides,
+        :mod:`ssm_addon.correspondence.sides`), imported as it is.
     """
 
     name: str
@@ -68,6 +75,8 @@ class InstanceSpec:
     landmarks: LandmarkSet | None = None
     space: str | None = None
     image_path: Path | None = None
+    side: str | None = None
+    mirror: bool | None = None
 
     @property
     def source(self) -> Path:
@@ -300,7 +309,9 @@ def import_instance(spec: InstanceSpec, *, spacing_mm: float, frame_method: str 
                     cancelled: CancelledFn = None) -> ObjectVolume:
     """Import one instance of a study: read, object frame, resample (paper section 2).
 
-    A mesh instance is voxelized on its object grid directly (:func:`object_from_mesh`).
+    A mesh instance is voxelized on its object grid directly (:func:`object_from_mesh`). An
+    instance with ``spec.mirror`` is returned mirrored into the template's side
+    (:func:`~ssm_addon.instances.volume.mirrored`).
 
     Raises
     ------
@@ -309,10 +320,12 @@ def import_instance(spec: InstanceSpec, *, spacing_mm: float, frame_method: str 
     """
     report(progress, 0.0, f"reading {spec.name}")
     if spec.mesh_path is not None:
-        return mesh_instance(spec, spacing_mm=spacing_mm, frame_method=frame_method, space=space, cancelled=cancelled)
-    vol = read_instance(spec, spacing_mm=spacing_mm, label_map=label_map, space=space, cancelled=cancelled)
-    try:
-        return object_from_volume(vol, spacing_mm=spacing_mm, frame_method=frame_method,
-                                  progress=sub_progress(progress, 0.4, 1.0), cancelled=cancelled)
-    except InputError as err:
-        raise InputError(f"instance {spec.name!r}: {err}") from None
+        ov = mesh_instance(spec, spacing_mm=spacing_mm, frame_method=frame_method, space=space, cancelled=cancelled)
+    else:
+        vol = read_instance(spec, spacing_mm=spacing_mm, label_map=label_map, space=space, cancelled=cancelled)
+        try:
+            ov = object_from_volume(vol, spacing_mm=spacing_mm, frame_method=frame_method,
+                                    progress=sub_progress(progress, 0.4, 1.0), cancelled=cancelled)
+        except InputError as err:
+            raise InputError(f"instance {spec.name!r}: {err}") from None
+    return mirrored(ov) if spec.mirror else ov

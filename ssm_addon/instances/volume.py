@@ -37,7 +37,9 @@ class ObjectFrame:
         Centre of mass in world mm.
     axes_world : (3, 3) float ndarray
         Columns are the object x, y, z axes as unit vectors in world coordinates;
-        orthonormal and right-handed (det = +1).
+        orthonormal and right-handed (det = +1), or left-handed (det = -1) for an instance
+        mirrored into the template's side (:func:`mirrored`): its object coordinates are then
+        those of its mirror image.
     second_moments_mm2 : (3,) float ndarray
         Second moments (variances, mm²) of the object along the three axes.
     method : str
@@ -57,6 +59,11 @@ class ObjectFrame:
     def to_object(self, points_world: np.ndarray) -> np.ndarray:
         """(M, 3) world mm -> (M, 3) object mm."""
         return (np.asarray(points_world, float) - self.origin_world) @ self.axes_world
+
+    @property
+    def mirrored(self) -> bool:
+        """Whether the frame is left-handed: object coordinates of the object's mirror image."""
+        return bool(np.linalg.det(self.axes_world) < 0)
 
     @property
     def matrix_world(self) -> np.ndarray:
@@ -134,6 +141,47 @@ class ObjectVolume:
     def volume_mm3(self) -> float:
         """Object volume in mm³ of the resampled mask."""
         return float(np.count_nonzero(self.mask)) * self.spacing_mm**3
+
+
+def mirror_axis(frame: ObjectFrame) -> int:
+    """The object axis a mirror image is taken along: the one nearest the world's x axis
+    (left-right in RAS and LPS), so that a patient-aligned frame mirrors about its sagittal plane."""
+    return int(np.argmax(np.abs(np.asarray(frame.axes_world, float)[0])))
+
+
+def mirrored(volume: ObjectVolume) -> ObjectVolume:
+    """The object's mirror image in a left-handed frame: the same voxels in the world.
+
+    The mask is flipped along :func:`mirror_axis` and that axis of the frame negated, so that
+    object coordinates are those of the mirror image (a left bone's become a right bone's)
+    while ``frame.to_world`` still gives the input's own world points: a coating made on
+    the mirrored volume is in the template's side in object mm and in the instance's own side
+    in world mm. Mirroring twice gives the volume back.
+
+    >>> m = np.zeros((4, 3, 3), bool); m[0, 1, 1] = True
+    >>> fr = ObjectFrame(origin_world=np.zeros(3), axes_world=np.eye(3))
+    >>> ov = ObjectVolume(m, 1.0, np.array([-1.0, -1.0, -1.0]), fr)
+    >>> mv = mirrored(ov)
+    >>> mv.frame.mirrored, mv.voxel_to_object(np.argwhere(mv.mask)).tolist()
+    (True, [[1.0, 0.0, 0.0]])
+    >>> mv.frame.to_world(mv.voxel_to_object(np.argwhere(mv.mask))).tolist()
+    [[-1.0, 0.0, 0.0]]
+    """
+    k = mirror_axis(volume.frame)
+    mask = np.ascontiguousarray(np.flip(volume.mask, axis=k))
+    origin = np.array(volume.origin_object, float)
+    origin[k] = -(origin[k] + (volume.mask.shape[k] - 1) * volume.spacing_mm)
+    return ObjectVolume(mask, volume.spacing_mm, origin, mirrored_frame(volume.frame), source=volume.source,
+                        distance_map_store=volume.distance_map_store)
+
+
+def mirrored_frame(frame: ObjectFrame) -> ObjectFrame:
+    """``frame`` with its :func:`mirror_axis` negated: object coordinates of the mirror image (the
+    frame of :func:`mirrored`). Mirroring twice gives the frame back."""
+    axes = np.array(frame.axes_world, float)
+    axes[:, mirror_axis(frame)] *= -1.0
+    return ObjectFrame(origin_world=np.asarray(frame.origin_world, float), axes_world=axes,
+                       second_moments_mm2=frame.second_moments_mm2, method=frame.method)
 
 
 def bounding_box(mask: np.ndarray) -> tuple[slice, slice, slice]:

@@ -411,14 +411,18 @@ def write_study(study: Study, folder, *, output: OutputParams, project: str | Ab
     names = list(model.instance_names)
     safe = file_names(names)
     if output.coated_meshes:
+        # each coating in its instance's own world and side: a mirrored instance's triangles turned
+        # back so that they face outwards there
+        mirrored = set(model.params.get("mirrored") or ())
+        faces = {n: tpl.faces[:, ::-1] if n in mirrored else tpl.faces for n in names}
         (folder / "coated").mkdir()
         for name, pw in zip(names, model.instance_points_world):
-            write_ply(folder / "coated" / f"{safe[name]}.ply", np.asarray(pw, float), tpl.faces, space="RAS")
+            write_ply(folder / "coated" / f"{safe[name]}.ply", np.asarray(pw, float), faces[name], space="RAS")
         files["coated"] = "coated"
         if output.vtk:  # the same coatings for VTK readers (ParaView, 3D Slicer, ShapeWorks Studio)
             (folder / "vtk" / "coated").mkdir(parents=True)
             for name, pw in zip(names, model.instance_points_world):
-                write_vtp(folder / "vtk" / "coated" / f"{safe[name]}.vtp", np.asarray(pw, float), tpl.faces, {})
+                write_vtp(folder / "vtk" / "coated" / f"{safe[name]}.vtp", np.asarray(pw, float), faces[name], {})
     carried = carried_landmarks(study)
     if output.landmarks and carried:
         given = study.instance(study.template_instance).landmarks_path

@@ -76,9 +76,13 @@ INSTANCE_KEYS = {
     "landmarks": "a file path (string)",
     "space": "\"RAS\" or \"LPS\" (the convention of this instance's files that state none)",
     "image": "a file path (string): the instance's grey-value image (CT), whose boundary appearance the build learns",
+    "side": "\"left\" or \"right\": the instance's side; an instance of the other side than the template instance's "
+            "is mirrored into the template's side before it is coated",
     **STRUCTURE_KEYS,
     "attributes": "a table of attributes, e.g. { group = \"patient\", age = 63 }",
 }
+#: Spellings of a side a project may give, and the side they mean.
+SIDE_NAMES = {"left": "left", "right": "right", "l": "left", "r": "right"}
 #: Longest instance name: it names output files (``coated/<name>.ply``, ``landmarks/<name>.mrk.json``),
 #: and file systems allow 255 bytes per file name.
 MAX_NAME_CHARS = 200
@@ -326,6 +330,12 @@ def _instances(doc: dict, ctx: _Context, base: Path,
         if space is not None and (not isinstance(space, str) or space.upper() not in ("RAS", "LPS")):
             raise ctx.error(f"{what}: space must be \"RAS\" or \"LPS\", got {space!r}", ctx.lines.key(*where, "space"))
         space = space.upper() if space is not None else None
+        side = table.get("side")
+        if side is not None:
+            if not isinstance(side, str) or side.strip().lower() not in SIDE_NAMES:
+                raise ctx.error(f"{what}: side must be \"left\" or \"right\", got {side!r}",
+                                ctx.lines.key(*where, "side"))
+            side = SIDE_NAMES[side.strip().lower()]
         volume = _existing_file(table["volume"], "volume", what, ctx, where, base) if has_volume else None
         mesh = _existing_file(table["mesh"], "mesh", what, ctx, where, base) if has_mesh else None
         image = _existing_file(table["image"], "image", what, ctx, where, base) if "image" in table else None
@@ -349,7 +359,40 @@ def _instances(doc: dict, ctx: _Context, base: Path,
                     raise ctx.error(f"{what}: attribute {k!r} must be a number or a string, got {P.type_name(v)} "
                                     f"{v!r}", line)
         out.append(InstanceSpec(name=name, landmarks_path=lm_path, volume_path=volume, label=table.get("label"), mesh_path=mesh,
-                                mesh_spacing_mm=mesh_spacing, landmarks=lms, space=space, image_path=image))
+                                mesh_spacing_mm=mesh_spacing, landmarks=lms, space=space, image_path=image,
+                                side=side))
+    return out
+
+
+def _sides(instances: list[InstanceSpec], template_instance: str, ctx: _Context, tables: dict,
+           structure: str = "") -> list[InstanceSpec]:
+    """``mirror`` of every instance: True where its given side differs from the template instance's,
+    False where it is the same (and for the template instance), None (found by the coating stage,
+    :mod:`ssm_addon.correspondence.sides`) where none is given and ``[correspondence] sides =
+    "detect"``, else False."""
+    given = {i.name: i.side for i in instances if i.side is not None}
+    if given and structure:
+        first = next(i for i in instances if i.side is not None)
+        raise ctx.error(f"structure {structure!r}: instance {first.name!r} gives a side: sides are not supported in a "
+                        "project of several structures yet (a subject's structures would be mirrored each on its "
+                        "own, and their relative poses with them); give one side's subjects, or mirror the files",
+                        ctx.lines.table("instances", instances.index(first)))
+    template_side = given.get(template_instance)
+    if given and template_side is None:
+        first = next(n for n in given)
+        raise ctx.error(f"instance {first!r} gives side = {given[first]!r} but the template instance "
+                        f"{template_instance!r} gives none: give the template instance's side (the model's side)",
+                        ctx.lines.table("instances", [i.name for i in instances].index(template_instance)))
+    detect = tables["correspondence"].sides == "detect" and not structure
+    out = []
+    for inst in instances:
+        if inst.name == template_instance:
+            mirror = False
+        elif inst.side is not None:
+            mirror = inst.side != template_side
+        else:
+            mirror = None if detect else False
+        out.append(dataclasses.replace(inst, mirror=mirror))
     return out
 
 
@@ -496,7 +539,8 @@ def _study_instances(doc: dict, ctx: _Context, path: Path, tables: dict, structu
             file_names(names)
         except InputError as err:
             raise ctx.error(str(err), ctx.lines.table("instances", 0)) from None
-        return instances, _template_instance(doc, ctx, what, names), ()
+        template_instance = _template_instance(doc, ctx, what, names)
+        return _sides(instances, template_instance, ctx, tables, structure), template_instance, ()
     try:
         matched = match_landmarks([inst.landmarks for inst in marked])
     except InputError as err:
@@ -516,7 +560,7 @@ def _study_instances(doc: dict, ctx: _Context, path: Path, tables: dict, structu
         raise ctx.error(f"{what}[template] instance {template_instance!r} has no landmarks; the template instance "
                         "needs them when other instances have landmarks (they name the places carried to every "
                         "instance; or give no instance landmarks)", ctx.lines.key("template", "instance"))
-    return instances, template_instance, matched[0].names
+    return _sides(instances, template_instance, ctx, tables, structure), template_instance, matched[0].names
 
 
 def _template_instance(doc: dict, ctx: _Context, what: str, names: list[str]) -> str:
@@ -705,6 +749,8 @@ def project_text(project: Project, base: Path) -> str:
             lines.append(f"space = {toml_value(inst.space)}")
         if inst.image_path is not None:
             lines.append(f"image = {toml_value(_relative(inst.image_path, base))}")
+        if inst.side is not None:
+            lines.append(f"side = {toml_value(inst.side)}")
         own = project.instance_attributes.get(inst.name)
         if own:
             lines.append("attributes = { " + ", ".join(f"{_key(k)} = {toml_value(v)}" for k, v in own.items()) + " }")

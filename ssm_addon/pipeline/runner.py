@@ -14,6 +14,7 @@ from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..model.metrics import import_plotting_in_background
 from .model_method import coat_without_landmarks_stage, distance_maps_ahead, landmarked, refine_correspondence
 from .optimisation import optimisation_stage
+from .sides import decide_sides, sides_first, sides_line, with_sides, with_sides_product
 from .stages import (
     coat_instances,
     coating_result,
@@ -40,16 +41,19 @@ def coating_stage(study: Study, *, names: Sequence[str] | None = None, jobs: int
     called as each coating arrives (for counting; progress lines are for people). When every
     instance is coated and some coatings cut off parts of their meshes, the template is refined
     there and every instance coated again (:func:`with_template_refined`; ``[template]
-    refine_where_cut_off``).
+    refine_where_cut_off``). First, each instance whose side is not given is found a mirror image
+    of the template's side or not, and mirrored into it (:func:`~ssm_addon.pipeline.sides.sides_first`).
     """
+    sided, decisions, t_sides = sides_first(study, names, jobs=jobs, executor=executor, cancelled=cancelled)
+
     def coat(s: Study) -> StageResult:
         return _coating_once(s, names=names, jobs=jobs, progress=progress, cancelled=cancelled, log=log,
                              executor=executor, on_coated=on_coated)
 
-    first = coat(study)
-    if names is not None and set(names) != set(study.names):
-        return first
-    return with_template_refined(study, first, coat, log=log, progress=progress, cancelled=cancelled)
+    first = coat(sided)
+    if names is None or set(names) == set(study.names):
+        first = with_template_refined(sided, first, coat, log=log, progress=progress, cancelled=cancelled)
+    return with_sides_product(sided, first, decisions, t_sides)
 
 
 def _coating_once(study: Study, *, names: Sequence[str] | None = None, jobs: int = 1, progress: ProgressFn = None,
@@ -106,6 +110,14 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
             and len(landmarked(study)) == len(study.names)
             and all(s in stages for s in ("import", "template", "coating"))):
         report(progress, 0.0, f"import, template and coating: {n} instances on {executor.describe()}")
+        # streamed, no instance's volume is here before it is coated: sides by landmarks alone
+        decisions = decide_sides(study, surface=False)
+        if decisions:
+            study.instances = with_sides(study, decisions).instances
+            study.sides.update(decisions)
+        line = sides_line(study, decisions)
+        if line:
+            say(line)
         streamed = stream_instances(study, executor, cache=cache, progress=sub_progress(progress, 0.0, 0.8),
                                     cancelled=cancelled, log=say)
         with_volume = dataclasses.replace(study, template=streamed.product["template"],

@@ -250,6 +250,8 @@ def make_model(study: Study, *, names: Sequence[str] | None = None, progress: Pr
     # the frames' methods as resolved ("auto": patient for images and meshes in a known convention)
     params["frame_methods"] = sorted({study.frame(n).method for n in names})
     params["fit"] = {n: {k: v for k, v in study.coatings[n].fit.to_dict().items() if k != "time_s"} for n in names}
+    # instances mirrored into the template's side: their world points (instance_points_world) are in their own
+    params["mirrored"] = [n for n in names if study.frame(n).mirrored]
     mp = study.params.model
     return build_model(pts, study.template.faces, names, instance_points_world=world, alignment=mp.alignment,
                        n_modes=mp.n_modes, variance_fraction=mp.variance_fraction, solver=mp.solver,

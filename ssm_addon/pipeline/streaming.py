@@ -67,7 +67,7 @@ class InstanceJob:
         spec, qp = self.spec, self.quality_params
         lm = spec.landmarks.subset(self.landmark_names)
         return digest("instance", {"source": file_digest(spec.source), "kind": "volume" if spec.volume_path else "mesh",
-                                   "label": spec.label, "mesh_spacing": spec.mesh_spacing_mm,
+                                   "label": spec.label, "mesh_spacing": spec.mesh_spacing_mm, "mirror": bool(spec.mirror),
                                    **({"space": spec.given_space(self.space)} if spec.mesh_path is not None else {})},
                       {"names": list(lm.names), "points_world": np.asarray(lm.points_world, float)},
                       {"spacing_mm": self.spacing_mm, "frame": self.frame_method},

@@ -104,6 +104,10 @@ class Study:
         errors, mm). ``"medoid"`` tries the landmark medoid first: confirmed by its coatings,
         the record is that guess's (``by = "landmarks"``, ``coatings_medoid``, ``confirmed``);
         else the given template's route, with the guess under ``landmark_medoid``.
+    sides : dict name -> SideDecision
+        The coating stage's decision of each instance's side whose side was not given
+        (:mod:`ssm_addon.correspondence.sides`): mirrored into the template's side or not, by
+        landmarks, surface or undecided.
     optimisation : Optimisation or None
         The correspondence optimisation's record (``[correspondence] optimise``): its
         iterations, stop and how far each instance's points moved.
@@ -141,6 +145,7 @@ class Study:
     input_distances: dict = field(default_factory=dict)
     cut_off: dict = field(default_factory=dict)
     optimisation: object | None = None
+    sides: dict = field(default_factory=dict)
 
     def __post_init__(self):
         self.instances = tuple(self.instances)

@@ -188,6 +188,10 @@ def typical_rotation(model) -> np.ndarray:
     if world.ndim != 3 or len(world) == 0:
         return np.eye(3)
     mean = np.asarray(model.mean, float)
+    mirrored = set((getattr(model, "params", None) or {}).get("mirrored") or ())
+    names = [str(n) for n in getattr(model, "instance_names", ())]
+    if len(names) == len(world) and mirrored:
+        world = np.asarray([w for n, w in zip(names, world) if n not in mirrored]) if len(mirrored) < len(names) else world
     acc = np.zeros((3, 3))
     for w in world:
         acc += weighted_pose(mean, w, np.ones(len(mean)), False).rotation
