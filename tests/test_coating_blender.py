@@ -243,3 +243,48 @@ def test_coat_template_refines_the_model_methods_template_as_the_build_does(bpy_
     assert bpy.ops.ssm.optimise_correspondence() == {"FINISHED"}
     _coatings_equal(bpy, headless.study)
     assert not [f for f in scene_findings(bpy.context) if f.gate == "input_surface"]
+
+
+def test_coat_template_mirrors_a_right_instance_as_the_build_does(bpy_clean, tmp_path):
+    """Four knobbed ellipsoids as meshes, two of them mirror images (no side given, no landmarks):
+    Coat Template finds the two by their surface and mirrors them into the template's side as the
+    headless build does: the same coatings (1e-9 mm), the instances marked mirrored, and each coated
+    object shown on its own instance in Blender's world (not on its mirror image)."""
+    from ssm.operators import bridge
+    from ssm.operators.scene import MIRROR_PROP, scene_instances
+    from test_sides import _chiral
+
+    from ssm_addon.formats.meshes import write_ply
+    from ssm_addon.instances.volume import display_surface
+    from ssm_addon.meshutil import MeshLocator
+    from ssm_addon.pipeline.project import read_project
+    from ssm_addon.pipeline.project_build import build
+
+    bpy = bpy_clean
+    lines = ['[template]\ninstance = "k0"\n', "[correspondence]\noptimise = false\n",
+             "[model]\nspecificity_samples = 20\n"]
+    meshes = {}
+    for i, (scale, mirror) in enumerate(((1.0, False), (1.06, True), (0.95, False), (1.1, True))):
+        v, f = display_surface(_chiral(), to_world=True)
+        v = v * scale
+        if mirror:
+            v, f = v * np.array([-1.0, 1.0, 1.0]), f[:, ::-1]
+        write_ply(tmp_path / f"k{i}.ply", v, f, space="RAS")
+        meshes[f"k{i}"] = (v, f)
+        lines.append(f'[[instances]]\nname = "k{i}"\nmesh = "k{i}.ply"\n')
+    project = tmp_path / "p.toml"
+    project.write_text("\n".join(lines))
+    headless = build(read_project(project), tmp_path / "out", log=None)
+    assert {n for n, d in headless.study.sides.items() if d.mirror} == {"k1", "k3"}
+    assert bpy.ops.ssm.open_project(filepath=str(project)) == {"FINISHED"}
+    assert bpy.ops.ssm.build_template() == {"FINISHED"}
+    assert bpy.ops.ssm.coat_template() == {"FINISHED"}
+    _coatings_equal(bpy, headless.study)
+    marked = {o.name: o.get(MIRROR_PROP) for o in scene_instances(bpy.context)}
+    assert marked == {"k0": 0, "k1": 1, "k2": 0, "k3": 1}, marked  # the template instance: its own side
+    for obj in bpy.data.objects:
+        if obj.ssm.role == "COATED":
+            m = bridge.matrix_to_numpy(obj.matrix_world)
+            pts = bridge.load_arrays(obj, "ssm_coating")["points_object"] @ m[:3, :3].T + m[:3, 3]
+            name = obj.ssm.instance.name
+            assert MeshLocator(*meshes[name]).query(pts)[1].mean() < 1.0, name

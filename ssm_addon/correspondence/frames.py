@@ -38,7 +38,7 @@ from ..meshutil import Mesh, MeshLocator, face_centroids, face_normals
 from ..model.pca import procrustes_fit
 from .rounds import AXIS_TURNS, WORLD_POSE_TOLERANCE, aligned_to
 
-__all__ = ["FRAME_ROTATIONS", "ROTATION_NAMES", "TURN_NAMES", "TURNED_FACTOR", "FramesStart", "area_samples", "coat_from_template_pose", "coat_without_landmarks",
+__all__ = ["FRAME_ROTATIONS", "ROTATION_NAMES", "TURN_NAMES", "TURNED_FACTOR", "FramesStart", "SurfacePairs", "area_samples", "coat_from_template_pose", "coat_without_landmarks",
            "far_from_population", "population_turns", "surface_similarity", "template_start", "TWIST_FACTOR", "TWIST_MIN_DEG", "Twist", "coating_twists", "twisted"]
 
 
@@ -159,8 +159,8 @@ def template_start(template_points: np.ndarray, target: ObjectVolume, *, templat
         _s, rot, _t = procrustes_fit(pts[None], there, scale=False)
         world = ("input coordinates", Pose(rot[0], centre_t - scale * rot[0] @ centre_s, scale))
         candidates.insert(0, world)
-    surface = _SurfacePairs(src, src_w, tgt, tgt_w)
-    coarse = _SurfacePairs(src[::SCREEN_STRIDE], src_w[::SCREEN_STRIDE], tgt[::SCREEN_STRIDE], tgt_w[::SCREEN_STRIDE])
+    surface = SurfacePairs(src, src_w, tgt, tgt_w)
+    coarse = SurfacePairs(src[::SCREEN_STRIDE], src_w[::SCREEN_STRIDE], tgt[::SCREEN_STRIDE], tgt_w[::SCREEN_STRIDE])
     screened = [(name, *coarse.register(pose, SCREEN_ITERATIONS)) for name, pose in candidates]
     # the nearest few screened poses registered in full; the input coordinates' pose always
     finalists = sorted(range(len(screened)), key=lambda i: (screened[i][2], i))[:FINALISTS]
@@ -193,7 +193,7 @@ def area_samples(vertices: np.ndarray, faces: np.ndarray | None, count: int) -> 
     return face_centroids(v, f), area * step
 
 
-class _SurfacePairs:
+class SurfacePairs:
     """The template's and the target's area samples, for :meth:`register`."""
 
     def __init__(self, src, src_w, tgt, tgt_w):

@@ -37,7 +37,7 @@ from .frames import (
     SCREEN_SAMPLES,
     SCREEN_STRIDE,
     TARGET_SAMPLES,
-    _SurfacePairs,
+    SurfacePairs,
     area_samples,
 )
 
@@ -175,9 +175,9 @@ def surface_side(template_points: np.ndarray, template_faces: np.ndarray, target
     for side in (np.ones(3), flip):
         t = tgt * side
         centre_t = t.mean(axis=0)
-        coarse = _SurfacePairs(src[::SCREEN_STRIDE], src_w[::SCREEN_STRIDE], t[::SCREEN_STRIDE], tgt_w[::SCREEN_STRIDE])
+        coarse = SurfacePairs(src[::SCREEN_STRIDE], src_w[::SCREEN_STRIDE], t[::SCREEN_STRIDE], tgt_w[::SCREEN_STRIDE])
         screened = [coarse.register(Pose(r, centre_t - scale * r @ centre_s, scale), SCREEN_ITERATIONS)
                     for r in FRAME_ROTATIONS]
         first = min(range(len(screened)), key=lambda i: (screened[i][1], i))
-        best.append(_SurfacePairs(src, src_w, t, tgt_w).register(screened[first][0], REGISTRATION_ITERATIONS)[1])
+        best.append(SurfacePairs(src, src_w, t, tgt_w).register(screened[first][0], REGISTRATION_ITERATIONS)[1])
     return _decide(best[0], best[1], "surface")

@@ -32,6 +32,7 @@ from ..correspondence.rounds import evenly_spaced
 from ..meshutil import genus
 from ..model.metrics import aggregate_fit, model_summary
 from ..model.pca import procrustes_fit
+from .sides import given_sides
 from .study import Study, carried_landmarks, input_coordinates, landmark_distances, study_parameters
 
 __all__ = ["MAX_THUMBNAILS", "SECTIONS", "Absent", "Report", "instance_thumbnails", "joint_report", "model_alignment",
@@ -65,6 +66,16 @@ def correspondence_used(study) -> str:
     if study.params.correspondence.method == "model" or len(given) < len(names) or study.correspondence_rounds:
         return "model"
     return "landmarks"
+
+def sides_record(study, model) -> dict:
+    """``correspondence.sides`` of report.json: the template's side (given, or ``""``), the instances
+    mirrored into it (the model's record) and how each side was decided (given, landmarks, surface or
+    undecided, with both fits in mm; where this study decided them)."""
+    decided = {n: d.to_dict() for n, d in given_sides(study).items()}
+    decided.update({n: d.to_dict() for n, d in study.sides.items()})
+    return {"template": study.instance(study.template_instance).side or "",
+            "mirrored": list((model.params or {}).get("mirrored") or ()), "instances": decided}
+
 
 def _section(value):
     return value.to_dict() if isinstance(value, Absent) else value
@@ -233,6 +244,7 @@ def study_report(study: Study, *, project: str | Absent, timings_unknown: dict |
         "self_check": check.to_dict() if check is not None else None,
         "carried_landmark_distance_mm": landmark_distances(study, carried_landmarks(study)),
         "optimisation": study.optimisation.to_dict() if study.optimisation is not None else None,
+        "sides": sides_record(study, model),
     }
     return Report(
         project=project,

@@ -14,7 +14,7 @@ from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..model.metrics import import_plotting_in_background
 from .model_method import coat_without_landmarks_stage, distance_maps_ahead, landmarked, refine_correspondence
 from .optimisation import optimisation_stage
-from .sides import decide_sides, sides_first, sides_line, with_sides, with_sides_product
+from .sides import decide_sides, sides_first, with_sides, with_sides_product
 from .stages import (
     coat_instances,
     coating_result,
@@ -111,15 +111,14 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
             and all(s in stages for s in ("import", "template", "coating"))):
         report(progress, 0.0, f"import, template and coating: {n} instances on {executor.describe()}")
         # streamed, no instance's volume is here before it is coated: sides by landmarks alone
+        t_sides = time.perf_counter()
         decisions = decide_sides(study, surface=False)
         if decisions:
             study.instances = with_sides(study, decisions).instances
-            study.sides.update(decisions)
-        line = sides_line(study, decisions)
-        if line:
-            say(line)
-        streamed = stream_instances(study, executor, cache=cache, progress=sub_progress(progress, 0.0, 0.8),
-                                    cancelled=cancelled, log=say)
+        t_sides = time.perf_counter() - t_sides
+        streamed = with_sides_product(study, stream_instances(study, executor, cache=cache, cancelled=cancelled,
+                                                             progress=sub_progress(progress, 0.0, 0.8), log=say),
+                                      decisions, t_sides)
         with_volume = dataclasses.replace(study, template=streamed.product["template"],
                                           volumes={**study.volumes, **streamed.product["volumes"]})
         applied(with_template_refined(

@@ -88,7 +88,7 @@ def given_sides(study: Study) -> dict[str, SideDecision]:
 
 def sides_line(study: Study, decisions: dict[str, SideDecision]) -> str:
     """One line: which instances were mirrored into the template's side and why, and which
-    neither side fitted clearly; empty when no side was given or found."""
+    neither side fitted clearly; empty when none was either."""
     every = {**given_sides(study), **decisions}
     if not every:
         return ""
@@ -96,13 +96,13 @@ def sides_line(study: Study, decisions: dict[str, SideDecision]) -> str:
     flipped = {n: d for n, d in every.items() if d.mirror}
     unclear = [n for n, d in every.items() if d.by == "undecided"]
     side = f" ({tpl})" if tpl else ""
+    if not flipped and not unclear:  # one side throughout: report.json's correspondence.sides says how it was found
+        return ""
     if flipped:
         text = (f"sides: {len(flipped)} instance(s) mirrored into the template's side{side} before coating: "
                 + "; ".join(f"{n}: {d.text()}" for n, d in flipped.items()))
     else:
-        found = sum(d.by in ("landmarks", "surface") for d in every.values())
-        text = f"sides: every instance is of the template's side{side}" + (
-            f" ({found} found by landmarks or surface)" if found else "")
+        text = f"sides: every instance is taken as the template's side{side}"
     if unclear:
         text += (f"; {len(unclear)} near their own mirror image ({', '.join(unclear[:5])}"
                  f"{', …' if len(unclear) > 5 else ''}): neither side fits {SIDE_FACTOR:g}x closer, taken as the "
