@@ -252,6 +252,46 @@ def test_ssm_segment_writes_its_files_and_reads_the_models_appearance(population
     assert code == 2 and "one start" in capsys.readouterr().err
 
 
+def test_a_builds_folder_and_its_statismo_file_segment_as_its_model_npz(population, tmp_path, capsys):
+    """A build's output folder given as MODEL takes the model.npz inside it; the statismo file of the
+    same build carries the same appearance (every level, the training images and their voxel size),
+    not only Scalismo's one level, so both say and do the same; a folder without a model is named."""
+    from ssm_addon.model.files import save_statismo
+    from ssm_addon.segmentation import write_appearance_h5
+
+    model, held_out, faces = population
+    shapes, _ = bumped_shapes()
+    train = [posed(s) for s in shapes[1:4]]
+    app = learn_appearance(model.mean, faces, train, [synthetic_image(s, faces, seed=40 + i)[0]
+                                                      for i, s in enumerate(train)], names=["a", "b", "c"])
+    out = tmp_path / "build"
+    out.mkdir()
+    save_npz(model, out / "model.npz", extra=app.to_arrays())
+    save_statismo(model, out / "model.h5")
+    write_appearance_h5(out / "model.h5", app)
+    a, b = (load_appearance(out / f, model.n_points) for f in ("model.npz", "model.h5"))
+    assert a.images == b.images == ("a", "b", "c") and a.voxel_mm == b.voxel_mm
+    assert np.array_equal(a.mean, b.mean) and np.array_equal(a.covariance, b.covariance)
+    assert np.array_equal(a.sigmas_mm, b.sigmas_mm)
+    truth = posed(held_out)
+    image, _ = synthetic_image(truth, faces, seed=5)
+    nib.save(nib.Nifti1Image(image.data, image.affine), str(tmp_path / "ct.nii.gz"))
+    at = ",".join(f"{v:.2f}" for v in volume_centroid(truth, faces) + 3.0)
+    said = []
+    for model_path, folder in ((out, "seg_dir"), (out / "model.h5", "seg_h5")):
+        code = main(["segment", str(model_path), str(tmp_path / "ct.nii.gz"), "--at", at, "--out",
+                     str(tmp_path / folder)])
+        said.append(capsys.readouterr().out)
+        assert code == 0, said[-1]
+        assert "appearance learned from 3 training image(s)" in said[-1]
+    first, second = (read_image(tmp_path / f / "segmentation.nii.gz").data for f in ("seg_dir", "seg_h5"))
+    assert np.array_equal(first, second)
+    (tmp_path / "empty").mkdir()
+    code = main(["segment", str(tmp_path / "empty"), str(tmp_path / "ct.nii.gz"), "--at", at, "--out",
+                 str(tmp_path / "seg_none")])
+    assert code == 2 and "is a folder without a model.npz" in capsys.readouterr().err
+
+
 def test_an_active_shape_model_in_scalismos_statismo_layout_opens_and_segments(population, tmp_path):
     """The layout of scalismo-asm's ActiveShapeModelIO: /activeShapeModel with the Gaussian-gradient
     preprocessor, the normal-direction feature and per-point profiles (here of every other point, as a
@@ -321,8 +361,12 @@ def test_verse005_vertebrae_are_segmented_leave_one_out(tmp_path):
     assert appearance is not None and appearance.images == ("v5_L1", "v5_L2", "v5_L4", "v5_L5")
     report = json.loads((tmp_path / "loo" / "out" / "report.json").read_text())
     assert report["appearance"]["images"] == list(appearance.images)
-    in_statismo = load_appearance(tmp_path / "loo" / "out" / "model.h5", model.n_points)  # Scalismo's layout
-    assert in_statismo is not None and np.allclose(in_statismo.mean[0], appearance.mean[-1], atol=1e-6)
+    from ssm_addon.segmentation import read_scalismo_asm
+
+    in_statismo = load_appearance(tmp_path / "loo" / "out" / "model.h5", model.n_points)  # in full: as model.npz's
+    assert in_statismo.images == appearance.images and np.array_equal(in_statismo.mean, appearance.mean)
+    asm = read_scalismo_asm(tmp_path / "loo" / "out" / "model.h5", model.n_points)  # and Scalismo's layout
+    assert asm is not None and np.allclose(asm.mean[0], appearance.mean[-1], atol=1e-6)
     ct = read_image(data / "verse005" / "sub-verse005_ct.nii.gz")
     labels = read_label_map(data / "verse005" / "sub-verse005_seg-vert_msk.nii.gz")
     truth = labels.labels == 22

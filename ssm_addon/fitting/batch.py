@@ -49,15 +49,29 @@ from ..model.pca import EMPTY_MODE_SHARE, drop_empty_modes
 __all__ = ["FitTarget", "fit_batch", "fit_structures_to_folder", "fit_to_folder", "load_model", "load_target"]
 
 
+def model_file(path) -> Path:
+    """The model file ``path`` names: the file itself, or the ``model.npz`` inside a build's output
+    folder. An InputError names a folder without one and a path that does not exist."""
+    path = Path(path).expanduser()
+    if path.is_dir():
+        inside = path / "model.npz"
+        if inside.is_file():
+            return inside
+        raise InputError(f"{path}: is a folder without a model.npz (give a build's output folder or a model file: "
+                         "model.npz or a statismo .h5)")
+    if not path.is_file():
+        raise InputError(f"{path}: model file not found")
+    return path
+
+
 def load_model(path, *, say=None):
-    """A model from ``model.npz`` or a statismo HDF5 file (ours or another tool's), without its
+    """A model from ``model.npz`` (or a build's output folder holding one) or a statismo HDF5 file
+    (ours or another tool's), without its
     modes of zero variance (:func:`~ssm_addon.model.pca.drop_empty_modes`: another tool may
     keep n − 1 or more modes of which many are empty); a statismo file whose reference is
     several disconnected parts, each a contiguous range of points, opens as a joint model of its
     parts (:func:`~ssm_addon.model.joint.joined_parts`). ``say`` receives the lines saying so."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: model file not found")
+    path = model_file(path)
     head = path.read_bytes()[:8]
     if head.startswith(b"PK"):
         model = load_npz(path)

@@ -42,7 +42,7 @@ from ..instances.importing import file_names
 from ..model.figures import optimisation_figure, render_modes_figure
 from ..model.files import write_model_files
 from ..model.metrics import display_axes, write_plots
-from ..segmentation.appearance import write_scalismo_asm
+from ..segmentation.appearance import write_appearance_h5
 from .appearance import appearance_stage
 from .report import Absent, Report, joint_report, model_report, study_report, write_report_html
 from .study import Study, carried_landmarks
@@ -442,8 +442,8 @@ def write_study(study: Study, folder, *, output: OutputParams, project: str | Ab
     entries = _write_model_outputs(model, folder, files, output=output, say=say, drawn=drawn, analysis=analysis,
                                    extra=extra, npz_extra=appearance.to_arrays() if appearance is not None else None)
     if appearance is not None:  # in model.npz beside the shape model (above), and in the statismo file as
-        if "statismo" in files:  # Scalismo keeps an active shape model
-            write_scalismo_asm(folder / files["statismo"], appearance)
+        if "statismo" in files:  # in full (segments as model.npz does), and as Scalismo's active shape model
+            write_appearance_h5(folder / files["statismo"], appearance)
         entries["appearance"] = appearance_doc
     study.timings_s["write"] = time.perf_counter() - t0 - study.timings_s.get("blender", 0.0)
     if t_start is not None:

@@ -6,7 +6,7 @@ Every public name of the subpackage's modules, imported on first use (:mod:`ssm_
 from .._lazy import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, {
-    "appearance": ("Appearance", "LEVEL_SIGMAS_MM", "appearance_from_arrays", "boundary_grey_values", "learn_appearance", "load_appearance", "normalised_derivative", "profile_features", "read_scalismo_asm", "write_scalismo_asm"),
+    "appearance": ("Appearance", "LEVEL_SIGMAS_MM", "appearance_from_arrays", "boundary_grey_values", "learn_appearance", "load_appearance", "normalised_derivative", "profile_features", "read_own_appearance_h5", "read_scalismo_asm", "write_appearance_h5", "write_scalismo_asm"),
     "files": ("SEGMENT_FILES", "SegmentationRecord", "parse_point", "segment_figure", "segment_files", "write_segmentation"),
     "image": ("PLANES", "GreyImage", "read_image", "segmentation_mask", "window_values", "world_slice"),
     "scores": ("degrade_image", "mask_surface_points", "segmentation_scores"),

@@ -198,8 +198,8 @@ def load_appearance(path, n_points: int) -> Appearance | None:
     if not path.is_file():
         return None
     head = path.read_bytes()[:8]
-    if head.startswith(b"\x89HDF"):  # a statismo file: Scalismo's active shape model, if it holds one
-        return read_scalismo_asm(path, n_points)
+    if head.startswith(b"\x89HDF"):  # a statismo file: ours in full, else Scalismo's active shape model
+        return read_own_appearance_h5(path, n_points) or read_scalismo_asm(path, n_points)
     if not head.startswith(b"PK"):
         return None
     with np.load(path, allow_pickle=False) as data:
@@ -207,6 +207,44 @@ def load_appearance(path, n_points: int) -> Appearance | None:
             return None
         arrays = {k: data[k] for k in data.files if k.startswith(NPZ_PREFIX)}
     return appearance_from_arrays(arrays, n_points, str(path))
+
+
+OWN_GROUP = "ssm/appearance"
+"""Where a statismo file written by a build keeps the appearance in full (every level, the training
+images and their voxel size: what ``model.npz`` holds), beside Scalismo's one-level active shape model."""
+
+
+def write_appearance_h5(path, appearance: Appearance) -> None:
+    """Put ``appearance`` into a build's statismo file twice: in full under :data:`OWN_GROUP` (the
+    ``appearance_*`` arrays of ``model.npz``, so the file segments as ``model.npz`` does) and as
+    Scalismo's active shape model (:func:`write_scalismo_asm`, the finest level) for Scalismo."""
+    import h5py
+
+    write_scalismo_asm(path, appearance)
+    with h5py.File(path, "a") as f:
+        if OWN_GROUP in f:
+            del f[OWN_GROUP]
+        g = f.require_group(OWN_GROUP)
+        for key, value in appearance.to_arrays().items():
+            value = np.asarray(value)
+            if value.dtype.kind == "U":
+                g.create_dataset(key, data=json.dumps([str(v) for v in value.reshape(-1)]))
+            else:
+                g.create_dataset(key, data=value)
+
+
+def read_own_appearance_h5(path, n_points: int) -> Appearance | None:
+    """The appearance a build put in full into its statismo file (:func:`write_appearance_h5`), or None."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        if OWN_GROUP not in f or f"{OWN_GROUP}/{NPZ_PREFIX}mean" not in f:
+            return None
+        arrays = {}
+        for key, ds in f[OWN_GROUP].items():
+            value = ds[()]
+            arrays[key] = value.decode() if isinstance(value, bytes) else value
+    return appearance_from_arrays(arrays, n_points, f"{path}: {OWN_GROUP}")
 
 
 ASM_GROUP = "/activeShapeModel"

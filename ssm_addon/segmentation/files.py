@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..base.errors import InputError
-from ..fitting.batch import load_model
+from ..fitting.batch import load_model, model_file
 from ..fitting.fit import Target, fit_any_pose
 from ..formats.label_maps import load_volume, write_label_map
 from ..formats.landmarks import read_landmarks
@@ -135,6 +135,7 @@ def segment_files(model_path, image_path, out_dir, *, at=(), landmarks_path=None
     """
     say = say or (lambda _line: None)
     params = SegmentParams() if params is None else params
+    model_path = model_file(model_path)  # a build's output folder: its model.npz
     model = load_model(model_path, say=say)
     appearance = load_appearance(model_path, model.n_points)
     if appearance is None:
