@@ -11,7 +11,7 @@ from ssm_addon.base.errors import InputError
 from ssm_addon.base.params import TemplateParams
 from ssm_addon.correspondence.sides import SIDE_FACTOR, landmark_side, surface_side
 from ssm_addon.instances.volume import ObjectFrame, ObjectVolume, mirror_axis, mirrored, mirrored_frame
-from ssm_addon.pipeline.project import read_project, project_text
+from ssm_addon.pipeline.project import project_text, read_project
 from ssm_addon.template.template import build_template
 
 

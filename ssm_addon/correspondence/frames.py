@@ -154,8 +154,11 @@ def template_start(template_points: np.ndarray, target: ObjectVolume, *, templat
     candidates = [(ROTATION_NAMES[k], Pose(FRAME_ROTATIONS[k], centre_t - scale * FRAME_ROTATIONS[k] @ centre_s, scale))
                   for k in turns]
     world = None
-    if template_frame is not None and template_frame.mirrored == target.frame.mirrored:  # else no rotation
-        there = target.frame.to_object(template_frame.to_world(pts))
+    if template_frame is not None:
+        world_pts = template_frame.to_world(pts)
+        if template_frame.mirrored != target.frame.mirrored:  # a mirrored instance: the template mirrored left to
+            world_pts = world_pts * np.array([-1.0, 1.0, 1.0])  # right (world x, in RAS and LPS) as a right bone is
+        there = target.frame.to_object(world_pts)
         _s, rot, _t = procrustes_fit(pts[None], there, scale=False)
         world = ("input coordinates", Pose(rot[0], centre_t - scale * rot[0] @ centre_s, scale))
         candidates.insert(0, world)

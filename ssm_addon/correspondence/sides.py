@@ -29,7 +29,8 @@ import numpy as np
 from scipy import ndimage
 
 from ..fitting.fit import Pose
-from ..instances.volume import ObjectVolume, mirror_axis
+from ..instances.volume import ObjectFrame, ObjectVolume, mirror_axis, mirrored_frame
+from ..model.pca import procrustes_fit
 from .frames import (
     FRAME_ROTATIONS,
     REGISTRATION_ITERATIONS,
@@ -143,41 +144,50 @@ def landmark_side(template_landmarks: np.ndarray, landmarks: np.ndarray) -> Side
 
 
 def _boundary_samples(volume: ObjectVolume, count: int) -> tuple[np.ndarray, np.ndarray]:
-    """About ``count`` of the object's boundary voxels (object mm), each of weight 1."""
+    """About ``count`` of the object's boundary voxels (object voxels with a background neighbour;
+    object mm), each of weight 1."""
     mask = np.asarray(volume.mask, bool)
     edge = np.argwhere(mask & ~ndimage.binary_erosion(mask))
-    step = max(1, len(edge) // max(count, 1))
-    pts = volume.voxel_to_object(edge[::step])
+    pts = volume.voxel_to_object(edge[:: max(1, len(edge) // max(count, 1))])
     return pts, np.ones(len(pts))
 
 
-def surface_side(template_points: np.ndarray, template_faces: np.ndarray, target: ObjectVolume) -> SideDecision:
+def surface_side(template_points: np.ndarray, template_faces: np.ndarray, target: ObjectVolume, *,
+                 template_frame: ObjectFrame | None = None) -> SideDecision:
     """The side of an instance by its surface.
 
     The template's surface (area samples of its triangles, object mm of its instance) is
     registered as a similarity onto the instance's boundary and onto its mirror image
     (:func:`ssm_addon.instances.volume.mirrored`) from each of the 24 rotations of the
     frame's axes (:data:`~ssm_addon.correspondence.frames.FRAME_ROTATIONS`), screened as
-    :func:`~ssm_addon.correspondence.frames.template_start` screens; the nearest pose of each
-    side is registered in full. The side that fits :data:`SIDE_FACTOR` times closer (mean
-    symmetric distance, mm) is decided.
+    :func:`~ssm_addon.correspondence.frames.template_start` screens, and from the pose the input
+    coordinates give (``template_frame``: the template's instance's frame; for the mirror image,
+    the template mirrored left to right, world x, as a right bone is a left one's); the nearest
+    screened pose and the input pose of each side are registered in full. The side that fits
+    :data:`SIDE_FACTOR` times closer (mean symmetric distance, mm) is decided.
     """
     pts = np.asarray(template_points, float)
     src, src_w = area_samples(pts, template_faces, SCREEN_SAMPLES)
     tgt, tgt_w = _boundary_samples(target, TARGET_SAMPLES)
-    k = mirror_axis(target.frame)
-    flip = np.ones(3)
-    flip[k] = -1.0
     centre_s = src_w @ src / src_w.sum()
     scale = float(np.sqrt(((tgt - tgt.mean(axis=0)) ** 2).sum(axis=1).mean())
                   / max(np.sqrt(((src - centre_s) ** 2).sum(axis=1) @ src_w / src_w.sum()), 1e-12))
+    flip = np.ones(3)
+    flip[mirror_axis(target.frame)] = -1.0
     best = []
-    for side in (np.ones(3), flip):
-        t = tgt * side
+    for frame, t in ((target.frame, tgt), (mirrored_frame(target.frame), tgt * flip)):
         centre_t = t.mean(axis=0)
+        poses = [Pose(r, centre_t - scale * r @ centre_s, scale) for r in FRAME_ROTATIONS]
+        if template_frame is not None:
+            world = template_frame.to_world(pts)
+            if template_frame.mirrored != frame.mirrored:
+                world = world * np.array([-1.0, 1.0, 1.0])
+            _s, rot, _t = procrustes_fit(pts[None], frame.to_object(world), scale=False)
+            poses.insert(0, Pose(rot[0], centre_t - scale * rot[0] @ centre_s, scale))
         coarse = SurfacePairs(src[::SCREEN_STRIDE], src_w[::SCREEN_STRIDE], t[::SCREEN_STRIDE], tgt_w[::SCREEN_STRIDE])
-        screened = [coarse.register(Pose(r, centre_t - scale * r @ centre_s, scale), SCREEN_ITERATIONS)
-                    for r in FRAME_ROTATIONS]
-        first = min(range(len(screened)), key=lambda i: (screened[i][1], i))
-        best.append(SurfacePairs(src, src_w, t, tgt_w).register(screened[first][0], REGISTRATION_ITERATIONS)[1])
+        screened = [coarse.register(p, SCREEN_ITERATIONS) for p in poses]
+        finalists = sorted({min(range(len(screened)), key=lambda i: (screened[i][1], i)),
+                            *([0] if template_frame is not None else [])})
+        full = SurfacePairs(src, src_w, t, tgt_w)
+        best.append(min(full.register(screened[i][0], REGISTRATION_ITERATIONS)[1] for i in finalists))
     return _decide(best[0], best[1], "surface")

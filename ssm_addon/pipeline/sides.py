@@ -20,8 +20,8 @@ __all__ = ["decide_sides", "given_sides", "landmark_sides", "sides_first", "side
 
 
 def _surface_job(args) -> SideDecision:
-    points, faces, volume = args
-    return surface_side(points, faces, volume)
+    points, faces, volume, frame = args
+    return surface_side(points, faces, volume, template_frame=frame)
 
 
 def landmark_sides(study: Study, names: Sequence[str]) -> dict[str, SideDecision]:
@@ -57,7 +57,8 @@ def decide_sides(study: Study, names: Sequence[str] | None = None, *, jobs: int 
     found = landmark_sides(study, names)
     rest = [n for n in names if n not in found]
     if rest and surface and study.template is not None:
-        args = [(study.template.points_object, study.template.faces, study.volume(n)) for n in rest]
+        frame = study.frame(study.template_instance)
+        args = [(study.template.points_object, study.template.faces, study.volume(n), frame) for n in rest]
         with executor_or_local(executor, jobs, len(args)) as pool:
             decided = pool.map(_surface_job, args, labels=rest, verb="sided", cancelled=cancelled)
         found.update(zip(rest, decided))
