@@ -33,10 +33,7 @@ from ..instances.volume import ObjectFrame, ObjectVolume, mirror_axis, mirrored_
 from ..model.pca import procrustes_fit
 from .frames import (
     FRAME_ROTATIONS,
-    REGISTRATION_ITERATIONS,
-    SCREEN_ITERATIONS,
     SCREEN_SAMPLES,
-    SCREEN_STRIDE,
     TARGET_SAMPLES,
     SurfacePairs,
     area_samples,
@@ -48,8 +45,14 @@ __all__ = ["SIDE_FACTOR", "SideDecision", "landmark_side", "surface_side"]
 #: similarity onto the landmarks, RMS mm; or onto the surface, mean mm). Measured: a femur of
 #: the template's side fits 1.5-2.2x closer than its mirror image; a patella 1.15-1.6x.
 SIDE_FACTOR = 1.1
-#: Landmarks fit within this many mm RMS are taken as decisive whatever the ratio.
+#: Landmarks needed to tell a side (a similarity of 3 points has no handedness).
 LANDMARK_SIDE_MIN_POINTS = 4
+#: The surface test's registration: steps from every rotation on every ``SIDE_SCREEN_STRIDE``-th
+#: sample, and in full from the nearest screened pose and the input pose (cheaper than the start's:
+#: it needs the distances, not the pose).
+SIDE_SCREEN_STRIDE = 6
+SIDE_SCREEN_ITERATIONS = 4
+SIDE_ITERATIONS = 12
 
 
 @dataclass(frozen=True)
@@ -184,10 +187,11 @@ def surface_side(template_points: np.ndarray, template_faces: np.ndarray, target
                 world = world * np.array([-1.0, 1.0, 1.0])
             _s, rot, _t = procrustes_fit(pts[None], frame.to_object(world), scale=False)
             poses.insert(0, Pose(rot[0], centre_t - scale * rot[0] @ centre_s, scale))
-        coarse = SurfacePairs(src[::SCREEN_STRIDE], src_w[::SCREEN_STRIDE], t[::SCREEN_STRIDE], tgt_w[::SCREEN_STRIDE])
-        screened = [coarse.register(p, SCREEN_ITERATIONS) for p in poses]
+        coarse = SurfacePairs(src[::SIDE_SCREEN_STRIDE], src_w[::SIDE_SCREEN_STRIDE], t[::SIDE_SCREEN_STRIDE],
+                              tgt_w[::SIDE_SCREEN_STRIDE])
+        screened = [coarse.register(p, SIDE_SCREEN_ITERATIONS) for p in poses]
         finalists = sorted({min(range(len(screened)), key=lambda i: (screened[i][1], i)),
                             *([0] if template_frame is not None else [])})
         full = SurfacePairs(src, src_w, t, tgt_w)
-        best.append(min(full.register(screened[i][0], REGISTRATION_ITERATIONS)[1] for i in finalists))
+        best.append(min(full.register(screened[i][0], SIDE_ITERATIONS)[1] for i in finalists))
     return _decide(best[0], best[1], "surface")

@@ -125,6 +125,9 @@ def run_joint(joint: JointStudy, *, jobs: int = 1, progress: ProgressFn = None, 
         check_cancelled(cancelled)
         report(progress, 0.7 * k / n, f"{name}: import, template and coating")
         t0 = time.perf_counter()
+        # one side throughout: a subject's structures mirrored each on its own would carry their relative
+        # poses into another side (sides are not supported in a joint project; the project reader says so)
+        study.instances = tuple(dataclasses.replace(i, mirror=False) if i.mirror is None else i for i in study.instances)
         run(study, stages=("import", "template", "coating"), jobs=jobs, cancelled=cancelled, executor=executor,
             cache=cache, progress=sub_progress(progress, 0.7 * k / n, 0.7 * (k + 1) / n, f"{name}: "),
             log=lambda line, name=name: say(f"{name}: {line}"))
