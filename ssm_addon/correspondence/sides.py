@@ -42,17 +42,18 @@ from .frames import (
 __all__ = ["SIDE_FACTOR", "SideDecision", "landmark_side", "surface_side"]
 
 #: One side is decided when it fits this many times closer than the other (the template's
-#: similarity onto the landmarks, RMS mm; or onto the surface, mean mm). Measured: a femur of
-#: the template's side fits 1.5-2.2x closer than its mirror image; a patella 1.15-1.6x.
+#: similarity onto the landmarks, RMS mm; or onto the surface, mean mm); docs/measurements.md
+#: ("Sides") has the ratios on real bones.
 SIDE_FACTOR = 1.1
 #: Landmarks needed to tell a side (a similarity of 3 points has no handedness).
 LANDMARK_SIDE_MIN_POINTS = 4
 #: The surface test's registration: steps from every rotation on every ``SIDE_SCREEN_STRIDE``-th
-#: sample, and in full from the nearest screened pose and the input pose (cheaper than the start's:
+#: sample, and in full from the ``SIDE_FINALISTS`` nearest screened poses and the input pose (cheaper than the start's:
 #: it needs the distances, not the pose).
-SIDE_SCREEN_STRIDE = 6
-SIDE_SCREEN_ITERATIONS = 4
+SIDE_SCREEN_STRIDE = 4
+SIDE_SCREEN_ITERATIONS = 5
 SIDE_ITERATIONS = 12
+SIDE_FINALISTS = 1
 
 
 @dataclass(frozen=True)
@@ -166,7 +167,7 @@ def surface_side(template_points: np.ndarray, template_faces: np.ndarray, target
     :func:`~ssm_addon.correspondence.frames.template_start` screens, and from the pose the input
     coordinates give (``template_frame``: the template's instance's frame; for the mirror image,
     the template mirrored left to right, world x, as a right bone is a left one's); the nearest
-    screened pose and the input pose of each side are registered in full. The side that fits
+    screened poses and the input pose of each side are registered in full. The side that fits
     :data:`SIDE_FACTOR` times closer (mean symmetric distance, mm) is decided.
     """
     pts = np.asarray(template_points, float)
@@ -190,8 +191,8 @@ def surface_side(template_points: np.ndarray, template_faces: np.ndarray, target
         coarse = SurfacePairs(src[::SIDE_SCREEN_STRIDE], src_w[::SIDE_SCREEN_STRIDE], t[::SIDE_SCREEN_STRIDE],
                               tgt_w[::SIDE_SCREEN_STRIDE])
         screened = [coarse.register(p, SIDE_SCREEN_ITERATIONS) for p in poses]
-        finalists = sorted({min(range(len(screened)), key=lambda i: (screened[i][1], i)),
-                            *([0] if template_frame is not None else [])})
+        order = sorted(range(len(screened)), key=lambda i: (screened[i][1], i))
+        finalists = sorted({*order[:SIDE_FINALISTS], *([0] if template_frame is not None else [])})
         full = SurfacePairs(src, src_w, t, tgt_w)
         best.append(min(full.register(screened[i][0], SIDE_ITERATIONS)[1] for i in finalists))
     return _decide(best[0], best[1], "surface")
