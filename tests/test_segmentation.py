@@ -19,6 +19,7 @@ from ssm_addon.model.pca import build_model
 from ssm_addon.segmentation import (
     GreyImage,
     SegmentParams,
+    bone_near,
     learn_appearance,
     load_appearance,
     parse_point,
@@ -196,6 +197,33 @@ def test_a_joint_models_structures_are_segmented_together_from_a_point_each(tmp_
     assert db.mean() < 0.45
     with pytest.raises(InputError, match="no structure 'c'"):
         segment_files(tmp_path / "joint.npz", tmp_path / "ct.nii.gz", tmp_path / "out2", at=["c=0,0,0"])
+
+
+def test_a_start_in_air_or_soft_tissue_of_a_ct_is_refused_with_the_hu_found_there(population):
+    """A CT in Hounsfield units (air -1000 HU, soft tissue 40, the object bone at 700): a start in the air
+    or in soft tissue more than 10 mm from bone is refused, saying what the CT reads there; a start at the
+    object's centre, or 8 mm outside its surface, is taken (a vertebra's centre of mass lies in its canal)."""
+    model, held_out, faces = population
+    truth = posed(held_out)
+    image, mask = synthetic_image(truth, faces, bright=700.0, dark=40.0, noise=10.0, margin_mm=30.0)
+    image.data[:4] = -1000.0  # air beyond the body
+    air = image.to_world(np.array([[1.0, image.shape[1] / 2, image.shape[2] / 2]]))[0]
+    far = ndimage.distance_transform_edt(~mask) * image.spacing_mm[0]
+    far[:6] = 0  # soft tissue: not the air slab
+    soft = image.to_world(np.argwhere(far > 16.0)[:1].astype(float))[0]
+    near = image.to_world(np.argwhere((far > 7.0) & (far < 8.0))[:1].astype(float))[0]
+    with pytest.raises(InputError, match=r"not on or near bone: the CT reads -1000 HU there and at most -?\d+ HU "
+                                         r"within 10 mm"):
+        segment_image(model, image, at=air)
+    with pytest.raises(InputError, match=r"not on or near bone: the CT reads \d+ HU there and at most \d+ HU"):
+        segment_image(model, image, at=soft)
+    for at in (volume_centroid(truth, faces), near):
+        found = bone_near(image, at)
+        assert found is not None and found[0] >= 200.0
+    result = segment_image(model, image, at=volume_centroid(truth, faces))
+    assert surface_distance(result.points, truth, faces).mean() < 1.0
+    plain, _ = synthetic_image(truth, faces)  # not in HU (no air): values say nothing of bone, no refusal
+    assert bone_near(plain, air) is None
 
 
 def test_bad_inputs_are_refused_or_said_by_name(population, tmp_path):

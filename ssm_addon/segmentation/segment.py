@@ -45,7 +45,7 @@ from ..meshutil import edges, vertex_normals
 from .appearance import LEVEL_SIGMAS_MM, Appearance, boundary_grey_values, normalised_derivative
 from .image import GreyImage
 
-__all__ = ["SegmentParams", "SegmentResult", "landmark_pose", "segment_image", "start_pose", "typical_rotation",
+__all__ = ["BONE_HU", "BONE_REACH_MM", "CT_AIR_HU", "SegmentParams", "SegmentResult", "bone_near", "landmark_pose", "segment_image", "start_pose", "typical_rotation",
            "volume_centroid"]
 
 
@@ -322,6 +322,41 @@ def _refined_offsets(cost: np.ndarray, best: np.ndarray, offsets: np.ndarray) ->
     return offsets[best] + np.clip(shift, -0.5, 0.5) * step
 
 
+#: An image whose lowest value is at most this is taken as CT in Hounsfield units (air is -1000 HU),
+#: where bone is known by its value.
+CT_AIR_HU = -500.0
+#: Bone: at least this many HU (cortical and dense trabecular bone; soft tissue is 0-100 HU, fat -100).
+BONE_HU = 200.0
+#: A start point on a CT must have bone within this distance (mm): a vertebra's centre of mass lies in
+#: its canal or its body, within a few mm of bone; air and soft tissue away from bone have none.
+BONE_REACH_MM = 10.0
+
+
+def bone_near(image: GreyImage, at) -> tuple[float, float] | None:
+    """For a CT in Hounsfield units (:data:`CT_AIR_HU`): the highest value (HU) within
+    :data:`BONE_REACH_MM` of the world point ``at`` (mm) and the value at it; None for an image not
+    in HU (MR, a synthetic or normalised image), where values say nothing of bone.
+
+    >>> ct = GreyImage(np.full((30, 30, 30), -1000.0, np.float32), np.eye(4))
+    >>> ct.data[20:25, 20:25, 20:25] = 700.0
+    >>> bone_near(ct, [5.0, 5.0, 5.0]), bone_near(ct, [15.0, 22.0, 22.0])
+    ((-1000.0, -1000.0), (700.0, -1000.0))
+    """
+    data = image.data
+    if float(np.min(data)) > CT_AIR_HU:
+        return None
+    centre = image.to_index(np.asarray(at, float).reshape(1, 3))[0]
+    reach = np.ceil(BONE_REACH_MM / np.maximum(image.spacing_mm, 1e-6)).astype(int)
+    lo = np.clip(np.floor(centre).astype(int) - reach, 0, np.asarray(data.shape) - 1)
+    hi = np.clip(np.ceil(centre).astype(int) + reach + 1, 1, np.asarray(data.shape))
+    box = data[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    ijk = np.stack(np.meshgrid(*[np.arange(a, b) for a, b in zip(lo, hi)], indexing="ij"), axis=-1).reshape(-1, 3)
+    near = np.linalg.norm(image.to_world(ijk) - np.asarray(at, float).reshape(3), axis=1) <= BONE_REACH_MM
+    values = box.reshape(-1)[near] if near.any() else box.reshape(-1)
+    here = data[tuple(np.clip(np.round(centre).astype(int), 0, np.asarray(data.shape) - 1))]
+    return float(values.max()), float(here)
+
+
 FIRST_EDGE = 0.5
 """Gradient evidence: an edge at least this share of the strongest along a normal counts as strong."""
 FIRST_EDGE_MM = 1.0
@@ -432,6 +467,12 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
                              f"image, which spans x {lo[0]:.1f}..{hi[0]:.1f}, y {lo[1]:.1f}..{hi[1]:.1f}, "
                              f"z {lo[2]:.1f}..{hi[2]:.1f} mm (RAS); give the point in the image's world "
                              "coordinates (RAS, as 3D Slicer shows them)")
+        found = bone_near(image, at)
+        if found is not None and found[0] < BONE_HU:
+            raise InputError(f"{name}: the start point ({', '.join(f'{v:.1f}' for v in at)}) mm is not on or near "
+                             f"bone: the CT reads {found[1]:.0f} HU there and at most {found[0]:.0f} HU within "
+                             f"{BONE_REACH_MM:g} mm (bone is {BONE_HU:g} HU or more; air -1000, soft tissue 0 to 100); "
+                             "give a point in or on the structure (RAS, as 3D Slicer shows it)")
         base = start_pose(model, at=at)
     else:
         base = pose
