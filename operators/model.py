@@ -48,6 +48,7 @@ from .properties import SSMPanel, draw_params, scene_params
 from .scene import (
     JOINT_FINDINGS_KEY,
     MODEL_COLLECTION,
+    MODEL_FILE_PROP,
     MODEL_KEY,
     MODEL_NAME,
     clear_mode_animation,
@@ -693,6 +694,7 @@ class SSM_OT_import_model(bpy.types.Operator, ImportHelper):
             self.report({"ERROR"}, str(err))
             return {"CANCELLED"}
         obj = create_model_object(context, model)
+        obj[MODEL_FILE_PROP] = os.path.abspath(self.filepath)  # what a segmentation's segment.json names
         if store_appearance(obj, self.filepath, model.n_points):
             notes.append("with the boundary appearance learned from its training images (for Segment with Model)")
         self.report({"INFO"}, f"{os.path.basename(self.filepath)}: {model.n_modes} modes, {model.n_points} points"

@@ -93,6 +93,9 @@ def next_order(context) -> int:
     return max((o.ssm.order for o in context.scene.objects if is_instance(o)), default=-1) + 1
 
 
+#: Model object property: the file an imported model was read from (what a segmentation's
+#: segment.json names as its model).
+MODEL_FILE_PROP = "ssm_model_file"
 #: Instance property: 1 when the instance is mirrored into the template's side (its given side, or
 #: the coating stage's decision, :mod:`ssm_addon.correspondence.sides`), 0 when it is not; absent:
 #: not decided. The frame stored at import stays the file's; :func:`stored_frame` mirrors it.

@@ -27,7 +27,7 @@ from ssm_addon.segmentation.segment import SegmentParams, segment_image
 from . import bridge
 from .jobs import BackgroundJob
 from .properties import SSMPanel
-from .scene import APPEARANCE_KEY, find_model_object, model_from_object
+from .scene import APPEARANCE_KEY, MODEL_FILE_PROP, find_model_object, model_from_object
 
 IMAGE_COLLECTION = "SSM Image"
 SEGMENT_COLLECTION = "SSM Segmentations"
@@ -176,7 +176,7 @@ class SSM_OT_segment_image(BackgroundJob, bpy.types.Operator):
         appearance = appearance_from_arrays(arrays, model.n_points, model_obj.name) if arrays else None
         at = np.array(context.scene.cursor.location, float)
         params = SegmentParams(evidence=self.evidence)
-        self._names = (model_obj.name, image.path)
+        self._names = (model_obj.name, model_obj.get(MODEL_FILE_PROP, ""), image.path, at)
 
         def work(progress, cancelled):
             return segment_image(model, image, at=at, appearance=appearance, params=params, progress=progress,
@@ -185,10 +185,12 @@ class SSM_OT_segment_image(BackgroundJob, bpy.types.Operator):
         return work
 
     def finish(self, context, result):
-        model_name, path = self._names
-        name = f"{os.path.basename(path).split('.')[0]} segmented"
+        model_name, model_file, path, at = self._names
+        # each segmentation its own object, named by image and model (a spine's vertebrae side by side)
+        name = f"{os.path.basename(path).split('.')[0]} {model_name} segmented"
         obj = bridge.new_mesh_object(context, name, result.points, result.faces, collection_name=SEGMENT_COLLECTION,
-                                     matrix_world=np.eye(4))
+                                     matrix_world=np.eye(4), replace=False)
+        name = obj.name
         bridge.set_vertex_colors(obj.data, bridge.sd_colours(result.posterior_sd_mm), name="posterior_sd")
         bridge.set_point_attribute(obj.data, "posterior_sd_mm", result.posterior_sd_mm)
         bridge.set_point_attribute(obj.data, "deviation_mm", result.deviation_mm)
@@ -196,7 +198,8 @@ class SSM_OT_segment_image(BackgroundJob, bpy.types.Operator):
         if not obj.data.materials:
             obj.data.materials.append(mat)
         obj.ssm.role = "SAMPLE"
-        obj["ssm_segment_json"] = json.dumps({**result.to_dict(), "image": path, "model": model_name})
+        obj["ssm_segment_json"] = json.dumps({**result.to_dict(), "image": path, "model": model_file or model_name,
+                                              "model_object": model_name, "start_given": {"at": at.tolist()}})
         obj["ssm_segment_image"] = path
         findings = "".join(f"; {k}: {m}" for k, m in result.findings)
         self.report({"WARNING" if result.findings else "INFO"},

@@ -57,9 +57,19 @@ def test_segment_with_model_equals_ssm_segment_and_saves_the_same_files(bpy_clea
     assert len(bpy.data.objects) == n_objects
     scene.cursor.location = tuple(at)
     assert bpy.ops.ssm.segment_image() == {"FINISHED"}
-    obj = bpy.data.objects["ct segmented"]
+    (obj,) = [o for o in bpy.data.objects if "ssm_segment_json" in o]
+    assert obj.name.startswith("ct ") and obj.name.endswith(" segmented")  # named by image and model
     doc = json.loads(obj["ssm_segment_json"])
     assert doc["evidence"] == "learned"  # the appearance came with the imported model.npz
+    # as the command's: the model file and the start
+    assert doc["model"] == str(folder / "model.npz") and doc["start_given"]["at"] == pytest.approx(list(at), abs=1e-4)
+    # a second segmentation (another structure, another start) is its own object: the first stays
+    first = np.array([v.co for v in obj.data.vertices])
+    assert bpy.ops.ssm.segment_image() == {"FINISHED"}
+    segs = [o for o in bpy.data.objects if "ssm_segment_json" in o]
+    assert len(segs) == 2 and np.array_equal(np.array([v.co for v in obj.data.vertices]), first)
+    bpy.data.objects.remove([o for o in segs if o != obj][0])
+    bpy.context.view_layer.objects.active = obj
     # the command line on the same files and the same point (the cursor holds float32 coordinates): the same surface
     cursor = np.array(scene.cursor.location, float)
     head = segment_files(folder / "model.npz", folder / "ct.nii.gz", folder / "cli", at=[",".join(map(repr, cursor))])
