@@ -398,3 +398,11 @@ def test_a_joint_report_records_what_anchored_each_structures_correspondence(tmp
         assert set(starts) == {f"S{i}" for i in range(4)} and all(len(s["distances_mm"]) == 25 for s in starts.values())
         assert any(x.startswith(f"{structure}: correspondence: the optimisation across the population is not run")
                    for x in lines), lines
+        # the self-check: measured over the 4 landmarked subjects, not measured without landmarks (said so)
+        assert reports["with"]["joint"]["structures"][structure]["correspondence"]["self_check_measured"] == ""
+        assert got["self_check_measured"].startswith("no self-check")
+    # report.html shows each structure's correspondence as report.json records it
+    page = (tmp_path / "without" / "report.html").read_text()
+    assert "Correspondence per structure" in page and page.count("no landmarks") >= 2
+    assert "no self-check (no landmarks, or switched off)" in page
+    assert "Not in this report" not in page or "under joint.structures" not in page

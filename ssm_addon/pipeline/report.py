@@ -768,7 +768,7 @@ def joint_report(joint, *, project: str | Absent, extra: dict | None = None) -> 
     ``joint`` each structure's template, correspondence and metrics, the shape-and-pose
     figures and the collisions."""
     model = joint.model
-    why = "a joint model: each structure's is under joint.structures"
+    why = "a joint model: each structure's is in the joint section (joint.structures)"
     findings = [dict(f.to_dict(), instance=f"{name}/{f.instance}" if f.instance else name)
                 for name, study in joint.structures.items() for f in study.findings]
     findings += [f.to_dict() for f in joint.findings]
@@ -785,7 +785,8 @@ def joint_report(joint, *, project: str | Absent, extra: dict | None = None) -> 
                                          for s in joint.subjects},
                                "template_choice": jsonable(study.template_choice),
                                "rounds": [r.to_dict() for r in study.correspondence_rounds],
-                               "self_check": check.to_dict() if check is not None else None},
+                               "self_check": check.to_dict() if check is not None else None,
+                               "self_check_measured": self_check_measured(check)},
             "metrics": joint.structure_metrics.get(name, {}),
             "points": [int(model.structure_offsets[list(model.structure_names).index(name)]),
                        int(model.structure_offsets[list(model.structure_names).index(name) + 1])],
@@ -811,6 +812,43 @@ def joint_report(joint, *, project: str | Absent, extra: dict | None = None) -> 
         extra={"joint": joint_doc, **dict(extra or {})})
 
 
+#: A self-check over fewer landmarked instances than this measures nothing of the population (the
+#: template's own instance says only how its coating sits on it).
+SELF_CHECK_MIN_INSTANCES = 3
+
+
+def self_check_measured(check) -> str:
+    """``""`` when the correspondence self-check measured the coatings (its landmark transfer error over
+    at least :data:`SELF_CHECK_MIN_INSTANCES` instances), else why not."""
+    if check is None:
+        return "no self-check (no landmarks, or switched off)"
+    n = len(getattr(check, "instance_mm", {}) or {})
+    if n < SELF_CHECK_MIN_INSTANCES:
+        return f"not measured: {n} landmarked instance(s), fewer than {SELF_CHECK_MIN_INSTANCES}"
+    return ""
+
+
+def _correspondence_rows(structures: dict) -> list[list[str]]:
+    """A row per structure: what anchored its correspondence, its starts, rounds and self-check."""
+    rows = []
+    for name, st in structures.items():
+        c = st.get("correspondence") or {}
+        starts = {}
+        for how in (c.get("start") or {}).values():
+            starts[how] = starts.get(how, 0) + 1
+        turned = [s for s, t in ((c.get("template_choice") or {}).get("starts") or {}).items()
+                  if t.get("turn") not in ("frames", "input coordinates")]
+        rounds = c.get("rounds") or []
+        check = c.get("self_check") or {}
+        measured = c.get("self_check_measured", "")
+        rows.append([f"<b>{html.escape(name)}</b>", html.escape(str(c.get("used", ""))),
+                     html.escape(", ".join(f"{k}: {v}" for k, v in sorted(starts.items()))),
+                     html.escape(", ".join(turned[:6]) + (" …" if len(turned) > 6 else "")) or "none",
+                     f"{sum(bool(r.get('kept', True)) for r in rounds)} of {len(rounds)} kept" if rounds else "none",
+                     _num(check.get("study_mm"), 2) + " mm" if check and not measured else html.escape(measured or "—")])
+    return rows
+
+
 def _joint_section(doc: dict) -> list[str]:
     """The joint model's section: structures, their metrics, shape and relative pose, collisions."""
     j = doc.get("joint") or {}
@@ -831,6 +869,9 @@ def _joint_section(doc: dict) -> list[str]:
     parts.append(_table(rows, ["structure", "template points", "template instance", "generalization, joint rows (mm)",
                                "generalization, own model (mm)", "specificity, joint rows (mm)",
                                "specificity, own model (mm)"]))
+    parts.append("<h3>Correspondence per structure</h3>")
+    parts.append(_table(_correspondence_rows(j["structures"]),
+                        ["structure", "anchored by", "starts", "turned starts", "rounds", "self-check"]))
     sp = j.get("shape_pose") or {}
     if sp:
         shares = sp.get("modes_pose_share", [])[:8]
