@@ -226,6 +226,35 @@ def test_a_start_in_air_or_soft_tissue_of_a_ct_is_refused_with_the_hu_found_ther
     assert bone_near(plain, air) is None
 
 
+def test_the_pictures_views_are_as_slicer_shows_them_whatever_the_voxel_order(tmp_path):
+    """An image stored P-I-R with 3 mm along one axis (as verse005 and verse012 come) and a bright ball
+    to the patient's right, front and top of the structure's centre: in every view of segment.png the
+    ball lies where 3D Slicer shows it (axial: viewer's left, up; coronal: left, up; sagittal: left
+    (anterior), up), on square pixels in mm."""
+    from scipy import ndimage as ndi
+
+    from ssm_addon.segmentation import VIEWS, segment_figure, view_plane
+
+    affine = np.zeros((4, 4))
+    affine[:3, :3] = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -3.0, 0.0]])  # i -> P, j -> I (3 mm), k -> R
+    affine[:, 3] = [-40.0, 40.0, 60.0, 1.0]
+    image = GreyImage(np.full((80, 40, 80), -1000.0, np.float32), affine)
+    world = image.to_world(np.argwhere(np.ones(image.shape, bool)).astype(float)).reshape(*image.shape, 3)
+    centre = np.array([0.0, 0.0, 0.0])
+    structure = np.linalg.norm(world - centre, axis=-1) < 25.0
+    ball = np.linalg.norm(world - (centre + [15.0, 12.0, 15.0]), axis=-1) < 6.0
+    image.data[ball] = 1000.0
+    for name, right, up, _letters in VIEWS:
+        at = centre + [15.0, 12.0, 15.0] * np.abs(np.cross(right, up))  # the view's plane through the ball
+        _w, ijk = view_plane(image, at, right, up, 40.0, 40.0, 1.0)
+        grey = ndi.map_coordinates(image.data, ijk, order=1, mode="constant", cval=-1000.0)
+        rows, cols = np.nonzero(grey > 500)
+        assert len(rows), name
+        assert cols.mean() < grey.shape[1] / 2 and rows.mean() > grey.shape[0] / 2, (name, cols.mean(), rows.mean())
+    path = segment_figure(image, structure, tmp_path / "segment.png")
+    assert path.is_file() and path.stat().st_size > 10_000
+
+
 def test_bad_inputs_are_refused_or_said_by_name(population, tmp_path):
     model, held_out, faces = population
     truth = posed(held_out)

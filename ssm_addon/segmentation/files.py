@@ -19,39 +19,84 @@ from .image import GreyImage, read_image, segmentation_mask
 from .scores import mask_surface_points
 from .segment import SegmentParams, landmark_pose, segment_image, start_pose
 
-__all__ = ["SEGMENT_FILES", "SegmentationRecord", "parse_point", "segment_figure", "segment_files", "write_segmentation"]
+__all__ = ["FIGURE_MARGIN_MM", "SCALE_BAR_MM", "SEGMENT_FILES", "VIEWS", "SegmentationRecord", "parse_point", "segment_figure", "segment_files",
+           "view_plane", "write_segmentation"]
 
 SEGMENT_FILES = ("segmentation.nii.gz", "segmented.ply", "segment.json", "segment.png")
 
 
+#: The three views as 3D Slicer and ITK-SNAP show them (RAS world): each view's screen-right and
+#: screen-up directions and the letters at its left, right, top and bottom edges. Patient right is on
+#: the viewer's left (radiological), anterior up in the axial view, superior up in the others.
+VIEWS = (
+    ("axial", (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0), ("R", "L", "A", "P")),
+    ("coronal", (-1.0, 0.0, 0.0), (0.0, 0.0, 1.0), ("R", "L", "S", "I")),
+    ("sagittal", (0.0, -1.0, 0.0), (0.0, 0.0, 1.0), ("A", "P", "S", "I")),
+)
+#: Field of view around the structure (mm beyond its bounding box on every side).
+FIGURE_MARGIN_MM = 15.0
+#: Length of the scale bar (mm).
+SCALE_BAR_MM = 10.0
+
+
+def view_plane(image: GreyImage, centre, right, up, half_right: float, half_up: float,
+               step: float) -> tuple[np.ndarray, np.ndarray]:
+    """The world points (mm, RAS) of a view's pixels: rows from the bottom up, columns from the screen's
+    left to its right, ``step`` mm apart, and their continuous voxel indices in ``image`` (3, rows, cols)."""
+    right, up = np.asarray(right, float), np.asarray(up, float)
+    cols = np.arange(-half_right, half_right + 0.5 * step, step)
+    rows = np.arange(-half_up, half_up + 0.5 * step, step)
+    world = np.asarray(centre, float) + cols[None, :, None] * right + rows[:, None, None] * up
+    ijk = image.to_index(world.reshape(-1, 3)).T.reshape(3, len(rows), len(cols))
+    return world, ijk
+
+
 def segment_figure(image: GreyImage, mask: np.ndarray, path, *, title: str = "", reference: np.ndarray | None = None,
                    window=(-200.0, 1200.0)) -> Path:
-    """Three slices (one per voxel axis) through the segmentation's centre, the image in grey
-    (``window`` low/high), the segmentation's outline in orange and, when given, a
-    reference mask's in cyan (PNG)."""
+    """Axial, coronal and sagittal views through the segmentation's centre, as 3D Slicer and ITK-SNAP
+    show them (:data:`VIEWS`): resampled from the image's grid to square pixels in world mm (any
+    voxel size and axis order), centred and zoomed on the structure, with the orientation letters
+    and a scale bar; the image in grey (``window`` low/high), the segmentation's outline in orange
+    and, when given, a reference mask's (e.g. the expert label map) in cyan, dashed (PNG)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from scipy import ndimage
 
     idx = np.argwhere(mask)
-    centre = idx.mean(axis=0).round().astype(int) if len(idx) else np.asarray(image.shape) // 2
-    fig, axes = plt.subplots(1, 3, figsize=(12, 4.4))
-    sp = image.spacing_mm
-    for axis, ax in enumerate(axes):
-        sl = [slice(None)] * 3
-        sl[axis] = int(centre[axis])
-        img = np.asarray(image.data[tuple(sl)], float)
-        m = mask[tuple(sl)]
-        others = [a for a in range(3) if a != axis]
-        ax.imshow(img, cmap="gray", vmin=window[0], vmax=window[1], origin="lower", aspect=sp[others[0]] / sp[others[1]],
-                  interpolation="nearest")
-        if m.any():
-            ax.contour(m.astype(float), levels=[0.5], colors=["#ff8c00"], linewidths=1.2)
-        if reference is not None and reference[tuple(sl)].any():
-            ax.contour(reference[tuple(sl)].astype(float), levels=[0.5], colors=["#00c8ff"], linewidths=0.8,
-                       linestyles="dashed")
-        ax.set_title(f"voxel axis {'ijk'[axis]} = {int(centre[axis])}", fontsize=9)
+    pts = image.to_world(idx.astype(float)) if len(idx) else image.to_world((np.asarray(image.shape) - 1) / 2.0)[None]
+    centre = pts.mean(axis=0)
+    lo, hi = pts.min(axis=0) - FIGURE_MARGIN_MM, pts.max(axis=0) + FIGURE_MARGIN_MM
+    half = np.maximum(np.abs(hi - centre), np.abs(centre - lo))
+    step = max(0.5, float(np.min(image.spacing_mm)))
+    data = np.asarray(image.data, np.float32)
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4.8))
+    for ax, (name, right, up, letters) in zip(axes, VIEWS):
+        half_r = float(np.abs(np.asarray(right)) @ half)
+        half_u = float(np.abs(np.asarray(up)) @ half)
+        _world, ijk = view_plane(image, centre, right, up, half_r, half_u, step)
+        grey = ndimage.map_coordinates(data, ijk, order=1, mode="constant", cval=float(window[0]))
+        extent = (-half_r, half_r, -half_u, half_u)
+        ax.imshow(grey, cmap="gray", vmin=window[0], vmax=window[1], origin="lower", extent=extent,
+                  interpolation="bilinear")
+        for m, colour, style, width in ((mask, "#ff8c00", "solid", 1.2), (reference, "#00c8ff", "dashed", 0.9)):
+            if m is None:
+                continue
+            cut = ndimage.map_coordinates(np.asarray(m, np.float32), ijk, order=0, mode="constant", cval=0.0)
+            if cut.any() and not cut.all():
+                ax.contour(cut, levels=[0.5], colors=[colour], linewidths=width, linestyles=style, origin="lower",
+                           extent=extent)
+        for (x, y, ha, va), letter in zip(((0.02, 0.5, "left", "center"), (0.98, 0.5, "right", "center"),
+                                           (0.5, 0.98, "center", "top"), (0.5, 0.02, "center", "bottom")), letters):
+            ax.text(x, y, letter, transform=ax.transAxes, ha=ha, va=va, color="#ffd400", fontsize=11,
+                    fontweight="bold")
+        x0, y0 = -half_r + 0.06 * 2 * half_r, -half_u + 0.1 * 2 * half_u
+        ax.plot([x0, x0 + SCALE_BAR_MM], [y0, y0], color="white", linewidth=2.5)
+        ax.text(x0 + SCALE_BAR_MM / 2, y0 + 0.02 * 2 * half_u, f"{SCALE_BAR_MM:g} mm", color="white", ha="center",
+                va="bottom", fontsize=8)
+        plane_axis = int(np.argmax(np.abs(np.cross(right, up))))
+        ax.set_title(f"{name} ({'xyz'[plane_axis]} = {centre[plane_axis]:.1f} mm, RAS)", fontsize=9)
         ax.set_xticks([])
         ax.set_yticks([])
     fig.suptitle(title or "segmentation (orange)" + (", reference (cyan, dashed)" if reference is not None else ""),
