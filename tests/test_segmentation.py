@@ -349,6 +349,39 @@ def test_a_builds_folder_and_its_statismo_file_segment_as_its_model_npz(populati
     assert code == 2 and "is a folder without a model.npz" in capsys.readouterr().err
 
 
+def test_ssm_segment_with_the_experts_label_map_scores_itself(population, tmp_path, capsys):
+    """``--truth FILE --truth-label N``: Dice, mean and 95th percentile surface distance, and how the
+    posterior SD ranks and covers each point's error, printed and in segment.json (as the scores module
+    computes them); the expert's outline in segment.png. A truth without the label is named."""
+    from ssm_addon.segmentation import segmentation_scores
+
+    model, held_out, faces = population
+    truth = posed(held_out)
+    image, mask = synthetic_image(truth, faces, seed=6)
+    nib.save(nib.Nifti1Image(image.data, image.affine), str(tmp_path / "ct.nii.gz"))
+    labels = np.where(mask, 7, 0).astype(np.uint8)
+    nib.save(nib.Nifti1Image(labels, image.affine), str(tmp_path / "expert.nii.gz"))
+    save_npz(model, tmp_path / "model.npz")
+    at = ",".join(f"{v:.2f}" for v in volume_centroid(truth, faces) + 2.0)
+    code = main(["segment", str(tmp_path / "model.npz"), str(tmp_path / "ct.nii.gz"), "--at", at, "--truth",
+                 str(tmp_path / "expert.nii.gz"), "--truth-label", "7", "--out", str(tmp_path / "out")])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    doc = json.loads((tmp_path / "out" / "segment.json").read_text())
+    t = doc["truth"]
+    points = read_ply(tmp_path / "out" / "segmented.ply")[0]
+    again = segmentation_scores(points, faces, mask, image.affine)
+    assert t["dice"] == pytest.approx(again["dice"], abs=1e-6) and t["dice"] > 0.9
+    assert t["mean_mm"] == pytest.approx(again["mean_mm"], abs=1e-6) and t["p95_mm"] >= t["mean_mm"]
+    assert -1.0 <= t["sd_error_spearman"] <= 1.0 and 0.0 <= t["within_2sd"] <= 1.0
+    assert f"against expert.nii.gz: Dice {t['dice']:.3f}" in out and "within 2 SD" in out
+    code = main(["segment", str(tmp_path / "model.npz"), str(tmp_path / "ct.nii.gz"), "--at", at, "--truth",
+                 str(tmp_path / "expert.nii.gz"), "--truth-label", "9", "--out", str(tmp_path / "out9")])
+    err = capsys.readouterr().err
+    assert code == 2 and "expert.nii.gz" in err and "9" in err, err
+    assert not (tmp_path / "out9").exists()
+
+
 def test_an_active_shape_model_in_scalismos_statismo_layout_opens_and_segments(population, tmp_path):
     """The layout of scalismo-asm's ActiveShapeModelIO: /activeShapeModel with the Gaussian-gradient
     preprocessor, the normal-direction feature and per-point profiles (here of every other point, as a

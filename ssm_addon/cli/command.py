@@ -236,6 +236,12 @@ def argument_parser() -> argparse.ArgumentParser:
     p.add_argument("--init-mask", metavar="FILE", help="a rough segmentation to refine (label map, world mm)")
     p.add_argument("--label", type=int, default=None, metavar="N",
                    help="the label of --init-mask (default: every non-zero voxel)")
+    p.add_argument("--truth", metavar="FILE",
+                   help="an expert's label map of the structure: Dice, mean and 95th percentile surface distance, "
+                        "how the posterior SD ranks and covers the error (segment.json), its outline in segment.png")
+    p.add_argument("--truth-label", type=int, default=None, metavar="N",
+                   help="the label of --truth (default: --label when there is no --init-mask, else every non-zero "
+                        "voxel)")
     p.add_argument("--evidence", choices=("auto", "learned", "gradient"), default="auto",
                    help="boundary evidence: the model's learned appearance when it has one (auto, default), or "
                         "the image gradient (bright structure, darker surroundings)")
@@ -551,17 +557,24 @@ def cmd_segment(args) -> int:
 
     out = Path(args.out).expanduser().resolve()
     params = SegmentParams(evidence=args.evidence, deviation=not args.no_deviation)
-    inputs = [args.model, args.image, args.landmarks, args.init_mask]
+    inputs = [args.model, args.image, args.landmarks, args.init_mask, args.truth]
     name = Path(args.image).name
+    truth_label = args.truth_label if args.truth_label is not None else (None if args.init_mask else args.label)
     with _output_folder(out, inputs, force=args.force, what="segmentation") as tmp:
         doc = segment_files(args.model, args.image, tmp, at=args.at, landmarks_path=args.landmarks,
-                            init_mask_path=args.init_mask, label=args.label, params=params,
-                            progress=_print_progress(), cancelled=check_signals,
-                            say=lambda line: print(line, flush=True))
+                            init_mask_path=args.init_mask, label=args.label if args.init_mask else None,
+                            params=params, progress=_print_progress(), cancelled=check_signals,
+                            say=lambda line: print(line, flush=True), truth_path=args.truth,
+                            truth_label=truth_label)
     seg = doc["segmentation"]
     print(f"{name}: segmented with {doc['evidence']} evidence in {doc['iterations']} steps ({doc['seconds']:.1f} s): "
           f"{seg['voxels']} voxels ({seg['volume_mm3'] / 1000:.1f} cm³), Mahalanobis {doc['mahalanobis']:.2f}, "
           f"posterior SD {doc['posterior_sd_mm']['mean']:.2f} mm (up to {doc['posterior_sd_mm']['max']:.2f})")
+    truth = doc.get("truth")
+    if truth:
+        print(f"{name}: against {Path(truth['file']).name}: Dice {truth['dice']:.3f}, surface distance mean "
+              f"{truth['mean_mm']:.2f} mm, 95th percentile {truth['p95_mm']:.2f} mm; posterior SD against each "
+              f"point's error: Spearman {truth['sd_error_spearman']:.2f}, {100 * truth['within_2sd']:.0f} % within 2 SD")
     for f in doc["verdict"]["findings"]:
         print(f"WARNING {name}: [{f['kind']}] {f['message']}", file=sys.stderr)
     print(f"written: {out / 'segmentation.nii.gz'}, {out / 'segmented.ply'}, {out / 'segment.json'}, "

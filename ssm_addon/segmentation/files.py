@@ -20,7 +20,7 @@ from .scores import mask_surface_points
 from .segment import SegmentParams, landmark_pose, segment_image, start_pose
 
 __all__ = ["FIGURE_MARGIN_MM", "SCALE_BAR_MM", "SEGMENT_FILES", "VIEWS", "SegmentationRecord", "parse_point", "segment_figure", "segment_files",
-           "view_plane", "write_segmentation"]
+           "truth_scores", "view_plane", "write_segmentation"]
 
 SEGMENT_FILES = ("segmentation.nii.gz", "segmented.ply", "segment.json", "segment.png")
 
@@ -52,12 +52,13 @@ def view_plane(image: GreyImage, centre, right, up, half_right: float, half_up: 
 
 
 def segment_figure(image: GreyImage, mask: np.ndarray, path, *, title: str = "", reference: np.ndarray | None = None,
-                   window=(-200.0, 1200.0)) -> Path:
+                   reference_affine: np.ndarray | None = None, window=(-200.0, 1200.0)) -> Path:
     """Axial, coronal and sagittal views through the segmentation's centre, as 3D Slicer and ITK-SNAP
     show them (:data:`VIEWS`): resampled from the image's grid to square pixels in world mm (any
     voxel size and axis order), centred and zoomed on the structure, with the orientation letters
     and a scale bar; the image in grey (``window`` low/high), the segmentation's outline in orange
-    and, when given, a reference mask's (e.g. the expert label map) in cyan, dashed (PNG)."""
+    and, when given, a reference mask's (e.g. the expert label map; on the image's grid, or on its own
+    with ``reference_affine``, voxel -> world mm) in cyan, dashed (PNG)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -71,6 +72,15 @@ def segment_figure(image: GreyImage, mask: np.ndarray, path, *, title: str = "",
     half = np.maximum(np.abs(hi - centre), np.abs(centre - lo))
     step = max(0.5, float(np.min(image.spacing_mm)))
     data = np.asarray(image.data, np.float32)
+
+    def ref_ijk(world):  # the view's pixels in the reference's grid
+        if reference is None:
+            return None
+        if reference_affine is None:
+            return image.to_index(world.reshape(-1, 3)).T.reshape(3, *world.shape[:2])
+        inv = np.linalg.inv(np.asarray(reference_affine, float))
+        return (world.reshape(-1, 3) @ inv[:3, :3].T + inv[:3, 3]).T.reshape(3, *world.shape[:2])
+
     fig, axes = plt.subplots(1, 3, figsize=(13, 4.8))
     for ax, (name, right, up, letters) in zip(axes, VIEWS):
         half_r = float(np.abs(np.asarray(right)) @ half)
@@ -80,10 +90,11 @@ def segment_figure(image: GreyImage, mask: np.ndarray, path, *, title: str = "",
         extent = (-half_r, half_r, -half_u, half_u)
         ax.imshow(grey, cmap="gray", vmin=window[0], vmax=window[1], origin="lower", extent=extent,
                   interpolation="bilinear")
-        for m, colour, style, width in ((mask, "#ff8c00", "solid", 1.2), (reference, "#00c8ff", "dashed", 0.9)):
+        for m, grid, colour, style, width in ((mask, ijk, "#ff8c00", "solid", 1.2),
+                                              (reference, ref_ijk(_world), "#00c8ff", "dashed", 0.9)):
             if m is None:
                 continue
-            cut = ndimage.map_coordinates(np.asarray(m, np.float32), ijk, order=0, mode="constant", cval=0.0)
+            cut = ndimage.map_coordinates(np.asarray(m, np.float32), grid, order=0, mode="constant", cval=0.0)
             if cut.any() and not cut.all():
                 ax.contour(cut, levels=[0.5], colors=[colour], linewidths=width, linestyles=style, origin="lower",
                            extent=extent)
@@ -122,8 +133,28 @@ class SegmentationRecord:
         return dict(self.record)
 
 
+def truth_scores(result, truth: np.ndarray, truth_affine: np.ndarray) -> dict:
+    """A segmentation against an expert's mask (``truth`` on its grid, ``truth_affine`` voxel -> world
+    mm): Dice and the symmetric surface distances (:func:`~ssm_addon.segmentation.scores.segmentation_scores`),
+    and how the per-point posterior SD stands to each point's distance from the expert's boundary
+    (mm): their Spearman rank correlation and the share of points within 2 SD."""
+    from scipy.spatial import cKDTree
+    from scipy.stats import spearmanr
+
+    from .scores import segmentation_scores
+
+    if not np.any(truth):
+        raise InputError("--truth: the expert's mask is empty (no voxel of the label)")
+    scores = segmentation_scores(result.points, result.faces, np.asarray(truth, bool), truth_affine)
+    error = cKDTree(mask_surface_points(np.asarray(truth, bool), truth_affine)).query(result.points)[0]
+    sd = np.asarray(result.posterior_sd_mm, float)
+    rho = float(spearmanr(sd, error)[0]) if np.ptp(sd) > 0 and np.ptp(error) > 0 else float("nan")
+    return {**scores, "point_error_mm": {"mean": float(error.mean()), "p95": float(np.percentile(error, 95))},
+            "sd_error_spearman": rho, "within_2sd": float(np.mean(error <= 2.0 * sd))}
+
+
 def write_segmentation(result, image: GreyImage, out_dir, *, model_source: str = "", extra: dict | None = None,
-                       overwrite: bool = False) -> dict:
+                       overwrite: bool = False, truth: tuple | None = None) -> dict:
     """Write ``segmentation.nii.gz`` (label 1 on the image's grid, its affine), ``segmented.ply``
     (world mm, RAS, with the posterior SD per vertex), ``segment.json`` and ``segment.png``.
 
@@ -131,6 +162,8 @@ def write_segmentation(result, image: GreyImage, out_dir, *, model_source: str =
     :class:`SegmentationRecord`.
 
     Existing files of these names are refused unless ``overwrite`` (they may not be ours).
+    ``truth``: ``(mask, affine, source)`` of an expert's segmentation: scored (:func:`truth_scores`,
+    under ``truth`` in ``segment.json``) and outlined in ``segment.png``.
     Returns the paths by kind.
     """
     out = Path(out_dir)
@@ -154,8 +187,13 @@ def write_segmentation(result, image: GreyImage, out_dir, *, model_source: str =
     doc = {"image": str(image.path), "model": str(model_source), **result.to_dict(),
            "segmentation": {"voxels": int(mask.sum()), "volume_mm3": float(mask.sum() * vox)},
            "files": {k: p.name for k, p in files.items()}, **(extra or {})}
+    title = f"{Path(image.path).name}: segmentation (orange)"
+    if truth is not None:
+        doc["truth"] = {"file": str(truth[2]), **truth_scores(result, truth[0], truth[1])}
+        title += f", expert (cyan, dashed): Dice {doc['truth']['dice']:.3f}, {doc['truth']['mean_mm']:.2f} mm"
     files["record"].write_text(json.dumps(doc, indent=1))
-    segment_figure(image, mask, files["picture"], title=f"{Path(image.path).name}: segmentation (orange)")
+    segment_figure(image, mask, files["picture"], title=title, reference=None if truth is None else truth[0],
+                   reference_affine=None if truth is None else truth[1])
     return files
 
 
@@ -171,10 +209,13 @@ def parse_point(text: str, what: str = "--at") -> np.ndarray:
 
 
 def segment_files(model_path, image_path, out_dir, *, at=(), landmarks_path=None, init_mask_path=None,
-                  label: int | None = None, params=None, progress=None, cancelled=None, say=None) -> dict:
+                  label: int | None = None, params=None, progress=None, cancelled=None, say=None,
+                  truth_path=None, truth_label: int | None = None) -> dict:
     """``ssm segment``: read the model (``model.npz`` with its appearance, or a statismo file), the image
     and the start (``at``: "X,Y,Z" or "STRUCTURE=X,Y,Z" strings; a landmark file; or a rough mask and
-    its label), segment and write the files into ``out_dir`` (a folder the caller owns).
+    its label), segment and write the files into ``out_dir`` (a folder the caller owns). ``truth_path``
+    (and ``truth_label``): an expert's label map of the structure, read before the search (a bad file
+    fails at once), scored against the result and outlined in ``segment.png``.
 
     Returns the ``segment.json`` document.
     """
@@ -191,6 +232,10 @@ def segment_files(model_path, image_path, out_dir, *, at=(), landmarks_path=None
     else:
         say(f"evidence: the appearance learned from {len(appearance.images)} training image(s)")
     image = read_image(image_path)
+    truth = None
+    if truth_path is not None:
+        expert = load_volume(truth_path, truth_label)
+        truth = (expert.mask, expert.affine, truth_path)
     named, pose, start = {}, None, {}
     plain = [a for a in at if "=" not in a]
     for a in at:
@@ -234,5 +279,6 @@ def segment_files(model_path, image_path, out_dir, *, at=(), landmarks_path=None
     result = segment_image(model, image, at=at_point, pose=pose, appearance=appearance, params=params,
                            progress=progress, cancelled=cancelled)
     extra = {"start_given": start}
-    files = write_segmentation(result, image, out_dir, model_source=str(model_path), extra=extra, overwrite=True)
+    files = write_segmentation(result, image, out_dir, model_source=str(model_path), extra=extra, overwrite=True,
+                               truth=truth)
     return json.loads(files["record"].read_text())
