@@ -184,9 +184,8 @@ def _coatings_equal(bpy, study):
 def test_coat_template_refines_the_template_where_the_build_does(bpy_clean, tmp_path):
     """Spiked ellipsoids whose spikes are longer than the template instance's (as meshes): Coat
     Template builds the template again denser where the coatings cut off the spikes, as the
-    headless build of the same project does; the scene's template and (after Optimise
-    Correspondence, the build's next step) coatings equal the build's, and no ``input_surface``
-    finding is left in either."""
+    headless build of the same project does; the scene's template and coatings equal the build's,
+    and no ``input_surface`` finding is left in either."""
     from conftest import spiked_project
     from ssm.operators.scene import find_template, scene_findings, template_from_object
     from test_template_refinement import HEADER, SHAPES
@@ -206,8 +205,7 @@ def test_coat_template_refines_the_template_where_the_build_does(bpy_clean, tmp_
     assert template.params["refined_at"] == refined
     np.testing.assert_allclose(template.points_object, headless.study.template.points_object, atol=1e-9)
     np.testing.assert_array_equal(template.faces, headless.study.template.faces)
-    assert bpy.ops.ssm.optimise_correspondence() == {"FINISHED"}  # the build's step after the coating
-    _coatings_equal(bpy, headless.study)
+    _coatings_equal(bpy, headless.study)  # the build's coatings (its optimisation is off by default)
     assert not [f for f in scene_findings(bpy.context) if f.gate == "input_surface"]
     assert not [f for f in headless.study.findings if f.gate == "input_surface"]
 
@@ -217,8 +215,8 @@ def test_coat_template_refines_the_model_methods_template_as_the_build_does(bpy_
     """L2 of two subjects as 3D Slicer meshes, verse005's without landmarks (the model method supplies
     its correspondence) and with six cavities inside (closed surfaces its label map's holes give):
     Coat Template leaves the cavities out and refines the template where verse005's outer surface
-    was cut off, as the headless build does; the scene's template and coatings (after Optimise
-    Correspondence) equal the build's, and neither has an ``input_surface`` finding."""
+    was cut off, as the headless build does; the scene's template and coatings equal the build's,
+    and neither has an ``input_surface`` finding."""
     if not (verse_dir.parent / "verse005").is_dir():
         pytest.skip(f"verse005 not found in {verse_dir.parent}")
     from conftest import VERSE_LABELS
@@ -240,7 +238,6 @@ def test_coat_template_refines_the_model_methods_template_as_the_build_does(bpy_
     template = template_from_object(find_template(bpy.context))
     assert template.params["refined_at"] == headless.study.template.params["refined_at"]
     np.testing.assert_array_equal(template.faces, headless.study.template.faces)
-    assert bpy.ops.ssm.optimise_correspondence() == {"FINISHED"}
     _coatings_equal(bpy, headless.study)
     assert not [f for f in scene_findings(bpy.context) if f.gate == "input_surface"]
 

@@ -24,7 +24,7 @@ def light_project(tmp_path_factory):
     path.write_text(path.read_text().replace("spacing = 1.0", "spacing = 1.0\nr_min_mm = 4.0\nr_max_mm = 8.0")
                     .replace("[model]", "[model]\nspecificity_samples = 50"))
     tpl = template_of(path)
-    return project_variant(path, "light.toml", correspondence='[correspondence]\nmethod = "model"\niterations = 2',
+    return project_variant(path, "light.toml", correspondence='[correspondence]\nmethod = "model"\niterations = 2\noptimise = true',
                     keep_landmarks={tpl})
 
 

@@ -380,7 +380,7 @@ def test_a_joint_report_records_what_anchored_each_structures_correspondence(tmp
 
     from ssm_addon.pipeline.project_build import build
 
-    with_lm = joint_project(tmp_path, 4, ["[template]", "spacing = 1.0", ""])
+    with_lm = joint_project(tmp_path, 4, ["[template]", "spacing = 1.0", "", "[correspondence]", "optimise = true", ""])
     text = re.sub(r"landmarks = \{[^}]*\}\n", "", with_lm.read_text())
     without = tmp_path / "without.toml"
     without.write_text(text)

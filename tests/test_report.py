@@ -97,10 +97,10 @@ def test_report_opens_in_a_headless_browser_without_errors(built, tmp_path):
     assert console == [], console  # the page logs nothing, and raises nothing
     total = int(re.search(r'data-images="(\d+)"', dom.stdout).group(1))
     decoded = int(re.search(r'data-images-decoded="(\d+)"', dom.stdout).group(1))
-    # every picture decodes: the instances', fig. 9, fig. 10 (drawn without Blender), metrics, the correspondence
-    # optimisation's (on by default) and (the demo has [analysis]) the analysis map and scores
-    assert (out / "optimisation.png").is_file()
-    assert total == len(result.study.names) + 4 + 2 and decoded == total
+    # every picture decodes: the instances', fig. 9, fig. 10 (drawn without Blender), metrics and (the demo
+    # has [analysis]) the analysis map and scores; the correspondence optimisation is off by default
+    assert not (out / "optimisation.png").exists()
+    assert total == len(result.study.names) + 3 + 2 and decoded == total
     # at 1,300 px every table fits the window, the Instances table with its warnings included
     narrow = _chromium(f"--user-data-dir={tmp_path / 'profile3'}", "--window-size=1300,1600",
                        "--virtual-time-budget=5000", "--dump-dom", url)

@@ -7,6 +7,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+from scipy.stats import spearmanr
 
 from ..base.errors import InputError
 from ..fitting.batch import load_model, model_file
@@ -16,7 +19,7 @@ from ..formats.landmarks import read_landmarks
 from ..formats.meshes import write_ply
 from .appearance import load_appearance
 from .image import GreyImage, read_image, segmentation_mask
-from .scores import mask_surface_points
+from .scores import mask_surface_points, segmentation_scores
 from .segment import SegmentParams, landmark_pose, segment_image, start_pose
 
 __all__ = ["FIGURE_MARGIN_MM", "SCALE_BAR_MM", "SEGMENT_FILES", "VIEWS", "SegmentationRecord", "parse_point", "segment_figure", "segment_files",
@@ -63,8 +66,6 @@ def segment_figure(image: GreyImage, mask: np.ndarray, path, *, title: str = "",
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from scipy import ndimage
-
     idx = np.argwhere(mask)
     pts = image.to_world(idx.astype(float)) if len(idx) else image.to_world((np.asarray(image.shape) - 1) / 2.0)[None]
     centre = pts.mean(axis=0)
@@ -138,11 +139,6 @@ def truth_scores(result, truth: np.ndarray, truth_affine: np.ndarray) -> dict:
     mm): Dice and the symmetric surface distances (:func:`~ssm_addon.segmentation.scores.segmentation_scores`),
     and how the per-point posterior SD stands to each point's distance from the expert's boundary
     (mm): their Spearman rank correlation and the share of points within 2 SD."""
-    from scipy.spatial import cKDTree
-    from scipy.stats import spearmanr
-
-    from .scores import segmentation_scores
-
     if not np.any(truth):
         raise InputError("--truth: the expert's mask is empty (no voxel of the label)")
     scores = segmentation_scores(result.points, result.faces, np.asarray(truth, bool), truth_affine)
