@@ -330,7 +330,7 @@ def _volume_key(context, obj):
     tp = scene_params(context, "ssm_template")
     ssm = obj.ssm
     base = (tp.spacing_mm, tp.frame, tp.space, ssm.source_kind, ssm.label, float(ssm.mesh_spacing_mm),
-            instance_mirror(obj))
+            bool(instance_mirror(obj)))  # undecided and "not mirrored" import the same volume
     if ssm.source_kind == "BLENDER_MESH":
         verts, faces = mesh_file_world(obj)
         digest = hashlib.sha1(verts.astype(np.float32).tobytes() + faces.astype(np.int32).tobytes()).hexdigest()

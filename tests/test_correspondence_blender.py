@@ -153,8 +153,7 @@ def test_the_medoid_template_of_the_model_method_reaches_the_scene(bpy_clean, tm
     assert bpy.ops.ssm.open_project(filepath=str(path)) == {"FINISHED"}
     assert bpy.ops.ssm.build_template() == {"FINISHED"}
     assert find_template(bpy.context).ssm.instance.name == choice["given"]
-    assert bpy.ops.ssm.coat_template() == {"FINISHED"}
-    assert bpy.ops.ssm.optimise_correspondence() == {"FINISHED"}
+    assert bpy.ops.ssm.coat_template() == {"FINISHED"}  # the build's coatings (its optimisation is off by default)
     assert find_template(bpy.context).ssm.instance.name == choice["medoid"]
     assert bpy.context.scene.ssm_display.template_instance.name == choice["medoid"]
     from ssm.operators.scene import scene_records  # the scene's record of the stages, as a build's report
