@@ -128,7 +128,7 @@ def main(argv=None) -> int:
             for evidence in args.evidence.split(","):
                 for s, at in enumerate(start_points(truth, labels.affine, args.offset, args.starts, seed=11)):
                     res = segment_image(model, image, at=at, appearance=appearance if evidence == "learned" else None,
-                                        params=SegmentParams(evidence="auto" if evidence == "learned" else evidence))
+                                        params=SegmentParams(evidence=evidence))
                     sc = segmentation_scores(res.points, res.faces, truth, labels.affine)
                     row = {"vertebra": held, "image": degrade, "evidence": evidence, "start": s,
                            **sc, "seconds": res.seconds, "findings": [k for k, _ in res.findings]}

@@ -160,7 +160,8 @@ def main(argv=None) -> int:
             app = apps[evidence]
             for s, at in enumerate(start_points(truth, labels.affine, args.offset, args.starts, seed=11)):
                 res = segment_image(model, image, at=at, appearance=app,
-                                    params=SegmentParams(evidence="gradient" if app is None else "auto"))
+                                    params=SegmentParams(evidence="gradient" if app is None else "learned")
+                                    if evidence != "learned" else SegmentParams(evidence="auto"))
                 sc = truth_scores(res, truth, labels.affine)
                 row = {"vertebra": name, "evidence": evidence, "start": s, "used": res.evidence, "seconds": res.seconds,
                        **{k: sc[k] for k in ("dice", "mean_mm", "p95_mm", "sd_error_spearman", "within_2sd")}}

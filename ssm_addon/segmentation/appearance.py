@@ -111,6 +111,8 @@ class Appearance:
         (``inf``: not known, a file of another tool).
     profiled : (N,) bool or None
         The points that have a profile model (None: all; another tool may profile a subset).
+    scans : int
+        How many distinct scans (grey-value images) the profiles were learned from; 0: not recorded.
     """
 
     mean: np.ndarray
@@ -123,6 +125,7 @@ class Appearance:
     images: tuple = ()
     voxel_mm: float = 1.0
     profiled: np.ndarray | None = None
+    scans: int = 0
 
     @property
     def half_length(self) -> int:
@@ -156,7 +159,7 @@ class Appearance:
                 f"{p}step_mm": np.asarray(self.step_mm), f"{p}boundary_mm": self.boundary_mm,
                 f"{p}boundary_sd": self.boundary_sd, f"{p}typical_distance": self.typical_distance,
                 f"{p}images": np.asarray([str(s) for s in self.images] or np.zeros(0, "<U1")),
-                f"{p}voxel_mm": np.asarray(self.voxel_mm)}
+                f"{p}voxel_mm": np.asarray(self.voxel_mm), f"{p}scans": np.asarray(int(self.scans))}
 
     def to_dict(self) -> dict:
         return {"kind": "learned profiles (Cootes et al. 1995)", "images": list(self.images),
@@ -181,7 +184,8 @@ def appearance_from_arrays(arrays, n_points: int, where: str = "model") -> Appea
                       boundary_sd=np.asarray(arrays[f"{p}boundary_sd"], float),
                       typical_distance=np.asarray(arrays[f"{p}typical_distance"], float),
                       images=_names(arrays[f"{p}images"]),
-                      voxel_mm=float(np.asarray(arrays.get(f"{p}voxel_mm", 1.0)).reshape(-1)[0]))
+                      voxel_mm=float(np.asarray(arrays.get(f"{p}voxel_mm", 1.0)).reshape(-1)[0]),
+                      scans=int(np.asarray(arrays.get(f"{p}scans", 0)).reshape(-1)[0]))
 
 
 def _names(value) -> tuple:
@@ -399,4 +403,5 @@ def learn_appearance(mean_shape: np.ndarray, faces: np.ndarray, shapes_world: li
                       step_mm=float(step_mm), boundary_mm=np.array([ins.mean(), outs.mean()]),
                       boundary_sd=np.array([ins.std(), outs.std()]), typical_distance=np.asarray(typical),
                       images=tuple(str(s) for s in names),
-                      voxel_mm=float(max(float(img.spacing_mm.max()) for img in images)))
+                      voxel_mm=float(max(float(img.spacing_mm.max()) for img in images)),
+                      scans=len({id(img) for img in images}))

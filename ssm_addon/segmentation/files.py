@@ -20,7 +20,7 @@ from ..formats.meshes import write_ply
 from .appearance import load_appearance
 from .image import GreyImage, read_image, segmentation_mask
 from .scores import mask_surface_points, segmentation_scores
-from .segment import SegmentParams, landmark_pose, segment_image, start_pose
+from .segment import MIN_SCANS, SegmentParams, landmark_pose, segment_image, start_pose
 
 __all__ = ["FIGURE_MARGIN_MM", "SCALE_BAR_MM", "SEGMENT_FILES", "VIEWS", "SegmentationRecord", "parse_point", "segment_figure", "segment_files",
            "truth_scores", "view_plane", "write_segmentation"]
@@ -226,7 +226,10 @@ def segment_files(model_path, image_path, out_dir, *, at=(), landmarks_path=None
     elif params.evidence == "gradient":
         say("evidence: the image gradient, as asked (the model's learned appearance is not used)")
     else:
-        say(f"evidence: the appearance learned from {len(appearance.images)} training image(s)")
+        say(f"evidence: the appearance learned from {len(appearance.images)} training image(s)"
+            + (f" of {appearance.scans} scan: the image gradient is used (learned profiles from {MIN_SCANS} or more "
+               "scans; --evidence learned uses these)" if params.evidence == "auto" and 0 < appearance.scans < MIN_SCANS
+               else ""))
     image = read_image(image_path)
     truth = None
     if truth_path is not None:

@@ -45,7 +45,7 @@ from ..meshutil import edges, vertex_normals
 from .appearance import LEVEL_SIGMAS_MM, Appearance, boundary_grey_values, normalised_derivative
 from .image import GreyImage
 
-__all__ = ["BONE_HU", "BONE_REACH_MM", "CT_AIR_HU", "SegmentParams", "SegmentResult", "bone_near", "landmark_pose", "segment_image", "start_pose", "typical_rotation",
+__all__ = ["BONE_HU", "BONE_REACH_MM", "CT_AIR_HU", "MIN_SCANS", "SegmentParams", "SegmentResult", "bone_near", "landmark_pose", "segment_image", "start_pose", "typical_rotation",
            "volume_centroid"]
 
 
@@ -322,6 +322,10 @@ def _refined_offsets(cost: np.ndarray, best: np.ndarray, offsets: np.ndarray) ->
     return offsets[best] + np.clip(shift, -0.5, 0.5) * step
 
 
+#: ``evidence = "auto"`` uses learned profiles only when they were learned from at least this many
+#: scans: profiles of one scan segmented another scanner's CT worse than the gradient, both ways
+#: (docs/measurements.md, "Segmentation across scanners").
+MIN_SCANS = 2
 #: An image whose lowest value is at most this is taken as CT in Hounsfield units (air is -1000 HU),
 #: where bone is known by its value.
 CT_AIR_HU = -500.0
@@ -442,6 +446,10 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
     if params.evidence == "gradient":
         appearance = None
     resolution_note = ""
+    if params.evidence == "auto" and appearance is not None and 0 < appearance.scans < MIN_SCANS:
+        resolution_note = (f" (the appearance was learned from {appearance.scans} scan: learned profiles are used from "
+                           f"{MIN_SCANS} or more scans; evidence 'learned' uses these)")
+        appearance = None
     if appearance is not None and float(image.spacing_mm.max()) > COARSER_THAN_TRAINING * appearance.voxel_mm:
         if params.evidence == "learned":
             raise InputError(f"{name}: its voxels ({', '.join(f'{v:.3g}' for v in image.spacing_mm)} mm) are coarser "
