@@ -33,8 +33,6 @@ from ..instances.volume import ObjectFrame, ObjectVolume, mirror_axis, mirrored_
 from ..model.pca import procrustes_fit
 from .frames import (
     FRAME_ROTATIONS,
-    SCREEN_SAMPLES,
-    TARGET_SAMPLES,
     SurfacePairs,
     area_samples,
 )
@@ -54,6 +52,11 @@ SIDE_SCREEN_STRIDE = 4
 SIDE_SCREEN_ITERATIONS = 5
 SIDE_ITERATIONS = 12
 SIDE_FINALISTS = 1
+#: The nearest screened rotations of the decided side handed to the start (which then screens only these).
+START_ROTATIONS = 3
+#: Template samples (triangle centroids) and boundary voxels the surface test registers.
+SIDE_SAMPLES = 800
+SIDE_TARGET_SAMPLES = 3000
 
 
 @dataclass(frozen=True)
@@ -74,6 +77,10 @@ class SideDecision:
         of the similarity; surface: mean symmetric distance, mm); NaN when not measured.
     side : str
         The side given for the instance, or ``""``.
+    rotations : tuple of int
+        The surface test's nearest rotations of the frame's axes on the decided side (indices into
+        :data:`~ssm_addon.correspondence.frames.FRAME_ROTATIONS`, nearest first): the start's
+        candidates, which need not be screened again.
     """
 
     mirror: bool
@@ -81,9 +88,12 @@ class SideDecision:
     as_is_mm: float = float("nan")
     mirrored_mm: float = float("nan")
     side: str = ""
+    rotations: tuple = ()
 
     def to_dict(self) -> dict:
         out = {"mirrored": bool(self.mirror), "by": self.by}
+        if self.rotations:
+            out["rotations"] = [int(k) for k in self.rotations]
         if self.side:
             out["side"] = self.side
         if np.isfinite(self.as_is_mm):
@@ -101,12 +111,12 @@ class SideDecision:
         return f"its {what} {self.as_is_mm:.2f} mm as is, {self.mirrored_mm:.2f} mm mirrored"
 
 
-def _decide(as_is: float, mirrored: float, by: str) -> SideDecision:
+def _decide(as_is: float, mirrored: float, by: str, rotations=((), ())) -> SideDecision:
     if mirrored * SIDE_FACTOR < as_is:
-        return SideDecision(True, by, as_is, mirrored)
+        return SideDecision(True, by, as_is, mirrored, rotations=tuple(rotations[1]))
     if as_is * SIDE_FACTOR < mirrored:
-        return SideDecision(False, by, as_is, mirrored)
-    return SideDecision(False, "undecided", as_is, mirrored)
+        return SideDecision(False, by, as_is, mirrored, rotations=tuple(rotations[0]))
+    return SideDecision(False, "undecided", as_is, mirrored, rotations=tuple(rotations[0]))
 
 
 def _similarity_rms(src: np.ndarray, tgt: np.ndarray, *, reflect: bool) -> float:
@@ -171,14 +181,14 @@ def surface_side(template_points: np.ndarray, template_faces: np.ndarray, target
     :data:`SIDE_FACTOR` times closer (mean symmetric distance, mm) is decided.
     """
     pts = np.asarray(template_points, float)
-    src, src_w = area_samples(pts, template_faces, SCREEN_SAMPLES)
-    tgt, tgt_w = _boundary_samples(target, TARGET_SAMPLES)
+    src, src_w = area_samples(pts, template_faces, SIDE_SAMPLES)
+    tgt, tgt_w = _boundary_samples(target, SIDE_TARGET_SAMPLES)
     centre_s = src_w @ src / src_w.sum()
     scale = float(np.sqrt(((tgt - tgt.mean(axis=0)) ** 2).sum(axis=1).mean())
                   / max(np.sqrt(((src - centre_s) ** 2).sum(axis=1) @ src_w / src_w.sum()), 1e-12))
     flip = np.ones(3)
     flip[mirror_axis(target.frame)] = -1.0
-    best = []
+    best, nearest = [], []
     for frame, t in ((target.frame, tgt), (mirrored_frame(target.frame), tgt * flip)):
         centre_t = t.mean(axis=0)
         poses = [Pose(r, centre_t - scale * r @ centre_s, scale) for r in FRAME_ROTATIONS]
@@ -193,6 +203,8 @@ def surface_side(template_points: np.ndarray, template_faces: np.ndarray, target
         screened = [coarse.register(p, SIDE_SCREEN_ITERATIONS) for p in poses]
         order = sorted(range(len(screened)), key=lambda i: (screened[i][1], i))
         finalists = sorted({*order[:SIDE_FINALISTS], *([0] if template_frame is not None else [])})
+        first = 1 if template_frame is not None else 0  # the input pose is not a rotation of the axes
+        nearest.append([i - first for i in order if i >= first][:START_ROTATIONS])
         full = SurfacePairs(src, src_w, t, tgt_w)
         best.append(min(full.register(screened[i][0], SIDE_ITERATIONS)[1] for i in finalists))
-    return _decide(best[0], best[1], "surface")
+    return _decide(best[0], best[1], "surface", nearest)

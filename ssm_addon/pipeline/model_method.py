@@ -560,9 +560,11 @@ def coat_without_landmarks_stage(study: Study, *, jobs: int = 1, executor=None,
     template = Mesh(study.template.points_object, study.template.faces)
     frame = study.frame(study.template_instance)
     coating = study.params.coating
+    # the sides' surface test screened every rotation already: its nearest few are the start's candidates
+    screened = {n: study.sides[n].rotations for n in names if n in study.sides and study.sides[n].rotations}
     with executor_or_local(executor, jobs, len(names)) as pool:
         coated = frames_coat(template, {n: study.volume(n) for n in names}, coating=coating, template_frame=frame,
-                             jobs=jobs, executor=pool, cancelled=cancelled)
+                             turns=screened or None, jobs=jobs, executor=pool, cancelled=cancelled)
 
         def retry(suspects):
             turns = {n: tuple(k for k, t in enumerate(TURN_NAMES) if t != coated[n][1].turn) for n in suspects}

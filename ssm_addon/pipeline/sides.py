@@ -135,4 +135,5 @@ def with_sides_product(sided: Study, result: StageResult, decisions: dict, secon
         product["frames"] = {**{n: v.frame for n, v in flipped.items()}, **product.get("frames", {})}
         product["sides"] = dict(decisions)
     summary = ((f"{line} ({seconds:.1f} s)",) if decisions and line else (line,) if line else ()) + tuple(result.summary)
-    return dataclasses.replace(result, product=product, summary=summary)
+    timings = {**result.timings_s, "sides": seconds} if decisions else dict(result.timings_s)
+    return dataclasses.replace(result, product=product, summary=summary, timings_s=timings)
