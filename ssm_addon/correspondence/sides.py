@@ -101,6 +101,13 @@ class SideDecision:
             out["mirrored_mm"] = float(self.mirrored_mm)
         return out
 
+    @classmethod
+    def from_dict(cls, d: dict) -> SideDecision:
+        """The decision :meth:`to_dict` wrote."""
+        return cls(mirror=bool(d.get("mirrored", False)), by=str(d.get("by", "")),
+                   as_is_mm=float(d.get("as_is_mm", float("nan"))), mirrored_mm=float(d.get("mirrored_mm", float("nan"))),
+                   side=str(d.get("side", "")), rotations=tuple(int(k) for k in d.get("rotations", ())))
+
     def text(self) -> str:
         if self.by == "given":
             return f"side {self.side} given"

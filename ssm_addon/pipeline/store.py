@@ -22,6 +22,7 @@ from ..base.records import jsonable
 from ..coating.coating import CoatingResult, CoatingStart, FitFigures
 from ..correspondence.optimisation import Optimisation
 from ..correspondence.rounds import CorrespondenceCheck, RoundFigures
+from ..correspondence.sides import SideDecision
 from ..formats.landmarks import LandmarkSet
 from ..instances.importing import InstanceSpec
 from ..instances.volume import ObjectVolume, frame_from_arrays, frame_to_arrays
@@ -37,7 +38,7 @@ __all__ = ["RECORD_FIELDS", "apply_joint_records", "apply_records", "joint_recor
 
 #: The study's records beside its arrays: what its stages found, decided and took.
 RECORD_FIELDS = ("findings", "outlier_scores", "coating_start", "correspondence_rounds", "correspondence_check",
-                 "template_choice", "metrics", "timings_s", "input_distances", "optimisation")
+                 "template_choice", "metrics", "timings_s", "input_distances", "optimisation", "sides")
 
 
 def study_records(study: Study) -> dict:
@@ -57,6 +58,7 @@ def study_records(study: Study) -> dict:
         "timings_s": study.timings_s,
         "input_distances": study.input_distances,
         "optimisation": study.optimisation.to_dict() if study.optimisation is not None else None,
+        "sides": {n: d.to_dict() for n, d in study.sides.items()},
     })
 
 
@@ -65,6 +67,8 @@ def apply_records(study: Study, records: dict) -> Study:
     records lack is left as it is."""
     if "findings" in records:
         study.findings = [Finding.from_dict(f) for f in records["findings"]]
+    if "sides" in records:
+        study.sides = {n: SideDecision.from_dict(d) for n, d in (records["sides"] or {}).items()}
     if "outlier_scores" in records:
         study.outlier_scores = dict(records["outlier_scores"] or {})
     if "coating_start" in records:
