@@ -398,6 +398,10 @@ def test_a_joint_report_records_what_anchored_each_structures_correspondence(tmp
         assert set(starts) == {f"S{i}" for i in range(4)} and all(len(s["distances_mm"]) == 25 for s in starts.values())
         assert any(x.startswith(f"{structure}: correspondence: the optimisation across the population is not run")
                    for x in lines), lines
+        # each structure's carried landmarks, as a single build writes them; none without landmarks
+        written = sorted(p.name for p in (tmp_path / "with" / "structures" / structure / "landmarks").iterdir())
+        assert len(written) == 4 and all(n.startswith("S") for n in written), written
+        assert not (tmp_path / "without" / "structures" / structure / "landmarks").exists()
         # the self-check: measured over the 4 landmarked subjects, not measured without landmarks (said so)
         assert reports["with"]["joint"]["structures"][structure]["correspondence"]["self_check_measured"] == ""
         assert got["self_check_measured"].startswith("no self-check")

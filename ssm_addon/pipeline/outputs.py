@@ -497,8 +497,8 @@ def write_joint(joint, folder, *, output: OutputParams, project: str | Absent, t
                 log: Callable[[str], None] | None = None, progress: ProgressFn = None, cancelled: CancelledFn = None,
                 t_start: float | None = None, analysis: Callable | None = None,
                 files: dict | None = None, executor=None) -> tuple[dict, Report]:
-    """Write a joint study's outputs into ``folder``: each structure's template and coated meshes
-    (``structures/<name>/``, world mm), the joint model's files (``model.npz`` with its
+    """Write a joint study's outputs into ``folder``: each structure's template, coated meshes and
+    carried landmarks (``structures/<name>/``, world mm; ``landmarks/`` where the structure has them), the joint model's files (``model.npz`` with its
     ``structure_names`` and ``structure_offsets``, statismo with its ``/ssm/structures`` group,
     tables, glTF, VTK), the plots, the analysis through ``analysis(folder) -> (files, report
     entry or None)`` when given (as :func:`write_study`), ``report.json`` and ``report.html``.
@@ -521,6 +521,14 @@ def write_joint(joint, folder, *, output: OutputParams, project: str | Absent, t
         sl = model.structure_slice(name)
         for subject, pw in zip(model.instance_names, model.instance_points_world):
             write_ply(base / "coated" / f"{safe[str(subject)]}.ply", np.asarray(pw[sl], float), tpl.faces, space="RAS")
+        carried = carried_landmarks(study)  # the template's landmarks where each coating put them, as a single build
+        if output.landmarks and carried:
+            given = study.instance(study.template_instance).landmarks_path
+            ext = landmark_format(given) if given is not None else "fcsv"
+            (base / "landmarks").mkdir()
+            for subject in joint.subjects:
+                if str(subject) in carried:
+                    write_landmarks(base / "landmarks" / f"{safe[str(subject)]}.{ext}", carried[str(subject)])
     files["structures"] = "structures"
     check_cancelled(cancelled)
     entries = _write_model_outputs(model, folder, files, output=output, say=say, drawn=drawn,
