@@ -585,11 +585,8 @@ def cmd_segment(args) -> int:
 def cmd_analyze(args) -> int:
     from ..analysis.attributes import read_attributes
     from ..analysis.files import analysis_summary, run_analysis
-    from ..fitting.batch import load_model
-    source = Path(args.model).expanduser()
-    model_path = source / "model.npz" if source.is_dir() else source
-    if source.is_dir() and not model_path.is_file():
-        raise InputError(f"{source}: no model.npz in this folder (give a build's output folder or a model file)")
+    from ..fitting.batch import load_model, model_file
+    model_path = model_file(args.model)  # a build's output folder: its model.npz
     model = load_model(model_path)
     if args.structure:
         from ..model.joint import structure_model

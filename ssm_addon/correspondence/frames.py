@@ -38,7 +38,7 @@ from ..meshutil import Mesh, MeshLocator, face_centroids, face_normals
 from ..model.pca import procrustes_fit
 from .rounds import AXIS_TURNS, WORLD_POSE_TOLERANCE, aligned_to
 
-__all__ = ["FRAME_ROTATIONS", "ROTATION_NAMES", "TURN_NAMES", "TURNED_FACTOR", "FramesStart", "SurfacePairs", "area_samples", "coat_from_template_pose", "coat_without_landmarks",
+__all__ = ["FRAME_ROTATIONS", "ROTATION_NAMES", "TURN_NAMES", "TURNED_FACTOR", "FramesStart", "SurfacePairs", "area_samples", "input_rotation", "coat_from_template_pose", "coat_without_landmarks",
            "far_from_population", "population_turns", "surface_similarity", "template_start", "TWIST_FACTOR", "TWIST_MIN_DEG", "Twist", "coating_twists", "twisted"]
 
 
@@ -155,12 +155,8 @@ def template_start(template_points: np.ndarray, target: ObjectVolume, *, templat
                   for k in turns]
     world = None
     if template_frame is not None:
-        world_pts = template_frame.to_world(pts)
-        if template_frame.mirrored != target.frame.mirrored:  # a mirrored instance: the template mirrored left to
-            world_pts = world_pts * np.array([-1.0, 1.0, 1.0])  # right (world x, in RAS and LPS) as a right bone is
-        there = target.frame.to_object(world_pts)
-        _s, rot, _t = procrustes_fit(pts[None], there, scale=False)
-        world = ("input coordinates", Pose(rot[0], centre_t - scale * rot[0] @ centre_s, scale))
+        rot = input_rotation(pts, template_frame, target.frame)
+        world = ("input coordinates", Pose(rot, centre_t - scale * rot @ centre_s, scale))
         candidates.insert(0, world)
     surface = SurfacePairs(src, src_w, tgt, tgt_w)
     coarse = SurfacePairs(src[::SCREEN_STRIDE], src_w[::SCREEN_STRIDE], tgt[::SCREEN_STRIDE], tgt_w[::SCREEN_STRIDE])
@@ -176,6 +172,19 @@ def template_start(template_points: np.ndarray, target: ObjectVolume, *, templat
         best = 0
     pose = final[best][0]
     return pose.apply(pts), FramesStart(screened[best][0], distances, float(pose.scale))
+
+
+def input_rotation(points: np.ndarray, template_frame: ObjectFrame, target_frame: ObjectFrame) -> np.ndarray:
+    """(3, 3) the rotation the input coordinates give from the template's object frame to an
+    instance's: the template's points (its object mm) put into world mm and seen in the instance's
+    frame (the rigid fit of the two). For an instance mirrored into the template's side the template
+    is mirrored left to right first (world x, in RAS and LPS), as a right bone is a left one's."""
+    pts = np.asarray(points, float)
+    world = template_frame.to_world(pts)
+    if template_frame.mirrored != target_frame.mirrored:
+        world = world * np.array([-1.0, 1.0, 1.0])
+    _s, rot, _t = procrustes_fit(pts[None], target_frame.to_object(world), scale=False)
+    return rot[0]
 
 
 def area_samples(vertices: np.ndarray, faces: np.ndarray | None, count: int) -> tuple[np.ndarray, np.ndarray]:

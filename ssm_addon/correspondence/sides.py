@@ -28,14 +28,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from ..fitting.fit import Pose
+from ..fitting.fit import Pose, weighted_pose
 from ..instances.volume import ObjectFrame, ObjectVolume, mirror_axis, mirrored_frame
-from ..model.pca import procrustes_fit
-from .frames import (
-    FRAME_ROTATIONS,
-    SurfacePairs,
-    area_samples,
-)
+from .frames import FRAME_ROTATIONS, SurfacePairs, area_samples, input_rotation
 
 __all__ = ["SIDE_FACTOR", "SideDecision", "landmark_side", "surface_side"]
 
@@ -112,9 +107,6 @@ class SideDecision:
         if self.by == "given":
             return f"side {self.side} given"
         what = "landmarks fit" if self.by == "landmarks" else "surface fits"
-        if self.by == "undecided":
-            return (f"neither side fits {SIDE_FACTOR:g}x closer ({self.as_is_mm:.2f} mm as is, "
-                    f"{self.mirrored_mm:.2f} mm mirrored): taken as the template's side")
         return f"its {what} {self.as_is_mm:.2f} mm as is, {self.mirrored_mm:.2f} mm mirrored"
 
 
@@ -128,17 +120,10 @@ def _decide(as_is: float, mirrored: float, by: str, rotations=((), ())) -> SideD
 
 def _similarity_rms(src: np.ndarray, tgt: np.ndarray, *, reflect: bool) -> float:
     """RMS (mm) of the least-squares similarity ``src`` -> ``tgt`` (Umeyama 1991), proper or with a
-    reflection."""
-    a, b = src - src.mean(axis=0), tgt - tgt.mean(axis=0)
-    u, s, vt = np.linalg.svd(b.T @ a)
-    d = np.ones(3)
-    want = -1.0 if reflect else 1.0
-    if np.sign(np.linalg.det(u @ vt)) != want:
-        d[2] = -1.0
-    rot = u @ np.diag(d) @ vt
-    var = (a**2).sum()
-    scale = (s * d).sum() / var if var > 0 else 1.0
-    return float(np.sqrt(((a @ rot.T * scale - b) ** 2).sum(axis=1).mean()))
+    reflection (the proper one of ``src`` mirrored: any reflection is a mirror and a rotation)."""
+    src = src * np.array([-1.0, 1.0, 1.0]) if reflect else src
+    pose = weighted_pose(src, tgt, np.ones(len(src)), scale=True)
+    return float(np.sqrt(((pose.apply(src) - tgt) ** 2).sum(axis=1).mean()))
 
 
 def landmark_side(template_landmarks: np.ndarray, landmarks: np.ndarray) -> SideDecision | None:
@@ -200,11 +185,8 @@ def surface_side(template_points: np.ndarray, template_faces: np.ndarray, target
         centre_t = t.mean(axis=0)
         poses = [Pose(r, centre_t - scale * r @ centre_s, scale) for r in FRAME_ROTATIONS]
         if template_frame is not None:
-            world = template_frame.to_world(pts)
-            if template_frame.mirrored != frame.mirrored:
-                world = world * np.array([-1.0, 1.0, 1.0])
-            _s, rot, _t = procrustes_fit(pts[None], frame.to_object(world), scale=False)
-            poses.insert(0, Pose(rot[0], centre_t - scale * rot[0] @ centre_s, scale))
+            rot = input_rotation(pts, template_frame, frame)
+            poses.insert(0, Pose(rot, centre_t - scale * rot @ centre_s, scale))
         coarse = SurfacePairs(src[::SIDE_SCREEN_STRIDE], src_w[::SIDE_SCREEN_STRIDE], t[::SIDE_SCREEN_STRIDE],
                               tgt_w[::SIDE_SCREEN_STRIDE])
         screened = [coarse.register(p, SIDE_SCREEN_ITERATIONS) for p in poses]

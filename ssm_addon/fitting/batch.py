@@ -46,7 +46,8 @@ from ..model.files import load_npz, load_statismo, write_npz
 from ..model.joint import joined_parts
 from ..model.pca import EMPTY_MODE_SHARE, drop_empty_modes
 
-__all__ = ["FitTarget", "fit_batch", "fit_structures_to_folder", "fit_to_folder", "load_model", "load_target"]
+__all__ = ["FitTarget", "fit_batch", "fit_structures_to_folder", "fit_to_folder", "load_model", "load_target",
+           "model_file"]
 
 
 def model_file(path) -> Path:

@@ -32,7 +32,14 @@ from scipy.sparse.linalg import eigsh
 from ..base.errors import InputError, SSMError, check_cancelled
 from ..base.params import ALIGNMENTS
 from ..base.progress import report, sub_progress
-from ..model.pca import RANDOMIZED_MIN_ELEMENTS, ShapeModel, generalized_procrustes, jsonable, procrustes_fit
+from ..model.pca import (
+    RANDOMIZED_MIN_ELEMENTS,
+    ShapeModel,
+    generalized_procrustes,
+    jsonable,
+    own_side_instances,
+    procrustes_fit,
+)
 
 
 @dataclass(frozen=True)
@@ -683,7 +690,8 @@ def display_axes(model: ShapeModel) -> np.ndarray:
             or np.shape(world)[1:] != np.shape(model.instance_points)[1:] or not np.shape(world)[1]):
         return np.eye(3)
     turn = np.zeros((3, 3))
-    for x, w in own_side(model, np.asarray(model.instance_points, float), np.asarray(world, float)):
+    points, world = np.asarray(model.instance_points, float), np.asarray(world, float)
+    for x, w in zip(points[own_side_instances(model)], world[own_side_instances(model)]):
         u, _s, vt = np.linalg.svd((w - w.mean(axis=0)).T @ (x - x.mean(axis=0)))  # w ≈ R x: R = U diag(1, 1, d) Vᵀ
         d = np.sign(np.linalg.det(u @ vt)) or 1.0
         turn += u @ np.diag([1.0, 1.0, d]) @ vt
@@ -695,13 +703,6 @@ def display_axes(model: ShapeModel) -> np.ndarray:
         j = min(range(3), key=lambda j: abs(turn[best[j], j]))
         out[best[j], j] *= -1.0
     return out
-
-
-def own_side(model, points, world):
-    """``(points, world)`` pairs of the instances not mirrored into the template's side
-    (``params["mirrored"]``: their world points are a mirror image of the model's side)."""
-    mirrored = set(model.params.get("mirrored") or ())
-    return [(x, w) for name, x, w in zip(model.instance_names, points, world) if str(name) not in mirrored]
 
 
 def axis_letters(model: ShapeModel):

@@ -42,6 +42,14 @@ from ..meshutil import LandmarkLocations
 EMPTY_MODE_SHARE = 1e-7
 
 
+def own_side_instances(model) -> np.ndarray:
+    """Row indices of the training instances whose world points (``instance_points_world``) are in
+    the model's side: all but those mirrored into it (``params["mirrored"]``, a left-right set)."""
+    mirrored = set((getattr(model, "params", None) or {}).get("mirrored") or ())
+    names = [str(n) for n in getattr(model, "instance_names", ())]
+    return np.array([i for i, n in enumerate(names) if n not in mirrored], dtype=np.int64)
+
+
 def drop_empty_modes(model: ShapeModel) -> tuple[ShapeModel, int]:
     """The model without its modes of (numerically) zero variance, and how many there were.
 

@@ -74,11 +74,9 @@ def segment_figure(image: GreyImage, mask: np.ndarray, path, *, title: str = "",
     step = max(0.5, float(np.min(image.spacing_mm)))
     data = np.asarray(image.data, np.float32)
 
-    def ref_ijk(world):  # the view's pixels in the reference's grid
-        if reference is None:
-            return None
-        if reference_affine is None:
-            return image.to_index(world.reshape(-1, 3)).T.reshape(3, *world.shape[:2])
+    def ref_ijk(world, ijk):  # the view's pixels in the reference's grid (the image's, unless it has its own)
+        if reference is None or reference_affine is None:
+            return ijk
         inv = np.linalg.inv(np.asarray(reference_affine, float))
         return (world.reshape(-1, 3) @ inv[:3, :3].T + inv[:3, 3]).T.reshape(3, *world.shape[:2])
 
@@ -86,13 +84,13 @@ def segment_figure(image: GreyImage, mask: np.ndarray, path, *, title: str = "",
     for ax, (name, right, up, letters) in zip(axes, VIEWS):
         half_r = float(np.abs(np.asarray(right)) @ half)
         half_u = float(np.abs(np.asarray(up)) @ half)
-        _world, ijk = view_plane(image, centre, right, up, half_r, half_u, step)
+        world, ijk = view_plane(image, centre, right, up, half_r, half_u, step)
         grey = ndimage.map_coordinates(data, ijk, order=1, mode="constant", cval=float(window[0]))
         extent = (-half_r, half_r, -half_u, half_u)
         ax.imshow(grey, cmap="gray", vmin=window[0], vmax=window[1], origin="lower", extent=extent,
                   interpolation="bilinear")
         for m, grid, colour, style, width in ((mask, ijk, "#ff8c00", "solid", 1.2),
-                                              (reference, ref_ijk(_world), "#00c8ff", "dashed", 0.9)):
+                                              (reference, ref_ijk(world, ijk), "#00c8ff", "dashed", 0.9)):
             if m is None:
                 continue
             cut = ndimage.map_coordinates(np.asarray(m, np.float32), grid, order=0, mode="constant", cval=0.0)

@@ -42,6 +42,7 @@ from ..base.errors import InputError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn, report
 from ..fitting.fit import Pose, model_error_variance, outlier_limit, weighted_pose
 from ..meshutil import edges, vertex_normals
+from ..model.pca import own_side_instances
 from .appearance import LEVEL_SIGMAS_MM, Appearance, boundary_grey_values, normalised_derivative
 from .image import GreyImage
 
@@ -188,10 +189,9 @@ def typical_rotation(model) -> np.ndarray:
     if world.ndim != 3 or len(world) == 0:
         return np.eye(3)
     mean = np.asarray(model.mean, float)
-    mirrored = set((getattr(model, "params", None) or {}).get("mirrored") or ())
-    names = [str(n) for n in getattr(model, "instance_names", ())]
-    if len(names) == len(world) and mirrored:
-        world = np.asarray([w for n, w in zip(names, world) if n not in mirrored]) if len(mirrored) < len(names) else world
+    own = own_side_instances(model)  # a mirrored instance's world points are the other side's
+    if len(getattr(model, "instance_names", ())) == len(world) and len(own):
+        world = world[own]
     acc = np.zeros((3, 3))
     for w in world:
         acc += weighted_pose(mean, w, np.ones(len(mean)), False).rotation
