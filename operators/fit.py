@@ -98,7 +98,7 @@ class SSM_OT_fit_model(BackgroundJob, bpy.types.Operator):
             points = model.structure_points(given)  # names the model lacks: an error naming its structures
 
         def work(progress, cancelled):  # the pose search of ``ssm fit``, then the fit
-            result, _search = fit_any_pose(model, tgt, params=params, frame_pose=frame, partial=partial,
+            result, _search = fit_any_pose(model, tgt, params=params, frame_pose=frame, partial=partial, size_check=True,
                                            points=points, progress=progress, cancelled=cancelled)
             # the verdicts of ``ssm fit --mesh NAME=FILE``: coverage is not judged where structures are predicted
             return result, model.faces, judge_fit(result, tgt, model, params=params, partial=partial or bool(given))

@@ -113,6 +113,63 @@ def test_a_held_out_patella_in_any_pose_is_fitted_to_its_true_correspondence():
         assert np.linalg.norm(res.points - truth, axis=1).mean() < 0.25, names[k]
 
 
+def test_the_pose_search_starts_from_every_rotation_of_the_principal_axes(model):
+    # the mean's principal axes are put on the target's in all 24 ways a rotation can: each axis
+    # of the mean onto each axis of the target, either way round (a patella or a vertebral body,
+    # two of whose second moments are nearly equal, may come out with its axes swapped)
+    from ssm_addon.fitting.fit import AXIS_ROTATIONS, _principal_axes, start_poses
+
+    target, _pose = _posed(model, np.zeros(6), seed=5)
+    starts = start_poses(model, Target.from_mesh(target, model.faces))
+    turns = [p.rotation for n, p in starts if n.startswith("axes")]
+    assert len(AXIS_ROTATIONS) == 24 and len(turns) == 24 and len({n for n, _p in starts}) == len(starts)
+    for r in turns:
+        assert np.allclose(r @ r.T, np.eye(3), atol=1e-9) and np.linalg.det(r) == pytest.approx(1.0)
+    for i, a in enumerate(turns):  # any two differ by at least a quarter turn
+        for b in turns[i + 1:]:
+            assert np.trace(a @ b.T) <= 1.0 + 1e-9
+    _c, am = _principal_axes(np.asarray(model.mean))
+    _c, at = _principal_axes(target)
+    onto = {(i, int(np.argmax(np.abs(at.T @ r @ am[:, i]))), bool((at.T @ r @ am[:, i]).sum() > 0))
+            for r in turns for i in range(3)}
+    assert len(onto) == 3 * 3 * 2
+
+
+def test_the_floor_is_the_models_not_the_basin_the_fit_fell_into(model):
+    # the floor started from a pose turned end for end about the target's longest axis (a fit in
+    # the wrong basin, 0.3 mm from the target): the rotations of the pose search find the model's
+    # own floor
+    from ssm_addon.fitting.fit import _principal_axes, axis_rotation, fit_floor
+
+    z = np.array([0.8, -0.5, 0.3, 0.0, 0.2, 0.0])
+    target, pose = _posed(model, z, seed=6)
+    centre, axes = _principal_axes(target)
+    turn = axis_rotation(axes[:, 0], 180.0)
+    wrong = Pose(turn @ pose.rotation, turn @ (pose.translation - centre) + centre)
+    floor = fit_floor(model, Target.from_mesh(target, model.faces), wrong)
+    assert floor["floor_mm"] < 1e-3 and floor["from"] != "the fit", floor
+    assert floor["starts"] > 13
+
+
+def test_a_target_whose_size_lies_outside_the_models_is_said(model):
+    # a shape of the model made 25 % larger, fitted rigidly: a similarity pose fits much closer,
+    # and the verdict says so; the shape at its own size is not judged
+    from ssm_addon.fitting.fit import fit_any_pose
+
+    z = np.array([0.5, 0.4, -0.3, 0.0, 0.0, 0.1])
+    said = {}
+    for scale in (1.0, 1.25):
+        target, _pose = _posed(model, z, seed=7, scale=scale)
+        tgt = Target.from_mesh(target, model.faces)
+        res, _doc = fit_any_pose(model, tgt, size_check=True)
+        assert res.similarity is not None and res.to_dict()["similarity"] == res.similarity
+        said[scale] = judge_fit(res, tgt, model).warnings
+        if scale != 1.0:
+            assert res.similarity["scale"] == pytest.approx(scale, rel=0.05)  # the size modes take a little
+    assert "size" not in said[1.0]
+    assert "size" in said[1.25] and "--scale" in said[1.25]["size"], said[1.25]
+
+
 def test_completion_predicts_the_missing_part_and_its_uncertainty_is_calibrated(model):
     within, total, errors = 0, 0, []
     sd_rng = np.random.default_rng(11)

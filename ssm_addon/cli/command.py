@@ -204,8 +204,9 @@ def argument_parser() -> argparse.ArgumentParser:
                    help="the target covers part of the shape: predict the rest with its uncertainty")
     p.add_argument("--free", action="store_true", help="also relax the fit freely onto the target (fitted_free.ply)")
     p.add_argument("--floor", action="store_true",
-                   help="also the best the model can do for the target (closest points within its span from 13 "
-                        "starts, no prior): fit.json floor_mm, and how far the fit is above it (slow)")
+                   help="also the best the model can do for the target (closest points within its span, no prior, "
+                        "from 13 starts around the fit and the pose search's 3 nearest other rotations): fit.json "
+                        "floor_mm, and how far the fit is above it (slow)")
     p.add_argument("--project", metavar="FILE", help="fit every instance of a project file (a batch; with its landmarks)")
     p.add_argument("--no-landmarks", action="store_true",
                    help="a --project batch fits the surfaces alone, without the instances' landmarks")

@@ -236,7 +236,7 @@ def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = No
     target, start = load_target(t, model, partial=partial)
     if partial and t.landmarks is not None:
         start = None  # from the landmarks
-    result, search = fit_any_pose(model, target, params=params, frame_pose=start, partial=partial,
+    result, search = fit_any_pose(model, target, params=params, frame_pose=start, partial=partial, size_check=True,
                                   progress=progress, cancelled=cancelled)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -256,8 +256,9 @@ def fit_to_folder(model, t: FitTarget, out_dir, *, params: FitParams | None = No
                 "params": to_table(params), "pose_search": search})
     doc["landmarks_used"] = sorted(result.landmark_residuals_mm)
     if floor and target.has_surface:
-        report(progress, 0.95, "the model's floor: closest points within its span from 13 starts")
-        yardstick = fit_floor(model, target, result.pose, partial=partial, cancelled=cancelled)
+        report(progress, 0.95, "the model's floor: closest points within its span, around the fit and from other "
+                               "rotations")
+        yardstick = fit_floor(model, target, result.pose, partial=partial, scale=params.scale, cancelled=cancelled)
         doc.update({"floor_mm": yardstick["floor_mm"], "floor": yardstick,
                     "above_floor_mm": float(result.mean_distance_mm - yardstick["floor_mm"])})
     if free and target.locator is not None:

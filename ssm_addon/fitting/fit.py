@@ -25,6 +25,7 @@ every result in the target's frame (world mm for files); ``pose`` maps model →
 
 from __future__ import annotations
 
+import itertools
 import math
 import weakref
 from dataclasses import dataclass, field, replace
@@ -42,7 +43,8 @@ from ..meshutil import MeshLocator, outer_surface, vertex_normals
 
 __all__ = ["FitResult", "ModelErrorField", "Pose", "Target", "correlation_length", "farthest_point_indices",
            "fit_any_pose", "fit_floor", "fit_model", "loo_residuals", "model_error_field", "model_error_variance", "outlier_limit",
-           "pose_freedom", "rigid_screen", "start_poses", "weighted_pose", "axis_rotation"]
+           "pose_freedom", "rigid_screen", "start_poses", "weighted_pose", "axis_rotation", "AXIS_ROTATIONS",
+           "coarse_screen"]
 
 
 @dataclass(frozen=True)
@@ -149,6 +151,9 @@ class FitResult:
     pose_freedom : dict or None
         A partial target's pose freedom (:func:`pose_freedom`): the turns about the given part's
         long axis that fit nearly as well; its spread is then inside ``posterior_sd_mm``.
+    similarity : dict or None
+        A rigid fit's size check (:func:`fit_any_pose` ``size_check``): the same fit with a
+        similarity pose from this one's, ``mean_distance_mm``, ``scale`` and ``mahalanobis``.
     """
 
     points: np.ndarray
@@ -166,6 +171,7 @@ class FitResult:
     n_modes: int
     b_covariance: np.ndarray | None = None
     pose_freedom: dict | None = None
+    similarity: dict | None = None
 
     def to_dict(self) -> dict:
         return {"coefficients": [float(x) for x in self.coefficients], "b_mm": [float(x) for x in self.b],
@@ -176,7 +182,8 @@ class FitResult:
                 "iterations": int(self.iterations), "converged": bool(self.converged),
                 "posterior_sd_mm": {"mean": float(self.posterior_sd_mm.mean()),
                                     "max": float(self.posterior_sd_mm.max())},
-                **({"pose_freedom": self.pose_freedom} if self.pose_freedom is not None else {})}
+                **({"pose_freedom": self.pose_freedom} if self.pose_freedom is not None else {}),
+                **({"similarity": self.similarity} if self.similarity is not None else {})}
 
 
 def _procrustes(src: np.ndarray, dst: np.ndarray, w: np.ndarray, scale: bool) -> Pose:
@@ -728,40 +735,80 @@ FLOOR_SHIFT_MM = 2.0
 FLOOR_ITERATIONS = 80
 
 
+#: The rotation group's nearest starts (other than the fit's pose, by more than twice
+#: ``FLOOR_TURN_DEG``) the floor is also searched from.
+FLOOR_ROTATIONS = 3
+#: Such a start is first fitted this many steps, and to the end only if it is then within this
+#: factor of the floor found around the fit (a start in another basin stays several mm away).
+FLOOR_PROBE_ITERATIONS = 12
+FLOOR_PROBE_FACTOR = 1.5
+
+
+def _turn_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """The angle (degrees) of the rotation between rotation matrices ``a`` and ``b``."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(a @ b.T) - 1.0) / 2.0, -1.0, 1.0))))
+
+
 def fit_floor(model, target: Target, pose: Pose, *, partial: bool = False, points: np.ndarray | None = None,
-              cancelled: CancelledFn = None) -> dict:
+              scale: bool = False, cancelled: CancelledFn = None) -> dict:
     """The best the model can do for ``target``: its distance (mm) from the model's span.
 
     Iterative closest points within the span without the prior (η → 0, every mode), started from
-    ``pose`` and from 12 starts around it (turned by ±``FLOOR_TURN_DEG`` about each axis and moved by
-    ±``FLOOR_SHIFT_MM`` along each), up to ``FLOOR_ITERATIONS`` steps each; the closest fit wins. The
-    distance is measured as the fit's (:class:`FitResult` ``mean_distance_mm``). Slow and careful: a
-    yardstick for the fit, not a fit to use (it has no prior, so it overfits noise).
+    ``pose``, from 12 starts around it (turned by ±``FLOOR_TURN_DEG`` about each axis and moved by
+    ±``FLOOR_SHIFT_MM`` along each), and from the ``FLOOR_ROTATIONS`` nearest other rotations of the
+    pose search (:func:`start_poses`, screened as :func:`fit_any_pose` screens them), so that the
+    floor is the model's, not the basin the fit fell into (each followed past
+    ``FLOOR_PROBE_ITERATIONS`` steps only while within ``FLOOR_PROBE_FACTOR`` of the floor around
+    the fit); up to ``FLOOR_ITERATIONS`` steps each,
+    a similarity pose with ``scale``; the closest fit wins. The distance is measured as the fit's
+    (:class:`FitResult` ``mean_distance_mm``). Slow and careful: a yardstick for the fit, not a fit
+    to use (it has no prior, so it overfits noise).
 
     Returns
     -------
-    dict with ``floor_mm`` (mean), ``floor_max_mm``, ``starts``, ``method``.
+    dict with ``floor_mm`` (mean), ``floor_max_mm``, ``starts``, ``from`` (``"the fit"``, or the
+    rotation of the pose search whose start won), ``method``.
     """
     params = FitParams(prior_weight=1e-9, iterations=FLOOR_ITERATIONS, tolerance_mm=1e-3, model_error=False,
-                       noise_mm=1.0)
-    starts = [pose]
+                       noise_mm=1.0, scale=bool(scale))
+    starts = [("the fit", pose)]
     centre = pose.apply(np.asarray(model.mean, float)).mean(axis=0)
     for axis in range(3):
         for sign in (1.0, -1.0):
             turn = axis_rotation(np.eye(3)[axis], sign * FLOOR_TURN_DEG)
-            starts.append(Pose(turn @ pose.rotation, turn @ (pose.translation - centre) + centre, pose.scale))
-            starts.append(Pose(pose.rotation, pose.translation + sign * FLOOR_SHIFT_MM * np.eye(3)[axis], pose.scale))
-    best = None
-    for start in starts:
+            starts.append(("the fit", Pose(turn @ pose.rotation, turn @ (pose.translation - centre) + centre,
+                                           pose.scale)))
+            starts.append(("the fit", Pose(pose.rotation, pose.translation + sign * FLOOR_SHIFT_MM * np.eye(3)[axis],
+                                           pose.scale)))
+    mean = np.asarray(model.mean, float) if points is None else np.asarray(model.mean, float)[points]
+    searched = start_poses(model, target, partial=partial, points=points)
+    coarse = coarse_screen(mean, target, [p for _n, p in searched], partial=partial)
+    taken = [pose.rotation]
+    for i in sorted(range(len(coarse)), key=lambda i: (coarse[i][1], i)):
+        if len(taken) > FLOOR_ROTATIONS:
+            break
+        if all(_turn_deg(coarse[i][0].rotation, q) > 2.0 * FLOOR_TURN_DEG for q in taken):
+            taken.append(coarse[i][0].rotation)
+            starts.append((searched[i][0], rigid_screen(mean, target, coarse[i][0], partial=partial)[0]))
+    best, won = None, "the fit"
+    probe = replace(params, iterations=FLOOR_PROBE_ITERATIONS)
+    for name, start in starts:
         check_cancelled(cancelled)
+        if name != "the fit":  # another rotation: followed to the end only if it is heading for the floor
+            first = fit_model(model, target, params=probe, pose=start, partial=partial, points=points,
+                              tangential_pull=1.0)
+            if first.mean_distance_mm > FLOOR_PROBE_FACTOR * best.mean_distance_mm:
+                continue
         fit = fit_model(model, target, params=params, pose=start, partial=partial, points=points,
                         tangential_pull=1.0)
         if best is None or fit.mean_distance_mm < best.mean_distance_mm - 1e-12:
-            best = fit
+            best, won = fit, name
     return {"floor_mm": float(best.mean_distance_mm), "floor_max_mm": float(best.max_distance_mm),
-            "starts": len(starts), "method": f"closest points within the model's span without the prior, every mode, "
-                                             f"{len(starts)} starts around the fit (±{FLOOR_TURN_DEG:g}°, "
-                                             f"±{FLOOR_SHIFT_MM:g} mm), up to {FLOOR_ITERATIONS} steps each"}
+            "starts": len(starts), "from": won,
+            "method": f"closest points within the model's span without the prior, every mode, "
+                      f"{'a similarity pose, ' if scale else ''}{len(starts)} starts: 13 around the fit "
+                      f"(±{FLOOR_TURN_DEG:g}°, ±{FLOOR_SHIFT_MM:g} mm) and the pose search's "
+                      f"{len(starts) - 13} nearest other rotations, up to {FLOOR_ITERATIONS} steps each"}
 
 
 def outlier_limit(n_modes: int, probability: float = 0.99) -> float:
@@ -785,17 +832,43 @@ def axis_rotation(axis: np.ndarray, degrees: float) -> np.ndarray:
     return np.eye(3) + np.sin(t) * k + (1 - np.cos(t)) * (k @ k)
 
 
-def start_poses(model, target: Target, *, frame_pose: Pose | None = None, turns: int = 4,
-                partial: bool = False, points: np.ndarray | None = None) -> list[tuple[str, Pose]]:
+def _axis_rotations() -> tuple[np.ndarray, ...]:
+    """The 24 proper rotations that map the coordinate axes onto themselves (signed permutation
+    matrices of determinant 1), the identity first, in a fixed order."""
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            r = np.zeros((3, 3))
+            r[np.arange(3), perm] = signs
+            if np.linalg.det(r) > 0:
+                out.append(r)
+    return tuple(out)
+
+
+#: Every way two sets of principal axes can be put onto each other by a rotation: the rotation
+#: group of the axes (the octahedral group, 24 elements), the identity first.
+AXIS_ROTATIONS = _axis_rotations()
+
+
+def _rotation_label(r: np.ndarray) -> str:
+    """``r`` of :data:`AXIS_ROTATIONS` by where it sends the model's principal axes 1, 2, 3 (the
+    target's, signed): ``"axes +1 +2 +3"`` is the principal axes put on each other."""
+    return "axes " + " ".join(f"{'+' if r[j, i] > 0 else '-'}{j + 1}" for i in range(3) for j in range(3) if r[j, i])
+
+
+def start_poses(model, target: Target, *, frame_pose: Pose | None = None, partial: bool = False,
+                points: np.ndarray | None = None) -> list[tuple[str, Pose]]:
     """Candidate start poses (model frame -> target frame, mm) for a target in any coordinates.
 
     First the pose the target's object frame gives (``frame``), when known, and the model's
     axes moved onto the target's centroid (``model axes``: a target in the model's
-    coordinates); then the mean shape's principal axes put on the target's in each of the
-    4 proper sign combinations (``axes+++`` …), each also turned about the target's longest
-    axis by multiples of ``360 / turns`` degrees. A ``partial`` target (part of the shape,
-    whose centroid is not the shape's) also gets each of those slid along its longest axis
-    so that its ends meet either end of the mean shape (``… slid ±d mm``).
+    coordinates); then the mean shape's principal axes put on the target's in each of the 24
+    ways a rotation can (:data:`AXIS_ROTATIONS`: every axis onto every axis, either way round;
+    ``axes +1 +2 +3`` … by where the mean's axes 1, 2, 3 go), so that a target whose second
+    moments are nearly equal about two axes (a patella, a vertebral body) is started from each
+    swap. A ``partial`` target (part of the shape, whose centroid is not the shape's) also gets
+    each of those slid along its longest axis so that its ends meet either end of the mean shape
+    (``… slid ±d mm``).
     """
     out = [("frame", frame_pose)] if frame_pose is not None else []
     if len(target.samples) < 4:
@@ -811,20 +884,17 @@ def start_poses(model, target: Target, *, frame_pose: Pose | None = None, turns:
         extent_t = np.ptp((np.asarray(target.samples, float) - ct) @ at[:, 0])
         slide = max(0.0, 0.5 * float(extent_m - extent_t))
     shifts = (0.0, -slide, slide) if slide > 0 else (0.0,)
-    for signs in ((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1)):
-        d = np.diag(np.asarray(signs, float))
-        r0 = at @ d @ am.T
-        if np.linalg.det(r0) < 0:  # the eigenvector bases differ in handedness
-            r0 = at @ (d @ np.diag([1.0, 1.0, -1.0])) @ am.T
-        for j in range(turns):
-            r = axis_rotation(at[:, 0], 360.0 * j / turns) @ r0
-            if any(np.abs(r - q).max() < 1e-6 for q in seen):
-                continue
-            seen.append(r)
-            name = "axes" + "".join("+" if x > 0 else "-" for x in signs) + (f" turned {360 * j // turns}°" if j else "")
-            for shift in shifts:
-                label = name + (f" slid {shift:+.0f} mm" if shift else "")
-                out.append((label, Pose(r, ct - r @ cm + shift * at[:, 0])))
+    if np.linalg.det(at) * np.linalg.det(am) < 0:  # the eigenvector bases differ in handedness
+        at = at * np.array([1.0, 1.0, -1.0])
+    for q in AXIS_ROTATIONS:
+        r = at @ q @ am.T
+        if any(np.abs(r - s).max() < 1e-6 for s in seen):
+            continue
+        seen.append(r)
+        name = _rotation_label(q)
+        for shift in shifts:
+            label = name + (f" slid {shift:+.0f} mm" if shift else "")
+            out.append((label, Pose(r, ct - r @ cm + shift * at[:, 0])))
     return out
 
 
@@ -848,6 +918,41 @@ def rigid_screen(mean: np.ndarray, target: Target, pose: Pose, *, partial: bool,
     x = pose.apply(src)
     d = cKDTree(x).query(tgt)[0] if partial else target.closest(x)[1]
     return pose, float(np.mean(d))
+
+
+#: The starts' first screen (:func:`coarse_screen`): rigid ICP on every k-th point of the mean and
+#: of the target (about this many each), this many steps, closest points by k-d tree; the
+#: ``SCREEN_KEEP`` nearest go on to :func:`rigid_screen`.
+COARSE_SAMPLES = 600
+COARSE_ITERATIONS = 8
+SCREEN_KEEP = 6
+
+
+def coarse_screen(mean: np.ndarray, target: Target, poses, *, partial: bool) -> list[tuple[Pose, float]]:
+    """A first, cheap screen of many start poses: a few rigid ICP steps of every k-th point of
+    ``mean`` (N, 3 mm, the model frame) onto every k-th of the target's samples (about
+    :data:`COARSE_SAMPLES` of each, closest points between the samples), from each pose of
+    ``poses``. Returns each refined pose with its mean distance (mm): both ways for a whole
+    target, from the target's points for a ``partial`` one."""
+    tgt = np.asarray(target.samples, float)
+    tgt = tgt[:: max(1, len(tgt) // COARSE_SAMPLES)]
+    src = np.asarray(mean, float)[:: max(1, len(mean) // COARSE_SAMPLES)]
+    tree = cKDTree(tgt)
+    out = []
+    for pose in poses:
+        for _ in range(COARSE_ITERATIONS):
+            x = pose.apply(src)
+            _, j = cKDTree(x).query(tgt)
+            if partial:
+                a, b = src[j], tgt
+            else:
+                _, i = tree.query(x)
+                a, b = np.vstack([src, src[j]]), np.vstack([tgt[i], tgt])
+            pose = _procrustes(a, b, np.ones(len(a)), False)
+        x = pose.apply(src)
+        d_target = cKDTree(x).query(tgt)[0].mean()
+        out.append((pose, float(d_target if partial else 0.5 * (d_target + tree.query(x)[0].mean()))))
+    return out
 
 
 PRIORITY_TOLERANCE = 1.1
@@ -953,13 +1058,20 @@ def pose_freedom(model, target: Target, chosen: FitResult, *, params: FitParams,
 
 
 def fit_any_pose(model, target: Target, *, params: FitParams | None = None, frame_pose: Pose | None = None,
-                 partial: bool = False, keep: int = 3, points: np.ndarray | None = None, progress: ProgressFn = None,
-                 cancelled: CancelledFn = None) -> tuple[FitResult, dict]:
+                 partial: bool = False, keep: int = 3, points: np.ndarray | None = None, size_check: bool = False,
+                 progress: ProgressFn = None, cancelled: CancelledFn = None) -> tuple[FitResult, dict]:
     """:func:`fit_model` for a target in any pose: the pose search, then the fit.
 
-    Every start of :func:`start_poses` (and the landmarks' pose, when at least 3 of the
-    model's landmarks are given) is refined by rigid ICP of the mean shape; the ``keep``
-    closest are fitted (pose and shape) and the fit closest to the target wins.
+    Every start of :func:`start_poses` (the rotation group of the principal axes, and the
+    landmarks' pose when at least 3 of the model's landmarks are given) is refined by rigid ICP of
+    the mean shape, first coarsely (:func:`coarse_screen`), the nearest ``SCREEN_KEEP`` again
+    (:func:`rigid_screen`); the ``keep`` closest are fitted (pose and shape) and the fit closest
+    to the target wins.
+
+    ``size_check``: a rigid fit of a whole target (not ``partial``, all structures) is fitted again
+    with a similarity pose from its own; the result's ``similarity`` holds that fit's distance,
+    scale and Mahalanobis distance (:func:`~ssm_addon.fitting.verdict.judge_fit` says when it is
+    much closer: the target's size lies outside the model's).
 
     Returns
     -------
@@ -980,14 +1092,21 @@ def fit_any_pose(model, target: Target, *, params: FitParams | None = None, fram
     # and kept unless a searched pose fits PRIORITY_TOLERANCE times closer (a partial or
     # near-symmetric target fits several poses almost equally well)
     priority = {n for n, _p in starts if n in ("landmarks", "frame", "model axes")}
+    # every start screened coarsely; the nearest SCREEN_KEEP and the priority ones again, closer
+    searched = [(n, p) for n, p in starts if p is not None and n not in priority]
+    coarse = coarse_screen(mean, target, [p for _n, p in searched], partial=partial)
+    near = sorted(range(len(searched)), key=lambda i: (coarse[i][1], i))[:SCREEN_KEEP]
+    coarse_mm = {searched[i][0]: coarse[i][1] for i in range(len(searched))}
+    again = {searched[i][0] for i in near}
     screened = []
     for name, pose in starts:
         check_cancelled(cancelled)
         if pose is None:  # the landmarks' pose: fit_model finds it
             screened.append((name, None, float("-inf")))
-            continue
-        refined, dist = rigid_screen(mean, target, pose, partial=partial)
-        screened.append((name, refined, dist))
+        elif name in priority or name in again:
+            refined, dist = rigid_screen(mean, target, pose, partial=partial)
+            screened.append((name, refined, dist))
+    report(progress, 0.05, f"pose search: {len(searched)} rotations screened, {len(screened)} refined")
     first = [i for i, (n, _p, _d) in enumerate(screened) if n in priority]
     rest = sorted((i for i in range(len(screened)) if i not in first), key=lambda i: (screened[i][2], i))[:keep]
     order = first + rest
@@ -1018,6 +1137,12 @@ def fit_any_pose(model, target: Target, *, params: FitParams | None = None, fram
         best = fit_model(model, target, params=params, pose=best.pose, partial=True, points=points, cancelled=cancelled)
     if freedom is not None:  # the pose's share of the uncertainty joins the shape's
         best = replace(best, posterior_sd_mm=np.sqrt(best.posterior_sd_mm ** 2 + spread ** 2), pose_freedom=freedom)
-    doc = {"starts": [{"name": n, "screened_mm": (None if not np.isfinite(d) else d), "fitted_mm": fitted.get(n)}
-                      for n, _p, d in screened], "chosen": chosen}
+    if size_check and not params.scale and not partial and points is None:
+        report(progress, 0.95, "size: the fit again with a similarity pose")
+        similar = fit_model(model, target, params=replace(params, scale=True), pose=best.pose, cancelled=cancelled)
+        best = replace(best, similarity={"mean_distance_mm": float(similar.mean_distance_mm),
+                                         "scale": float(similar.pose.scale), "mahalanobis": float(similar.mahalanobis)})
+    screened_mm = {n: (None if not np.isfinite(d) else d) for n, _p, d in screened}
+    doc = {"starts": [{"name": n, "coarse_mm": coarse_mm.get(n), "screened_mm": screened_mm.get(n),
+                       "fitted_mm": fitted.get(n)} for n, _p in starts], "chosen": chosen}
     return best, doc

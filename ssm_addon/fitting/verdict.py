@@ -16,7 +16,7 @@ from scipy.spatial import cKDTree
 from ..base.params import FitParams
 from .fit import FitResult, Target, outlier_limit
 
-__all__ = ["FREE_SLIDE_MM", "FREE_TURN_DEG", "UNIT_RATIO", "FitVerdict", "calibration", "coverage", "coverage_radius_mm", "is_outlier", "judge_fit", "size_in_unit_range"]
+__all__ = ["FREE_SLIDE_MM", "FREE_TURN_DEG", "UNIT_RATIO", "SIZE_FACTOR", "FitVerdict", "calibration", "coverage", "coverage_radius_mm", "is_outlier", "judge_fit", "size_in_unit_range"]
 
 #: A partial target covering less than this share of the model's surface: the completion rests
 #: on the model's prior.
@@ -28,6 +28,11 @@ FREE_TURN_DEG = 30.0
 FREE_SLIDE_MM = 20.0
 #: A target whose size is outside this factor range of the model's is likely in another unit.
 UNIT_RATIO = (0.2, 5.0)
+#: A rigid fit is said to miss the target's size when the same fit with a similarity pose comes
+#: this many times closer to the target (``FitResult.similarity``) …
+SIZE_FACTOR = 0.8
+#: … and closer by at least this much (mm): a fit already on the surface is not judged.
+SIZE_MIN_GAIN_MM = 0.1
 
 
 def calibration(errors_mm, sd_mm) -> dict:
@@ -113,7 +118,9 @@ class FitVerdict:
         What the fit rests on, said: ``convergence``, ``outlier``, ``coverage`` (a partial
         target covering little), ``pose`` (a partial target whose turn about its long axis is
         free), ``unit`` (a target of another size than the model's: metres
-        or centimetres?), ``labels`` (a label map fitted with its labels merged).
+        or centimetres?), ``size`` (a similarity pose fits much closer than the rigid one: the
+        target's size lies outside the model's), ``labels`` (a label map fitted with its labels
+        merged).
     """
 
     outlier: bool
@@ -159,6 +166,14 @@ def judge_fit(result: FitResult, target: Target, model, *, params: FitParams | N
         ratio = size_ratio(target.samples, model)
         warnings["unit"] = (f"the target is {ratio:.3g} times the model's size ({ratio * size_m:.3g} against "
                             f"{size_m:.3g} mm): another unit (m, cm)?")
+    similar = result.similarity
+    if similar is not None and (similar["mean_distance_mm"] <= SIZE_FACTOR * result.mean_distance_mm
+                                and result.mean_distance_mm - similar["mean_distance_mm"] >= SIZE_MIN_GAIN_MM):
+        warnings["size"] = (f"a similarity pose fits {similar['mean_distance_mm']:.2f} mm from the target against "
+                            f"this rigid fit's {result.mean_distance_mm:.2f} mm (scale {similar['scale']:.3f}, "
+                            f"Mahalanobis {similar['mahalanobis']:.2f}): the target's size lies outside the "
+                            "model's (a model built with sizes aligned?); fit with scale (--scale) unless its size "
+                            "is what you measure")
     free = result.pose_freedom
     if free is not None and (free["width_deg"] >= FREE_TURN_DEG or free.get("width_mm", 0.0) >= FREE_SLIDE_MM):
         lo, hi = free["range_deg"]
