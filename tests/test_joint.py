@@ -410,3 +410,55 @@ def test_a_joint_report_records_what_anchored_each_structures_correspondence(tmp
     assert "Correspondence per structure" in page and page.count("no landmarks") >= 2
     assert "no self-check (no landmarks, or switched off)" in page
     assert "Not in this report" not in page or "under joint.structures" not in page
+    # the relative pose's spread beside what the correspondence's own error could give it, as recorded
+    for name in ("with", "without"):
+        pair = reports[name]["joint"]["shape_pose"]["pairs"]["a-b"]
+        noise = pair["correspondence"]
+        assert noise["subjects"] == 4 and noise["turn_sd_deg"] >= 0 and 0 <= noise["turn_share"] <= 1
+    assert "turn SD the correspondence could give" in page
+
+
+def test_the_relative_poses_noise_is_the_spread_the_coatings_own_turns_give_it():
+    # each subject's structure b put on its mean by its surface (G) and by its points turned by a
+    # known angle about the mean's centroid (E G), the reference a placed alike both ways (G): the
+    # correspondence alone turns b's relative pose by E, so its spread is the angles' exactly, with
+    # no shift; a known shift likewise. Above half the data's variance it is a finding, by name.
+    from scipy.spatial.transform import Rotation
+
+    from ssm_addon.fitting.fit import Pose
+    from ssm_addon.pipeline.joint import POSE_NOISE_SHARE, relative_pose_noise
+
+    rng = np.random.default_rng(4)
+    mean = rng.normal(size=(50, 3)) * [30.0, 10.0, 5.0] + [100.0, -20.0, 40.0]
+    centre = mean.mean(axis=0)
+    angles = np.radians([0.5, -1.0, 2.0, 0.0, -0.3, 1.4])
+    shifts = rng.normal(size=(6, 3))
+
+    def placed(turned: bool):
+        ref, other = {}, {}
+        for k, (angle, shift) in enumerate(zip(angles, shifts)):
+            g = Pose(Rotation.random(random_state=k).as_matrix(), rng.normal(size=3) * 50, 1.0)
+            if turned:
+                e = Rotation.from_rotvec([0.0, 0.0, angle]).as_matrix()
+                e_pose = Pose(e, centre - e @ centre)
+            else:
+                e_pose = Pose(np.eye(3), shift)
+            m = e_pose.matrix @ g.matrix
+            by_points = Pose(m[:3, :3], m[:3, 3], 1.0)
+            ref[f"s{k}"], other[f"s{k}"] = (g, g), (by_points, g)
+        return {"a": (ref, mean), "b": (other, mean)}
+
+    data = {"turn_sd_deg": 1.0, "shift_sd_mm": 10.0}
+    pose = {"pairs": {"a-b": {"data": dict(data)}}}
+    findings = relative_pose_noise(pose, placed(True), "a")
+    got = pose["pairs"]["a-b"]["correspondence"]
+    expected = np.degrees(np.sqrt(((angles - angles.mean()) ** 2).mean()))
+    assert got["turn_sd_deg"] == pytest.approx(expected, rel=1e-9) and got["shift_sd_mm"] < 1e-9
+    assert got["turn_share"] == pytest.approx(min(1.0, expected ** 2), rel=1e-9) and got["subjects"] == 6
+    assert [f.gate for f in findings] == ["pose_noise"] and "a-b" in findings[0].message
+    assert got["turn_share"] >= POSE_NOISE_SHARE
+    pose = {"pairs": {"a-b": {"data": dict(data)}}}
+    assert relative_pose_noise(pose, placed(False), "a") == []
+    got = pose["pairs"]["a-b"]["correspondence"]
+    assert got["turn_sd_deg"] < 1e-9
+    assert got["shift_sd_mm"] == pytest.approx(np.sqrt(((shifts - shifts.mean(0)) ** 2).sum(1).mean()), rel=1e-9)

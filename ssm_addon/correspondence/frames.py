@@ -39,7 +39,7 @@ from ..model.pca import procrustes_fit
 from .rounds import AXIS_TURNS, WORLD_POSE_TOLERANCE, aligned_to
 
 __all__ = ["FRAME_ROTATIONS", "ROTATION_NAMES", "TURN_NAMES", "TURNED_FACTOR", "FramesStart", "SurfacePairs", "area_samples", "input_rotation", "coat_from_template_pose", "coat_without_landmarks",
-           "far_from_population", "population_turns", "surface_similarity", "template_start", "TWIST_FACTOR", "TWIST_MIN_DEG", "Twist", "coating_twists", "twisted"]
+           "far_from_population", "population_turns", "surface_similarity", "template_start", "TWIST_FACTOR", "TWIST_MIN_DEG", "Twist", "coating_poses", "coating_twists", "twists_of", "twisted"]
 
 
 
@@ -371,36 +371,34 @@ class Twist:
         return {"angle_deg": float(self.angle_deg), "axis": [float(x) for x in self.axis], "axis_name": self.axis_name}
 
 
-def coating_twists(points: dict, faces: np.ndarray, reference: str) -> dict:
-    """Each coating's turn against its own surface: where correspondence disagrees with shape.
+def coating_poses(points: dict, faces: np.ndarray, reference: str) -> tuple[dict, np.ndarray]:
+    """Each coating put onto the population's mean shape twice: by its correspondence and by its surface.
 
-    A coating can lie on its instance's surface and still hold its points in places turned
-    about an axis against the others' (a bone near-symmetric about its long axis, coated without
-    landmarks). Its surface then fits the mean shape's surface in one pose (:func:`surface_similarity`,
-    started from the correspondence's own pose) and its points fit the mean shape's points in
-    another (Umeyama by correspondence); the turn between the two poses is the twist. For a
-    coating in correspondence the two poses differ only by what the shapes' differences make of
-    them. The mean shape is the coatings' mean, each moved rigidly onto ``reference``'s by its
-    correspondence (:func:`~ssm_addon.correspondence.rounds.aligned_to`).
+    The mean shape is the coatings' mean, each moved rigidly onto ``reference``'s by its
+    correspondence (:func:`~ssm_addon.correspondence.rounds.aligned_to`). A coating's points are
+    put onto the mean's points by the similarity of least squares (Umeyama, by correspondence);
+    its surface onto the mean's surface by symmetric point-to-plane ICP from that pose
+    (:func:`_surface_to_surface`, which ignores which point is which). For a coating in
+    correspondence the two poses differ only by what the shapes' differences make of them.
 
     Parameters
     ----------
     points : name -> (N, 3) mm
-        The coatings (each in its instance's object frame), in correspondence.
+        The coatings, each in a frame of its own (its object frame, or the world), in
+        correspondence.
     faces : (F, 3)
         The template's triangles.
     reference : str
-        The instance the others are moved onto (the template instance).
+        The instance the others are moved onto for the mean (the template instance).
 
     Returns
     -------
-    dict name -> :class:`Twist`
+    (dict name -> (by points, by surface): :class:`~ssm_addon.fitting.fit.Pose` from the coating's
+    frame to the mean's, the mean shape (N, 3) mm)
     """
     names = list(points)
     stack = aligned_to(np.stack([np.asarray(points[n], float) for n in names]), np.asarray(points[reference], float))
     mean = stack.mean(axis=0)
-    centred = mean - mean.mean(axis=0)
-    _u, _s, axes = np.linalg.svd(centred, full_matrices=False)  # rows: longest, middle, shortest
     tgt, tgt_w = area_samples(mean, faces, TWIST_SAMPLES)
     mean_mesh, mean_normals = MeshLocator(mean, faces), face_normals(mean, faces)
     out = {}
@@ -409,8 +407,18 @@ def coating_twists(points: dict, faces: np.ndarray, reference: str) -> dict:
         by_points = weighted_pose(p, mean, np.ones(len(p)), scale=True)
         src, src_w = area_samples(p, faces, TWIST_SAMPLES)
         w = np.concatenate([src_w / src_w.sum(), tgt_w / tgt_w.sum()])
-        by_surface = _surface_to_surface(src, MeshLocator(p, faces), face_normals(p, faces), tgt, mean_mesh,
-                                         mean_normals, w, by_points, TWIST_ITERATIONS)
+        out[n] = (by_points, _surface_to_surface(src, MeshLocator(p, faces), face_normals(p, faces), tgt, mean_mesh,
+                                                 mean_normals, w, by_points, TWIST_ITERATIONS))
+    return out, mean
+
+
+def twists_of(poses: dict, mean: np.ndarray) -> dict:
+    """:class:`Twist` of each coating from :func:`coating_poses`' two poses: the turn between them,
+    its axis named against the mean shape's principal axes."""
+    centred = mean - mean.mean(axis=0)
+    _u, _s, axes = np.linalg.svd(centred, full_matrices=False)  # rows: longest, middle, shortest
+    out = {}
+    for n, (by_points, by_surface) in poses.items():
         turn = by_surface.rotation @ by_points.rotation.T
         angle = float(np.degrees(np.arccos(np.clip((np.trace(turn) - 1.0) / 2.0, -1.0, 1.0))))
         axis = np.array([turn[2, 1] - turn[1, 2], turn[0, 2] - turn[2, 0], turn[1, 0] - turn[0, 1]])
@@ -421,6 +429,22 @@ def coating_twists(points: dict, faces: np.ndarray, reference: str) -> dict:
                 if along[k] > 0.9 else "an oblique axis")
         out[n] = Twist(angle, axis, name)
     return out
+
+
+def coating_twists(points: dict, faces: np.ndarray, reference: str) -> dict:
+    """Each coating's turn against its own surface: where correspondence disagrees with shape.
+
+    A coating can lie on its instance's surface and still hold its points in places turned
+    about an axis against the others' (a bone near-symmetric about its long axis, coated without
+    landmarks). Its surface then fits the mean shape's surface in one pose and its points fit the
+    mean shape's points in another (:func:`coating_poses`); the turn between the two poses is the
+    twist (:func:`twists_of`). The same for any frame of each coating (object or world).
+
+    Returns
+    -------
+    dict name -> :class:`Twist`
+    """
+    return twists_of(*coating_poses(points, faces, reference))
 
 
 def _surface_to_surface(src, src_mesh, src_normals, tgt, tgt_mesh, tgt_normals, weights, pose: Pose,

@@ -22,6 +22,11 @@ gate                          figure                                          st
 ``twist``                     coating's points turned on its own surface      model
                               against the others' (degrees; correspondence
                               against shape, :mod:`~ssm_addon.correspondence.frames`)
+``pose_noise``                share of a joint model's relative-pose variance  model
+                              the coatings' own error could explain
+                              (:func:`~ssm_addon.pipeline.joint.relative_pose_noise`)
+``collision``                 a joint model's structures overlapping far       model
+                              more than the subjects' own do
 ``folds``                     folded triangles left                           coating
 ``surface_distance``          largest vertex distance to the surface (voxels) coating
 ``convergence``               relaxation stopped by its iteration limit       coating

@@ -883,11 +883,21 @@ def _joint_section(doc: dict) -> list[str]:
                      + (f"; total variance {_num(total, 0)} mm²" if total is not None else "")
                      + "), not the joint model's modes, whose λ are of every structure's coordinates together in "
                      "the reference structure's frame.</p>")
+        def noise(f, key, share):
+            c = f.get("correspondence")
+            if not c:
+                return "not measured"
+            return f"{_num(c[key], 2)} ({_num(100 * c[share], 0)} % of the data's variance)"
+
         parts.append(_table([[html.escape(pair), _num(f["data"]["turn_sd_deg"], 2), _num(f["model"]["turn_sd_deg"], 2),
-                              _num(f["data"]["shift_sd_mm"], 2), _num(f["model"]["shift_sd_mm"], 2)]
+                              noise(f, "turn_sd_deg", "turn_share"), _num(f["data"]["shift_sd_mm"], 2),
+                              _num(f["model"]["shift_sd_mm"], 2), noise(f, "shift_sd_mm", "shift_share")]
                              for pair, f in sp.get("pairs", {}).items()],
-                            ["pair", "turn SD, data (°)", "turn SD, model (°)", "shift SD, data (mm)",
-                             "shift SD, model (mm)"]))
+                            ["pair", "turn SD, data (°)", "turn SD, model (°)", "turn SD the correspondence could give (°)",
+                             "shift SD, data (mm)", "shift SD, model (mm)", "shift SD the correspondence could give (mm)"]))
+        parts.append("<p>The correspondence's share: each subject's relative pose by the coatings' points against "
+                     "by their surfaces (each structure put on its mean shape both ways); the spread of that "
+                     "difference is what the coatings' own error could give the relative pose.</p>")
     col = j.get("collisions") or {}
     if col:
         parts.append(_table([[html.escape(pair), _num(100 * f["data"]["colliding_share"], 0) + " %",

@@ -537,19 +537,22 @@ def model_stage(study: Study, *, progress: ProgressFn = None, cancelled: Cancell
                        (f"model: {model.n_modes} modes, {model.n_points} points in {seconds:.2f} s",))
 
 
-def twist_findings(study: Study, names: Sequence[str]) -> list[Finding]:
+def twist_findings(study: Study, names: Sequence[str], *, twists: dict | None = None) -> list[Finding]:
     """The ``twist`` gate: coatings whose points are turned on their own surface against the others'
     (:func:`~ssm_addon.correspondence.frames.coating_twists`), more than
     :data:`~ssm_addon.correspondence.frames.TWIST_MIN_DEG` and
     :data:`~ssm_addon.correspondence.frames.TWIST_FACTOR` times the median instance's turn.
 
     Only where some instance has no landmarks: landmarks pin the turn a coating could take on its
-    surface (the gate costs about 0.06 s an instance)."""
+    surface (the gate costs about 0.06 s an instance). ``twists``: already measured (a joint
+    build measures them for the relative pose's noise)."""
     names = list(names)
     if len(names) < 3 or study.template is None or all(study.landmarks(n) is not None for n in names):
         return []
     reference = study.template_instance if study.template_instance in names else names[0]
-    twists = coating_twists({n: study.coatings[n].points_object for n in names}, study.template.faces, reference)
+    if twists is None:
+        twists = coating_twists({n: study.coatings[n].points_object for n in names}, study.template.faces, reference)
+    twists = {n: twists[n] for n in names}
     named, limit = twisted(twists)
     median = float(np.median([t.angle_deg for t in twists.values()]))
     return [Finding(n, "twist", f"its coating is turned {t.angle_deg:.1f}° about {t.axis_name} against its own "
