@@ -32,7 +32,7 @@ def test_a_shape_inside_the_span_has_a_floor_of_zero_and_the_fit_is_never_below_
     target = Target.from_mesh(inside, faces)
     fit, _ = fit_any_pose(model, target)
     floor = fit_floor(model, target, fit.pose)
-    assert floor["floor_mm"] < 0.02 and floor["starts"] == 13
+    assert floor["floor_mm"] < 0.02 and floor["starts"] == 13 + 3  # around the fit, and 3 other rotations
     assert fit.mean_distance_mm >= floor["floor_mm"] - 1e-9
     # a shape outside the span (a bump the model never saw): the floor is what is left, the fit above it
     outside = held_out.copy()

@@ -411,11 +411,13 @@ def test_a_joint_report_records_what_anchored_each_structures_correspondence(tmp
     assert "no self-check (no landmarks, or switched off)" in page
     assert "Not in this report" not in page or "under joint.structures" not in page
     # the relative pose's spread beside what the correspondence's own error could give it, as recorded
-    for name in ("with", "without"):
-        pair = reports[name]["joint"]["shape_pose"]["pairs"]["a-b"]
-        noise = pair["correspondence"]
-        assert noise["subjects"] == 4 and noise["turn_sd_deg"] >= 0 and 0 <= noise["turn_share"] <= 1
+    noise = reports["without"]["joint"]["shape_pose"]["pairs"]["a-b"]["correspondence"]
+    assert noise["subjects"] == 4 and noise["turn_sd_deg"] >= 0 and 0 <= noise["turn_share"] <= 1
     assert "turn SD the correspondence could give" in page
+    # with landmarks on every subject not measured (they pin the turns), and said so
+    noise = reports["with"]["joint"]["shape_pose"]["pairs"]["a-b"]["correspondence"]
+    assert noise["not_measured"].startswith("every subject has landmarks")
+    assert "not measured: every subject has landmarks" in (tmp_path / "with" / "report.html").read_text()
 
 
 def test_the_relative_poses_noise_is_the_spread_the_coatings_own_turns_give_it():

@@ -885,8 +885,8 @@ def _joint_section(doc: dict) -> list[str]:
                      "the reference structure's frame.</p>")
         def noise(f, key, share):
             c = f.get("correspondence")
-            if not c:
-                return "not measured"
+            if not c or "not_measured" in c:
+                return "not measured" + (f": {html.escape(c['not_measured'])}" if c else "")
             return f"{_num(c[key], 2)} ({_num(100 * c[share], 0)} % of the data's variance)"
 
         parts.append(_table([[html.escape(pair), _num(f["data"]["turn_sd_deg"], 2), _num(f["model"]["turn_sd_deg"], 2),
