@@ -221,3 +221,19 @@ def test_a_large_study_checks_a_bounded_evenly_spaced_part():
     # a model of 2 others cannot hold the 3 axes' variation: the bound is used, not ignored
     two = check_correspondence(points, f, locations, given, fit=fit, max_instances=4, max_others=2)
     assert list(two.instance_mm) == list(bounded.instance_mm) and two.study_mm > bounded.study_mm
+
+
+def test_a_surface_whose_axes_came_out_swapped_is_fitted_from_that_rotation():
+    # a surface alone in a frame whose second and third axes are swapped against the model's (a
+    # quarter turn about the first: two moments nearly equal make object frames do this) is fitted
+    # from the 24 rotations of the principal axes, not only the axes turned end for end
+    from ssm_addon.correspondence.rounds import landmark_transfer
+
+    v, f, axes, points, locations, _given = _population(n=8)
+    others = np.stack([points[f"e{k}"] for k in range(8)])
+    quarter = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    surface = (v * [40.0, 25.0, 15.0]) @ quarter.T + [3.0, -2.0, 1.0]  # axes 40, 15, 25 mm as it lies
+    result, _predicted, _d = landmark_transfer(others, f, surface, locations, {}, fit=FitParams(), surface_faces=f)
+    assert result.mean_distance_mm < 0.2 and result.mahalanobis < 3.0, (result.mean_distance_mm, result.mahalanobis)
+    turned = quarter.T @ result.pose.rotation  # the fit's turn after the quarter turn: a symmetry of the ellipsoid
+    assert np.allclose(np.abs(turned), np.eye(3), atol=0.05), turned

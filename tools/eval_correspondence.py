@@ -186,6 +186,9 @@ def report_run(label: str, errors: dict, study, seconds: float, args, error_of=N
     truth_rounds = []
     if error_of is not None:
         for r, state in zip(getattr(study, "correspondence_rounds", ()), ROUND_STATES):
+            if len(next(iter(state.values()))) != len(next(iter(errors.values()))):
+                print(f"  round {r.round}: of the template before its refinement (another point count), not scored")
+                continue
             e = np.concatenate(list(error_of(state).values()))
             noise = r.landmark_noise
             truth_rounds.append({"round": r.round, "kept": r.kept, "true_mean_mm": float(e.mean()),

@@ -46,8 +46,8 @@ The per-instance steps are pure functions of arrays, so rounds run in processes.
 Frames: each instance's object frame (paper 2, mm). Object frames can disagree by a turn
 of the principal axes (a near-symmetric bone's moments frame), so coatings are put onto
 one another by their correspondence before a model is built of them
-(:func:`aligned_to`), and a surface without a coating is fitted from the axis turns
-(``AXIS_TURNS``), the pose of the input coordinates preferred.
+(:func:`aligned_to`), and a surface without a coating is fitted from the rotations of the
+axes (``AXIS_ROTATIONS``), the pose of the input coordinates preferred.
 """
 
 from __future__ import annotations
@@ -67,7 +67,7 @@ from ..base.progress import CancelledFn, ProgressFn, sub_progress
 from ..coating.coating import CoatingResult, CoatingStart, coat, coat_from_start, settle_on_surface
 from ..coating.distance_map import DistanceMap
 from ..coating.relaxation import folded_triangles
-from ..fitting.fit import Pose, Target, fit_model, rigid_screen
+from ..fitting.fit import AXIS_ROTATIONS, Pose, Target, coarse_screen, fit_model, rigid_screen
 from ..formats.landmarks import LandmarkSet
 from ..instances.volume import ObjectVolume
 from ..meshutil import LandmarkLocations, Mesh, MeshLocation, MeshLocator, edge_lengths, vertex_normals
@@ -366,6 +366,15 @@ def aligned_to(shapes: np.ndarray, reference: np.ndarray) -> np.ndarray:
 AXIS_TURNS = tuple(np.diag(d).astype(float) for d in ((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1)))
 
 
+#: A surface alone (:func:`landmark_transfer`) is screened coarsely from all 24 rotations of the
+#: principal axes (:data:`~ssm_addon.fitting.fit.AXIS_ROTATIONS`: two moments nearly equal swap
+#: axes, a patella's or a vertebral body's), and this many nearest by rigid ICP.
+SURFACE_TURNS_KEPT = 4
+#: … of which this many nearest are fitted, and the fit nearest the surface wins (the input
+#: coordinates' pose kept unless a turn fits ``WORLD_POSE_TOLERANCE`` times closer).
+SURFACE_TURNS_FITTED = 2
+
+
 # a start pose from the instances' own coordinates wins over a better-fitting turn of the
 # axes unless that turn fits this much closer (a near-symmetric bone fits its own surface
 # almost as well turned end for end)
@@ -394,7 +403,7 @@ def landmark_transfer(others: np.ndarray, faces: np.ndarray, surface_points: np.
         Noise and prior of the fit (its landmark weight is not used: no landmarks).
     surface_faces : (F', 3) int, optional
         The surface's triangles (default ``faces``: ``surface_points`` is a coating). A
-        surface alone is fitted from the turns of the principal axes (``AXIS_TURNS``).
+        surface alone is fitted from the rotations of the principal axes (``AXIS_ROTATIONS``).
     world_pose : Pose, optional
         The pose the instances' input coordinates give (model frame -> the surface's);
         kept unless a turn screens ``WORLD_POSE_TOLERANCE`` times closer (rigid ICP of the
@@ -411,19 +420,24 @@ def landmark_transfer(others: np.ndarray, faces: np.ndarray, surface_points: np.
     target = Target.from_mesh(surface_points, sf, max_samples=REFINE_FIT_SAMPLES)
     if surface_faces is None:
         result = fit_model(model, target, params=fit, pose=Pose())
-    else:  # a surface alone: the frames may disagree by a turn of the principal axes
+    else:  # a surface alone: the frames may disagree by any rotation of the principal axes
         centre = model.mean.mean(axis=0)
         poses = [Pose(rotation=r, translation=np.asarray(surface_points, float).mean(axis=0) - r @ centre)
-                 for r in AXIS_TURNS]
-        # the turns screened by rigid ICP of the mean shape, and the input coordinates' pose,
-        # kept unless a turn screens WORLD_POSE_TOLERANCE times closer; the one chosen fitted
-        best = min((rigid_screen(model.mean, target, p, partial=False, samples=SCREEN_SAMPLES) for p in poses),
-                   key=lambda x: x[1])
+                 for r in AXIS_ROTATIONS]
+        # every rotation screened coarsely, the nearest SURFACE_TURNS_KEPT by rigid ICP of the mean
+        # shape, and the input coordinates' pose kept unless a turn screens WORLD_POSE_TOLERANCE times
+        # closer; the one chosen fitted
+        coarse = coarse_screen(model.mean, target, poses, partial=False)
+        near = sorted(range(len(poses)), key=lambda i: (coarse[i][1], i))[:SURFACE_TURNS_KEPT]
+        screened = sorted((rigid_screen(model.mean, target, poses[i], partial=False, samples=SCREEN_SAMPLES)
+                           for i in sorted(near)), key=lambda x: x[1])
+        fits = [fit_model(model, target, params=fit, pose=p) for p, _d in screened[:SURFACE_TURNS_FITTED]]
+        result = min(fits, key=lambda r: r.mean_distance_mm)
         if world_pose is not None:
-            own = rigid_screen(model.mean, target, world_pose, partial=False, samples=SCREEN_SAMPLES)
-            if own[1] <= WORLD_POSE_TOLERANCE * best[1]:
-                best = own
-        result = fit_model(model, target, params=fit, pose=best[0])
+            own = fit_model(model, target, params=fit,
+                            pose=rigid_screen(model.mean, target, world_pose, partial=False, samples=SCREEN_SAMPLES)[0])
+            if own.mean_distance_mm <= WORLD_POSE_TOLERANCE * result.mean_distance_mm:
+                result = own
     predicted = landmark_locations.evaluate(result.points, faces)
     names = list(landmark_locations.names)
     distances = {n: float(np.linalg.norm(predicted[i] - np.asarray(landmarks_object[n], float)))
