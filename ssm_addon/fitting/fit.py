@@ -43,8 +43,7 @@ from ..meshutil import MeshLocator, outer_surface, vertex_normals
 
 __all__ = ["FitResult", "ModelErrorField", "Pose", "Target", "correlation_length", "farthest_point_indices",
            "fit_any_pose", "fit_floor", "fit_model", "loo_residuals", "model_error_field", "model_error_variance", "outlier_limit",
-           "pose_freedom", "rigid_screen", "start_poses", "weighted_pose", "axis_rotation", "AXIS_ROTATIONS",
-           "coarse_screen"]
+           "pose_freedom", "rigid_screen", "start_poses", "weighted_pose", "axis_rotation"]
 
 
 @dataclass(frozen=True)

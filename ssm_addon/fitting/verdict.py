@@ -16,7 +16,7 @@ from scipy.spatial import cKDTree
 from ..base.params import FitParams
 from .fit import FitResult, Target, outlier_limit
 
-__all__ = ["FREE_SLIDE_MM", "FREE_TURN_DEG", "UNIT_RATIO", "SIZE_FACTOR", "FitVerdict", "calibration", "coverage", "coverage_radius_mm", "is_outlier", "judge_fit", "size_in_unit_range"]
+__all__ = ["FREE_SLIDE_MM", "FREE_TURN_DEG", "UNIT_RATIO", "FitVerdict", "calibration", "coverage", "coverage_radius_mm", "is_outlier", "judge_fit", "size_in_unit_range"]
 
 #: A partial target covering less than this share of the model's surface: the completion rests
 #: on the model's prior.

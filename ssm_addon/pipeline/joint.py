@@ -34,6 +34,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ..base.compute import done_future, run_one_thread
 from ..base.errors import InputError, check_cancelled
@@ -280,8 +281,6 @@ def relative_pose_noise(shape_pose: dict, placed: dict, reference: str) -> list:
     errors of their own (shapes that differ fit a mean shape in poses of their own), so the share
     is what the correspondence *could* explain, not a proof that it does.
     """
-    from scipy.spatial.transform import Rotation
-
     findings = []
     for pair, figures in (shape_pose.get("pairs") or {}).items():
         other = pair[len(reference) + 1:] if pair.startswith(f"{reference}-") else ""
