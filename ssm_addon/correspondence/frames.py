@@ -21,7 +21,6 @@ rotations and the one nearest the others' mean is kept (:func:`population_turns`
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,7 +31,7 @@ from ..base.params import CoatingParams
 from ..base.progress import CancelledFn
 from ..coating.coating import CoatingResult, CoatingStart, coat_from_start
 from ..coating.distance_map import DistanceMap
-from ..fitting.fit import Pose, axis_rotation, weighted_pose
+from ..fitting.fit import AXIS_ROTATIONS, Pose, axis_rotation, turn_angle_deg, weighted_pose
 from ..instances.volume import ObjectFrame, ObjectVolume
 from ..meshutil import Mesh, MeshLocator, face_centroids, face_normals
 from ..model.pca import procrustes_fit
@@ -46,15 +45,10 @@ __all__ = ["FRAME_ROTATIONS", "ROTATION_NAMES", "TURN_NAMES", "TURNED_FACTOR", "
 def _frame_rotations() -> tuple[np.ndarray, ...]:
     """The 24 proper rotations that map the coordinate axes onto themselves (signed permutation
     matrices of determinant 1), the identity and the three turns of 180 degrees about x, y, z
-    (:data:`~ssm_addon.correspondence.rounds.AXIS_TURNS`) first, the rest in a fixed order."""
+    (:data:`~ssm_addon.correspondence.rounds.AXIS_TURNS`) first, the rest in the order of
+    :data:`~ssm_addon.fitting.fit.AXIS_ROTATIONS`."""
     out = [np.asarray(r, float) for r in AXIS_TURNS]
-    for perm in itertools.permutations(range(3)):
-        for signs in itertools.product((1.0, -1.0), repeat=3):
-            r = np.zeros((3, 3))
-            r[np.arange(3), perm] = signs
-            if np.linalg.det(r) > 0 and not any(np.array_equal(r, q) for q in out):
-                out.append(r)
-    return tuple(out)
+    return tuple(out + [r for r in AXIS_ROTATIONS if not any(np.array_equal(r, q) for q in out)])
 
 
 #: The rotations a template's first pose on an instance is registered from: every way the object
@@ -420,7 +414,7 @@ def twists_of(poses: dict, mean: np.ndarray) -> dict:
     out = {}
     for n, (by_points, by_surface) in poses.items():
         turn = by_surface.rotation @ by_points.rotation.T
-        angle = float(np.degrees(np.arccos(np.clip((np.trace(turn) - 1.0) / 2.0, -1.0, 1.0))))
+        angle = turn_angle_deg(turn)
         axis = np.array([turn[2, 1] - turn[1, 2], turn[0, 2] - turn[2, 0], turn[1, 0] - turn[0, 1]])
         axis = axis / max(np.linalg.norm(axis), 1e-12)
         along = np.abs(axes @ axis)

@@ -67,7 +67,7 @@ from ..base.progress import CancelledFn, ProgressFn, sub_progress
 from ..coating.coating import CoatingResult, CoatingStart, coat, coat_from_start, settle_on_surface
 from ..coating.distance_map import DistanceMap
 from ..coating.relaxation import folded_triangles
-from ..fitting.fit import AXIS_ROTATIONS, Pose, Target, coarse_screen, fit_model, rigid_screen
+from ..fitting.fit import AXIS_ROTATIONS, Pose, Target, coarse_ranked, fit_model, rigid_screen
 from ..formats.landmarks import LandmarkSet
 from ..instances.volume import ObjectVolume
 from ..meshutil import LandmarkLocations, Mesh, MeshLocation, MeshLocator, edge_lengths, vertex_normals
@@ -427,10 +427,9 @@ def landmark_transfer(others: np.ndarray, faces: np.ndarray, surface_points: np.
         # every rotation screened coarsely, the nearest SURFACE_TURNS_KEPT by rigid ICP of the mean
         # shape, and the input coordinates' pose kept unless a turn screens WORLD_POSE_TOLERANCE times
         # closer; the one chosen fitted
-        coarse = coarse_screen(model.mean, target, poses, partial=False)
-        near = sorted(range(len(poses)), key=lambda i: (coarse[i][1], i))[:SURFACE_TURNS_KEPT]
+        near = sorted(i for i, _p, _d in coarse_ranked(model.mean, target, poses, partial=False)[:SURFACE_TURNS_KEPT])
         screened = sorted((rigid_screen(model.mean, target, poses[i], partial=False, samples=SCREEN_SAMPLES)
-                           for i in sorted(near)), key=lambda x: x[1])
+                           for i in near), key=lambda x: x[1])
         fits = [fit_model(model, target, params=fit, pose=p) for p, _d in screened[:SURFACE_TURNS_FITTED]]
         result = min(fits, key=lambda r: r.mean_distance_mm)
         if world_pose is not None:

@@ -743,9 +743,14 @@ FLOOR_PROBE_ITERATIONS = 12
 FLOOR_PROBE_FACTOR = 1.5
 
 
-def _turn_deg(a: np.ndarray, b: np.ndarray) -> float:
-    """The angle (degrees) of the rotation between rotation matrices ``a`` and ``b``."""
-    return float(np.degrees(np.arccos(np.clip((np.trace(a @ b.T) - 1.0) / 2.0, -1.0, 1.0))))
+def turn_angle_deg(a: np.ndarray, b: np.ndarray | None = None) -> float:
+    """The angle (degrees) of the rotation ``a`` (3, 3), or of the rotation between ``a`` and ``b``.
+
+    >>> round(turn_angle_deg(axis_rotation(np.array([0.0, 0.0, 1.0]), 30.0)), 6)
+    30.0
+    """
+    turn = a if b is None else a @ np.asarray(b).T
+    return float(np.degrees(np.arccos(np.clip((np.trace(turn) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def fit_floor(model, target: Target, pose: Pose, *, partial: bool = False, points: np.ndarray | None = None,
@@ -781,14 +786,13 @@ def fit_floor(model, target: Target, pose: Pose, *, partial: bool = False, point
                                            pose.scale)))
     mean = np.asarray(model.mean, float) if points is None else np.asarray(model.mean, float)[points]
     searched = start_poses(model, target, partial=partial, points=points)
-    coarse = coarse_screen(mean, target, [p for _n, p in searched], partial=partial)
     taken = [pose.rotation]
-    for i in sorted(range(len(coarse)), key=lambda i: (coarse[i][1], i)):
+    for i, refined, _d in coarse_ranked(mean, target, [p for _n, p in searched], partial=partial):
         if len(taken) > FLOOR_ROTATIONS:
             break
-        if all(_turn_deg(coarse[i][0].rotation, q) > 2.0 * FLOOR_TURN_DEG for q in taken):
-            taken.append(coarse[i][0].rotation)
-            starts.append((searched[i][0], rigid_screen(mean, target, coarse[i][0], partial=partial)[0]))
+        if all(turn_angle_deg(refined.rotation, q) > 2.0 * FLOOR_TURN_DEG for q in taken):
+            taken.append(refined.rotation)
+            starts.append((searched[i][0], rigid_screen(mean, target, refined, partial=partial)[0]))
     best, won = None, "the fit"
     probe = replace(params, iterations=FLOOR_PROBE_ITERATIONS)
     for name, start in starts:
@@ -954,6 +958,13 @@ def coarse_screen(mean: np.ndarray, target: Target, poses, *, partial: bool) -> 
     return out
 
 
+def coarse_ranked(mean: np.ndarray, target: Target, poses, *, partial: bool) -> list[tuple[int, Pose, float]]:
+    """:func:`coarse_screen` of ``poses``, nearest first: (index into ``poses``, refined pose,
+    mean distance in mm), ties by index."""
+    screened = coarse_screen(mean, target, poses, partial=partial)
+    return [(i, *screened[i]) for i in sorted(range(len(screened)), key=lambda i: (screened[i][1], i))]
+
+
 PRIORITY_TOLERANCE = 1.1
 
 
@@ -1093,10 +1104,9 @@ def fit_any_pose(model, target: Target, *, params: FitParams | None = None, fram
     priority = {n for n, _p in starts if n in ("landmarks", "frame", "model axes")}
     # every start screened coarsely; the nearest SCREEN_KEEP and the priority ones again, closer
     searched = [(n, p) for n, p in starts if p is not None and n not in priority]
-    coarse = coarse_screen(mean, target, [p for _n, p in searched], partial=partial)
-    near = sorted(range(len(searched)), key=lambda i: (coarse[i][1], i))[:SCREEN_KEEP]
-    coarse_mm = {searched[i][0]: coarse[i][1] for i in range(len(searched))}
-    again = {searched[i][0] for i in near}
+    ranked = coarse_ranked(mean, target, [p for _n, p in searched], partial=partial)
+    coarse_mm = {searched[i][0]: d for i, _p, d in ranked}
+    again = {searched[i][0] for i, _p, _d in ranked[:SCREEN_KEEP]}
     screened = []
     for name, pose in starts:
         check_cancelled(cancelled)

@@ -317,9 +317,8 @@ def relative_pose_noise(shape_pose: dict, placed: dict, reference: str) -> list:
                  "method": "each subject's relative pose by the coatings' points against by their surfaces "
                            "(each structure put on its mean shape both ways); the spread of the difference"}
         figures["correspondence"] = noise
-        worst = max((noise["turn_share"], "turn"), (noise["shift_share"], "shift"),
-                    key=lambda x: -1.0 if not np.isfinite(x[0]) else x[0])
-        if np.isfinite(worst[0]) and worst[0] >= POSE_NOISE_SHARE:
+        worst = max((x for x in (noise["turn_share"], noise["shift_share"]) if np.isfinite(x)), default=float("nan"))
+        if worst >= POSE_NOISE_SHARE:
             findings.append(Finding(
                 "", "pose_noise",
                 f"{pair}: the correspondence's own error could explain {100 * noise['turn_share']:.0f} % of the "
@@ -327,7 +326,7 @@ def relative_pose_noise(shape_pose: dict, placed: dict, reference: str) -> list:
                 f"and {100 * noise['shift_share']:.0f} % of its shift variance (SD {shift_sd:.2f} of "
                 f"{data.get('shift_sd_mm', float('nan')):.2f} mm): much of the model's relative pose may be the "
                 "coatings' noise, not the joint's; give the subjects landmarks (three or more per structure) "
-                "before reading its modes as kinematics", worst[0], POSE_NOISE_SHARE, stage="model"))
+                "before reading its modes as kinematics", worst, POSE_NOISE_SHARE, stage="model"))
     return findings
 
 def _metrics_job(args) -> ModelMetrics:
