@@ -121,7 +121,7 @@ def test_panel_registered(bpy_clean):
     ui, core = params_from_group(CoatingParams, settings), CoatingParams()
     for field in ("kernel", "k1", "k2", "k3", "mass", "damping", "dt", "max_iterations", "velocity_tol_mm",
                   "fold_angle_deg", "rest_lengths", "regularization", "fold_free_warp", "fold_smoothing",
-                  "registration_sigmas_mm", "hardy_s_mm"):  # fmt: skip
+                  "registration_sigmas_mm", "carry_sigmas_mm", "hardy_s_mm"):  # fmt: skip
         assert getattr(ui, field) == pytest.approx(getattr(core, field)), field
     assert {f.name for f in dataclasses.fields(core)} >= {"registration_sigmas_mm", "k1", "k2"}
     settings.registration_sigmas_mm = ""  # the paper's scheme: no registration

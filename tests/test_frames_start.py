@@ -107,3 +107,43 @@ def test_a_coating_turned_about_its_long_axis_on_its_own_surface_is_named_a_twis
     assert list(named) == ["s5"], {n: round(t.angle_deg, 1) for n, t in twists.items()}
     assert abs(named["s5"].angle_deg - 12.0) < 3.0 and named["s5"].axis_name == "the mean shape's longest axis"
     assert max(t.angle_deg for n, t in twists.items() if n != "s5") < 2.0 and limit >= 5.0
+
+
+def test_the_carry_brings_a_start_without_landmarks_nearer_a_part_stretched_along_the_surface(knobbed_egg):
+    """The egg stretched along its long axis unevenly (x' = x + 0.15 x² / 36 mm, so its +x end grows
+    and its -x end shrinks), coated from its own surface without landmarks: the true place of
+    template point v is the stretch of v. The carry's pulls along the surface (a smooth
+    displacement at 48 mm) move the start nearer those places than the similarity pose alone (at
+    least 5 % nearer) and the coating from it lands nearer too (at least 3 %), on the surface."""
+    from conftest import icosphere
+
+    from ssm_addon.base.params import CoatingParams
+    from ssm_addon.correspondence.frames import coat_from_template_pose
+    from ssm_addon.meshutil import Mesh
+
+    _ov, dm = knobbed_egg
+    a, half = 0.15, 36.0
+
+    def egg(g):
+        mask = (g[0] / 30) ** 2 + (g[1] / 18) ** 2 + (g[2] / 12) ** 2 <= 1
+        return mask | ((g[0] - 18) ** 2 + (g[1] - 12) ** 2 + (g[2] - 6) ** 2 <= 49)
+
+    g = np.mgrid[-40:52, -24:25, -18:19].astype(float)
+    g[0] = (np.sqrt(np.maximum(1 + 4 * a / half * g[0], 0.0)) - 1) / (2 * a / half)  # the stretch's inverse
+    stretched = ObjectVolume(egg(g), 1.0, np.array([-40.0, -24.0, -18.0]), ObjectFrame(np.zeros(3), np.eye(3)),
+                             "stretched egg")
+    dirs, faces = icosphere(1.0, 3)
+    v = dm.project(dirs / np.sqrt(((dirs / np.array([30.0, 18.0, 12.0])) ** 2).sum(axis=1))[:, None], 5)
+    truth = v.copy()
+    truth[:, 0] += a * v[:, 0] ** 2 / half
+    errors = {}
+    for carry in ((), (48.0,)):
+        result, how = coat_from_template_pose(Mesh(v, faces), stretched, coating=CoatingParams(carry_sigmas_mm=carry),
+                                              turns=(0,), name="stretched egg")
+        errors[carry] = (np.linalg.norm(result.warped_points_object - truth, axis=1).mean(),
+                         np.linalg.norm(result.points_object - truth, axis=1).mean())
+        assert np.abs(DistanceMap.from_object_volume(stretched).distance(result.points_object)).max() < 0.01
+    (start_without, coated_without), (start_with, coated_with) = errors[()], errors[(48.0,)]
+    assert start_with < 0.95 * start_without, errors
+    assert coated_with < 0.97 * coated_without, errors
+    assert CoatingParams().carry_sigmas_mm == (48.0,)

@@ -651,6 +651,12 @@ class CoatingParams:
                                           maximum=1000.0, label="Registration widths",
                                           help="Gaussian widths of the coarse-to-fine surface registration between "
                                                "warp and projection (empty: the paper's scheme)")
+    carry_sigmas_mm: tuple = param((48.0,), unit="mm", minimum=0.0, exclusive_minimum=True, maximum=1000.0,
+                                   label="Carry widths",
+                                   help="Gaussian widths of a smooth registration that carries a start without "
+                                        "landmarks onto the instance before the registration, its pulls along "
+                                        "the surface too, so a part longer or wider than the template's is met "
+                                        "by the template's same part (empty: off)")
     registration_iterations: int = param(5, minimum=0, maximum=1000, label="Registration steps", advanced=True,
                                          help="iterations per registration width")
     reach_mm: float = param(2.5, unit="mm", minimum=0.0, maximum=100.0, label="Reach", advanced=True,
@@ -725,6 +731,7 @@ class CoatingParams:
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
         d["registration_sigmas_mm"] = list(self.registration_sigmas_mm)
+        d["carry_sigmas_mm"] = list(self.carry_sigmas_mm)
         return d
 
 

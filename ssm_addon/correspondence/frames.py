@@ -31,6 +31,7 @@ from ..base.params import CoatingParams
 from ..base.progress import CancelledFn
 from ..coating.coating import CoatingResult, CoatingStart, coat_from_start
 from ..coating.distance_map import DistanceMap
+from ..coating.registration import register_to_surface
 from ..fitting.fit import AXIS_ROTATIONS, Pose, axis_rotation, turn_angle_deg, weighted_pose
 from ..instances.volume import ObjectFrame, ObjectVolume
 from ..meshutil import Mesh, MeshLocator, face_centroids, face_normals
@@ -255,11 +256,25 @@ def surface_similarity(src: np.ndarray, tgt: np.ndarray, weights: np.ndarray, tg
 def coat_from_template_pose(template: Mesh, target: ObjectVolume, *, coating: CoatingParams,
                             template_frame: ObjectFrame | None = None, turns: tuple[int, ...] | None = None,
                             name: str = "") -> tuple[CoatingResult, FramesStart]:
-    """:func:`template_start`, then the coating's registration, projection and relaxation from it
-    (paper 4.2; ``fit.start`` = object frames)."""
+    """:func:`template_start`, the carry, then the coating's registration, projection and relaxation
+    from it (paper 4.2; ``fit.start`` = object frames).
+
+    The carry (not in the paper): a similarity pose leaves a part that is relatively longer or
+    wider on this instance than on the template's (a femur's shaft, a vertebra's processes) met by
+    a neighbouring part of the template, and the registration that follows pulls along the
+    normals only, so nothing moves it back along the surface. A smooth displacement at the wide
+    Gaussian widths ``coating.carry_sigmas_mm`` (mm), its pulls in full (along the surface too;
+    :func:`~ssm_addon.coating.registration.register_to_surface` with ``normal_only=False``),
+    deforms space about as a Gaussian-process registration with a squared-exponential kernel of
+    that width does (Lüthi et al. 2018), before the normal-only widths refine it. With landmarks
+    the warp of eq. (2) pins the parts instead and no carry runs.
+    """
     dm = DistanceMap.from_object_volume(target)
     start, how = template_start(template.vertices, target, template_frame=template_frame, turns=turns,
                                 distance_map=dm, template_faces=template.faces)
+    if coating.carry_sigmas_mm and coating.registration_iterations > 0:
+        start = register_to_surface(start, template.faces, dm, sigmas_mm=tuple(coating.carry_sigmas_mm),
+                                    iterations=coating.registration_iterations, normal_only=False)
     result = coat_from_start(template, target, start=start, params=coating, distance_map=dm,
                              start_label=CoatingStart.OBJECT_FRAMES, name=name)
     return result, how
