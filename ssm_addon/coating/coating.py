@@ -31,6 +31,10 @@ template's triangles that span a thin process (centroid inside, near the medial 
 count as folded even on the template's own instance, with the smoothed one alone those on
 the walls of a narrow notch.
 
+Without landmarks the start is the template's similarity pose on the instance, carried by a
+smooth displacement with pulls along the surface too
+(:func:`~ssm_addon.correspondence.frames.coat_from_template_pose`), in place of step 1.
+
 Steps 2, 5 and the fold handling exist because the paper's scheme alone left folds on
 real vertebrae, and the object-frame start because extremal-point landmarks can mis-map
 whole parts of a template; the measurements are in ``docs/measurements.md``.
