@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from conftest import axis_rotation, icosphere, shared_data_dir
 from scipy import ndimage
+from scipy.stats import spearmanr
 
 from ssm_addon.base.errors import InputError
 from ssm_addon.cli.command import main
@@ -104,6 +105,10 @@ def test_a_synthetic_image_of_a_known_shape_is_segmented_back_to_it(population):
     # the posterior SD (where the true surface lies around each point) follows the error: within a factor 2
     sd = result.posterior_sd_mm
     assert sd.shape == (len(truth),) and 0.5 * d.mean() < sd.mean() < 2.0 * d.mean(), (sd.mean(), d.mean())
+    # and says where: it ranks each point's error (measured Spearman 0.67; 0.42 with one boundary
+    # scatter for all points) and covers it (100 % within 2 SD)
+    rho = spearmanr(sd, d)[0]
+    assert rho >= 0.5 and np.mean(d <= 2 * sd) >= 0.9, (rho, np.mean(d <= 2 * sd))
 
 
 def test_learned_appearance_segments_and_says_when_the_intensities_are_not_its_training_images(population):

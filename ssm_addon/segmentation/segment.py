@@ -119,8 +119,10 @@ class SegmentResult:
     coefficients : (K,) SD
         b_k/√λ_k.
     posterior_sd_mm : (N,) mm
-        Per point √(trace of its posterior covariance + the boundary suggestions' scatter σ̂²), the
-        model's own error included: where the true surface lies around the point (predictive).
+        Per point √(trace of its posterior covariance + the model's own error + the boundary's
+        spread there), where the spread is the expected squared offset of the boundary from the
+        point under its own profile (:func:`boundary_spread`), smoothed over its neighbours: where
+        the true surface lies around the point (predictive).
     deviation_mm : (N,) mm
         How far each point left the model's span along its normal.
     evidence : str
@@ -306,6 +308,40 @@ class _Evidence:
         beyond = cols > peak + int(round(FIRST_EDGE_MM / h))
         cost = -e + np.where(beyond, np.maximum(e, 0.0), 0.0)
         return cost, np.clip(e, 0.0, 1.0)
+
+
+#: The profile likelihood's temperature of :func:`boundary_spread`, as a share of the median point's
+#: cost range along its profile (docs/measurements.md, "The posterior SD's boundary term").
+SPREAD_TEMPERATURE = 0.02
+
+
+def boundary_spread(cost: np.ndarray, offsets: np.ndarray, *, temperature: float = SPREAD_TEMPERATURE) -> np.ndarray:
+    """Per point, the expected squared offset (mm²) of the boundary from it under its profile's likelihood.
+
+    Each point's candidates along its normal at ``offsets`` (mm, 0 at the point) are weighed by
+    p_j ∝ exp(-(c_j - min c) / T), with T = ``temperature`` × the median over points of the cost's
+    range along the profile, and E[offset²] = Σ p_j offset_j²: large where the image puts the
+    boundary elsewhere than the point (a residual) and where two edges compete or none stands
+    out (an ambiguity). A boundary-likelihood view of the active shape model's profile search
+    (Cootes et al. 1995).
+
+    Parameters
+    ----------
+    cost : (N, C) the evidence's cost of each point's C candidates (lower is a better boundary).
+    offsets : (C,) mm along the outward normal.
+
+    Returns
+    -------
+    (N,) mm².
+
+    >>> float(boundary_spread(np.array([[1.0, 0.0, 1.0]]), np.array([-1.0, 0.0, 1.0]))[0]) < 1e-3
+    True
+    """
+    rel = cost - cost.min(axis=1, keepdims=True)
+    t = max(float(temperature) * float(np.median(rel.max(axis=1))), 1e-12)
+    p = np.exp(-rel / t)
+    p /= p.sum(axis=1, keepdims=True)
+    return p @ (np.asarray(offsets, float) ** 2)
 
 
 def _refined_offsets(cost: np.ndarray, best: np.ndarray, offsets: np.ndarray) -> np.ndarray:
@@ -628,10 +664,9 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
                  (0.25 * float(image.spacing_mm.min())) ** 2)
     qn = _normals_rows(q, vertex_normals(shape, faces))
     cov_b = np.linalg.inv((qn * w_final[:, None]).T @ qn / sigma2 + params.prior_weight * np.diag(1.0 / lam))
-    per_point = np.einsum("ndk,kl,ndl->n", q, cov_b, q) + sigma2  # the shape's uncertainty and the boundary's scatter
+    per_point = np.einsum("ndk,kl,ndl->n", q, cov_b, q)  # the shape's uncertainty
     if error_var is not None:
         per_point = per_point + error_var
-    sd = pose_.scale * np.sqrt(np.maximum(per_point, 0.0))
     # the deviation step: leave the span along the normal by what the model's error allows
     deviation = np.zeros(len(mean))
     points = model_points
@@ -654,6 +689,11 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
     weak_share = float(np.mean(strong_at[:, zero] < 0.25))
     boundary = {"evidence_cost": float(np.mean(cost_at[:, zero])), "weak_share": weak_share,
                 "residual_sd_mm": math.sqrt(sigma2)}
+    # the SD's boundary term per point, at the result: where the image puts or leaves the boundary
+    # (at least a quarter of the finest voxel edge), in place of the one scatter for all points
+    spread = _smooth_on_mesh(boundary_spread(cost_at, fine), np.ones(len(mean)), faces, rounds=3)
+    spread = np.maximum(spread, (0.25 * float(image.spacing_mm.min())) ** 2)
+    sd = np.sqrt(np.maximum(pose_.scale ** 2 * per_point + spread, 0.0))  # model units scaled; spread in mm
     inner, outer = boundary_grey_values(image, points, normals_at, sigma_mm=LEVEL_SIGMAS_MM[-1])
     boundary["inside_mean"], boundary["outside_mean"] = float(inner.mean()), float(outer.mean())
     findings = []
