@@ -29,8 +29,10 @@ from ssm_addon.segmentation import (
     segment_image,
     segmentation_mask,
     segmentation_scores,
+    structure_labels,
     volume_centroid,
 )
+from ssm_addon.segmentation.files import parse_labels, structure_label_map
 
 BRIGHT = 1000.0  # grey value of the object (bone-like), background 0
 
@@ -202,6 +204,87 @@ def test_a_joint_models_structures_are_segmented_together_from_a_point_each(tmp_
     assert db.mean() < 0.45
     with pytest.raises(InputError, match="no structure 'c'"):
         segment_files(tmp_path / "joint.npz", tmp_path / "ct.nii.gz", tmp_path / "out2", at=["c=0,0,0"])
+
+
+def test_touching_structures_are_segmented_jointly_into_their_own_labels(tmp_path, capsys):
+    """The joint population's second structure moved 2.5 mm towards the first, so that the two touch
+    (their surfaces cross by about 0.5 mm): segmented together from a point each, the label map holds
+    each structure under its own number (1, 2 by the model's order; ``--labels`` sets others), no voxel
+    in both, and against the expert's label map each structure scores on its own label."""
+    from conftest import joint_model, joint_population
+
+    a, b, fa, fb, _turns = joint_population(n=14, seed=3)
+    model = joint_model(a[1:], b[1:], fa, fb)
+    na = a.shape[1]
+    truth_b = b[0] - [2.5 + (b[0][:, 0].min() - a[0][:, 0].max()), 0.0, 0.0]  # crossing a's surface by 2.5 mm
+    truth = np.concatenate([a[0], truth_b]) + np.array([20.0, -10.0, 5.0])
+    image, _ = synthetic_image(truth, np.concatenate([fa, fb + na]))
+    expert = segmentation_mask(truth[:na], fa, image).astype(np.uint8)
+    expert[segmentation_mask(truth[na:], fb, image) & (expert == 0)] = 2
+    nib.save(nib.Nifti1Image(image.data, image.affine), str(tmp_path / "ct.nii.gz"))
+    nib.save(nib.Nifti1Image(expert, image.affine), str(tmp_path / "expert.nii.gz"))
+    save_npz(model, tmp_path / "joint.npz")
+    at = [f"a={','.join(map(repr, volume_centroid(truth[:na], fa) + [2.0, 2.0, 0.0]))}",
+          f"b={','.join(map(repr, volume_centroid(truth[na:], fb) + [-2.0, 1.0, 1.0]))}"]
+    doc = segment_files(tmp_path / "joint.npz", tmp_path / "ct.nii.gz", tmp_path / "out", at=at,
+                        truth_path=tmp_path / "expert.nii.gz")
+    labels = np.asarray(nib.load(str(tmp_path / "out" / "segmentation.nii.gz")).dataobj)
+    per = doc["segmentation"]["structures"]
+    assert set(np.unique(labels)) == {0, 1, 2} and per["a"]["label"] == 1 and per["b"]["label"] == 2
+    assert per["a"]["voxels"] + per["b"]["voxels"] == doc["segmentation"]["voxels"] == np.count_nonzero(labels)
+    scores = doc["truth"]["structures"]
+    assert scores["a"]["dice"] > 0.9 and scores["b"]["dice"] > 0.85, scores
+    assert main(["segment", str(tmp_path / "joint.npz"), str(tmp_path / "ct.nii.gz"), *[f"--at={x}" for x in at],
+                 "--labels", "a=300,b=2", "--truth", str(tmp_path / "expert.nii.gz"),
+                 "--out", str(tmp_path / "cli")]) == 0
+    out = capsys.readouterr().out
+    assert "a: label 300" in out and "a against label 300: the expert's label map has no voxel of label 300" in out
+    assert "b against label 2: Dice" in out
+    assert set(np.unique(np.asarray(nib.load(str(tmp_path / "cli" / "segmentation.nii.gz")).dataobj))) == {0, 2, 300}
+    with pytest.raises(InputError, match=r"expert.nii.gz: the expert's label map holds label\(s\) 1, 2, none of the "
+                                         r"structures' \(a=7, b=9\)"):
+        segment_files(tmp_path / "joint.npz", tmp_path / "ct.nii.gz", tmp_path / "out3", at=at,
+                      truth_path=tmp_path / "expert.nii.gz", labels={"a": 7, "b": 9})
+    assert not (tmp_path / "out3").exists()
+
+
+def test_two_crossing_structures_share_no_voxel_each_goes_to_the_one_it_lies_deeper_in():
+    """Two balls of 10 mm whose centres lie 16.5 mm apart (their surfaces cross in a lens 3.5 mm thick),
+    as a joint segmentation whose neighbours overlap: every voxel has one label, the union is the two
+    balls' union, and each shared voxel goes to the ball whose centre is nearer (deeper inside it)."""
+    v, f = icosphere(10.0, 4)
+    points = np.concatenate([v, v + [16.5, 0.0, 0.0]])
+    faces = np.concatenate([f, f + len(v)])
+    affine = np.eye(4)
+    affine[:3, 3] = [-15.0, -15.0, -15.0]
+    grid = GreyImage(np.zeros((50, 31, 31), np.float32), affine)
+    labels, info = structure_label_map(points, faces, [("L1", 0, len(v)), ("L2", len(v), 2 * len(v))],
+                                       {"L1": 20, "L2": 21}, grid)
+    a, b = segmentation_mask(points[:len(v)], f, grid), segmentation_mask(points[len(v):], f, grid)
+    shared = a & b
+    assert shared.sum() > 100 and set(np.unique(labels)) == {0, 20, 21}
+    assert np.array_equal(labels > 0, a | b)  # nothing lost, and one label per voxel by construction
+    world = grid.to_world(np.argwhere(shared).astype(float))
+    nearer = np.where(world[:, 0] < 8.25, 20, 21)
+    assert np.array_equal(labels[shared], nearer)
+    assert info["L1"]["shared_voxels_given_away"] + info["L2"]["shared_voxels_given_away"] == shared.sum()
+    assert info["L1"]["voxels"] == np.count_nonzero(labels == 20)
+
+
+def test_a_joint_models_structures_get_verse_numbers_or_the_ones_given():
+    assert structure_labels(["T12", "L1", "sub_l5"]) == {"T12": 19, "L1": 20, "sub_l5": 24}
+    assert structure_labels(["L1", "L2"], {"L2": 3}) == {"L1": 20, "L2": 3}
+    assert structure_labels(["femur", "L2"]) == {"femur": 1, "L2": 2}  # not all vertebrae: 1, 2, …
+    assert structure_labels(["a", "b", "c"], {"a": 2}) == {"a": 2, "b": 1, "c": 3}
+    with pytest.raises(InputError, match="no structure 'L9'"):
+        structure_labels(["L1"], {"L9": 4})
+    with pytest.raises(InputError, match="share a label"):
+        structure_labels(["L1", "L2"], {"L2": 20})
+    with pytest.raises(InputError, match="from 1 to 65535"):
+        structure_labels(["L1"], {"L1": 0})
+    with pytest.raises(InputError, match="expected STRUCTURE=N"):
+        parse_labels(["L1=twenty"])
+    assert parse_labels(["L1=7,L2=8", "L3=9"]) == {"L1": 7, "L2": 8, "L3": 9}
 
 
 def test_a_start_in_air_or_soft_tissue_of_a_ct_is_refused_with_the_hu_found_there(population):

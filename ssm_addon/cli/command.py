@@ -243,6 +243,10 @@ def argument_parser() -> argparse.ArgumentParser:
     p.add_argument("--truth-label", type=int, default=None, metavar="N",
                    help="the label of --truth (default: --label when there is no --init-mask, else every non-zero "
                         "voxel)")
+    p.add_argument("--labels", action="append", default=[], metavar="STRUCTURE=N",
+                   help="a joint model's label numbers in segmentation.nii.gz, e.g. L1=20,L2=21 (default: VerSe's "
+                        "numbers for structures named by a vertebra, C1=1 … T1=8 … L1=20, else 1, 2, … in the "
+                        "model's order)")
     p.add_argument("--evidence", choices=("auto", "learned", "gradient"), default="auto",
                    help="boundary evidence: the model's learned appearance when it has one (auto, default), or "
                         "the image gradient (bright structure, darker surroundings)")
@@ -553,7 +557,7 @@ def cmd_fit(args) -> int:
 
 
 def cmd_segment(args) -> int:
-    from ..segmentation.files import segment_files
+    from ..segmentation.files import parse_labels, segment_files
     from ..segmentation.segment import SegmentParams
 
     out = Path(args.out).expanduser().resolve()
@@ -566,16 +570,24 @@ def cmd_segment(args) -> int:
                             init_mask_path=args.init_mask, label=args.label if args.init_mask else None,
                             params=params, progress=_print_progress(), cancelled=check_signals,
                             say=lambda line: print(line, flush=True), truth_path=args.truth,
-                            truth_label=truth_label)
+                            truth_label=truth_label, labels=parse_labels(args.labels))
     seg = doc["segmentation"]
     print(f"{name}: segmented with {doc['evidence']} evidence in {doc['iterations']} steps ({doc['seconds']:.1f} s): "
           f"{seg['voxels']} voxels ({seg['volume_mm3'] / 1000:.1f} cm³), Mahalanobis {doc['mahalanobis']:.2f}, "
           f"posterior SD {doc['posterior_sd_mm']['mean']:.2f} mm (up to {doc['posterior_sd_mm']['max']:.2f})")
+    for structure, info in seg.get("structures", {}).items():
+        print(f"{name}: {structure}: label {info['label']}, {info['voxels']} voxels ({info['volume_mm3'] / 1000:.1f} "
+              f"cm³)" + (f", {info['shared_voxels_given_away']} voxels inside a neighbour's surface too given to it"
+                         if info["shared_voxels_given_away"] else ""))
     truth = doc.get("truth")
     if truth:
         print(f"{name}: against {Path(truth['file']).name}: Dice {truth['dice']:.3f}, surface distance mean "
               f"{truth['mean_mm']:.2f} mm, 95th percentile {truth['p95_mm']:.2f} mm; posterior SD against each "
               f"point's error: Spearman {truth['sd_error_spearman']:.2f}, {100 * truth['within_2sd']:.0f} % within 2 SD")
+        for structure, t in truth.get("structures", {}).items():
+            print(f"{name}: {structure} against label {t['label']}: " + (t["missing"] if "missing" in t else
+                  f"Dice {t['dice']:.3f}, surface distance mean {t['mean_mm']:.2f} mm, 95th percentile "
+                  f"{t['p95_mm']:.2f} mm"))
     for f in doc["verdict"]["findings"]:
         print(f"WARNING {name}: [{f['kind']}] {f['message']}", file=sys.stderr)
     print(f"written: {out / 'segmentation.nii.gz'}, {out / 'segmented.ply'}, {out / 'segment.json'}, "

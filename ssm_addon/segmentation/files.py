@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,18 +15,117 @@ from scipy.stats import spearmanr
 from ..base.errors import InputError
 from ..fitting.batch import load_model, model_file
 from ..fitting.fit import Target, fit_any_pose
-from ..formats.label_maps import load_volume, write_label_map
+from ..formats.label_maps import load_volume, read_label_map, write_label_map
 from ..formats.landmarks import read_landmarks
 from ..formats.meshes import write_ply
+from ..meshutil import MeshLocator
 from .appearance import load_appearance
 from .image import GreyImage, read_image, segmentation_mask
 from .scores import mask_surface_points, segmentation_scores
 from .segment import MIN_SCANS, SegmentParams, landmark_pose, segment_image, start_pose
 
 __all__ = ["FIGURE_MARGIN_MM", "SCALE_BAR_MM", "SEGMENT_FILES", "VIEWS", "SegmentationRecord", "parse_point", "segment_figure", "segment_files",
-           "truth_scores", "view_plane", "write_segmentation"]
+           "structure_labels", "truth_scores", "view_plane", "write_segmentation"]
 
 SEGMENT_FILES = ("segmentation.nii.gz", "segmented.ply", "segment.json", "segment.png")
+
+#: VerSe's label numbers of the vertebrae (Löffler et al. 2020; Sekuboyina et al. 2021): C1-C7 1-7,
+#: T1-T12 8-19, L1-L6 20-25, the sacrum 26, T13 28. A joint model's structure named by a vertebra
+#: (``L3``, ``sub_L3``, ``t12``) gets its number in the label map unless ``--labels`` says otherwise.
+VERSE_LABELS = {**{f"C{i}": i for i in range(1, 8)}, **{f"T{i}": 7 + i for i in range(1, 13)},
+                **{f"L{i}": 19 + i for i in range(1, 7)}, "S1": 26, "SACRUM": 26, "T13": 28}
+
+
+def structure_labels(names, given: dict | None = None) -> dict:
+    """The label number of each structure of a joint model in a segmentation's label map.
+
+    ``given`` {name: number} wins; the others are VerSe's number of the vertebra their name ends
+    with (:data:`VERSE_LABELS`, the last ``_``/``-``/space-separated part, any case), and where some
+    structure is no vertebra, every structure not given is numbered 1, 2, … in the model's order,
+    skipping numbers given. Numbers are 1-65535 and distinct.
+
+    >>> structure_labels(["L1", "sub_L2"]), structure_labels(["femur", "tibia"], {"tibia": 5})
+    ({'L1': 20, 'sub_L2': 21}, {'femur': 1, 'tibia': 5})
+    """
+    names = [str(n) for n in names]
+    given = {str(k): int(v) for k, v in (given or {}).items()}
+    unknown = [k for k in given if k not in names]
+    if unknown:
+        raise InputError(f"--labels {unknown[0]}=…: the model has no structure {unknown[0]!r} (structures: "
+                         f"{', '.join(names)})")
+    verse = {n: VERSE_LABELS.get(re.split(r"[_\-\s]", n.strip())[-1].upper()) for n in names if n not in given}
+    if all(v is not None for v in verse.values()):
+        out = {n: given.get(n, verse.get(n)) for n in names}
+    else:
+        free = (k for k in range(1, 65536) if k not in given.values())
+        out = {n: given[n] if n in given else next(free) for n in names}
+    bad = [(n, v) for n, v in out.items() if not 1 <= v <= 65535]
+    if bad:
+        raise InputError(f"--labels {bad[0][0]}={bad[0][1]}: a label is a number from 1 to 65535")
+    if len(set(out.values())) < len(out):
+        raise InputError(f"--labels: two structures share a label ({', '.join(f'{n}={v}' for n, v in out.items())})")
+    return out
+
+
+def parse_labels(items) -> dict:
+    """{name: number} from ``NAME=N`` strings (``--labels L1=20 L2=21`` or ``L1=20,L2=21``)."""
+    out = {}
+    for item in items or ():
+        for part in str(item).split(","):
+            if not part.strip():
+                continue
+            name, eq, value = part.partition("=")
+            try:
+                out[name.strip()] = int(value)
+            except ValueError:
+                raise InputError(f"--labels {part.strip()!r}: expected STRUCTURE=N (N a whole number)") from None
+            if not eq or not name.strip():
+                raise InputError(f"--labels {part.strip()!r}: expected STRUCTURE=N")
+    return out
+
+
+def structure_label_map(points: np.ndarray, faces: np.ndarray, structures, labels: dict,
+                        image: GreyImage) -> tuple[np.ndarray, dict]:
+    """A joint segmentation's label map on ``image``'s grid: each structure's voxels with its label.
+
+    ``structures``: (name, first point, end point) of each (:attr:`SegmentResult.structures`); its
+    triangles are those of ``faces`` within its points. A voxel whose centre lies inside two
+    structures' surfaces (neighbours whose surfaces cross) goes to the one it lies deeper inside
+    (farther from that structure's surface, world mm), so no voxel belongs to two.
+
+    Returns
+    -------
+    (I, J, K) uint8 or uint16 labels, and per structure {"label", "voxels", "shared_voxels_given_away"}.
+    """
+    faces = np.asarray(faces)
+    masks, parts = [], []
+    for name, a, b in structures:
+        f = faces[(faces >= a).all(axis=1) & (faces < b).all(axis=1)] - a
+        parts.append((name, points[a:b], f))
+        masks.append(segmentation_mask(points[a:b], f, image))
+    count = np.sum(masks, axis=0, dtype=np.int16)
+    owner = np.full(image.shape, -1, np.int16)
+    for k, m in enumerate(masks):
+        owner[m & (count == 1)] = k
+    shared = np.argwhere(count > 1)
+    given_away = np.zeros(len(masks), np.int64)
+    if len(shared):
+        world = image.to_world(shared.astype(float))
+        depth = np.full((len(shared), len(masks)), -np.inf)
+        for k, (m, (_name, p, f)) in enumerate(zip(masks, parts)):
+            inside = m[tuple(shared.T)]
+            if inside.any():
+                depth[inside, k] = MeshLocator(p, f).query(world[inside])[1]
+        win = np.argmax(depth, axis=1)
+        owner[tuple(shared.T)] = win
+        for k, m in enumerate(masks):
+            given_away[k] = int(np.count_nonzero(m[tuple(shared.T)] & (win != k)))
+    numbers = np.array([labels[name] for name, _a, _b in structures], dtype=np.int64)
+    dtype = np.uint8 if numbers.max() <= 255 else np.uint16
+    out = np.where(owner >= 0, numbers[np.maximum(owner, 0)], 0).astype(dtype)
+    info = {name: {"label": int(numbers[k]), "voxels": int(np.count_nonzero(owner == k)),
+                   "shared_voxels_given_away": int(given_away[k])} for k, (name, _a, _b) in enumerate(structures)}
+    return out, info
 
 
 #: The three views as 3D Slicer and ITK-SNAP show them (RAS world): each view's screen-right and
@@ -148,8 +248,9 @@ def truth_scores(result, truth: np.ndarray, truth_affine: np.ndarray) -> dict:
 
 
 def write_segmentation(result, image: GreyImage, out_dir, *, model_source: str = "", extra: dict | None = None,
-                       overwrite: bool = False, truth: tuple | None = None) -> dict:
-    """Write ``segmentation.nii.gz`` (label 1 on the image's grid, its affine), ``segmented.ply``
+                       overwrite: bool = False, truth: tuple | None = None, labels: dict | None = None) -> dict:
+    """Write ``segmentation.nii.gz`` (on the image's grid, its affine: label 1, or a joint model's
+    structures each with its own label, :func:`structure_labels` with ``labels``), ``segmented.ply``
     (world mm, RAS, with the posterior SD per vertex), ``segment.json`` and ``segment.png``.
 
     ``result``: a :class:`~ssm_addon.segmentation.segment.SegmentResult` or a
@@ -157,7 +258,9 @@ def write_segmentation(result, image: GreyImage, out_dir, *, model_source: str =
 
     Existing files of these names are refused unless ``overwrite`` (they may not be ours).
     ``truth``: ``(mask, affine, source)`` of an expert's segmentation: scored (:func:`truth_scores`,
-    under ``truth`` in ``segment.json``) and outlined in ``segment.png``.
+    under ``truth`` in ``segment.json``) and outlined in ``segment.png``; for a joint model the mask
+    may be the expert's whole label map (integers), then each structure is also scored against the
+    expert's voxels of its own label.
     Returns the paths by kind.
     """
     out = Path(out_dir)
@@ -167,28 +270,62 @@ def write_segmentation(result, image: GreyImage, out_dir, *, model_source: str =
     if clash and not overwrite:
         raise InputError(f"{out}: already holds {', '.join(clash)}; choose another --out (a segmentation never "
                          "overwrites files it did not write)")
-    out.mkdir(parents=True, exist_ok=True)
-    mask = segmentation_mask(result.points, result.faces, image)
+    record = result.to_dict()
+    structures = [(d["name"], *d["points"]) for d in record.get("structures", ())]
+    numbers = structure_labels([n for n, _a, _b in structures], labels) if structures else {}
+    vox = float(abs(np.linalg.det(image.affine[:3, :3])))
+    if structures:
+        label_array, per_structure = structure_label_map(np.asarray(result.points, float), result.faces, structures,
+                                                         numbers, image)
+        mask = label_array > 0
+    else:
+        mask = segmentation_mask(result.points, result.faces, image)
+        label_array, per_structure = mask.astype(np.uint8), {}
     if not mask.any():
         raise InputError(f"{image.path}: the segmented surface encloses no voxel of the image")
+    out.mkdir(parents=True, exist_ok=True)
     files = {"segmentation": out / "segmentation.nii.gz", "surface": out / "segmented.ply",
              "record": out / "segment.json", "picture": out / "segment.png"}
-    write_label_map(files["segmentation"], mask.astype(np.uint8), image.affine)
+    write_label_map(files["segmentation"], label_array, image.affine)
     write_ply(files["surface"], result.points, result.faces,
               vertex_scalars={"posterior_sd_mm": result.posterior_sd_mm, "deviation_mm": result.deviation_mm},
               space="RAS")
-    vox = float(abs(np.linalg.det(image.affine[:3, :3])))
-    doc = {"image": str(image.path), "model": str(model_source), **result.to_dict(),
+    doc = {"image": str(image.path), "model": str(model_source), **record,
            "segmentation": {"voxels": int(mask.sum()), "volume_mm3": float(mask.sum() * vox)},
            "files": {k: p.name for k, p in files.items()}, **(extra or {})}
+    for info in per_structure.values():
+        info["volume_mm3"] = info["voxels"] * vox
+    if per_structure:
+        doc["segmentation"]["structures"] = per_structure
     title = f"{Path(image.path).name}: segmentation (orange)"
+    reference = None
     if truth is not None:
-        doc["truth"] = {"file": str(truth[2]), **truth_scores(result, truth[0], truth[1])}
+        expert = np.asarray(truth[0])
+        whole = expert.dtype != bool and bool(structures)  # an expert's label map of the structures
+        reference = np.isin(expert, list(numbers.values())) if whole else expert.astype(bool)
+        doc["truth"] = {"file": str(truth[2]), **truth_scores(result, reference, truth[1])}
+        if whole:
+            doc["truth"]["structures"] = {name: structure_truth(result, name, a, b, expert == numbers[name],
+                                                                numbers[name], truth[1])
+                                          for name, a, b in structures}
         title += f", expert (cyan, dashed): Dice {doc['truth']['dice']:.3f}, {doc['truth']['mean_mm']:.2f} mm"
     files["record"].write_text(json.dumps(doc, indent=1))
-    segment_figure(image, mask, files["picture"], title=title, reference=None if truth is None else truth[0],
+    segment_figure(image, mask, files["picture"], title=title, reference=reference,
                    reference_affine=None if truth is None else truth[1])
     return files
+
+
+def structure_truth(result, name: str, first: int, end: int, expert: np.ndarray, label: int, affine) -> dict:
+    """One structure of a joint segmentation (its points ``first:end``) against the expert's voxels of
+    its label: :func:`truth_scores`, or what is missing."""
+    if not np.any(expert):
+        return {"label": label, "missing": f"the expert's label map has no voxel of label {label} ({name})"}
+    f = np.asarray(result.faces)
+    part = SegmentationRecord(points=np.asarray(result.points)[first:end],
+                              faces=f[(f >= first).all(axis=1) & (f < end).all(axis=1)] - first,
+                              posterior_sd_mm=np.asarray(result.posterior_sd_mm)[first:end],
+                              deviation_mm=np.zeros(end - first), record={})
+    return {"label": label, **truth_scores(part, expert, affine)}
 
 
 def parse_point(text: str, what: str = "--at") -> np.ndarray:
@@ -204,12 +341,14 @@ def parse_point(text: str, what: str = "--at") -> np.ndarray:
 
 def segment_files(model_path, image_path, out_dir, *, at=(), landmarks_path=None, init_mask_path=None,
                   label: int | None = None, params=None, progress=None, cancelled=None, say=None,
-                  truth_path=None, truth_label: int | None = None) -> dict:
+                  truth_path=None, truth_label: int | None = None, labels: dict | None = None) -> dict:
     """``ssm segment``: read the model (``model.npz`` with its appearance, or a statismo file), the image
     and the start (``at``: "X,Y,Z" or "STRUCTURE=X,Y,Z" strings; a landmark file; or a rough mask and
     its label), segment and write the files into ``out_dir`` (a folder the caller owns). ``truth_path``
     (and ``truth_label``): an expert's label map of the structure, read before the search (a bad file
-    fails at once), scored against the result and outlined in ``segment.png``.
+    fails at once), scored against the result and outlined in ``segment.png``; with a joint model and
+    no ``truth_label``, the expert's whole label map, each structure scored against its own label.
+    ``labels`` {structure: number}: a joint model's label numbers (:func:`structure_labels`).
 
     Returns the ``segment.json`` document.
     """
@@ -228,9 +367,21 @@ def segment_files(model_path, image_path, out_dir, *, at=(), landmarks_path=None
             + (f" of {appearance.scans} scan: the image gradient is used (learned profiles from {MIN_SCANS} or more "
                "scans; --evidence learned uses these)" if params.evidence == "auto" and 0 < appearance.scans < MIN_SCANS
                else ""))
+    numbers = structure_labels(model.structure_names, labels) if model.structure_names else None
+    if labels and numbers is None:
+        raise InputError(f"--labels: {Path(model_path).name} is not a joint model (one structure, label 1)")
     image = read_image(image_path)
     truth = None
-    if truth_path is not None:
+    if truth_path is not None and numbers is not None and truth_label is None:
+        expert = read_label_map(truth_path)
+        truth = (np.asarray(expert.labels), expert.affine, truth_path)
+        if not np.isin(truth[0], list(numbers.values())).any():
+            found = np.unique(truth[0][truth[0] > 0])
+            raise InputError(f"{truth_path}: the expert's label map holds label(s) "
+                             f"{', '.join(map(str, found[:12].tolist())) or 'none'}, none of the structures' "
+                             f"({', '.join(f'{n}={v}' for n, v in numbers.items())}): give --labels as that map "
+                             "numbers them, or --truth-label N for one structure")
+    elif truth_path is not None:
         expert = load_volume(truth_path, truth_label)
         truth = (expert.mask, expert.affine, truth_path)
     named, pose, start = {}, None, {}
@@ -277,5 +428,5 @@ def segment_files(model_path, image_path, out_dir, *, at=(), landmarks_path=None
                            progress=progress, cancelled=cancelled)
     extra = {"start_given": start}
     files = write_segmentation(result, image, out_dir, model_source=str(model_path), extra=extra, overwrite=True,
-                               truth=truth)
+                               truth=truth, labels=labels)
     return json.loads(files["record"].read_text())

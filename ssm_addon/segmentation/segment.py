@@ -131,6 +131,8 @@ class SegmentResult:
         How well the boundary evidence fits at the result.
     findings : list of (str, str)
         (kind, message): ``outlier``, ``not_converged``, ``weak_evidence``, ``intensities``, ``orientation``.
+    structures : tuple of (name, first point, end point)
+        A joint model's structures and their point ranges (empty for one structure).
     """
 
     points: np.ndarray
@@ -150,6 +152,7 @@ class SegmentResult:
     converged: bool
     findings: list = field(default_factory=list)
     seconds: float = 0.0
+    structures: tuple = ()
 
     def to_dict(self) -> dict:
         return {"pose": self.pose.to_dict(), "coefficients": [float(x) for x in self.coefficients],
@@ -165,7 +168,9 @@ class SegmentResult:
                             "not_converged": any(k == "not_converged" for k, _ in self.findings),
                             "boundary_evidence_weak": any(k == "weak_evidence" for k, _ in self.findings),
                             "findings": [{"kind": k, "message": m} for k, m in self.findings]},
-                "seconds": float(self.seconds)}
+                "seconds": float(self.seconds),
+                **({"structures": [{"name": n, "points": [int(a), int(b)]} for n, a, b in self.structures]}
+                   if self.structures else {})}
 
 
 def volume_centroid(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -726,7 +731,9 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
                          posterior_sd_mm=sd, deviation_mm=deviation, mahalanobis=mahal,
                          p_value=float(chdtrc(k, d2)) if k else 1.0, evidence=evidence, boundary=boundary,
                          levels=levels, start=start_doc, iterations=iterations,
-                         converged=converged, findings=findings, seconds=time.perf_counter() - t0)
+                         converged=converged, findings=findings, seconds=time.perf_counter() - t0,
+                         structures=tuple((n, int(model.structure_offsets[i]), int(model.structure_offsets[i + 1]))
+                                          for i, n in enumerate(model.structure_names)))
 
 
 def _smooth_on_mesh(values: np.ndarray, weights: np.ndarray, faces: np.ndarray, *, rounds: int) -> np.ndarray:
