@@ -22,7 +22,7 @@ from ssm_addon.base.errors import InputError
 from ssm_addon.segmentation.appearance import appearance_from_arrays
 from ssm_addon.segmentation.files import SEGMENT_FILES, SegmentationRecord, write_segmentation
 from ssm_addon.segmentation.image import PLANES, read_image, window_values, world_slice
-from ssm_addon.segmentation.segment import SegmentParams, segment_image
+from ssm_addon.segmentation.segment import SegmentParams, segment_image, volume_centroid
 
 from . import bridge
 from .jobs import BackgroundJob
@@ -201,6 +201,12 @@ class SSM_OT_segment_image(BackgroundJob, bpy.types.Operator):
         obj["ssm_segment_json"] = json.dumps({**result.to_dict(), "image": path, "model": model_file or model_name,
                                               "model_object": model_name, "start_given": {"at": at.tolist()}})
         obj["ssm_segment_image"] = path
+        # the slices move to the result: through its solid centroid (world mm), each plane drawn once
+        settings = context.scene.ssm_image
+        centre = volume_centroid(result.points, result.faces)
+        for axis, key in enumerate(("position_x", "position_y", "position_z")):
+            settings[key] = float(centre[axis])
+        update_slices(context)
         findings = "".join(f"; {k}: {m}" for k, m in result.findings)
         self.report({"WARNING" if result.findings else "INFO"},
                     f"{name}: {result.evidence} evidence, {result.iterations} steps, Mahalanobis "

@@ -63,6 +63,13 @@ def test_segment_with_model_equals_ssm_segment_and_saves_the_same_files(bpy_clea
     assert doc["evidence"] == "learned"  # the appearance came with the imported model.npz
     # as the command's: the model file and the start
     assert doc["model"] == str(folder / "model.npz") and doc["start_given"]["at"] == pytest.approx(list(at), abs=1e-4)
+    # the slices moved to the result: each plane through its solid centroid
+    seg_points = np.array([v.co for v in obj.data.vertices], float)
+    centre = volume_centroid(seg_points, np.array([p.vertices[:] for p in obj.data.polygons]))
+    got = (scene.ssm_image.position_x, scene.ssm_image.position_y, scene.ssm_image.position_z)
+    assert np.allclose(got, centre, atol=1e-3), (got, centre)
+    assert np.allclose([v.co.z for v in axial.data.vertices], centre[2], atol=1e-3)
+    assert np.allclose([v.co.x for v in planes[0].data.vertices], centre[0], atol=1e-3)
     # a second segmentation (another structure, another start) is its own object: the first stays
     first = np.array([v.co for v in obj.data.vertices])
     assert bpy.ops.ssm.segment_image() == {"FINISHED"}
