@@ -125,14 +125,55 @@ def load_arrays(idblock, key: str) -> dict | None:
     return out
 
 
+#: The posterior SD colour scale (mm): blue at 0, red at this and above, the same for every fit and
+#: segmentation so colours compare between objects; the legend (:func:`sd_legend`) says it.
+SD_SCALE_MM = 3.0
+
+
 def sd_colours(sd: np.ndarray) -> np.ndarray:
-    """(N, 4) RGBA from posterior standard deviations: blue (certain) to red (uncertain)."""
-    rel = (sd - sd.min()) / max(float(np.ptp(sd)), 1e-12)
+    """(N, 4) RGBA from posterior standard deviations (mm) on the fixed scale 0 .. ``SD_SCALE_MM``:
+    blue (certain) to red (``SD_SCALE_MM`` or more)."""
+    rel = np.clip(np.asarray(sd, float) / SD_SCALE_MM, 0.0, 1.0)
     rgba = np.ones((len(sd), 4), dtype=np.float32)
     rgba[:, 0] = 0.15 + 0.8 * rel
     rgba[:, 1] = 0.35 + 0.3 * (1 - np.abs(2 * rel - 1))
     rgba[:, 2] = 0.9 - 0.75 * rel
     return rgba
+
+
+def sd_legend(context, near: np.ndarray, collection_name: str) -> bpy.types.Object:
+    """The posterior SD colour scale as a bar of 30 mm with its values in mm, beside the world points
+    ``near`` (10 mm beyond their largest x, at their mid height); one legend per scene, moved to the
+    latest result. Returns the bar (the labels are its children)."""
+    p = np.asarray(near, float).reshape(-1, 3)
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    origin = np.array([hi[0] + 10.0, 0.5 * (lo[1] + hi[1]), 0.5 * (lo[2] + hi[2]) - 15.0])
+    steps = 16
+    z = np.linspace(0.0, 30.0, steps + 1)
+    verts = np.concatenate([np.stack([np.zeros_like(z), np.zeros_like(z), z], 1),
+                            np.stack([np.full_like(z, 4.0), np.zeros_like(z), z], 1)])
+    faces = np.array([t for k in range(steps) for t in ([k, steps + 1 + k, steps + 2 + k],
+                                                        [k, steps + 2 + k, k + 1])])
+    matrix = np.eye(4)
+    matrix[:3, 3] = origin
+    bar = new_mesh_object(context, "SSM SD legend", verts, faces, collection_name=collection_name, matrix_world=matrix)
+    set_vertex_colors(bar.data, sd_colours(np.concatenate([z, z]) / 30.0 * SD_SCALE_MM), name="posterior_sd")
+    mat = color_material("SSM Posterior SD", attribute="posterior_sd")
+    if not bar.data.materials:
+        bar.data.materials.append(mat)
+    for k, value in enumerate((0.0, 0.5 * SD_SCALE_MM, SD_SCALE_MM)):
+        name = f"SSM SD legend {k}"
+        label = bpy.data.objects.get(name)
+        if label is None or label.type != "FONT":
+            label = bpy.data.objects.new(name, bpy.data.curves.new(name, "FONT"))
+            ensure_collection(context.scene, collection_name).objects.link(label)
+        label.data.body = f"{value:g} mm" if k < 2 else f"{value:g} mm or more (posterior SD)"
+        label.data.size = 3.0
+        label.parent = bar
+        label.matrix_parent_inverse = Matrix.Identity(4)
+        label.location = (6.0, 0.0, 15.0 * k - 1.0)
+        label.rotation_euler = (np.pi / 2, 0.0, 0.0)  # read from the front (looking along +y)
+    return bar
 
 
 def position_colors(points: np.ndarray) -> np.ndarray:

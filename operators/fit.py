@@ -124,6 +124,7 @@ class SSM_OT_fit_model(BackgroundJob, bpy.types.Operator):
         else:
             obj.data.materials[0] = mat
         obj.ssm.role = "SAMPLE"
+        bridge.sd_legend(context, result.points, FIT_COLLECTION)
         obj["ssm_fit_json"] = json.dumps({**result.to_dict(), **verdict.to_dict()})
         message = (f"{target.name}: Mahalanobis distance {result.mahalanobis:.2f} on {result.n_modes} modes "
                    f"(p = {result.p_value:.3g}); mean distance {result.mean_distance_mm:.2f} mm; posterior SD up to "

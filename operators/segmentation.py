@@ -198,6 +198,7 @@ class SSM_OT_segment_image(BackgroundJob, bpy.types.Operator):
         if not obj.data.materials:
             obj.data.materials.append(mat)
         obj.ssm.role = "SAMPLE"
+        bridge.sd_legend(context, result.points, SEGMENT_COLLECTION)
         obj["ssm_segment_json"] = json.dumps({**result.to_dict(), "image": path, "model": model_file or model_name,
                                               "model_object": model_name, "start_given": {"at": at.tolist()}})
         obj["ssm_segment_image"] = path

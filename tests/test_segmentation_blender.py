@@ -70,6 +70,18 @@ def test_segment_with_model_equals_ssm_segment_and_saves_the_same_files(bpy_clea
     assert np.allclose(got, centre, atol=1e-3), (got, centre)
     assert np.allclose([v.co.z for v in axial.data.vertices], centre[2], atol=1e-3)
     assert np.allclose([v.co.x for v in planes[0].data.vertices], centre[0], atol=1e-3)
+    # the SD colours on the fixed scale, with a legend in mm beside the result (one per scene)
+    from ssm.operators import bridge
+
+    legend = bpy.data.objects["SSM SD legend"]
+    texts = sorted(o.data.body for o in legend.children)
+    assert texts == ["0 mm", "1.5 mm", "3 mm or more (posterior SD)"] and bridge.SD_SCALE_MM == 3.0
+    assert np.array(legend.matrix_world)[0, 3] > seg_points[:, 0].max()
+    sd = bridge.get_point_attribute(obj.data, "posterior_sd_mm")
+    colours = np.array([c.color[:] for c in obj.data.color_attributes["posterior_sd"].data])
+    loops = np.array([lp.vertex_index for lp in obj.data.loops])
+    assert np.allclose(colours, bridge.sd_colours(sd)[loops], atol=1e-6)
+    assert np.allclose(bridge.sd_colours(np.array([0.0, 3.0, 7.0]))[:, 0], [0.15, 0.95, 0.95])
     # a second segmentation (another structure, another start) is its own object: the first stays
     first = np.array([v.co for v in obj.data.vertices])
     assert bpy.ops.ssm.segment_image() == {"FINISHED"}
