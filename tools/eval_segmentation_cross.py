@@ -119,14 +119,20 @@ def relearned(model, names, images) -> object:
     return learn_appearance(model.mean, model.faces, sh, im, names=nm)
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def cross_arguments(description: str) -> argparse.ArgumentParser:
+    """The options of a learn-on-one-CT, segment-the-other evaluation: data, work, learn, segment, starts."""
+    ap = argparse.ArgumentParser(description=description)
     ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data"))
     ap.add_argument("--work", required=True)
     ap.add_argument("--learn", default="verse005")
     ap.add_argument("--segment", default="verse012")
     ap.add_argument("--offset", type=float, default=10.0)
     ap.add_argument("--starts", type=int, default=2)
+    return ap
+
+
+def main(argv=None) -> int:
+    ap = cross_arguments(__doc__.splitlines()[0])
     ap.add_argument("--evidence", default="gradient,learned,matched,augmented")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)

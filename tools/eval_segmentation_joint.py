@@ -15,7 +15,6 @@ go to the one they lie deeper in, so the two never share one.
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from pathlib import Path
@@ -27,7 +26,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tools"))
 
 from eval_segmentation import LUMBAR, start_points  # noqa: E402
-from eval_segmentation_cross import build_model, subject_files  # noqa: E402
+from eval_segmentation_cross import build_model, cross_arguments, subject_files  # noqa: E402
 
 from ssm_addon.formats.label_maps import read_label_map  # noqa: E402
 from ssm_addon.model.files import load_npz  # noqa: E402
@@ -57,14 +56,7 @@ def build_pair_model(data: Path, work: Path, learn: str):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data"))
-    ap.add_argument("--work", required=True)
-    ap.add_argument("--learn", default="verse005")
-    ap.add_argument("--segment", default="verse012")
-    ap.add_argument("--offset", type=float, default=10.0)
-    ap.add_argument("--starts", type=int, default=2)
-    args = ap.parse_args(argv)
+    args = cross_arguments(__doc__.splitlines()[0]).parse_args(argv)
     data, work = Path(args.data), Path(args.work)
     single, _appearance, _trained = build_model(data, work / f"learn_{args.learn}", args.learn)
     t = time.perf_counter()
