@@ -33,7 +33,7 @@ from ssm_addon.model.files import load_npz  # noqa: E402
 from ssm_addon.pipeline.project import read_project  # noqa: E402
 from ssm_addon.pipeline.project_build import build  # noqa: E402
 from ssm_addon.segmentation import SegmentParams, read_image, segment_image, start_pose, structure_labels  # noqa: E402
-from ssm_addon.segmentation.files import structure_label_map  # noqa: E402
+from ssm_addon.segmentation.files import structure_label_map, structure_part  # noqa: E402
 from ssm_addon.segmentation.scores import segmentation_scores  # noqa: E402
 
 
@@ -80,9 +80,8 @@ def main(argv=None) -> int:
             labels, info = structure_label_map(joint.points, joint.faces, joint.structures, numbers, image)
             scores = {}
             for name, first, end in joint.structures:
-                f = joint.faces[(joint.faces >= first).all(axis=1) & (joint.faces < end).all(axis=1)] - first
-                scores[name] = segmentation_scores(joint.points[first:end], f, expert.labels == numbers[name],
-                                                   expert.affine)
+                scores[name] = segmentation_scores(joint.points[first:end], structure_part(joint.faces, first, end),
+                                                   expert.labels == numbers[name], expert.affine)
             own = labels == LUMBAR[up]
             truth = expert.labels == LUMBAR[up]
             dice_voxels = 2 * np.count_nonzero(own & truth) / max(own.sum() + truth.sum(), 1)

@@ -84,6 +84,13 @@ def parse_labels(items) -> dict:
     return out
 
 
+def structure_part(faces: np.ndarray, first: int, end: int) -> np.ndarray:
+    """The triangles of a joint mesh's structure whose points are ``first:end``, indexing its own points
+    (those wholly inside it, shifted to start at 0; :meth:`ShapeModel.structure_faces` for a model)."""
+    f = np.asarray(faces)
+    return f[(f >= first).all(axis=1) & (f < end).all(axis=1)] - first
+
+
 def structure_label_map(points: np.ndarray, faces: np.ndarray, structures, labels: dict,
                         image: GreyImage) -> tuple[np.ndarray, dict]:
     """A joint segmentation's label map on ``image``'s grid: each structure's voxels with its label.
@@ -97,10 +104,9 @@ def structure_label_map(points: np.ndarray, faces: np.ndarray, structures, label
     -------
     (I, J, K) uint8 or uint16 labels, and per structure {"label", "voxels", "shared_voxels_given_away"}.
     """
-    faces = np.asarray(faces)
     masks, parts = [], []
     for name, a, b in structures:
-        f = faces[(faces >= a).all(axis=1) & (faces < b).all(axis=1)] - a
+        f = structure_part(faces, a, b)
         parts.append((name, points[a:b], f))
         masks.append(segmentation_mask(points[a:b], f, image))
     count = np.sum(masks, axis=0, dtype=np.int16)
@@ -320,9 +326,8 @@ def structure_truth(result, name: str, first: int, end: int, expert: np.ndarray,
     its label: :func:`truth_scores`, or what is missing."""
     if not np.any(expert):
         return {"label": label, "missing": f"the expert's label map has no voxel of label {label} ({name})"}
-    f = np.asarray(result.faces)
     part = SegmentationRecord(points=np.asarray(result.points)[first:end],
-                              faces=f[(f >= first).all(axis=1) & (f < end).all(axis=1)] - first,
+                              faces=structure_part(result.faces, first, end),
                               posterior_sd_mm=np.asarray(result.posterior_sd_mm)[first:end],
                               deviation_mm=np.zeros(end - first), record={})
     return {"label": label, **truth_scores(part, expert, affine)}
