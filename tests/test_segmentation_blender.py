@@ -3,11 +3,13 @@ the same numbers and files as ``ssm segment``."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import nibabel as nib
 import numpy as np
 import pytest
+from conftest import joint_model, joint_population
 from test_segmentation import bumped_shapes, posed, synthetic_image
 
 from ssm_addon.model.files import save_npz
@@ -113,3 +115,32 @@ def test_segment_with_model_equals_ssm_segment_and_saves_the_same_files(bpy_clea
     log = []
     bpy.types.SSM_PT_segment.draw(type("P", (), {"layout": layout_recorder(log)})(), bpy.context)
     assert ("operator", "ssm.save_segmentation") in log and any("learned evidence" in t for k, t in log if k == "label")
+
+
+def test_a_joint_segmentation_saved_in_blender_has_the_commands_labels(bpy_clean, tmp_path):
+    """A joint model (two touching structures, named L1 and L2) imported into Blender and segmented from
+    the 3D cursor: *Save Segmentation* writes the label map the command writes from the same point,
+    voxel for voxel, each structure under its VerSe number (20, 21), none in both."""
+    bpy = bpy_clean
+    a, b, fa, fb, _turns = joint_population(n=14, seed=3)
+    model = joint_model(a[1:], b[1:], fa, fb)
+    model = dataclasses.replace(model, structure_names=("L1", "L2"))
+    na = a.shape[1]
+    truth = np.concatenate([a[0], b[0]]) + np.array([20.0, -10.0, 5.0])
+    image, _mask = synthetic_image(truth, np.concatenate([fa, fb + na]))
+    nib.save(nib.Nifti1Image(image.data, image.affine), str(tmp_path / "ct.nii.gz"))
+    save_npz(model, tmp_path / "joint.npz")
+    assert bpy.ops.ssm.import_model(filepath=str(tmp_path / "joint.npz")) == {"FINISHED"}
+    assert bpy.ops.ssm.import_image(filepath=str(tmp_path / "ct.nii.gz")) == {"FINISHED"}
+    bpy.context.scene.cursor.location = tuple(volume_centroid(truth, np.concatenate([fa, fb + na])) + [1.0, 1.0, 0.0])
+    assert bpy.ops.ssm.segment_image() == {"FINISHED"}
+    (obj,) = [o for o in bpy.data.objects if "ssm_segment_json" in o]
+    bpy.context.view_layer.objects.active = obj
+    assert bpy.ops.ssm.save_segmentation(directory=str(tmp_path / "blender")) == {"FINISHED"}
+    cursor = np.array(bpy.context.scene.cursor.location, float)
+    segment_files(tmp_path / "joint.npz", tmp_path / "ct.nii.gz", tmp_path / "cli", at=[",".join(map(repr, cursor))])
+    blender = np.asarray(nib.load(str(tmp_path / "blender" / "segmentation.nii.gz")).dataobj)
+    cli = np.asarray(nib.load(str(tmp_path / "cli" / "segmentation.nii.gz")).dataobj)
+    assert set(np.unique(cli)) == {0, 20, 21} and np.array_equal(blender, cli)
+    saved = json.loads((tmp_path / "blender" / "segment.json").read_text())
+    assert saved["segmentation"]["structures"]["L2"]["label"] == 21
