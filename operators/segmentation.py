@@ -22,12 +22,12 @@ from ssm_addon.base.errors import InputError
 from ssm_addon.segmentation.appearance import appearance_from_arrays
 from ssm_addon.segmentation.files import SEGMENT_FILES, SegmentationRecord, write_segmentation
 from ssm_addon.segmentation.image import PLANES, read_image, window_values, world_slice
-from ssm_addon.segmentation.segment import SegmentParams, segment_image, volume_centroid
+from ssm_addon.segmentation.segment import SegmentParams, segment_image, start_pose, volume_centroid
 
 from . import bridge
 from .jobs import BackgroundJob
 from .properties import SSMPanel
-from .scene import APPEARANCE_KEY, MODEL_FILE_PROP, find_model_object, model_from_object
+from .scene import APPEARANCE_KEY, MODEL_FILE_PROP, find_model_object, model_from_object, model_structures
 
 IMAGE_COLLECTION = "SSM Image"
 SEGMENT_COLLECTION = "SSM Segmentations"
@@ -147,6 +147,49 @@ class SSM_OT_import_image(bpy.types.Operator, ImportHelper):
         return {"FINISHED"}
 
 
+#: A joint model's start for one structure: an empty named this + the structure (*Place Start*).
+START_PREFIX = "SSM start "
+
+
+def structure_starts(context, model) -> dict:
+    """{structure: (3,) world mm} of the scene's start empties for ``model``'s structures (a joint model)."""
+    out = {}
+    for name in model.structure_names:
+        empty = context.scene.objects.get(START_PREFIX + name)
+        if empty is not None and empty.type == "EMPTY":
+            out[name] = np.array(empty.matrix_world.translation, float)
+    return out
+
+
+class SSM_OT_place_start(bpy.types.Operator):
+    """Mark the 3D cursor as the start of one structure of the joint model (an empty named by the
+    structure; segmenting then starts each marked structure at its own point, as `--at NAME=X,Y,Z`)"""
+
+    bl_idname = "ssm.place_start"
+    bl_label = "Place Start"
+    bl_options = {"REGISTER", "UNDO"}
+
+    structure: StringProperty(name="Structure", description="The joint model's structure this start is for")
+
+    def execute(self, context):
+        model_obj = find_model_object(context)
+        names = model_structures(model_obj) if model_obj is not None else []
+        if self.structure not in names:
+            self.report({"ERROR"}, f"place start: the model has no structure {self.structure!r} (structures: "
+                                   f"{', '.join(names) or 'none: the 3D cursor is the start'})")
+            return {"CANCELLED"}
+        name = START_PREFIX + self.structure
+        empty = bpy.data.objects.get(name)
+        if empty is None:
+            empty = bpy.data.objects.new(name, None)
+            empty.empty_display_type = "SPHERE"
+            empty.empty_display_size = 3.0
+            bridge.ensure_collection(context.scene, SEGMENT_COLLECTION).objects.link(empty)
+        empty.location = context.scene.cursor.location
+        self.report({"INFO"}, f"start of {self.structure}: {', '.join(f'{v:.1f}' for v in empty.location)} mm")
+        return {"FINISHED"}
+
+
 class SSM_OT_segment_image(BackgroundJob, bpy.types.Operator):
     """Segment the scene's image with the model, starting from the 3D cursor (a point inside the structure,
     e.g. clicked on a slice with Shift + right-click)"""
@@ -176,16 +219,19 @@ class SSM_OT_segment_image(BackgroundJob, bpy.types.Operator):
         appearance = appearance_from_arrays(arrays, model.n_points, model_obj.name) if arrays else None
         at = np.array(context.scene.cursor.location, float)
         params = SegmentParams(evidence=self.evidence)
-        self._names = (model_obj.name, model_obj.get(MODEL_FILE_PROP, ""), image.path, at)
+        named = structure_starts(context, model)  # a joint model's starts per structure, if placed
+        start = {"points": {n: p.tolist() for n, p in named.items()}} if named else {"at": at.tolist()}
+        pose = start_pose(model, named=named) if named else None
+        self._names = (model_obj.name, model_obj.get(MODEL_FILE_PROP, ""), image.path, start)
 
         def work(progress, cancelled):
-            return segment_image(model, image, at=at, appearance=appearance, params=params, progress=progress,
-                                 cancelled=cancelled)
+            return segment_image(model, image, at=None if named else at, pose=pose, appearance=appearance,
+                                 params=params, progress=progress, cancelled=cancelled)
 
         return work
 
     def finish(self, context, result):
-        model_name, model_file, path, at = self._names
+        model_name, model_file, path, start = self._names
         # each segmentation its own object, named by image and model (a spine's vertebrae side by side)
         name = f"{os.path.basename(path).split('.')[0]} {model_name} segmented"
         obj = bridge.new_mesh_object(context, name, result.points, result.faces, collection_name=SEGMENT_COLLECTION,
@@ -200,7 +246,7 @@ class SSM_OT_segment_image(BackgroundJob, bpy.types.Operator):
         obj.ssm.role = "SAMPLE"
         bridge.sd_legend(context, result.points, SEGMENT_COLLECTION)
         obj["ssm_segment_json"] = json.dumps({**result.to_dict(), "image": path, "model": model_file or model_name,
-                                              "model_object": model_name, "start_given": {"at": at.tolist()}})
+                                              "model_object": model_name, "start_given": start})
         obj["ssm_segment_image"] = path
         # the slices move to the result: through its solid centroid (world mm), each plane drawn once
         settings = context.scene.ssm_image
@@ -281,6 +327,14 @@ class SSM_PT_segment(SSMPanel, bpy.types.Panel):
             row.prop(settings, "level")
             row.prop(settings, "width")
             layout.label(text="Start: the 3D cursor (Shift + right-click on a slice)", icon="PIVOT_CURSOR")
+            model_obj = find_model_object(context)
+            names = model_structures(model_obj) if model_obj is not None else []
+            if names:  # a joint model: a start per structure, each at the cursor when placed
+                row = layout.row(align=True)
+                for name in names:
+                    placed = context.scene.objects.get(START_PREFIX + name) is not None
+                    row.operator(SSM_OT_place_start.bl_idname, text=name,
+                                 icon="CHECKMARK" if placed else "EMPTY_AXIS").structure = name
         layout.operator(SSM_OT_segment_image.bl_idname, icon="MOD_SHRINKWRAP")
         obj = _segmentation_object(context)
         if obj is not None:
@@ -291,7 +345,8 @@ class SSM_PT_segment(SSMPanel, bpy.types.Panel):
             layout.operator(SSM_OT_save_segmentation.bl_idname, icon="EXPORT")
 
 
-classes = (SSMImageSettings, SSM_OT_import_image, SSM_OT_segment_image, SSM_OT_save_segmentation, SSM_PT_segment)
+classes = (SSMImageSettings, SSM_OT_import_image, SSM_OT_place_start, SSM_OT_segment_image, SSM_OT_save_segmentation,
+           SSM_PT_segment)
 
 
 def register_properties():

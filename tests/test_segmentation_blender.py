@@ -144,3 +144,41 @@ def test_a_joint_segmentation_saved_in_blender_has_the_commands_labels(bpy_clean
     assert set(np.unique(cli)) == {0, 20, 21} and np.array_equal(blender, cli)
     saved = json.loads((tmp_path / "blender" / "segment.json").read_text())
     assert saved["segmentation"]["structures"]["L2"]["label"] == 21
+
+
+def test_a_joint_models_starts_placed_per_structure_segment_as_the_command_does(bpy_clean, tmp_path, layout_recorder):
+    """*Place Start* marks the 3D cursor as one structure's start (an empty per structure); *Segment with
+    Model* then starts each at its own point, as ``ssm segment --at a=… --at b=…``: the same label map,
+    and ``segment.json`` records the points."""
+    bpy = bpy_clean
+    a, b, fa, fb, _turns = joint_population(n=14, seed=3)
+    model = joint_model(a[1:], b[1:], fa, fb)
+    na = a.shape[1]
+    truth = np.concatenate([a[0], b[0]]) + np.array([20.0, -10.0, 5.0])
+    image, _mask = synthetic_image(truth, np.concatenate([fa, fb + na]))
+    nib.save(nib.Nifti1Image(image.data, image.affine), str(tmp_path / "ct.nii.gz"))
+    save_npz(model, tmp_path / "joint.npz")
+    assert bpy.ops.ssm.import_model(filepath=str(tmp_path / "joint.npz")) == {"FINISHED"}
+    assert bpy.ops.ssm.import_image(filepath=str(tmp_path / "ct.nii.gz")) == {"FINISHED"}
+    log = []
+    bpy.types.SSM_PT_segment.draw(type("P", (), {"layout": layout_recorder(log)})(), bpy.context)
+    assert log.count(("operator", "ssm.place_start")) == 2  # a button per structure
+    with pytest.raises(RuntimeError, match="no structure 'c'"):
+        bpy.ops.ssm.place_start(structure="c")
+    starts = {"a": volume_centroid(truth[:na], fa) + [2.0, 2.0, 0.0],
+              "b": volume_centroid(truth[na:], fb) + [-2.0, 1.0, 1.0]}
+    for name, point in starts.items():
+        bpy.context.scene.cursor.location = tuple(point)
+        assert bpy.ops.ssm.place_start(structure=name) == {"FINISHED"}
+    bpy.context.scene.cursor.location = (0.0, 0.0, 0.0)  # not the start any more
+    assert bpy.ops.ssm.segment_image() == {"FINISHED"}
+    (obj,) = [o for o in bpy.data.objects if "ssm_segment_json" in o]
+    placed = {n: np.array(bpy.data.objects[f"SSM start {n}"].location, float) for n in starts}
+    assert json.loads(obj["ssm_segment_json"])["start_given"]["points"]["b"] == pytest.approx(list(placed["b"]))
+    bpy.context.view_layer.objects.active = obj
+    assert bpy.ops.ssm.save_segmentation(directory=str(tmp_path / "blender")) == {"FINISHED"}
+    segment_files(tmp_path / "joint.npz", tmp_path / "ct.nii.gz", tmp_path / "cli",
+                  at=[f"{n}={','.join(map(repr, p))}" for n, p in placed.items()])
+    blender = np.asarray(nib.load(str(tmp_path / "blender" / "segmentation.nii.gz")).dataobj)
+    cli = np.asarray(nib.load(str(tmp_path / "cli" / "segmentation.nii.gz")).dataobj)
+    assert set(np.unique(cli)) == {0, 1, 2} and np.array_equal(blender, cli)
