@@ -7,7 +7,7 @@ import json
 import nibabel as nib
 import numpy as np
 import pytest
-from conftest import axis_rotation, icosphere, shared_data_dir
+from conftest import axis_rotation, icosphere, joint_model, joint_population, shared_data_dir
 from scipy import ndimage
 from scipy.stats import spearmanr
 
@@ -29,6 +29,7 @@ from ssm_addon.segmentation import (
     segment_image,
     segmentation_mask,
     segmentation_scores,
+    start_pose,
     structure_labels,
     volume_centroid,
 )
@@ -184,8 +185,6 @@ def test_a_dilated_rough_mask_is_refined_to_the_true_one(population, tmp_path):
 
 
 def test_a_joint_models_structures_are_segmented_together_from_a_point_each(tmp_path):
-    from conftest import joint_model, joint_population
-
     a, b, fa, fb, _turns = joint_population(n=14, seed=3)
     model = joint_model(a[1:], b[1:], fa, fb)
     faces = np.concatenate([fa, fb + a.shape[1]])
@@ -211,8 +210,6 @@ def test_touching_structures_are_segmented_jointly_into_their_own_labels(tmp_pat
     (their surfaces cross by about 0.5 mm): segmented together from a point each, the label map holds
     each structure under its own number (1, 2 by the model's order; ``--labels`` sets others), no voxel
     in both, and against the expert's label map each structure scores on its own label."""
-    from conftest import joint_model, joint_population
-
     a, b, fa, fb, _turns = joint_population(n=14, seed=3)
     model = joint_model(a[1:], b[1:], fa, fb)
     na = a.shape[1]
@@ -234,6 +231,8 @@ def test_touching_structures_are_segmented_jointly_into_their_own_labels(tmp_pat
     assert per["a"]["voxels"] + per["b"]["voxels"] == doc["segmentation"]["voxels"] == np.count_nonzero(labels)
     scores = doc["truth"]["structures"]
     assert scores["a"]["dice"] > 0.9 and scores["b"]["dice"] > 0.85, scores
+    verdict = doc["boundary"]["structures"]  # each structure's own verdict
+    assert set(verdict) == {"a", "b"} and all(v["weak_share"] < 0.4 and v["sd_mean_mm"] > 0 for v in verdict.values())
     assert main(["segment", str(tmp_path / "joint.npz"), str(tmp_path / "ct.nii.gz"), *[f"--at={x}" for x in at],
                  "--labels", "a=300,b=2", "--truth", str(tmp_path / "expert.nii.gz"),
                  "--out", str(tmp_path / "cli")]) == 0
@@ -558,3 +557,21 @@ def test_verse005_vertebrae_are_segmented_leave_one_out(tmp_path):
     assert s_l["dice"] > 0.86 and s_l["mean_mm"] < 1.2, s_l  # measured 0.89 / 1.00 mm
     assert s_g["dice"] > 0.83 and s_g["mean_mm"] < 1.5, s_g  # measured 0.87 / 1.20 mm
     assert not [k for k, _ in learned.findings if k in ("outlier", "weak_evidence", "intensities")]
+
+
+def test_a_joint_structure_missing_from_the_image_is_named_by_its_own_verdict():
+    """A joint model's second structure absent from the image (only the first drawn): the search keeps it
+    where the model's relative pose puts it, and the verdict names it alone: weak evidence on all of its
+    surface (none on the other's), its posterior SD several times the other's."""
+    a, b, fa, fb, _turns = joint_population(n=14, seed=3)
+    model = joint_model(a[1:], b[1:], fa, fb)
+    na = a.shape[1]
+    truth = np.concatenate([a[0], b[0]]) + np.array([20.0, -10.0, 5.0])
+    image, _ = synthetic_image(truth[:na], fa, margin_mm=40.0)
+    named = {"a": volume_centroid(truth[:na], fa), "b": volume_centroid(truth[na:], fb)}
+    result = segment_image(model, image, pose=start_pose(model, named=named))
+    verdict = result.boundary["structures"]
+    assert verdict["b"]["weak_share"] > 0.9 and verdict["a"]["weak_share"] < 0.1, verdict
+    assert verdict["b"]["sd_mean_mm"] > 3 * verdict["a"]["sd_mean_mm"], verdict  # measured 2.07 against 0.36 mm
+    weak = [m for k, m in result.findings if k == "weak_evidence"]
+    assert len(weak) == 1 and weak[0].startswith("b: 100 % of its surface has weak boundary evidence"), weak

@@ -714,6 +714,17 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
     if weak_share > 0.4:
         findings.append(("weak_evidence", f"{100 * weak_share:.0f} % of the surface has weak boundary evidence "
                                           f"({evidence}); the boundary there follows the model, not the image"))
+    if model.structure_names:  # a joint model: each structure's own verdict
+        boundary["structures"] = {}
+        for i, name in enumerate(model.structure_names):
+            part = slice(int(model.structure_offsets[i]), int(model.structure_offsets[i + 1]))
+            weak = float(np.mean(strong_at[part, zero] < 0.25))
+            boundary["structures"][name] = {"weak_share": weak, "sd_mean_mm": float(sd[part].mean()),
+                                            "deviation_mean_mm": float(np.abs(deviation[part]).mean())}
+            if weak > 0.4 >= weak_share:
+                findings.append(("weak_evidence", f"{name}: {100 * weak:.0f} % of its surface has weak boundary "
+                                                  f"evidence ({evidence}); its boundary there follows the model, "
+                                                  "not the image"))
     if appearance is not None and np.all(np.isfinite(appearance.boundary_mm)):
         c_train = float(appearance.boundary_mm[0] - appearance.boundary_mm[1])
         c_here = boundary["inside_mean"] - boundary["outside_mean"]
