@@ -560,6 +560,11 @@ def check_model(model, params: QualityParams) -> tuple[list[Finding], dict]:
     * one mode far out: the largest |t| over the k modes, Student's t with m − 1 degrees
       of freedom, Bonferroni-corrected (× k): the F test has little power when many modes
       are kept and few shapes estimate them.
+
+    A reconstruction finding needs the instance's leave-one-out reconstruction error above
+    ``max_loo_error_ratio`` × the median and unlikely for a population of this size
+    (:func:`reconstruction_p_values`: below ``1 - outlier_probability`` after n comparisons),
+    so that the largest of a random population's errors is not named for being the largest.
     """
     names = [str(s) for s in model.instance_names]
     if len(names) > params.max_outlier_instances:
@@ -568,6 +573,7 @@ def check_model(model, params: QualityParams) -> tuple[list[Finding], dict]:
     out, per = [], {}
     errors = scores["loo_error_mm"]
     median_err = float(np.nanmedian(errors)) if np.isfinite(errors).any() else float("nan")
+    p_recon = reconstruction_p_values(errors)
     m = len(names) - 1
     for i, name in enumerate(names):
         d2, k, e = scores["mahalanobis2"][i], int(scores["modes"][i]), errors[i]
@@ -580,18 +586,53 @@ def check_model(model, params: QualityParams) -> tuple[list[Finding], dict]:
         p = min(p_all, p_one)
         per[name] = {"mahalanobis": math.sqrt(d2), "modes": k, "p_value": p, "p_value_all_modes": p_all,
                      "largest_t": t_max, "p_value_one_mode": p_one, "loo_error_mm": float(e),
-                     "loo_error_ratio": float(e / median_err) if median_err > 0 else None}
+                     "loo_error_ratio": float(e / median_err) if median_err > 0 else None,
+                     "loo_error_p_value": float(p_recon[i])}
         if p < 1.0 - params.outlier_probability:
             why = (f"{t_max:.1f} standard deviations out along one mode" if p_one <= p_all
                    else f"Mahalanobis distance {math.sqrt(d2):.2f} over {k} modes")
             out.append(Finding(name, "outlier", f"unlike the other instances: {why} of the model without it "
                                f"(p = {p:.2g}, below {1 - params.outlier_probability:.2g})", p,
                                1.0 - params.outlier_probability))
-        if median_err > 0 and e / median_err > params.max_loo_error_ratio:
+        if (median_err > 0 and e / median_err > params.max_loo_error_ratio
+                and p_recon[i] < 1.0 - params.outlier_probability):
             out.append(Finding(name, "reconstruction", f"the model without it reconstructs it with {e:.2f} mm RMS, "
                                f"{e / median_err:.1f}× the median of the instances (allowed "
-                               f"{params.max_loo_error_ratio:g}×)", e / median_err, params.max_loo_error_ratio))
+                               f"{params.max_loo_error_ratio:g}×; p = {p_recon[i]:.2g} that one of {len(names)} "
+                               "instances of one population lies so far out)", e / median_err,
+                               params.max_loo_error_ratio))
     return out, per
+
+
+def reconstruction_p_values(errors: np.ndarray) -> np.ndarray:
+    """Per instance, how likely a population of this size holds a leave-one-out reconstruction error
+    so far above the others' (one-sided, Bonferroni-corrected × n).
+
+    The logarithm of each error against the others' (their mean and SD): t = (log e_i − mean) /
+    (SD √(1 + 1/m)) follows Student's t with m − 1 degrees of freedom for m others from one
+    log-normal population (the prediction interval of a new value). NaN errors and populations
+    of fewer than 4 give 1 (nothing said).
+
+    >>> p = reconstruction_p_values(np.array([1.0, 1.1, 0.9, 1.05, 0.95, 1.02, 0.98, 3.0]))
+    >>> bool(p[-1] < 0.01), bool(p[:-1].min() > 0.5)
+    (True, True)
+    """
+    e = np.asarray(errors, float)
+    out = np.ones(len(e))
+    ok = np.isfinite(e) & (e > 0)
+    le = np.log(np.where(ok, e, 1.0))
+    for i in np.flatnonzero(ok):
+        others = le[ok & (np.arange(len(e)) != i)]
+        m = len(others)
+        if m < 3:
+            continue
+        sd = float(others.std(ddof=1))
+        if sd <= 0:
+            out[i] = 0.0 if le[i] > others.mean() else 1.0
+            continue
+        t = (le[i] - float(others.mean())) / (sd * math.sqrt(1.0 + 1.0 / m))
+        out[i] = min(1.0, int(ok.sum()) * float(stdtr(m - 1, -t)))
+    return out
 
 
 def warnings_text(findings: list[Finding]) -> str:
