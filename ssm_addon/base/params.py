@@ -980,7 +980,9 @@ class QualityParams:
                                                   "variance")
     max_loo_error_ratio: float = param(3.0, minimum=1.0, maximum=1000.0, label="Max reconstruction ratio",
                                        advanced=True,
-                                       help="largest leave-one-out reconstruction error relative to the median")
+                                       help="largest leave-one-out reconstruction error relative to the median; "
+                                            "an instance beyond it is named when a population of this size also "
+                                            "holds one so far out rarely (p below 1 - the outlier quantile)")
     max_outlier_instances: int = param(100_000, minimum=3, maximum=10**7, label="Outlier scores up to", advanced=True,
                                        help="leave-one-out outlier scores are computed up to this many instances")
 
