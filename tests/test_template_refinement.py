@@ -118,10 +118,12 @@ def test_only_parts_the_coating_cut_off_ask_for_a_denser_template():
     assert cut_off_instances(result) == ["tip", "near"]
 
 
-@pytest.mark.parametrize("second", ["better", "worse", "other-finding", "cancelled"])
+@pytest.mark.parametrize("second", ["better", "worse", "other-finding", "farther", "cancelled"])
 def test_the_second_coating_is_kept_only_when_fewer_meshes_are_cut_off(monkeypatch, second):
     """The coatings with the refined template replace the first only with fewer ``input_surface``
-    findings and no more findings of other gates; Esc during them keeps the first."""
+    findings, no more findings of other gates and no mesh farther from its coating anywhere (its
+    finding gone on one instance but another's mesh 0.7 mm farther: the first kept, and said where);
+    Esc during them keeps the first."""
     import dataclasses
 
     from ssm_addon.base.errors import Cancelled
@@ -138,10 +140,12 @@ def test_the_second_coating_is_kept_only_when_fewer_meshes_are_cut_off(monkeypat
     monkeypatch.setattr(R, "make_template", lambda study, **k: refined)
     study = Study(instances=[], template_instance="t", template=built, volumes={"t": None})
     finding, distance = _cut("a", 3.6, 2, 0.001)
-    first = _result([finding], {"a": distance})
+    b_first, b_farther = ({"from_input": {"max_mm": mm, "mean_mm": 0.4}} for mm in (1.6, 2.3))
+    first = _result([finding], {"a": distance, "b": b_first})
     near = {"from_input": {"max_mm": 2.5, "mean_mm": 0.5}}
-    seconds = {"better": _result([], {"a": near}), "worse": _result([finding], {"a": distance}),
-               "other-finding": _result([Finding("a", "folds", "folded", 2.0, 0.0)], {"a": near})}
+    seconds = {"better": _result([], {"a": near, "b": b_first}), "worse": _result([finding], {"a": distance, "b": b_first}),
+               "other-finding": _result([Finding("a", "folds", "folded", 2.0, 0.0)], {"a": near, "b": b_first}),
+               "farther": _result([], {"a": near, "b": b_farther})}
     seen = []
 
     def coat(s):
@@ -161,3 +165,4 @@ def test_the_second_coating_is_kept_only_when_fewer_meshes_are_cut_off(monkeypat
         assert out.findings == first.findings and "template" not in out.product
         assert out.summary[-1].endswith("the first coatings kept")
         assert ("cancelled" in out.summary[-1]) == (second == "cancelled")
+        assert ("(farther from its coating on b 1.60 → 2.30 mm)" in out.summary[-1]) == (second == "farther")

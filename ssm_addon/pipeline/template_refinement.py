@@ -54,6 +54,21 @@ def _worst(result: StageResult) -> tuple[int, float, int]:
     return cut, max(far, default=0.0), len(result.findings) - cut
 
 
+#: A refinement is kept only if no instance's mesh lies farther than this (mm) beyond its largest
+#: distance from the first coating: it must bring the meshes nearer everywhere it looked.
+FARTHER_TOLERANCE_MM = 0.05
+
+
+def _farther(first: StageResult, second: StageResult) -> list[tuple[str, float, float]]:
+    """The instances whose mesh lies farther from the second coating than from the first (largest
+    distance, mm, beyond ``FARTHER_TOLERANCE_MM``): (name, first, second), the largest growth first."""
+    a = first.product.get("input_distances") or {}
+    b = second.product.get("input_distances") or {}
+    out = [(n, float(a[n]["from_input"]["max_mm"]), float(b[n]["from_input"]["max_mm"])) for n in sorted(a) if n in b]
+    out = [t for t in out if t[2] > t[1] + FARTHER_TOLERANCE_MM]
+    return sorted(out, key=lambda t: (t[1] - t[2], t[0]))
+
+
 def with_template_refined(study: Study, first: StageResult, coat: Callable[[Study], StageResult], *,
                           log: Log = None, progress: ProgressFn = None, cancelled: CancelledFn = None,
                           cache=None, cache_key: str | None = None) -> StageResult:
@@ -65,9 +80,9 @@ def with_template_refined(study: Study, first: StageResult, coat: Callable[[Stud
     radii smaller at those places (:func:`~ssm_addon.pipeline.stages.cut_off_places`,
     ``denser_at`` of :func:`~ssm_addon.template.template.build_template`) and ``coat`` (the same
     coating as ``first``'s, on a copy of ``study`` with that template and no coatings) runs again.
-    Its result is kept when it has fewer ``input_surface`` findings and no more findings of other
+    Its result is kept when it has fewer ``input_surface`` findings, no more findings of other
     gates (a refinement that only brings a mesh nearer, its finding left, is not worth the change
-    of the template); it then carries the refined template (the model method's mean shape of it) with ``params["refined_at"]``: the instances, places and point
+    of the template) and no instance's mesh farther from its coating (``FARTHER_TOLERANCE_MM``); it then carries the refined template (the model method's mean shape of it) with ``params["refined_at"]``: the instances, places and point
     counts. Esc during the refinement (the template or the second coating) keeps ``first``.
 
     ``cache`` (:class:`~ssm_addon.pipeline.cache.BuildCache`) with ``cache_key`` (the unrefined
@@ -119,10 +134,13 @@ def with_template_refined(study: Study, first: StageResult, coat: Callable[[Stud
             "template: the refinement was cancelled: the first coatings kept",))
     n0, n1 = len(built.points_object), len(refined.points_object)
     before, after = _worst(first), _worst(second)
-    kept = after[0] < before[0] and after[2] <= before[2]
+    farther = _farther(first, second)
+    kept = after[0] < before[0] and after[2] <= before[2] and not farther
     line = (f"template: refined where {len(counts)} coating(s) cut off parts, {n0:,} → {n1:,} points in "
             f"{t_template:.2f} s; input_surface findings {before[0]} → {after[0]}, largest mesh distance "
-            f"{before[1]:.2f} → {after[1]:.2f} mm: ")
+            f"{before[1]:.2f} → {after[1]:.2f} mm"
+            + (f" (farther from its coating on {', '.join(f'{n} {a:.2f} → {b:.2f} mm' for n, a, b in farther[:3])}"
+               + (f" and {len(farther) - 3} more" if len(farther) > 3 else "") + ")" if farther else "") + ": ")
     timings = {"template_refinement": t_template,
                "coating": float(first.timings_s.get("coating", 0.0)) + float(second.timings_s.get("coating", 0.0))}
     if not kept:
