@@ -117,14 +117,13 @@ def test_segment_with_model_equals_ssm_segment_and_saves_the_same_files(bpy_clea
     assert ("operator", "ssm.save_segmentation") in log and any("learned evidence" in t for k, t in log if k == "label")
 
 
-def test_a_joint_segmentation_saved_in_blender_has_the_commands_labels(bpy_clean, tmp_path):
-    """A joint model (two touching structures, named L1 and L2) imported into Blender and segmented from
-    the 3D cursor: *Save Segmentation* writes the label map the command writes from the same point,
-    voxel for voxel, each structure under its VerSe number (20, 21), none in both."""
-    bpy = bpy_clean
+def _joint_scene(bpy, tmp_path, names=None):
+    """A joint model of two structures (``names``, else a and b) as ``joint.npz`` and a synthetic CT of a
+    held-out subject, both imported into the scene; returns (truth points, faces of each, the split)."""
     a, b, fa, fb, _turns = joint_population(n=14, seed=3)
     model = joint_model(a[1:], b[1:], fa, fb)
-    model = dataclasses.replace(model, structure_names=("L1", "L2"))
+    if names:
+        model = dataclasses.replace(model, structure_names=tuple(names))
     na = a.shape[1]
     truth = np.concatenate([a[0], b[0]]) + np.array([20.0, -10.0, 5.0])
     image, _mask = synthetic_image(truth, np.concatenate([fa, fb + na]))
@@ -132,6 +131,15 @@ def test_a_joint_segmentation_saved_in_blender_has_the_commands_labels(bpy_clean
     save_npz(model, tmp_path / "joint.npz")
     assert bpy.ops.ssm.import_model(filepath=str(tmp_path / "joint.npz")) == {"FINISHED"}
     assert bpy.ops.ssm.import_image(filepath=str(tmp_path / "ct.nii.gz")) == {"FINISHED"}
+    return truth, fa, fb, na
+
+
+def test_a_joint_segmentation_saved_in_blender_has_the_commands_labels(bpy_clean, tmp_path):
+    """A joint model (two touching structures, named L1 and L2) imported into Blender and segmented from
+    the 3D cursor: *Save Segmentation* writes the label map the command writes from the same point,
+    voxel for voxel, each structure under its VerSe number (20, 21), none in both."""
+    bpy = bpy_clean
+    truth, fa, fb, na = _joint_scene(bpy, tmp_path, names=("L1", "L2"))
     bpy.context.scene.cursor.location = tuple(volume_centroid(truth, np.concatenate([fa, fb + na])) + [1.0, 1.0, 0.0])
     assert bpy.ops.ssm.segment_image() == {"FINISHED"}
     (obj,) = [o for o in bpy.data.objects if "ssm_segment_json" in o]
@@ -151,15 +159,7 @@ def test_a_joint_models_starts_placed_per_structure_segment_as_the_command_does(
     Model* then starts each at its own point, as ``ssm segment --at a=… --at b=…``: the same label map,
     and ``segment.json`` records the points."""
     bpy = bpy_clean
-    a, b, fa, fb, _turns = joint_population(n=14, seed=3)
-    model = joint_model(a[1:], b[1:], fa, fb)
-    na = a.shape[1]
-    truth = np.concatenate([a[0], b[0]]) + np.array([20.0, -10.0, 5.0])
-    image, _mask = synthetic_image(truth, np.concatenate([fa, fb + na]))
-    nib.save(nib.Nifti1Image(image.data, image.affine), str(tmp_path / "ct.nii.gz"))
-    save_npz(model, tmp_path / "joint.npz")
-    assert bpy.ops.ssm.import_model(filepath=str(tmp_path / "joint.npz")) == {"FINISHED"}
-    assert bpy.ops.ssm.import_image(filepath=str(tmp_path / "ct.nii.gz")) == {"FINISHED"}
+    truth, fa, fb, na = _joint_scene(bpy, tmp_path)
     log = []
     bpy.types.SSM_PT_segment.draw(type("P", (), {"layout": layout_recorder(log)})(), bpy.context)
     assert log.count(("operator", "ssm.place_start")) == 2  # a button per structure
