@@ -66,6 +66,17 @@ def as_faces(faces) -> np.ndarray:
     return f.astype(np.int64, copy=False)
 
 
+def faces_within(faces, first: int, end: int) -> np.ndarray:
+    """The triangles of ``faces`` whose vertices all lie in ``first:end``, indexing those vertices
+    (shifted to start at 0): one part of a mesh of several parts, e.g. a joint model's structure.
+
+    >>> faces_within([[0, 1, 2], [3, 4, 5], [2, 3, 4]], 3, 6).tolist()
+    [[0, 1, 2]]
+    """
+    f = as_faces(faces)
+    return f[(f >= first).all(axis=1) & (f < end).all(axis=1)] - first
+
+
 def edges(faces) -> np.ndarray:
     """Unique undirected edges of a triangle mesh.
 

@@ -29,11 +29,12 @@ from eval_segmentation import LUMBAR, start_points  # noqa: E402
 from eval_segmentation_cross import build_model, cross_arguments, subject_files  # noqa: E402
 
 from ssm_addon.formats.label_maps import read_label_map  # noqa: E402
+from ssm_addon.meshutil import faces_within  # noqa: E402
 from ssm_addon.model.files import load_npz  # noqa: E402
 from ssm_addon.pipeline.project import read_project  # noqa: E402
 from ssm_addon.pipeline.project_build import build  # noqa: E402
 from ssm_addon.segmentation import SegmentParams, read_image, segment_image, start_pose, structure_labels  # noqa: E402
-from ssm_addon.segmentation.files import structure_label_map, structure_part  # noqa: E402
+from ssm_addon.segmentation.files import structure_label_map  # noqa: E402
 from ssm_addon.segmentation.scores import segmentation_scores  # noqa: E402
 
 
@@ -80,7 +81,7 @@ def main(argv=None) -> int:
             labels, info = structure_label_map(joint.points, joint.faces, joint.structures, numbers, image)
             scores = {}
             for name, first, end in joint.structures:
-                scores[name] = segmentation_scores(joint.points[first:end], structure_part(joint.faces, first, end),
+                scores[name] = segmentation_scores(joint.points[first:end], faces_within(joint.faces, first, end),
                                                    expert.labels == numbers[name], expert.affine)
             own = labels == LUMBAR[up]
             truth = expert.labels == LUMBAR[up]

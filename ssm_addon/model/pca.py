@@ -32,7 +32,7 @@ from ..base.errors import InputError, check_cancelled
 from ..base.params import ALIGNMENTS
 from ..base.progress import report
 from ..base.records import jsonable, versions
-from ..meshutil import LandmarkLocations
+from ..meshutil import LandmarkLocations, faces_within
 
 # ---------------------------------------------------------------------------------------
 # The model
@@ -126,8 +126,7 @@ class ShapeModel:
         """The triangles of structure ``name`` (a joint model), indexing its own points
         (``structure_slice``): those of ``faces`` wholly inside it, shifted to start at 0."""
         sl = self.structure_slice(name)
-        faces = np.asarray(self.faces)
-        return faces[(faces >= sl.start).all(axis=1) & (faces < sl.stop).all(axis=1)] - sl.start
+        return faces_within(self.faces, sl.start, sl.stop)
 
     def structure_points(self, names) -> np.ndarray:
         """Indices of the points of the structures ``names`` (a joint model), in model order."""

@@ -620,18 +620,21 @@ def reconstruction_p_values(errors: np.ndarray) -> np.ndarray:
     e = np.asarray(errors, float)
     out = np.ones(len(e))
     ok = np.isfinite(e) & (e > 0)
-    le = np.log(np.where(ok, e, 1.0))
-    for i in np.flatnonzero(ok):
-        others = le[ok & (np.arange(len(e)) != i)]
-        m = len(others)
-        if m < 3:
-            continue
-        sd = float(others.std(ddof=1))
-        if sd <= 0:
-            out[i] = 0.0 if le[i] > others.mean() else 1.0
-            continue
-        t = (le[i] - float(others.mean())) / (sd * math.sqrt(1.0 + 1.0 / m))
-        out[i] = min(1.0, int(ok.sum()) * float(stdtr(m - 1, -t)))
+    n = int(ok.sum())
+    m = n - 1  # the others of each instance
+    if m < 3:
+        return out
+    le = np.log(e[ok])
+    centred = le - le.mean()  # the others' mean and SD from the whole set's sums, without the one
+    mean = (centred.sum() - centred) / m
+    var = np.maximum((np.sum(centred ** 2) - centred ** 2 - m * mean ** 2) / (m - 1), 0.0)
+    sd = np.sqrt(var)
+    gap = centred - mean
+    scale = sd * math.sqrt(1.0 + 1.0 / m)
+    spread = sd > 1e-7 * max(1.0, float(np.abs(centred).max()))  # above the sums' rounding
+    t = np.where(spread, gap / np.where(spread, scale, 1.0), 0.0)
+    p = np.minimum(1.0, n * stdtr(m - 1, -t))
+    out[ok] = np.where(spread, p, np.where(gap > 0, 0.0, 1.0))
     return out
 
 

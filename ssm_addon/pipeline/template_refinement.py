@@ -136,11 +136,12 @@ def with_template_refined(study: Study, first: StageResult, coat: Callable[[Stud
     before, after = _worst(first), _worst(second)
     farther = _farther(first, second)
     kept = after[0] < before[0] and after[2] <= before[2] and not farther
+    grew = ", ".join(f"{n} {a:.2f} → {b:.2f} mm" for n, a, b in farther[:3])
+    if len(farther) > 3:
+        grew += f" and {len(farther) - 3} more"
     line = (f"template: refined where {len(counts)} coating(s) cut off parts, {n0:,} → {n1:,} points in "
             f"{t_template:.2f} s; input_surface findings {before[0]} → {after[0]}, largest mesh distance "
-            f"{before[1]:.2f} → {after[1]:.2f} mm"
-            + (f" (farther from its coating on {', '.join(f'{n} {a:.2f} → {b:.2f} mm' for n, a, b in farther[:3])}"
-               + (f" and {len(farther) - 3} more" if len(farther) > 3 else "") + ")" if farther else "") + ": ")
+            f"{before[1]:.2f} → {after[1]:.2f} mm" + (f" (farther from its coating on {grew})" if grew else "") + ": ")
     timings = {"template_refinement": t_template,
                "coating": float(first.timings_s.get("coating", 0.0)) + float(second.timings_s.get("coating", 0.0))}
     if not kept:

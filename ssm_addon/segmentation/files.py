@@ -18,7 +18,7 @@ from ..fitting.fit import Target, fit_any_pose
 from ..formats.label_maps import load_volume, read_label_map, write_label_map
 from ..formats.landmarks import read_landmarks
 from ..formats.meshes import write_ply
-from ..meshutil import MeshLocator
+from ..meshutil import MeshLocator, faces_within
 from .appearance import load_appearance
 from .image import GreyImage, read_image, segmentation_mask
 from .scores import mask_surface_points, segmentation_scores
@@ -84,13 +84,6 @@ def parse_labels(items) -> dict:
     return out
 
 
-def structure_part(faces: np.ndarray, first: int, end: int) -> np.ndarray:
-    """The triangles of a joint mesh's structure whose points are ``first:end``, indexing its own points
-    (those wholly inside it, shifted to start at 0; :meth:`ShapeModel.structure_faces` for a model)."""
-    f = np.asarray(faces)
-    return f[(f >= first).all(axis=1) & (f < end).all(axis=1)] - first
-
-
 def structure_label_map(points: np.ndarray, faces: np.ndarray, structures, labels: dict,
                         image: GreyImage) -> tuple[np.ndarray, dict]:
     """A joint segmentation's label map on ``image``'s grid: each structure's voxels with its label.
@@ -103,29 +96,32 @@ def structure_label_map(points: np.ndarray, faces: np.ndarray, structures, label
     Returns
     -------
     (I, J, K) uint8 or uint16 labels, and per structure {"label", "voxels", "shared_voxels_given_away"}.
+
+    One image-sized mask at a time (a whole spine on a whole CT): each structure takes its free
+    voxels, and of those an earlier structure holds, the ones it lies strictly deeper in (so the
+    deepest wins, the earlier structure on a tie).
     """
-    masks, parts = [], []
-    for name, a, b in structures:
-        f = structure_part(faces, a, b)
-        parts.append((name, points[a:b], f))
-        masks.append(segmentation_mask(points[a:b], f, image))
-    count = np.sum(masks, axis=0, dtype=np.int16)
     owner = np.full(image.shape, -1, np.int16)
-    for k, m in enumerate(masks):
-        owner[m & (count == 1)] = k
-    shared = np.argwhere(count > 1)
-    given_away = np.zeros(len(masks), np.int64)
-    if len(shared):
-        world = image.to_world(shared.astype(float))
-        depth = np.full((len(shared), len(masks)), -np.inf)
-        for k, (m, (_name, p, f)) in enumerate(zip(masks, parts)):
-            inside = m[tuple(shared.T)]
-            if inside.any():
-                depth[inside, k] = MeshLocator(p, f).query(world[inside])[1]
-        win = np.argmax(depth, axis=1)
-        owner[tuple(shared.T)] = win
-        for k, m in enumerate(masks):
-            given_away[k] = int(np.count_nonzero(m[tuple(shared.T)] & (win != k)))
+    locators = []
+    given_away = np.zeros(len(structures), np.int64)
+    for k, (_name, a, b) in enumerate(structures):
+        f = faces_within(faces, a, b)
+        locators.append(MeshLocator(points[a:b], f))
+        mask = segmentation_mask(points[a:b], f, image)
+        held = np.argwhere(mask & (owner >= 0))
+        owner[mask & (owner < 0)] = k
+        if len(held):
+            at = tuple(held.T)
+            world = image.to_world(held.astype(float))
+            depth_here = locators[k].query(world)[1]
+            holder = owner[at].astype(np.int64)
+            depth_held = np.empty(len(held))
+            for j in np.unique(holder):
+                depth_held[holder == j] = locators[j].query(world[holder == j])[1]
+            taken = depth_here > depth_held
+            np.add.at(given_away, holder[taken], 1)
+            given_away[k] += int(np.count_nonzero(~taken))
+            owner[tuple(held[taken].T)] = k
     numbers = np.array([labels[name] for name, _a, _b in structures], dtype=np.int64)
     dtype = np.uint8 if numbers.max() <= 255 else np.uint16
     out = np.where(owner >= 0, numbers[np.maximum(owner, 0)], 0).astype(dtype)
@@ -327,7 +323,7 @@ def structure_truth(result, name: str, first: int, end: int, expert: np.ndarray,
     if not np.any(expert):
         return {"label": label, "missing": f"the expert's label map has no voxel of label {label} ({name})"}
     part = SegmentationRecord(points=np.asarray(result.points)[first:end],
-                              faces=structure_part(result.faces, first, end),
+                              faces=faces_within(result.faces, first, end),
                               posterior_sd_mm=np.asarray(result.posterior_sd_mm)[first:end],
                               deviation_mm=np.zeros(end - first), record={})
     return {"label": label, **truth_scores(part, expert, affine)}
@@ -433,5 +429,5 @@ def segment_files(model_path, image_path, out_dir, *, at=(), landmarks_path=None
                            progress=progress, cancelled=cancelled)
     extra = {"start_given": start}
     files = write_segmentation(result, image, out_dir, model_source=str(model_path), extra=extra, overwrite=True,
-                               truth=truth, labels=labels)
+                               truth=truth, labels=numbers)
     return json.loads(files["record"].read_text())

@@ -665,8 +665,8 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
     residual = _refined_offsets(cost, best, fine)
     # the suggestions' scatter about the fitted shape is the noise the posterior assumes (at least a
     # quarter of the finest voxel edge): the SD follows how well the image pins the shape
-    sigma2 = max(float(np.sum(w_final * residual ** 2) / max(w_final.sum(), 1e-9)),
-                 (0.25 * float(image.spacing_mm.min())) ** 2)
+    floor2 = (0.25 * float(image.spacing_mm.min())) ** 2
+    sigma2 = max(float(np.sum(w_final * residual ** 2) / max(w_final.sum(), 1e-9)), floor2)
     qn = _normals_rows(q, vertex_normals(shape, faces))
     cov_b = np.linalg.inv((qn * w_final[:, None]).T @ qn / sigma2 + params.prior_weight * np.diag(1.0 / lam))
     per_point = np.einsum("ndk,kl,ndl->n", q, cov_b, q)  # the shape's uncertainty
@@ -697,7 +697,7 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
     # the SD's boundary term per point, at the result: where the image puts or leaves the boundary
     # (at least a quarter of the finest voxel edge), in place of the one scatter for all points
     spread = _smooth_on_mesh(boundary_spread(cost_at, fine), np.ones(len(mean)), faces, rounds=3)
-    spread = np.maximum(spread, (0.25 * float(image.spacing_mm.min())) ** 2)
+    spread = np.maximum(spread, floor2)
     sd = np.sqrt(np.maximum(pose_.scale ** 2 * per_point + spread, 0.0))  # model units scaled; spread in mm
     inner, outer = boundary_grey_values(image, points, normals_at, sigma_mm=LEVEL_SIGMAS_MM[-1])
     boundary["inside_mean"], boundary["outside_mean"] = float(inner.mean()), float(outer.mean())
@@ -716,8 +716,8 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
                                           f"({evidence}); the boundary there follows the model, not the image"))
     if model.structure_names:  # a joint model: each structure's own verdict
         boundary["structures"] = {}
-        for i, name in enumerate(model.structure_names):
-            part = slice(int(model.structure_offsets[i]), int(model.structure_offsets[i + 1]))
+        for name in model.structure_names:
+            part = model.structure_slice(name)
             weak = float(np.mean(strong_at[part, zero] < 0.25))
             boundary["structures"][name] = {"weak_share": weak, "sd_mean_mm": float(sd[part].mean()),
                                             "deviation_mean_mm": float(np.abs(deviation[part]).mean())}
