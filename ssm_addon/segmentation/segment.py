@@ -40,7 +40,7 @@ from scipy.special import chdtrc
 
 from ..base.errors import InputError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn, report
-from ..fitting.fit import Pose, model_error_variance, outlier_limit, weighted_pose
+from ..fitting.fit import Pose, model_error_variance, outlier_limit, spd_solve, weighted_gram, weighted_pose
 from ..meshutil import edges, vertex_normals
 from ..model.pca import own_side_instances
 from .appearance import LEVEL_SIGMAS_MM, Appearance, boundary_grey_values, normalised_derivative
@@ -591,9 +591,9 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
             yl = pose_.inverse(y) - mean
             qn = _normals_rows(q, nrm_model)  # (N, K)
             r = np.einsum("nd,nd->n", nrm_model, yl)
-            a = (qn * w[:, None]).T @ qn
+            a = weighted_gram(qn, w)
             precision = a / sigma2 + params.prior_weight * np.diag(1.0 / lam)
-            b = np.linalg.solve(precision + 1e-12 * np.eye(k) * max(1.0, float(np.abs(precision).max())),
+            b = spd_solve(precision + 1e-12 * np.eye(k) * max(1.0, float(np.abs(precision).max())),
                                 qn.T @ (w * r) / sigma2)
             shape = mean + q @ b
             x_new = pose_.apply(shape)
@@ -668,7 +668,7 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
     floor2 = (0.25 * float(image.spacing_mm.min())) ** 2
     sigma2 = max(float(np.sum(w_final * residual ** 2) / max(w_final.sum(), 1e-9)), floor2)
     qn = _normals_rows(q, vertex_normals(shape, faces))
-    cov_b = np.linalg.inv((qn * w_final[:, None]).T @ qn / sigma2 + params.prior_weight * np.diag(1.0 / lam))
+    cov_b = np.linalg.inv(weighted_gram(qn, w_final) / sigma2 + params.prior_weight * np.diag(1.0 / lam))
     per_point = np.einsum("ndk,kl,ndl->n", q, cov_b, q)  # the shape's uncertainty
     if error_var is not None:
         per_point = per_point + error_var
