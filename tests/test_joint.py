@@ -164,7 +164,9 @@ def test_knee30_joint_build_predicts_the_tibia_from_the_femur(tmp_path):
     assert code == 0 and (tmp_path / "fit" / "fitted_tibia.ply").is_file()
     fit = json.loads((tmp_path / "fit" / "fit.json").read_text())
     assert fit["structures"]["tibia"]["given"] is False and fit["structures"]["femur"]["given"] is True
-    summary = evaluate(n=30, landmarks=12, jobs=2, subjects=3, log=lambda _m: None)["summary"]
+    # 20 knees, the first three left out in turn: the predicted tibia 0.33 of the baseline's distance, 94 % within
+    # 2 SD (30 knees: the same test 15 s longer; 16 knees: 0.43, too few to hold the femur-tibia relation)
+    summary = evaluate(n=20, landmarks=12, jobs=2, subjects=3, log=lambda _m: None)["summary"]
     assert summary["joint_surface_mm"] <= 0.4 * summary["baseline_surface_mm"], summary
     assert summary["within_2sd"] >= 0.8, summary
 
