@@ -1004,6 +1004,12 @@ def coarse_ranked(mean: np.ndarray, target: Target, poses, *, partial: bool) -> 
 
 PRIORITY_TOLERANCE = 1.1
 
+#: The candidates are first fitted this many steps; only those then within ``SEARCH_PROBE_FACTOR`` of the
+#: nearest probe are fitted to the end, from their start again (so each result is the fit the candidate
+#: always gave; a probe that converged is that fit). A start in another basin stays millimetres away.
+SEARCH_PROBE_ITERATIONS = 15
+SEARCH_PROBE_FACTOR = 1.5
+
 
 #: Turns (degrees) about the given part's long axis, and slides (mm) along it, at which a partial
 #: fit is fitted again.
@@ -1112,8 +1118,9 @@ def fit_any_pose(model, target: Target, *, params: FitParams | None = None, fram
     Every start of :func:`start_poses` (the rotation group of the principal axes, and the
     landmarks' pose when at least 3 of the model's landmarks are given) is refined by rigid ICP of
     the mean shape, first coarsely (:func:`coarse_screen`), the nearest ``SCREEN_KEEP`` again
-    (:func:`rigid_screen`); the ``keep`` closest are fitted (pose and shape) and the fit closest
-    to the target wins.
+    (:func:`rigid_screen`); the ``keep`` closest are fitted (pose and shape: first a probe of
+    ``SEARCH_PROBE_ITERATIONS`` steps, to the end those within ``SEARCH_PROBE_FACTOR`` of the nearest
+    probe) and the fit closest to the target wins.
 
     ``size_check``: a rigid fit of a whole target (not ``partial``, all structures) is fitted again
     with a similarity pose from its own; the result's ``similarity`` holds that fit's distance,
@@ -1122,8 +1129,9 @@ def fit_any_pose(model, target: Target, *, params: FitParams | None = None, fram
 
     Returns
     -------
-    (FitResult, dict with ``starts``: name, screened distance (mm), fitted distance (mm)
-    where fitted; and ``chosen``: the winning start's name)
+    (FitResult, dict with ``starts``: name, screened distance (mm), the probe's distance after
+    ``SEARCH_PROBE_ITERATIONS`` steps (mm) where probed, fitted distance (mm) where fitted; and
+    ``chosen``: the winning start's name)
     """
     params = FitParams() if params is None else params
     mean = np.asarray(model.mean, float) if points is None else np.asarray(model.mean, float)[points]
@@ -1160,12 +1168,27 @@ def fit_any_pose(model, target: Target, *, params: FitParams | None = None, fram
     # and without the model-error field (the costly part of a completion), the chosen one again
     # as fit_model would from its pose; a whole surface's by params' pose step, once
     search = replace(params, model_error=False) if partial and params.model_error else params
+    probes = {}
+    if len(order) > 1 and search.iterations > SEARCH_PROBE_ITERATIONS:
+        probe = replace(search, iterations=SEARCH_PROBE_ITERATIONS)
+        for n, i in enumerate(order):
+            name, pose, _d = screened[i]
+            probes[name] = fit_model(model, target, params=probe, pose=pose, partial=partial, tangential_pull=1.0,
+                                     points=points, cancelled=cancelled)
+            report(progress, 0.05 + 0.3 * (n + 1) / len(order), f"start {name}: {probes[name].mean_distance_mm:.3f} mm "
+                   f"after {probes[name].iterations} steps")
+        nearest = min(float(r.mean_distance_mm) for r in probes.values())
+        order = [i for i in order if probes[screened[i][0]].mean_distance_mm <= SEARCH_PROBE_FACTOR * nearest]
+    probed = {n: float(r.mean_distance_mm) for n, r in probes.items()}
     results = {}
     for n, i in enumerate(order):
         name, pose, _d = screened[i]
-        results[name] = fit_model(model, target, params=search, pose=pose, partial=partial, tangential_pull=1.0,
-                                  points=points, cancelled=cancelled)
-        report(progress, (n + 1) / len(order), f"start {name}: {results[name].mean_distance_mm:.3f} mm")
+        if name in probes and probes[name].converged:  # the probe is the whole fit
+            results[name] = probes[name]
+        else:
+            results[name] = fit_model(model, target, params=search, pose=pose, partial=partial, tangential_pull=1.0,
+                                      points=points, cancelled=cancelled)
+        report(progress, 0.35 + 0.6 * (n + 1) / len(order), f"start {name}: {results[name].mean_distance_mm:.3f} mm")
     fitted = {n: float(r.mean_distance_mm) for n, r in results.items()}
     chosen = min(fitted, key=lambda n: (fitted[n], list(fitted).index(n)))
     own = [n for n in fitted if n in priority]
@@ -1190,5 +1213,5 @@ def fit_any_pose(model, target: Target, *, params: FitParams | None = None, fram
                                          "scale": float(similar.pose.scale), "mahalanobis": float(similar.mahalanobis)})
     screened_mm = {n: (None if not np.isfinite(d) else d) for n, _p, d in screened}
     doc = {"starts": [{"name": n, "coarse_mm": coarse_mm.get(n), "screened_mm": screened_mm.get(n),
-                       "fitted_mm": fitted.get(n)} for n, _p in starts], "chosen": chosen}
+                       "probed_mm": probed.get(n), "fitted_mm": fitted.get(n)} for n, _p in starts], "chosen": chosen}
     return best, doc
