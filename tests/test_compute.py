@@ -6,6 +6,7 @@ import contextlib
 import dataclasses
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -383,12 +384,26 @@ def _damage(entry: Path, how: str) -> None:
             os.replace(str(entry) + ".npz", entry)
 
 
+@pytest.fixture(scope="module")
+def cached3(population, tmp_path_factory):
+    """The demo's first three instances built once with a cache: (project, output folder, cache); a test
+    that changes the cache works on its own copy (:func:`_copied_cache`)."""
+    folder = tmp_path_factory.mktemp("cached3")
+    proj = _project(population, folder, 3)
+    first = _build(proj, folder / "a", cache=folder / "cache")
+    assert first.study.streamed["computed"] == 3
+    return proj, folder / "a", folder / "cache"
+
+
+def _copied_cache(cached3, tmp_path: Path) -> Path:
+    return Path(shutil.copytree(cached3[2], tmp_path / "cache"))
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("how", ["truncated", "bit-flipped", "wrong-shape"])
-def test_a_damaged_cache_entry_is_recomputed_with_one_line(population, tmp_path, how):
-    proj = _project(population, tmp_path, 3)
-    cache = tmp_path / "cache"
-    _build(proj, tmp_path / "a", cache=cache)
+def test_a_damaged_cache_entry_is_recomputed_with_one_line(cached3, tmp_path, how):
+    proj, first = cached3[0], cached3[1]
+    cache = _copied_cache(cached3, tmp_path)
     entries = sorted((cache / "instances").glob("*.npz"))
     assert len(entries) == 3
     _damage(entries[0], how)
@@ -398,7 +413,7 @@ def test_a_damaged_cache_entry_is_recomputed_with_one_line(population, tmp_path,
     assert len(said) == 1 and "is damaged" in said[0] and "recomputing it" in said[0], lines
     assert res.study.streamed == {"cached": 2, "computed": 1}
     for k in ARRAYS:
-        assert np.array_equal(_arrays(tmp_path / "a")[k], _arrays(tmp_path / "b")[k])
+        assert np.array_equal(_arrays(first)[k], _arrays(tmp_path / "b")[k])
     assert (entries[0].parent / (entries[0].name + ".damaged")).exists()  # kept aside, never read again
     lines.clear()
     assert _build(proj, tmp_path / "c", lines, cache=cache).study.streamed == {"cached": 3, "computed": 0}
@@ -406,15 +421,13 @@ def test_a_damaged_cache_entry_is_recomputed_with_one_line(population, tmp_path,
 
 
 @pytest.mark.slow
-def test_a_cache_that_cannot_be_written_is_used_read_only(population, tmp_path, monkeypatch):
+def test_a_cache_that_cannot_be_written_is_used_read_only(cached3, tmp_path, monkeypatch):
     import errno
 
     from ssm_addon.pipeline import cache as cache_module
 
-    proj = _project(population, tmp_path, 3)
-    cache = tmp_path / "cache"
-    first = _build(proj, tmp_path / "a", cache=cache)
-    assert first.study.streamed["computed"] == 3
+    proj, first = cached3[0], cached3[1]
+    cache = _copied_cache(cached3, tmp_path)
     next(iter(sorted((cache / "instances").glob("*.npz")))).unlink()  # one entry missing: needs a write
 
     def read_only(*args, **kwargs):
@@ -427,7 +440,7 @@ def test_a_cache_that_cannot_be_written_is_used_read_only(population, tmp_path, 
     assert len(said) == 1 and "Read-only file system" in said[0]
     assert res.study.streamed == {"cached": 2, "computed": 1}
     for k in ARRAYS:
-        assert np.array_equal(_arrays(tmp_path / "a")[k], _arrays(tmp_path / "b")[k])
+        assert np.array_equal(_arrays(first)[k], _arrays(tmp_path / "b")[k])
 
 
 def test_ctrl_c_stops_a_build_waiting_for_a_scheduler_at_once(population, tmp_path):
