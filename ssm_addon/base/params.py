@@ -821,7 +821,8 @@ class FitParams:
     iterations: int = param(60, minimum=1, maximum=10000, label="Iterations", advanced=True,
                             help="most correspondence and solve steps")
     tolerance_mm: float = param(0.001, unit="mm", minimum=0.0, maximum=100.0, label="Tolerance", advanced=True,
-                                help="stop when the shape's points move less than this (RMS)")
+                                help="stop when the shape's points move less than this (RMS); a partial target "
+                                     "without landmarks also stops when its distance stops falling")
     landmark_weight: float = param(10.0, minimum=0.0, maximum=1e9, label="Landmark weight",
                                    help="weight of one landmark against one surface correspondence")
     pose_step: str = param("joint", choices=POSE_STEPS, label="Pose step", advanced=True,
@@ -1156,10 +1157,12 @@ def markdown_tables() -> str:
     out = ["# Parameters", "",
            "Generated from `ssm_addon/base/params.py` (`python -m ssm_addon params`); the same names are the",
            "project file's keys, the `ssm build --<table>-<key>` options and the SSM sidebar's fields.", ""]
-    for section, cls in SECTIONS.items():
-        out += [f"## [{section}]", "", (cls.__doc__ or "").strip().splitlines()[0], "",
-                "| key | default | allowed | meaning |", "|---|---|---|---|"]
-        if section == "template":
+    tables = [(f"[{section}]", cls, "key") for section, cls in SECTIONS.items()]
+    tables.append(("`ssm fit` options (and Blender's Fit Model)", FitParams, "option"))
+    for title, cls, column in tables:
+        out += [f"## {title}", "", (cls.__doc__ or "").strip().splitlines()[0], "",
+                f"| {column} | default | allowed | meaning |", "|---|---|---|---|"]
+        if cls is TemplateParams:
             out.append("| `instance` | first instance | an instance name | the instance the template is built from |")
         for s in specs(cls):
             unit = f" {s.unit}" if s.unit and s.unit != "deg" else ("°" if s.unit == "deg" else "")
@@ -1172,6 +1175,7 @@ def markdown_tables() -> str:
                 default = f"`{value!r}`".replace("'", '"') + unit
             allowed = s.range_text().replace("|", "\\|")
             adv = " *(advanced)*" if s.advanced else ""
-            out.append(f"| `{s.key}` | {default} | {allowed} | {s.help}{adv} |")
+            name = s.key if column == "key" else _flag("", s)
+            out.append(f"| `{name}` | {default} | {allowed} | {s.help}{adv} |")
         out.append("")
     return "\n".join(out)
