@@ -280,6 +280,7 @@ SSMModelSettings = param_group(P.ModelParams, "SSMModelSettings", extra={
 SSMOutputSettings = param_group(P.OutputParams, "SSMOutputSettings")
 SSMQualitySettings = param_group(P.QualityParams, "SSMQualitySettings")
 SSMFitSettings = param_group(P.FitParams, "SSMFitSettings")
+SSMSegmentSettings = param_group(P.SegmentParams, "SSMSegmentSettings")
 SSMCorrespondenceSettings = param_group(P.CorrespondenceParams, "SSMCorrespondenceSettings")
 SSMAnalysisSettings = param_group(P.AnalysisParams, "SSMAnalysisSettings")
 SSMComputeSettings = param_group(P.ComputeParams, "SSMComputeSettings")  # kept for Save Project; no panel
@@ -306,9 +307,10 @@ _GROUPS = {"template": SSMTemplateSettings, "coating": SSMCoatingSettings, "mode
            "output": SSMOutputSettings, "quality": SSMQualitySettings, "correspondence": SSMCorrespondenceSettings,
            "analysis": SSMAnalysisSettings, "compute": SSMComputeSettings, "joint": SSMJointSettings}
 #: Scene property name -> (group class, parameter class): ``Scene.ssm_<table>`` for every table of
-#: :class:`ssm_addon.base.params.StudyParams`, and ``Scene.ssm_fit`` (Fit Model's own).
+#: :class:`ssm_addon.base.params.StudyParams`, ``Scene.ssm_fit`` (Fit Model's own) and ``Scene.ssm_segment``
+#: (Segment with Model's own).
 SCENE_GROUPS = {**{f"ssm_{section}": (_GROUPS[section], cls) for section, cls in P.SECTIONS.items()},
-                "ssm_fit": (SSMFitSettings, P.FitParams)}
+                "ssm_fit": (SSMFitSettings, P.FitParams), "ssm_segment": (SSMSegmentSettings, P.SegmentParams)}
 
 
 def scene_params(context, key: str):
@@ -329,7 +331,7 @@ def set_scene_study_params(scene, params: P.StudyParams) -> None:
 
 
 classes = (SSMObjectProperties, SSMTemplateSettings, SSMCoatingSettings, SSMModelSettings, SSMOutputSettings,
-           SSMQualitySettings, SSMFitSettings, SSMCorrespondenceSettings, SSMAnalysisSettings, SSMComputeSettings,
+           SSMQualitySettings, SSMFitSettings, SSMSegmentSettings, SSMCorrespondenceSettings, SSMAnalysisSettings, SSMComputeSettings,
            SSMJointSettings, SSMStudySettings)
 
 

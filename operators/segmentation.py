@@ -10,6 +10,7 @@ command's: same model, image, point and parameters give the same surface.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 
@@ -19,14 +20,15 @@ from bpy.props import FloatProperty, StringProperty
 from bpy_extras.io_utils import ImportHelper
 
 from ssm_addon.base.errors import InputError
+from ssm_addon.base.params import SegmentParams
 from ssm_addon.segmentation.appearance import appearance_from_arrays
 from ssm_addon.segmentation.files import SEGMENT_FILES, SegmentationRecord, write_segmentation
 from ssm_addon.segmentation.image import PLANES, read_image, window_values, world_slice
-from ssm_addon.segmentation.segment import SegmentParams, segment_image, start_pose, volume_centroid
+from ssm_addon.segmentation.segment import segment_image, start_pose, volume_centroid
 
 from . import bridge
 from .jobs import BackgroundJob
-from .properties import SSMPanel
+from .properties import SSMPanel, draw_params, scene_params
 from .scene import APPEARANCE_KEY, MODEL_FILE_PROP, find_model_object, model_from_object, model_structures
 
 IMAGE_COLLECTION = "SSM Image"
@@ -198,8 +200,9 @@ class SSM_OT_segment_image(BackgroundJob, bpy.types.Operator):
     bl_label = "Segment with Model"
     bl_options = {"REGISTER", "UNDO"}
 
-    evidence: StringProperty(name="Evidence", default="auto", options={"SKIP_SAVE"},
-                             description="auto (the model's learned appearance when it has one), learned or gradient")
+    evidence: StringProperty(name="Evidence", default="", options={"SKIP_SAVE"},
+                             description="auto (the model's learned appearance when it has one), learned or "
+                                         "gradient; empty: the sidebar's (Scene.ssm_segment)")
 
     @classmethod
     def poll(cls, context):
@@ -218,7 +221,9 @@ class SSM_OT_segment_image(BackgroundJob, bpy.types.Operator):
         arrays = bridge.load_arrays(model_obj, APPEARANCE_KEY)
         appearance = appearance_from_arrays(arrays, model.n_points, model_obj.name) if arrays else None
         at = np.array(context.scene.cursor.location, float)
-        params = SegmentParams(evidence=self.evidence)
+        params = scene_params(context, "ssm_segment")  # the sidebar's, as `ssm segment`'s options
+        if self.evidence:
+            params = dataclasses.replace(params, evidence=self.evidence)
         named = structure_starts(context, model)  # a joint model's starts per structure, if placed
         start = {"points": {n: p.tolist() for n, p in named.items()}} if named else {"at": at.tolist()}
         pose = start_pose(model, named=named) if named else None
@@ -335,6 +340,7 @@ class SSM_PT_segment(SSMPanel, bpy.types.Panel):
                     placed = context.scene.objects.get(START_PREFIX + name) is not None
                     row.operator(SSM_OT_place_start.bl_idname, text=name,
                                  icon="CHECKMARK" if placed else "EMPTY_AXIS").structure = name
+        draw_params(layout, context.scene.ssm_segment, SegmentParams)
         layout.operator(SSM_OT_segment_image.bl_idname, icon="MOD_SHRINKWRAP")
         obj = _segmentation_object(context)
         if obj is not None:

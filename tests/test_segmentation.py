@@ -12,6 +12,7 @@ from scipy import ndimage
 from scipy.stats import spearmanr
 
 from ssm_addon.base.errors import InputError
+from ssm_addon.base.params import SEARCH_LEVELS, SegmentParams
 from ssm_addon.cli.command import main
 from ssm_addon.formats.meshes import read_ply
 from ssm_addon.meshutil import MeshLocator
@@ -19,7 +20,6 @@ from ssm_addon.model.files import save_npz
 from ssm_addon.model.pca import build_model
 from ssm_addon.segmentation import (
     GreyImage,
-    SegmentParams,
     bone_near,
     learn_appearance,
     load_appearance,
@@ -33,6 +33,7 @@ from ssm_addon.segmentation import (
     structure_labels,
     volume_centroid,
 )
+from ssm_addon.segmentation.appearance import LEVEL_SIGMAS_MM
 from ssm_addon.segmentation.files import parse_labels, structure_label_map
 
 BRIGHT = 1000.0  # grey value of the object (bone-like), background 0
@@ -369,6 +370,12 @@ def test_bad_inputs_are_refused_or_said_by_name(population, tmp_path):
         parse_point("1,2")
 
 
+def test_the_search_levels_are_the_appearances_levels():
+    """``SegmentParams.search_mm`` holds one length per level of the appearance's blur (base/params cannot
+    import the stage that defines the levels)."""
+    assert SEARCH_LEVELS == len(LEVEL_SIGMAS_MM) == len(SegmentParams().search_mm)
+
+
 def test_ssm_segment_writes_its_files_and_reads_the_models_appearance(population, tmp_path, capsys):
     model, held_out, faces = population
     truth = posed(held_out, shift=(-40.0, -20.0, 15.0))  # a negative first coordinate: "--at -35,…" must parse
@@ -382,12 +389,22 @@ def test_ssm_segment_writes_its_files_and_reads_the_models_appearance(population
     assert load_appearance(tmp_path / "model.npz", model.n_points).images == ("a", "b", "c")
     at = volume_centroid(truth, faces) + 3.0
     code = main(["segment", str(tmp_path / "model.npz"), str(tmp_path / "ct.nii.gz"), "--at",
-                 ",".join(f"{v:.2f}" for v in at), "--out", str(tmp_path / "out")])
+                 ",".join(f"{v:.2f}" for v in at), "--out", str(tmp_path / "out"), "--noise-mm", "1.5",
+                 "--search-mm", "10", "5", "2.5"])
     out = capsys.readouterr().out
     assert code == 0, out
     assert "appearance learned from 3 training image(s)" in out and "segmented with learned evidence" in out
     doc = json.loads((tmp_path / "out" / "segment.json").read_text())
     assert doc["evidence"] == "learned" and doc["start_given"]["at"] == pytest.approx(list(np.round(at, 2)))
+    # the search's parameters, as the options gave them (the rest their defaults), recorded
+    assert doc["parameters"]["noise_mm"] == 1.5 and doc["parameters"]["search_mm"] == [10.0, 5.0, 2.5]
+    assert doc["parameters"]["evidence"] == "auto" and doc["parameters"]["deviation"] is True
+    # an option out of its range: refused by name before anything is read
+    code = main(["segment", str(tmp_path / "model.npz"), str(tmp_path / "ct.nii.gz"), "--at", "0,0,0",
+                 "--search-step-mm", "0", "--out", str(tmp_path / "out3")])
+    err = capsys.readouterr().err
+    assert code == 2 and "search_step_mm" in err and "> 0" in err, err
+    assert not (tmp_path / "out3").exists()
     seg = read_image(tmp_path / "out" / "segmentation.nii.gz")
     assert seg.shape == image.shape and set(np.unique(seg.data)) == {0.0, 1.0}
     # a second run into the same folder is refused: it holds files this command did not write now

@@ -84,11 +84,17 @@ def test_segment_with_model_equals_ssm_segment_and_saves_the_same_files(bpy_clea
     loops = np.array([lp.vertex_index for lp in obj.data.loops])
     assert np.allclose(colours, bridge.sd_colours(sd)[loops], atol=1e-6)
     assert np.allclose(bridge.sd_colours(np.array([0.0, 3.0, 7.0]))[:, 0], [0.15, 0.95, 0.95])
-    # a second segmentation (another structure, another start) is its own object: the first stays
+    # a second segmentation (another structure, another start) is its own object: the first stays; the search
+    # takes the sidebar's parameters (Scene.ssm_segment, as `ssm segment`'s options) and records them
+    assert doc["parameters"]["noise_mm"] == 1.0 and doc["parameters"]["search_mm"] == [12.0, 6.0, 3.0]
     first = np.array([v.co for v in obj.data.vertices])
+    scene.ssm_segment.noise_mm = 1.5
     assert bpy.ops.ssm.segment_image() == {"FINISHED"}
+    scene.ssm_segment.noise_mm = 1.0
     segs = [o for o in bpy.data.objects if "ssm_segment_json" in o]
     assert len(segs) == 2 and np.array_equal(np.array([v.co for v in obj.data.vertices]), first)
+    second = json.loads([o for o in segs if o != obj][0]["ssm_segment_json"])
+    assert second["parameters"]["noise_mm"] == 1.5
     bpy.data.objects.remove([o for o in segs if o != obj][0])
     bpy.context.view_layer.objects.active = obj
     # the command line on the same files and the same point (the cursor holds float32 coordinates): the same surface
@@ -115,6 +121,7 @@ def test_segment_with_model_equals_ssm_segment_and_saves_the_same_files(bpy_clea
     log = []
     bpy.types.SSM_PT_segment.draw(type("P", (), {"layout": layout_recorder(log)})(), bpy.context)
     assert ("operator", "ssm.save_segmentation") in log and any("learned evidence" in t for k, t in log if k == "label")
+    assert ("prop", "noise_mm") in log and ("prop", "evidence") in log  # the search's parameters in the panel
 
 
 def _joint_scene(bpy, tmp_path, names=None):

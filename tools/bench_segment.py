@@ -28,8 +28,9 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 sys.path.insert(0, str(ROOT / "tools"))
 
+from ssm_addon.base.params import SegmentParams  # noqa: E402
 from ssm_addon.model.pca import build_model  # noqa: E402
-from ssm_addon.segmentation import SegmentParams, degrade_image, read_image, segment_image, volume_centroid  # noqa: E402
+from ssm_addon.segmentation import degrade_image, read_image, segment_image, volume_centroid  # noqa: E402
 
 
 def timed(fn, repeat):

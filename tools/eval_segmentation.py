@@ -25,12 +25,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from ssm_addon.base.params import SegmentParams  # noqa: E402
 from ssm_addon.formats.label_maps import read_label_map  # noqa: E402
 from ssm_addon.model.files import load_npz  # noqa: E402
 from ssm_addon.pipeline.project import read_project  # noqa: E402
 from ssm_addon.pipeline.project_build import build  # noqa: E402
 from ssm_addon.segmentation import (  # noqa: E402
-    SegmentParams,
     degrade_image,
     load_appearance,
     read_image,

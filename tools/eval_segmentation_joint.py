@@ -28,12 +28,13 @@ sys.path.insert(0, str(ROOT / "tools"))
 from eval_segmentation import LUMBAR, start_points  # noqa: E402
 from eval_segmentation_cross import build_model, cross_arguments, subject_files  # noqa: E402
 
+from ssm_addon.base.params import SegmentParams  # noqa: E402
 from ssm_addon.formats.label_maps import read_label_map  # noqa: E402
 from ssm_addon.meshutil import faces_within  # noqa: E402
 from ssm_addon.model.files import load_npz  # noqa: E402
 from ssm_addon.pipeline.project import read_project  # noqa: E402
 from ssm_addon.pipeline.project_build import build  # noqa: E402
-from ssm_addon.segmentation import SegmentParams, read_image, segment_image, start_pose, structure_labels  # noqa: E402
+from ssm_addon.segmentation import read_image, segment_image, start_pose, structure_labels  # noqa: E402
 from ssm_addon.segmentation.files import structure_label_map  # noqa: E402
 from ssm_addon.segmentation.scores import segmentation_scores  # noqa: E402
 

@@ -45,6 +45,7 @@ ALIGNMENTS = ("none", "rigid", "similarity")
 __all__ = [
     "ALIGNMENTS",
     "JointParams",
+    "SegmentParams",
     "FRAME_METHODS",
     "type_name",
     "AnalysisParams",
@@ -844,6 +845,54 @@ class FitParams:
         check(self, self._where)
 
 
+EVIDENCES = ("auto", "learned", "gradient")
+SEARCH_LEVELS = 3
+"""The segmentation's resolutions, coarse to fine (``segmentation.appearance.LEVEL_SIGMAS_MM``)."""
+
+
+@dataclass(frozen=True)
+class SegmentParams:
+    """Segmenting an image with a model (``ssm segment``): the active shape model search.
+
+    Each level (coarse to fine, the image blurred by 2, 1 and 0.5 mm) looks for the boundary along the
+    shape's normals and fits the pose and the mode weights to what it found (Cootes et al. 1995).
+    """
+
+    search_mm: tuple = param((12.0, 6.0, 3.0), size=SEARCH_LEVELS, unit="mm", minimum=0.0, exclusive_minimum=True,
+                             maximum=1000.0, label="Search", advanced=True,
+                             help="how far each level looks along the normals, both ways (coarse to fine)")
+    search_step_mm: float = param(0.5, unit="mm", minimum=0.0, exclusive_minimum=True, maximum=100.0,
+                                  label="Search step", advanced=True, help="candidate spacing along the normal")
+    iterations: int = param(12, minimum=1, maximum=10000, label="Steps", advanced=True,
+                            help="most search-and-fit steps per level")
+    tolerance_mm: float = param(0.1, unit="mm", minimum=0.0, maximum=100.0, label="Tolerance", advanced=True,
+                                help="a level ends when the points move less than this (RMS)")
+    noise_mm: float = param(1.0, unit="mm", minimum=0.0, exclusive_minimum=True, maximum=1000.0, label="Noise",
+                            help="standard deviation of a found boundary point around the shape: larger trusts "
+                                 "the model more")
+    prior_weight: float = param(1.0, minimum=0.0, maximum=1e9, label="Prior weight",
+                                help="weight η of the model's Gaussian prior (1: as the model says)")
+    n_modes: int | None = param(None, kind="int", minimum=1, maximum=100000, none_means="every mode of the model",
+                                label="Modes", help="modes used by the search")
+    turns_deg: float = param(15.0, unit="deg", minimum=0.0, maximum=180.0, label="Turns", advanced=True,
+                             help="the coarse level also starts from the typical pose turned by ± this about each "
+                                  "axis")
+    placement_mm: float = param(8.0, unit="mm", minimum=0.0, maximum=200.0, label="Placement", advanced=True,
+                                help="the mean shape is first placed on a grid within ± this of the start (4 mm "
+                                     "steps); the best places start the pose search")
+    deviation: bool = param(True, label="Deviation",
+                            help="let the surface leave the model's span as far as the model's error and the "
+                                 "evidence allow")
+    evidence: str = param("auto", choices=EVIDENCES, label="Evidence",
+                          help="the boundary evidence: the model's learned appearance when it has one and it "
+                               "applies to the image (auto), the learned appearance, or the image's gradient")
+
+    _where = "segment parameters:"
+
+    def __post_init__(self):
+        check(self, self._where)
+
+
 CORRESPONDENCE_METHODS = ("landmarks", "model")
 TEMPLATE_CHOICES = ("medoid", "landmark-medoid", "given")
 SIDES = ("detect", "given")
@@ -1159,6 +1208,7 @@ def markdown_tables() -> str:
            "project file's keys, the `ssm build --<table>-<key>` options and the SSM sidebar's fields.", ""]
     tables = [(f"[{section}]", cls, "key") for section, cls in SECTIONS.items()]
     tables.append(("`ssm fit` options (and Blender's Fit Model)", FitParams, "option"))
+    tables.append(("`ssm segment` options (and Blender's Segment with Model)", SegmentParams, "option"))
     for title, cls, column in tables:
         out += [f"## {title}", "", (cls.__doc__ or "").strip().splitlines()[0], "",
                 f"| {column} | default | allowed | meaning |", "|---|---|---|---|"]

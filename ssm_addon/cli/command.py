@@ -247,12 +247,7 @@ def argument_parser() -> argparse.ArgumentParser:
                    help="a joint model's label numbers in segmentation.nii.gz, e.g. L1=20,L2=21 (default: VerSe's "
                         "numbers for structures named by a vertebra, C1=1 … T1=8 … L1=20, else 1, 2, … in the "
                         "model's order)")
-    p.add_argument("--evidence", choices=("auto", "learned", "gradient"), default="auto",
-                   help="boundary evidence: the model's learned appearance when it has one (auto, default), or "
-                        "the image gradient (bright structure, darker surroundings)")
-    p.add_argument("--no-deviation", action="store_true",
-                   help="keep the surface within the model's span (default: it may leave it by the model's own "
-                        "error where the image says so)")
+    P.add_arguments(p.add_argument_group("segment parameters"), P.SegmentParams)
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (written whole at the end)")
     p.add_argument("--force", action="store_true", help="write into a folder holding other files (they are kept)")
 
@@ -558,10 +553,9 @@ def cmd_fit(args) -> int:
 
 def cmd_segment(args) -> int:
     from ..segmentation.files import parse_labels, segment_files
-    from ..segmentation.segment import SegmentParams
 
     out = Path(args.out).expanduser().resolve()
-    params = SegmentParams(evidence=args.evidence, deviation=not args.no_deviation)
+    params = P.from_arguments(args, P.SegmentParams)
     inputs = [args.model, args.image, args.landmarks, args.init_mask, args.truth]
     name = Path(args.image).name
     truth_label = args.truth_label if args.truth_label is not None else (None if args.init_mask else args.label)

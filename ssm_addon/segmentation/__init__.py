@@ -10,5 +10,5 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "files": ("FIGURE_MARGIN_MM", "SCALE_BAR_MM", "SEGMENT_FILES", "VIEWS", "SegmentationRecord", "parse_point", "segment_figure", "segment_files", "structure_labels", "truth_scores", "view_plane", "write_segmentation"),
     "image": ("PLANES", "GreyImage", "read_image", "segmentation_mask", "window_values", "world_slice"),
     "scores": ("degrade_image", "mask_surface_points", "segmentation_scores"),
-    "segment": ("BONE_HU", "BONE_REACH_MM", "CT_AIR_HU", "MIN_SCANS", "SegmentParams", "SegmentResult", "bone_near", "landmark_pose", "segment_image", "start_pose", "typical_rotation", "volume_centroid"),
+    "segment": ("BONE_HU", "BONE_REACH_MM", "CT_AIR_HU", "MIN_SCANS", "SegmentResult", "bone_near", "landmark_pose", "segment_image", "start_pose", "typical_rotation", "volume_centroid"),
 })

@@ -39,6 +39,7 @@ import numpy as np
 from scipy.special import chdtrc
 
 from ..base.errors import InputError, check_cancelled
+from ..base.params import SegmentParams, to_table
 from ..base.progress import CancelledFn, ProgressFn, report
 from ..fitting.fit import Pose, model_error_variance, outlier_limit, spd_solve, weighted_gram, weighted_pose
 from ..meshutil import edges, vertex_normals
@@ -46,62 +47,8 @@ from ..model.pca import own_side_instances
 from .appearance import LEVEL_SIGMAS_MM, Appearance, boundary_grey_values, normalised_derivative
 from .image import GreyImage
 
-__all__ = ["BONE_HU", "BONE_REACH_MM", "CT_AIR_HU", "MIN_SCANS", "SegmentParams", "SegmentResult", "bone_near", "landmark_pose", "segment_image", "start_pose", "typical_rotation",
+__all__ = ["BONE_HU", "BONE_REACH_MM", "CT_AIR_HU", "MIN_SCANS", "SegmentResult", "bone_near", "landmark_pose", "segment_image", "start_pose", "typical_rotation",
            "volume_centroid"]
-
-
-@dataclass(frozen=True)
-class SegmentParams:
-    """The active shape model search (``ssm segment``).
-
-    Attributes
-    ----------
-    search_mm : (L,) mm
-        How far each level looks along the normals, both ways (coarse to fine).
-    search_step_mm : mm
-        Candidate spacing along the normal.
-    iterations : int
-        Most search-and-fit steps per level.
-    tolerance_mm : mm
-        A level ends when the points move less than this (RMS).
-    noise_mm : mm
-        σ of a suggested position around the shape (larger trusts the model more).
-    prior_weight : float
-        η of the model's prior.
-    n_modes : int or None
-        Modes used (None: all).
-    turns_deg : degrees
-        The coarse level also starts from the typical pose turned by ± this about each axis.
-    placement_mm : mm
-        The mean shape is first placed on a grid within ± this of the start (4 mm steps); the best
-        places start the pose search.
-    deviation : bool
-        Let the surface leave the model's span as far as the model's error and the evidence allow.
-    evidence : {"auto", "learned", "gradient"}
-        The boundary evidence: the model's learned appearance when it has one (auto), or the gradient.
-    """
-
-    search_mm: tuple = (12.0, 6.0, 3.0)
-    search_step_mm: float = 0.5
-    iterations: int = 12
-    tolerance_mm: float = 0.1
-    noise_mm: float = 1.0
-    prior_weight: float = 1.0
-    n_modes: int | None = None
-    turns_deg: float = 15.0
-    placement_mm: float = 8.0
-    deviation: bool = True
-    evidence: str = "auto"
-
-    def __post_init__(self):
-        if len(self.search_mm) != len(LEVEL_SIGMAS_MM) or min(self.search_mm) <= 0:
-            raise InputError(f"segment parameters: search_mm needs {len(LEVEL_SIGMAS_MM)} positive lengths (mm), got "
-                             f"{self.search_mm!r}")
-        if self.evidence not in ("auto", "learned", "gradient"):
-            raise InputError(f"segment parameters: evidence must be auto, learned or gradient, got {self.evidence!r}")
-        for name in ("search_step_mm", "noise_mm"):
-            if not getattr(self, name) > 0:
-                raise InputError(f"segment parameters: {name} must be a positive number of mm")
 
 
 @dataclass(frozen=True, eq=False)
@@ -133,6 +80,9 @@ class SegmentResult:
         (kind, message): ``outlier``, ``not_converged``, ``weak_evidence``, ``intensities``, ``orientation``.
     structures : tuple of (name, first point, end point)
         A joint model's structures and their point ranges (empty for one structure).
+    parameters : dict
+        The search's parameters as `ssm segment`'s options and Blender's sidebar give them
+        (:class:`~ssm_addon.base.params.SegmentParams`, by key; recorded in ``segment.json``).
     """
 
     points: np.ndarray
@@ -153,6 +103,7 @@ class SegmentResult:
     findings: list = field(default_factory=list)
     seconds: float = 0.0
     structures: tuple = ()
+    parameters: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return {"pose": self.pose.to_dict(), "coefficients": [float(x) for x in self.coefficients],
@@ -168,7 +119,7 @@ class SegmentResult:
                             "not_converged": any(k == "not_converged" for k, _ in self.findings),
                             "boundary_evidence_weak": any(k == "weak_evidence" for k, _ in self.findings),
                             "findings": [{"kind": k, "message": m} for k, m in self.findings]},
-                "seconds": float(self.seconds),
+                "seconds": float(self.seconds), "parameters": dict(self.parameters),
                 **({"structures": [{"name": n, "points": [int(a), int(b)]} for n, a, b in self.structures]}
                    if self.structures else {})}
 
@@ -744,7 +695,8 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
                          levels=levels, start=start_doc, iterations=iterations,
                          converged=converged, findings=findings, seconds=time.perf_counter() - t0,
                          structures=tuple((n, int(model.structure_offsets[i]), int(model.structure_offsets[i + 1]))
-                                          for i, n in enumerate(model.structure_names)))
+                                          for i, n in enumerate(model.structure_names)),
+                         parameters=to_table(params))
 
 
 def _smooth_on_mesh(values: np.ndarray, weights: np.ndarray, faces: np.ndarray, *, rounds: int) -> np.ndarray:
