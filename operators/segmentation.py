@@ -22,7 +22,7 @@ from bpy_extras.io_utils import ImportHelper
 from ssm_addon.base.errors import InputError
 from ssm_addon.base.params import SegmentParams
 from ssm_addon.segmentation.appearance import appearance_from_arrays
-from ssm_addon.segmentation.files import SEGMENT_FILES, SegmentationRecord, write_segmentation
+from ssm_addon.segmentation.files import SEGMENT_FILES, SegmentationRecord, parse_labels, write_segmentation
 from ssm_addon.segmentation.image import PLANES, read_image, window_values, world_slice
 from ssm_addon.segmentation.segment import segment_image, start_pose, volume_centroid
 
@@ -282,6 +282,10 @@ class SSM_OT_save_segmentation(bpy.types.Operator):
     bl_options = {"REGISTER"}
 
     directory: StringProperty(name="Folder", subtype="DIR_PATH")
+    labels: StringProperty(name="Labels", default="",
+                           description="a joint model's label numbers, STRUCTURE=N separated by commas (as ssm "
+                                       "segment --labels); empty: VerSe's for vertebrae, else 1, 2, … in the "
+                                       "model's order")
 
     @classmethod
     def poll(cls, context):
@@ -305,7 +309,8 @@ class SSM_OT_save_segmentation(bpy.types.Operator):
                                         posterior_sd_mm=bridge.get_point_attribute(mesh, "posterior_sd_mm"),
                                         deviation_mm=bridge.get_point_attribute(mesh, "deviation_mm"),
                                         record=json.loads(obj["ssm_segment_json"]))
-            write_segmentation(record, image, self.directory, model_source=record.record.get("model", ""))
+            write_segmentation(record, image, self.directory, model_source=record.record.get("model", ""),
+                               labels=parse_labels([self.labels]))
         except InputError as err:
             self.report({"ERROR"}, str(err))
             return {"CANCELLED"}

@@ -144,7 +144,8 @@ def _joint_scene(bpy, tmp_path, names=None):
 def test_a_joint_segmentation_saved_in_blender_has_the_commands_labels(bpy_clean, tmp_path):
     """A joint model (two touching structures, named L1 and L2) imported into Blender and segmented from
     the 3D cursor: *Save Segmentation* writes the label map the command writes from the same point,
-    voxel for voxel, each structure under its VerSe number (20, 21), none in both."""
+    voxel for voxel, each structure under its VerSe number (20, 21), none in both, or under the numbers
+    given (its ``labels``, the command's ``--labels``)."""
     bpy = bpy_clean
     truth, fa, fb, na = _joint_scene(bpy, tmp_path, names=("L1", "L2"))
     bpy.context.scene.cursor.location = tuple(volume_centroid(truth, np.concatenate([fa, fb + na])) + [1.0, 1.0, 0.0])
@@ -159,6 +160,13 @@ def test_a_joint_segmentation_saved_in_blender_has_the_commands_labels(bpy_clean
     assert set(np.unique(cli)) == {0, 20, 21} and np.array_equal(blender, cli)
     saved = json.loads((tmp_path / "blender" / "segment.json").read_text())
     assert saved["segmentation"]["structures"]["L2"]["label"] == 21
+    # numbers of one's own, as `ssm segment --labels L1=3,L2=7`: the same voxels under them; a bad one refused
+    assert bpy.ops.ssm.save_segmentation(directory=str(tmp_path / "own"), labels="L1=3, L2=7") == {"FINISHED"}
+    own = np.asarray(nib.load(str(tmp_path / "own" / "segmentation.nii.gz")).dataobj)
+    assert np.array_equal(own == 3, cli == 20) and np.array_equal(own == 7, cli == 21)
+    with pytest.raises(RuntimeError, match="no structure 'L9'"):
+        bpy.ops.ssm.save_segmentation(directory=str(tmp_path / "bad"), labels="L9=4")
+    assert not (tmp_path / "bad" / "segmentation.nii.gz").exists()
 
 
 def test_a_joint_models_starts_placed_per_structure_segment_as_the_command_does(bpy_clean, tmp_path, layout_recorder):
