@@ -173,8 +173,9 @@ def test_knee30_joint_build_predicts_the_tibia_from_the_femur(tmp_path):
 
 @pytest.mark.slow
 def test_a_lumbar_spine_from_label_maps_gives_its_relative_pose_spread(verse_dir, tmp_path):
-    """L1–L5 of verse004 as six subjects (each vertebra turned and moved by a known amount in every
-    subject but the first), ``volume`` + ``labels = { L1 = 20, … }``: the joint build reports each
+    """L1–L3 of verse004 as six subjects (each vertebra turned and moved by a known amount in every
+    subject but the first; L4 and L5 show nothing more and cost 40 % of the test), ``volume`` +
+    ``labels = { L1 = 20, … }``: the joint build reports each
     pair's relative-pose spread as applied (the turn's SD within 25 %), the model's spread like the
     data's, and its modes mostly relative pose (the only variation there is)."""
     from conftest import VERSE_FILE
@@ -182,12 +183,12 @@ def test_a_lumbar_spine_from_label_maps_gives_its_relative_pose_spread(verse_dir
 
     from ssm_addon.pipeline.project_build import build
 
-    labels = {"L1": 20, "L2": 21, "L3": 22, "L4": 23, "L5": 24}
+    labels = {"L1": 20, "L2": 21, "L3": 22}
     project, moves = verse_spine_population(tmp_path / "in", VERSE_FILE, verse_dir / "landmarks", labels, n=6)
     result = build(read_project(project), tmp_path / "out", jobs=2, log=None)
     pairs = result.report["joint"]["shape_pose"]["pairs"]
-    assert set(pairs) == {f"L1-L{k}" for k in range(2, 6)}
-    for k in range(2, 6):
+    assert set(pairs) == {f"L1-L{k}" for k in range(2, 4)}
+    for k in range(2, 4):
         rv = np.array([_log_rotation_for_tests(moves[s][f"L{k}"][0] @ moves[s]["L1"][0].T) for s in moves])
         truth = np.degrees(np.sqrt(((rv - rv.mean(0)) ** 2).sum(1).mean()))
         pair = pairs[f"L1-L{k}"]
