@@ -33,8 +33,8 @@ from mathutils import Vector
 from ssm_addon.base.errors import InputError, SSMError
 from ssm_addon.base.params import ModelParams
 from ssm_addon.base.progress import sub_progress
-from ssm_addon.fitting.batch import load_model
 from ssm_addon.model import metrics as core_metrics
+from ssm_addon.model.files import load_model
 from ssm_addon.model.pca import ShapeModel
 from ssm_addon.model.quality import check_model
 from ssm_addon.pipeline.outputs import owned_output_folder, save_joint_outputs, save_study_outputs, write_outputs

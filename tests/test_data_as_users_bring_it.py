@@ -155,9 +155,8 @@ def test_a_foreign_statismo_model_loses_its_empty_modes(tmp_path):
     a fit counts only the real modes."""
     import h5py
 
-    from ssm_addon.fitting.batch import load_model
     from ssm_addon.fitting.fit import Target, fit_any_pose
-    from ssm_addon.model.files import save_statismo
+    from ssm_addon.model.files import load_model, save_statismo
     from ssm_addon.model.pca import build_model
 
     shapes, mean, _f, _l = synthetic_population(n=8, n_points=80, noise_mm=0.0, seed=2)  # three real modes

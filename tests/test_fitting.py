@@ -29,7 +29,7 @@ from ssm_addon.fitting import batch as apply
 from ssm_addon.fitting.fit import Pose, Target, fit_model
 from ssm_addon.fitting.verdict import calibration, judge_fit
 from ssm_addon.formats.landmarks import LandmarkSet, write_landmarks
-from ssm_addon.model.files import load_statismo, save_npz, save_statismo
+from ssm_addon.model.files import load_model, load_statismo, save_npz, save_statismo
 from ssm_addon.model.pca import build_model, procrustes_fit
 
 
@@ -215,7 +215,7 @@ def test_bad_inputs_are_named(model, tmp_path):
     save_npz(model, npz)
     (tmp_path / "notes.txt").write_text("not a model")
     with pytest.raises(InputError, match=r"notes\.txt: not a model"):
-        apply.load_model(tmp_path / "notes.txt")
+        load_model(tmp_path / "notes.txt")
     lm = LandmarkSet(("tip", "base"), np.zeros((2, 3)), "lm.csv")
     with pytest.raises(InputError, match=r"lm\.csv: none of the landmark names \(tip, base\) is one the model knows"):
         fit_model(model, Target.from_landmarks(lm))
@@ -251,7 +251,7 @@ def test_leave_one_out_fit_of_a_real_vertebra(verse_models, tmp_path):
     save_npz(m8, tmp_path / "m8.npz")
     inst = study.instance(left)
     t = apply.FitTarget(name=left, volume=inst.volume_path, label=inst.label)
-    doc = apply.fit_to_folder(apply.load_model(tmp_path / "m8.npz"), t, tmp_path / "fit", free=True)
+    doc = apply.fit_to_folder(load_model(tmp_path / "m8.npz"), t, tmp_path / "fit", free=True)
     print(f"\nL3 from a model of the other 8: constrained fit mean {doc['mean_distance_mm']:.2f} / max "
           f"{doc['max_distance_mm']:.2f} mm, free fit mean {doc['free']['mean_distance_mm']:.2f} / max "
           f"{doc['free']['max_distance_mm']:.2f} mm")
@@ -368,7 +368,7 @@ def test_a_training_instance_fits_alike_as_mesh_label_map_and_in_any_pose(demo_b
     longer the start), and so it does after any rigid motion (5 random ones here)."""
     from scipy.spatial.transform import Rotation
 
-    from ssm_addon.fitting.batch import FitTarget, fit_to_folder, load_model
+    from ssm_addon.fitting.batch import FitTarget, fit_to_folder
     from ssm_addon.formats.label_maps import load_volume
     from ssm_addon.formats.meshes import write_ply
     from ssm_addon.instances.volume import display_surface
@@ -398,7 +398,7 @@ def test_partial_open_meshes_tiny_targets_and_units_are_said(demo_build, capsys)
     """An open mesh (half a shape) is fitted with --partial and refused without it (the
     message says --partial); 3 points are refused; a target in metres is suspected; the
     coverage of the model's surface is reported and a small one is a warning."""
-    from ssm_addon.fitting.batch import FitTarget, fit_to_folder, load_model
+    from ssm_addon.fitting.batch import FitTarget, fit_to_folder
     from ssm_addon.formats.label_maps import load_volume
     from ssm_addon.formats.meshes import write_ply
     from ssm_addon.instances.volume import display_surface

@@ -320,7 +320,7 @@ def test_another_tools_joined_model_opens_as_a_joint_model_of_its_parts(tmp_path
     stay a model of one structure."""
     import dataclasses as dc
 
-    from ssm_addon.fitting.batch import load_model
+    from ssm_addon.model.files import load_model
     from ssm_addon.model.joint import joined_parts
 
     a, b, fa, fb, _t = joint_population(n=8)

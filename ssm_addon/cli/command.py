@@ -471,6 +471,7 @@ def _one_mesh_for_a_joint_model(model, mesh) -> None:
 def cmd_fit(args) -> int:
     from ..fitting import batch as apply
     from ..model.figures import p_value_text
+    from ..model.files import load_model
     from ..pipeline.project import targets_from_project
 
     params = P.from_arguments(args, P.FitParams)
@@ -488,7 +489,7 @@ def cmd_fit(args) -> int:
                          "not for a batch or a joint model's structures")
     args.jobs = _workers(args.jobs)
     inputs = [args.model, args.volume, args.mesh, args.points, args.landmarks, args.project, *named.values()]
-    model = apply.load_model(args.model, say=lambda line: print(line, flush=True))  # says which modes are empty
+    model = load_model(args.model, say=lambda line: print(line, flush=True))  # says which modes are empty
     if model.structure_names and args.mesh and not named and not args.partial:
         _one_mesh_for_a_joint_model(model, args.mesh)
     if params.n_modes is not None and params.n_modes > model.n_modes:
@@ -592,7 +593,7 @@ def cmd_segment(args) -> int:
 def cmd_analyze(args) -> int:
     from ..analysis.attributes import read_attributes
     from ..analysis.files import analysis_summary, run_analysis
-    from ..fitting.batch import load_model, model_file
+    from ..model.files import load_model, model_file
     model_path = model_file(args.model)  # a build's output folder: its model.npz
     model = load_model(model_path)
     if args.structure:

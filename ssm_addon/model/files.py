@@ -18,8 +18,9 @@ from ..base.errors import InputError
 from ..base.records import jsonable
 from ..formats.gltf import write_glb
 from ..formats.vtk import write_vtk, write_vtp
+from ..model.joint import joined_parts
 from ..model.metrics import display_axes
-from ..model.pca import ShapeModel
+from ..model.pca import EMPTY_MODE_SHARE, ShapeModel, drop_empty_modes
 
 NPZ_KEYS = (
     "mean",
@@ -418,3 +419,47 @@ def write_model_files(model: ShapeModel, out_dir, *, statismo: bool = True, stat
     if gltf or vtk:
         written.update(write_exchange_meshes(model, out_dir, gltf=gltf, vtk=vtk, modes=exchange_modes))
     return written
+
+
+def model_file(path) -> Path:
+    """The model file ``path`` names: the file itself, or the ``model.npz`` inside a build's output
+    folder. An InputError names a folder without one and a path that does not exist."""
+    path = Path(path).expanduser()
+    if path.is_dir():
+        inside = path / "model.npz"
+        if inside.is_file():
+            return inside
+        raise InputError(f"{path}: is a folder without a model.npz (give a build's output folder or a model file: "
+                         "model.npz or a statismo .h5)")
+    if not path.is_file():
+        raise InputError(f"{path}: model file not found")
+    return path
+
+
+def load_model(path, *, say=None):
+    """A model from ``model.npz`` (or a build's output folder holding one) or a statismo HDF5 file
+    (ours or another tool's), without its
+    modes of zero variance (:func:`~ssm_addon.model.pca.drop_empty_modes`: another tool may
+    keep n − 1 or more modes of which many are empty); a statismo file whose reference is
+    several disconnected parts, each a contiguous range of points, opens as a joint model of its
+    parts (:func:`~ssm_addon.model.joint.joined_parts`). ``say`` receives the lines saying so."""
+    path = model_file(path)
+    head = path.read_bytes()[:8]
+    if head.startswith(b"PK"):
+        model = load_npz(path)
+    elif head.startswith(b"\x89HDF"):
+        model = load_statismo(path)
+        joined = joined_parts(model)  # another tool's joined model: its parts as structures
+        if joined is not None:
+            model = joined
+            if say is not None:
+                say(f"{path.name}: its reference is {len(joined.structure_names)} disconnected parts, each a "
+                    "contiguous range of points (several structures joined into one model): opened as a joint "
+                    f"model of {', '.join(joined.structure_names)}")
+    else:
+        raise InputError(f"{path}: not a model (expected model.npz from `ssm build` or a statismo .h5 file)")
+    model, dropped = drop_empty_modes(model)
+    if dropped and say is not None:
+        say(f"{path.name}: {dropped} of {model.n_modes + dropped} modes have zero variance (at most "
+            f"{EMPTY_MODE_SHARE:g} of the largest); dropped, {model.n_modes} modes left")
+    return model

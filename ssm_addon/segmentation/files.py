@@ -13,12 +13,12 @@ from scipy.spatial import cKDTree
 from scipy.stats import spearmanr
 
 from ..base.errors import InputError
-from ..fitting.batch import load_model, model_file
 from ..fitting.fit import Target, fit_any_pose
 from ..formats.label_maps import load_volume, read_label_map, write_label_map
 from ..formats.landmarks import read_landmarks
 from ..formats.meshes import write_ply
 from ..meshutil import MeshLocator, faces_within
+from ..model.files import load_model, model_file
 from .appearance import load_appearance
 from .image import GreyImage, read_image, segmentation_mask
 from .scores import mask_surface_points, segmentation_scores
