@@ -31,8 +31,7 @@ import sys
 import warnings
 
 from ._lazy import lazy_exports
-
-__version__ = "0.1.0"
+from .version import __version__ as __version__
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "pipeline.study": ("Study",),

@@ -89,7 +89,7 @@ def test_modules_import_each_other_without_cycles(folder):
 
 def test_the_core_is_one_subpackage_per_stage():
     top = sorted(p.name for p in CORE.iterdir() if not p.name.startswith((".", "__pycache__")))
-    assert top == sorted(["__init__.py", "__main__.py", "_lazy.py", "meshutil.py", *STAGE_PACKAGES]), top
+    assert top == sorted(["__init__.py", "__main__.py", "_lazy.py", "meshutil.py", "version.py", *STAGE_PACKAGES]), top
     for pkg in STAGE_PACKAGES:  # every public name of a stage's modules is re-exported by its package
         init = importlib.import_module(f"ssm_addon.{pkg}")
         for m in _modules(CORE / pkg):
@@ -370,7 +370,7 @@ def test_the_build_path_does_not_import_scipy_stats():
 #: The core's layers, bottom to top (docs/architecture.md). A package imports packages of the
 #: layers below it and, within its own layer, only packages that do not import it back.
 LAYERS = (
-    ("", "_lazy", "base", "meshutil"),  # foundation ("": the root package, whose names are lazy re-exports)
+    ("", "_lazy", "version", "base", "meshutil"),  # foundation ("": the root package, whose names are lazy re-exports)
     ("formats", "instances", "template", "coating", "model", "fitting", "correspondence", "analysis",
      "segmentation"),  # stages
     ("pipeline",),  # orchestrator: the study, its stage functions, cache, project file

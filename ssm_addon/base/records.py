@@ -9,7 +9,7 @@ import numpy as np
 import scipy
 import skimage
 
-from .. import __version__
+from ..version import __version__
 
 __all__ = ["jsonable", "versions"]
 

@@ -13,7 +13,6 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import __version__
 from ..base.errors import InputError
 from ..base.records import jsonable
 from ..formats.gltf import write_glb
@@ -21,6 +20,7 @@ from ..formats.vtk import write_vtk, write_vtp
 from ..model.joint import joined_parts
 from ..model.metrics import display_axes
 from ..model.pca import EMPTY_MODE_SHARE, ShapeModel, drop_empty_modes
+from ..version import __version__
 
 NPZ_KEYS = (
     "mean",

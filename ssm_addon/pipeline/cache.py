@@ -33,12 +33,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import __version__
 from ..base.errors import InputError
 from ..coating.coating import CoatingResult, FitFigures
 from ..instances.volume import ObjectFrame, frame_from_arrays, frame_to_arrays
 from ..model.quality import Finding
 from ..template.template import Template
+from ..version import __version__
 
 __all__ = ["BuildCache", "InstanceProduct", "code_digest", "file_digest", "digest"]
 

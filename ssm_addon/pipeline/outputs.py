@@ -30,7 +30,6 @@ try:  # the output folder's lock (output_lock); Windows: an exclusive create sta
 except ImportError:  # pragma: no cover - Windows
     fcntl = None
 
-from .. import __version__
 from ..base.compute import done_future
 from ..base.errors import InputError, check_cancelled
 from ..base.params import OutputParams
@@ -43,6 +42,7 @@ from ..model.figures import optimisation_figure, render_modes_figure
 from ..model.files import write_model_files
 from ..model.metrics import display_axes, write_plots
 from ..segmentation.appearance import write_appearance_h5
+from ..version import __version__
 from .appearance import appearance_stage
 from .report import Absent, Report, joint_report, model_report, study_report, write_report_html
 from .study import Study, carried_landmarks
