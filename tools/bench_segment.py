@@ -6,7 +6,8 @@ Usage: ``.venv/bin/python tools/bench_segment.py [--work DIR] [--repeat 5]``
   noise, gradient evidence;
 * verse005 (where ``../shared/data`` holds it): L3 from the leave-one-out lumbar model of
   ``tools/eval_segmentation.py`` (631 points, 8 modes; built into ``--work`` once), with the
-  learned appearance and with the gradient, on the 1 mm CT and on its 3 mm version.
+  learned appearance and with the gradient, on the 1 mm CT and on its 3 mm version; and L1-L5
+  jointly from L3's point, a joint model of verse004's vertebrae (6 subjects, built once).
 
 Each case: the median wall time of ``--repeat`` runs of
 :func:`ssm_addon.segmentation.segment_image` with BLAS on one thread, and its peak memory.
@@ -30,7 +31,7 @@ sys.path.insert(0, str(ROOT / "tools"))
 
 from ssm_addon.base.params import SegmentParams  # noqa: E402
 from ssm_addon.model.pca import build_model  # noqa: E402
-from ssm_addon.segmentation import degrade_image, read_image, segment_image, volume_centroid  # noqa: E402
+from ssm_addon.segmentation import degrade_image, read_image, segment_image, start_pose, volume_centroid  # noqa: E402
 
 
 def timed(fn, repeat):
@@ -44,6 +45,26 @@ def timed(fn, repeat):
     peak = tracemalloc.get_traced_memory()[1] / 2**20
     tracemalloc.stop()
     return float(np.median(times)), peak
+
+
+def joint_spine_model(folder: Path):
+    """A joint L1-L5 model built once into ``folder`` from verse004's label map (6 subjects, each vertebra
+    turned and moved by a known amount, ``tests/foreign_data.verse_spine_population``); None without it."""
+    from conftest import VERSE_DIR, VERSE_FILE
+    from foreign_data import verse_spine_population
+
+    from ssm_addon.model.files import load_model
+    from ssm_addon.pipeline.project import read_project
+    from ssm_addon.pipeline.project_build import build
+
+    if not VERSE_FILE.is_file():
+        print(f"verse004 not found at {VERSE_FILE}: the joint spine case is skipped")
+        return None
+    if not (folder / "out" / "model.npz").is_file():
+        labels = {"L1": 20, "L2": 21, "L3": 22, "L4": 23, "L5": 24}
+        project, _moves = verse_spine_population(folder / "in", VERSE_FILE, VERSE_DIR / "landmarks", labels, n=6)
+        build(read_project(project), folder / "out", jobs=2, log=None, blend=False)
+    return load_model(folder / "out" / "model.npz")
 
 
 def main(argv=None) -> int:
@@ -77,6 +98,13 @@ def main(argv=None) -> int:
                     fn = lambda img=img, app=app: segment_image(lumbar, img, at=start, appearance=app,  # noqa: E731
                                                                  params=SegmentParams())
                     rows.append((f"verse005 L3, {name}, {evidence}", *timed(fn, args.repeat)))
+            # a whole lumbar spine from one click: a joint L1-L5 model (verse004's vertebrae, each turned
+            # and moved in 6 subjects), started at L3's point; the model's relative poses place the rest
+            spine = joint_spine_model(Path(args.work) / "spine")
+            if spine is not None:
+                placed = start_pose(spine, named={"L3": start})
+                fn = lambda: segment_image(spine, ct, pose=placed, params=SegmentParams())  # noqa: E731
+                rows.append(("verse005 L1-L5 jointly, 1 mm, gradient", *timed(fn, max(1, args.repeat // 2))))
         else:
             print(f"verse005 not found under {data}: the real-CT cases are skipped")
     print(f"{'case':40s} {'median s':>9s} {'peak MB':>8s}")
