@@ -314,7 +314,6 @@ class ModelErrorField:
         return _ModeBasis(np.zeros((len(self.fields_mm), 3, 0)), self.fields_mm).rows(np.arange(len(self.fields_mm)))
 
 
-
 def weighted_gram(rows: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """(K, K): ``rowsᵀ diag(weights) rows`` for rows (P, K) and weights (P,) ≥ 0, as the
     product of the √weight-scaled rows with themselves (one symmetric rank-k update, about

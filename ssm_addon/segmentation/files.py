@@ -13,6 +13,7 @@ from scipy.spatial import cKDTree
 from scipy.stats import spearmanr
 
 from ..base.errors import InputError
+from ..base.params import SegmentParams
 from ..fitting.fit import Target, fit_any_pose
 from ..formats.label_maps import load_volume, read_label_map, write_label_map
 from ..formats.landmarks import read_landmarks
@@ -22,7 +23,7 @@ from ..model.files import load_model, model_file
 from .appearance import load_appearance
 from .image import GreyImage, read_image, segmentation_mask
 from .scores import mask_surface_points, segmentation_scores
-from .segment import MIN_SCANS, SegmentParams, landmark_pose, segment_image, start_pose
+from .segment import MIN_SCANS, landmark_pose, segment_image, start_pose
 
 __all__ = ["FIGURE_MARGIN_MM", "SCALE_BAR_MM", "SEGMENT_FILES", "VIEWS", "SegmentationRecord", "parse_point", "segment_figure", "segment_files",
            "structure_labels", "truth_scores", "view_plane", "write_segmentation"]

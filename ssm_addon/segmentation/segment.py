@@ -545,7 +545,7 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
             a = weighted_gram(qn, w)
             precision = a / sigma2 + params.prior_weight * np.diag(1.0 / lam)
             b = spd_solve(precision + 1e-12 * np.eye(k) * max(1.0, float(np.abs(precision).max())),
-                                qn.T @ (w * r) / sigma2)
+                          qn.T @ (w * r) / sigma2)
             shape = mean + q @ b
             x_new = pose_.apply(shape)
             move = float(np.sqrt(((x_new - last) ** 2).sum(axis=1).mean()))
@@ -694,8 +694,8 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
                          p_value=float(chdtrc(k, d2)) if k else 1.0, evidence=evidence, boundary=boundary,
                          levels=levels, start=start_doc, iterations=iterations,
                          converged=converged, findings=findings, seconds=time.perf_counter() - t0,
-                         structures=tuple((n, int(model.structure_offsets[i]), int(model.structure_offsets[i + 1]))
-                                          for i, n in enumerate(model.structure_names)),
+                         structures=tuple((n, model.structure_slice(n).start, model.structure_slice(n).stop)
+                                          for n in model.structure_names),
                          parameters=to_table(params))
 
 
