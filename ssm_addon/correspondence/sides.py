@@ -32,7 +32,7 @@ from ..fitting.fit import Pose, weighted_pose
 from ..instances.volume import ObjectFrame, ObjectVolume, mirror_axis, mirrored_frame
 from .frames import FRAME_ROTATIONS, SurfacePairs, area_samples, input_rotation
 
-__all__ = ["SIDE_FACTOR", "SideDecision", "landmark_side", "surface_side"]
+__all__ = ["SIDE_FACTOR", "SideDecision", "landmark_side", "subject_sides", "surface_side"]
 
 #: One side is decided when it fits this many times closer than the other (the template's
 #: similarity onto the landmarks, RMS mm; or onto the surface, mean mm); docs/measurements.md
@@ -64,9 +64,10 @@ class SideDecision:
         True: the instance is a mirror image of the template's side and is mirrored before
         it is coated.
     by : str
-        ``"given"`` (the project's ``side``), ``"landmarks"``, ``"surface"``, or
-        ``"undecided"`` (neither side fits :data:`SIDE_FACTOR` times closer: taken as the
-        template's side).
+        ``"given"`` (the project's ``side``), ``"landmarks"``, ``"surface"``, ``"subject"``
+        (in a joint project, the subject's other structures decided against this one's own
+        fits: :func:`subject_sides`), or ``"undecided"`` (neither side fits :data:`SIDE_FACTOR`
+        times closer: taken as the template's side).
     as_is_mm, mirrored_mm : float
         How closely the template fits the instance as it is and mirrored (landmarks: RMS mm
         of the similarity; surface: mean symmetric distance, mm); NaN when not measured.
@@ -106,6 +107,9 @@ class SideDecision:
     def text(self) -> str:
         if self.by == "given":
             return f"side {self.side} given"
+        if self.by == "subject":
+            return (f"its subject's other structures' side (its own surface fits {self.as_is_mm:.2f} mm as is, "
+                    f"{self.mirrored_mm:.2f} mm mirrored)")
         what = "landmarks fit" if self.by == "landmarks" else "surface fits"
         return f"its {what} {self.as_is_mm:.2f} mm as is, {self.mirrored_mm:.2f} mm mirrored"
 
@@ -116,6 +120,70 @@ def _decide(as_is: float, mirrored: float, by: str, rotations=((), ())) -> SideD
     if as_is * SIDE_FACTOR < mirrored:
         return SideDecision(False, by, as_is, mirrored, rotations=tuple(rotations[0]))
     return SideDecision(False, "undecided", as_is, mirrored, rotations=tuple(rotations[0]))
+
+
+def _evidence(d: SideDecision) -> float:
+    """log(as is / mirrored) of a decision: > 0 where the mirror image fits closer; 0 where not measured."""
+    if not (np.isfinite(d.as_is_mm) and np.isfinite(d.mirrored_mm)) or d.as_is_mm <= 0 or d.mirrored_mm <= 0:
+        return 0.0
+    return float(np.log(d.as_is_mm / d.mirrored_mm))
+
+
+def subject_sides(decisions: dict, *, parity: dict | None = None) -> dict:
+    """One side per subject of a joint project, from each structure's own decisions.
+
+    A subject's structures are mirrored together or not at all: one mirrored alone would carry
+    the subject's relative poses into another side. Each structure's decision (against its own
+    template) is evidence, ``log(as is / mirrored)`` of its fits (landmarks' RMS or the surface's
+    mean distance, so the landmarks' sharper ratios weigh more); the subject is a mirror image of
+    the reference structure's template side when the sum over its structures favours the mirror
+    image by :data:`SIDE_FACTOR` or more, the template's side when it favours that by as much, and
+    undecided (taken as the template's side) between.
+
+    Parameters
+    ----------
+    decisions : dict
+        structure -> subject -> :class:`SideDecision` (that structure's, against its template).
+    parity : dict, optional
+        structure -> whether its template instance is a mirror image of the reference structure's
+        template instance (default False: the structures share one template subject's side).
+
+    Returns
+    -------
+    dict
+        structure -> subject -> :class:`SideDecision`, ``mirror`` the same for every structure
+        of a subject (each XOR its structure's ``parity``); ``by`` the structure's own where it
+        agrees, ``"subject"`` where the subject's other structures decided it, ``"undecided"``.
+
+    >>> a = SideDecision(True, "surface", 3.0, 2.0)
+    >>> b = SideDecision(False, "undecided", 2.0, 2.1)
+    >>> out = subject_sides({"femur": {"S2": a}, "tibia": {"S2": b}})
+    >>> out["femur"]["S2"].mirror, out["tibia"]["S2"].mirror, out["tibia"]["S2"].by
+    (True, True, 'subject')
+    """
+    parity = parity or {}
+    subjects = sorted({s for per in decisions.values() for s in per})
+    out = {name: {} for name in decisions}
+    threshold = float(np.log(SIDE_FACTOR))
+    for s in subjects:
+        total = sum(-_evidence(per[s]) if parity.get(name, False) else _evidence(per[s])
+                    for name, per in decisions.items() if s in per)
+        mirror = total > threshold
+        undecided = abs(total) <= threshold
+        for name, per in decisions.items():
+            if s not in per:
+                continue
+            own = per[s]
+            this = mirror != bool(parity.get(name, False))
+            if undecided:
+                out[name][s] = SideDecision(this, "undecided", own.as_is_mm, own.mirrored_mm,
+                                            rotations=own.rotations if not this else ())
+            elif own.by != "undecided" and own.mirror == this:
+                out[name][s] = own
+            else:  # the subject's other structures decide; the own rotations are of the other side
+                out[name][s] = SideDecision(this, "subject", own.as_is_mm, own.mirrored_mm,
+                                            rotations=own.rotations if own.mirror == this else ())
+    return out
 
 
 def _similarity_rms(src: np.ndarray, tgt: np.ndarray, *, reflect: bool) -> float:

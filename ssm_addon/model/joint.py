@@ -192,7 +192,12 @@ def shape_and_pose(model: ShapeModel, *, reference: str, samples: int = 300, see
 def _penetration(points: np.ndarray, other: np.ndarray, other_faces: np.ndarray) -> float:
     """How deep points reach into the closed surface ``other`` (mm; 0 when none is inside): a point
     is inside when it lies behind the outward normal of its closest triangle. Only the points
-    within ``other``'s bounding box can be inside it, so only they are queried."""
+    within ``other``'s bounding box can be inside it, so only they are queried. Triangles that
+    face inwards (a mirror image's world points with the template's triangles: a subject of the
+    other side) are turned first."""
+    corners = other[np.asarray(other_faces)]
+    if np.einsum("ij,ij->i", corners[:, 0], np.cross(corners[:, 1], corners[:, 2])).sum() < 0.0:
+        other_faces = np.asarray(other_faces)[:, ::-1]
     lo, hi = other.min(axis=0), other.max(axis=0)
     points = points[((points >= lo) & (points <= hi)).all(axis=1)]
     if not len(points):

@@ -41,16 +41,19 @@ from ..base.errors import InputError, check_cancelled
 from ..base.params import StudyParams
 from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..correspondence.frames import coating_poses, twists_of
+from ..correspondence.sides import subject_sides
 from ..model import metrics as model_metrics
 from ..model.joint import collision_findings, collisions, shape_and_pose, structure_model
 from ..model.metrics import ModelMetrics
 from ..model.pca import ShapeModel, build_model, generalized_procrustes, procrustes_fit
 from ..model.quality import Finding, check_model
+from .model_method import landmarked
 from .runner import run
+from .sides import decide_sides, sides_line, with_sides
 from .stages import make_model, twist_findings
 from .study import Study, study_parameters
 
-__all__ = ["JointStudy", "joint_model", "run_joint", "structure_metrics"]
+__all__ = ["JointStudy", "joint_model", "joint_sides", "run_joint", "structure_metrics"]
 
 Log = Callable[[str], None] | None
 
@@ -123,17 +126,19 @@ def run_joint(joint: JointStudy, *, jobs: int = 1, progress: ProgressFn = None, 
     structures one after the other on ``executor``), then the joint model and its figures."""
     say = log or (lambda _m: None)
     n = len(joint.structures)
+    imported = joint_sides(joint, jobs=jobs, executor=executor, cancelled=cancelled, cache=cache, log=say,
+                           progress=sub_progress(progress, 0.0, 0.1))
     for k, (name, study) in enumerate(joint.structures.items()):
         check_cancelled(cancelled)
-        report(progress, 0.7 * k / n, f"{name}: import, template and coating")
+        report(progress, 0.1 + 0.6 * k / n, f"{name}: import, template and coating")
         t0 = time.perf_counter()
-        # one side throughout: a subject's structures mirrored each on its own would carry their relative
-        # poses into another side (sides are not supported in a joint project; the project reader says so)
+        # sides are decided per subject (joint_sides, above) or given: none is decided per structure
         study.instances = tuple(dataclasses.replace(i, mirror=False) if i.mirror is None else i for i in study.instances)
-        run(study, stages=("import", "template", "coating"), jobs=jobs, cancelled=cancelled, executor=executor,
-            cache=cache, progress=sub_progress(progress, 0.7 * k / n, 0.7 * (k + 1) / n, f"{name}: "),
+        stages = ("coating",) if imported else ("import", "template", "coating")
+        run(study, stages=stages, jobs=jobs, cancelled=cancelled, executor=executor,
+            cache=cache, progress=sub_progress(progress, 0.1 + 0.6 * k / n, 0.1 + 0.6 * (k + 1) / n, f"{name}: "),
             log=lambda line, name=name: say(f"{name}: {line}"))
-        joint.timings_s[f"{name}"] = time.perf_counter() - t0
+        joint.timings_s[f"{name}"] = imported.get(name, 0.0) + time.perf_counter() - t0
         if study.params.correspondence.optimise:
             say(f"{name}: correspondence: the optimisation across the population is not run in a joint build "
                 "(each structure's coatings as the coating stage left them)")
@@ -188,6 +193,60 @@ def run_joint(joint: JointStudy, *, jobs: int = 1, progress: ProgressFn = None, 
     return joint
 
 
+def joint_sides(joint: JointStudy, *, jobs: int = 1, executor=None, cancelled: CancelledFn = None, cache=None,
+                log: Log = None, progress: ProgressFn = None) -> dict:
+    """Each subject's side, one for all its structures, before any is coated.
+
+    Where ``[correspondence] sides = "detect"`` and some subject's side is not given, every
+    structure's side of every such subject is found against that structure's template (by
+    landmarks, or by the surface: :func:`~ssm_addon.pipeline.sides.decide_sides`, which needs
+    the structures imported and their templates built first), the findings are pooled per
+    subject (:func:`~ssm_addon.correspondence.sides.subject_sides`), and each structure's study
+    takes them (:func:`~ssm_addon.pipeline.sides.with_sides`: its mirror images' volumes
+    mirrored). A subject's structures are then mirrored together, so its relative poses are
+    one side's.
+
+    Returns
+    -------
+    dict
+        structure -> seconds of its import, template and side test, for the structures imported
+        here (empty when nothing was to decide: the coating's stages import them).
+    """
+    say = log or (lambda _m: None)
+    open_sides = {name: [i.name for i in st.instances if i.mirror is None] for name, st in joint.structures.items()}
+    if not any(open_sides.values()) or any(st.params.correspondence.sides != "detect"
+                                           for st in joint.structures.values()):
+        return {}
+    by_landmarks = all(len(landmarked(st)) == len(st.names) for st in joint.structures.values())
+    seconds, found = {}, {}
+    n = len(joint.structures)
+    for k, (name, study) in enumerate(joint.structures.items()):
+        check_cancelled(cancelled)
+        t0 = time.perf_counter()
+        if not by_landmarks:  # the surface test needs the volumes and the template
+            report(progress, k / n, f"{name}: import and template, for the subjects' sides")
+            run(study, stages=("import", "template"), jobs=jobs, cancelled=cancelled, executor=executor, cache=cache,
+                progress=sub_progress(progress, k / n, (k + 1) / n, f"{name}: "),
+                log=lambda line, name=name: say(f"{name}: {line}"))
+        found[name] = decide_sides(study, open_sides[name], jobs=jobs, executor=executor, cancelled=cancelled,
+                                   surface=not by_landmarks)
+        seconds[name] = time.perf_counter() - t0
+    ref = joint.reference
+    ref_template = joint.structures[ref].template_instance
+    parity = {}
+    for name, study in joint.structures.items():  # a structure's template subject against the reference's
+        tpl = study.template_instance
+        given = joint.structures[ref].instance(tpl).mirror if tpl != ref_template else False
+        parity[name] = bool(given if given is not None else found[ref].get(tpl) and found[ref][tpl].mirror)
+    pooled = subject_sides(found, parity=parity)
+    for name, study in list(joint.structures.items()):
+        joint.structures[name] = sided = with_sides(study, pooled[name])
+        line = sides_line(sided, pooled[name])
+        if line:
+            say(f"{name}: {line}")
+    return seconds if not by_landmarks else {}
+
+
 # ----------------------------------------------------------------------------- the joint model
 def _coated_world(study: Study, subjects: Sequence[str]) -> np.ndarray:
     return np.stack([study.frame(s).to_world(study.coatings[s].points_object) for s in subjects])
@@ -227,6 +286,8 @@ def joint_model(joint: JointStudy, *, cancelled: CancelledFn = None) -> ShapeMod
                                                     else ()) for name, study in joint.structures.items()},
               "joint": dataclasses.asdict(joint.params.joint), "reference": joint.reference,
               "model": dataclasses.asdict(mp),
+              # subjects mirrored into the template's side: their world points are their own side's
+              "mirrored": [s for s in subjects if ref_study.frame(s).mirrored],
               "spacing_mm": float(ref_study.params.template.spacing_mm),
               "frame_methods": sorted({study.frame(s).method for study in joint.structures.values() for s in subjects}),
               "fit": {f"{name}/{s}": {k: v for k, v in study.coatings[s].fit.to_dict().items() if k != "time_s"}
@@ -254,12 +315,16 @@ def coatings_placed(joint: JointStudy) -> dict:
     a coating could take on its surface (the twist gate is not run there either), and the measure
     costs about 0.1 s a coating (knee30, 30 subjects with landmarks: 6 s of a 45 s build)."""
     out = {}
+    ref = joint.structures[joint.reference]
     for name, study in joint.structures.items():
         names = [s for s in joint.subjects if s in study.coatings]
         if len(names) < 3 or study.template is None or all(study.landmarks(s) is not None for s in names):
             continue
         reference = study.template_instance if study.template_instance in names else names[0]
-        out[name] = coating_poses({s: study.frame(s).to_world(study.coatings[s].points_object) for s in names},
+        # a subject of the other side in one side's world (x negated for all its structures alike, by
+        # its reference structure's frame), so that rotations place every subject's coatings
+        flip = {s: np.array([-1.0, 1.0, 1.0]) if s in ref.names and ref.frame(s).mirrored else 1.0 for s in names}
+        out[name] = coating_poses({s: study.frame(s).to_world(study.coatings[s].points_object) * flip[s] for s in names},
                                   study.template.faces, reference)
     return out
 

@@ -520,7 +520,9 @@ def write_joint(joint, folder, *, output: OutputParams, project: str | Absent, t
         safe = file_names(joint.subjects)
         sl = model.structure_slice(name)
         for subject, pw in zip(model.instance_names, model.instance_points_world):
-            write_ply(base / "coated" / f"{safe[str(subject)]}.ply", np.asarray(pw[sl], float), tpl.faces, space="RAS")
+            # in the subject's own world and side: a mirrored subject's triangles turned to face outwards there
+            faces = tpl.faces[:, ::-1] if study.frame(str(subject)).mirrored else tpl.faces
+            write_ply(base / "coated" / f"{safe[str(subject)]}.ply", np.asarray(pw[sl], float), faces, space="RAS")
         carried = carried_landmarks(study)  # the template's landmarks where each coating put them, as a single build
         if output.landmarks and carried:
             given = study.instance(study.template_instance).landmarks_path

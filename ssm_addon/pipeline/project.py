@@ -369,21 +369,17 @@ def _sides(instances: list[InstanceSpec], template_instance: str, ctx: _Context,
     """``mirror`` of every instance: True where its given side differs from the template instance's,
     False where it is the same (and for the template instance), None (found by the coating stage,
     :mod:`ssm_addon.correspondence.sides`) where none is given and ``[correspondence] sides =
-    "detect"``, else False."""
+    "detect"``, else False. In a project of several structures a side is the subject's: each
+    structure's instance of a subject gives it, and a subject's sides are found for all its
+    structures at once (:func:`~ssm_addon.pipeline.joint.joint_sides`)."""
     given = {i.name: i.side for i in instances if i.side is not None}
-    if given and structure:
-        first = next(i for i in instances if i.side is not None)
-        raise ctx.error(f"structure {structure!r}: instance {first.name!r} gives a side: sides are not supported in a "
-                        "project of several structures yet (a subject's structures would be mirrored each on its "
-                        "own, and their relative poses with them); give one side's subjects, or mirror the files",
-                        ctx.lines.table("instances", instances.index(first)))
     template_side = given.get(template_instance)
     if given and template_side is None:
         first = next(n for n in given)
-        raise ctx.error(f"instance {first!r} gives side = {given[first]!r} but the template instance "
+        raise ctx.error(f"{f'structure {structure!r}: ' if structure else ''}instance {first!r} gives side = {given[first]!r} but the template instance "
                         f"{template_instance!r} gives none: give the template instance's side (the model's side)",
                         ctx.lines.table("instances", [i.name for i in instances].index(template_instance)))
-    detect = tables["correspondence"].sides == "detect" and not structure
+    detect = tables["correspondence"].sides == "detect"
     out = []
     for inst in instances:
         if inst.name == template_instance:

@@ -786,7 +786,8 @@ def joint_report(joint, *, project: str | Absent, extra: dict | None = None) -> 
                                "template_choice": jsonable(study.template_choice),
                                "rounds": [r.to_dict() for r in study.correspondence_rounds],
                                "self_check": check.to_dict() if check is not None else None,
-                               "self_check_measured": self_check_measured(check)},
+                               "self_check_measured": self_check_measured(check),
+                               "sides": sides_record(study, model)},
             "metrics": joint.structure_metrics.get(name, {}),
             "points": [int(model.structure_offsets[list(model.structure_names).index(name)]),
                        int(model.structure_offsets[list(model.structure_names).index(name) + 1])],
@@ -841,11 +842,13 @@ def _correspondence_rows(structures: dict) -> list[list[str]]:
         rounds = c.get("rounds") or []
         check = c.get("self_check") or {}
         measured = c.get("self_check_measured", "")
+        mirrored = list((c.get("sides") or {}).get("mirrored") or ())
         rows.append([f"<b>{html.escape(name)}</b>", html.escape(str(c.get("used", ""))),
                      html.escape(", ".join(f"{k}: {v}" for k, v in sorted(starts.items()))),
                      html.escape(", ".join(turned[:6]) + (" …" if len(turned) > 6 else "")) or "none",
                      f"{sum(bool(r.get('kept', True)) for r in rounds)} of {len(rounds)} kept" if rounds else "none",
-                     _num(check.get("study_mm"), 2) + " mm" if check and not measured else html.escape(measured or "—")])
+                     _num(check.get("study_mm"), 2) + " mm" if check and not measured else html.escape(measured or "—"),
+                     html.escape(", ".join(mirrored[:6]) + (" …" if len(mirrored) > 6 else "")) or "none"])
     return rows
 
 
@@ -871,7 +874,8 @@ def _joint_section(doc: dict) -> list[str]:
                                "specificity, own model (mm)"]))
     parts.append("<h3>Correspondence per structure</h3>")
     parts.append(_table(_correspondence_rows(j["structures"]),
-                        ["structure", "anchored by", "starts", "turned starts", "rounds", "self-check"]))
+                        ["structure", "anchored by", "starts", "turned starts", "rounds", "self-check",
+                         "mirrored into the template's side"]))
     sp = j.get("shape_pose") or {}
     if sp:
         shares = sp.get("modes_pose_share", [])[:8]
