@@ -49,6 +49,7 @@ from .scene import (
     INSTANCE_ATTRIBUTES_KEY,
     JOINT_FINDINGS_KEY,
     JOINT_KEY,
+    apply_sides,
     joint_study_from_scene,
     mesh_file_world,
     remember_joint_study,
@@ -392,6 +393,8 @@ class SSM_OT_build_joint_model(BackgroundJob, bpy.types.Operator):
     def finish(self, context, joint):
         objs = {(o.ssm.structure, o.ssm.subject or o.name): o for o in scene_instances(context)}
         for name, study in joint.structures.items():
+            # each subject's side, one for all its structures (run_joint), before its coatings are shown
+            apply_sides(study.sides, {s: objs.get((name, s)) for s in study.sides})
             for subject, coating in study.coatings.items():
                 inst = objs.get((name, subject))
                 if inst is not None:

@@ -133,11 +133,12 @@ def set_side(obj, *, mirror: bool | None, side: str | None = None) -> None:
         obj.pop(SIDE_PROP, None)
 
 
-def apply_sides(decisions: dict) -> None:
+def apply_sides(decisions: dict, objects: dict | None = None) -> None:
     """Record a coating stage's side decisions (``product["sides"]``) on the instance objects, before
-    their coatings are written (a mirrored instance's coating is shown through its mirrored frame)."""
+    their coatings are written (a mirrored instance's coating is shown through its mirrored frame).
+    ``objects``: instance name -> object (a joint structure's, named by subject); default by name."""
     for name, decision in (decisions or {}).items():
-        obj = bpy.data.objects.get(name)
+        obj = bpy.data.objects.get(name) if objects is None else objects.get(name)
         if obj is not None and obj.ssm.role == "INSTANCE":
             obj[MIRROR_PROP] = int(bool(decision.mirror))
 

@@ -330,3 +330,42 @@ def test_save_project_of_a_joint_scene_reads_back_as_the_same_joint_project(bpy_
     assert bpy.ops.ssm.open_project(filepath=str(saved)) == {"FINISHED"}
     assert bpy.ops.ssm.save_project(filepath=str(saved)) == {"FINISHED"}
     assert saved.read_text() == text
+
+
+def test_a_joint_project_of_either_side_is_mirrored_per_subject_in_blender_as_headless(bpy_clean, tmp_path):
+    """A joint project whose subjects S1 and S3 are mirror images (both structures and their landmarks
+    through world x): Build Joint Model mirrors each of them with all its structures (the instance
+    objects say so), shows every coating on its own instance's mesh, and gives the model ``ssm build``
+    gives."""
+    from foreign_data import scalismo_landmarks, slicer_ply
+    from ssm.operators.scene import MIRROR_PROP, find_model_object, model_from_object
+
+    from ssm_addon.model.files import load_npz
+    from ssm_addon.pipeline.project import read_project
+    from ssm_addon.pipeline.project_build import build
+
+    bpy = bpy_clean
+    path = joint_project(tmp_path, 4, ["[template]", "spacing = 1.0", ""])
+    a, b, fa, fb, _t = joint_population(n=4)
+    flip = np.array([-1.0, 1.0, 1.0])
+    for i in (1, 3):  # as joint_project writes them, mirrored
+        slicer_ply(tmp_path / f"S{i}_a.ply", a[i] * flip, fa[:, ::-1], space=None)
+        slicer_ply(tmp_path / f"S{i}_b.ply", b[i] * flip, fb[:, ::-1], space=None)
+        scalismo_landmarks(tmp_path / f"S{i}_a.json", list("ABCD"), (a[i] * flip)[[0, 5, 40, 100]])
+        scalismo_landmarks(tmp_path / f"S{i}_b.json", list("ABCD"), (b[i] * flip)[[0, 5, 30, 50]])
+    assert bpy.ops.ssm.open_project(filepath=str(path)) == {"FINISHED"}
+    assert bpy.ops.ssm.build_joint_model() == {"FINISHED"}
+    for i in range(4):
+        for s in "ab":
+            assert bpy.data.objects[f"S{i} {s}"].get(MIRROR_PROP, 0) == int(i in (1, 3)), (i, s)
+    for coated in (o for o in bpy.data.objects if o.ssm.role == "COATED"):  # each on its own instance
+        inst = coated.ssm.instance
+        cw = np.array([coated.matrix_world @ v.co for v in coated.data.vertices])
+        iw = np.array([inst.matrix_world @ v.co for v in inst.data.vertices])
+        assert np.linalg.norm(cw.mean(0) - iw.mean(0)) < 1.0, inst.name
+    blender = model_from_object(find_model_object(bpy.context))
+    result = build(read_project(path), tmp_path / "out", jobs=2, log=None, blender_hook=None)
+    headless = load_npz(tmp_path / "out" / "model.npz")
+    assert result.joint.model.params["mirrored"] == ["S1", "S3"]
+    for key in ("mean", "modes", "variances", "instance_points_world"):
+        np.testing.assert_array_equal(getattr(blender, key), getattr(headless, key), err_msg=key)
