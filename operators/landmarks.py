@@ -33,6 +33,7 @@ from ssm_addon.base.errors import InputError, SSMError
 from ssm_addon.base.progress import sub_progress
 from ssm_addon.correspondence import proposal
 from ssm_addon.formats import landmarks as core
+from ssm_addon.formats.registry import file_glob
 
 from . import bridge
 from .jobs import BackgroundJob
@@ -56,7 +57,7 @@ from .scene import (
 )
 
 PICK_RADIUS_PX = 12.0
-FILE_GLOB = "*.fcsv;*.mrk.json;*.csv;*.json"
+FILE_GLOB = file_glob("landmarks")
 
 
 # --------------------------------------------------------------------------- the scene

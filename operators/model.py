@@ -33,6 +33,7 @@ from mathutils import Vector
 from ssm_addon.base.errors import InputError, SSMError
 from ssm_addon.base.params import ModelParams
 from ssm_addon.base.progress import sub_progress
+from ssm_addon.formats.registry import file_glob
 from ssm_addon.model import metrics as core_metrics
 from ssm_addon.model.files import load_model
 from ssm_addon.model.pca import ShapeModel
@@ -684,7 +685,7 @@ class SSM_OT_import_model(bpy.types.Operator, ImportHelper):
     bl_label = "Import Shape Model"
     bl_options = {"REGISTER", "UNDO"}
 
-    filter_glob: StringProperty(default="*.npz;*.h5;*.hdf5", options={"HIDDEN"})
+    filter_glob: StringProperty(default=file_glob("model"), options={"HIDDEN"})
 
     def execute(self, context):
         try:

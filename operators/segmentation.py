@@ -21,6 +21,7 @@ from bpy_extras.io_utils import ImportHelper
 
 from ssm_addon.base.errors import InputError
 from ssm_addon.base.params import SegmentParams
+from ssm_addon.formats.registry import file_glob
 from ssm_addon.segmentation.appearance import appearance_from_arrays
 from ssm_addon.segmentation.files import SEGMENT_FILES, SegmentationRecord, parse_labels, write_segmentation
 from ssm_addon.segmentation.image import PLANES, read_image, window_values, world_slice
@@ -128,7 +129,7 @@ class SSM_OT_import_image(bpy.types.Operator, ImportHelper):
     bl_label = "Import Image"
     bl_options = {"REGISTER", "UNDO"}
 
-    filter_glob: StringProperty(default="*.nii;*.nii.gz;*.nrrd;*.nhdr;*.mha;*.mhd", options={"HIDDEN"})
+    filter_glob: StringProperty(default=file_glob("image"), options={"HIDDEN"})
 
     def execute(self, context):
         try:

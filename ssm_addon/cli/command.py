@@ -37,6 +37,7 @@ import numpy as np
 
 from ..base import params as P
 from ..base.errors import Cancelled, InputError, SSMError
+from ..formats.registry import format_names
 
 EXIT_INPUT = 2
 EXIT_QUALITY = 3
@@ -161,10 +162,10 @@ def argument_parser() -> argparse.ArgumentParser:
                                 parser_class=_ShortErrors)
 
     p = sub.add_parser("info", help="labels, voxel counts, spacing and affine of a label map")
-    p.add_argument("volume", help="label map (NIfTI, NRRD, MetaImage, .npz)")
+    p.add_argument("volume", help=f"label map ({format_names('label map', ', ')})")
 
     p = sub.add_parser("template", help="build a template from one object (paper 3) and write it as PLY")
-    p.add_argument("volume", help="label map or closed mesh (STL/PLY/OBJ)")
+    p.add_argument("volume", help=f"label map or closed mesh ({format_names('mesh')})")
     p.add_argument("--label", type=int, default=None, metavar="N", help="label to use (default: all non-zero voxels)")
     p.add_argument("--out", required=True, metavar="FILE", help="output PLY (vertices in world mm)")
     P.add_arguments(p.add_argument_group("template parameters ([template] of a project; lengths in mm)"),
@@ -196,7 +197,7 @@ def argument_parser() -> argparse.ArgumentParser:
     p.add_argument("--label", type=int, default=None, metavar="N", help="label of the target in --volume")
     p.add_argument("--label-of", action="append", default=[], metavar="STRUCTURE=LABEL",
                    help="for a joint model: the label of a structure in --volume, repeated")
-    p.add_argument("--mesh", action="append", metavar="[STRUCTURE=]FILE", help="closed surface mesh of the target (STL/PLY/OBJ, world mm); for a "
+    p.add_argument("--mesh", action="append", metavar="[STRUCTURE=]FILE", help=f"closed surface mesh of the target ({format_names('mesh')}, world mm); for a "
                    "joint model STRUCTURE=FILE, repeated (the structures not given are predicted)")
     p.add_argument("--points", metavar="FILE", help="point cloud of the target (CSV x,y,z or PLY, world mm)")
     p.add_argument("--landmarks", metavar="FILE", help="landmarks of the target (matched by name to the model's)")
@@ -228,7 +229,7 @@ def argument_parser() -> argparse.ArgumentParser:
                                        "fine, the label map on the image's grid, the surface with its uncertainty")
     p.add_argument("model", help="model.npz (ssm build; with its learned appearance when built with images) or a "
                                  "statismo .h5 file")
-    p.add_argument("image", help="the image to segment (NIfTI, NRRD, MetaImage; world RAS mm from its header)")
+    p.add_argument("image", help=f"the image to segment ({format_names('image', ', ')}; world RAS mm from its header)")
     p.add_argument("--at", action="append", default=[], metavar="X,Y,Z",
                    help="a point inside the structure, world RAS mm (as 3D Slicer shows it); a joint model: "
                         "STRUCTURE=X,Y,Z, repeated")

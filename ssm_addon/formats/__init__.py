@@ -1,4 +1,4 @@
-"""File formats: label maps, meshes, landmark files, glTF and VTK polydata.
+"""File formats: their registry (extensions, kinds, coordinates), label maps, meshes, landmark files, glTF and VTK polydata.
 
 Every public name of the subpackage's modules, imported on first use (:mod:`ssm_addon._lazy`).
 """
@@ -11,4 +11,5 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "meshes": ("MESH_EXTENSIONS", "SPACES", "mesh_space", "read_mesh", "read_ply", "to_ras", "write_ply"),
     "gltf": ("MM_TO_M", "Z_UP_TO_Y_UP", "read_glb", "read_glb_mesh", "write_glb"),
     "vtk": ("write_vtk", "write_vtp"),
+    "registry": ("FORMATS", "KINDS", "FileFormat", "extensions", "file_glob", "format_names", "format_of", "registered_extension"),
 })

@@ -19,6 +19,7 @@ from nibabel.affines import apply_affine, voxel_sizes
 
 from ..base.errors import InputError
 from .meshes import MESH_EXTENSIONS
+from .registry import extensions, format_of
 
 
 @dataclass(frozen=True)
@@ -86,7 +87,7 @@ class Volume:
 
 
 
-IMAGE_EXTENSIONS = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd", ".npy", ".npz")
+IMAGE_EXTENSIONS = extensions("label map")
 SUPPORTED_EXTENSIONS = IMAGE_EXTENSIONS + MESH_EXTENSIONS
 
 _LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
@@ -501,6 +502,10 @@ def _read_numpy(path: Path, ext: str, spacing_mm=None):
     return data, _numpy_geometry(path, spacing, affine, sidecar)
 
 
+#: The reader of each image format of :mod:`.registry` (NumPy arrays read apart: they need a spacing).
+_IMAGE_READERS = {"NIfTI": _read_nifti, "NRRD": _read_nrrd, "MetaImage": _read_metaimage}
+
+
 def read_label_map(path, spacing_mm=None) -> LabelMap:
     """Read a label map and its voxel -> world (RAS, mm) affine.
 
@@ -528,21 +533,12 @@ def read_label_map(path, spacing_mm=None) -> LabelMap:
         Missing file, unknown extension, unreadable/corrupt/truncated file, a 4-D image.
     """
     path, ext = _check_file(path, IMAGE_EXTENSIONS)
-    readers = {
-        ".nii": ("NIfTI", _read_nifti),
-        ".nii.gz": ("NIfTI", _read_nifti),
-        ".nrrd": ("NRRD", _read_nrrd),
-        ".nhdr": ("NRRD", _read_nrrd),
-        ".mha": ("MetaImage", _read_metaimage),
-        ".mhd": ("MetaImage", _read_metaimage),
-    }
+    kind = format_of(path, "label map").name
     try:
-        if ext in (".npy", ".npz"):
-            kind = "NumPy"
+        if kind == "NumPy":
             data, affine = _read_numpy(path, ext, spacing_mm)
         else:
-            kind, reader = readers[ext]
-            data, affine = reader(path)
+            data, affine = _IMAGE_READERS[kind](path)
         labels = _as_labels(data, path)
     except InputError:
         raise
@@ -558,7 +554,7 @@ def read_label_map(path, spacing_mm=None) -> LabelMap:
     return LabelMap(labels=labels, affine=affine, path=str(path))
 
 
-GREY_IMAGE_EXTENSIONS = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
+GREY_IMAGE_EXTENSIONS = extensions("image")
 
 
 def read_image_array(path) -> tuple[np.ndarray, np.ndarray, Path]:
@@ -570,11 +566,9 @@ def read_image_array(path) -> tuple[np.ndarray, np.ndarray, Path]:
     InputError
         Missing, unknown, unreadable or truncated file, or a degenerate affine.
     """
-    path, ext = _check_file(path, GREY_IMAGE_EXTENSIONS)
-    readers = {".nii": _read_nifti, ".nii.gz": _read_nifti, ".nrrd": _read_nrrd, ".nhdr": _read_nrrd,
-               ".mha": _read_metaimage, ".mhd": _read_metaimage}
+    path, _ext = _check_file(path, GREY_IMAGE_EXTENSIONS)
     try:
-        data, affine = readers[ext](path)
+        data, affine = _IMAGE_READERS[format_of(path, "image").name](path)
         data = np.asarray(data)
     except InputError:
         raise

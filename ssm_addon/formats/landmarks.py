@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from ..base.errors import InputError
+from .registry import extensions, format_of, registered_extension
 
 __all__ = [
     "LANDMARK_PRESETS",
@@ -170,6 +171,7 @@ def _duplicates(names) -> list[str]:
 
 # --------------------------------------------------------------------------------------
 # formats
+_EXTENSIONS_TEXT = ", ".join(extensions("landmarks")[:-1]) + " or " + extensions("landmarks")[-1]
 
 
 def landmark_format(path) -> str:
@@ -180,13 +182,10 @@ def landmark_format(path) -> str:
     InputError
         For any other extension.
     """
-    name = os.fspath(path).lower()
-    for ext in ("mrk.json", "fcsv", "csv", "json"):
-        if name.endswith("." + ext):
-            return ext
-    raise InputError(
-        f"{os.fspath(path)}: unknown landmark file extension (use .fcsv, .mrk.json, .csv or .json)"
-    )
+    fmt = format_of(path, "landmarks")
+    if fmt is None:
+        raise InputError(f"{os.fspath(path)}: unknown landmark file extension (use {_EXTENSIONS_TEXT})")
+    return registered_extension(path)[1:]
 
 
 def _number(text: str, path, line: int, what: str) -> float:
@@ -386,7 +385,7 @@ def read_landmarks(path, *, space: str | None = None, why: str = "") -> Landmark
     """
     path = Path(path)
     if path.is_dir():
-        raise InputError(f"{path}: is a folder, not a landmark file (.fcsv, .mrk.json, .csv, .json)")
+        raise InputError(f"{path}: is a folder, not a landmark file ({', '.join(extensions('landmarks'))})")
     fmt = landmark_format(path)
     if not path.is_file():
         raise InputError(f"{path}: landmark file not found")

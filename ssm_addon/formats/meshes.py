@@ -18,6 +18,7 @@ import numpy as np
 
 from ..base.errors import InputError
 from ..meshutil import as_faces
+from .registry import extensions, format_names, format_of, registered_extension
 
 __all__ = ["MESH_EXTENSIONS", "SPACES", "mesh_space", "read_mesh", "read_ply", "to_ras", "write_ply"]
 
@@ -299,7 +300,7 @@ def _fan(polys) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- mesh files
-MESH_EXTENSIONS = (".stl", ".ply", ".obj")
+MESH_EXTENSIONS = extensions("mesh")
 
 
 def _merge_vertices(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -355,6 +356,10 @@ def _read_obj(path: Path):
     return np.array(vertices, dtype=np.float64), _fan(polys)
 
 
+#: The reader of each mesh format of :mod:`.registry`.
+_MESH_READERS = {"STL": _read_stl, "PLY": _read_ply, "OBJ": _read_obj}
+
+
 def read_mesh(path, *, space: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Read a triangle surface mesh (STL binary/ASCII, PLY ascii/binary, OBJ) in RAS world mm.
 
@@ -375,20 +380,20 @@ def read_mesh(path, *, space: str | None = None) -> tuple[np.ndarray, np.ndarray
     """
     path = Path(path)
     if path.is_dir():
-        raise InputError(f"{path}: is a folder, not a mesh file (STL, PLY, OBJ)")
-    ext = path.suffix.lower()
-    if ext not in MESH_EXTENSIONS:
+        raise InputError(f"{path}: is a folder, not a mesh file ({format_names('mesh', ', ')})")
+    fmt = format_of(path, "mesh")
+    if fmt is None:
+        ext = registered_extension(path)
         raise InputError(f"{path}: unknown file extension {ext or '(none)'!r}; supported: {', '.join(MESH_EXTENSIONS)}")
     if not path.is_file():
         raise InputError(f"{path}: file not found")
-    reader = {".stl": _read_stl, ".ply": _read_ply, ".obj": _read_obj}[ext]
     try:
-        vertices, faces = reader(path)
+        vertices, faces = _MESH_READERS[fmt.name](path)
     except InputError:
         raise
     except Exception as err:  # noqa: BLE001 - every parser failure becomes a named InputError
         raise InputError(
-            f"{path}: cannot read {ext[1:].upper()} mesh, corrupt or truncated? ({type(err).__name__}: {err})"
+            f"{path}: cannot read {fmt.name} mesh, corrupt or truncated? ({type(err).__name__}: {err})"
         ) from err
     vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
