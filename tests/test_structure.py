@@ -447,3 +447,25 @@ def test_imports_stand_at_the_top_of_their_module():
                     continue
                 offenders.append(f"{rel}:{node.lineno}: {ast.unparse(node)}")
     assert not offenders, offenders
+
+
+def test_the_architecture_page_names_every_package_module_and_parameter_class():
+    """docs/architecture.md's package table is the code's: a row per package of the core (and
+    ``meshutil.py``), each of the package's modules named in its row, and every parameter class of
+    ``base/params.py`` named on the page."""
+    import re
+
+    page = (ROOT / "docs" / "architecture.md").read_text()
+    rows = {}
+    for line in page.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == 5 and re.fullmatch(r"`[a-z_]+(/|\.py)`", cells[1]):
+            rows[cells[1].strip("`").rstrip("/")] = cells[3]
+    packages = {p.name for p in CORE.iterdir() if p.is_dir() and (p / "__init__.py").is_file()}
+    assert set(rows) == packages | {"meshutil.py"}, sorted(set(rows) ^ (packages | {"meshutil.py"}))
+    for pkg in packages:
+        named = set(re.findall(r"`([a-z_]+)`", rows[pkg]))
+        modules = {m.stem for m in (CORE / pkg).glob("*.py") if m.stem != "__init__"}
+        assert modules <= named, (pkg, sorted(modules - named))
+    classes = re.findall(r"^class (\w+Params)\b", (CORE / "base" / "params.py").read_text(), re.M)
+    assert classes and all(f"`{c}`" in page for c in classes), [c for c in classes if f"`{c}`" not in page]
