@@ -297,7 +297,7 @@ def test_verse_vertebrae_as_slicer_meshes_build_the_label_map_model(verse_dir, t
     gave mode 1 97 % of the variance), the meshes and landmarks are read in LPS, and the model is
     the label map's within the method's own noise. That noise: the label-map build with its
     spacing moved by 0.01 % changes mode 1's share by 2 % and the generalization by up to 3.5 %
-    (docs/measurements.md, "Data as users bring it"); mesh and label map are not the same
+    (docs/history.md, "Data as users bring it"); mesh and label map are not the same
     sampling of the surface, so the bounds are 5 % and 8 %."""
     from conftest import VERSE_FILE, VERSE_LABELS
     from foreign_data import verse_slicer_meshes

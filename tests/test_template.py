@@ -395,7 +395,7 @@ def test_clean_topology_keeping_the_shape_never_cuts_a_thin_membrane_into_a_tunn
     between them: the opening (radius 4 / 3 voxels) would cut the membrane, a shallow change
     that makes a tunnel through the block. Keeping the shape, the cleaning removes handles and
     never adds one: the block stays sphere-like, the membrane in place (such a cut gave a
-    vertebra's template a second handle: docs/measurements.md, "The cleaning never adds a
+    vertebra's template a second handle: docs/history.md, "The cleaning never adds a
     handle")."""
     m = np.zeros((40, 40, 25), bool)
     m[4:36, 4:36, 2:23] = True

@@ -958,7 +958,7 @@ class CorrespondenceParams:
                            help="after the coating, slide each instance's points along its own surface to lower "
                                 "the population's objective (entropy of the shapes, springs, landmarks held); off by "
                                 "default: on real bones with known correspondence it brought points nearer their "
-                                "true places by under 1 % (docs/measurements.md)")
+                                "true places by under 1 % (docs/history.md)")
     optimise_iterations: int = param(10, minimum=1, maximum=1000, label="Optimisation iterations",
                                      help="most iterations of the correspondence optimisation")
     population_weight: float = param(0.0, minimum=0.0, maximum=1000.0, label="Population weight",

@@ -16,7 +16,7 @@ __all__ = ["BYTES_PER_OBJECT_VOXEL", "check_allocation", "memory_limit_bytes"]
 
 #: Bytes per voxel of an object volume's grid over the later stages: the signed distance
 #: map and its gradient (float64, 4 fields, twice during building), the EDTs and the
-#: surface geometry of the template (measured peaks: ``docs/measurements.md``, Memory).
+#: surface geometry of the template (measured peaks: ``docs/history.md``, Memory).
 BYTES_PER_OBJECT_VOXEL = 80
 
 

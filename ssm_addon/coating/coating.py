@@ -37,7 +37,7 @@ smooth displacement with pulls along the surface too
 
 Steps 2, 5 and the fold handling exist because the paper's scheme alone left folds on
 real vertebrae, and the object-frame start because extremal-point landmarks can mis-map
-whole parts of a template; the measurements are in ``docs/measurements.md``.
+whole parts of a template; the measurements are in ``docs/history.md``.
 
 Frames and units
 ----------------

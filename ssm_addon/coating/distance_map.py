@@ -76,7 +76,7 @@ class DistanceMap:
     (``band_vox`` > 0) nodes within that band get exact point-to-triangle distances to
     the marching-cubes surface instead; the kinks of the exact distance at staircase
     corners bias the interpolated zero set, so projections land closer to the surface with
-    the EDT field, the default (figures in ``docs/measurements.md``, Coating). Values and gradients
+    the EDT field, the default (figures in ``docs/history.md``, Coating). Values and gradients
     (central differences) are interpolated trilinearly; negative inside. Points outside
     the grid are clamped onto it and their distance increased by the clamping offset, so
     projection pulls them in. Fit figures use exact distances to the marching-cubes

@@ -32,7 +32,7 @@ def _gaussian_smooth(
     Exact (row chunks, O(N²), float32 kernel) while N² <= ``dense_max`` (templates up to
     2,000 vertices); above, the sources are pooled in cells of σ/4 (weighted sums at the
     cell centroids) and the kernel is truncated at 3σ (sparse k-d tree pairs), which is
-    O(N · cells within 3σ) (timings in ``docs/measurements.md``, Coating).
+    O(N · cells within 3σ) (timings in ``docs/history.md``, Coating).
     """
     if len(points) ** 2 > dense_max:
         return _gaussian_smooth_pooled(points, values, weights, sigma_mm, dense_max)
@@ -136,7 +136,7 @@ def register_to_surface(
     Not in the paper: a symmetric nearest-point registration added because the warp of
     eq. (2) with few or inconsistent landmarks leaves vertices many mm off the surface,
     and projecting those onto the nearest surface point folds the mesh, which the
-    relaxation of eq. (3) does not unfold (figures in ``docs/measurements.md``, Coating). Each iteration pulls every vertex towards its nearest surface point
+    relaxation of eq. (3) does not unfold (figures in ``docs/history.md``, Coating). Each iteration pulls every vertex towards its nearest surface point
     (forward) and towards the surface points that have it as nearest vertex (backward,
     so processes the warp fell short of are reached), both only where the normals agree,
     and applies the Gaussian-smoothed (width σ, mm) average of these displacements.

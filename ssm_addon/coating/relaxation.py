@@ -38,7 +38,7 @@ def folded_triangles(
     process or lamina (their centroid lies inside, near the medial surface, where the raw
     gradient flips), the smoothed one those on the walls of a notch narrower than its
     width (where the smoothed field sees the notch filled); a triangle turned over turns
-    from both (figures in ``docs/measurements.md``, Coating, and "The template keeps the
+    from both (figures in ``docs/history.md``, Coating, and "The template keeps the
     instance's shape"). ``normal_sigma_mm`` 0: the raw gradient alone (the paper's test).
     Degenerate (zero-area) triangles count as folded.
     """
@@ -99,7 +99,7 @@ def untangle(
     Why the regions that fail go back: smoothing a fold it cannot remove (a thin
     lamina narrower than the triangles) widens round after round and drags points
     along the surface; going back keeps correspondence where the folds stay (figures
-    against known correspondence in ``docs/measurements.md``, Coating).
+    against known correspondence in ``docs/history.md``, Coating).
 
     Returns
     -------
@@ -193,7 +193,7 @@ def relax(
     surface), so the springs act only where the fold handling moved vertices, pulling
     them back to the registration's spacing. Against known correspondence this places
     points as well as a short pass with linear springs and warped rest lengths that never
-    converged, and it converges with no fold left (figures in ``docs/measurements.md``,
+    converged, and it converges with no fold left (figures in ``docs/history.md``,
     Coating).
 
     Parameters

@@ -42,7 +42,7 @@ the points move less than ``tolerance_mm`` (RMS over every point) or after
 Whether the population term lands points nearer their true places is a matter of
 measurement, not of compactness: a configuration that is more compact is not necessarily
 a better correspondence (the term can also shrink true shape variation). The defaults are
-those that the dense-truth sets support (``docs/measurements.md``, "Correspondence
+those that the dense-truth sets support (``docs/history.md``, "Correspondence
 optimised across the population").
 
 References

@@ -40,7 +40,7 @@ does both (``[correspondence] method = "model"``):
    sampling of the start.
 
 The fit supplies the landmarks of the warp, not the start of the coating. The figures
-behind these choices are in ``docs/measurements.md``.
+behind these choices are in ``docs/history.md``.
 
 The per-instance steps are pure functions of arrays, so rounds run in processes.
 Frames: each instance's object frame (paper 2, mm). Object frames can disagree by a turn
@@ -135,7 +135,7 @@ def correspondence_fit_params(params: CorrespondenceParams) -> FitParams:
     and landmark weight, the looser stop, and no model error in the posterior (these fits
     use the fitted shape, never its posterior SD). The pose is stepped alternately with the
     shape (``pose_step = "alternating"``), which stays nearer the pose the fit starts from
-    (the input coordinates' or the coating's); why: docs/measurements.md, "The fit's pose
+    (the input coordinates' or the coating's); why: docs/history.md, "The fit's pose
     step"."""
     return FitParams(noise_mm=params.fit_noise_mm, landmark_weight=params.landmark_weight,
                      tolerance_mm=REFINE_FIT_TOLERANCE_MM, model_error=False, pose_step="alternating")
@@ -189,7 +189,7 @@ def landmark_noise(differences: dict, template_instance: str, *, click_mm: float
     prediction's error is at least that. The other instances' transfer errors hold both:
     σ_c² = mean |d|²/3 less σ_m². A click error below the model's is not acted on (α = 0):
     the clicks are then the better estimate, and what the estimate reads as click error is
-    within the coatings' own drift at the landmarks (measured in ``docs/measurements.md``).
+    within the coatings' own drift at the landmarks (measured in ``docs/history.md``).
 
     Parameters
     ----------

@@ -35,7 +35,7 @@ from .frames import FRAME_ROTATIONS, SurfacePairs, area_samples, input_rotation
 __all__ = ["SIDE_FACTOR", "SideDecision", "landmark_side", "subject_sides", "surface_side"]
 
 #: One side is decided when it fits this many times closer than the other (the template's
-#: similarity onto the landmarks, RMS mm; or onto the surface, mean mm); docs/measurements.md
+#: similarity onto the landmarks, RMS mm; or onto the surface, mean mm); docs/history.md
 #: ("Sides") has the ratios on real bones.
 SIDE_FACTOR = 1.1
 #: Landmarks needed to tell a side (a similarity of 3 points has no handedness).

@@ -417,7 +417,7 @@ def correlation_length(points: np.ndarray, residuals: np.ndarray, *, pairs: int 
 _ERROR_FIELD: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 #: A model without training shapes (another tool's file) takes its error field from its finest modes: the
 #: last ``TAIL_MODES_SHARE`` of them give the correlation length (femur10: 16.6 mm, the leave-one-out
-#: residuals' 15.8 mm) and, times ``TAIL_AMPLITUDE``, the amplitude (docs/measurements.md, "Data as users
+#: residuals' 15.8 mm) and, times ``TAIL_AMPLITUDE``, the amplitude (docs/history.md, "Data as users
 #: bring it": femur10 completions 1.8 % -> 91 % of true errors within 2 SD, missing half 11.3 -> 5.8 mm).
 TAIL_MODES_SHARE = 0.5
 TAIL_AMPLITUDE = 3.0
@@ -513,7 +513,7 @@ PLATEAU_SHARE = 1e-3
 """A partial fit without landmarks stops when the target's mean distance from the shape fell by less
 than this share over the last ``PLATEAU_STEPS`` steps. Past that point it keeps creeping (0.01–0.02 mm
 a step, in one direction) along what the seen part does not pin, the seen part 1 % nearer over 50
-steps and the part it completes farther from its truth (docs/measurements.md, "Partial fits stop
+steps and the part it completes farther from its truth (docs/history.md, "Partial fits stop
 where the seen part stops coming nearer")."""
 
 

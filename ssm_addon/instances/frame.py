@@ -99,7 +99,7 @@ def object_frame(volume: Volume, method: str = "auto") -> ObjectFrame:
     * ``"patient"``: each principal axis paired with the nearest patient axis (R, A, S;
       an assignment so that no two share one), signed along it; object x, y, z = the
       axes paired with R, A, S. Stable where eigenvalues are close or third moments
-      small (near-symmetric shapes, e.g. vertebrae: ``docs/measurements.md``, Object
+      small (near-symmetric shapes, e.g. vertebrae: ``docs/history.md``, Object
       frames), so it is the default for images.
     * ``"moments"``: descending eigenvalues, signs by third moments, see
       :func:`frame_axes_moments`; for meshes in arbitrary coordinates.

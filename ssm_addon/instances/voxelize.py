@@ -19,7 +19,7 @@ from ..meshutil import surface_samples
 
 # a part of a mesh thinner than a voxel encloses no voxel centre, so voxelizing loses it. A mesh
 # point farther than THIN_PART_FAR_VOX voxels from every voxel centre inside is on such a part
-# (thick parts' points lie nearer: docs/measurements.md)
+# (thick parts' points lie nearer: docs/history.md)
 THIN_PART_FAR_VOX = 2.0
 # mesh samples at most this far apart (voxels) find the voxels a thin part passes through
 THIN_PART_STEP_VOX = 0.5

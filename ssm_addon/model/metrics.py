@@ -228,7 +228,7 @@ def generalization(
     raw_gram = raw_cov = None
     large = folds < n and flat.size >= RANDOMIZED_MIN_ELEMENTS
     # a fold with more training shapes than coordinates: its modes from the 3N × 3N products
-    # (eq. 5), not from an n × n Gram matrix (docs/measurements.md, "Scale")
+    # (eq. 5), not from an n × n Gram matrix (docs/history.md, "Scale")
     by_covariance = solver == "auto" and n_train_min > flat.shape[1]
     if alignment == "none" and (solver == "randomized" or (solver == "auto" and large and not by_covariance)):
         errors = _generalization_randomized(flat, fold_of, folds, ks, progress=progress, cancelled=cancelled)
@@ -269,7 +269,7 @@ def _generalization_randomized(flat: np.ndarray, fold_of: np.ndarray, folds: int
     applied implicitly ((X − 1μᵀ)M = XM − 1(μᵀM), test rows weighted 0), so no n × n
     Gram matrix and no copy of the n × 3N data is made. The held-out residuals are
     evaluated in float32 (errors of tenths of a mm, 7 significant digits). One power
-    iteration is enough (``docs/measurements.md``, Model).
+    iteration is enough (``docs/history.md``, Model).
     """
     n, d = flat.shape
     kmax = ks[-1]

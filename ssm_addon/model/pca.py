@@ -689,7 +689,7 @@ def build_model(
         eigensolver = "randomized SVD of the centred shape vectors (Halko et al. 2011), 4 power iterations"
     elif solver == "auto" and n > centred.shape[1]:
         # more instances than coordinates (a biobank of small templates): the 3N × 3N
-        # covariance is the smaller eigenproblem (docs/measurements.md, "Scale")
+        # covariance is the smaller eigenproblem (docs/history.md, "Scale")
         report(progress, 0.2, "covariance matrix (eq. 5)")
         c64 = centred.astype(np.float64, copy=False)
         covariance = c64.T @ c64

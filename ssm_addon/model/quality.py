@@ -307,7 +307,7 @@ def check_coating(name: str, fit, params: QualityParams) -> list[Finding]:
 
 #: The coating's triangles this many times as long as the template's where a mesh lies beyond the
 #: limit (``beyond["stretch"]``): the template stretched over a larger part, said in the finding
-#: (docs/measurements.md, "The reach pulls every part at least a voxel thick")
+#: (docs/history.md, "The reach pulls every part at least a voxel thick")
 STRETCHED = 1.5
 
 

@@ -303,7 +303,7 @@ def joint_model(joint: JointStudy, *, cancelled: CancelledFn = None) -> ShapeMod
 #: A pair's relative pose is said to be in large part the correspondence's own noise when the
 #: coatings' poses could explain at least this share of the variance of its turn or of its shift
 #: (the estimate falls short of the truth: knee30 in scanner poses without landmarks, 49 % where
-#: the true correspondence says 97 %; docs/measurements.md).
+#: the true correspondence says 97 %; docs/history.md).
 POSE_NOISE_SHARE = 0.25
 
 

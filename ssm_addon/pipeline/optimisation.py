@@ -71,7 +71,7 @@ def hold_weight(study: Study) -> float:
     landmarks as exact: its warp, eq. 2, interpolates them).
 
     On the dense-truth sets, holding clicks off by 1.5 mm per axis as if exact put points up to
-    1.5 % farther from their true places (``docs/measurements.md``)."""
+    1.5 % farther from their true places (``docs/history.md``)."""
     cp = study.params.correspondence
     click = cp.landmark_noise_mm
     if click is None:

@@ -267,7 +267,7 @@ class _Evidence:
 
 
 #: The profile likelihood's temperature of :func:`boundary_spread`, as a share of the median point's
-#: cost range along its profile (docs/measurements.md, "The posterior SD's boundary term").
+#: cost range along its profile (docs/history.md, "The posterior SD's boundary term").
 SPREAD_TEMPERATURE = 0.02
 
 
@@ -316,7 +316,7 @@ def _refined_offsets(cost: np.ndarray, best: np.ndarray, offsets: np.ndarray) ->
 
 #: ``evidence = "auto"`` uses learned profiles only when they were learned from at least this many
 #: scans: profiles of one scan segmented another scanner's CT worse than the gradient, both ways
-#: (docs/measurements.md, "Segmentation across scanners").
+#: (docs/history.md, "Segmentation across scanners").
 MIN_SCANS = 2
 #: An image whose lowest value is at most this is taken as CT in Hounsfield units (air is -1000 HU),
 #: where bone is known by its value.

@@ -256,7 +256,7 @@ def ball_sums(mask: np.ndarray, voxels: np.ndarray, radius_vox: float, *,
     work is M * (disc area) instead of a correlation of the whole bounding box
     (exact integer arithmetic). :func:`_ball_sums_fft` computes the same by FFT over
     the bounding box; the runs are faster at the usual radii and tie at large ones with
-    far less memory (``docs/measurements.md``, Template), so ``method = "auto"`` takes the
+    far less memory (``docs/history.md``, Template), so ``method = "auto"`` takes the
     FFT only when M * (disc area) exceeds 8 box volumes; ``"runs"`` and ``"fft"`` force one route (the same counts; moments to 1e-3).
     """
     if method not in ("auto", "runs", "fft"):

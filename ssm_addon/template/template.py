@@ -251,7 +251,7 @@ def clean_topology(mask: np.ndarray, radius_vox: float, opening_radius_vox: floa
     cut that would make a tunnel or a handle is not applied: the cleaning never adds one. Notches,
     the gaps between processes and thin spurs stay, so the template's surface keeps the
     instance's (a closing of 4 mm moved a vertebra's surface by up to 7.4 mm, figures in
-    ``docs/measurements.md``).
+    ``docs/history.md``).
 
     Parameters
     ----------
@@ -349,7 +349,7 @@ KEEP_DEPTH_TOLERANCES = 2.0
 tolerances where it does not change the topology (:func:`clean_topology`, ``keep_depth_vox``).
 At one tolerance the L1 template coated onto the other VerSe vertebrae left folds on three
 (measured with the fold test's smoothed normal alone); at two none, with the same
-correspondence against the truth (docs/measurements.md)."""
+correspondence against the truth (docs/history.md)."""
 
 
 def tolerance_radii(curvature: np.ndarray, tolerance: float, r_lo: float, r_hi: float) -> np.ndarray:
