@@ -406,113 +406,85 @@ def _normals_rows(q: np.ndarray, normals: np.ndarray) -> np.ndarray:
     return np.einsum("nd,ndk->nk", normals, q)
 
 
-def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None, appearance: Appearance | None = None,
-                  params: SegmentParams | None = None, progress: ProgressFn = None,
-                  cancelled: CancelledFn = None) -> SegmentResult:
-    """Segment ``image`` with ``model``: pose and shape from coarse to fine, then the deviation step.
-
-    Parameters
-    ----------
-    model : ShapeModel
-    image : GreyImage
-        World frame RAS mm.
-    at : (3,) mm, optional
-        A point inside the structure (world): the mean shape's solid centroid is put there.
-    pose : Pose, optional
-        A start pose (model -> world) instead of ``at`` (from landmarks or a rough mask).
-    appearance : Appearance, optional
-        Learned boundary profiles; without them (or with ``params.evidence == "gradient"``)
-        the image gradient is the evidence.
-    params : SegmentParams
-
-    Returns
-    -------
-    SegmentResult
-    """
-    t0 = time.perf_counter()
-    params = SegmentParams() if params is None else params
-    name = image.path or "image"
+def _applicable_appearance(params: SegmentParams, appearance: Appearance | None, image: GreyImage,
+                           name: str) -> tuple[Appearance | None, str]:
+    """The learned appearance where it applies to ``image`` under ``params.evidence``, else None (the
+    gradient), and a note saying why it was set aside: learned from fewer than :data:`MIN_SCANS`
+    scans (``"auto"``), or trained on voxels :data:`COARSER_THAN_TRAINING` times finer than the
+    image's. ``"learned"`` without an appearance, or on too coarse an image, is refused."""
     if params.evidence == "learned" and appearance is None:
         raise InputError(f"{name}: the model has no learned appearance (it was built without images); segment with "
                          "the image gradient (evidence 'gradient' or 'auto') or rebuild with images")
     if params.evidence == "gradient":
-        appearance = None
-    resolution_note = ""
+        return None, ""
     if params.evidence == "auto" and appearance is not None and 0 < appearance.scans < MIN_SCANS:
-        resolution_note = (f" (the appearance was learned from {appearance.scans} scan: learned profiles are used from "
-                           f"{MIN_SCANS} or more scans; evidence 'learned' uses these)")
-        appearance = None
+        return None, (f" (the appearance was learned from {appearance.scans} scan: learned profiles are used from "
+                      f"{MIN_SCANS} or more scans; evidence 'learned' uses these)")
     if appearance is not None and float(image.spacing_mm.max()) > COARSER_THAN_TRAINING * appearance.voxel_mm:
         if params.evidence == "learned":
             raise InputError(f"{name}: its voxels ({', '.join(f'{v:.3g}' for v in image.spacing_mm)} mm) are coarser "
                              f"than the appearance's training images' ({appearance.voxel_mm:.3g} mm): learned "
                              "profiles do not apply; segment with the gradient (evidence 'auto' or 'gradient')")
-        resolution_note = (f" (the image's {float(image.spacing_mm.max()):.3g} mm voxels are coarser than the "
-                           f"appearance's {appearance.voxel_mm:.3g} mm training images: learned profiles do not apply)")
-        appearance = None
-    mean = np.asarray(model.mean, float)
-    faces = np.asarray(model.faces, np.int64)
-    if len(faces) == 0:
-        raise InputError("model: it has no triangles, so it has no surface normals to search along")
-    if appearance is not None and appearance.n_points != len(mean):
-        raise InputError(f"model: its appearance covers {appearance.n_points} points, the shape {len(mean)}")
-    _check_units(model, image)
-    if pose is None:
-        if at is None:
-            raise InputError(f"{name}: a start is needed: a point inside the structure, landmarks or a rough mask")
-        at = np.asarray(at, float).reshape(3)
-        if not image.contains(at)[0]:
-            lo, hi = image.extent_world()
-            raise InputError(f"{name}: the start point ({', '.join(f'{v:.1f}' for v in at)}) mm lies outside the "
-                             f"image, which spans x {lo[0]:.1f}..{hi[0]:.1f}, y {lo[1]:.1f}..{hi[1]:.1f}, "
-                             f"z {lo[2]:.1f}..{hi[2]:.1f} mm (RAS); give the point in the image's world "
-                             "coordinates (RAS, as 3D Slicer shows them)")
-        found = bone_near(image, at)
-        if found is not None and found[0] < BONE_HU:
-            raise InputError(f"{name}: the start point ({', '.join(f'{v:.1f}' for v in at)}) mm is not on or near "
-                             f"bone: the CT reads {found[1]:.0f} HU there and at most {found[0]:.0f} HU within "
-                             f"{BONE_REACH_MM:g} mm (bone is {BONE_HU:g} HU or more; air -1000, soft tissue 0 to 100); "
-                             "give a point in or on the structure (RAS, as 3D Slicer shows it)")
-        base = start_pose(model, at=at)
-    else:
-        base = pose
-    k = model.n_modes if params.n_modes is None else min(int(params.n_modes), model.n_modes)
-    q = np.asarray(model.modes[:k], float).reshape(k, len(mean), 3).transpose(1, 2, 0)  # (N, 3, K)
-    lam = np.maximum(np.asarray(model.variances[:k], float), 1e-12)
-    error_var = model_error_variance(model, k)
-    evidence = ("learned" if appearance is not None else "gradient") + resolution_note
-    n_levels = len(LEVEL_SIGMAS_MM)
-    step = params.search_step_mm
+        return None, (f" (the image's {float(image.spacing_mm.max()):.3g} mm voxels are coarser than the "
+                      f"appearance's {appearance.voxel_mm:.3g} mm training images: learned profiles do not apply)")
+    return appearance, ""
 
-    def grid(reach):
+
+def _click_pose(model, image: GreyImage, at, name: str) -> Pose:
+    """:func:`start_pose` at a clicked point (world mm), refused where the point lies outside the
+    image or, on a CT, with no bone within :data:`BONE_REACH_MM` (saying what the CT reads there)."""
+    at = np.asarray(at, float).reshape(3)
+    if not image.contains(at)[0]:
+        lo, hi = image.extent_world()
+        raise InputError(f"{name}: the start point ({', '.join(f'{v:.1f}' for v in at)}) mm lies outside the "
+                         f"image, which spans x {lo[0]:.1f}..{hi[0]:.1f}, y {lo[1]:.1f}..{hi[1]:.1f}, "
+                         f"z {lo[2]:.1f}..{hi[2]:.1f} mm (RAS); give the point in the image's world "
+                         "coordinates (RAS, as 3D Slicer shows them)")
+    found = bone_near(image, at)
+    if found is not None and found[0] < BONE_HU:
+        raise InputError(f"{name}: the start point ({', '.join(f'{v:.1f}' for v in at)}) mm is not on or near "
+                         f"bone: the CT reads {found[1]:.0f} HU there and at most {found[0]:.0f} HU within "
+                         f"{BONE_REACH_MM:g} mm (bone is {BONE_HU:g} HU or more; air -1000, soft tissue 0 to 100); "
+                         "give a point in or on the structure (RAS, as 3D Slicer shows it)")
+    return start_pose(model, at=at)
+
+
+class _Search:
+    """The profile search of one segmentation (Cootes et al. 1995): the model's first ``k`` modes
+    (``q`` (N, 3, K), variances ``lam``), the evidence at each level, and the progress over every
+    level's steps. :meth:`run_level` is one level's iterations, :meth:`score` how well a shape sits
+    on a level's boundary."""
+
+    def __init__(self, mean, faces, q, lam, evidences, params: SegmentParams, progress: ProgressFn,
+                 cancelled: CancelledFn, total_steps: int):
+        self.mean, self.faces, self.q, self.lam = mean, faces, q, lam
+        self.evidences, self.params = evidences, params
+        self.progress, self.cancelled, self.total_steps, self.done = progress, cancelled, total_steps, 0
+
+    def grid(self, reach: float) -> np.ndarray:
+        """Candidate offsets (mm) along a normal within ±``reach``, a search step apart."""
+        step = self.params.search_step_mm
         return np.arange(-reach, reach + 0.5 * step, step)
 
-    # gradient evidence: one scale per level, from the start (so every pose's costs compare)
-    scales = []
-    shape0 = base.apply(mean)
-    nrm0 = vertex_normals(mean, faces) @ base.rotation.T
-    for level, sigma in enumerate(LEVEL_SIGMAS_MM):
-        e = _Evidence(image, None, level, sigma, step).edge(shape0, nrm0, grid(params.search_mm[level]))
-        scales.append(float(np.median(np.maximum(e.max(axis=1), 0.0))) or 1.0)
-    evidences = [_Evidence(image, appearance, level, sigma, step, scales[level])
-                 for level, sigma in enumerate(LEVEL_SIGMAS_MM)]
-    total_steps = FINISHED_STARTS * n_levels * params.iterations
-    done = 0
-
-    def score(pose_, b, level):
+    def score(self, pose_: Pose, b: np.ndarray, level: int) -> float:
         """Mean best cost within ±2 mm of the shape's surface at a level: how well it sits on the boundary."""
-        shape = mean + q @ b
+        shape = self.mean + self.q @ b
         x = pose_.apply(shape)
-        nrm = vertex_normals(shape, faces) @ pose_.rotation.T
-        cost, _ = evidences[level].costs(x, nrm, grid(2.0))
+        nrm = vertex_normals(shape, self.faces) @ pose_.rotation.T
+        cost, _ = self.evidences[level].costs(x, nrm, self.grid(2.0))
         return float(np.mean(cost.min(axis=1)))
 
-    def run_level(level, pose0, b0, iterations, record=True):
-        nonlocal done
+    def run_level(self, level: int, pose0: Pose, b0: np.ndarray, iterations: int, record: bool = True):
+        """One level from (``pose0``, ``b0``): each step moves every point to its best candidate along
+        its normal, fits the pose to the suggestions (weighted by their evidence) and the coefficients
+        to their distances along the normals (point to plane) under the prior. Returns (pose, b, the
+        level's record)."""
+        mean, faces, q, lam, params = self.mean, self.faces, self.q, self.lam, self.params
         sigma = LEVEL_SIGMAS_MM[level]
-        ev = evidences[level]
+        ev = self.evidences[level]
         reach = params.search_mm[level]
-        offsets = grid(reach)
+        offsets = self.grid(reach)
+        k = len(lam)
         sigma2 = max(params.noise_mm, sigma) ** 2
         pose_, b = pose0, b0.copy()
         shape = mean + q @ b
@@ -521,7 +493,7 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
         strength = np.zeros(len(mean))
         rows = np.arange(len(mean))
         for it in range(1, iterations + 1):
-            check_cancelled(cancelled)
+            check_cancelled(self.cancelled)
             x = pose_.apply(shape)
             nrm_model = vertex_normals(shape, faces)
             nrm = nrm_model @ pose_.rotation.T
@@ -551,9 +523,9 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
             move = float(np.sqrt(((x_new - last) ** 2).sum(axis=1).mean()))
             last = x_new
             if record:
-                done += 1
-                report(progress, done / total_steps, f"segment level {level + 1} ({sigma:g} mm) step {it}: "
-                                                      f"{move:.3f} mm, evidence {fit_cost:.3f}")
+                self.done += 1
+                report(self.progress, self.done / self.total_steps, f"segment level {level + 1} ({sigma:g} mm) step "
+                                                                    f"{it}: {move:.3f} mm, evidence {fit_cost:.3f}")
             # Cootes et al. (1994): a level has converged when 90 % of the points found their best
             # position within the central half of their search range (or nothing moves any more)
             central = float(np.mean(np.abs(chosen) <= CENTRAL_BAND * reach))
@@ -565,8 +537,13 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
                           "central_share": central,
                           "weak_share": float(np.mean(strength < 0.25))}
 
-    # the coarse level from several turns of the start, ranked by how well each then sits on the
-    # boundary at the middle level; the best two go through every level and the better one wins
+
+def _search_from_starts(search: _Search, base: Pose, params: SegmentParams) -> tuple:
+    """The coarse level from every placement (:func:`_placements`) and turn of the start, ranked by how
+    well each then sits on the boundary at the middle level; the best :data:`FINISHED_STARTS` go
+    through every level and the better one wins. Returns (pose, b, the levels' records, the start's
+    record)."""
+    mean, faces, k = search.mean, search.faces, len(search.lam)
     starts = [("start", np.eye(3))]
     if params.turns_deg > 0:
         for axis in range(3):
@@ -576,46 +553,46 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
     starts.append((UPSIDE, _axis_turn(2, 180.0)))
     c_model = volume_centroid(mean, faces)
     tried = []
-    for shift in _placements(base, mean, faces, evidences[0], grid, params.placement_mm, PLACEMENTS_KEPT):
+    for shift in _placements(base, mean, faces, search.evidences[0], search.grid, params.placement_mm,
+                             PLACEMENTS_KEPT):
         centre = base.apply(c_model) + shift
         moved = "" if not np.any(shift) else f", moved ({', '.join(f'{v:+.0f}' for v in shift)}) mm"
         for label, turn in starts:
-            check_cancelled(cancelled)
+            check_cancelled(search.cancelled)
             rot = turn @ base.rotation
             p0 = Pose(rot, centre - base.scale * rot @ c_model, base.scale)
-            p1, b1, _info = run_level(0, p0, np.zeros(k), COARSE_STEPS, record=False)
-            tried.append({"name": label + moved, "pose": p1, "b": b1, "screened": score(p1, b1, 1)})
+            p1, b1, _info = search.run_level(0, p0, np.zeros(k), COARSE_STEPS, record=False)
+            tried.append({"name": label + moved, "pose": p1, "b": b1, "screened": search.score(p1, b1, 1)})
     order = sorted(range(len(tried)), key=lambda i: (tried[i]["screened"], i))[:FINISHED_STARTS]
     finished = []
+    n_levels = len(LEVEL_SIGMAS_MM)
     for i in order:
         pose_, b = tried[i]["pose"], tried[i]["b"]
         lv = []
         for level in range(n_levels):
-            pose_, b, info = run_level(level, pose_, b, params.iterations)
+            pose_, b, info = search.run_level(level, pose_, b, params.iterations)
             lv.append(info)
-        tried[i]["final"] = score(pose_, b, n_levels - 1)
+        tried[i]["final"] = search.score(pose_, b, n_levels - 1)
         finished.append((tried[i]["final"], i, pose_, b, lv))
     finished.sort(key=lambda t: (t[0], t[1]))
     _final, win, pose_, b, levels = finished[0]
-    chosen_start = tried[win]["name"]
-    start_doc = {"chosen": chosen_start,
+    start_doc = {"chosen": tried[win]["name"],
                  "candidates": [{"name": t["name"], "screened_cost": t["screened"], "final_cost": t.get("final")}
                                 for t in tried]}
-    converged = levels[-1]["converged"]
-    iterations = sum(lv["iterations"] for lv in levels)
-    shape = mean + q @ b
-    model_points = pose_.apply(shape)
-    normals_w = vertex_normals(shape, faces) @ pose_.rotation.T
-    # posterior of b at the fine level (weights as the evidence gives them at the result)
-    ev = evidences[-1]
-    fine = grid(params.search_mm[-1])
-    cost, strong = ev.costs(model_points, normals_w, fine)
-    zero = int(np.argmin(np.abs(fine)))
+    return pose_, b, levels, start_doc
+
+
+def _shape_posterior(search: _Search, shape, model_points, normals_w, image: GreyImage, error_var):
+    """The posterior of the coefficients at the fine level (the weights the evidence gives at the
+    result; the suggestions' scatter about the fitted shape is the noise, at least a quarter of the
+    finest voxel edge): each point's shape variance (model units², plus the model's own error), the
+    fine level's costs, strengths and offsets, the noise (mm²) and its floor."""
+    mean, faces, q, lam, params = search.mean, search.faces, search.q, search.lam, search.params
+    fine = search.grid(params.search_mm[-1])
+    cost, strong = search.evidences[-1].costs(model_points, normals_w, fine)
     best = np.argmin(cost + 0.02 * (fine[None, :] / fine[-1]) ** 2, axis=1)
     w_final = np.clip(strong[np.arange(len(mean)), best], 0.0, 1.0)
     residual = _refined_offsets(cost, best, fine)
-    # the suggestions' scatter about the fitted shape is the noise the posterior assumes (at least a
-    # quarter of the finest voxel edge): the SD follows how well the image pins the shape
     floor2 = (0.25 * float(image.spacing_mm.min())) ** 2
     sigma2 = max(float(np.sum(w_final * residual ** 2) / max(w_final.sum(), 1e-9)), floor2)
     qn = _normals_rows(q, vertex_normals(shape, faces))
@@ -623,35 +600,29 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
     per_point = np.einsum("ndk,kl,ndl->n", q, cov_b, q)  # the shape's uncertainty
     if error_var is not None:
         per_point = per_point + error_var
-    # the deviation step: leave the span along the normal by what the model's error allows
-    deviation = np.zeros(len(mean))
-    points = model_points
-    if params.deviation:
-        allowed = np.sqrt(np.maximum(error_var if error_var is not None else np.full(len(mean), 1.0), 1e-6) / 3.0)
-        allowed = np.clip(allowed, 0.25, 3.0)
-        penalty = (fine[None, :] / allowed[:, None]) ** 2
-        best = np.argmin(cost + penalty, axis=1)
-        raw = fine[best]
-        raw = np.clip(raw, -2.0 * allowed, 2.0 * allowed)
-        weight = np.clip(strong[np.arange(len(mean)), best], 0.0, 1.0)
-        deviation = _smooth_on_mesh(raw * weight, weight, faces, rounds=3)
-        points = model_points + deviation[:, None] * normals_w
-    z = b / np.sqrt(lam)
-    d2 = float(np.sum(z * z))
-    mahal = math.sqrt(d2)
-    # how well the evidence fits at the result
-    normals_at = vertex_normals(points, faces)
-    cost_at, strong_at = ev.costs(points, normals_at, fine)
-    weak_share = float(np.mean(strong_at[:, zero] < 0.25))
-    boundary = {"evidence_cost": float(np.mean(cost_at[:, zero])), "weak_share": weak_share,
-                "residual_sd_mm": math.sqrt(sigma2)}
-    # the SD's boundary term per point, at the result: where the image puts or leaves the boundary
-    # (at least a quarter of the finest voxel edge), in place of the one scatter for all points
-    spread = _smooth_on_mesh(boundary_spread(cost_at, fine), np.ones(len(mean)), faces, rounds=3)
-    spread = np.maximum(spread, floor2)
-    sd = np.sqrt(np.maximum(pose_.scale ** 2 * per_point + spread, 0.0))  # model units scaled; spread in mm
-    inner, outer = boundary_grey_values(image, points, normals_at, sigma_mm=LEVEL_SIGMAS_MM[-1])
-    boundary["inside_mean"], boundary["outside_mean"] = float(inner.mean()), float(outer.mean())
+    return per_point, cost, strong, fine, sigma2, floor2
+
+
+def _deviation_step(cost, strong, fine, faces, error_var, n_points: int) -> np.ndarray:
+    """Per point, how far (mm, along its normal) the surface leaves the model's span: the best
+    candidate under a penalty scaled by the model's own error there (within 2× that error, between
+    0.25 and 3 mm), weighted by its evidence and smoothed over the mesh."""
+    allowed = np.sqrt(np.maximum(error_var if error_var is not None else np.full(n_points, 1.0), 1e-6) / 3.0)
+    allowed = np.clip(allowed, 0.25, 3.0)
+    penalty = (fine[None, :] / allowed[:, None]) ** 2
+    best = np.argmin(cost + penalty, axis=1)
+    raw = fine[best]
+    raw = np.clip(raw, -2.0 * allowed, 2.0 * allowed)
+    weight = np.clip(strong[np.arange(n_points), best], 0.0, 1.0)
+    return _smooth_on_mesh(raw * weight, weight, faces, rounds=3)
+
+
+def _verdict(model, mahal: float, k: int, levels: list, converged: bool, params: SegmentParams, weak_share: float,
+             strong_zero: np.ndarray, sd: np.ndarray, deviation: np.ndarray, evidence: str, boundary: dict,
+             appearance: Appearance | None, chosen_start: str) -> list:
+    """The segmentation's findings, each (kind, message): an outlier shape, a fine level that did not
+    settle, weak boundary evidence (per structure of a joint model too, into ``boundary``), grey values
+    unlike the appearance's training images', and a result turned upside down."""
     findings = []
     limit = outlier_limit(k)
     if mahal > limit:
@@ -669,7 +640,7 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
         boundary["structures"] = {}
         for name in model.structure_names:
             part = model.structure_slice(name)
-            weak = float(np.mean(strong_at[part, zero] < 0.25))
+            weak = float(np.mean(strong_zero[part] < 0.25))
             boundary["structures"][name] = {"weak_share": weak, "sd_mean_mm": float(sd[part].mean()),
                                             "deviation_mean_mm": float(np.abs(deviation[part]).mean())}
             if weak > 0.4 >= weak_share:
@@ -689,6 +660,109 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
         findings.append(("orientation", "the image fits best with the model turned 180° about the "
                                         "superior axis: is the image's orientation LPS stored as RAS (x and y "
                                         "negated)?"))
+    return findings
+
+
+def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None, appearance: Appearance | None = None,
+                  params: SegmentParams | None = None, progress: ProgressFn = None,
+                  cancelled: CancelledFn = None) -> SegmentResult:
+    """Segment ``image`` with ``model``: pose and shape from coarse to fine, then the deviation step.
+
+    The steps: the evidence that applies (:func:`_applicable_appearance`), the start
+    (:func:`_click_pose` or ``pose``), the search from the start's placements and turns through
+    every level (:func:`_search_from_starts`), the shape's posterior at the result
+    (:func:`_shape_posterior`), the deviation step (:func:`_deviation_step`), the boundary's own
+    spread in each point's SD (:func:`boundary_spread`) and the verdict (:func:`_verdict`).
+
+    Parameters
+    ----------
+    model : ShapeModel
+    image : GreyImage
+        World frame RAS mm.
+    at : (3,) mm, optional
+        A point inside the structure (world): the mean shape's solid centroid is put there.
+    pose : Pose, optional
+        A start pose (model -> world) instead of ``at`` (from landmarks or a rough mask).
+    appearance : Appearance, optional
+        Learned boundary profiles; without them (or with ``params.evidence == "gradient"``)
+        the image gradient is the evidence.
+    params : SegmentParams
+
+    Returns
+    -------
+    SegmentResult
+    """
+    t0 = time.perf_counter()
+    params = SegmentParams() if params is None else params
+    name = image.path or "image"
+    appearance, resolution_note = _applicable_appearance(params, appearance, image, name)
+    mean = np.asarray(model.mean, float)
+    faces = np.asarray(model.faces, np.int64)
+    if len(faces) == 0:
+        raise InputError("model: it has no triangles, so it has no surface normals to search along")
+    if appearance is not None and appearance.n_points != len(mean):
+        raise InputError(f"model: its appearance covers {appearance.n_points} points, the shape {len(mean)}")
+    _check_units(model, image)
+    if pose is None:
+        if at is None:
+            raise InputError(f"{name}: a start is needed: a point inside the structure, landmarks or a rough mask")
+        base = _click_pose(model, image, at, name)
+    else:
+        base = pose
+    k = model.n_modes if params.n_modes is None else min(int(params.n_modes), model.n_modes)
+    q = np.asarray(model.modes[:k], float).reshape(k, len(mean), 3).transpose(1, 2, 0)  # (N, 3, K)
+    lam = np.maximum(np.asarray(model.variances[:k], float), 1e-12)
+    error_var = model_error_variance(model, k)
+    evidence = ("learned" if appearance is not None else "gradient") + resolution_note
+    n_levels = len(LEVEL_SIGMAS_MM)
+    step = params.search_step_mm
+
+    def grid(reach):
+        return np.arange(-reach, reach + 0.5 * step, step)
+
+    # gradient evidence: one scale per level, from the start (so every pose's costs compare)
+    scales = []
+    shape0 = base.apply(mean)
+    nrm0 = vertex_normals(mean, faces) @ base.rotation.T
+    for level, sigma in enumerate(LEVEL_SIGMAS_MM):
+        e = _Evidence(image, None, level, sigma, step).edge(shape0, nrm0, grid(params.search_mm[level]))
+        scales.append(float(np.median(np.maximum(e.max(axis=1), 0.0))) or 1.0)
+    evidences = [_Evidence(image, appearance, level, sigma, step, scales[level])
+                 for level, sigma in enumerate(LEVEL_SIGMAS_MM)]
+    search = _Search(mean, faces, q, lam, evidences, params, progress, cancelled,
+                     FINISHED_STARTS * n_levels * params.iterations)
+    pose_, b, levels, start_doc = _search_from_starts(search, base, params)
+    converged = levels[-1]["converged"]
+    iterations = sum(lv["iterations"] for lv in levels)
+    shape = mean + q @ b
+    model_points = pose_.apply(shape)
+    normals_w = vertex_normals(shape, faces) @ pose_.rotation.T
+    per_point, cost, strong, fine, sigma2, floor2 = _shape_posterior(search, shape, model_points, normals_w, image,
+                                                                     error_var)
+    deviation = np.zeros(len(mean))
+    points = model_points
+    if params.deviation:  # leave the span along the normal by what the model's error allows
+        deviation = _deviation_step(cost, strong, fine, faces, error_var, len(mean))
+        points = model_points + deviation[:, None] * normals_w
+    z = b / np.sqrt(lam)
+    d2 = float(np.sum(z * z))
+    mahal = math.sqrt(d2)
+    # how well the evidence fits at the result
+    zero = int(np.argmin(np.abs(fine)))
+    normals_at = vertex_normals(points, faces)
+    cost_at, strong_at = evidences[-1].costs(points, normals_at, fine)
+    weak_share = float(np.mean(strong_at[:, zero] < 0.25))
+    boundary = {"evidence_cost": float(np.mean(cost_at[:, zero])), "weak_share": weak_share,
+                "residual_sd_mm": math.sqrt(sigma2)}
+    # the SD's boundary term per point, at the result: where the image puts or leaves the boundary
+    # (at least a quarter of the finest voxel edge), in place of the one scatter for all points
+    spread = _smooth_on_mesh(boundary_spread(cost_at, fine), np.ones(len(mean)), faces, rounds=3)
+    spread = np.maximum(spread, floor2)
+    sd = np.sqrt(np.maximum(pose_.scale ** 2 * per_point + spread, 0.0))  # model units scaled; spread in mm
+    inner, outer = boundary_grey_values(image, points, normals_at, sigma_mm=LEVEL_SIGMAS_MM[-1])
+    boundary["inside_mean"], boundary["outside_mean"] = float(inner.mean()), float(outer.mean())
+    findings = _verdict(model, mahal, k, levels, converged, params, weak_share, strong_at[:, zero], sd, deviation,
+                        evidence, boundary, appearance, start_doc["chosen"])
     return SegmentResult(points=points, faces=faces, model_points=model_points, pose=pose_, coefficients=z,
                          posterior_sd_mm=sd, deviation_mm=deviation, mahalanobis=mahal,
                          p_value=float(chdtrc(k, d2)) if k else 1.0, evidence=evidence, boundary=boundary,
