@@ -483,33 +483,9 @@ def _analysis_section(a: dict, images: dict[str, bytes]) -> list[str]:
     return parts
 
 
-def write_html_report(path, report: Report | dict, *, images: dict[str, bytes] | None = None,
-                      thumbnails: dict[str, bytes] | None = None, title: str = "SSM Builder model report",
-                      analysis_images: dict[str, bytes] | None = None) -> Path:
-    """Write ``report.html`` from a :class:`Report` (or a ``report.json`` document) and the pictures (PNG bytes).
-
-    A section the report does not have is said to be absent, with its reason: an absent
-    quality section is "not known", never "passed".
-
-    Parameters
-    ----------
-    report : Report or dict
-        The report (a dict is read as ``report.json``: :meth:`Report.from_dict`).
-    images : dict caption -> PNG bytes
-        Figures shown in order (fig. 9 plots, metrics, fig. 10).
-    thumbnails : dict instance -> PNG bytes
-    """
-    report = report if isinstance(report, Report) else Report.from_dict(report)
-    doc = report.to_dict()
-    images = images or {}
-    thumbnails = thumbnails or {}
-    quality = report.section("quality") or {}
-    findings = quality.get("findings", [])
-    outliers = quality.get("outlier_scores", {})
-    model = report.model
-    by_instance: dict[str, list] = {}
-    for f in findings:
-        by_instance.setdefault(f.get("instance", ""), []).append(f)
+def _head_section(report: Report, title: str, findings: list) -> list[str]:
+    """The title, the project, the quality gates' warnings (or that they passed, or are not known) and
+    the sections the report does not have."""
     parts = [f"<h1>{html.escape(title)}</h1>"]
     project = report.section("project") or ""
     if project:
@@ -532,10 +508,14 @@ def write_html_report(path, report: Report | dict, *, images: dict[str, bytes] |
     if missing:
         parts.append('<p class="muted">Not in this report: ' + "; ".join(
             f"{html.escape(name.removesuffix('_s'))} ({html.escape(why)})" for name, why in missing) + ".</p>")
+    return parts
 
-    # model
+
+def _model_section(report: Report, images: dict) -> list[str]:
+    """The model's size and variance, the template, the modes' table and the figures."""
+    model = report.model
     n, npts, k = model.get("n_instances"), model.get("n_points"), model.get("n_modes")
-    parts.append("<h2>Model</h2>")
+    parts = ["<h2>Model</h2>"]
     parts.append(f"<p>{_num(n)} instances, {_num(npts)} points, {_num(model.get('n_faces'))} triangles, {_num(k)} "
                  f"modes; total variance {_num(model.get('total_variance_mm2'))} mm².</p>")
     tpl = report.section("template") or {}
@@ -572,142 +552,165 @@ def write_html_report(path, report: Report | dict, *, images: dict[str, bytes] |
         for caption, data in images.items():
             parts.append(f"<figure>{_img(data, caption)}<figcaption>{html.escape(caption)}</figcaption></figure>")
         parts.append("</div>")
+    return parts
 
-    # metrics
+
+def _metrics_section(report: Report) -> list[str]:
+    """Compactness, generalization and specificity by number of modes (paper fig. 9)."""
     metrics = report.section("metrics") or {}
-    if metrics:
-        parts.append("<h2>Compactness, generalization, specificity</h2>")
-        comp = metrics.get("compactness", {})
-        gen = metrics.get("generalization", {})
-        spe = metrics.get("specificity", {})
-        ks = list(gen.get("k", []) or spe.get("k", []))[:10]
-        rows = []
-        for j, kk in enumerate(ks):
-            c = comp.get("cumulative", [])
-            rows.append([str(kk), f"{100 * c[kk - 1]:.1f} %" if len(c) >= kk else "–",
-                         _num(gen.get("mean_mm", [None] * len(ks))[j], 3) if j < len(gen.get("mean_mm", [])) else "–",
-                         _num(spe.get("mean_mm", [None] * len(ks))[j], 3) if j < len(spe.get("mean_mm", [])) else "–"])
-        parts.append(_table(rows, ["modes k", "compactness", "generalization (mm)", "specificity (mm)"]))
-        if gen.get("method"):
-            parts.append(f'<p class="muted">Generalization by {html.escape(str(gen["method"]))}.</p>')
+    if not metrics:
+        return []
+    parts = ["<h2>Compactness, generalization, specificity</h2>"]
+    comp = metrics.get("compactness", {})
+    gen = metrics.get("generalization", {})
+    spe = metrics.get("specificity", {})
+    ks = list(gen.get("k", []) or spe.get("k", []))[:10]
+    rows = []
+    for j, kk in enumerate(ks):
+        c = comp.get("cumulative", [])
+        rows.append([str(kk), f"{100 * c[kk - 1]:.1f} %" if len(c) >= kk else "–",
+                     _num(gen.get("mean_mm", [None] * len(ks))[j], 3) if j < len(gen.get("mean_mm", [])) else "–",
+                     _num(spe.get("mean_mm", [None] * len(ks))[j], 3) if j < len(spe.get("mean_mm", [])) else "–"])
+    parts.append(_table(rows, ["modes k", "compactness", "generalization (mm)", "specificity (mm)"]))
+    if gen.get("method"):
+        parts.append(f'<p class="muted">Generalization by {html.escape(str(gen["method"]))}.</p>')
+    return parts
 
-    # correspondence: how the coatings came about and the self-check
-    corr = report.section("correspondence") or {}
+
+def _template_choice_lines(choice: dict) -> list[str]:
+    """Which instance the template came from, and why (the model method's medoid routes)."""
+    if choice.get("medoid") and choice.get("by") == "landmarks":
+        used = choice["medoid"] if choice.get("kept") else choice.get("given")
+        return [f"<p>Template from <b>{html.escape(str(used))}</b>: the instance whose given landmarks are "
+                f"nearest their mean is {html.escape(str(choice['medoid']))}, chosen before the first "
+                "coating" + ("; its coatings confirm it as the instance nearest the mean shape"
+                             if choice.get("confirmed") else "") + ".</p>"]
+    if choice.get("medoid"):
+        used = choice["medoid"] if choice.get("kept") else choice.get("given")
+        return [f"<p>Template from <b>{html.escape(str(used))}</b>: the population's medoid is "
+                f"{html.escape(str(choice['medoid']))} (the instance nearest the mean shape); "
+                + (f"the landmark transfer error with the given template {html.escape(str(choice.get('given')))} "
+                   f"{_num(choice.get('transfer_given_mm'), 3)} mm, with the medoid's "
+                   f"{_num(choice.get('transfer_medoid_mm'), 3)} mm; "
+                   f"{'the medoid' if choice.get('kept') else 'the given'} template kept."
+                   if choice.get("medoid") != choice.get("given") else "it gave the template already.")
+                + "</p>"]
+    return []
+
+
+def _correspondence_section(corr: dict) -> list[str]:
+    """How the coatings came about: the method and its stop, the self-check, the template's instance,
+    the model method's rounds and the correspondence optimisation."""
+    if not corr:
+        return []
     check = corr.get("self_check") or {}
     transfer = check.get("instance_mm") or {}
-    if corr:
-        parts.append("<h2>Correspondence</h2>")
-        stop = {"converged": "the rounds converged (the mean shape moved less than the tolerance)",
-                "criterion": "the rounds stopped when one did not lower the landmark transfer error (it was dropped)",
-                "limit": "the rounds stopped at their limit without settling",
-                "failed": "the rounds failed and the start's coatings were kept (see the warnings)",
-                }.get(corr.get("stop", ""), "the paper's single pass")
-        kept = check.get("kept_round", 0)
-        parts.append(f"<p>Method <code>{html.escape(str(corr.get('method', '')))}</code>: {html.escape(stop)}; "
-                     + (f"round {kept}'s coatings kept." if kept else "the start's coatings kept.")
-                     + (f" Self-check: landmark transfer error {_num(check.get('study_mm'), 2)} mm (each "
-                        "instance's given landmarks predicted by the model of the others fitted to its surface)."
-                        if transfer else "") + "</p>")
-        choice = corr.get("template_choice") or {}
-        if choice.get("medoid") and choice.get("by") == "landmarks":
-            used = choice["medoid"] if choice.get("kept") else choice.get("given")
-            parts.append(f"<p>Template from <b>{html.escape(str(used))}</b>: the instance whose given landmarks are "
-                         f"nearest their mean is {html.escape(str(choice['medoid']))}, chosen before the first "
-                         "coating" + ("; its coatings confirm it as the instance nearest the mean shape"
-                                      if choice.get("confirmed") else "") + ".</p>")
-        elif choice.get("medoid"):
-            used = choice["medoid"] if choice.get("kept") else choice.get("given")
-            parts.append(f"<p>Template from <b>{html.escape(str(used))}</b>: the population's medoid is "
-                         f"{html.escape(str(choice['medoid']))} (the instance nearest the mean shape); "
-                         + (f"the landmark transfer error with the given template {html.escape(str(choice.get('given')))} "
-                            f"{_num(choice.get('transfer_given_mm'), 3)} mm, with the medoid's "
-                            f"{_num(choice.get('transfer_medoid_mm'), 3)} mm; "
-                            f"{'the medoid' if choice.get('kept') else 'the given'} template kept."
-                            if choice.get("medoid") != choice.get("given") else "it gave the template already.")
-                         + "</p>")
-        rounds = corr.get("rounds") or []
-        if rounds:
-            parts.append(_table([{"_class": "" if r.get("kept", True) else "warn", "cells": [
-                str(r["round"]), _num(r.get("mean_change_mm"), 3),
-                _num(max((r.get("instance_change_mm") or {}).values(), default=None), 2),
-                _num((r.get("landmark_noise") or {}).get("click_mm"), 2),
-                _num((r.get("landmark_noise") or {}).get("model_mm"), 2),
-                _num(100 * (r.get("landmark_noise") or {}).get("shrink", 0.0), 0),
-                _num(r.get("transfer_before_mm"), 3), _num(r.get("transfer_after_mm"), 3),
-                "kept" if r.get("kept", True) else "dropped", _num(sum((r.get("folds") or {}).values())),
-                _num(r.get("seconds"), 1)]} for r in rounds],
-                ["round", "mean shape moved (mm)", "instances moved ≤ (mm)", "landmark error (mm/axis)",
-                 "model's prediction error (mm/axis)", "landmarks moved (%)", "transfer before (mm)",
-                 "transfer after (mm)", "kept", "folds", "seconds"]))
+    parts = ["<h2>Correspondence</h2>"]
+    stop = {"converged": "the rounds converged (the mean shape moved less than the tolerance)",
+            "criterion": "the rounds stopped when one did not lower the landmark transfer error (it was dropped)",
+            "limit": "the rounds stopped at their limit without settling",
+            "failed": "the rounds failed and the start's coatings were kept (see the warnings)",
+            }.get(corr.get("stop", ""), "the paper's single pass")
+    kept = check.get("kept_round", 0)
+    parts.append(f"<p>Method <code>{html.escape(str(corr.get('method', '')))}</code>: {html.escape(stop)}; "
+                 + (f"round {kept}'s coatings kept." if kept else "the start's coatings kept.")
+                 + (f" Self-check: landmark transfer error {_num(check.get('study_mm'), 2)} mm (each "
+                    "instance's given landmarks predicted by the model of the others fitted to its surface)."
+                    if transfer else "") + "</p>")
+    parts += _template_choice_lines(corr.get("template_choice") or {})
+    rounds = corr.get("rounds") or []
+    if rounds:
+        parts.append(_table([{"_class": "" if r.get("kept", True) else "warn", "cells": [
+            str(r["round"]), _num(r.get("mean_change_mm"), 3),
+            _num(max((r.get("instance_change_mm") or {}).values(), default=None), 2),
+            _num((r.get("landmark_noise") or {}).get("click_mm"), 2),
+            _num((r.get("landmark_noise") or {}).get("model_mm"), 2),
+            _num(100 * (r.get("landmark_noise") or {}).get("shrink", 0.0), 0),
+            _num(r.get("transfer_before_mm"), 3), _num(r.get("transfer_after_mm"), 3),
+            "kept" if r.get("kept", True) else "dropped", _num(sum((r.get("folds") or {}).values())),
+            _num(r.get("seconds"), 1)]} for r in rounds],
+            ["round", "mean shape moved (mm)", "instances moved ≤ (mm)", "landmark error (mm/axis)",
+             "model's prediction error (mm/axis)", "landmarks moved (%)", "transfer before (mm)",
+             "transfer after (mm)", "kept", "folds", "seconds"]))
+    opt = corr.get("optimisation") or {}
+    if opt.get("steps"):
+        first, last = opt["steps"][0], opt["steps"][-1]
+        moved = opt.get("instance_movement_mm") or {}
+        most = max(moved, key=moved.get) if moved else ""
+        stop = {"converged": "it converged (the points moved less than the tolerance)",
+                "limit": "it stopped at its iteration limit", "cancelled": "it was cancelled (the last complete "
+                "iteration kept)"}.get(opt.get("stop", ""), str(opt.get("stop", "")))
+        parts.append(f"<p>Correspondence optimisation: {int(opt.get('iterations', 0))} iteration(s), "
+                     f"{html.escape(stop)}; objective {_num(first.get('objective'), 4)} → "
+                     f"{_num(last.get('objective'), 4)}, population entropy {_num(first.get('entropy_nats'), 2)} → "
+                     f"{_num(last.get('entropy_nats'), 2)} nats"
+                     + (f"; the points of <b>{html.escape(str(most))}</b> moved most, "
+                        f"{_num(moved[most], 3)} mm RMS" if most else "") + ".</p>")
+    return parts
 
-        opt = corr.get("optimisation") or {}
-        if opt.get("steps"):
-            first, last = opt["steps"][0], opt["steps"][-1]
-            moved = opt.get("instance_movement_mm") or {}
-            most = max(moved, key=moved.get) if moved else ""
-            stop = {"converged": "it converged (the points moved less than the tolerance)",
-                    "limit": "it stopped at its iteration limit", "cancelled": "it was cancelled (the last complete "
-                    "iteration kept)"}.get(opt.get("stop", ""), str(opt.get("stop", "")))
-            parts.append(f"<p>Correspondence optimisation: {int(opt.get('iterations', 0))} iteration(s), "
-                         f"{html.escape(stop)}; objective {_num(first.get('objective'), 4)} → "
-                         f"{_num(last.get('objective'), 4)}, population entropy {_num(first.get('entropy_nats'), 2)} → "
-                         f"{_num(last.get('entropy_nats'), 2)} nats"
-                         + (f"; the points of <b>{html.escape(str(most))}</b> moved most, "
-                            f"{_num(moved[most], 3)} mm RMS" if most else "") + ".</p>")
 
-    # instances
+def _instances_section(report: Report, thumbnails: dict, by_instance: dict, outliers: dict, corr: dict) -> list[str]:
+    """A row per instance: its picture, its coating's figures and start, its outlier scores, and its
+    findings beneath it; the meshes' cavities."""
     inst = report.instances
-    if inst:
-        parts.append("<h2>Instances</h2>")
-        if thumbnails and len(thumbnails) < len(inst):
-            parts.append(f'<p class="muted">Pictures of {len(thumbnails)} of the {len(inst)} instances: every '
-                         "flagged one, the others evenly spaced in study order (at most "
-                         f"{MAX_THUMBNAILS}).</p>")
-        rows = []
-        for name, fit in inst.items():
-            res = fit.get("landmark_residuals_mm") or []
-            o = outliers.get(name, {})
-            flags = by_instance.get(name, [])
-            # drawn at 256 px per view, shown at 128 (the page's zoom shows the rest) so the table fits 1,300 px
-            thumb = _img(thumbnails[name], name, THUMB_SHOWN_PX * 2) if name in thumbnails else ""
-            rows.append({"_class": "warn" if flags else "", "cells": [
-                f"<b>{html.escape(name)}</b>", thumb, _num(fit.get("mean_distance_mm"), 3),
-                _num(fit.get("max_distance_mm"), 3),
-                _num(((fit.get("input_surface_mm") or {}).get("from_input") or {}).get("max_mm"), 2),
-                _num((fit.get("alignment") or {}).get("turn_deg"), 0),
-                _num(fit.get("folded_after")),
-                _num(max(res) if res else None, 1), _num(transfer.get(name), 2), _num(fit.get("converged")),
-                html.escape(str((corr.get("start") or {}).get(name, fit.get("start", "")))),
-                _num(o.get("mahalanobis"), 2), _num(o.get("p_value"), 2), _num(o.get("loo_error_mm"), 2)],
-                "note": "<br>".join(f"&#9888; {html.escape(name)}: [{html.escape(f['gate'])}] "
-                                    f"{html.escape(f['message'])}" for f in flags)})
-        parts.append(_table(rows, ["instance", "coated", "mean dist. (mm)", "max dist. (mm)",
-                                   "input mesh to coating, max (mm)", "alignment turn (°)", "folds",
-                                   "max landmark residual (mm)", "landmark transfer (mm)", "converged", "start",
-                                   "Mahalanobis (LOO)", "p",
-                                   "LOO error (mm)"]))
-        hollow = {n: (fit.get("input_surface_mm") or {}).get("cavities") for n, fit in inst.items()}
-        hollow = {n: c for n, c in hollow.items() if c}
-        if hollow:
-            parts.append(f'<p class="muted">The meshes of {len(hollow)} instance(s) hold internal cavities, closed '
-                         "surfaces inside the object (" + ", ".join(
-                             f"{html.escape(n)}: {c['components']}, {c['vertices']:,} vertices" for n, c in hollow.items())
-                         + "); the template fills cavities, so the input mesh's distance to its coating is that of "
-                         "its outer surface.</p>")
+    if not inst:
+        return []
+    transfer = (corr.get("self_check") or {}).get("instance_mm") or {}
+    parts = ["<h2>Instances</h2>"]
+    if thumbnails and len(thumbnails) < len(inst):
+        parts.append(f'<p class="muted">Pictures of {len(thumbnails)} of the {len(inst)} instances: every '
+                     "flagged one, the others evenly spaced in study order (at most "
+                     f"{MAX_THUMBNAILS}).</p>")
+    rows = []
+    for name, fit in inst.items():
+        res = fit.get("landmark_residuals_mm") or []
+        o = outliers.get(name, {})
+        flags = by_instance.get(name, [])
+        # drawn at 256 px per view, shown at 128 (the page's zoom shows the rest) so the table fits 1,300 px
+        thumb = _img(thumbnails[name], name, THUMB_SHOWN_PX * 2) if name in thumbnails else ""
+        rows.append({"_class": "warn" if flags else "", "cells": [
+            f"<b>{html.escape(name)}</b>", thumb, _num(fit.get("mean_distance_mm"), 3),
+            _num(fit.get("max_distance_mm"), 3),
+            _num(((fit.get("input_surface_mm") or {}).get("from_input") or {}).get("max_mm"), 2),
+            _num((fit.get("alignment") or {}).get("turn_deg"), 0),
+            _num(fit.get("folded_after")),
+            _num(max(res) if res else None, 1), _num(transfer.get(name), 2), _num(fit.get("converged")),
+            html.escape(str((corr.get("start") or {}).get(name, fit.get("start", "")))),
+            _num(o.get("mahalanobis"), 2), _num(o.get("p_value"), 2), _num(o.get("loo_error_mm"), 2)],
+            "note": "<br>".join(f"&#9888; {html.escape(name)}: [{html.escape(f['gate'])}] "
+                                f"{html.escape(f['message'])}" for f in flags)})
+    parts.append(_table(rows, ["instance", "coated", "mean dist. (mm)", "max dist. (mm)",
+                               "input mesh to coating, max (mm)", "alignment turn (°)", "folds",
+                               "max landmark residual (mm)", "landmark transfer (mm)", "converged", "start",
+                               "Mahalanobis (LOO)", "p",
+                               "LOO error (mm)"]))
+    hollow = {n: (fit.get("input_surface_mm") or {}).get("cavities") for n, fit in inst.items()}
+    hollow = {n: c for n, c in hollow.items() if c}
+    if hollow:
+        parts.append(f'<p class="muted">The meshes of {len(hollow)} instance(s) hold internal cavities, closed '
+                     "surfaces inside the object (" + ", ".join(
+                         f"{html.escape(n)}: {c['components']}, {c['vertices']:,} vertices" for n, c in hollow.items())
+                     + "); the template fills cavities, so the input mesh's distance to its coating is that of "
+                     "its outer surface.</p>")
+    return parts
 
+
+def _inputs_section(doc: dict) -> list[str]:
+    """Each instance's file and the coordinates it was read in."""
     inputs = doc.get("inputs") or {}
-    if inputs:
-        parts.append("<h2>Inputs</h2><p class=\"muted\">World coordinates are RAS mm; each file is read in the "
-                     "convention it states (3D Slicer's SPACE=LPS, a NIfTI's qform or sform), else the one given.</p>")
-        parts.append(_table([[f"<b>{html.escape(n)}</b>", html.escape(Path(d.get("source") or "").name),
-                              html.escape(d.get("coordinates", "")), html.escape(Path(d.get("landmarks") or "").name),
-                              html.escape(d.get("landmark_coordinates", ""))] for n, d in inputs.items()],
-                            ["instance", "file", "coordinates", "landmarks", "landmark coordinates"]))
+    if not inputs:
+        return []
+    return ["<h2>Inputs</h2><p class=\"muted\">World coordinates are RAS mm; each file is read in the "
+            "convention it states (3D Slicer's SPACE=LPS, a NIfTI's qform or sform), else the one given.</p>",
+            _table([[f"<b>{html.escape(n)}</b>", html.escape(Path(d.get("source") or "").name),
+                     html.escape(d.get("coordinates", "")), html.escape(Path(d.get("landmarks") or "").name),
+                     html.escape(d.get("landmark_coordinates", ""))] for n, d in inputs.items()],
+                   ["instance", "file", "coordinates", "landmarks", "landmark coordinates"])]
 
-    parts += _joint_section(doc)
-    parts += _analysis_section(doc.get("analysis") or {}, analysis_images or {})
 
-    # parameters and timings
+def _parameters_and_timings_section(report: Report) -> list[str]:
+    """The template's, coating's and model's parameters, and each stage's time (or why it is not known)."""
+    parts = []
     params = report.section("parameters") or {}
     if params:
         parts.append("<h2>Parameters</h2>")
@@ -723,6 +726,41 @@ def write_html_report(path, report: Report | dict, *, images: dict[str, bytes] |
         parts.append(_table([[html.escape(k), f"{float(v):.2f} s"] for k, v in timings.items()]
                             + [[html.escape(k), f"not known: {html.escape(why)}"] for k, why in report.timings_unknown.items()],
                             ["stage", "time"]))
+    return parts
+
+
+def write_html_report(path, report: Report | dict, *, images: dict[str, bytes] | None = None,
+                      thumbnails: dict[str, bytes] | None = None, title: str = "SSM Builder model report",
+                      analysis_images: dict[str, bytes] | None = None) -> Path:
+    """Write ``report.html`` from a :class:`Report` (or a ``report.json`` document) and the pictures (PNG bytes).
+
+    A section the report does not have is said to be absent, with its reason: an absent
+    quality section is "not known", never "passed". Each section has its renderer (the head
+    with the warnings, the model, the metrics, the correspondence, the instances, the inputs, a
+    joint model's, the analysis, the parameters and timings), each a list of HTML fragments.
+
+    Parameters
+    ----------
+    report : Report or dict
+        The report (a dict is read as ``report.json``: :meth:`Report.from_dict`).
+    images : dict caption -> PNG bytes
+        Figures shown in order (fig. 9 plots, metrics, fig. 10).
+    thumbnails : dict instance -> PNG bytes
+    """
+    report = report if isinstance(report, Report) else Report.from_dict(report)
+    doc = report.to_dict()
+    quality = report.section("quality") or {}
+    findings = quality.get("findings", [])
+    by_instance: dict[str, list] = {}
+    for f in findings:
+        by_instance.setdefault(f.get("instance", ""), []).append(f)
+    corr = report.section("correspondence") or {}
+    parts = (_head_section(report, title, findings) + _model_section(report, images or {})
+             + _metrics_section(report) + _correspondence_section(corr)
+             + _instances_section(report, thumbnails or {}, by_instance, quality.get("outlier_scores", {}), corr)
+             + _inputs_section(doc) + _joint_section(doc) + _analysis_section(doc.get("analysis") or {},
+                                                                               analysis_images or {})
+             + _parameters_and_timings_section(report))
     page = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
             f"<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\"><title>{html.escape(title)}</title>"
             f"<style>{CSS}</style></head><body>\n" + "\n".join(parts) + f"\n<script>{SCRIPT}</script>\n</body></html>\n")
