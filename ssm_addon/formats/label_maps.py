@@ -15,16 +15,16 @@ from pathlib import Path
 import nibabel as nib
 import nrrd
 import numpy as np
-from nibabel.affines import apply_affine, voxel_sizes
 
 from ..base.errors import InputError
+from .grid import AffineGrid
 from .meshes import MESH_EXTENSIONS
 from .registry import extensions, format_of
 
 
 @dataclass(frozen=True)
-class LabelMap:
-    """A label map as read from disk.
+class LabelMap(AffineGrid):
+    """A label map as read from disk (an :class:`~.grid.AffineGrid` of its labels).
 
     Attributes
     ----------
@@ -40,10 +40,12 @@ class LabelMap:
     affine: np.ndarray
     path: str = ""
 
+    GRID_ARRAY = "labels"
+
 
 @dataclass(frozen=True)
-class Volume:
-    """A binary object in its input grid.
+class Volume(AffineGrid):
+    """A binary object in its input grid (an :class:`~.grid.AffineGrid` of its mask).
 
     Attributes
     ----------
@@ -66,24 +68,12 @@ class Volume:
     label: int | None = None
     patient_oriented: bool = True
 
-    @property
-    def spacing_mm(self) -> np.ndarray:
-        """(3,) voxel edge lengths in mm (column norms of the affine)."""
-        return voxel_sizes(self.affine)
-
-    @property
-    def voxel_volume_mm3(self) -> float:
-        """Volume of one voxel in mm³ (|det| of the affine's linear part)."""
-        return float(abs(np.linalg.det(self.affine[:3, :3])))
+    GRID_ARRAY = "mask"
 
     @property
     def volume_mm3(self) -> float:
         """Object volume in mm³: voxel count × voxel volume."""
         return float(np.count_nonzero(self.mask)) * self.voxel_volume_mm3
-
-    def voxel_to_world(self, ijk: np.ndarray) -> np.ndarray:
-        """(M, 3) voxel coordinates -> (M, 3) world mm."""
-        return apply_affine(self.affine, np.asarray(ijk, dtype=float))
 
 
 

@@ -11,10 +11,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from nibabel.affines import apply_affine, voxel_sizes
 from scipy import ndimage
 
 from ..base.errors import InputError
+from ..formats.grid import AffineGrid
 from ..formats.label_maps import read_image_array
 from ..instances.voxelize import voxelize_mesh
 
@@ -22,8 +22,9 @@ __all__ = ["PLANES", "GreyImage", "read_image", "segmentation_mask", "window_val
 
 
 @dataclass(frozen=True, eq=False)
-class GreyImage:
-    """A grey-value image and its voxel -> world (RAS mm) affine.
+class GreyImage(AffineGrid):
+    """A grey-value image and its voxel -> world (RAS mm) affine (an
+    :class:`~ssm_addon.formats.grid.AffineGrid` of its values).
 
     Attributes
     ----------
@@ -40,34 +41,7 @@ class GreyImage:
     path: str = ""
     _smoothed: dict = field(default_factory=dict, repr=False, compare=False)
 
-    @property
-    def spacing_mm(self) -> np.ndarray:
-        """(3,) voxel edge lengths (mm)."""
-        return voxel_sizes(self.affine)
-
-    @property
-    def shape(self) -> tuple:
-        return tuple(self.data.shape)
-
-    def to_index(self, points_world: np.ndarray) -> np.ndarray:
-        """(…, 3) world mm -> continuous voxel indices."""
-        return apply_affine(np.linalg.inv(self.affine), np.asarray(points_world, float))
-
-    def to_world(self, ijk: np.ndarray) -> np.ndarray:
-        """(…, 3) voxel indices -> world mm."""
-        return apply_affine(self.affine, np.asarray(ijk, float))
-
-    def contains(self, points_world: np.ndarray) -> np.ndarray:
-        """(M,) bool: the world points lie inside the image's voxel grid (centres' hull, ±½ voxel)."""
-        ijk = self.to_index(np.atleast_2d(points_world))
-        return np.all((ijk >= -0.5) & (ijk <= np.asarray(self.data.shape) - 0.5), axis=1)
-
-    def extent_world(self) -> np.ndarray:
-        """(2, 3) the lowest and highest world coordinates of the grid's corners (mm)."""
-        s = np.asarray(self.data.shape, float) - 1.0
-        corners = np.array([[i, j, k] for i in (0, s[0]) for j in (0, s[1]) for k in (0, s[2])])
-        w = self.to_world(corners)
-        return np.stack([w.min(axis=0), w.max(axis=0)])
+    GRID_ARRAY = "data"
 
     def smoothed(self, sigma_mm: float) -> np.ndarray:
         """The image blurred by a Gaussian of ``sigma_mm`` (world mm, per axis by its spacing); cached."""
