@@ -187,3 +187,49 @@ def test_the_coating_stretch_is_the_ratio_of_the_triangles_where_the_mesh_lies_f
     half = template * np.where(template[:, :1] > 0, [2.0, 1.0, 1.0], 1.0)
     assert stretch(far, half) == pytest.approx(1.0, abs=1e-12)
     assert 1.2 < stretch(-2 * far, half) <= 2.0  # a doubling along x: at most twice
+
+
+def test_the_appearance_is_a_stage_of_its_own_run_by_the_runner_and_reported(project, tmp_path):
+    """Instances naming a CT (``image``): the appearance stage (in STAGES, after the model) learns their
+    boundary profiles when ``run`` runs it, its time and record are the study's, the writer stores what it
+    learned and report.html says so; an image that does not hold its instance fails in the stage, by
+    instance and file, before any output is written."""
+    import nibabel as nib
+
+    from ssm_addon.base.errors import InputError
+    from ssm_addon.formats.label_maps import read_label_map
+    from ssm_addon.pipeline.study import STAGES
+
+    assert STAGES.index("model") < STAGES.index("appearance") < STAGES.index("metrics")
+    folder = project.parent
+    text = project.read_text()
+    rng = np.random.default_rng(0)
+    for block in re.findall(r'volume = "([^"]+)"', text):
+        labels = read_label_map(folder / block)
+        ct = np.where(labels.labels == 20, 400.0, 0.0) + rng.normal(scale=20.0, size=labels.labels.shape)
+        nib.save(nib.Nifti1Image(ct.astype(np.float32), labels.affine), str(tmp_path / f"ct_{block}"))
+    with_images = re.sub(r'volume = "([^"]+)"', lambda m: f'volume = "{m.group(1)}"\nimage = "{tmp_path / ("ct_" + m.group(1))}"',
+                         text)
+    (folder / "with_images.toml").write_text(with_images)
+    pr = read_project(folder / "with_images.toml")
+    study = Study(instances=pr.instances, template_instance=pr.template_instance, params=pr.params)
+    said = []
+    run(study, stages=("import", "template", "coating", "model", "appearance"), jobs=2, log=said.append)
+    assert study.appearance is not None and study.appearance_record["images"] == list(study.names)
+    assert "appearance" in study.timings_s and any(line.startswith("appearance: boundary profiles") for line in said)
+    result = build(pr, tmp_path / "out", jobs=2, blend=False, log=None, cache="off")
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["appearance"]["images"] == list(study.names) and "appearance" in report["timings_s"]
+    assert "Appearance: boundary profiles learned from the images of 5 instance(s)" in (
+        tmp_path / "out" / "report.html").read_text()
+    assert result.study.appearance is not None
+    # an image beside its instance, not around it: refused in the stage, nothing written
+    name = re.findall(r'volume = "([^"]+)"', text)[1]
+    ct = nib.load(str(tmp_path / f"ct_{name}"))
+    moved = ct.affine.copy()
+    moved[:3, 3] += 500.0
+    nib.save(nib.Nifti1Image(np.asarray(ct.dataobj), moved), str(tmp_path / f"ct_{name}"))
+    with pytest.raises(InputError, match=r"instance '[^']+': its image .*ct_.* covers 0 % of the instance's surface"):
+        build(read_project(folder / "with_images.toml"), tmp_path / "refused", jobs=2, blend=False, log=None,
+              cache="off")
+    assert not (tmp_path / "refused").exists()

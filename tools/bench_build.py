@@ -100,7 +100,7 @@ def _print(case: str, report: dict) -> None:
         print(f"  fit: mean surface distance {mean:.3f} mm, largest {worst:.2f} mm")
 
 
-STAGES = ("import", "template", "sides", "coating", "coating_self_check", "optimisation", "model", "metrics", "blender", "write", "report_html",
+STAGES = ("import", "template", "sides", "coating", "coating_self_check", "optimisation", "model", "appearance", "metrics", "blender", "write", "report_html",
           "total")
 
 

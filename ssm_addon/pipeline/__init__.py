@@ -17,7 +17,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "runner": ("coating_stage", "run"),
     "sides": ("decide_sides", "given_sides", "landmark_sides", "sides_first", "sides_line", "with_sides", "with_sides_product"),
     "optimisation": ("hold_weight", "optimisation_result", "optimisation_stage"),
-    "appearance": ("appearance_stage",),
+    "appearance": ("appearance_stage", "learned_appearance"),
     "stages": ("coat_from_frames", "coat_instances", "coating_result", "cut_off_places", "evaluate_model", "import_instances", "import_result", "import_stage", "label_map_once", "make_model", "make_template", "metrics_stage", "model_stage", "self_check", "template_stage"),
     "streaming": ("InstanceJob", "coat_from_source", "stream_instances", "template_key"),
     "template_refinement": ("CUT_OFF_SHARE", "cut_off_instances", "with_template_refined"),

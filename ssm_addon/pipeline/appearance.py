@@ -1,10 +1,12 @@
-"""The build's appearance step: the boundary's look learned from the instances' images.
+"""The appearance stage: the boundary's look learned from the instances' images.
 
 When project instances name a grey-value ``image`` (CT in the same world space as their label
 map or mesh), the model's points on each such instance (its coating, world mm) are sampled
 along their normals in its image and the profiles per point become the model's appearance
-(:func:`ssm_addon.segmentation.learn_appearance`), stored in ``model.npz`` beside the shape
-model (``appearance_*`` arrays) for ``ssm segment``.
+(:func:`ssm_addon.segmentation.learn_appearance`). A stage of :data:`~.study.STAGES` after the
+model (it reads the model's mean and the instances' coatings); the writer stores its product in
+``model.npz`` beside the shape model (``appearance_*`` arrays) and in the statismo file, for
+``ssm segment``, and ``report.json``/``report.html`` record it.
 """
 
 from __future__ import annotations
@@ -14,11 +16,29 @@ import time
 from ..base.errors import InputError
 from ..segmentation.appearance import learn_appearance
 from ..segmentation.image import read_image
+from .study import StageResult
 
-__all__ = ["appearance_stage"]
+__all__ = ["appearance_stage", "learned_appearance"]
 
 
-def appearance_stage(study, *, log=None):
+def appearance_stage(study) -> StageResult:
+    """The appearance stage: :func:`learned_appearance` of a study with its model, as a
+    :class:`~.study.StageResult` (``appearance``, ``appearance_record``: None when no instance
+    names an image; the summary line says what was learned).
+
+    Raises
+    ------
+    InputError
+        An image that cannot be read, or that does not cover its instance's surface.
+    """
+    t0 = time.perf_counter()
+    lines: list = []
+    appearance, doc = learned_appearance(study, log=lines.append)
+    return StageResult("appearance", {"appearance": appearance, "appearance_record": doc}, (),
+                       {"appearance": time.perf_counter() - t0} if appearance is not None else {}, tuple(lines))
+
+
+def learned_appearance(study, *, log=None):
     """(Appearance or None, report entry or None) of a built study: None when no instance names an image.
 
     Raises

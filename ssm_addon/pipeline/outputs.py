@@ -45,7 +45,7 @@ from ..segmentation.appearance import write_appearance_h5
 from ..version import __version__
 from .appearance import appearance_stage
 from .report import Absent, Report, joint_report, model_report, study_report, write_report_html
-from .study import Study, carried_landmarks
+from .study import Study, apply_stage, carried_landmarks
 
 __all__ = ["MANIFEST", "absolute_files", "check_output_folder", "check_writable", "drawing_copy", "owned_output_folder", "peak_memory_mb",
            "relative_files", "save_joint_outputs", "save_study_outputs", "start_drawings", "study_inputs", "write_joint", "write_outputs", "write_study"]
@@ -438,7 +438,13 @@ def write_study(study: Study, folder, *, output: OutputParams, project: str | Ab
             files["optimisation"] = "optimisation.png"
         except ImportError as err:
             say(f"picture: optimisation.png skipped ({err})")
-    appearance, appearance_doc = appearance_stage(study, log=say)
+    if study.appearance_record is None and any(getattr(i, "image_path", None) is not None for i in study.instances):
+        # a study whose appearance stage has not run (Blender's Save Model): learned here
+        learned = appearance_stage(study)
+        apply_stage(study, learned)
+        for line in learned.lines():
+            say(line)
+    appearance, appearance_doc = study.appearance, study.appearance_record
     entries = _write_model_outputs(model, folder, files, output=output, say=say, drawn=drawn, analysis=analysis,
                                    extra=extra, npz_extra=appearance.to_arrays() if appearance is not None else None)
     if appearance is not None:  # in model.npz beside the shape model (above), and in the statismo file as

@@ -547,6 +547,15 @@ def _model_section(report: Report, images: dict) -> list[str]:
     parts.append(f'<p class="muted">σ = √λ is the length of the whole shape\'s displacement at one standard '
                  f'deviation, over all {_num(npts)} × 3 coordinates (the mode is a unit vector of them); a point '
                  f'moves √(λ/N) on average (root mean square), the column beside it.</p>')
+    app = report.to_dict().get("appearance") or {}
+    if app.get("images"):  # the appearance stage's record
+        inside, outside = (list(app.get("boundary_inside_outside") or []) + [None, None])[:2]
+        parts.append(f"<p>Appearance: boundary profiles learned from the images of {len(app['images'])} instance(s) "
+                     f"({html.escape(', '.join(map(str, app['images'][:5])))}{'…' if len(app['images']) > 5 else ''}), "
+                     f"{_num(app.get('training_voxel_mm'), 2)} mm voxels, levels "
+                     f"{html.escape(', '.join(f'{float(x):g}' for x in app.get('levels_sigma_mm') or []))} mm; grey "
+                     f"values inside {_num(inside, 0)}, outside {_num(outside, 0)} (what <code>ssm segment</code> "
+                     "expects of a new image).</p>")
     if images:
         parts.append('<h2>Figures</h2><div class="figs">')
         for caption, data in images.items():

@@ -12,6 +12,7 @@ from ..base.compute import time_left_text
 from ..base.errors import InputError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..model.metrics import import_plotting_in_background
+from .appearance import appearance_stage
 from .model_method import coat_without_landmarks_stage, distance_maps_ahead, landmarked, refine_correspondence
 from .optimisation import optimisation_stage
 from .sides import decide_sides, sides_first, with_sides, with_sides_product
@@ -176,6 +177,10 @@ def run(study: Study, *, stages: Sequence[str] = STAGES, jobs: int = 1, progress
         check_cancelled(cancelled)
         report(progress, 0.85, "model: PCA")
         applied(model_stage(study, cancelled=cancelled))
+    if "appearance" in stages and study.model is not None and any(i.image_path is not None for i in study.instances):
+        check_cancelled(cancelled)
+        report(progress, 0.88, "appearance: boundary profiles from the instances' images")
+        applied(appearance_stage(study))
     if "metrics" in stages:
         check_cancelled(cancelled)
         report(progress, 0.9, "metrics: compactness, generalization, specificity")

@@ -119,6 +119,12 @@ class Study:
         Of those, the mesh's vertices beyond ``[quality] max_input_distance_mm``, each as its
         nearest point of the coating (a triangle and barycentric weights: the same places on the
         template); what the template's refinement reads (not saved).
+    appearance : Appearance or None
+        The appearance stage's boundary profiles learned from the instances' images
+        (:mod:`ssm_addon.pipeline.appearance`); None without images.
+    appearance_record : dict or None
+        Its record for ``report.json`` (images, levels, the grey values inside and outside, seconds);
+        None when the stage has not run or found no image.
     fallbacks : list of Finding
         Optional refinements of the running stage that failed and fell back to what the study
         had (the medoid's template, the model's starts, the rounds); the stage reports them.
@@ -146,6 +152,8 @@ class Study:
     cut_off: dict = field(default_factory=dict)
     optimisation: object | None = None
     sides: dict = field(default_factory=dict)
+    appearance: object | None = None
+    appearance_record: dict | None = None
 
     def __post_init__(self):
         self.instances = tuple(self.instances)
@@ -200,7 +208,7 @@ class Study:
         return self.volumes[name]
 
 
-STAGES = ("import", "template", "coating", "optimisation", "model", "metrics")
+STAGES = ("import", "template", "coating", "optimisation", "model", "appearance", "metrics")
 
 
 def study_parameters(study: Study, landmark_names: Sequence[str] = ()) -> dict:
