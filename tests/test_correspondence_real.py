@@ -181,9 +181,13 @@ def test_femurs_in_scanner_poses_without_landmarks_are_coated_as_unmoved(tmp_pat
     _study, posed = _build(moved_files, moved, tmp_path, landmarks=0, on=0, method="landmarks")
     per = {n: float(e.mean()) for n, e in posed.items()}
     a, b = np.concatenate(list(unmoved.values())).mean(), np.concatenate(list(posed.values())).mean()
-    print(f"femurs without landmarks: unmoved {a:.3f} mm, in scanner poses {b:.3f} mm; {per}")
+    change = {n: round(per[n] - float(unmoved[n].mean()), 3) for n in per}
+    print(f"femurs without landmarks: unmoved {a:.3f} mm, in scanner poses {b:.3f} mm; {per}; per femur {change}")
     assert max(per.values()) < 4.0, per
     assert b < 1.1 * a, (a, b)
+    # each femur's coating lands as near its truth as unmoved (the object grids differ by the frames' voxel
+    # noise, so the coatings are not the same points: measured within 0.11 mm on femur10 in three pose sets)
+    assert max(abs(c) for c in change.values()) < 0.25, change
 
 
 
