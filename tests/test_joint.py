@@ -485,6 +485,12 @@ def test_a_joint_project_gives_each_subject_one_side_for_all_its_structures(tmp_
     detect = read_project(path)
     for st in detect.structures.values():
         assert [i.mirror for i in st.instances] == [False, None, None, None]
+    # written back (Save Project, write_project): one side per subject, the same project again
+    from ssm_addon.pipeline.project import write_project
+
+    again = read_project(write_project(tmp_path / "again.toml", project))
+    for st in again.structures.values():
+        assert [i.side for i in st.instances] == sides and [i.mirror for i in st.instances] == [False, True, False, True]
 
 
 @pytest.mark.slow

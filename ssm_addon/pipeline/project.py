@@ -801,6 +801,13 @@ def _joint_text(project: Project, base: Path) -> list[str]:
             lines.append("landmarks = { " + ", ".join(f"{_key(n)} = {toml_value(_relative(i.landmarks_path, base))}"
                                                       for n, i in specs.items() if i.landmarks_path is not None)
                          + " }")
+        for key in ("space", "side"):  # a subject's, one for all its structures
+            given = {getattr(i, key) for i in specs.values()} - {None}
+            if len(given) > 1:
+                raise InputError(f"{project.path}: subject {subject!r}: its structures give {key}s "
+                                 f"{', '.join(sorted(given))}; a joint project states one {key} per subject")
+            if given:
+                lines.append(f"{key} = {toml_value(given.pop())}")
         own = project.instance_attributes.get(subject)
         if own:
             lines.append("attributes = { " + ", ".join(f"{_key(k)} = {toml_value(v)}" for k, v in own.items()) + " }")
