@@ -19,7 +19,7 @@ import numpy as np
 from ..base.errors import InputError
 from .grid import AffineGrid
 from .meshes import MESH_EXTENSIONS
-from .registry import extensions, format_of
+from .registry import extensions, format_of, registered_extension
 
 
 @dataclass(frozen=True)
@@ -84,11 +84,9 @@ _LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 
 
 def file_extension(path) -> str:
-    """The lower-case extension of ``path`` including ``.nii.gz``-style double suffixes."""
-    name = Path(path).name.lower()
-    if name.endswith(".nii.gz"):
-        return ".nii.gz"
-    return Path(name).suffix
+    """The lower-case extension of ``path`` including ``.nii.gz``-style double suffixes
+    (:func:`~.registry.registered_extension`)."""
+    return registered_extension(path)
 
 
 def file_stem(path) -> str:

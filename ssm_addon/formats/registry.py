@@ -90,12 +90,15 @@ def file_glob(kind: str) -> str:
     return ";".join(f"*{e}" for e in extensions(kind))
 
 
+#: Every registered extension, the longest first (so ``.nii.gz`` is met before ``.gz``).
+_LONGEST_FIRST = tuple(sorted({e for f in FORMATS for e in f.extensions}, key=lambda e: (-len(e), e)))
+
+
 def registered_extension(path) -> str:
     """The lower-case extension of ``path``: the longest registered one it ends with
     (``.nii.gz``, ``.mrk.json``), else its last suffix (``""`` for none)."""
     name = Path(path).name.lower()
-    known = sorted({e for f in FORMATS for e in f.extensions}, key=len, reverse=True)
-    return next((e for e in known if name.endswith(e) and len(name) > len(e)), Path(name).suffix)
+    return next((e for e in _LONGEST_FIRST if name.endswith(e) and len(name) > len(e)), Path(name).suffix)
 
 
 def format_of(path, kind: str) -> FileFormat | None:

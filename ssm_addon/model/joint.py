@@ -23,7 +23,7 @@ import numpy as np
 from ..base.errors import check_cancelled
 from ..base.progress import CancelledFn
 from ..meshutil import MeshLocator, connected_components, face_normals
-from .pca import ShapeModel, procrustes_fit
+from .pca import ShapeModel, own_side_instances, procrustes_fit
 from .quality import Finding
 
 __all__ = ["INPUT_OVERLAP_MM", "INPUT_OVERLAP_SHARE", "collision_findings", "collisions", "joined_parts", "relative_pose", "relative_poses", "shape_and_pose",
@@ -192,12 +192,7 @@ def shape_and_pose(model: ShapeModel, *, reference: str, samples: int = 300, see
 def _penetration(points: np.ndarray, other: np.ndarray, other_faces: np.ndarray) -> float:
     """How deep points reach into the closed surface ``other`` (mm; 0 when none is inside): a point
     is inside when it lies behind the outward normal of its closest triangle. Only the points
-    within ``other``'s bounding box can be inside it, so only they are queried. Triangles that
-    face inwards (a mirror image's world points with the template's triangles: a subject of the
-    other side) are turned first."""
-    corners = other[np.asarray(other_faces)]
-    if np.einsum("ij,ij->i", corners[:, 0], np.cross(corners[:, 1], corners[:, 2])).sum() < 0.0:
-        other_faces = np.asarray(other_faces)[:, ::-1]
+    within ``other``'s bounding box can be inside it, so only they are queried."""
     lo, hi = other.min(axis=0), other.max(axis=0)
     points = points[((points >= lo) & (points <= hi)).all(axis=1)]
     if not len(points):
@@ -220,17 +215,22 @@ def collisions(model: ShapeModel, *, samples: int = 200, depth_mm: float = 0.5, 
     sd = model.standard_deviations
     extremes = [model.mean + sign * 3.0 * sd[k] * model.modes[k] for k in range(model.n_modes) for sign in (-1.0, 1.0)]
     drawn = list(model.sample(samples, seed=seed, sd_limit=3.0)) if samples and model.n_modes else []
-    # the subjects as they are (their world coordinates: every structure where the scanner saw it)
-    sets = {"data": list(np.asarray(model.instance_points_world, float)), "model": extremes + drawn}
+    # the subjects as they are (their world coordinates: every structure where the scanner saw it); a
+    # subject mirrored into the model's side is its own side's there, its triangles facing inwards
+    own = set(own_side_instances(model).tolist())
+    world = np.asarray(model.instance_points_world, float)
+    sets = {"data": [(shape, i not in own) for i, shape in enumerate(world)],
+            "model": [(shape, False) for shape in extremes + drawn]}
     out = {}
     for a, b in itertools.combinations(names, 2):
         check_cancelled(cancelled)
         figures = {}
         for label, shapes in sets.items():
             depths = []
-            for shape in shapes:
-                sa, fa = parts[a]
-                sb, fb = parts[b]
+            for shape, inward in shapes:
+                (sa, fa), (sb, fb) = parts[a], parts[b]
+                if inward:
+                    fa, fb = fa[:, ::-1], fb[:, ::-1]
                 depths.append(max(_penetration(shape[sa], shape[sb], fb), _penetration(shape[sb], shape[sa], fa)))
             d = np.asarray(depths)
             figures[label] = {"shapes": len(d), "max_mm": float(d.max(initial=0.0)),

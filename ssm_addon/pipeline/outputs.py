@@ -438,8 +438,7 @@ def write_study(study: Study, folder, *, output: OutputParams, project: str | Ab
             files["optimisation"] = "optimisation.png"
         except ImportError as err:
             say(f"picture: optimisation.png skipped ({err})")
-    if study.appearance_record is None and any(getattr(i, "image_path", None) is not None for i in study.instances):
-        # a study whose appearance stage has not run (Blender's Save Model): learned here
+    if study.appearance_record is None:  # the appearance stage has not run (Blender's Save Model), or no images
         learned = appearance_stage(study)
         apply_stage(study, learned)
         for line in learned.lines():

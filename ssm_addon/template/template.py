@@ -198,7 +198,7 @@ def _applied_changes(base: np.ndarray, change: np.ndarray, depth, *, adding: boo
     component, voxels) and leave it as it was. A deeper fill of a notch or cut of a spur
     changes the shape, not the topology, and is not applied; nor is a change that lowers
     the Euler characteristic (it would make a tunnel or a handle), however shallow.
-    ``depth``: a function giving the depth array, called only when ``keep_depth_vox`` > 0
+    ``depth``: a function giving the depth array, called only when ``keep_depth_vox`` is a voxel or more
     (a changed voxel is at least one voxel deep, so none is shallow otherwise)."""
     lab, n = ndi.label(change, structure=np.ones((3, 3, 3), bool))
     if n == 0:
