@@ -137,11 +137,9 @@ class SSM_OT_coat_template(BackgroundJob, bpy.types.Operator):
         self._loader.keep()
         imported, result, was_cancelled = outcome
         apply_sides(result.product.get("sides"))
-        refined = result.product.get("template")  # built again where the coatings cut off parts of the meshes
-        if refined is not None and "refined_at" in (refined.params or {}):
-            instance = context.scene.ssm_display.template_instance or find_template(context).ssm.instance
-            write_template_object(context, instance, refined)
-            self._faces, self._template_points = refined.faces, refined.points_object
+        shown = show_template(context, result.product)  # from the medoid, or denser where coatings cut off parts
+        if shown is not None:
+            self._faces, self._template_points = shown.faces, shown.points_object
         written = self._write(context, result.product["coatings"])
         found = record_stage(context, imported) + record_stage(context, result)
         msg = f"coated {len(written)} instance(s)"
@@ -226,6 +224,27 @@ def prepare_refinement(op, context, *, fresh: bool):
     return work
 
 
+def show_template(context, product: dict):
+    """The coating stage's template in the scene when the stage built it again: from the medoid
+    (``product["template_instance"]``, another instance than the scene's template's: the template
+    object moves to it) or denser where coatings cut off parts. Returns that template, or None."""
+    template = product.get("template")
+    if template is None:
+        return None
+    medoid = product.get("template_instance")
+    current = context.scene.ssm_display.template_instance
+    if current is None and find_template(context) is not None:
+        current = find_template(context).ssm.instance
+    if (medoid is not None and (current is None or current.name != medoid)
+            and bpy.data.objects.get(medoid) is not None):  # the template built again from the medoid
+        write_template_object(context, bpy.data.objects[medoid], template)
+        return template
+    if "refined_at" in (template.params or {}) and current is not None:  # built again, denser
+        write_template_object(context, current, template)
+        return template
+    return None
+
+
 def finish_refinement(op, context, outcome):
     """Write the refined coatings and the rounds' figures into the scene."""
     op._loader.keep()
@@ -234,13 +253,7 @@ def finish_refinement(op, context, outcome):
     coatings, starts = result.product["coatings"], result.product["coating_start"]
     rounds = list(result.product.get("correspondence_rounds", ()))
     mean_points = result.product["template"].points_object
-    medoid = result.product.get("template_instance")
-    current = context.scene.ssm_display.template_instance
-    if (medoid is not None and (current is None or current.name != medoid)
-            and bpy.data.objects.get(medoid) is not None):  # the template built again from the medoid
-        write_template_object(context, bpy.data.objects[medoid], result.product["template"])
-    elif "refined_at" in (result.product["template"].params or {}) and current is not None:  # built again, denser
-        write_template_object(context, current, result.product["template"])
+    show_template(context, result.product)
     written = []
     for name, coating in coatings.items():
         inst = bpy.data.objects.get(name)

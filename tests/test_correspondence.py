@@ -175,8 +175,15 @@ def test_a_project_without_landmarks_builds_and_turns_a_turned_instance_back(pop
                    cache="off")
     assert any(x.startswith("correspondence: no landmarks were given: the template was put onto every instance by "
                             "its object frame") for x in lines), lines
-    starts = result.report["correspondence"]["template_choice"]["starts"]
+    choice = result.report["correspondence"]["template_choice"]
+    starts = choice["starts"]
     assert starts["demo_03"]["turn"] == "turned about z", starts["demo_03"]
+    # the template from the instance whose first coating is nearest the mean shape, said in report.html
+    assert choice["by"] == "coatings" and choice["medoid"] in starts, choice
+    assert result.report["correspondence"]["template_instance"] == (choice["medoid"] if choice["kept"] else
+                                                                    choice["given"])
+    page = (tmp_path / "out" / "report.html").read_text()
+    assert f"coating is nearest the mean shape is {choice['medoid']}" in page
     assert all(s["turn"] == "input coordinates" for n, s in starts.items() if n != "demo_03"), starts
     findings = result.report["quality"]["findings"]
     assert not [f for f in findings if f["gate"] == "frame"], findings

@@ -130,6 +130,33 @@ def test_propose_landmarks_fits_the_scene_model(bpy_clean, light_project):
 
 
 @pytest.mark.slow
+def test_coat_template_without_landmarks_takes_the_medoid_template_as_the_build_does(bpy_clean, tmp_path):
+    """No landmarks on any instance: the build coats from the given template, builds the template
+    again from the instance whose coating is nearest the mean shape and coats every instance from it;
+    Coat Template in Blender does the same (the template object moves to that instance, the same
+    coatings to 1e-9 mm, the same record)."""
+    bpy = bpy_clean
+    from ssm.operators.scene import find_template, scene_records
+
+    path = demo.make_demo_population(tmp_path / "population", n=6, seed=9)
+    path.write_text(path.read_text().replace("spacing = 1.0", "spacing = 1.0\nr_min_mm = 4.0\nr_max_mm = 8.0")
+                    .replace("[model]", "[model]\nspecificity_samples = 50"))
+    bare = project_variant(path, "bare.toml", keep_landmarks=set())
+    headless = build(read_project(bare), tmp_path / "out", log=None)
+    choice = headless.report["correspondence"]["template_choice"]
+    assert choice["by"] == "coatings" and choice["kept"] and choice["medoid"] != choice["given"], choice
+    assert bpy.ops.ssm.open_project(filepath=str(bare)) == {"FINISHED"}
+    assert bpy.ops.ssm.build_template() == {"FINISHED"}
+    assert find_template(bpy.context).ssm.instance.name == choice["given"]
+    assert bpy.ops.ssm.coat_template() == {"FINISHED"}
+    assert find_template(bpy.context).ssm.instance.name == choice["medoid"]
+    assert bpy.context.scene.ssm_display.template_instance.name == choice["medoid"]
+    assert scene_records(bpy.context)["template_choice"]["medoid"] == choice["medoid"]
+    for name, pts in _coatings(bpy).items():
+        np.testing.assert_allclose(pts, headless.study.coatings[name].points_object, atol=1e-9, err_msg=name)
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("template_choice", ["landmark-medoid", "medoid"])
 def test_the_medoid_template_of_the_model_method_reaches_the_scene(bpy_clean, tmp_path, template_choice):
     """Landmarks on every instance: the model method builds the template from the instance whose

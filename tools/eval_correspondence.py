@@ -244,6 +244,12 @@ def eval_meshes(args) -> dict:
     from ssm_addon.meshutil import MeshLocation, MeshLocator
 
     files, meshes = mesh_population(args.population)
+    if args.template_instance:  # that instance first: the template's (and the landmarks' first) instance
+        stems = [f.stem for f in files]
+        if args.template_instance not in stems:
+            raise SystemExit(f"--template-instance {args.template_instance}: not one of {', '.join(stems)}")
+        first = stems.index(args.template_instance)
+        files, meshes = files[first:] + files[:first], meshes[first:] + meshes[:first]
     names = [f.stem for f in files]
     v0, f0 = meshes[0]
     lm_idx = farthest_points(v0, max(args.landmarks, 1), int(np.argmax(v0[:, 2])))
@@ -557,6 +563,8 @@ def main(argv=None):
     ap.add_argument("--iterations", type=int, default=3)
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--n", type=int, default=20)
+    ap.add_argument("--template-instance", default=None,
+                    help="the instance (file stem) whose template is coated onto the others (default: the first)")
     ap.add_argument("--label", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--pose-seed", type=int, default=None,

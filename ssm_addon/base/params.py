@@ -933,8 +933,10 @@ class CorrespondenceParams:
                                       "kept when its coatings confirm it, else the medoid of the given template's "
                                       "coatings, kept when the self-check improves; 'landmark-medoid': "
                                       "from the instance whose landmarks are nearest their mean, not confirmed: "
-                                      "no pass from the given template when the coatings disagree; 'given': the "
-                                      "[template] instance")
+                                      "no pass from the given template when the coatings disagree; without "
+                                      "landmarks on any instance, 'medoid' builds it from the instance whose first "
+                                      "coating is nearest the mean shape and coats every instance again from it; "
+                                      "'given': the [template] instance")
     round_template: str = param("instance", choices=ROUND_TEMPLATES, label="Round template",
                                 help="what each round coats: 'instance', the template (its instance's points) "
                                      "with the landmarks the fit gives; 'mean', the mean shape (paper 3.3), "

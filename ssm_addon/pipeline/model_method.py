@@ -18,7 +18,7 @@ from ..base.errors import Cancelled, InputError, SSMError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn
 from ..coating.coating import CoatingResult, CoatingStart
 from ..coating.distance_map import DistanceMap
-from ..correspondence.frames import TURN_NAMES, TURNED_FACTOR, FramesStart, population_turns
+from ..correspondence.frames import FRAME_ROTATIONS, TURN_NAMES, TURNED_FACTOR, FramesStart, population_turns
 from ..correspondence.frames import coat_without_landmarks as frames_coat
 from ..correspondence.rounds import (
     CorrespondenceCheck,
@@ -30,6 +30,7 @@ from ..correspondence.rounds import (
     round_helps,
     starts_from_model,
 )
+from ..fitting.fit import turn_angle_deg, weighted_pose
 from ..meshutil import Mesh
 from ..model.quality import (
     Finding,
@@ -45,7 +46,7 @@ from .study import Log, StageResult, Study, template_landmark_locations
 MEDOID_TIE = 1.05
 
 __all__ = ["MEDOID_TIE", "POINT_COUNT_TOLERANCE", "coat_without_landmarks_stage", "template_of_count", "confirmed_landmark_medoid", "landmarked", "distance_maps_ahead", "distance_maps_kept", "keep_distance_map", "landmark_medoid", "landmark_medoid_template",
-           "medoid_template", "population", "population_medoid", "refine_correspondence", "start_coatings"]
+           "medoid_template", "medoid_without_landmarks", "population", "population_medoid", "refine_correspondence", "start_coatings"]
 
 
 def start_coatings(study: Study, names: Sequence[str] | None = None, *, jobs: int = 1,
@@ -543,6 +544,89 @@ def landmarked(study: Study) -> list[str]:
     return [n for n in study.names if study.landmarks(n) is not None]
 
 
+def _frames_pass(study: Study, pool, *, jobs: int, cancelled: CancelledFn, screened: dict | None):
+    """The study's template coated onto every instance from its object frames without landmarks
+    (``screened``: per instance, the rotations to try; default all), and the population's turns
+    (:func:`~ssm_addon.correspondence.frames.population_turns`):
+    (name -> (CoatingResult, FramesStart), changed, unresolved)."""
+    names = list(study.names)
+    template = Mesh(study.template.points_object, study.template.faces)
+    coating = study.params.coating
+    coated = frames_coat(template, {n: study.volume(n) for n in names}, coating=coating,
+                         template_frame=study.frame(study.template_instance), turns=screened or None, jobs=jobs,
+                         executor=pool, cancelled=cancelled)
+
+    def retry(suspects):
+        turns = {n: tuple(k for k, t in enumerate(TURN_NAMES) if t != coated[n][1].turn) for n in suspects}
+        return frames_coat(template, {n: study.volume(n) for n in suspects}, coating=coating,
+                           template_frame=None, turns=turns, jobs=jobs, executor=pool, cancelled=cancelled)
+
+    return population_turns(coated, study.template_instance, retry)
+
+
+def medoid_without_landmarks(study: Study, coated: dict, *, jobs: int = 1, executor=None,
+                             cancelled: CancelledFn = None, log: Log = None):
+    """The template built again from the population's medoid and coated onto every instance,
+    without landmarks (``[correspondence] template_choice = "medoid"``).
+
+    Paper 3.3: a template from one arbitrary instance makes the model depend on it; without
+    landmarks the dependence is larger, because what a coating leaves wrong grows with the
+    instance's difference from the template's shape (its points slide where shapes differ, and
+    nothing pins them). The medoid (:func:`population_medoid`: the instance whose first coating is
+    nearest the mean shape, RMS after a rigid alignment) deforms least onto the others. Its
+    template (paper 3, :func:`template_of_count`) is coated onto every instance as the first one
+    was, when the given template's instance lies more than :data:`MEDOID_TIE` times as far from
+    the mean shape as the medoid. Without landmarks nothing measures the correspondence, so the
+    medoid is taken by that rule (the truth on femur10 and knee30: ``docs/history.md``, "The
+    template from the medoid without landmarks"). Instances mirrored into the template's side are
+    not candidates (the model keeps the given instance's side). ``coated``: the first pass,
+    name -> (CoatingResult, FramesStart).
+
+    Returns
+    -------
+    (the study the coatings came from: a copy with the medoid's template, or ``study``;
+    its pass (coated, changed, unresolved), or None when the first pass stays; the record:
+    ``given``, ``medoid``, ``by`` ("coatings"), ``rms_from_mean_mm``, ``kept``)
+    """
+    say = log or (lambda _m: None)
+    names = list(study.names)
+    candidates = [n for n in names if not study.instance(n).mirror]
+    if len(names) < 3 or study.template_instance not in candidates:
+        return study, None, {}
+    first = dataclasses.replace(study, coatings={n: c for n, (c, _h) in coated.items()})
+    medoid, distance = population_medoid(first, candidates)
+    given = study.template_instance
+    record = {"given": given, "medoid": medoid, "by": "coatings", "tie": MEDOID_TIE,
+              "rms_from_mean_mm": {n: round(distance[n], 4) for n in dict.fromkeys((given, medoid))}}
+    if medoid == given or distance[given] <= MEDOID_TIE * distance[medoid]:
+        say(f"correspondence: the template's instance {given} is the population's medoid"
+            + (" already" if medoid == given else f" within {MEDOID_TIE:g}x ({medoid} {distance[medoid]:.2f} mm RMS "
+                                                   f"from the mean shape, {given} {distance[given]:.2f} mm)"))
+        return study, None, {**record, "kept": False}
+    check_cancelled(cancelled)
+    try:
+        other = _from_template_of(study, medoid, fallbacks=[], coat=False, cancelled=cancelled)
+    except Cancelled:
+        raise
+    except SSMError as err:  # the medoid's template is a refinement: the given one stays
+        say(f"correspondence: the population's medoid {medoid} gave no template ({err}); the given template of "
+            f"{given} is kept")
+        return study, None, {**record, "kept": False, "failed": str(err)}
+    # each instance's rotation against the medoid, from the first coatings (a similarity of the
+    # corresponding points; the medoid's template lies on its surface in its object frame): the
+    # rotation of the frame's axes nearest it is the one the start screens (with the input pose)
+    ref = first.coatings[medoid].points_object
+    turns = {}
+    for n in names:
+        rot = weighted_pose(ref, first.coatings[n].points_object, np.ones(len(ref)), scale=True).rotation
+        turns[n] = (min(range(len(FRAME_ROTATIONS)), key=lambda k: (turn_angle_deg(FRAME_ROTATIONS[k], rot), k)),)
+    again = _frames_pass(other, executor, jobs=jobs, cancelled=cancelled, screened=turns)
+    say(f"correspondence: template from the population's medoid {medoid} ({distance[medoid]:.2f} mm RMS from the "
+        f"mean shape of the first coatings, {given} {distance[given]:.2f} mm), every instance coated from it"
+        + _points_note(study, other))
+    return other, again, {**record, "kept": True, "points": _points(study, other)}
+
+
 def coat_without_landmarks_stage(study: Study, *, jobs: int = 1, executor=None,
                                  cancelled: CancelledFn = None) -> StageResult:
     """The coating stage of a study without landmarks on any instance.
@@ -551,36 +635,36 @@ def coat_without_landmarks_stage(study: Study, *, jobs: int = 1, executor=None,
     every rotation of the object frame's axes (:func:`ssm_addon.correspondence.frames.template_start`),
     coated from there (registration, projection, relaxation: paper 4.2), and an instance the
     population disagrees with is coated again from the other rotations
-    (:func:`~ssm_addon.correspondence.frames.population_turns`). The summary says that no landmarks
-    anchored the correspondence, which instances were turned, and which no rotation brought nearer
-    the others (an unusual shape: the model's gates judge it; no frame finding).
+    (:func:`~ssm_addon.correspondence.frames.population_turns`). With ``template_choice =
+    "medoid"`` (the default) the template is then built from the population's medoid and every
+    instance coated from it the same way (:func:`medoid_without_landmarks`). The summary says
+    that no landmarks anchored the correspondence, which instances were turned, and which no
+    rotation brought nearer the others (an unusual shape: the model's gates judge it; no frame
+    finding).
     """
     t0 = time.perf_counter()
     names = list(study.names)
-    template = Mesh(study.template.points_object, study.template.faces)
-    frame = study.frame(study.template_instance)
-    coating = study.params.coating
+    lines = []
     # the sides' surface test screened every rotation already: its nearest few are the start's candidates
     screened = {n: study.sides[n].rotations for n in names if n in study.sides and study.sides[n].rotations}
     with executor_or_local(executor, jobs, len(names)) as pool:
-        coated = frames_coat(template, {n: study.volume(n) for n in names}, coating=coating, template_frame=frame,
-                             turns=screened or None, jobs=jobs, executor=pool, cancelled=cancelled)
-
-        def retry(suspects):
-            turns = {n: tuple(k for k, t in enumerate(TURN_NAMES) if t != coated[n][1].turn) for n in suspects}
-            return frames_coat(template, {n: study.volume(n) for n in suspects}, coating=coating,
-                               template_frame=None, turns=turns, jobs=jobs, executor=pool, cancelled=cancelled)
-
-        coated, changed, unresolved = population_turns(coated, study.template_instance, retry)
-        result = coating_result(study, {n: c for n, (c, _h) in coated.items()},
+        coated, changed, unresolved = _frames_pass(study, pool, jobs=jobs, cancelled=cancelled, screened=screened)
+        chosen, choice = study, {}
+        if study.params.correspondence.template_choice == "medoid":
+            chosen, again, choice = medoid_without_landmarks(study, coated, jobs=jobs, executor=pool,
+                                                             cancelled=cancelled, log=lines.append)
+            if again is not None:
+                coated, changed, unresolved = again
+        result = coating_result(chosen, {n: c for n, (c, _h) in coated.items()},
                                 {n: CoatingStart.OBJECT_FRAMES for n in names}, time.perf_counter() - t0,
+                                template=chosen.template if chosen is not study else None,
                                 executor=pool, cancelled=cancelled)
     turned = {n: h.turn for n, (_c, h) in coated.items() if h.turn not in ("frames", "input coordinates")}
-    lines = [f"correspondence: no landmarks were given: the template was put onto every instance by its object "
-             f"frame (paper 2) and the rotation of its axes from which a similarity registration fits the surface "
-             f"best, then coated; "
-             f"{len(turned)} instance(s) in a turned pose" + (f" ({', '.join(f'{n}: {t}' for n, t in turned.items())})"
-                                                               if turned else "")]
+    lines.insert(0, f"correspondence: no landmarks were given: the template was put onto every instance by its "
+                    f"object frame (paper 2) and the rotation of its axes from which a similarity registration fits "
+                    f"the surface best, then coated; "
+                    f"{len(turned)} instance(s) in a turned pose" + (f" ({', '.join(f'{n}: {t}' for n, t in turned.items())})"
+                                                                    if turned else ""))
     for n, (before, after) in changed.items():
         lines.append(f"correspondence: {n} was coated turned against the population ({before:.1f} mm from the others' "
                      f"mean shape); coated again {coated[n][1].turn}: {after:.1f} mm")
@@ -591,5 +675,8 @@ def coat_without_landmarks_stage(study: Study, *, jobs: int = 1, executor=None,
                      f"{TURNED_FACTOR:g}x the median instance's {median:.1f} mm, and no other rotation of the "
                      "template brings it nearer: its shape is unlike the others' (the model's gates judge it)")
     product = dict(result.product)
-    product["template_choice"] = {"by": "no landmarks", "starts": {n: h.to_dict() for n, (_c, h) in coated.items()}}
+    product["template_choice"] = {"by": "no landmarks", **choice,
+                                  "starts": {n: h.to_dict() for n, (_c, h) in coated.items()}}
+    if chosen is not study:
+        product["template_instance"] = chosen.template_instance
     return dataclasses.replace(result, product=product, summary=tuple(lines) + tuple(result.summary))

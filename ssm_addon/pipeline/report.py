@@ -594,6 +594,17 @@ def _template_choice_lines(choice: dict) -> list[str]:
                 f"nearest their mean is {html.escape(str(choice['medoid']))}, chosen before the first "
                 "coating" + ("; its coatings confirm it as the instance nearest the mean shape"
                              if choice.get("confirmed") else "") + ".</p>"]
+    if choice.get("medoid") and choice.get("by") == "coatings":  # without landmarks
+        used = choice["medoid"] if choice.get("kept") else choice.get("given")
+        rms = choice.get("rms_from_mean_mm") or {}
+        return [f"<p>Template from <b>{html.escape(str(used))}</b>: without landmarks, the instance whose first "
+                f"coating is nearest the mean shape is {html.escape(str(choice['medoid']))} "
+                f"({_num(rms.get(choice['medoid']), 2)} mm RMS; the given template's instance "
+                f"{html.escape(str(choice.get('given')))} {_num(rms.get(choice.get('given')), 2)} mm); "
+                + ("every instance was coated again from its template." if choice.get("kept") else
+                   "the given template kept" + (f" ({html.escape(str(choice['failed']))})." if choice.get("failed")
+                                                else f" (it is the medoid, or within {_num(choice.get('tie'), 2)}x its distance)."))
+                + "</p>"]
     if choice.get("medoid"):
         used = choice["medoid"] if choice.get("kept") else choice.get("given")
         return [f"<p>Template from <b>{html.escape(str(used))}</b>: the population's medoid is "
