@@ -3,6 +3,7 @@ the medoid template and the rounds of :mod:`ssm_addon.correspondence` on a study
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import shutil
 import tempfile
@@ -647,14 +648,17 @@ def coat_without_landmarks_stage(study: Study, *, jobs: int = 1, executor=None,
     lines = []
     # the sides' surface test screened every rotation already: its nearest few are the start's candidates
     screened = {n: study.sides[n].rotations for n in names if n in study.sides and study.sides[n].rotations}
+    medoid = study.params.correspondence.template_choice == "medoid" and len(names) >= 3
     with executor_or_local(executor, jobs, len(names)) as pool:
-        coated, changed, unresolved = _frames_pass(study, pool, jobs=jobs, cancelled=cancelled, screened=screened)
-        chosen, choice = study, {}
-        if study.params.correspondence.template_choice == "medoid":
-            chosen, again, choice = medoid_without_landmarks(study, coated, jobs=jobs, executor=pool,
-                                                             cancelled=cancelled, log=lines.append)
-            if again is not None:
-                coated, changed, unresolved = again
+        # a second pass from the medoid's template reads each instance's distance map of the first
+        with distance_maps_kept(study) if medoid else contextlib.nullcontext():
+            coated, changed, unresolved = _frames_pass(study, pool, jobs=jobs, cancelled=cancelled, screened=screened)
+            chosen, choice = study, {}
+            if medoid:
+                chosen, again, choice = medoid_without_landmarks(study, coated, jobs=jobs, executor=pool,
+                                                                 cancelled=cancelled, log=lines.append)
+                if again is not None:
+                    coated, changed, unresolved = again
         result = coating_result(chosen, {n: c for n, (c, _h) in coated.items()},
                                 {n: CoatingStart.OBJECT_FRAMES for n in names}, time.perf_counter() - t0,
                                 template=chosen.template if chosen is not study else None,
