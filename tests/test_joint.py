@@ -398,8 +398,12 @@ def test_a_joint_report_records_what_anchored_each_structures_correspondence(tmp
         got = reports["without"]["joint"]["structures"][structure]["correspondence"]
         assert got["used"] == "no landmarks", got["used"]
         starts = got["template_choice"]["starts"]
-        # every rotation of the frame's axes and the input pose, or the side test's nearest three and the input pose
-        assert set(starts) == {f"S{i}" for i in range(4)} and all(len(s["distances_mm"]) in (4, 25) for s in starts.values())
+        # every rotation of the frame's axes and the input pose, or the side test's nearest three and the input
+        # pose; coated again from the medoid's template: the rotation the first coatings give and the input pose;
+        # retried by the population: the other 24 rotations
+        assert set(starts) == {f"S{i}" for i in range(4)}
+        assert all(len(s["distances_mm"]) in (2, 4, 24, 25) for s in starts.values()), starts
+        assert got["template_choice"]["by"] == "coatings", got["template_choice"]
         assert any(x.startswith(f"{structure}: correspondence: the optimisation across the population is not run")
                    for x in lines), lines
         # each structure's carried landmarks, as a single build writes them; none without landmarks

@@ -15,7 +15,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "joint": ("JointStudy", "joint_model", "joint_sides", "run_joint", "structure_metrics"),
     "model_method": ("MEDOID_TIE", "POINT_COUNT_TOLERANCE", "coat_without_landmarks_stage", "confirmed_landmark_medoid", "distance_maps_ahead", "distance_maps_kept", "keep_distance_map", "landmarked", "landmark_medoid", "landmark_medoid_template", "medoid_template", "medoid_without_landmarks", "population", "population_medoid", "refine_correspondence", "start_coatings", "template_of_count"),
     "runner": ("coating_stage", "run"),
-    "sides": ("decide_sides", "given_sides", "landmark_sides", "sides_first", "sides_line", "with_sides", "with_sides_product"),
+    "sides": ("decide_sides", "given_sides", "landmark_sides", "model_side", "sides_first", "sides_line", "with_sides", "with_sides_product"),
     "optimisation": ("hold_weight", "optimisation_result", "optimisation_stage"),
     "appearance": ("appearance_stage", "learned_appearance"),
     "stages": ("coat_from_frames", "coat_instances", "coating_result", "cut_off_places", "evaluate_model", "import_instances", "import_result", "import_stage", "label_map_once", "make_model", "make_template", "metrics_stage", "model_stage", "self_check", "template_stage"),

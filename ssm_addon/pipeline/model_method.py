@@ -579,9 +579,11 @@ def medoid_without_landmarks(study: Study, coated: dict, *, jobs: int = 1, execu
     was, when the given template's instance lies more than :data:`MEDOID_TIE` times as far from
     the mean shape as the medoid. Without landmarks nothing measures the correspondence, so the
     medoid is taken by that rule (the truth on femur10 and knee30: ``docs/history.md``, "The
-    template from the medoid without landmarks"). Instances mirrored into the template's side are
-    not candidates (the model keeps the given instance's side). ``coated``: the first pass,
-    name -> (CoatingResult, FramesStart).
+    template from the medoid without landmarks"). An instance mirrored into the template's side
+    is a candidate as any other: its template is built from its mirrored volume, so the model
+    stays of the given template's side (:func:`~ssm_addon.pipeline.sides.model_side`) and a set
+    coated with half its instances mirrored is the mirror image of the one-sided set's.
+    ``coated``: the first pass, name -> (CoatingResult, FramesStart).
 
     Returns
     -------
@@ -591,11 +593,10 @@ def medoid_without_landmarks(study: Study, coated: dict, *, jobs: int = 1, execu
     """
     say = log or (lambda _m: None)
     names = list(study.names)
-    candidates = [n for n in names if not study.instance(n).mirror]
-    if len(names) < 3 or study.template_instance not in candidates:
+    if len(names) < 3:
         return study, None, {}
     first = dataclasses.replace(study, coatings={n: c for n, (c, _h) in coated.items()})
-    medoid, distance = population_medoid(first, candidates)
+    medoid, distance = population_medoid(first, names)
     given = study.template_instance
     record = {"given": given, "medoid": medoid, "by": "coatings", "tie": MEDOID_TIE,
               "rms_from_mean_mm": {n: round(distance[n], 4) for n in dict.fromkeys((given, medoid))}}

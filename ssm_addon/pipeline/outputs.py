@@ -405,8 +405,9 @@ def write_study(study: Study, folder, *, output: OutputParams, project: str | Ab
     check_cancelled(cancelled)
     drawn = start_drawings(study.model, study.metrics, output, folder, files, plots=plots, executor=executor)
     tpl, model = study.template, study.model
-    tframe = study.frame(study.template_instance)
-    write_ply(folder / "template.ply", tframe.to_world(tpl.points_object), tpl.faces, space="RAS")
+    tframe = study.frame(study.template_instance)  # on its instance, in its own side, facing outwards there
+    write_ply(folder / "template.ply", tframe.to_world(tpl.points_object),
+              tpl.faces[:, ::-1] if tframe.mirrored else tpl.faces, space="RAS")
     files["template"] = "template.ply"
     names = list(model.instance_names)
     safe = file_names(names)
@@ -520,8 +521,9 @@ def write_joint(joint, folder, *, output: OutputParams, project: str | Absent, t
         base = folder / "structures" / file_names([name])[name]
         (base / "coated").mkdir(parents=True)
         tpl = study.template
-        write_ply(base / "template.ply", study.frame(study.template_instance).to_world(tpl.points_object), tpl.faces,
-                  space="RAS")
+        tframe = study.frame(study.template_instance)  # on its instance, in its own side, facing outwards there
+        write_ply(base / "template.ply", tframe.to_world(tpl.points_object),
+                  tpl.faces[:, ::-1] if tframe.mirrored else tpl.faces, space="RAS")
         safe = file_names(joint.subjects)
         sl = model.structure_slice(name)
         for subject, pw in zip(model.instance_names, model.instance_points_world):

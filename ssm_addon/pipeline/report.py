@@ -32,7 +32,7 @@ from ..correspondence.rounds import evenly_spaced
 from ..meshutil import genus
 from ..model.metrics import aggregate_fit, model_summary
 from ..model.pca import procrustes_fit
-from .sides import given_sides
+from .sides import given_sides, model_side
 from .study import Study, carried_landmarks, input_coordinates, landmark_distances, study_parameters
 
 __all__ = ["MAX_THUMBNAILS", "SECTIONS", "Absent", "Report", "instance_thumbnails", "joint_report", "model_alignment",
@@ -73,7 +73,7 @@ def sides_record(study, model) -> dict:
     undecided, with both fits in mm; where this study decided them)."""
     decided = {n: d.to_dict() for n, d in given_sides(study).items()}
     decided.update({n: d.to_dict() for n, d in study.sides.items()})
-    return {"template": study.instance(study.template_instance).side or "",
+    return {"template": model_side(study),
             "mirrored": list((model.params or {}).get("mirrored") or ()), "instances": decided}
 
 

@@ -16,7 +16,7 @@ from ..correspondence.sides import SIDE_FACTOR, SideDecision, landmark_side, sur
 from ..instances.volume import mirrored
 from .study import StageResult, Study
 
-__all__ = ["decide_sides", "given_sides", "landmark_sides", "sides_first", "sides_line", "with_sides", "with_sides_product"]
+__all__ = ["decide_sides", "given_sides", "landmark_sides", "model_side", "sides_first", "sides_line", "with_sides", "with_sides_product"]
 
 
 def _surface_job(args) -> SideDecision:
@@ -81,10 +81,21 @@ def with_sides(study: Study, decisions: dict[str, SideDecision]) -> Study:
                                sides={**study.sides, **decisions})
 
 
+def model_side(study: Study) -> str:
+    """The side the model is of (``"left"``, ``"right"`` or ``""`` when not given): the template
+    instance's given side, the other one when the template came from an instance mirrored into the
+    given template's side (the medoid of a mixed set, :func:`~ssm_addon.pipeline.model_method.medoid_without_landmarks`)."""
+    spec = study.instance(study.template_instance)
+    if not spec.side:
+        return ""
+    return {"left": "right", "right": "left"}.get(spec.side, spec.side) if spec.mirror else spec.side
+
+
 def given_sides(study: Study) -> dict[str, SideDecision]:
-    """The decisions the project made: instances whose side is given (``by = "given"``)."""
+    """The decisions the project made: instances whose side is given (``by = "given"``; the template
+    instance's only where it was mirrored, a medoid of the other side)."""
     return {i.name: SideDecision(bool(i.mirror), "given", side=i.side) for i in study.instances
-            if i.side is not None and i.name != study.template_instance}
+            if i.side is not None and (i.name != study.template_instance or i.mirror)}
 
 
 def sides_line(study: Study, decisions: dict[str, SideDecision]) -> str:
@@ -93,7 +104,7 @@ def sides_line(study: Study, decisions: dict[str, SideDecision]) -> str:
     every = {**given_sides(study), **decisions}
     if not every:
         return ""
-    tpl = study.instance(study.template_instance).side
+    tpl = model_side(study)
     flipped = {n: d for n, d in every.items() if d.mirror}
     unclear = [n for n, d in every.items() if d.by == "undecided"]
     side = f" ({tpl})" if tpl else ""
