@@ -13,7 +13,7 @@ __getattr__, __dir__, __all__ = lazy_exports(__name__, {
     "store": ("RECORD_FIELDS", "apply_joint_records", "apply_records", "joint_records", "load_joint_study", "load_study", "load_study_or_joint", "save_joint_study", "save_study", "study_records"),
     "cache": ("BuildCache", "InstanceProduct", "code_digest", "digest", "file_digest"),
     "joint": ("JointStudy", "joint_model", "joint_sides", "run_joint", "structure_metrics"),
-    "model_method": ("MEDOID_TIE", "POINT_COUNT_TOLERANCE", "coat_without_landmarks_stage", "confirmed_landmark_medoid", "distance_maps_ahead", "distance_maps_kept", "keep_distance_map", "landmarked", "landmark_medoid", "landmark_medoid_template", "medoid_template", "medoid_without_landmarks", "population", "population_medoid", "refine_correspondence", "start_coatings", "template_of_count"),
+    "model_method": ("MEDOID_TIE", "NO_LANDMARK_TIE", "POINT_COUNT_TOLERANCE", "coat_without_landmarks_stage", "confirmed_landmark_medoid", "distance_maps_ahead", "distance_maps_kept", "keep_distance_map", "landmarked", "landmark_medoid", "landmark_medoid_template", "medoid_template", "medoid_without_landmarks", "population", "population_medoid", "refine_correspondence", "start_coatings", "template_of_count"),
     "runner": ("coating_stage", "run"),
     "sides": ("decide_sides", "given_sides", "landmark_sides", "model_side", "sides_first", "sides_line", "with_sides", "with_sides_product"),
     "optimisation": ("hold_weight", "optimisation_result", "optimisation_stage"),
