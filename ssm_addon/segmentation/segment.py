@@ -42,7 +42,7 @@ from ..base.errors import InputError, check_cancelled
 from ..base.params import SegmentParams, to_table
 from ..base.progress import CancelledFn, ProgressFn, report
 from ..fitting.fit import Pose, model_error_variance, outlier_limit, spd_solve, weighted_gram, weighted_pose
-from ..meshutil import edges, vertex_normals, winding_numbers
+from ..meshutil import edges, vertex_normals
 from ..model.pca import own_side_instances
 from .appearance import LEVEL_SIGMAS_MM, Appearance, boundary_grey_values, normalised_derivative
 from .image import GreyImage
@@ -538,21 +538,11 @@ class _Search:
                           "weak_share": float(np.mean(strength < 0.25))}
 
 
-def _holds(search: _Search, pose_: Pose, b: np.ndarray, at) -> bool:
-    """Whether the shape (``pose_``, ``b``) holds the clicked point ``at`` (world mm) inside its surface."""
-    if at is None:
-        return True
-    x = pose_.apply(search.mean + search.q @ b)
-    return bool(abs(winding_numbers(np.asarray(at, float).reshape(1, 3), x, search.faces)[0]) > 0.5)
-
-
-def _search_from_starts(search: _Search, base: Pose, params: SegmentParams, at=None) -> tuple:
+def _search_from_starts(search: _Search, base: Pose, params: SegmentParams) -> tuple:
     """The coarse level from every placement (:func:`_placements`) and turn of the start, ranked by how
     well each then sits on the boundary at the middle level; the best :data:`FINISHED_STARTS` go
-    through every level and the better one wins. With a clicked point ``at`` (world mm: the user
-    clicked on or in the structure), shapes that hold it rank before those that do not, at every
-    ranking: a search that slid onto a neighbour (a vertebra's endplate below) leaves the click
-    outside. Returns (pose, b, the levels' records, the start's record)."""
+    through every level and the better one wins. Returns (pose, b, the levels' records, the start's
+    record)."""
     mean, faces, k = search.mean, search.faces, len(search.lam)
     starts = [("start", np.eye(3))]
     if params.turns_deg > 0:
@@ -572,9 +562,8 @@ def _search_from_starts(search: _Search, base: Pose, params: SegmentParams, at=N
             rot = turn @ base.rotation
             p0 = Pose(rot, centre - base.scale * rot @ c_model, base.scale)
             p1, b1, _info = search.run_level(0, p0, np.zeros(k), COARSE_STEPS, record=False)
-            tried.append({"name": label + moved, "pose": p1, "b": b1, "screened": search.score(p1, b1, 1),
-                          "holds": _holds(search, p1, b1, at)})
-    order = sorted(range(len(tried)), key=lambda i: (not tried[i]["holds"], tried[i]["screened"], i))[:FINISHED_STARTS]
+            tried.append({"name": label + moved, "pose": p1, "b": b1, "screened": search.score(p1, b1, 1)})
+    order = sorted(range(len(tried)), key=lambda i: (tried[i]["screened"], i))[:FINISHED_STARTS]
     finished = []
     n_levels = len(LEVEL_SIGMAS_MM)
     for i in order:
@@ -584,13 +573,12 @@ def _search_from_starts(search: _Search, base: Pose, params: SegmentParams, at=N
             pose_, b, info = search.run_level(level, pose_, b, params.iterations)
             lv.append(info)
         tried[i]["final"] = search.score(pose_, b, n_levels - 1)
-        tried[i]["holds_final"] = _holds(search, pose_, b, at)
-        finished.append((not tried[i]["holds_final"], tried[i]["final"], i, pose_, b, lv))
-    finished.sort(key=lambda t: (t[0], t[1], t[2]))
-    _out, _final, win, pose_, b, levels = finished[0]
+        finished.append((tried[i]["final"], i, pose_, b, lv))
+    finished.sort(key=lambda t: (t[0], t[1]))
+    _final, win, pose_, b, levels = finished[0]
     start_doc = {"chosen": tried[win]["name"],
-                 "candidates": [{"name": t["name"], "screened_cost": t["screened"], "final_cost": t.get("final"),
-                                 "holds_click": t.get("holds_final", t["holds"])} for t in tried]}
+                 "candidates": [{"name": t["name"], "screened_cost": t["screened"], "final_cost": t.get("final")}
+                                for t in tried]}
     return pose_, b, levels, start_doc
 
 
@@ -743,7 +731,7 @@ def segment_image(model, image: GreyImage, *, at=None, pose: Pose | None = None,
                  for level, sigma in enumerate(LEVEL_SIGMAS_MM)]
     search = _Search(mean, faces, q, lam, evidences, params, progress, cancelled,
                      FINISHED_STARTS * n_levels * params.iterations)
-    pose_, b, levels, start_doc = _search_from_starts(search, base, params, at=at if pose is None else None)
+    pose_, b, levels, start_doc = _search_from_starts(search, base, params)
     converged = levels[-1]["converged"]
     iterations = sum(lv["iterations"] for lv in levels)
     shape = mean + q @ b
