@@ -1,4 +1,5 @@
-"""Correspondence on real bones with dense truth (``../shared/data``): femur10 and knee30.
+"""Correspondence on real femurs with dense truth (``../shared/data``): femur10 (knee30's
+patellas and tibias: ``test_correspondence_real_knees.py``, on another worker).
 
 Every mesh of a set shares one connectivity, so the true place of a template point on
 another instance is the same place of that instance's mesh. Landmarks are farthest-point
@@ -9,84 +10,19 @@ surface distance. Skipped where the data is absent (a user's fresh clone).
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
 import pytest
 from conftest import shared_data_dir
+from dense_truth import built_study, meshes_or_skip
 
-from ssm_addon.base.params import CorrespondenceParams, StudyParams
-from ssm_addon.formats.landmarks import LandmarkSet, read_landmarks, write_landmarks
 from ssm_addon.formats.meshes import read_mesh
-from ssm_addon.instances.importing import InstanceSpec
-from ssm_addon.meshutil import MeshLocation, MeshLocator
-from ssm_addon.pipeline.runner import run
-from ssm_addon.pipeline.study import Study
+from ssm_addon.meshutil import MeshLocator
 
 DATA = shared_data_dir()
 
 pytestmark = pytest.mark.slow
-
-
-def _meshes(folder: Path, pattern: str, limit: int | None = None):
-    files = sorted(folder.glob(pattern))[:limit]
-    if len(files) < 3:
-        pytest.skip(f"dense-truth meshes {pattern} not found under {folder} (set SSM_SHARED_DATA)")
-    return files, [read_mesh(f) for f in files]
-
-
-def _farthest(points: np.ndarray, k: int) -> np.ndarray:
-    chosen = [int(np.argmax(points[:, 2]))]
-    d = np.linalg.norm(points - points[chosen[0]], axis=1)
-    for _ in range(k - 1):
-        chosen.append(int(np.argmax(d)))
-        d = np.minimum(d, np.linalg.norm(points - points[chosen[-1]], axis=1))
-    return np.array(chosen)
-
-
-_BUILT = {}
-
-
-def _build(files, meshes, tmp_path, *, landmarks: int, on: int, method: str, jitter_mm: float = 0.0,
-           choice: str = "medoid"):
-    """A study coated by ``method``; returns (study, per-instance true error mean in mm, all errors).
-    ``jitter_mm``: Gaussian click error per axis of every instance's landmarks but the template's.
-    The last two builds are kept for a later test of this process that asks for the same inputs (the
-    femurs unmoved without landmarks, in scanner poses and beside their mirror images; the tests read a
-    study, never change it)."""
-    key = (tuple(str(f) for f in files), landmarks, on, method, jitter_mm, choice)
-    if key not in _BUILT:
-        _BUILT[key] = _built(files, meshes, tmp_path, landmarks=landmarks, on=on, method=method, jitter_mm=jitter_mm,
-                             choice=choice)
-        while len(_BUILT) > 2:
-            _BUILT.pop(next(iter(_BUILT)))
-    return _BUILT[key]
-
-
-def _built(files, meshes, tmp_path, *, landmarks: int, on: int, method: str, jitter_mm: float, choice: str):
-    v0 = meshes[0][0]
-    idx = _farthest(v0, landmarks)
-    rng = np.random.default_rng(0)
-    specs = []
-    for i, (f, (v, _f)) in enumerate(zip(files, meshes)):
-        lm = None
-        if i < on:
-            lm = tmp_path / f"{method}-{on}-{jitter_mm}-{f.stem}.csv"
-            clicks = v[idx] + (rng.normal(scale=jitter_mm, size=(len(idx), 3)) if i else 0.0)
-            write_landmarks(lm, LandmarkSet(tuple(f"L{j:02d}" for j in range(len(idx))), clicks, f.stem))
-        specs.append(InstanceSpec(name=f.stem, mesh_path=f, landmarks_path=lm, landmarks=read_landmarks(lm) if lm else None))
-    study = Study(instances=specs, template_instance=files[0].stem,
-                  params=StudyParams(correspondence=CorrespondenceParams(method=method, template_choice=choice)))
-    run(study, stages=("import", "template", "coating"), jobs=2)
-    # the model method may build its template again from another instance (the medoid)
-    t = [f.stem for f in files].index(study.template_instance)
-    vt, ft = meshes[t]
-    _c, _d, tri, bary = MeshLocator(vt, ft).query(study.frame(files[t].stem).to_world(study.template.points_object), k=12)
-    truth = MeshLocation(tri, bary)
-    errors = {f.stem: np.linalg.norm(study.frame(f.stem).to_world(study.coatings[f.stem].points_object)
-                                     - truth.evaluate(v, ft), axis=1) for f, (v, _f) in zip(files, meshes)}
-    return study, errors
 
 
 def test_model_method_at_its_defaults_is_no_worse_than_the_single_pass_on_femur10(tmp_path):
@@ -94,9 +30,9 @@ def test_model_method_at_its_defaults_is_no_worse_than_the_single_pass_on_femur1
     landmark transfer error falls, so it ends no worse than the single pass (mean and 95th
     percentile), and its rounds end by the tolerance or by the criterion, never silently
     at the limit."""
-    files, meshes = _meshes(DATA / "femur10", "femur*.ply")
-    single, e_single = _build(files, meshes, tmp_path, landmarks=15, on=len(files), method="landmarks")
-    model, e_model = _build(files, meshes, tmp_path, landmarks=15, on=len(files), method="model")
+    files, meshes = meshes_or_skip(DATA / "femur10", "femur*.ply")
+    single, e_single = built_study(files, meshes, tmp_path, landmarks=15, on=len(files), method="landmarks")
+    model, e_model = built_study(files, meshes, tmp_path, landmarks=15, on=len(files), method="model")
     a, b = np.concatenate(list(e_single.values())), np.concatenate(list(e_model.values()))
     print(f"femur10 single pass {a.mean():.3f} / {np.percentile(a, 95):.2f} mm, model method {b.mean():.3f} / "
           f"{np.percentile(b, 95):.2f} mm; stop {model.correspondence_check.stop}, kept round "
@@ -121,48 +57,6 @@ def test_model_method_at_its_defaults_is_no_worse_than_the_single_pass_on_femur1
     assert rho >= 0.55  # measured 0.62 over 9 instances; a self-check blind to the error gives this 6 % of the time
 
 
-def test_knee30_patellas_frames_and_landmarks_on_three(tmp_path):
-    """Patellas are near-symmetric: their moments frames flip (the frame gate names the
-    instances, and the self-check sees through it, aligning by correspondence). With
-    landmarks on 3 of 12, the rest start from the model of those three (poses tried by the
-    axis turns, the input coordinates preferred, the fitted shape relaxed onto the surface) and
-    land within 1.3× of the single pass with landmarks on all."""
-    files, meshes = _meshes(DATA / "knee30", "*_Patella.ply", limit=12)
-    single, e_single = _build(files, meshes, tmp_path, landmarks=15, on=len(files), method="landmarks")
-    # the frame gate watches the paper's object-frame alignment (the default, "rigid", aligns frames away)
-    single.params = single.params.replace(model=dataclasses.replace(single.params.model, alignment="none"))
-    run(single, stages=("model",))
-    turned = {f.instance for f in single.findings if f.gate == "frame"}
-    print(f"frame gate: {sorted(turned)}; self-check {single.correspondence_check.study_mm:.2f} mm")
-    assert turned, "no patella frame flipped: the fixture no longer tests the frame gate"
-    assert single.correspondence_check.study_mm < 2.0
-    few, e_few = _build(files, meshes, tmp_path, landmarks=15, on=3, method="model")
-    a, b = np.concatenate(list(e_single.values())), np.concatenate(list(e_few.values()))
-    starts = set(few.coating_start[f.stem] for f in files[3:])
-    print(f"patellas: landmarks on all {a.mean():.3f} mm, on 3 {b.mean():.3f} mm (worst {b.max():.1f}); {starts}")
-    assert starts == {"model fit"}
-    assert b.mean() < 1.3 * a.mean() and b.max() < 10.0
-
-
-def test_clicked_landmarks_are_denoised_by_the_population_on_knee30_patellas(tmp_path):
-    """Landmarks clicked 1.5 mm off per axis on 29 of 30 patellas: the model method estimates the
-    click error (about 1.5 mm) and the model's, moves the clicks towards the population's
-    prediction, keeps the round, and ends closer to the true correspondence than the single pass
-    (mean and 95th percentile); with exact clicks it moves nothing."""
-    files, meshes = _meshes(DATA / "knee30", "*_Patella.ply")
-    single, e_single = _build(files, meshes, tmp_path, landmarks=15, on=len(files), method="landmarks", jitter_mm=1.5)
-    model, e_model = _build(files, meshes, tmp_path, landmarks=15, on=len(files), method="model", jitter_mm=1.5)
-    a, b = np.concatenate(list(e_single.values())), np.concatenate(list(e_model.values()))
-    first = model.correspondence_rounds[0]
-    print(f"patellas, clicks 1.5 mm off: single pass {a.mean():.3f} / {np.percentile(a, 95):.2f} mm, model method "
-          f"{b.mean():.3f} / {np.percentile(b, 95):.2f} mm; estimated {first.landmark_noise}")
-    assert 1.2 < first.landmark_noise.click_mm < 1.8 and first.landmark_noise.shrink > 0.5
-    assert model.correspondence_check.kept_round >= 1
-    assert b.mean() < 0.9 * a.mean() and np.percentile(b, 95) < 0.9 * np.percentile(a, 95)
-    exact, e_exact = _build(files, meshes, tmp_path, landmarks=15, on=len(files), method="model")
-    assert all(r.landmark_noise.shrink == 0.0 or not r.kept for r in exact.correspondence_rounds)
-
-
 def test_femurs_in_scanner_poses_without_landmarks_are_coated_as_unmoved(tmp_path):
     """Five femurs of femur10, each in its own random scanner pose (any axis, up to 180°) as 3D Slicer
     writes it (LPS PLY), no landmarks: the start's registration from every rotation of the frame's
@@ -171,7 +65,7 @@ def test_femurs_in_scanner_poses_without_landmarks_are_coated_as_unmoved(tmp_pat
     (before this start: femur03 coated end for end, 249 mm, in the coating alone)."""
     from foreign_data import random_rigid, slicer_ply
 
-    files, meshes = _meshes(DATA / "femur10", "femur*.ply", limit=5)
+    files, meshes = meshes_or_skip(DATA / "femur10", "femur*.ply", limit=5)
     rng = np.random.default_rng(7)
     moved_files, moved = [], []
     for f, (v, faces) in zip(files, meshes):
@@ -179,8 +73,8 @@ def test_femurs_in_scanner_poses_without_landmarks_are_coated_as_unmoved(tmp_pat
         w = v @ rot.T + shift
         moved_files.append(slicer_ply(tmp_path / f.name, w, faces))
         moved.append((w, faces))
-    _study, unmoved = _build(files, meshes, tmp_path, landmarks=0, on=0, method="landmarks")
-    _study, posed = _build(moved_files, moved, tmp_path, landmarks=0, on=0, method="landmarks")
+    _study, unmoved = built_study(files, meshes, tmp_path, landmarks=0, on=0, method="landmarks")
+    _study, posed = built_study(moved_files, moved, tmp_path, landmarks=0, on=0, method="landmarks")
     per = {n: float(e.mean()) for n, e in posed.items()}
     a, b = np.concatenate(list(unmoved.values())).mean(), np.concatenate(list(posed.values())).mean()
     change = {n: round(per[n] - float(unmoved[n].mean()), 3) for n in per}
@@ -191,34 +85,6 @@ def test_femurs_in_scanner_poses_without_landmarks_are_coated_as_unmoved(tmp_pat
     # noise, so the coatings are not the same points: measured within 0.11 mm on femur10 in three pose sets)
     assert max(abs(c) for c in change.values()) < 0.25, change
 
-
-
-def test_without_landmarks_the_template_comes_from_the_medoid_and_the_points_land_nearer(tmp_path):
-    """knee30 tibias, no landmarks. What a coating leaves wrong grows with the instance's difference
-    from the template's shape, so the template is built again from the instance whose first coating
-    is nearest the mean shape and every tibia coated from it. S001 with S010-S025 (S001 lies 1.5x as
-    far from the mean as S021): the points land nearer their true places than from the given S001
-    (mean; measured 1.303 -> 1.250 mm, 95th percentile 2.68 -> 2.77; all 30 tibias 1.359 -> 1.279,
-    2.82 -> 2.78). The first twelve (S001 is the truth's medoid, S012 a near tie that the coatings put
-    8.8 % nearer): within the tie, the given template is kept and nothing is coated twice."""
-    files, meshes = _meshes(DATA / "knee30", "*_Tibia.ply")
-    chosen = [i for i, f in enumerate(files) if f.stem == "S001_Tibia" or 10 <= int(f.stem[1:4]) <= 25]
-    files, meshes = [files[i] for i in chosen], [meshes[i] for i in chosen]
-    given, e_given = _build(files, meshes, tmp_path, landmarks=0, on=0, method="landmarks", choice="given")
-    medoid, e_medoid = _build(files, meshes, tmp_path, landmarks=0, on=0, method="landmarks")
-    a, b = np.concatenate(list(e_given.values())), np.concatenate(list(e_medoid.values()))
-    choice = medoid.template_choice
-    print(f"tibias without landmarks: from {files[0].stem} {a.mean():.3f} / {np.percentile(a, 95):.2f} mm, from the "
-          f"medoid {medoid.template_instance} {b.mean():.3f} / {np.percentile(b, 95):.2f} mm; {choice['rms_from_mean_mm']}")
-    assert given.template_instance == files[0].stem and given.template_choice.get("medoid") is None
-    assert choice["by"] == "coatings" and choice["kept"] and medoid.template_instance == choice["medoid"] != files[0].stem
-    assert b.mean() < 0.97 * a.mean() and np.percentile(b, 95) < 1.05 * np.percentile(a, 95), (a.mean(), b.mean())
-    files, meshes = _meshes(DATA / "knee30", "*_Tibia.ply", limit=12)
-    near, _e = _build(files, meshes, tmp_path, landmarks=0, on=0, method="landmarks")
-    tie = near.template_choice
-    assert not tie["kept"] and near.template_instance == files[0].stem and tie["medoid"] != files[0].stem, tie
-    rms = tie["rms_from_mean_mm"]
-    assert rms[files[0].stem] <= tie["tie"] * rms[tie["medoid"]], tie
 
 
 def _mirror_some(files, meshes, folder: Path, which=(1, 3)):
@@ -249,14 +115,14 @@ def test_left_and_right_femurs_are_coated_as_one_side_and_written_in_their_own(t
     from ssm_addon.pipeline.project import read_project
     from ssm_addon.pipeline.project_build import build
 
-    files, meshes = _meshes(DATA / "femur10", "femur*.ply", limit=5)
+    files, meshes = meshes_or_skip(DATA / "femur10", "femur*.ply", limit=5)
     (tmp_path / "mixed").mkdir()
     mfiles, mmeshes = _mirror_some(files, meshes, tmp_path / "mixed")
     names = [f.stem for f in files]
     for landmarks, by in ((0, "surface"), (15, "landmarks")):
-        _s, plain = _build(files, meshes, tmp_path, landmarks=landmarks, on=len(files) if landmarks else 0,
+        _s, plain = built_study(files, meshes, tmp_path, landmarks=landmarks, on=len(files) if landmarks else 0,
                            method="landmarks")
-        study, mixed = _build(mfiles, mmeshes, tmp_path, landmarks=landmarks, on=len(files) if landmarks else 0,
+        study, mixed = built_study(mfiles, mmeshes, tmp_path, landmarks=landmarks, on=len(files) if landmarks else 0,
                               method="landmarks")
         a, b = np.concatenate(list(plain.values())).mean(), np.concatenate(list(mixed.values())).mean()
         print(f"femurs, {landmarks} landmarks: one side {a:.3f} mm, 2 of 5 mirrored {b:.3f} mm")
