@@ -146,8 +146,11 @@ def show_joint_study(context, joint) -> dict:
     scene = context.scene
     bridge.ensure_mm_units(scene)
     set_scene_study_params(scene, joint.params)
+    # the project's template instances (a build may have coated from a medoid's template: it chooses
+    # again from the given one, as ssm build does)
     scene[JOINT_KEY] = json.dumps({"tables": core.structure_overrides(joint), "template_instances": {
-        name: study.template_instance for name, study in joint.structures.items()}})
+        name: (study.template_choice or {}).get("given", study.template_instance)
+        for name, study in joint.structures.items()}})
     first = None
     for name, study in joint.structures.items():
         for order, spec in enumerate(study.instances):
