@@ -47,8 +47,8 @@ from .study import Log, StageResult, Study, template_landmark_locations
 MEDOID_TIE = 1.05
 #: Without landmarks the medoid's template replaces the given one only when the given instance lies
 #: more than this many times as far from the mean shape of the first coatings: those distances carry
-#: the coatings' own error (on twelve knee30 tibias they put S012 8.8 % nearer the mean than S001,
-#: which the truth puts 4.7 % nearer; coated from S012 the points land 4 % farther from the truth)
+#: the coatings' own error and rank near ties wrongly (``docs/history.md``, "The template from the
+#: medoid without landmarks")
 NO_LANDMARK_TIE = 1.10
 
 __all__ = ["MEDOID_TIE", "NO_LANDMARK_TIE", "POINT_COUNT_TOLERANCE", "coat_without_landmarks_stage", "template_of_count", "confirmed_landmark_medoid", "landmarked", "distance_maps_ahead", "distance_maps_kept", "keep_distance_map", "landmark_medoid", "landmark_medoid_template",
@@ -595,7 +595,8 @@ def medoid_without_landmarks(study: Study, coated: dict, *, jobs: int = 1, execu
     -------
     (the study the coatings came from: a copy with the medoid's template, or ``study``;
     its pass (coated, changed, unresolved), or None when the first pass stays; the record:
-    ``given``, ``medoid``, ``by`` ("coatings"), ``rms_from_mean_mm``, ``kept``)
+    ``given``, ``medoid``, ``by`` ("coatings"), ``tie``, ``rms_from_mean_mm`` (of the first coatings)
+    and, when the medoid's pass ran, ``rms_from_mean_second_mm`` and ``confirmed``; ``kept``)
     """
     say = log or (lambda _m: None)
     names = list(study.names)
@@ -634,7 +635,7 @@ def medoid_without_landmarks(study: Study, coated: dict, *, jobs: int = 1, execu
     second = dataclasses.replace(other, coatings={n: c for n, (c, _h) in again[0].items()})
     _m, distance2 = population_medoid(second, names)
     kept = distance2[given] > distance2[medoid]
-    record["rms_from_mean_second_mm"] = {n: round(distance2[n], 4) for n in (given, medoid)}
+    record.update(rms_from_mean_second_mm={n: round(distance2[n], 4) for n in (given, medoid)}, confirmed=kept)
     say(f"correspondence: template from the population's medoid {medoid} ({distance[medoid]:.2f} mm RMS from the "
         f"mean shape of the first coatings, {given} {distance[given]:.2f} mm; of the medoid's coatings "
         f"{distance2[medoid]:.2f} and {distance2[given]:.2f} mm): "

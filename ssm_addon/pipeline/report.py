@@ -603,6 +603,8 @@ def _template_choice_lines(choice: dict) -> list[str]:
                 f"{html.escape(str(choice.get('given')))} {_num(rms.get(choice.get('given')), 2)} mm); "
                 + ("every instance was coated again from its template." if choice.get("kept") else
                    "the given template kept" + (f" ({html.escape(str(choice['failed']))})." if choice.get("failed")
+                                                else " (the medoid's own coatings did not put it nearer the mean)."
+                                                if choice.get("confirmed") is False
                                                 else f" (it is the medoid, or within {_num(choice.get('tie'), 2)}x its distance)."))
                 + "</p>"]
     if choice.get("medoid"):
