@@ -12,7 +12,7 @@ imported on first use (:mod:`ssm_addon._lazy`).
 from .._lazy import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(__name__, {
-    "frames": ("FRAME_ROTATIONS", "ROTATION_NAMES", "TURN_NAMES", "TURNED_FACTOR", "FramesStart", "SurfacePairs", "area_samples", "input_rotation", "surface_similarity", "coat_from_template_pose", "coat_without_landmarks", "far_from_population", "population_turns", "template_start", "TWIST_FACTOR", "TWIST_MIN_DEG", "Twist", "coating_twists", "twisted"),
+    "frames": ("FRAME_ROTATIONS", "ROTATION_NAMES", "nearest_frame_rotation", "TURN_NAMES", "TURNED_FACTOR", "FramesStart", "SurfacePairs", "area_samples", "input_rotation", "surface_similarity", "coat_from_template_pose", "coat_without_landmarks", "far_from_population", "population_turns", "template_start", "TWIST_FACTOR", "TWIST_MIN_DEG", "Twist", "coating_twists", "twisted"),
     "optimisation": ("EXACT_SVD_MAX_INSTANCES", "INNER_STEPS", "InstanceSource", "LandmarkHold", "Optimisation", "OptimisationCancelled", "OptimisationStep", "entropy_pull", "landmark_holds", "optimise_correspondence", "slide_on_surface"),
     "proposal": ("PROPOSAL_METHODS", "propose_by_model", "propose_from_meshes", "propose_landmarks", "propose_landmarks_by_coating", "surface_points_object", "transfer_landmarks"),
     "sides": ("SIDE_FACTOR", "SideDecision", "landmark_side", "subject_sides", "surface_side"),

@@ -38,7 +38,7 @@ from ..meshutil import Mesh, MeshLocator, face_centroids, face_normals
 from ..model.pca import procrustes_fit
 from .rounds import AXIS_TURNS, WORLD_POSE_TOLERANCE, aligned_to
 
-__all__ = ["FRAME_ROTATIONS", "ROTATION_NAMES", "TURN_NAMES", "TURNED_FACTOR", "FramesStart", "SurfacePairs", "area_samples", "input_rotation", "coat_from_template_pose", "coat_without_landmarks",
+__all__ = ["FRAME_ROTATIONS", "ROTATION_NAMES", "nearest_frame_rotation", "TURN_NAMES", "TURNED_FACTOR", "FramesStart", "SurfacePairs", "area_samples", "input_rotation", "coat_from_template_pose", "coat_without_landmarks",
            "far_from_population", "population_turns", "surface_similarity", "template_start", "TWIST_FACTOR", "TWIST_MIN_DEG", "Twist", "coating_twists", "twisted"]
 
 
@@ -68,6 +68,17 @@ def _rotation_name(r: np.ndarray) -> str:
 ROTATION_NAMES = ("frames", "turned about x", "turned about y", "turned about z") + tuple(
     _rotation_name(r) for r in FRAME_ROTATIONS[4:])
 TURN_NAMES = ROTATION_NAMES
+
+
+def nearest_frame_rotation(rotation: np.ndarray) -> int:
+    """The index into :data:`FRAME_ROTATIONS` of the rotation nearest ``rotation`` (3, 3): the one
+    turned least from it (largest trace of Fᵀ R, which is 1 + 2 cos of the angle between them); ties
+    go to the earlier one.
+
+    >>> nearest_frame_rotation(FRAME_ROTATIONS[5] @ axis_rotation(np.array([0.0, 0.0, 1.0]), 20.0))
+    5
+    """
+    return int(np.argmax(np.einsum("kij,ij->k", np.asarray(FRAME_ROTATIONS), np.asarray(rotation, float))))
 #: A coating this many times farther from the population's mean shape than the median
 #: instance (RMS over the points, after a rigid alignment by its correspondence) is tried
 #: in the other turns.

@@ -19,7 +19,13 @@ from ..base.errors import Cancelled, InputError, SSMError, check_cancelled
 from ..base.progress import CancelledFn, ProgressFn
 from ..coating.coating import CoatingResult, CoatingStart
 from ..coating.distance_map import DistanceMap
-from ..correspondence.frames import FRAME_ROTATIONS, TURN_NAMES, TURNED_FACTOR, FramesStart, population_turns
+from ..correspondence.frames import (
+    TURN_NAMES,
+    TURNED_FACTOR,
+    FramesStart,
+    nearest_frame_rotation,
+    population_turns,
+)
 from ..correspondence.frames import coat_without_landmarks as frames_coat
 from ..correspondence.rounds import (
     CorrespondenceCheck,
@@ -31,7 +37,7 @@ from ..correspondence.rounds import (
     round_helps,
     starts_from_model,
 )
-from ..fitting.fit import turn_angle_deg, weighted_pose
+from ..fitting.fit import weighted_pose
 from ..meshutil import Mesh
 from ..model.quality import (
     Finding,
@@ -625,10 +631,8 @@ def medoid_without_landmarks(study: Study, coated: dict, *, jobs: int = 1, execu
     # corresponding points; the medoid's template lies on its surface in its object frame): the
     # rotation of the frame's axes nearest it is the one the start screens (with the input pose)
     ref = first.coatings[medoid].points_object
-    turns = {}
-    for n in names:
-        rot = weighted_pose(ref, first.coatings[n].points_object, np.ones(len(ref)), scale=True).rotation
-        turns[n] = (min(range(len(FRAME_ROTATIONS)), key=lambda k: (turn_angle_deg(FRAME_ROTATIONS[k], rot), k)),)
+    turns = {n: (nearest_frame_rotation(weighted_pose(ref, first.coatings[n].points_object, np.ones(len(ref)),
+                                                      scale=True).rotation),) for n in names}
     again = _frames_pass(other, executor, jobs=jobs, cancelled=cancelled, screened=turns)
     # confirmed by the second coatings: each pass's own template instance is coated exactly and
     # the others towards its shape, so the two passes must agree that the medoid is nearer

@@ -371,6 +371,12 @@ def _write_model_outputs(model, folder: Path, files: dict, *, output: OutputPara
     return entries
 
 
+def _outward(faces: np.ndarray, mirrored: bool) -> np.ndarray:
+    """The template's triangles facing outwards on points written in their instance's own world: turned
+    for an instance mirrored into the model's side (a mirror image reverses every triangle)."""
+    return faces[:, ::-1] if mirrored else faces
+
+
 def write_study(study: Study, folder, *, output: OutputParams, project: str | Absent, title: str,
                 blender_hook: Callable | None = None, analysis: Callable | None = None, plots: bool = True,
                 timings_unknown: dict | None = None, metrics_absent: str = "not computed", extra: dict | None = None,
@@ -406,8 +412,8 @@ def write_study(study: Study, folder, *, output: OutputParams, project: str | Ab
     drawn = start_drawings(study.model, study.metrics, output, folder, files, plots=plots, executor=executor)
     tpl, model = study.template, study.model
     tframe = study.frame(study.template_instance)  # on its instance, in its own side, facing outwards there
-    write_ply(folder / "template.ply", tframe.to_world(tpl.points_object),
-              tpl.faces[:, ::-1] if tframe.mirrored else tpl.faces, space="RAS")
+    write_ply(folder / "template.ply", tframe.to_world(tpl.points_object), _outward(tpl.faces, tframe.mirrored),
+              space="RAS")
     files["template"] = "template.ply"
     names = list(model.instance_names)
     safe = file_names(names)
@@ -415,7 +421,7 @@ def write_study(study: Study, folder, *, output: OutputParams, project: str | Ab
         # each coating in its instance's own world and side: a mirrored instance's triangles turned
         # back so that they face outwards there
         mirrored = set(model.params.get("mirrored") or ())
-        faces = {n: tpl.faces[:, ::-1] if n in mirrored else tpl.faces for n in names}
+        faces = {n: _outward(tpl.faces, n in mirrored) for n in names}
         (folder / "coated").mkdir()
         for name, pw in zip(names, model.instance_points_world):
             write_ply(folder / "coated" / f"{safe[name]}.ply", np.asarray(pw, float), faces[name], space="RAS")
@@ -522,13 +528,13 @@ def write_joint(joint, folder, *, output: OutputParams, project: str | Absent, t
         (base / "coated").mkdir(parents=True)
         tpl = study.template
         tframe = study.frame(study.template_instance)  # on its instance, in its own side, facing outwards there
-        write_ply(base / "template.ply", tframe.to_world(tpl.points_object),
-                  tpl.faces[:, ::-1] if tframe.mirrored else tpl.faces, space="RAS")
+        write_ply(base / "template.ply", tframe.to_world(tpl.points_object), _outward(tpl.faces, tframe.mirrored),
+                  space="RAS")
         safe = file_names(joint.subjects)
         sl = model.structure_slice(name)
         for subject, pw in zip(model.instance_names, model.instance_points_world):
             # in the subject's own world and side: a mirrored subject's triangles turned to face outwards there
-            faces = tpl.faces[:, ::-1] if study.frame(str(subject)).mirrored else tpl.faces
+            faces = _outward(tpl.faces, study.frame(str(subject)).mirrored)
             write_ply(base / "coated" / f"{safe[str(subject)]}.ply", np.asarray(pw[sl], float), faces, space="RAS")
         carried = carried_landmarks(study)  # the template's landmarks where each coating put them, as a single build
         if output.landmarks and carried:
