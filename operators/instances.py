@@ -285,8 +285,8 @@ class SSM_OT_add_mesh_instances(BackgroundJob, bpy.types.Operator):
             for n, (name, verts, faces) in enumerate(data):
                 report(progress, n / len(data), f"voxelizing {name}")
                 vol = voxelize_mesh(verts, faces, mesh_spacing or tp.spacing_mm, source=name, cancelled=cancelled)
-                ov = core.object_from_mesh(verts, faces, spacing_mm=tp.spacing_mm, frame_method=method, source=name,
-                                           frame=core.instance_frame(vol, method), cancelled=cancelled)
+                ov = core.object_from_mesh(verts, faces, spacing_mm=tp.spacing_mm, mesh_spacing_mm=mesh_spacing,
+                                           frame_method=method, source=name, cancelled=cancelled)
                 out.append((name, vol, ov))
             report(progress, 1.0, "done")
             return out

@@ -58,33 +58,38 @@ def test_model_method_at_its_defaults_is_no_worse_than_the_single_pass_on_femur1
 
 
 def test_femurs_in_scanner_poses_without_landmarks_are_coated_as_unmoved(tmp_path):
-    """Five femurs of femur10, each in its own random scanner pose (any axis, up to 180°) as 3D Slicer
-    writes it (LPS PLY), no landmarks: the start's registration from every rotation of the frame's
-    axes finds each femur however its moments axes were paired with the patient's, so every coating
-    lies within 4 mm (mean) of its true places and the set within 10 % of the same femurs unmoved
-    (before this start: femur03 coated end for end, 249 mm, in the coating alone)."""
+    """Five femurs of femur10, each in its own random scanner pose (any axis, up to 180°) as Scalismo
+    and ShapeWorks write them (PLY in scanner mm, no convention stated), no landmarks. The object
+    frames come from the solids' exact moments (the moved frame of a moved mesh) and the start keeps
+    the input coordinates only to choose between basins, so every femur is coated as unmoved: the
+    same points to 0.1 mm (the files' float32 coordinates flip a few voxels), not only as near the
+    truth (before: 0.11 mm apart in the mean error, 1.2 mm at the worst point; before the start's
+    registration from every rotation of the frame's axes, femur03 coated end for end, 249 mm)."""
     from foreign_data import random_rigid, slicer_ply
 
     files, meshes = meshes_or_skip(DATA / "femur10", "femur*.ply", limit=5)
     rng = np.random.default_rng(7)
-    moved_files, moved = [], []
+    moved_files, moved, motions = [], [], {}
     for f, (v, faces) in zip(files, meshes):
         rot, shift = random_rigid(rng, shift_mm=200.0)
         w = v @ rot.T + shift
-        moved_files.append(slicer_ply(tmp_path / f.name, w, faces))
+        moved_files.append(slicer_ply(tmp_path / f.name, w, faces, space=None))
         moved.append((w, faces))
-    _study, unmoved = built_study(files, meshes, tmp_path, landmarks=0, on=0, method="landmarks")
-    _study, posed = built_study(moved_files, moved, tmp_path, landmarks=0, on=0, method="landmarks")
-    per = {n: float(e.mean()) for n, e in posed.items()}
+        motions[f.stem] = (rot, shift)
+    study, unmoved = built_study(files, meshes, tmp_path, landmarks=0, on=0, method="landmarks")
+    posed_study, posed = built_study(moved_files, moved, tmp_path, landmarks=0, on=0, method="landmarks")
+    assert posed_study.template_instance == study.template_instance
+    apart = {}
+    for n, (rot, shift) in motions.items():  # the posed coating moved back into the unmoved femur's place
+        back = (posed_study.frame(n).to_world(posed_study.coatings[n].points_object) - shift) @ rot
+        apart[n] = np.linalg.norm(back - study.frame(n).to_world(study.coatings[n].points_object), axis=1)
     a, b = np.concatenate(list(unmoved.values())).mean(), np.concatenate(list(posed.values())).mean()
-    change = {n: round(per[n] - float(unmoved[n].mean()), 3) for n in per}
-    print(f"femurs without landmarks: unmoved {a:.3f} mm, in scanner poses {b:.3f} mm; {per}; per femur {change}")
-    assert max(per.values()) < 4.0, per
-    assert b < 1.1 * a, (a, b)
-    # each femur's coating lands as near its truth as unmoved (the object grids differ by the frames' voxel
-    # noise, so the coatings are not the same points: measured within 0.11 mm on femur10 in three pose sets)
-    assert max(abs(c) for c in change.values()) < 0.25, change
-
+    print(f"femurs without landmarks: unmoved {a:.3f} mm, in scanner poses {b:.3f} mm; the same points to "
+          + ", ".join(f"{n} {d.mean():.4f} / {d.max():.3f}" for n, d in apart.items()) + " mm (mean / largest)")
+    assert max(float(e.mean()) for e in posed.values()) < 4.0, posed
+    # measured: 0.000-0.004 mm in the mean, 0.10 mm at the largest point
+    assert all(d.mean() < 0.02 and np.percentile(d, 99) < 0.1 and d.max() < 0.3 for d in apart.values()), apart
+    assert abs(a - b) < 0.01, (a, b)
 
 
 def _mirror_some(files, meshes, folder: Path, which=(1, 3)):

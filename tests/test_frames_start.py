@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from ssm_addon.coating.distance_map import DistanceMap
-from ssm_addon.correspondence.frames import FRAME_ROTATIONS, ROTATION_NAMES, area_samples, template_start
+from ssm_addon.correspondence.frames import FRAME_ROTATIONS, ROTATION_NAMES, SurfacePairs, area_samples, template_start
+from ssm_addon.correspondence.rounds import WORLD_POSE_TOLERANCE
+from ssm_addon.fitting.fit import Pose, axis_rotation, turn_angle_deg
 from ssm_addon.instances.volume import ObjectFrame, ObjectVolume
 
 
@@ -61,14 +63,54 @@ def test_the_start_finds_a_template_turned_scaled_and_moved_in_any_rotation_of_t
     assert how.turn == ROTATION_NAMES[[j for j, r in enumerate(FRAME_ROTATIONS) if np.allclose(r @ rot, np.eye(3))][0]]
 
 
-def test_the_input_coordinates_pose_is_kept_where_it_fits_as_well(knobbed_egg):
-    """With the template instance's frame, the pose the input coordinates give is a candidate and wins
-    where no rotation fits WORLD_POSE_TOLERANCE times closer: the same surface, the same frame."""
+def test_the_input_coordinates_choose_the_basin_not_the_pose_within_it(knobbed_egg):
+    """With the template instance's frame, the pose the input coordinates give is a candidate. Where
+    its registration ends in the best turn's basin (within SAME_BASIN_DEG) the turn's pose is taken,
+    the very start the instance gets without input coordinates (so the same for the inputs in any
+    scanner pose); where it ends in another basin that fits within WORLD_POSE_TOLERANCE of the best
+    (the egg turned end for end about its long axis: only the knob tells), the input coordinates win."""
     ov, dm = knobbed_egg
     v, f = dm.surface_vertices, dm.surface_faces
+    alone, how_alone = template_start(v, ov, distance_map=dm, template_faces=f)
     start, how = template_start(v, ov, distance_map=dm, template_faces=f, template_frame=ov.frame)
-    assert how.turn == "input coordinates" and abs(how.scale - 1) < 0.01
+    assert how.turn == how_alone.turn == "frames" and np.array_equal(start, alone)
     assert np.linalg.norm(start - v, axis=1).mean() < 0.3
+    g = np.mgrid[-36:37, -24:25, -18:19].astype(float)  # the knob of 3 mm: turned, it fits nearly as well
+    mask = (g[0] / 30) ** 2 + (g[1] / 18) ** 2 + (g[2] / 12) ** 2 <= 1
+    mask |= (g[0] - 18) ** 2 + (g[1] - 12) ** 2 + (g[2] - 6) ** 2 <= 9
+    ov = ObjectVolume(mask, 1.0, np.array([-36.0, -24.0, -18.0]), ObjectFrame(np.zeros(3), np.eye(3)), "egg")
+    dm = DistanceMap.from_object_volume(ov)
+    v, f = dm.surface_vertices, dm.surface_faces
+    turned = ObjectFrame(np.zeros(3), FRAME_ROTATIONS[1])  # the template's frame turned 180° about x
+    start, how = template_start(v, ov, distance_map=dm, template_faces=f, template_frame=turned)
+    assert how.turn == "input coordinates"
+    assert how.distances_mm["input coordinates"] <= WORLD_POSE_TOLERANCE * how.distances_mm["frames"]
+    err = np.linalg.norm(start - v @ FRAME_ROTATIONS[1].T, axis=1)
+    assert err.mean() < 1.0, err.mean()  # where the turned input coordinates put it
+
+
+def test_point_to_plane_steps_finish_a_registration_that_point_pairs_leave_creeping():
+    """An elliptic disc (radii 24, 15, 8 mm, 1 mm voxels) and its own surface turned 20-40° about its
+    short axis: 30 point-to-point steps leave it 4-10° short (each pair pulls along a rim that
+    barely changes), 10 point-to-plane steps after them end within 0.1° and nearer by the
+    registration's own measure."""
+    g = np.mgrid[-26:27, -17:18, -10:11].astype(float)
+    mask = (g[0] / 24) ** 2 + (g[1] / 15) ** 2 + (g[2] / 8) ** 2 <= 1
+    ov = ObjectVolume(mask, 1.0, np.array([-26.0, -17.0, -10.0]), ObjectFrame(np.zeros(3), np.eye(3)), "disc")
+    dm = DistanceMap.from_object_volume(ov)
+    v, f = dm.surface_vertices, dm.surface_faces
+    tgt, tgt_w, tgt_n = area_samples(v, f, 6000, normals=True)
+    for degrees in (20.0, 40.0):
+        rot = axis_rotation(np.array([0.0, 0.0, 1.0]), degrees)
+        src, src_w = area_samples(v @ rot.T, f, 1500)
+        pairs = SurfacePairs(src, src_w, tgt, tgt_w, tgt_n)
+        start = Pose(np.eye(3), tgt_w @ tgt / tgt_w.sum() - src_w @ src / src_w.sum(), 1.0)
+        points, d_points = pairs.register(start, 30)
+        plane, d_plane = pairs.register(start, 30, plane_iterations=10)
+        left, left_plane = turn_angle_deg(points.rotation @ rot), turn_angle_deg(plane.rotation @ rot)
+        print(f"{degrees:.0f}°: point pairs leave {left:.2f}° ({d_points:.3f} mm), with the plane steps "
+              f"{left_plane:.3f}° ({d_plane:.3f} mm)")
+        assert left > 3.0 and left_plane < 0.1 and d_plane < d_points  # measured 4.2-10.2° and 0.02°
 
 
 def _knobbed_spindle(dirs, length, width, knob, rng_turn=None):
@@ -114,7 +156,9 @@ def test_the_carry_brings_a_start_without_landmarks_nearer_a_part_stretched_alon
     and its -x end shrinks), coated from its own surface without landmarks: the true place of
     template point v is the stretch of v. The carry's pulls along the surface (a smooth
     displacement at 48 mm) move the start nearer those places than the similarity pose alone (at
-    least 5 % nearer) and the coating from it lands nearer too (at least 3 %), on the surface."""
+    least 4 % nearer: measured 2.41 -> 2.30 mm; 2.54 -> 2.38 before the point-to-plane steps brought
+    the similarity pose itself nearer) and the coating from it lands nearer too (at least 3 %:
+    2.21 -> 2.14 mm), on the surface."""
     from conftest import icosphere
 
     from ssm_addon.base.params import CoatingParams
@@ -144,6 +188,6 @@ def test_the_carry_brings_a_start_without_landmarks_nearer_a_part_stretched_alon
                          np.linalg.norm(result.points_object - truth, axis=1).mean())
         assert np.abs(DistanceMap.from_object_volume(stretched).distance(result.points_object)).max() < 0.01
     (start_without, coated_without), (start_with, coated_with) = errors[()], errors[(48.0,)]
-    assert start_with < 0.95 * start_without, errors
+    assert start_with < 0.96 * start_without, errors
     assert coated_with < 0.97 * coated_without, errors
     assert CoatingParams().carry_sigmas_mm == (48.0,)

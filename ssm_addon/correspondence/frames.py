@@ -92,6 +92,13 @@ SCREEN_STRIDE = 3
 SCREEN_ITERATIONS = 6
 REGISTRATION_ITERATIONS = 30
 FINALISTS = 3
+#: Point-to-plane steps that finish each finalist's registration (kept where they bring the surfaces
+#: nearer): the point-to-point steps creep along a round surface (a patella turns a few degrees
+#: in 30 steps), the point-to-plane steps slide along it to where it fits.
+PLANE_ITERATIONS = 10
+#: The input coordinates' registration ending within this angle (degrees) of the best turn's is in
+#: the same basin: the turn's pose is taken, which does not depend on the scanner pose.
+SAME_BASIN_DEG = 10.0
 
 
 @dataclass(frozen=True)
@@ -126,9 +133,11 @@ def template_start(template_points: np.ndarray, target: ObjectVolume, *, templat
     translation and one scale, symmetric closest points weighted by surface area) from each of
     the rotations in ``turns`` (the 24 rotations of :data:`FRAME_ROTATIONS`, which map the object
     frame's axes onto themselves, so that a frame whose axes came out swapped or turned end for
-    end is still found) and from the pose the input coordinates give; the pose nearest the
-    surface wins, the input coordinates' unless another fits ``WORLD_POSE_TOLERANCE`` times
-    closer.
+    end is still found) and from the pose the input coordinates give; the nearest few are
+    finished by :meth:`SurfacePairs.register` with ``PLANE_ITERATIONS`` point-to-plane steps;
+    the pose nearest the surface wins, the input coordinates' unless another fits
+    ``WORLD_POSE_TOLERANCE`` times closer or theirs ends within ``SAME_BASIN_DEG`` of it (then
+    the turn's: the same pose for the inputs in any scanner pose).
 
     Parameters
     ----------
@@ -153,6 +162,7 @@ def template_start(template_points: np.ndarray, target: ObjectVolume, *, templat
     dm = distance_map if distance_map is not None else DistanceMap.from_object_volume(target)
     src, src_w = area_samples(pts, template_faces, SCREEN_SAMPLES)
     tgt, tgt_w = area_samples(dm.surface_vertices, dm.surface_faces, TARGET_SAMPLES)
+    tgt_normals = area_samples(dm.surface_vertices, dm.surface_faces, TARGET_SAMPLES, normals=True)[2]
     centre_s, centre_t = src_w @ src / src_w.sum(), tgt_w @ tgt / tgt_w.sum()
     scale = float(np.sqrt(tgt_w.sum() / max(src_w.sum(), 1e-12))) if template_faces is not None else float(
         np.sqrt(((tgt - centre_t) ** 2).sum(axis=1) @ tgt_w / tgt_w.sum())
@@ -164,17 +174,21 @@ def template_start(template_points: np.ndarray, target: ObjectVolume, *, templat
         rot = input_rotation(pts, template_frame, target.frame)
         world = ("input coordinates", Pose(rot, centre_t - scale * rot @ centre_s, scale))
         candidates.insert(0, world)
-    surface = SurfacePairs(src, src_w, tgt, tgt_w)
+    surface = SurfacePairs(src, src_w, tgt, tgt_w, tgt_normals)
     coarse = SurfacePairs(src[::SCREEN_STRIDE], src_w[::SCREEN_STRIDE], tgt[::SCREEN_STRIDE], tgt_w[::SCREEN_STRIDE])
     screened = [(name, *coarse.register(pose, SCREEN_ITERATIONS)) for name, pose in candidates]
     # the nearest few screened poses registered in full; the input coordinates' pose always
     finalists = sorted(range(len(screened)), key=lambda i: (screened[i][2], i))[:FINALISTS]
     if world is not None and 0 not in finalists:
         finalists.append(0)
-    final = {i: surface.register(screened[i][1], REGISTRATION_ITERATIONS) for i in finalists}
+    final = {i: surface.register(screened[i][1], REGISTRATION_ITERATIONS, plane_iterations=PLANE_ITERATIONS)
+             for i in finalists}
     distances = {screened[i][0]: final[i][1] if i in final else screened[i][2] for i in range(len(screened))}
-    best = min(final, key=lambda i: (final[i][1], i))
-    if world is not None and final[0][1] <= WORLD_POSE_TOLERANCE * final[best][1]:
+    best = min((i for i in final if i or world is None), key=lambda i: (final[i][1], i), default=0)
+    # the input coordinates choose the basin, not the pose within it: where their registration ends
+    # within SAME_BASIN_DEG of the best turn's, the turn's pose is kept (the same for any input pose)
+    if world is not None and best != 0 and final[0][1] <= WORLD_POSE_TOLERANCE * final[best][1] and turn_angle_deg(
+            final[0][0].rotation, final[best][0].rotation) > SAME_BASIN_DEG:
         best = 0
     pose = final[best][0]
     return pose.apply(pts), FramesStart(screened[best][0], distances, float(pose.scale))
@@ -193,35 +207,48 @@ def input_rotation(points: np.ndarray, template_frame: ObjectFrame, target_frame
     return rot[0]
 
 
-def area_samples(vertices: np.ndarray, faces: np.ndarray | None, count: int) -> tuple[np.ndarray, np.ndarray]:
+def area_samples(vertices: np.ndarray, faces: np.ndarray | None, count: int, *, normals: bool = False):
     """About ``count`` samples of a surface and the area (mm²) each stands for.
 
     Every k-th triangle's centroid, weighted by k times its area (mm², the frame of
     ``vertices``), so that sums over the samples approximate integrals over the surface;
-    without ``faces``, every k-th vertex with weight 1.
+    without ``faces``, every k-th vertex with weight 1. With ``normals``, also the
+    triangles' unit normals (as the faces turn).
     """
     v = np.asarray(vertices, float)
     if faces is None or not len(faces):
+        if normals:
+            raise ValueError("normals need the faces")
         step = max(1, len(v) // max(count, 1))
         return v[::step], np.ones(len(v[::step]))
     f = np.asarray(faces)
     step = max(1, len(f) // max(count, 1))
     f = f[::step]
-    area = 0.5 * np.linalg.norm(face_normals(v, f, normalize=False), axis=1)
+    cross = face_normals(v, f, normalize=False)
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    if normals:
+        return face_centroids(v, f), area * step, cross / np.maximum(2.0 * area, 1e-300)[:, None]
     return face_centroids(v, f), area * step
 
 
 class SurfacePairs:
-    """The template's and the target's area samples, for :meth:`register`."""
+    """The template's and the target's area samples (and the target's unit normals, for the
+    point-to-plane steps), for :meth:`register`."""
 
-    def __init__(self, src, src_w, tgt, tgt_w):
-        self.src, self.tgt = src, tgt
+    def __init__(self, src, src_w, tgt, tgt_w, tgt_normals=None):
+        self.src, self.tgt, self.tgt_normals = src, tgt, tgt_normals
         self.w = np.concatenate([src_w / src_w.sum(), tgt_w / tgt_w.sum()])
         self.tgt_tree = cKDTree(tgt)
 
-    def register(self, pose: Pose, iterations: int) -> tuple[Pose, float]:
-        """:func:`surface_similarity` from ``pose``: the pose and its symmetric mean distance (mm)."""
-        return surface_similarity(self.src, self.tgt, self.w, self.tgt_tree, pose, iterations)
+    def register(self, pose: Pose, iterations: int, *, plane_iterations: int = 0) -> tuple[Pose, float]:
+        """:func:`surface_similarity` from ``pose``, then ``plane_iterations`` steps of
+        :func:`plane_similarity` where they end nearer: the pose and its symmetric mean distance (mm)."""
+        pose, d = surface_similarity(self.src, self.tgt, self.w, self.tgt_tree, pose, iterations)
+        if plane_iterations and self.tgt_normals is not None:
+            plane = plane_similarity(self.src, self.tgt, self.tgt_normals, self.w, self.tgt_tree, pose, plane_iterations)
+            if plane[1] < d:
+                return plane
+        return pose, d
 
 
 def surface_similarity(src: np.ndarray, tgt: np.ndarray, weights: np.ndarray, tgt_tree: cKDTree, pose: Pose,
@@ -252,16 +279,66 @@ def surface_similarity(src: np.ndarray, tgt: np.ndarray, weights: np.ndarray, tg
     Besl & McKay (1992), A method for registration of 3-D shapes; Umeyama (1991),
     Least-squares estimation of transformation parameters between two point patterns.
     """
-    n = len(src)
     for _ in range(iterations):
         x = pose.apply(src)
         _d, j = tgt_tree.query(x)
         _d, i = cKDTree(x).query(tgt)
         pose = weighted_pose(np.vstack([src, src[i]]), np.vstack([tgt[j], tgt]), weights, scale=True)
+    return pose, symmetric_distance(src, tgt, weights, tgt_tree, pose)
+
+
+def symmetric_distance(src: np.ndarray, tgt: np.ndarray, weights: np.ndarray, tgt_tree: cKDTree, pose: Pose) -> float:
+    """The area-weighted mean of both directions' nearest distances (mm) of the posed source
+    samples and the target's (``weights`` as :func:`surface_similarity`'s)."""
     x = pose.apply(src)
     d_fwd = tgt_tree.query(x)[0]
     d_bwd = cKDTree(x).query(tgt)[0]
-    return pose, float(0.5 * (weights[:n] @ d_fwd + weights[n:] @ d_bwd))
+    n = len(src)
+    return float(0.5 * (weights[:n] @ d_fwd + weights[n:] @ d_bwd))
+
+
+#: Relative damping of the point-to-plane normal equations (a round surface leaves its turn about
+#: its own axis free).
+PLANE_DAMPING = 1e-6
+
+
+def plane_similarity(src: np.ndarray, tgt: np.ndarray, tgt_normals: np.ndarray, weights: np.ndarray,
+                     tgt_tree: cKDTree, pose: Pose, iterations: int) -> tuple[Pose, float]:
+    """:func:`surface_similarity` with point-to-plane steps (Chen & Medioni 1992).
+
+    The same pairs in both directions, each measured along the target sample's normal n: the
+    step is the small similarity (scale e^σ, turn ω, shift δ about the pairs' centre c) that
+    solves the area-weighted least squares of n · (y + σ (y - c) + ω × (y - c) + δ - q) (the
+    pose linearised; the turn then applied exactly, Rodrigues), so a surface slides along the
+    other as far as its shape allows in one step, where point pairs pull it a little each step.
+
+    Returns
+    -------
+    (Pose, mean distance mm)
+        As :func:`surface_similarity`.
+
+    References
+    ----------
+    Chen & Medioni (1992), Object modelling by registration of multiple range images;
+    Low (2004), Linear least-squares optimization for point-to-plane ICP surface registration.
+    """
+    for _ in range(iterations):
+        y = pose.apply(src)
+        _d, j = tgt_tree.query(y)
+        _d, i = cKDTree(y).query(tgt)
+        p, q, n = np.vstack([y, y[i]]), np.vstack([tgt[j], tgt]), np.vstack([tgt_normals[j], tgt_normals])
+        c = weights @ p / weights.sum()
+        pc = p - c
+        a = np.hstack([np.einsum("ij,ij->i", n, pc)[:, None], np.cross(pc, n), n])
+        b = -np.einsum("ij,ij->i", n, p - q)
+        normal = a.T @ (a * weights[:, None])
+        normal += PLANE_DAMPING * np.trace(normal) / 7.0 * np.eye(7)
+        sigma, omega, delta = np.split(np.linalg.solve(normal, a.T @ (weights * b)), [1, 4])
+        angle = float(np.linalg.norm(omega))
+        turn = axis_rotation(omega, np.degrees(angle)) if angle > 0 else np.eye(3)
+        grow = float(np.exp(sigma[0]))
+        pose = Pose(turn @ pose.rotation, grow * turn @ (pose.translation - c) + c + delta, pose.scale * grow)
+    return pose, symmetric_distance(src, tgt, weights, tgt_tree, pose)
 
 
 def coat_from_template_pose(template: Mesh, target: ObjectVolume, *, coating: CoatingParams,

@@ -37,9 +37,8 @@ from ..formats.label_maps import file_stem, is_mesh_file, read_label_map, select
 from ..formats.landmarks import read_landmarks
 from ..formats.meshes import read_mesh, read_ply, write_ply
 from ..instances.frame import frame_axes_patient
-from ..instances.importing import InstanceSpec, file_names, import_instance, instance_frame
+from ..instances.importing import InstanceSpec, file_names, import_instance, instance_frame, mesh_frame
 from ..instances.volume import display_surface
-from ..instances.voxelize import voxelize_mesh
 from ..meshutil import Mesh
 from ..model.figures import fit_figure, p_value_text
 from ..model.files import load_model, write_npz
@@ -146,7 +145,7 @@ def load_target(t: FitTarget, model, *, spacing_mm: float | None = None,
         if not size_in_unit_range(verts, model):  # metres or cm: the search fits it, the verdict says so
             return target, None
         try:
-            frame = instance_frame(voxelize_mesh(verts, faces, spacing, source=str(t.mesh)), method)
+            frame = mesh_frame(verts, faces, frame_method=method, spacing_mm=spacing, source=str(t.mesh))
         except InputError as err:
             raise InputError(f"{err}; if it is a partial scan, fit it with --partial") from None
         return target, Pose(frame.axes_world, frame.origin_world)

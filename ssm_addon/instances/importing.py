@@ -11,6 +11,7 @@ gives the same :class:`~ssm_addon.instances.volume.ObjectVolume` in both, bit fo
 
 from __future__ import annotations
 
+import contextlib
 import unicodedata
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -22,12 +23,12 @@ from ..base.progress import CancelledFn, ProgressFn, report, sub_progress
 from ..formats.label_maps import LabelMap, Volume, is_mesh_file, load_volume, select_label
 from ..formats.landmarks import LandmarkSet
 from ..formats.meshes import mesh_space, read_mesh
-from ..instances.frame import object_frame
+from ..instances.frame import mesh_solid_frame, object_frame
 from ..instances.resampling import resample
 from ..instances.volume import ObjectFrame, ObjectVolume, bounding_box, mirrored
-from ..instances.voxelize import keep_thin_parts, load_mesh_volume, voxelize_mesh
+from ..instances.voxelize import keep_thin_parts, load_mesh_volume, mesh_edge_defects, voxelize_mesh
 
-__all__ = ["InstanceSpec", "file_names", "import_instance", "instance_frame", "load_object", "object_from_mesh", "object_from_volume",
+__all__ = ["InstanceSpec", "file_names", "import_instance", "instance_frame", "load_object", "mesh_frame", "object_from_mesh", "object_from_volume",
            "landmark_space", "mesh_coordinates", "mesh_instance", "read_instance", "safe_file_name"]
 
 
@@ -155,6 +156,27 @@ def instance_frame(volume: Volume, frame_method: str = "auto") -> ObjectFrame:
     return object_frame(volume, frame_method)
 
 
+def mesh_frame(vertices_world: np.ndarray, faces: np.ndarray, *, frame_method: str = "moments",
+               patient_oriented: bool = False, spacing_mm: float = 1.0, source: str = "",
+               cancelled: CancelledFn = None) -> ObjectFrame:
+    """The object frame (paper section 2) of a mesh's solid (world mm): from its exact moments
+    where the mesh is closed and consistently oriented
+    (:func:`~ssm_addon.instances.frame.mesh_solid_frame`, the same for the mesh in any pose),
+    else from its voxelization at ``spacing_mm`` on the world grid. ``frame_method`` as
+    :func:`~ssm_addon.instances.frame.object_frame` (``"auto"``: ``"patient"`` where
+    ``patient_oriented``). The one place a mesh's frame is computed: the build's import,
+    Blender's *Add Mesh Instances* and a fit's target."""
+    method = (frame_method or "auto").lower()
+    if method == "auto":
+        method = "patient" if patient_oriented else "moments"
+    if len(faces) and not any(mesh_edge_defects(faces)):
+        with contextlib.suppress(InputError):  # bounds no volume: the voxelization says what is wrong
+            return mesh_solid_frame(vertices_world, faces, method)
+    vol = voxelize_mesh(vertices_world, faces, spacing_mm, source=source, patient_oriented=patient_oriented,
+                        cancelled=cancelled)
+    return instance_frame(vol, method)
+
+
 def object_from_volume(volume: Volume, *, spacing_mm: float, frame_method: str = "auto",
                        frame: ObjectFrame | None = None, progress: ProgressFn = None,
                        cancelled: CancelledFn = None) -> ObjectVolume:
@@ -243,18 +265,16 @@ def object_from_mesh(vertices_world: np.ndarray, faces: np.ndarray, *, spacing_m
                      cancelled: CancelledFn = None) -> ObjectVolume:
     """A closed mesh given as arrays (world mm) as an object of paper section 2.
 
-    The object frame comes from the mesh's voxelization at ``mesh_spacing_mm`` (default
-    ``spacing_mm``) on the world grid (or is ``frame``); then the mesh itself, in object mm, is
+    The object frame is :func:`mesh_frame`'s (its exact solid moments; a voxelization at
+    ``mesh_spacing_mm``, default ``spacing_mm``, where the mesh is not closed) or ``frame``; then the mesh itself, in object mm, is
     voxelized on the object grid at ``spacing_mm`` (voxel centres at multiples of the spacing,
     two background voxels on every side: :func:`~ssm_addon.instances.resampling.resample`'s
     grid). The surface is sampled once, as a label map's is by its resampling, not
     voxelized and then resampled (which moved it by up to half a voxel).
     """
     if frame is None:
-        vol = voxelize_mesh(vertices_world, faces, mesh_spacing_mm or spacing_mm, source=source,
-                            patient_oriented=patient_oriented, cancelled=cancelled)
-        frame = instance_frame(vol, frame_method)
-        del vol
+        frame = mesh_frame(vertices_world, faces, frame_method=frame_method, patient_oriented=patient_oriented,
+                           spacing_mm=mesh_spacing_mm or spacing_mm, source=source, cancelled=cancelled)
     check_cancelled(cancelled)
     vertices_object = frame.to_object(np.asarray(vertices_world, float))
     grid = voxelize_mesh(vertices_object, faces, spacing_mm, source=source, cancelled=cancelled)
