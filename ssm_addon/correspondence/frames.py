@@ -92,10 +92,12 @@ SCREEN_STRIDE = 3
 SCREEN_ITERATIONS = 6
 REGISTRATION_ITERATIONS = 30
 FINALISTS = 3
-#: Point-to-plane steps that finish each finalist's registration (kept where they bring the surfaces
-#: nearer): the point-to-point steps creep along a round surface (a patella turns a few degrees
-#: in 30 steps), the point-to-plane steps slide along it to where it fits.
+#: Point-to-plane steps that finish a finalist's registration where its point pairs are still
+#: turning it by more than ``CREEP_DEG`` a step (kept where they bring the surfaces nearer): point
+#: pairs creep along a round surface (a patella turns a few degrees in 30 steps), the
+#: point-to-plane steps slide along it to where it fits.
 PLANE_ITERATIONS = 10
+CREEP_DEG = 0.05
 #: The input coordinates' registration ending within this angle (degrees) of the best turn's is in
 #: the same basin: the turn's pose is taken, which does not depend on the scanner pose.
 SAME_BASIN_DEG = 10.0
@@ -134,7 +136,7 @@ def template_start(template_points: np.ndarray, target: ObjectVolume, *, templat
     the rotations in ``turns`` (the 24 rotations of :data:`FRAME_ROTATIONS`, which map the object
     frame's axes onto themselves, so that a frame whose axes came out swapped or turned end for
     end is still found) and from the pose the input coordinates give; the nearest few are
-    finished by :meth:`SurfacePairs.register` with ``PLANE_ITERATIONS`` point-to-plane steps;
+    finished by :meth:`SurfacePairs.register` (point-to-plane steps where they still creep);
     the pose nearest the surface wins, the input coordinates' unless another fits
     ``WORLD_POSE_TOLERANCE`` times closer or theirs ends within ``SAME_BASIN_DEG`` of it (then
     the turn's: the same pose for the inputs in any scanner pose).
@@ -241,10 +243,16 @@ class SurfacePairs:
         self.tgt_tree = cKDTree(tgt)
 
     def register(self, pose: Pose, iterations: int, *, plane_iterations: int = 0) -> tuple[Pose, float]:
-        """:func:`surface_similarity` from ``pose``, then ``plane_iterations`` steps of
-        :func:`plane_similarity` where they end nearer: the pose and its symmetric mean distance (mm)."""
-        pose, d = surface_similarity(self.src, self.tgt, self.w, self.tgt_tree, pose, iterations)
-        if plane_iterations and self.tgt_normals is not None:
+        """:func:`surface_similarity` from ``pose``; where its last step still turned the pose by more
+        than :data:`CREEP_DEG`, ``plane_iterations`` steps of :func:`plane_similarity` after it, kept
+        where they end nearer: the pose and its symmetric mean distance (mm)."""
+        before = pose
+        if plane_iterations and iterations > 1:
+            before, _d = surface_similarity(self.src, self.tgt, self.w, self.tgt_tree, pose, iterations - 1)
+            iterations = 1
+        pose, d = surface_similarity(self.src, self.tgt, self.w, self.tgt_tree, before, iterations)
+        if (plane_iterations and self.tgt_normals is not None
+                and turn_angle_deg(pose.rotation, before.rotation) > CREEP_DEG):
             plane = plane_similarity(self.src, self.tgt, self.tgt_normals, self.w, self.tgt_tree, pose, plane_iterations)
             if plane[1] < d:
                 return plane

@@ -48,7 +48,9 @@ class InstanceSpec:
     mesh_path : Path or None
         Closed surface mesh (STL/PLY/OBJ) in world mm.
     mesh_spacing_mm : float or None
-        Voxelization step of a mesh in mm (None: the study's spacing).
+        Voxel size (mm) of a mesh's input volume (:func:`read_instance`: what Blender shows and
+        measures beside it; None: the study's spacing). Its object frame is its solid's
+        (:func:`mesh_frame`) and its object grid the study's spacing.
     landmarks : LandmarkSet or None
         The landmarks as read (world mm of the instance's file), in the study's common
         name order.
