@@ -87,7 +87,7 @@ def test_femurs_in_scanner_poses_without_landmarks_are_coated_as_unmoved(tmp_pat
     print(f"femurs without landmarks: unmoved {a:.3f} mm, in scanner poses {b:.3f} mm; the same points to "
           + ", ".join(f"{n} {d.mean():.4f} / {d.max():.3f}" for n, d in apart.items()) + " mm (mean / largest)")
     assert max(float(e.mean()) for e in posed.values()) < 4.0, posed
-    # measured: 0.000-0.004 mm in the mean, 0.10 mm at the largest point
+    # measured: four of five bit for bit alike, femur03 0.008 mm in the mean, 0.06 mm at the largest point
     assert all(d.mean() < 0.02 and np.percentile(d, 99) < 0.1 and d.max() < 0.3 for d in apart.values()), apart
     assert abs(a - b) < 0.01, (a, b)
 

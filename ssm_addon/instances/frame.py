@@ -200,8 +200,11 @@ def mesh_solid_frame(vertices_world: np.ndarray, faces: np.ndarray, method: str 
     second = (np.einsum("i,ij,ik->jk", vol, a, a) + np.einsum("i,ij,ik->jk", vol, b, b)
               + np.einsum("i,ij,ik->jk", vol, c, c) + np.einsum("i,ij,ik->jk", vol, s, s)) / 20.0 / volume
     cov = second - np.outer(centre, centre)
-    cov = (cov + cov.T) / 2.0
-    origin = ref + centre
+    # rounded (1e-9 mm, 1e-9 mm²) so that the same mesh with its vertices or triangles in another
+    # order (an STL reader's merge, LPS against RAS) gives the same frame bit for bit, not one
+    # the sums' rounding turned by 1e-15
+    cov = np.round((cov + cov.T) / 2.0, 9)
+    origin = np.round(ref + centre, 9)
     eigvals, eigvecs = np.linalg.eigh(cov)
     if method == "patient":
         axes, _order = frame_axes_patient(eigvecs)

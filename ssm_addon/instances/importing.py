@@ -161,17 +161,20 @@ def instance_frame(volume: Volume, frame_method: str = "auto") -> ObjectFrame:
 def mesh_frame(vertices_world: np.ndarray, faces: np.ndarray, *, frame_method: str = "moments",
                patient_oriented: bool = False, spacing_mm: float = 1.0, source: str = "",
                cancelled: CancelledFn = None) -> ObjectFrame:
-    """The object frame (paper section 2) of a mesh's solid (world mm): from its exact moments
-    where the mesh is closed and consistently oriented
-    (:func:`~ssm_addon.instances.frame.mesh_solid_frame`, the same for the mesh in any pose),
-    else from its voxelization at ``spacing_mm`` on the world grid. ``frame_method`` as
+    """The object frame (paper section 2) of a mesh's solid (world mm). With the ``"moments"``
+    method (a mesh in arbitrary coordinates, as Scalismo and ShapeWorks write them) and a closed,
+    consistently oriented mesh: its exact moments
+    (:func:`~ssm_addon.instances.frame.mesh_solid_frame`, the same for the mesh in any pose);
+    else (``"patient"``: axes paired with R, A, S of a file that states its convention) from its
+    voxelization at ``spacing_mm`` on the world grid. ``frame_method`` as
     :func:`~ssm_addon.instances.frame.object_frame` (``"auto"``: ``"patient"`` where
     ``patient_oriented``). The one place a mesh's frame is computed: the build's import,
     Blender's *Add Mesh Instances* and a fit's target."""
     method = (frame_method or "auto").lower()
     if method == "auto":
         method = "patient" if patient_oriented else "moments"
-    if len(faces) and not any(mesh_edge_defects(faces)):
+    # a patient frame keeps the voxelization's (docs/history.md, "The same coatings in any scanner pose")
+    if method == "moments" and len(faces) and not any(mesh_edge_defects(faces)):
         with contextlib.suppress(InputError):  # bounds no volume: the voxelization says what is wrong
             return mesh_solid_frame(vertices_world, faces, method)
     vol = voxelize_mesh(vertices_world, faces, spacing_mm, source=source, patient_oriented=patient_oriented,
