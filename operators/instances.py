@@ -263,7 +263,7 @@ class SSM_OT_add_mesh_instances(BackgroundJob, bpy.types.Operator):
 
     spacing_mm: FloatProperty(name="Mesh spacing (mm)", default=0.0, min=0.0, soft_max=5.0,
                               description="Voxel size of the meshes' input volumes shown and measured beside them "
-                                          "(their frames come from the exact solids; 0: the study's spacing)")
+                                          "(0: the study's spacing)")
 
     @classmethod
     def poll(cls, context):
