@@ -158,6 +158,9 @@ def test_add_mesh_instances_voxelizes_a_uv_sphere(bpy_clean):
     np.testing.assert_allclose(frame.origin_world, [5.0, -3.0, 40.0], atol=0.05)
     axes = frame.axes_world
     assert abs(axes[1, 0]) > 0.999 and abs(axes[0, 1]) > 0.999  # longest axis along y, then x
+    core_frame = INS.mesh_frame(verts, faces)  # the core's frame of the same closed mesh, as a build's
+    np.testing.assert_allclose(frame.origin_world, core_frame.origin_world, atol=1e-4)
+    np.testing.assert_allclose(frame.axes_world, core_frame.axes_world, atol=1e-5)
     ov = ops.instance_object_volume(bpy.context, sphere)
     assert ov.volume_mm3 == pytest.approx(analytic, rel=0.02)
     scene.clear_volume_cache()
