@@ -163,8 +163,7 @@ def template_start(template_points: np.ndarray, target: ObjectVolume, *, templat
     turns = tuple(range(len(FRAME_ROTATIONS))) if turns is None else tuple(turns)
     dm = distance_map if distance_map is not None else DistanceMap.from_object_volume(target)
     src, src_w = area_samples(pts, template_faces, SCREEN_SAMPLES)
-    tgt, tgt_w = area_samples(dm.surface_vertices, dm.surface_faces, TARGET_SAMPLES)
-    tgt_normals = area_samples(dm.surface_vertices, dm.surface_faces, TARGET_SAMPLES, normals=True)[2]
+    tgt, tgt_w, tgt_normals = area_samples(dm.surface_vertices, dm.surface_faces, TARGET_SAMPLES, normals=True)
     centre_s, centre_t = src_w @ src / src_w.sum(), tgt_w @ tgt / tgt_w.sum()
     scale = float(np.sqrt(tgt_w.sum() / max(src_w.sum(), 1e-12))) if template_faces is not None else float(
         np.sqrt(((tgt - centre_t) ** 2).sum(axis=1) @ tgt_w / tgt_w.sum())
@@ -246,11 +245,8 @@ class SurfacePairs:
         """:func:`surface_similarity` from ``pose``; where its last step still turned the pose by more
         than :data:`CREEP_DEG`, ``plane_iterations`` steps of :func:`plane_similarity` after it, kept
         where they end nearer: the pose and its symmetric mean distance (mm)."""
-        before = pose
-        if plane_iterations and iterations > 1:
-            before, _d = surface_similarity(self.src, self.tgt, self.w, self.tgt_tree, pose, iterations - 1)
-            iterations = 1
-        pose, d = surface_similarity(self.src, self.tgt, self.w, self.tgt_tree, before, iterations)
+        pose, before = _point_steps(self.src, self.tgt, self.w, self.tgt_tree, pose, iterations)
+        d = symmetric_distance(self.src, self.tgt, self.w, self.tgt_tree, pose)
         if (plane_iterations and self.tgt_normals is not None
                 and turn_angle_deg(pose.rotation, before.rotation) > CREEP_DEG):
             plane = plane_similarity(self.src, self.tgt, self.tgt_normals, self.w, self.tgt_tree, pose, plane_iterations)
@@ -287,12 +283,19 @@ def surface_similarity(src: np.ndarray, tgt: np.ndarray, weights: np.ndarray, tg
     Besl & McKay (1992), A method for registration of 3-D shapes; Umeyama (1991),
     Least-squares estimation of transformation parameters between two point patterns.
     """
+    pose, _before = _point_steps(src, tgt, weights, tgt_tree, pose, iterations)
+    return pose, symmetric_distance(src, tgt, weights, tgt_tree, pose)
+
+
+def _point_steps(src, tgt, weights, tgt_tree, pose: Pose, iterations: int) -> tuple[Pose, Pose]:
+    """:func:`surface_similarity`'s steps: the pose after them and the pose before the last one."""
+    before = pose
     for _ in range(iterations):
         x = pose.apply(src)
         _d, j = tgt_tree.query(x)
         _d, i = cKDTree(x).query(tgt)
-        pose = weighted_pose(np.vstack([src, src[i]]), np.vstack([tgt[j], tgt]), weights, scale=True)
-    return pose, symmetric_distance(src, tgt, weights, tgt_tree, pose)
+        before, pose = pose, weighted_pose(np.vstack([src, src[i]]), np.vstack([tgt[j], tgt]), weights, scale=True)
+    return pose, before
 
 
 def symmetric_distance(src: np.ndarray, tgt: np.ndarray, weights: np.ndarray, tgt_tree: cKDTree, pose: Pose) -> float:
